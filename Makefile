@@ -1,0 +1,34 @@
+# Two commands on a fresh machine: `make demo` and `make test` (see README.md).
+VENV := .venv
+PY := $(VENV)/bin/python
+CLI := $(VENV)/bin/mi-shadowgs
+PRESET ?= cpu-small
+SCENE ?= scenes/default.xml
+DEMO_DIR ?= runs/demo
+
+.PHONY: install demo test test-cuda bench validate lint clean
+
+$(VENV)/.installed: pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh
+
+install: $(VENV)/.installed
+
+demo: install
+	$(CLI) generate $(SCENE) --out $(DEMO_DIR)/data --preset $(PRESET) --overwrite
+	$(CLI) run $(DEMO_DIR)/data --out $(DEMO_DIR)/run --preset $(PRESET)
+	$(CLI) report $(DEMO_DIR)/run
+
+test: install
+	$(PY) -m pytest -q tests
+
+bench: install
+	$(PY) -m benchmarks.run_all --out BENCHMARKS-latest
+
+validate: install
+	$(PY) -m validation.run_all --out validation-out
+
+lint: install
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(VENV) runs validation-out BENCHMARKS-latest .pytest_cache

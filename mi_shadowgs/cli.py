@@ -1,0 +1,59 @@
+"""The ``mi-shadowgs`` command line.
+
+Each subcommand lives in a module of the stage that owns it; this file only lists them.
+A command module provides ``add_arguments(parser)`` and ``run(args) -> int``, and keeps its
+heavy imports inside ``run`` so that ``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "generate": ("mi_shadowgs.dataset.generate_cli",
+                 "render a shadowed synthetic dataset from a scene XML"),
+    "render": ("mi_shadowgs.render_cli", "render a surfel model (PLY) from dataset cameras"),
+}
+
+
+class CLIError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mi-shadowgs",
+        description="Shadow-aware inverse rendering with 2D Gaussian surfels (Mitsuba 3).",
+    )
+    parser.add_argument("--variant", default=None,
+                        help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from . import backend
+
+    try:
+        backend.set_variant(args.variant)
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except (CLIError, backend.BackendError, FileNotFoundError, FileExistsError,
+            ValueError) as exc:
+        print(f"mi-shadowgs {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"mi-shadowgs {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

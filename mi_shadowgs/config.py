@@ -1,0 +1,42 @@
+"""Named presets for the hyperparameter dataclasses of every stage.
+
+Each stage module defines a frozen dataclass whose field defaults are the paper's values,
+and a ``PRESETS`` dict name -> instance with at least ``paper`` and ``cpu-small``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+PRESET_NAMES = ("cpu-small", "paper")
+
+
+class ConfigError(ValueError):
+    """A preset name or a config field is unknown or invalid."""
+
+
+def get_preset(presets: dict[str, T], name: str, what: str) -> T:
+    """``presets[name]``, or ConfigError naming the stage and the known presets."""
+    try:
+        return presets[name]
+    except KeyError:
+        raise ConfigError(
+            f"unknown preset {name!r} for {what}; known presets: {sorted(presets)}"
+        ) from None
+
+
+def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
+    """A copy of ``config`` with some fields replaced; unknown fields raise ConfigError."""
+    if not overrides:
+        return config
+    names = {f.name for f in dataclasses.fields(config)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise ConfigError(f"unknown {what} setting(s) {unknown}; known: {sorted(names)}")
+    return dataclasses.replace(config, **overrides)
+
+
+def to_dict(config: Any) -> dict[str, Any]:
+    return dataclasses.asdict(config)
