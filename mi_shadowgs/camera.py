@@ -1,0 +1,205 @@
+"""Pinhole and orthographic cameras, and their exchange with Mitsuba sensors and dataset JSON.
+
+One ``Camera`` feeds the rasterizer, the visibility shadow maps, the dataset generator and
+the loader. Conventions (docs/conventions.md): ``c2w`` is camera-to-world in the
+Blender/OpenGL convention (looks down -Z, +Y up, +X right); pixel (0, 0) is the top-left
+corner and pixel centres sit at half-integers.
+
+Internally projection uses the "CV" camera frame: +X right, +Y down, +Z forward, so that
+``u = fx * x / z + cx`` and ``v = fy * y / z + cy`` (perspective) or
+``u = x / pixel_size + cx`` (orthographic).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+# OpenGL camera frame -> CV camera frame (flip Y and Z); also Mitsuba <-> OpenGL is diag(-1,1,-1).
+_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+_GL_TO_MI = np.diag([-1.0, 1.0, -1.0, 1.0])
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """A camera: ``c2w`` [4, 4] OpenGL camera-to-world, image size, and projection.
+
+    Perspective when ``fov_x`` (full horizontal field of view, radians) is set; orthographic
+    when ``ortho_width`` (image-plane width in scene units) is set instead.
+    """
+
+    c2w: np.ndarray  # [4, 4] float64, OpenGL convention
+    width: int
+    height: int
+    fov_x: float | None = None
+    ortho_width: float | None = None
+    near: float = 0.01
+    far: float = 1.0e4
+
+    def __post_init__(self):
+        c2w = np.asarray(self.c2w, dtype=np.float64)
+        if c2w.shape != (4, 4):
+            raise ValueError(f"camera c2w must be 4x4, got shape {c2w.shape}")
+        if not np.all(np.isfinite(c2w)):
+            raise ValueError("camera c2w holds NaN or Inf")
+        object.__setattr__(self, "c2w", c2w)
+        if (self.fov_x is None) == (self.ortho_width is None):
+            raise ValueError("a camera needs exactly one of fov_x (perspective) or ortho_width")
+        if self.fov_x is not None and not (0.0 < self.fov_x < math.pi):
+            raise ValueError(f"camera fov_x must be in (0, pi) radians, got {self.fov_x}")
+        if self.ortho_width is not None and not self.ortho_width > 0:
+            raise ValueError(f"camera ortho_width must be > 0, got {self.ortho_width}")
+        if self.width < 1 or self.height < 1:
+            raise ValueError(f"camera image size must be positive, got {self.width}x{self.height}")
+
+    # -- projection -------------------------------------------------------------------
+    @property
+    def is_ortho(self) -> bool:
+        return self.ortho_width is not None
+
+    @property
+    def focal(self) -> float:
+        """Focal length in pixels (perspective), or pixels per scene unit (orthographic)."""
+        if self.is_ortho:
+            return self.width / self.ortho_width
+        return 0.5 * self.width / math.tan(0.5 * self.fov_x)
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        return 0.5 * self.width, 0.5 * self.height
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.c2w[:3, 3].copy()
+
+    @property
+    def forward(self) -> np.ndarray:
+        """Unit viewing direction in world space."""
+        f = -self.c2w[:3, 2]
+        return f / np.linalg.norm(f)
+
+    def world_to_cv(self) -> np.ndarray:
+        """[4, 4] world -> CV camera frame (+X right, +Y down, +Z forward)."""
+        return _GL_TO_CV @ np.linalg.inv(self.c2w)
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points [M, 3] -> (pixel coordinates [M, 2] (x, y), z-depth [M])."""
+        p = np.asarray(points, dtype=np.float64)
+        w2c = self.world_to_cv()
+        pc = p @ w2c[:3, :3].T + w2c[:3, 3]
+        cx, cy = self.principal_point
+        f = self.focal
+        if self.is_ortho:
+            uv = np.stack([f * pc[:, 0] + cx, f * pc[:, 1] + cy], axis=-1)
+        else:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv = np.stack([f * pc[:, 0] / pc[:, 2] + cx, f * pc[:, 1] / pc[:, 2] + cy], -1)
+        return uv, pc[:, 2]
+
+    def unproject(self, pixels: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Pixel coordinates [M, 2] and z-depth [M] -> world points [M, 3]."""
+        uv = np.asarray(pixels, dtype=np.float64)
+        z = np.asarray(depth, dtype=np.float64)
+        cx, cy = self.principal_point
+        f = self.focal
+        if self.is_ortho:
+            pc = np.stack([(uv[:, 0] - cx) / f, (uv[:, 1] - cy) / f, z], axis=-1)
+        else:
+            pc = np.stack([(uv[:, 0] - cx) / f * z, (uv[:, 1] - cy) / f * z, z], axis=-1)
+        c2w_cv = np.linalg.inv(self.world_to_cv())
+        return pc @ c2w_cv[:3, :3].T + c2w_cv[:3, 3]
+
+    def pixel_grid(self) -> np.ndarray:
+        """Pixel-centre coordinates [H*W, 2] in row-major order."""
+        ys, xs = np.mgrid[0 : self.height, 0 : self.width]
+        return np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=-1).astype(np.float64)
+
+    # -- construction -----------------------------------------------------------------
+    @staticmethod
+    def look_at(origin, target, up=(0.0, 1.0, 0.0), **kwargs) -> Camera:
+        """Camera at ``origin`` looking at ``target``; kwargs go to the constructor."""
+        o, t, u = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+        back = o - t
+        n = np.linalg.norm(back)
+        if n == 0:
+            raise ValueError("look_at: origin and target coincide")
+        back /= n
+        right = np.cross(u, back)
+        if np.linalg.norm(right) < 1e-9:  # looking straight along up: pick another up
+            right = np.cross(np.array([0.0, 0.0, 1.0]), back)
+        right /= np.linalg.norm(right)
+        true_up = np.cross(back, right)
+        c2w = np.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, back, o
+        return Camera(c2w=c2w, **kwargs)
+
+    def with_size(self, width: int, height: int) -> Camera:
+        return dataclasses.replace(self, width=width, height=height)
+
+    # -- Mitsuba ----------------------------------------------------------------------
+    def mitsuba_to_world(self) -> np.ndarray:
+        """[4, 4] ``to_world`` of the equivalent Mitsuba sensor (without ortho scaling)."""
+        return self.c2w @ _GL_TO_MI
+
+    def to_mitsuba_dict(self, spp: int = 1, film: dict | None = None,
+                        sampler: str = "independent", seed: int = 0) -> dict:
+        """A ``mi.load_dict`` description of the equivalent Mitsuba sensor."""
+        import mitsuba as mi
+
+        to_world = self.mitsuba_to_world()
+        film_dict = {"type": "hdrfilm", "width": self.width, "height": self.height,
+                     "rfilter": {"type": "box"}, "pixel_format": "rgba"}
+        film_dict.update(film or {})
+        d = {"film": film_dict, "sampler": {"type": sampler, "sample_count": spp,
+                                            "seed": seed},
+             "near_clip": self.near, "far_clip": self.far}
+        if self.is_ortho:
+            # Mitsuba's orthographic image plane spans [-1, 1] along the film's larger axis
+            # before to_world; scale it to our width (and height, same pixel pitch).
+            half_w = 0.5 * self.ortho_width
+            half = half_w * max(1.0, self.height / self.width)
+            d.update(type="orthographic",
+                     to_world=mi.ScalarTransform4f(to_world) @ mi.ScalarTransform4f().scale(
+                         [half, half, 1.0]))
+        else:
+            d.update(type="perspective", fov=math.degrees(self.fov_x), fov_axis="x",
+                     to_world=mi.ScalarTransform4f(to_world))
+        return d
+
+    @staticmethod
+    def from_mitsuba(sensor) -> Camera:
+        """The Camera of a Mitsuba ``perspective`` or ``orthographic`` sensor."""
+        import mitsuba as mi
+
+        params = mi.traverse(sensor)
+        film = sensor.film()
+        width, height = (int(v) for v in film.crop_size())
+        if tuple(int(v) for v in film.crop_offset()) != (0, 0) or \
+                (width, height) != tuple(int(v) for v in film.size()):
+            raise ValueError("Camera.from_mitsuba: cropped films are not supported")
+        to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+        kind = sensor.class_().name() if hasattr(sensor, "class_") else type(sensor).__name__
+        near = float(params["near_clip"]) if "near_clip" in params else 0.01
+        far = float(params["far_clip"]) if "far_clip" in params else 1.0e4
+        if "x_fov" in params:  # perspective
+            fov_x = math.radians(float(np.asarray(params["x_fov"]).ravel()[0]))
+            return Camera(c2w=to_world @ _GL_TO_MI, width=width, height=height, fov_x=fov_x,
+                          near=near, far=far)
+        if "orthographic" in str(sensor).lower() or "ortho" in str(kind).lower():
+            sx = np.linalg.norm(to_world[:3, 0])
+            sy = np.linalg.norm(to_world[:3, 1])
+            rot = to_world.copy()
+            rot[:3, 0] /= sx
+            rot[:3, 1] /= sy
+            rot[:3, 2] /= np.linalg.norm(to_world[:3, 2])
+            half = sx / max(1.0, height / width)
+            return Camera(c2w=rot @ _GL_TO_MI, width=width, height=height,
+                          ortho_width=2.0 * half, near=near, far=far)
+        raise ValueError(f"Camera.from_mitsuba: unsupported sensor {kind}")
+
+    # -- dataset JSON -----------------------------------------------------------------
+    def to_frame_json(self, file_path: str) -> dict:
+        """A NeRF-synthetic frame entry (the shared camera_angle_x goes at the top level)."""
+        return {"file_path": file_path, "transform_matrix": self.c2w.tolist()}
