@@ -1,0 +1,34 @@
+"""File names of the dataset layout, shared by the writer and the loader (one place).
+
+NeRF-synthetic/TensoIR style: ``transforms_<split>.json`` at the top, and per view
+``<split>/r_<i>`` with suffixes for each ground-truth buffer.
+"""
+
+from __future__ import annotations
+
+SPLITS = ("train", "test")
+DATASET_JSON = "dataset.json"
+LIGHTS_JSON = "lights.json"
+FORMAT_VERSION = 1
+# The angle NeRF-synthetic uses (0.6911 rad, ~39.6 degrees).
+NERF_CAMERA_ANGLE_X = 0.6911112070083618
+
+# suffix of each per-view buffer: "<stem><suffix>"
+IMAGE_EXR = ".exr"             # linear RGBA, alpha = object-plus-base coverage
+IMAGE_PNG = ".png"             # sRGB RGBA preview
+ALBEDO = "_albedo.exr"         # linear RGB
+NORMAL = "_normal.exr"         # unit world-space normals, stored as they are
+DEPTH = "_depth.exr"           # z-depth, 0 on background
+MASK = "_mask.png"             # object mask (object parts only), 0 / 255
+MATERIAL = "_material.png"     # uint8 material id: 0 background, 1..P parts, P + 1 base
+VISIBILITY = "_visibility.exr"  # one channel per training light, 1 where unoccluded
+IRRADIANCE = "_irradiance_{k}.exr"  # E_k * max(0, n . l_k) * V_k, linear RGB
+RELIT = "_relit_{name}.exr"    # test views only: relit linear RGBA
+
+
+def transforms_name(split: str) -> str:
+    return f"transforms_{split}.json"
+
+
+def view_stem(split: str, index: int) -> str:
+    return f"{split}/r_{index:03d}"

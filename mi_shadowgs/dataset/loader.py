@@ -1,0 +1,337 @@
+"""The one dataset reader: our generated layout, NeRF-synthetic, and TensoIR's per-view folders.
+
+- ``load_cameras(transforms_json)``: the cameras of a NeRF-synthetic ``transforms_*.json``.
+- ``load_dataset(dir, split)``: every view of a split as numpy arrays (see ``View``), plus
+  ``lights.json`` and ``dataset.json`` when present.
+
+Worlds are Y-up (docs/conventions.md). TensoIR's folders come from Blender (Z-up); their
+cameras and normals are turned into our Y-up world (``x, y, z = x_b, z_b, -y_b``).
+Errors name the file and the field at fault.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..imageio import read_exr, read_png, srgb_to_linear
+from . import layout
+
+# Blender Z-up world -> our Y-up world (a rotation of -90 degrees about +X).
+BLENDER_TO_YUP = np.array([[1.0, 0.0, 0.0, 0.0],
+                           [0.0, 0.0, 1.0, 0.0],
+                           [0.0, -1.0, 0.0, 0.0],
+                           [0.0, 0.0, 0.0, 1.0]])
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing, malformed or inconsistent; the message names it."""
+
+
+@dataclasses.dataclass
+class View:
+    """One view. Arrays are [H, W, ...] with row 0 at the top; None where not in the dataset."""
+
+    name: str
+    camera: Camera
+    image: np.ndarray  # [H, W, 3] linear RGB
+    mask: np.ndarray  # [H, W] bool: covered (object plus base; object only for TensoIR)
+    object_mask: np.ndarray | None = None  # [H, W] bool: object parts only
+    albedo: np.ndarray | None = None  # [H, W, 3] linear
+    normal: np.ndarray | None = None  # [H, W, 3] unit world-space, 0 on background
+    depth: np.ndarray | None = None  # [H, W] z-depth, 0 on background
+    material: np.ndarray | None = None  # [H, W] int32 material id (0 = background)
+    visibility: np.ndarray | None = None  # [H, W, L] per training light, 1 = unoccluded
+    irradiance: np.ndarray | None = None  # [H, W, L, 3] direct diffuse irradiance per light
+    relit: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # name -> [H, W, 3]
+
+
+@dataclasses.dataclass
+class Dataset:
+    root: Path
+    split: str
+    views: list[View]
+    lights: dict | None = None  # lights.json
+    info: dict | None = None  # dataset.json
+    layout: str = "nerf"  # "nerf" (ours and NeRF-synthetic) or "tensoir"
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return [v.camera for v in self.views]
+
+    def stack(self, field: str) -> np.ndarray:
+        """All views' ``field`` stacked: [N, H, W, ...]."""
+        arrays = [getattr(v, field) for v in self.views]
+        if any(a is None for a in arrays):
+            raise DatasetError(f"{self.root}: split {self.split!r} has no {field!r} for "
+                               "every view")
+        return np.stack(arrays)
+
+
+# -- JSON helpers -------------------------------------------------------------------------
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise DatasetError(f"{path}: file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: malformed JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path}: expected a JSON object at the top level")
+    return data
+
+
+def _number(path: Path, field: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+            not math.isfinite(float(value)):
+        raise DatasetError(f"{path}: field {field!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _matrix(path: Path, field: str, value) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{path}: field {field!r} must be a 4x4 matrix of numbers") from None
+    if m.shape == (3, 4):  # some exporters drop the last row
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        raise DatasetError(f"{path}: field {field!r} must be a 4x4 matrix, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise DatasetError(f"{path}: field {field!r} holds NaN or Inf")
+    if abs(np.linalg.det(m[:3, :3])) < 1e-12:
+        raise DatasetError(f"{path}: field {field!r} is singular (not a camera pose)")
+    return m
+
+
+def _image_file(root: Path, file_path: str, exts=(".exr", ".png")) -> Path | None:
+    """The image a frame's ``file_path`` names (NeRF-synthetic leaves the extension out)."""
+    base = root / file_path
+    if base.suffix.lower() in (".png", ".exr", ".jpg", ".jpeg") and base.is_file():
+        return base
+    for ext in exts:
+        p = base.with_name(base.name + ext)
+        if p.is_file():
+            return p
+    return None
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    img = read_exr(path) if path.suffix.lower() == ".exr" else read_png(path)
+    return img.shape[1], img.shape[0]
+
+
+# -- cameras ------------------------------------------------------------------------------
+def load_cameras(path: str | Path) -> list[tuple[str, Camera]]:
+    """(file_path, Camera) per frame of a NeRF-synthetic ``transforms_*.json``.
+
+    The image size comes from ``w``/``h`` when present, else from the first frame's image.
+    Matrices are OpenGL camera-to-world (docs/conventions.md), used as they are.
+    """
+    path = Path(path)
+    meta = _read_json(path)
+    if "camera_angle_x" not in meta:
+        raise DatasetError(f"{path}: missing field 'camera_angle_x'")
+    fov_x = _number(path, "camera_angle_x", meta["camera_angle_x"])
+    if not 0.0 < fov_x < math.pi:
+        raise DatasetError(f"{path}: field 'camera_angle_x' must be in (0, pi) radians, "
+                           f"got {fov_x}")
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise DatasetError(f"{path}: field 'frames' must be a non-empty list")
+    for i, fr in enumerate(frames):
+        if not isinstance(fr, dict):
+            raise DatasetError(f"{path}: field 'frames[{i}]' must be an object")
+        for key in ("file_path", "transform_matrix"):
+            if key not in fr:
+                raise DatasetError(f"{path}: missing field 'frames[{i}].{key}'")
+        if not isinstance(fr["file_path"], str):
+            raise DatasetError(f"{path}: field 'frames[{i}].file_path' must be a string")
+    if "w" in meta or "h" in meta:
+        for key in ("w", "h"):
+            if key not in meta:
+                raise DatasetError(f"{path}: field 'w' and 'h' go together; {key!r} is missing")
+        width = int(_number(path, "w", meta["w"]))
+        height = int(_number(path, "h", meta["h"]))
+    else:
+        first = _image_file(path.parent, frames[0]["file_path"])
+        if first is None:
+            raise DatasetError(f"{path}: no 'w'/'h' and the image of 'frames[0].file_path' "
+                               f"({frames[0]['file_path']!r}) is missing")
+        width, height = _image_size(first)
+    if width < 1 or height < 1:
+        raise DatasetError(f"{path}: image size must be positive, got {width}x{height}")
+    cams = []
+    for i, fr in enumerate(frames):
+        c2w = _matrix(path, f"frames[{i}].transform_matrix", fr["transform_matrix"])
+        cams.append((fr["file_path"], Camera(c2w=c2w, width=width, height=height, fov_x=fov_x)))
+    return cams
+
+
+# -- our layout / NeRF-synthetic ----------------------------------------------------------
+def _read_image(path: Path) -> np.ndarray:
+    """Linear float [H, W, C]: EXR as stored, PNG decoded from sRGB (alpha stays linear)."""
+    if path.suffix.lower() == ".exr":
+        return read_exr(path).astype(np.float32)
+    img = read_png(path).astype(np.float32) / 255.0
+    c = img.shape[-1]
+    if c in (2, 4):
+        return np.concatenate([srgb_to_linear(img[..., :-1]), img[..., -1:]], axis=-1)
+    return srgb_to_linear(img)
+
+
+def _check_size(path: Path, arr: np.ndarray, cam: Camera) -> np.ndarray:
+    if arr.shape[:2] != (cam.height, cam.width):
+        raise DatasetError(f"{path}: image is {arr.shape[1]}x{arr.shape[0]}, the transforms "
+                           f"say {cam.width}x{cam.height}")
+    return arr
+
+
+def _optional(root: Path, stem: str, suffix: str) -> Path | None:
+    p = root / (stem + suffix)
+    return p if p.is_file() else None
+
+
+def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
+                    relit_names: list[str], tpath: Path, index: int,
+                    require_mask: bool) -> View:
+    img_path = _image_file(root, file_path)
+    if img_path is None:
+        raise DatasetError(f"{tpath}: the image of frame {index} ({file_path!r}) is missing "
+                           f"under {root}")
+    stem = str(Path(file_path).with_suffix("")) if Path(file_path).suffix.lower() in \
+        (".png", ".exr") else file_path
+    stem = stem[2:] if stem.startswith("./") else stem
+    rgba = _check_size(img_path, _read_image(img_path), cam)
+    image = rgba[..., :3]
+    alpha = rgba[..., 3] if rgba.shape[-1] == 4 else np.ones(rgba.shape[:2], np.float32)
+    mask = alpha > 0.5
+    if require_mask and not mask.any():
+        raise DatasetError(f"{img_path}: the mask (alpha) is empty: the view sees nothing")
+    view = View(name=stem, camera=cam, image=image, mask=mask)
+    if (p := _optional(root, stem, layout.MASK)) is not None:
+        view.object_mask = _check_size(p, read_png(p), cam)[..., 0] > 127
+    if (p := _optional(root, stem, layout.ALBEDO)) is not None:
+        view.albedo = _check_size(p, read_exr(p), cam)[..., :3]
+    if (p := _optional(root, stem, layout.NORMAL)) is not None:
+        view.normal = _check_size(p, read_exr(p), cam)[..., :3]
+    if (p := _optional(root, stem, layout.DEPTH)) is not None:
+        view.depth = _check_size(p, read_exr(p), cam)[..., 0]
+    if (p := _optional(root, stem, layout.MATERIAL)) is not None:
+        view.material = _check_size(p, read_png(p), cam)[..., 0].astype(np.int32)
+    if (p := _optional(root, stem, layout.VISIBILITY)) is not None:
+        vis = _check_size(p, read_exr(p), cam)
+        if n_lights and vis.shape[-1] != n_lights:
+            raise DatasetError(f"{p}: {vis.shape[-1]} visibility channels for {n_lights} "
+                               "training lights")
+        view.visibility = vis
+    irr = []
+    for k in range(n_lights):
+        p = _optional(root, stem, layout.IRRADIANCE.format(k=k))
+        if p is not None:
+            irr.append(_check_size(p, read_exr(p), cam)[..., :3])
+    if irr:
+        if len(irr) != n_lights:
+            raise DatasetError(f"{root / stem}: irradiance files exist for only {len(irr)} of "
+                               f"{n_lights} lights")
+        view.irradiance = np.stack(irr, axis=2)
+    for name in relit_names:
+        p = _optional(root, stem, layout.RELIT.format(name=name))
+        if p is not None:
+            view.relit[name] = _check_size(p, read_exr(p), cam)[..., :3]
+    return view
+
+
+def load_dataset(root: str | Path, split: str = "train", require_mask: bool = True) -> Dataset:
+    """Every view of ``split`` from ``root``: our layout, NeRF-synthetic, or TensoIR folders.
+
+    With ``require_mask`` an all-empty mask is an error (a view that sees nothing cannot
+    supervise anything).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset folder not found")
+    tpath = root / layout.transforms_name(split)
+    if not tpath.is_file():
+        if any(root.glob(f"{split}_*/metadata.json")):
+            return load_tensoir(root, split, require_mask=require_mask)
+        raise DatasetError(f"{root}: no {tpath.name} and no TensoIR folders {split}_*/")
+    info = _read_json(root / layout.DATASET_JSON) if (root / layout.DATASET_JSON).is_file() \
+        else None
+    lights = _read_json(root / layout.LIGHTS_JSON) if (root / layout.LIGHTS_JSON).is_file() \
+        else None
+    n_lights = len(lights.get("training", {}).get("lights", [])) if lights else 0
+    relit_names = [r.get("name") for r in lights.get("relightings", [])] if lights else []
+    views = [_load_nerf_view(root, fp, cam, n_lights, [n for n in relit_names if n], tpath, i,
+                             require_mask)
+             for i, (fp, cam) in enumerate(load_cameras(tpath))]
+    return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf")
+
+
+# -- TensoIR ------------------------------------------------------------------------------
+def _tensoir_camera(meta_path: Path, meta: dict) -> Camera:
+    for key in ("cam_transform_mat", "cam_angle_x", "imw", "imh"):
+        if key not in meta:
+            raise DatasetError(f"{meta_path}: missing field {key!r}")
+    raw = meta["cam_transform_mat"]
+    try:
+        values = [float(v) for v in raw.split(",")] if isinstance(raw, str) else raw
+    except ValueError:
+        raise DatasetError(f"{meta_path}: field 'cam_transform_mat' must be 16 "
+                           "comma-separated numbers") from None
+    c2w_blender = _matrix(meta_path, "cam_transform_mat", np.reshape(values, (4, 4))
+                          if np.size(values) == 16 else values)
+    fov_x = _number(meta_path, "cam_angle_x", meta["cam_angle_x"])
+    w = int(_number(meta_path, "imw", meta["imw"]))
+    h = int(_number(meta_path, "imh", meta["imh"]))
+    return Camera(c2w=BLENDER_TO_YUP @ c2w_blender, width=w, height=h, fov_x=fov_x)
+
+
+def _tensoir_index(path: Path) -> int:
+    m = re.search(r"(\d+)$", path.name)
+    return int(m.group(1)) if m else -1
+
+
+def load_tensoir(root: str | Path, split: str = "train", require_mask: bool = True) -> Dataset:
+    """TensoIR's layout: ``<split>_<i>/`` with ``metadata.json``, ``rgba.png``, and where
+    present ``albedo.png``, ``normal.png`` (normals as [0, 1] colours, Blender world) and
+    ``rgba_<light>.png`` relit images. Cameras and normals are turned to Y-up."""
+    root = Path(root)
+    folders = sorted((p for p in root.glob(f"{split}_*") if p.is_dir()), key=_tensoir_index)
+    if not folders:
+        raise DatasetError(f"{root}: no TensoIR folders {split}_*/")
+    rot = BLENDER_TO_YUP[:3, :3]
+    views = []
+    for folder in folders:
+        meta_path = folder / "metadata.json"
+        cam = _tensoir_camera(meta_path, _read_json(meta_path))
+        rgba_path = folder / "rgba.png"
+        if not rgba_path.is_file():
+            raise DatasetError(f"{rgba_path}: file not found (frame {folder.name})")
+        rgba = _check_size(rgba_path, _read_image(rgba_path), cam)
+        mask = rgba[..., 3] > 0.5 if rgba.shape[-1] == 4 else np.ones(rgba.shape[:2], bool)
+        if require_mask and not mask.any():
+            raise DatasetError(f"{rgba_path}: the mask (alpha) is empty: the view sees nothing")
+        view = View(name=folder.name, camera=cam, image=rgba[..., :3], mask=mask,
+                    object_mask=mask)
+        if (folder / "albedo.png").is_file():
+            view.albedo = _check_size(folder / "albedo.png",
+                                      _read_image(folder / "albedo.png"), cam)[..., :3]
+        if (folder / "normal.png").is_file():
+            raw = read_png(folder / "normal.png").astype(np.float32) / 255.0
+            n = (_check_size(folder / "normal.png", raw, cam)[..., :3] * 2.0 - 1.0) @ rot.T
+            n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
+            view.normal = np.where(mask[..., None], n, 0.0).astype(np.float32)
+        for p in sorted(folder.glob("rgba_*.png")):
+            view.relit[p.stem[len("rgba_"):]] = _check_size(p, _read_image(p), cam)[..., :3]
+        views.append(view)
+    return Dataset(root=root, split=split, views=views, layout="tensoir")

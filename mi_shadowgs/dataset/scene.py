@@ -1,0 +1,325 @@
+"""Load a scene XML with parameters: lights from angles, the object normalised, parts numbered.
+
+Scene conventions (scenes/default.xml): shapes with ids ``object_<part>`` are the object's
+parts, numbered 1.. in XML order (their material ids); ``base`` is the base (id P + 1);
+background is 0. Emitters ``light<k>`` are ``directional``; Python turns the parameters
+``light<k>_azimuth``/``_elevation`` into ``light<k>_direction`` (the propagation direction,
+``-l``). ``object_to_world`` is computed from the object's bounding box so that its bounding
+sphere has radius 1, centred on the Y axis, standing on y = 0 (unless ``normalize=false``).
+
+``mesh.xml`` takes ``-D mesh=PATH``; with ``parts=auto`` and a ``<stem>_parts.json`` beside
+the mesh, the object is loaded as one shape per part with the part's material.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from ..directions import direction_from_angles
+
+LIGHT_ID = re.compile(r"^light(\d+)$")
+
+
+class SceneError(ValueError):
+    """A scene file, parameter or asset is missing or invalid; the message names it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Part:
+    name: str  # part name (the shape id without "object_")
+    shape_id: str
+    material_id: int
+    bsdf: str  # "diffuse", "principled", ... (after unwrapping twosided)
+    albedo: tuple | None = None  # constant linear albedo when known
+
+
+@dataclasses.dataclass(frozen=True)
+class Light:
+    name: str
+    direction: tuple  # l: unit, toward the light
+    irradiance: tuple  # RGB, W/m^2 at normal incidence
+    azimuth_deg: float
+    elevation_deg: float
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "direction": list(self.direction),
+                "irradiance": list(self.irradiance), "azimuth_deg": self.azimuth_deg,
+                "elevation_deg": self.elevation_deg}
+
+
+@dataclasses.dataclass
+class SceneSetup:
+    path: Path
+    params: dict  # every parameter as passed to Mitsuba (strings)
+    scene: object  # mi.Scene
+    parts: list[Part]
+    base_id: int  # material id of the base
+    lights: list[Light]
+    object_to_world: np.ndarray  # [4, 4]
+    object_center: np.ndarray  # [3] centre of the object's bounding sphere
+    object_radius: float
+
+    def shape_material_ids(self) -> dict[str, int]:
+        ids = {p.shape_id: p.material_id for p in self.parts}
+        ids["base"] = self.base_id
+        return ids
+
+    def materials_json(self) -> list[dict]:
+        out = [{"id": 0, "name": "background"}]
+        for p in self.parts:
+            out.append({"id": p.material_id, "name": p.name, "shape": p.shape_id,
+                        "bsdf": p.bsdf, "albedo": list(p.albedo) if p.albedo else None})
+        out.append({"id": self.base_id, "name": "base", "shape": "base", "bsdf": "diffuse"})
+        return out
+
+
+# -- XML parsing ------------------------------------------------------------------------
+def _parse_xml(path: Path) -> ET.Element:
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {path}")
+    try:
+        return ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise SceneError(f"{path}: malformed XML: {exc}") from None
+
+
+def _bsdf_kind(shape: ET.Element) -> str:
+    b = shape.find("bsdf")
+    while b is not None and b.get("type") in ("twosided", "mask"):
+        b = b.find("bsdf")
+    return b.get("type", "unknown") if b is not None else "none"
+
+
+def _floats(path: Path, name: str, value: str, n: int | None = None) -> list[float]:
+    try:
+        vals = [float(v) for v in str(value).replace(",", " ").split()]
+    except ValueError:
+        raise SceneError(f"{path}: parameter {name!r} must be numbers, got {value!r}") from None
+    if not vals or (n is not None and len(vals) != n) or not all(map(math.isfinite, vals)):
+        want = f"{n} finite number(s)" if n else "finite numbers"
+        raise SceneError(f"{path}: parameter {name!r} must be {want}, got {value!r}")
+    return vals
+
+
+def _fmt(v) -> str:
+    return ", ".join(f"{float(x):.9g}" for x in np.ravel(v))
+
+
+def _fmt_matrix(m: np.ndarray) -> str:
+    return " ".join(f"{float(x):.9g}" for x in np.ravel(m))
+
+
+# -- normalisation -----------------------------------------------------------------------
+def normalizing_transform(bbox_min, bbox_max) -> np.ndarray:
+    """[4, 4] that scales the bbox's bounding sphere to radius 1, centres it on the Y axis
+    and puts its lowest point on y = 0."""
+    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    half_diag = 0.5 * np.linalg.norm(hi - lo)
+    if not np.isfinite(half_diag) or half_diag <= 0:
+        raise SceneError(f"the object's bounding box is empty or degenerate: {lo} .. {hi}")
+    s = 1.0 / half_diag
+    c = 0.5 * (lo + hi)
+    m = np.diag([s, s, s, 1.0])
+    m[:3, 3] = [-s * c[0], -s * lo[1], -s * c[2]]
+    return m
+
+
+# -- parts (*_parts.json) ----------------------------------------------------------------
+def _ply_has_uv(path: Path) -> bool:
+    head = path.open("rb").read(2048)
+    return b"property float u" in head and b"property float v" in head
+
+
+def _part_bsdf(json_path: Path, entry: dict, materials: dict) -> tuple[dict, str, tuple | None]:
+    """Mitsuba bsdf dict, kind and constant albedo of one part of a ``*_parts.json``."""
+    root = json_path.parent
+    part_file = root / entry["file"]
+    mat = materials.get(entry.get("material")) if materials else None
+    if mat is not None:  # hotdog style: Mitsuba material parameters
+        tex = mat.get("base_color_texture")
+        if tex and _ply_has_uv(part_file):
+            color = {"type": "bitmap", "filename": str(root / tex)}
+            albedo = None
+        else:
+            albedo = tuple(mat.get("base_color", (0.5, 0.5, 0.5)))
+            color = {"type": "rgb", "value": list(albedo)}
+        if mat.get("bsdf") == "principled":
+            inner = {"type": "principled", "base_color": color,
+                     "roughness": float(mat.get("roughness", 0.5)),
+                     "metallic": float(mat.get("metallic", 0.0))}
+            kind = "principled"
+        else:
+            inner, kind = {"type": "diffuse", "reflectance": color}, "diffuse"
+    else:  # MTL style: diffuse, textured where the part has UVs
+        tex = entry.get("texture")
+        if tex and _ply_has_uv(part_file):
+            color, albedo = {"type": "bitmap", "filename": str(root / tex)}, None
+        else:
+            albedo = tuple(entry.get("mean_linear_albedo") or entry.get("mtl_Kd")
+                           or (0.5, 0.5, 0.5))
+            color = {"type": "rgb", "value": list(albedo)}
+        inner, kind = {"type": "diffuse", "reflectance": color}, "diffuse"
+    return {"type": "twosided", "bsdf": inner}, kind, albedo
+
+
+def _read_parts_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: malformed JSON: {exc}") from None
+    parts = data.get("parts") if isinstance(data, dict) else None
+    if not isinstance(parts, list) or not parts:
+        raise SceneError(f"{path}: field 'parts' must be a non-empty list")
+    for i, p in enumerate(parts):
+        for key in ("part", "file"):
+            if not isinstance(p, dict) or key not in p:
+                raise SceneError(f"{path}: missing field 'parts[{i}].{key}'")
+        if not (path.parent / p["file"]).is_file():
+            raise SceneError(f"{path}: part mesh not found: {path.parent / p['file']} "
+                             f"(field 'parts[{i}].file')")
+    return data
+
+
+# -- loading -----------------------------------------------------------------------------
+def _resolve_mesh(path: Path, params: dict) -> Path | None:
+    value = params.get("mesh", "")
+    if "mesh" not in params:
+        return None
+    if not value:
+        raise SceneError(f"{path}: scene needs a mesh: pass -D mesh=PATH (a PLY or OBJ file)")
+    mesh = Path(value).expanduser()
+    if not mesh.is_absolute() and not mesh.is_file():
+        mesh = path.parent / mesh
+    if not mesh.is_file():
+        raise SceneError(f"mesh file not found: {value} (scene parameter 'mesh' of {path})")
+    if mesh.suffix.lower() not in (".ply", ".obj"):
+        raise SceneError(f"mesh {mesh}: only .ply and .obj are supported")
+    return mesh.resolve()
+
+
+def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> SceneSetup:
+    """Load a scene XML with ``overrides`` of its ``<default>`` parameters (see module doc)."""
+    import mitsuba as mi
+
+    path = Path(path)
+    root = _parse_xml(path)
+    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
+    params = dict(defaults)
+    for k, v in (overrides or {}).items():
+        if k not in defaults:
+            raise SceneError(f"{path}: unknown scene parameter {k!r}; known: {sorted(defaults)}")
+        params[k] = str(v)
+
+    shapes = [s for s in root.findall("shape")]
+    part_elems = [s for s in shapes if (s.get("id") or "").startswith("object_")]
+    if not part_elems:
+        raise SceneError(f"{path}: no object shape (a <shape id=\"object_<part>\">)")
+    if not any(s.get("id") == "base" for s in shapes):
+        raise SceneError(f"{path}: no base shape (a <shape id=\"base\">)")
+
+    # Lights: direction from azimuth/elevation, irradiance as RGB.
+    lights = []
+    for em in root.findall("emitter"):
+        m = LIGHT_ID.match(em.get("id") or "")
+        if not m:
+            continue
+        if em.get("type") != "directional":
+            raise SceneError(f"{path}: emitter {em.get('id')!r} must be 'directional'")
+        name = em.get("id")
+        az = _floats(path, f"{name}_azimuth", params.get(f"{name}_azimuth", ""), 1)[0]
+        el = _floats(path, f"{name}_elevation", params.get(f"{name}_elevation", ""), 1)[0]
+        irr = _floats(path, f"{name}_irradiance", params.get(f"{name}_irradiance", ""))
+        if len(irr) not in (1, 3) or min(irr) < 0:
+            raise SceneError(f"{path}: parameter '{name}_irradiance' must be 1 or 3 "
+                             f"non-negative numbers, got {params[f'{name}_irradiance']!r}")
+        irr = irr * 3 if len(irr) == 1 else irr
+        if not 0.0 < el <= 90.0:
+            raise SceneError(f"{path}: parameter '{name}_elevation' must be in (0, 90] "
+                             f"degrees, got {el}")
+        l_dir = direction_from_angles(az, el)
+        params[f"{name}_direction"] = _fmt(-l_dir)
+        params[f"{name}_irradiance"] = _fmt(irr)
+        lights.append(Light(name, tuple(l_dir.tolist()), tuple(irr), az, el))
+    lights.sort(key=lambda lt: int(LIGHT_ID.match(lt.name).group(1)))
+
+    mesh = _resolve_mesh(path, params)
+    parts_json = None
+    if mesh is not None:
+        params["mesh"] = str(mesh)
+        params["mesh_type"] = mesh.suffix.lower()[1:]
+        mode = params.get("parts", "none")
+        cand = mesh.with_name(f"{mesh.stem}_parts.json")
+        if mode == "auto" and cand.is_file():
+            parts_json = cand
+        elif mode not in ("auto", "none", ""):
+            parts_json = Path(mode)
+            if not parts_json.is_file():
+                raise SceneError(f"parts file not found: {mode} (scene parameter 'parts')")
+    normalize = params.get("normalize", "true").strip().lower() not in ("false", "0", "no")
+    params["object_to_world"] = _fmt_matrix(np.eye(4))
+
+    # Mitsuba rejects parameters the XML never references (e.g. "normalize", read here).
+    used = set(re.findall(r"\$(\w+)", path.read_text()))
+
+    def _load(p):
+        try:
+            return mi.load_file(str(path), optimize=False,
+                                **{k: v for k, v in p.items() if k in used})
+        except Exception as exc:  # Mitsuba raises RuntimeError with a long trace
+            msg = str(exc).strip().splitlines()
+            raise SceneError(f"{path}: Mitsuba cannot load the scene: "
+                             f"{msg[-1] if msg else exc}") from None
+
+    scene0 = _load(params)
+    if parts_json is not None:
+        data = _read_parts_json(parts_json)
+        part_meshes, parts = [], []
+        for i, entry in enumerate(data["parts"]):
+            bsdf, kind, albedo = _part_bsdf(parts_json, entry, data.get("materials") or {})
+            sid = f"object_{entry['part']}"
+            parts.append(Part(entry["part"], sid, i + 1, kind, albedo))
+            part_meshes.append((sid, {"type": "ply", "filename": str(parts_json.parent /
+                                                                    entry["file"]),
+                                      "bsdf": bsdf}))
+        lo, hi = _bbox_of([mi.load_dict(d, optimize=False) for _, d in part_meshes])
+    else:
+        parts = [Part(e.get("id")[len("object_"):], e.get("id"), i + 1, _bsdf_kind(e))
+                 for i, e in enumerate(part_elems)]
+        lo, hi = _bbox_of([s for s in scene0.shapes() if s.id().startswith("object_")])
+    m = normalizing_transform(lo, hi) if normalize else np.eye(4)
+    params["object_to_world"] = _fmt_matrix(m)
+    if parts_json is not None:
+        desc = {"type": "scene"}
+        for s in scene0.shapes():
+            if not s.id().startswith("object_"):
+                desc[s.id()] = s
+        for e in scene0.emitters():
+            desc[e.id()] = e
+        for sid, d in part_meshes:
+            desc[sid] = dict(d, to_world=mi.ScalarTransform4f(m))
+        scene = mi.load_dict(desc, optimize=False)  # keep one shape per part
+    else:
+        scene = _load(params)
+    lo_w, hi_w = (m[:3, :3] @ np.stack([lo, hi]).T).T + m[:3, 3]
+    centre = 0.5 * (lo_w + hi_w)
+    radius = 0.5 * float(np.linalg.norm(hi_w - lo_w))
+    return SceneSetup(path=path, params=params, scene=scene, parts=parts,
+                      base_id=len(parts) + 1, lights=lights, object_to_world=m,
+                      object_center=centre, object_radius=radius)
+
+
+def _bbox_of(shapes) -> tuple[np.ndarray, np.ndarray]:
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for s in shapes:
+        b = s.bbox()
+        lo = np.minimum(lo, np.array(b.min, dtype=np.float64))
+        hi = np.maximum(hi, np.array(b.max, dtype=np.float64))
+    return lo, hi

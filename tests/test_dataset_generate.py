@@ -1,0 +1,286 @@
+"""Dataset generator acceptance tests (issue 2): (a) camera convention, (b) analytic shadow,
+(c) buffers agree with the path-traced image, (d) material ids, (e) bad input; determinism.
+
+Small images and few views keep the whole file to seconds on 2 cores.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mi_shadowgs.scenes import scene_path
+from scipy.ndimage import map_coordinates, maximum_filter, minimum_filter
+
+from mi_shadowgs.camera import Camera
+from mi_shadowgs.cli import main as cli_main
+from mi_shadowgs.dataset import layout
+from mi_shadowgs.dataset.cameras import train_cameras
+from mi_shadowgs.dataset.generate import (
+    PRESETS,
+    ViewRenderer,
+    camera_rays,
+    get_config,
+    trace_ground_truth,
+)
+from mi_shadowgs.dataset.scene import load_scene
+from mi_shadowgs.directions import direction_from_angles
+
+SIZE = 64
+
+
+@pytest.fixture(scope="module")
+def default_setup():
+    return load_scene(scene_path("default"))
+
+
+@pytest.fixture(scope="module")
+def two_views(default_setup):
+    cams = train_cameras(2, np.random.default_rng(3), default_setup.object_center, 4.0,
+                         layout.NERF_CAMERA_ANGLE_X, SIZE, SIZE, 20.0, 70.0)
+    return cams, trace_ground_truth(default_setup, cams)
+
+
+def _rays(o, d):
+    import mitsuba as mi
+
+    return mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
+
+
+def test_presets():
+    assert (PRESETS["cpu-small"].width, PRESETS["cpu-small"].n_train,
+            PRESETS["cpu-small"].n_test) == (128, 64, 32)
+    assert (PRESETS["paper"].width, PRESETS["paper"].n_train, PRESETS["paper"].n_test) == \
+        (800, 100, 200)
+
+
+def test_default_scene_normalised(default_setup):
+    s = default_setup
+    assert [p.material_id for p in s.parts] == [1, 2, 3, 4]
+    assert s.base_id == 5
+    assert s.object_radius == pytest.approx(1.0, abs=1e-9)
+    assert s.object_center[[0, 2]] == pytest.approx([0.0, 0.0], abs=1e-9)
+    lo = min(float(sh.bbox().min[1]) for sh in s.scene.shapes() if sh.id().startswith("object_"))
+    # float32 bbox of the transformed shapes: the object stands on y = 0
+    assert abs(lo) < 1e-5
+    # two opposing lights, 180 degrees apart in azimuth, both above the horizon
+    assert abs((s.lights[1].azimuth_deg - s.lights[0].azimuth_deg) % 360 - 180) < 1e-9
+    assert min(lt.direction[1] for lt in s.lights) > 0
+
+
+def test_a_depth_reprojects_between_views(default_setup, two_views):
+    """(a) unproject view A's depth, project into B: z agrees within 1e-3 relative."""
+    (cam_a, cam_b), gt = two_views
+    d_a, d_b = gt["depth"]
+    hit = d_a > 0
+    x = cam_a.unproject(cam_a.pixel_grid()[hit.ravel()], d_a[hit])
+    uv, z = cam_b.project(x)
+    # Seen by B: an unoccluded segment from the point to B's centre (Mitsuba ray_test).
+    to_b = cam_b.origin - x
+    dist = np.linalg.norm(to_b, axis=1)
+    to_b /= dist[:, None]
+    ray = _rays(x + 1e-4 * to_b, to_b)
+    import mitsuba as mi
+
+    ray.maxt = mi.Float((dist * (1 - 1e-4)).astype(np.float32))
+    seen = ~np.asarray(default_setup.scene.ray_test(ray))
+    px, py = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    inside = (px >= 0) & (px <= SIZE - 1) & (py >= 0) & (py <= SIZE - 1)
+    x0 = np.clip(np.floor(px).astype(int), 0, SIZE - 2)
+    y0 = np.clip(np.floor(py).astype(int), 0, SIZE - 2)
+    corners = [(y0, x0), (y0, x0 + 1), (y0 + 1, x0), (y0 + 1, x0 + 1)]
+    # B's depth is sampled at pixel centres; interpolating 1/z bilinearly is exact on a
+    # plane, so only compare where B's 4 neighbours lie on one flat face (same part, same
+    # normal): across creases and silhouettes interpolation error is not a convention error.
+    mat_b, n_b = gt["material"][1], gt["normal"][1]
+    same = np.all([mat_b[c] == mat_b[corners[0]] for c in corners], axis=0)
+    flat = np.all([np.sum(n_b[c] * n_b[corners[0]], -1) > 0.995 for c in corners], axis=0)
+    filled = np.all([d_b[c] > 0 for c in corners], axis=0)
+    both = inside & seen & same & flat & filled
+    inv = map_coordinates(1.0 / np.where(d_b > 0, d_b, 1.0), [py, px], order=1,
+                          mode="nearest")
+    rel = np.abs(1.0 / inv - z) / z
+    assert both.sum() > 800  # enough shared pixels for the percentage to mean something
+    assert np.mean(rel[both] < 1e-3) >= 0.99
+
+
+def test_b_sphere_shadow_matches_analytic_ellipse():
+    """(b) a sphere over a plane: visibility == the analytic shadow, IoU >= 0.98 at 128^2."""
+    az, el, r, c = 30.0, 50.0, 0.5, np.array([0.0, 1.0, 0.0])
+    setup = load_scene(scene_path("sphere_plane"),
+                       {"light0_azimuth": str(az), "light0_elevation": str(el),
+                        "sphere_radius": str(r), "sphere_center": "0, 1, 0"})
+    l_dir = direction_from_angles(az, el)
+    shadow_c = c - c[1] / l_dir[1] * l_dir  # where the centre's shadow falls on y = 0
+    cam = Camera.look_at(shadow_c + np.array([0.8, 3.5, 1.5]), shadow_c, fov_x=0.9,
+                         width=128, height=128)
+    gt = trace_ground_truth(setup, [cam])
+    on_base = (gt["material"][0] == setup.base_id).ravel()
+    # Analytic: intersect each pixel ray with y = 0, then test the ray toward the light
+    # against the sphere (closest approach < r, ahead of the point).
+    o, d, _ = camera_rays([cam])
+    p = o + (-o[:, 1] / d[:, 1])[:, None] * d
+    q = c - p
+    along = q @ l_dir
+    perp2 = np.sum(q * q, -1) - along**2
+    analytic = (along > 0) & (perp2 < r * r) & on_base
+    traced = (gt["visibility"][0][..., 0].ravel() < 0.5) & on_base
+    iou = np.sum(analytic & traced) / np.sum(analytic | traced)
+    assert analytic.sum() > 500  # the ellipse covers many pixels
+    assert iou >= 0.98
+
+
+def test_c_image_equals_direct_plus_nonnegative_indirect(default_setup, two_views):
+    """(c) diffuse, unshadowed pixels: image = albedo/pi * sum(E n.l V) + indirect >= 0."""
+    cams, gt = two_views
+    spp = 512
+    renderer = ViewRenderer(cams[0], spp=spp, max_depth=5)
+    diffuse = [p.material_id for p in default_setup.parts if p.bsdf == "diffuse"]
+    diffuse.append(default_setup.base_id)
+    rels = []
+    for i, cam in enumerate(cams):
+        img = renderer.render(default_setup.scene, cam, seed=100 + i)[..., :3]
+        mat, vis = gt["material"][i], gt["visibility"][i].min(-1)
+        direct = gt["albedo"][i] / math.pi * gt["irradiance"][i].sum(-2)
+        # Interior of unshadowed diffuse regions: the image integrates the pixel's footprint
+        # while the buffers hold the pixel centre, so pixels next to an edge are left out.
+        interior = (minimum_filter(mat, 3) == maximum_filter(mat, 3)) & \
+            (minimum_filter(vis, 3) > 0.5)
+        ok = np.isin(mat, diffuse) & interior & (direct.min(-1) > 0.02)
+        rels.append((img[ok] - direct[ok]) / direct[ok])
+    rel = np.concatenate(rels)
+    assert len(rel) > 2000
+    # Mean: indirect light is non-negative. The per-pixel noise (measured ~2%, mostly
+    # Mitsuba choosing one of the two lights per sample) averages over > 2000 x 3 values to
+    # a standard error of ~0.05%, so -0.5% is > 5 standard errors; the upper bound 0.1
+    # catches a lost 1/pi or cos factor (indirect light is ~1-2% in this open scene).
+    assert -0.005 <= rel.mean() <= 0.1
+    # Per pixel: 99% within -8% (4x the measured per-pixel noise at 512 spp).
+    assert np.mean(rel >= -0.08) >= 0.99
+
+
+def test_d_material_ids_cover_each_part(default_setup, two_views):
+    """(d) material id k <=> the pixel's ray hits part k first (ray-traced per part alone)."""
+    import mitsuba as mi
+
+    cams, gt = two_views
+    o, d, f = camera_rays(cams)
+    depth = gt["depth"].ravel()
+    t_full = depth / np.sum(d * f, -1)
+    ids = default_setup.shape_material_ids()
+    shapes = {s.id(): s for s in default_setup.scene.shapes()}
+    for sid, mid in ids.items():
+        alone = mi.load_dict({"type": "scene", sid: shapes[sid]}, optimize=False)
+        si = alone.ray_intersect(_rays(o, d))
+        t = np.asarray(si.t)
+        # the part alone is hit at the full scene's first-hit distance (float32: 1e-5 rel)
+        first = np.asarray(si.is_valid()) & (depth > 0) & (np.abs(t - t_full) <= 1e-5 * t_full)
+        labelled = gt["material"].ravel() == mid
+        assert labelled.sum() > 50, sid
+        assert int(np.sum(labelled != first)) == 0, sid
+    assert set(np.unique(gt["material"])) == {0, *ids.values()}
+
+
+# -- the command, atomicity and errors --------------------------------------------------
+TINY = ["--width", "32", "--height", "32", "--n-train", "2", "--n-test", "1", "--spp", "4",
+        "--no-progress"]
+
+
+def _run(argv, capsys):
+    rc = cli_main(["generate", *argv])
+    return rc, capsys.readouterr()
+
+
+def _listing(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file()}
+
+
+def test_generate_deterministic_and_recognised(tmp_path, capsys):
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert _run([str(scene_path("default")), "--out", str(a), "--seed", "7", *TINY],
+                capsys)[0] == 0
+    assert _run(["default", "--out", str(b), "--seed", "7", *TINY], capsys)[0] == 0
+    la, lb = _listing(a), _listing(b)
+    # 2 + 1 views x 10 files, 3 relit test images, 2 transforms, lights.json, dataset.json
+    assert len(la) == 3 * 10 + 3 + 4
+    assert la.keys() == lb.keys()
+    differ = [k for k in la if la[k] != lb[k]]
+    assert differ == []  # bit-identical for the same seed
+    info = json.loads((a / "dataset.json").read_text())
+    assert len(info["fingerprint"]) == 64 and info["seed"] == 7
+    lights = json.loads((a / "lights.json").read_text())
+    assert len(lights["training"]["lights"]) == 2
+    assert len(lights["relightings"]) >= 3
+    assert np.array(lights["training"]["light_map"]["radiance"]).shape == (128, 3)
+    # same inputs again: recognised, nothing rewritten
+    mtime = (a / "dataset.json").stat().st_mtime_ns
+    rc, cap = _run(["default", "--out", str(a), "--seed", "7", *TINY], capsys)
+    assert rc == 0 and "nothing to do" in cap.out
+    assert (a / "dataset.json").stat().st_mtime_ns == mtime
+
+
+def _assert_error(argv, capsys, tmp_path, must_name, out=None):
+    before = sorted(p.name for p in tmp_path.iterdir())
+    rc, cap = _run(argv, capsys)
+    lines = [ln for ln in cap.err.splitlines() if ln.strip()]
+    assert rc == 2
+    assert len(lines) == 1, cap.err  # one clear line
+    assert must_name in lines[0]
+    after = sorted(p.name for p in tmp_path.iterdir())
+    assert after == before  # nothing written, no partial folder left behind
+    return lines[0]
+
+
+def test_e_bad_input(tmp_path, capsys):
+    out = tmp_path / "out"
+    # a missing mesh
+    _assert_error([str(scene_path("mesh")), "--out", str(out), "-D", "mesh=/nonexistent.ply",
+                   *TINY], capsys, tmp_path, "/nonexistent.ply")
+    # malformed XML
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<scene version='3.0.0'><shape type='sphere' id='object_a'></scene>")
+    _assert_error([str(bad), "--out", str(out), *TINY], capsys, tmp_path, "bad.xml")
+    # an unknown preset
+    _assert_error(["default", "--out", str(out), "--preset", "huge", *TINY], capsys,
+                  tmp_path, "'huge'")
+    # an unknown scene parameter
+    _assert_error(["default", "--out", str(out), "-D", "no_such=1", *TINY], capsys,
+                  tmp_path, "'no_such'")
+    assert not out.exists()
+    # an output folder holding a different dataset: untouched unless --overwrite
+    assert _run(["default", "--out", str(out), "--seed", "1", *TINY], capsys)[0] == 0
+    before = _listing(out)
+    msg = _assert_error(["default", "--out", str(out), "--seed", "2", *TINY], capsys,
+                        tmp_path, str(out))
+    assert "different dataset" in msg
+    assert _listing(out) == before
+    assert _run(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY],
+                capsys)[0] == 0
+    assert json.loads((out / "dataset.json").read_text())["seed"] == 2
+
+
+def test_unknown_preset_is_config_error():
+    from mi_shadowgs.config import ConfigError
+
+    with pytest.raises(ConfigError, match="'nope'"):
+        get_config("nope")
+
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
+
+
+@pytest.mark.skipif(not (SHARED / "toy_train" / "toy_train_parts.json").is_file(),
+                    reason="../shared/data (optional assets) is absent on this machine")
+def test_mesh_scene_with_parts_json():
+    setup = load_scene(scene_path("mesh"), {"mesh": str(SHARED / "toy_train" /
+                                                        "toy_train.ply")})
+    assert [p.name for p in setup.parts] == ["yellow", "green", "blue", "red", "wood"]
+    assert setup.object_radius == pytest.approx(1.0, abs=1e-9)
+    cam = Camera.look_at([0.0, 2.5, 3.0], setup.object_center, fov_x=0.7, width=48, height=48)
+    gt = trace_ground_truth(setup, [cam])
+    seen = set(np.unique(gt["material"][0]).tolist())
+    assert {1, 2, 3, 4, 5, setup.base_id} <= seen
