@@ -1,0 +1,407 @@
+"""Differentiable 2DGS rasterizer in pure Dr.Jit (a pixel-splat pair list, fully traced).
+
+Pipeline (one ``rasterize`` call):
+1. per surfel: activate, build the tangent frame, move to the CV camera frame, project,
+   and bound the ``cutoff_sigma`` ellipse and the low-pass footprint by a pixel box;
+2. pair list: box sizes -> prefix sum -> (surfel, pixel) per pair (one host read of P);
+3. per pair, detached: the 2DGS ray-splat intersection, low-pass filter and alpha; pairs
+   that cannot contribute are compressed away, the rest sorted by (pixel, centre depth);
+4. per kept pair, with AD: alpha again, a Float64 prefix sum of log(1 - alpha) segmented
+   per pixel gives the transmittance, and ``scatter_reduce`` accumulates the images.
+
+The ray-splat intersection is the homogeneous one of 2DGS written relative to the
+projected centre: with T the 3x3 map (u, v, 1) -> homogeneous pixel, A = T0 - xc T2 and
+B = T1 - yc T2 are the projection's Jacobian applied to the scaled tangents, so pixel
+offsets (dx, dy) from the centre enter without cancellation (far shadow-map cameras).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .camera import Camera
+from .config import get_preset
+from .surfels import Surfels
+
+AOV_CHANNELS = {"alpha": 1, "depth": 1, "median_depth": 1, "normal": 3, "distortion": 1,
+                "count": 1}
+
+
+@dataclasses.dataclass(frozen=True)
+class RasterConfig:
+    """Rasterizer settings; the defaults are those of the 2DGS reference implementation."""
+
+    alpha_max: float = 0.99  # clamp of a splat's alpha (keeps log(1 - alpha) finite)
+    alpha_min: float = 1.0 / 255.0  # pairs below this alpha are dropped
+    transmittance_min: float = 1e-4  # a splat that would bring T below this ends the pixel
+    lowpass_inv_var: float = 2.0  # screen-space filter: rho2d = lowpass_inv_var * |d|^2 (px)
+    cutoff_sigma: float = 3.0  # pairs with rho > cutoff_sigma^2 are dropped; sets the box
+    near: float = 0.2  # centres and intersections with z-depth below this are culled
+    distortion_near: float = 0.2  # NDC-like depth mapping of the distortion term (2DGS)
+    distortion_far: float = 100.0
+    scale_min: float = 1e-20  # surfels with a smaller tangent std-dev are culled (no plane)
+    edge_on_eps: float = 1e-6  # |s_z| <= eps (|s_x|+|s_y|): ray ~ parallel to the plane
+    box_margin: float = 0.01  # pixels; covers float32 rounding of the bounding box
+    max_pairs: int = 1 << 30  # refuse larger pair lists (memory) with a clear error
+
+
+PRESETS = {"paper": RasterConfig(), "cpu-small": RasterConfig()}
+
+
+def get_config(name: str) -> RasterConfig:
+    return get_preset(PRESETS, name, "raster")
+
+
+def _opaque(x) -> mi.Float:
+    """A per-call scalar (camera) as an opaque JIT value: literals would be baked into the
+    kernels and force a recompilation for every new camera."""
+    return dr.opaque(mi.Float, float(x))
+
+
+# A finite stand-in for rho3d when the ray misses the plane (edge-on): the filter wins.
+_RHO_NONE = 1e30
+
+
+@dataclasses.dataclass
+class _Proj:
+    """Per-surfel projected quantities [N] (all differentiable)."""
+
+    valid: mi.Bool
+    xc: mi.Float
+    yc: mi.Float
+    a0: mi.Float
+    a1: mi.Float
+    b0: mi.Float
+    b1: mi.Float
+    t20: mi.Float
+    t21: mi.Float
+    t22: mi.Float
+    z0: mi.Float
+    z1: mi.Float
+    z2: mi.Float
+    opacity: mi.Float
+    normal: mi.Vector3f  # world space, facing the camera
+
+    def detach(self) -> _Proj:
+        return _Proj(*(dr.detach(getattr(self, f.name)) for f in dataclasses.fields(self)))
+
+    def gather(self, idx: mi.UInt32, names: Sequence[str]) -> dict:
+        out = {}
+        for name in names:
+            v = getattr(self, name)
+            out[name] = dr.gather(type(v), v, idx)
+        return out
+
+
+def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
+    w2c = camera.world_to_cv()
+    r = [[_opaque(w2c[i, j]) for j in range(3)] for i in range(3)]
+    t = [_opaque(w2c[i, 3]) for i in range(3)]
+
+    def to_cam_vec(v):
+        return [r[i][0] * v.x + r[i][1] * v.y + r[i][2] * v.z for i in range(3)]
+
+    p = surfels.position
+    pc = to_cam_vec(p)
+    pc = [pc[i] + t[i] for i in range(3)]
+    t_u, t_v, nrm = surfels.tangent_frame()
+    tu, tv = to_cam_vec(t_u), to_cam_vec(t_v)
+    s = surfels.scale()
+    su, sv = s.x, s.y
+    f = _opaque(camera.focal)
+    cx, cy = (_opaque(c) for c in camera.principal_point)
+    z0, z1, z2 = su * tu[2], sv * tv[2], pc[2]
+    if camera.is_ortho:
+        xc, yc = f * pc[0] + cx, f * pc[1] + cy
+        a0, a1 = f * su * tu[0], f * sv * tv[0]
+        b0, b1 = f * su * tu[1], f * sv * tv[1]
+        zero = dr.zeros(mi.Float, dr.width(p))
+        t20, t21, t22 = zero, zero, zero + 1.0
+        view = mi.Vector3f(*(_opaque(v) for v in camera.forward))
+    else:
+        # Guarded 1/z: culled surfels (z < near) must not put inf into the gradient.
+        zs = dr.select(pc[2] > config.near, pc[2], 1.0)
+        mx, my = pc[0] / zs, pc[1] / zs
+        xc, yc = f * mx + cx, f * my + cy
+        a0, a1 = f * su * (tu[0] - mx * tu[2]), f * sv * (tv[0] - mx * tv[2])
+        b0, b1 = f * su * (tu[1] - my * tu[2]), f * sv * (tv[1] - my * tv[2])
+        t20, t21, t22 = z0, z1, zs
+        o = camera.origin
+        view = mi.Vector3f(p - mi.Point3f(*(_opaque(v) for v in o)))
+    valid = (pc[2] >= config.near) & (su > config.scale_min) & (sv > config.scale_min)
+    valid &= dr.isfinite(xc) & dr.isfinite(yc) & dr.isfinite(su) & dr.isfinite(sv)
+    # 2DGS flips each normal to face the camera by the direction to the centre.
+    normal = dr.select(dr.dot(nrm, view) > 0, -nrm, nrm)
+    return _Proj(valid, xc, yc, a0, a1, b0, b1, t20, t21, t22, z0, z1, z2,
+                 surfels.opacity(), normal)
+
+
+def _boxes(g: _Proj, width: int, height: int, config: RasterConfig):
+    """Integer pixel boxes [x0, x1] x [y0, y1] (inclusive) per surfel and their pixel count."""
+    k2 = config.cutoff_sigma ** 2
+    # Dual conic of the k-sigma ellipse, in pixel offsets from the projected centre.
+    c00 = g.a0 * g.a0 + g.a1 * g.a1
+    c11 = g.b0 * g.b0 + g.b1 * g.b1
+    c02 = g.a0 * g.t20 + g.a1 * g.t21
+    c12 = g.b0 * g.t20 + g.b1 * g.t21
+    c22 = g.t20 * g.t20 + g.t21 * g.t21 - g.t22 * g.t22 / k2
+    bounded = c22 < 0  # else the ellipse reaches the camera plane: its image is unbounded
+    c22s = dr.select(bounded, c22, -1.0)
+    ox, oy = c02 / c22s, c12 / c22s
+    hx = dr.sqrt(dr.maximum(ox * ox - c00 / c22s, 0.0))
+    hy = dr.sqrt(dr.maximum(oy * oy - c11 / c22s, 0.0))
+    big = 4.0 * (width + height)
+    hx = dr.select(bounded, hx, big)
+    hy = dr.select(bounded, hy, big)
+    ox = dr.select(bounded, ox, 0.0)
+    oy = dr.select(bounded, oy, 0.0)
+    rf = config.cutoff_sigma / math.sqrt(config.lowpass_inv_var) if config.lowpass_inv_var > 0 \
+        else 0.0
+    m = config.box_margin
+    xmin = g.xc + dr.minimum(ox - hx, -rf) - m
+    xmax = g.xc + dr.maximum(ox + hx, rf) + m
+    ymin = g.yc + dr.minimum(oy - hy, -rf) - m
+    ymax = g.yc + dr.maximum(oy + hy, rf) + m
+
+    # Pixel i has its centre at i + 0.5; clamp in float before the int conversion.
+    def lo(v, n):
+        return mi.Int32(dr.ceil(dr.clip(v - 0.5, -1.0, n + 1.0)))
+
+    def hi(v, n):
+        return mi.Int32(dr.floor(dr.clip(v - 0.5, -2.0, n + 1.0)))
+
+    x0 = dr.maximum(lo(xmin, width), 0)
+    x1 = dr.minimum(hi(xmax, width), width - 1)
+    y0 = dr.maximum(lo(ymin, height), 0)
+    y1 = dr.minimum(hi(ymax, height), height - 1)
+    bw = dr.maximum(x1 - x0 + 1, 0)
+    bh = dr.maximum(y1 - y0 + 1, 0)
+    count = dr.select(g.valid, mi.UInt32(bw * bh), 0)
+    return mi.UInt32(x0), mi.UInt32(y0), mi.UInt32(bw), count
+
+
+def _pair_eval(q: dict, px: mi.Float, py: mi.Float, config: RasterConfig):
+    """2DGS ray-splat intersection for pairs: (alpha, rho, depth, rho3d <= rho2d)."""
+    dx = px - q["xc"]
+    dy = py - q["yc"]
+    sx = q["t22"] * (dx * q["b1"] - dy * q["a1"])
+    sy = q["t22"] * (dy * q["a0"] - dx * q["b0"])
+    sz = (q["a0"] * q["b1"] - q["a1"] * q["b0"]) + dx * (q["t21"] * q["b0"] - q["t20"] * q["b1"]) \
+        + dy * (q["a1"] * q["t20"] - q["a0"] * q["t21"])
+    # Edge-on: the ray (nearly) parallel to the plane; guard the division so that neither
+    # the value nor the gradient sees inf, and let the low-pass filter take over.
+    hit = dr.abs(sz) > config.edge_on_eps * (dr.abs(sx) + dr.abs(sy))
+    szs = dr.select(hit, sz, 1.0)
+    u = sx / szs
+    v = sy / szs
+    rho3d = dr.select(hit, u * u + v * v, _RHO_NONE)
+    rho2d = config.lowpass_inv_var * (dx * dx + dy * dy)
+    use3d = rho3d <= rho2d
+    rho = dr.minimum(rho3d, rho2d)
+    depth = dr.select(use3d, q["z2"] + u * q["z0"] + v * q["z1"], q["z2"])
+    alpha = dr.minimum(config.alpha_max, q["opacity"] * dr.exp(-0.5 * rho))
+    return alpha, rho, depth
+
+
+_PAIR_FIELDS = ("xc", "yc", "a0", "a1", "b0", "b1", "t20", "t21", "t22", "z0", "z1", "z2",
+                "opacity")
+
+
+def _depth_key(z: mi.Float) -> mi.UInt32:
+    """Order-preserving uint of a float (negatives too)."""
+    b = dr.reinterpret_array(mi.UInt32, z)
+    return dr.select(b >= 0x80000000, ~b, b | 0x80000000)
+
+
+def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig):
+    """Sorted (surfel id, pixel id) of the pairs that contribute; detached. None if none."""
+    n = dr.width(g.xc)
+    x0, y0, bw, count = _boxes(g, width, height, config)
+    offsets = dr.prefix_sum(count)
+    dr.eval(offsets, count)
+    total = int(dr.gather(mi.UInt32, offsets + count, dr.opaque(mi.UInt32, n - 1))[0])
+    if total > config.max_pairs:
+        raise MemoryError(f"rasterize: {total} pixel-splat pairs exceed RasterConfig.max_pairs="
+                          f"{config.max_pairs} (surfels too large for the image?)")
+    if total == 0:
+        return None
+    # Surfel id of each pair: mark each non-empty box's first pair with its surfel index and
+    # carry it forward with a max-scan (ids increase along the list).
+    sid = dr.zeros(mi.UInt32, total)
+    ids = dr.arange(mi.UInt32, n)
+    dr.scatter(sid, ids, offsets, active=count > 0)
+    sid = dr.prefix_reduce(dr.ReduceOp.Max, sid, exclusive=False)
+    local = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, sid)
+    # max(., 1): masked-off tail lanes of a gather read 0, and x86 integer division by 0
+    # traps (SIGFPE) even in lanes that are discarded.
+    w = dr.maximum(dr.gather(mi.UInt32, bw, sid), 1)
+    ly = local // w
+    lx = local - ly * w
+    pxi = dr.gather(mi.UInt32, x0, sid) + lx
+    pyi = dr.gather(mi.UInt32, y0, sid) + ly
+    q = g.gather(sid, _PAIR_FIELDS)
+    alpha, rho, depth = _pair_eval(q, mi.Float(pxi) + 0.5, mi.Float(pyi) + 0.5, config)
+    keep = (alpha >= config.alpha_min) & (rho <= config.cutoff_sigma ** 2) & \
+        (depth >= config.near)
+    idx = dr.compress(keep)
+    if dr.width(idx) == 0:
+        return None
+    sid = dr.gather(mi.UInt32, sid, idx)
+    pix = dr.gather(mi.UInt32, pyi * width + pxi, idx)
+    key = (mi.UInt64(pix) << 32) | mi.UInt64(_depth_key(dr.gather(mi.Float, g.z2, sid)))
+    order = dr.argsort(key)
+    sid = dr.gather(mi.UInt32, sid, order)
+    pix = dr.gather(mi.UInt32, pix, order)
+    dr.eval(sid, pix)
+    return sid, pix
+
+
+def _segment_exclusive(x: mi.Float64, pix: mi.UInt32, first: mi.Bool, npix: int):
+    """Exclusive prefix sum of ``x`` restarted at each pixel's first pair (Float64)."""
+    cs = dr.prefix_sum(x)
+    base = dr.zeros(mi.Float64, npix)
+    dr.scatter_reduce(dr.ReduceOp.Add, base, cs, pix, active=first)
+    return cs - dr.gather(mi.Float64, base, pix)
+
+
+def _resolve_channels(surfels: Surfels, channels):
+    channels = channels or {}
+    n = surfels.count
+    out = {}
+    for name, t in channels.items():
+        if not isinstance(t, mi.TensorXf) or len(t.shape) != 2 or t.shape[0] != n:
+            shape = tuple(t.shape) if hasattr(t, "shape") else type(t).__name__
+            raise ValueError(f"rasterize: channel {name!r} must be a TensorXf [N={n}, C], "
+                             f"got {shape}")
+        if name in AOV_CHANNELS:
+            raise ValueError(f"rasterize: channel name {name!r} clashes with an AOV name")
+        out[name] = t
+    return out
+
+
+def rasterize(surfels: Surfels, camera: Camera,
+              channels: Mapping[str, mi.TensorXf] | None = None, *,
+              aovs: Sequence[str] = ("alpha", "depth"),
+              background: Mapping[str, Sequence[float]] | None = None,
+              config: RasterConfig = RasterConfig()) -> dict[str, mi.TensorXf]:
+    """Render ``surfels`` seen by ``camera``: images [H, W, C] by name.
+
+    ``channels`` maps names to per-surfel values [N, C]; each becomes sum_i T_i alpha_i c_i
+    (plus ``background[name] * (1 - alpha)`` when given); ``None`` renders AOVs only. For
+    SH colour pass ``{"rgb": sh_colors(surfels, camera.origin)}``.
+    ``aovs``: any of "alpha", "depth" (expected z-depth, 0 where alpha = 0), "median_depth",
+    "normal" (world space, facing the camera, not renormalised), "distortion" (2DGS depth
+    distortion), "count" (contributing splats, no gradient). Differentiable in reverse mode
+    with respect to all surfel parameters and channel values.
+    """
+    for a in aovs:
+        if a not in AOV_CHANNELS:
+            raise ValueError(f"rasterize: unknown AOV {a!r}; known: {sorted(AOV_CHANNELS)}")
+    if not 0.0 < config.alpha_max < 1.0:
+        raise ValueError(f"RasterConfig.alpha_max must be in (0, 1), got {config.alpha_max}")
+    chans = _resolve_channels(surfels, channels)
+    bg = {}
+    for name, value in (background or {}).items():
+        if name not in chans:
+            raise ValueError(f"rasterize: background given for {name!r}, which is not a "
+                             f"rendered channel ({sorted(chans)})")
+        vals = [float(v) for v in np.asarray(value, dtype=np.float64).reshape(-1)]
+        if len(vals) != chans[name].shape[1]:
+            raise ValueError(f"rasterize: background {name!r} has {len(vals)} values, "
+                             f"channel has {chans[name].shape[1]}")
+        bg[name] = vals
+    H, W = camera.height, camera.width
+    npix = H * W
+
+    g = _project(surfels, camera, config)
+    # One per-surfel kernel now, rather than whatever set of pending variables the first
+    # gather happens to evaluate (that set varies and defeats the kernel cache).
+    dr.eval(*(getattr(g, f.name) for f in dataclasses.fields(g)))
+    pairs = _build_pairs(g.detach(), W, H, config) if surfels.count else None
+
+    def image(flat, c):
+        return mi.TensorXf(flat, shape=(H, W, c))
+
+    if pairs is None:
+        out = {name: image(dr.zeros(mi.Float, npix * t.shape[1]), t.shape[1])
+               for name, t in chans.items()}
+        for name, vals in bg.items():
+            out[name] = image(dr.tile(mi.Float(vals), npix), len(vals))
+        for a in aovs:
+            out[a] = image(dr.zeros(mi.Float, npix * AOV_CHANNELS[a]), AOV_CHANNELS[a])
+        return out
+    sid, pix = pairs
+    npairs = dr.width(sid)
+
+    # Per-pair quantities with AD, in sorted order.
+    q = g.gather(sid, _PAIR_FIELDS)
+    pyi = pix // W
+    pxi = pix - pyi * W
+    alpha, _, depth = _pair_eval(q, mi.Float(pxi) + 0.5, mi.Float(pyi) + 0.5, config)
+
+    ar = dr.arange(mi.UInt32, npairs)
+    prev_pix = dr.gather(mi.UInt32, pix, dr.maximum(ar, 1) - 1)
+    last_idx = dr.opaque(mi.UInt32, npairs - 1)  # opaque: P must not be baked into kernels
+    next_pix = dr.gather(mi.UInt32, pix, dr.minimum(ar + 1, last_idx))
+    first = (ar == 0) | (prev_pix != pix)
+    last = (ar == last_idx) | (next_pix != pix)
+
+    a64 = mi.Float64(alpha)
+    log_t = _segment_exclusive(dr.log(1.0 - a64), pix, first, npix)
+    t_before = dr.exp(log_t)  # [P] transmittance in front of each pair
+    t_after = t_before * (1.0 - a64)
+    # 2DGS stops a pixel before the splat that would take T below transmittance_min.
+    contrib = dr.detach(t_after) >= config.transmittance_min
+    w64 = dr.select(contrib, t_before * a64, 0.0)
+    w = mi.Float(w64)
+
+    def accumulate(values, c):  # values: list of c per-pair Float
+        img = dr.zeros(mi.Float, npix * c)
+        for k in range(c):
+            dr.scatter_reduce(dr.ReduceOp.Add, img, values[k], pix * c + k)
+        return img
+
+    need_alpha = bool(bg) or any(a in aovs for a in ("alpha", "depth"))
+    alpha_img = accumulate([w], 1) if need_alpha else None
+    out = {}
+    for name, t in chans.items():
+        c = t.shape[1]
+        base = sid * c
+        vals = [w * dr.gather(mi.Float, t.array, base + k) for k in range(c)]
+        img = accumulate(vals, c)
+        if name in bg:
+            img = img + dr.tile(mi.Float(bg[name]), npix) * dr.repeat(1.0 - alpha_img, c)
+        out[name] = image(img, c)
+    if "alpha" in aovs:
+        out["alpha"] = image(alpha_img, 1)
+    if "depth" in aovs:
+        acc = accumulate([w * depth], 1)
+        ok = alpha_img > 0
+        out["depth"] = image(dr.select(ok, acc / dr.select(ok, alpha_img, 1.0), 0.0), 1)
+    if "median_depth" in aovs:
+        # The last contributing splat with T > 0.5 in front of it (2DGS).
+        nxt_contrib = dr.gather(mi.Bool, contrib, dr.minimum(ar + 1, last_idx))
+        end = last | ~nxt_contrib | (dr.detach(t_after) <= 0.5)
+        sel = contrib & (dr.detach(t_before) > 0.5) & end
+        out["median_depth"] = image(accumulate([dr.select(sel, depth, 0.0)], 1), 1)
+    if "normal" in aovs:
+        n = g.gather(sid, ("normal",))["normal"]
+        out["normal"] = image(accumulate([w * n.x, w * n.y, w * n.z], 3), 3)
+    if "distortion" in aovs:
+        near, far = config.distortion_near, config.distortion_far
+        m = mi.Float64(far / (far - near)) * (1.0 - near / mi.Float64(depth))
+        wm = w64 * m
+        m1 = _segment_exclusive(wm, pix, first, npix)
+        m2 = _segment_exclusive(wm * m, pix, first, npix)
+        acc = 1.0 - t_before  # = sum of the weights in front (all of them contribute)
+        d = w64 * (m * m * acc + m2 - 2.0 * m * m1)
+        out["distortion"] = image(accumulate([mi.Float(d)], 1), 1)
+    if "count" in aovs:
+        out["count"] = image(accumulate([dr.select(contrib, mi.Float(1.0), 0.0)], 1), 1)
+    return out
