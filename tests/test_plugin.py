@@ -1,0 +1,265 @@
+"""The ``surfel_raster`` integrator: XML loading, film channels, mi.traverse, AD through
+mi.render, and the standard Mitsuba optimisation loop."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowgs import ply
+from mi_shadowgs.camera import Camera
+from mi_shadowgs.raster import rasterize
+from mi_shadowgs.surfels import sh_colors
+
+W, H = 24, 18
+
+
+def _write_model(path, n=40, seed=0, degree=1):
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2
+    model = ply.PlyModel(
+        position=rng.uniform(-0.6, 0.6, size=(n, 3)).astype(np.float32),
+        log_scale=np.log(rng.uniform(0.08, 0.2, size=(n, 2))).astype(np.float32),
+        rotation=rng.normal(size=(n, 4)).astype(np.float32),
+        opacity_logit=rng.normal(0.5, 1.0, size=n).astype(np.float32),
+        channels={"sh": (0.3 * rng.normal(size=(n, 3 * k))).astype(np.float32),
+                  "albedo": rng.uniform(size=(n, 3)).astype(np.float32),
+                  "roughness": rng.uniform(size=(n, 1)).astype(np.float32)})
+    ply.write_ply_model(path, model)
+    return model
+
+
+def _scene_xml(filename, sensor="perspective", aovs="", extra="", pixel_format="rgba"):
+    if sensor == "perspective":
+        sens = '<float name="fov" value="45"/>'
+        tf = '<lookat origin="0.4, 0.5, 3" target="0, 0, 0" up="0, 1, 0"/>'
+    else:
+        sens = ""
+        tf = '<scale x="1.1" y="1.1"/><lookat origin="0.4, 0.5, 3" target="0, 0, 0" up="0, 1, 0"/>'
+    return f"""<scene version="3.0.0">
+      <integrator type="surfel_raster" id="surf">
+        <string name="filename" value="{filename}"/>
+        <string name="aovs" value="{aovs}"/>
+        {extra}
+      </integrator>
+      <sensor type="{sensor}">
+        {sens}
+        <transform name="to_world">{tf}</transform>
+        <film type="hdrfilm"><integer name="width" value="{W}"/>
+          <integer name="height" value="{H}"/>
+          <string name="pixel_format" value="{pixel_format}"/></film>
+      </sensor></scene>"""
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("plugin") / "model.ply"
+    _write_model(path)
+    return path
+
+
+def _direct(scene, aovs=("alpha", "depth", "normal"), color="sh", background=None):
+    """What the plugin must produce, from ``rasterize`` called directly."""
+    integ = scene.integrator()
+    cam = Camera.from_mitsuba(scene.sensors()[0])
+    s = integ.surfels
+    if color == "sh":
+        origin = cam.origin - cam.forward * 1.0e4 if cam.is_ortho else cam.origin
+        rgb = sh_colors(s, origin)
+    else:
+        rgb = s.channels[color]
+    chans = {"rgb": rgb, **{a: s.channels[a] for a in aovs if a in s.channels}}
+    return rasterize(s, cam, chans, aovs=tuple(a for a in aovs if a not in s.channels),
+                     background=None if background is None else {"rgb": background})
+
+
+@pytest.mark.parametrize("sensor", ["perspective", "orthographic"])
+def test_render_matches_rasterize(model_path, sensor):
+    scene = mi.load_string(_scene_xml(model_path, sensor, aovs="depth,normal,albedo"))
+    img = np.asarray(mi.render(scene))
+    ref = {k: np.asarray(v) for k, v in
+           _direct(scene, aovs=("alpha", "depth", "normal", "albedo")).items()}
+    assert img.shape == (H, W, 4 + 1 + 3 + 3)
+    expect = np.concatenate([ref["rgb"], ref["alpha"], ref["depth"], ref["normal"],
+                             ref["albedo"]], axis=-1)
+    # The same kernels on the same inputs: bit-identical (a 24x18 image is one LLVM work
+    # block, so even the float atomic adds run in a fixed order).
+    np.testing.assert_array_equal(img, expect)
+    assert ref["alpha"].max() > 0.5 and (ref["alpha"] == 0).any()  # not a trivial image
+    bmp = scene.sensors()[0].film().bitmap()
+    names = [f.name for f in bmp.struct_()]
+    assert names == ["R", "G", "B", "A", "depth.T", "normal.X", "normal.Y", "normal.Z",
+                     "albedo.R", "albedo.G", "albedo.B"]
+    np.testing.assert_array_equal(np.asarray(bmp)[..., 4], ref["depth"][..., 0])
+
+
+def test_color_channel_background_and_rgb_film(model_path):
+    extra = ('<string name="color_channel" value="albedo"/>'
+             '<rgb name="background" value="0.2, 0.4, 0.6"/>')
+    scene = mi.load_string(_scene_xml(model_path, aovs="roughness,alpha", extra=extra,
+                                      pixel_format="rgb"))
+    img = np.asarray(mi.render(scene))
+    ref = {k: np.asarray(v) for k, v in _direct(scene, aovs=("alpha", "roughness"),
+                                                color="albedo",
+                                                background=(0.2, 0.4, 0.6)).items()}
+    assert img.shape == (H, W, 3 + 1 + 1)  # no film alpha: R, G, B, roughness.T, alpha.T
+    np.testing.assert_allclose(img[..., :3], ref["rgb"], atol=1e-6)
+    np.testing.assert_allclose(img[..., 3:4], ref["roughness"], atol=1e-6)
+    np.testing.assert_allclose(img[..., 4:5], ref["alpha"], atol=1e-6)
+    # Background pixels show the background colour exactly.
+    bg = ref["alpha"][..., 0] == 0
+    np.testing.assert_allclose(img[bg][:, :3], np.tile([0.2, 0.4, 0.6], (bg.sum(), 1)),
+                               atol=1e-7)
+
+
+def test_traverse_update_changes_render(model_path):
+    scene = mi.load_string(_scene_xml(model_path))
+    params = mi.traverse(scene)
+    keys = [k for k in params.keys() if k.startswith("surf.")]
+    assert keys == ["surf.position", "surf.log_scale", "surf.rotation", "surf.opacity_logit",
+                    "surf.channels.sh", "surf.channels.albedo", "surf.channels.roughness"]
+    before = np.asarray(mi.render(scene))
+    params["surf.opacity_logit"] = dr.full(mi.Float, -20.0, 40)  # nearly transparent
+    params.update()
+    after = np.asarray(mi.render(scene))
+    assert before[..., 3].max() > 0.5
+    assert after[..., 3].max() < 1e-6  # opacity 2e-9 < alpha_min: every splat dropped
+
+
+def _grads_direct(scene, weights):
+    s = scene.integrator().surfels
+    p = s.params()
+    for v in p.values():
+        dr.enable_grad(v)
+    ref = _direct(scene, aovs=("alpha", "depth"))
+    img = dr.concat([ref["rgb"], ref["alpha"], ref["depth"]], axis=-1)
+    dr.backward(dr.sum(img * weights, axis=None))
+    out = {k: np.asarray(dr.grad(v)).copy() for k, v in p.items()}
+    for v in p.values():
+        dr.disable_grad(v)
+    return out
+
+
+def test_gradient_through_mi_render_matches_direct(model_path):
+    scene = mi.load_string(_scene_xml(model_path, aovs="depth"))
+    rng = np.random.default_rng(1)
+    weights = mi.TensorXf(rng.normal(size=(H, W, 5)).astype(np.float32))
+    params = mi.traverse(scene)
+    params.keep(r"surf\..*")
+    for k in params.keys():
+        dr.enable_grad(params[k])
+    img = mi.render(scene, params)
+    dr.backward(dr.sum(img * weights, axis=None))
+    got = {k[len("surf."):]: np.asarray(dr.grad(params[k])).copy() for k in params.keys()}
+    for k in params.keys():
+        dr.disable_grad(params[k])
+    ref = _grads_direct(scene, weights)
+    assert sorted(got) == sorted(ref)
+    for k in ref:
+        scale = np.abs(ref[k]).max()
+        # albedo and roughness are not rendered here: zero gradient.
+        assert (scale > 0) == (k not in ("channels.albedo", "channels.roughness")), k
+        # Same AD graph; only the order of float atomic adds may differ.
+        np.testing.assert_allclose(got[k], ref[k], rtol=0, atol=1e-5 * max(scale, 1e-12),
+                                   err_msg=k)
+
+
+def test_forward_mode_matches_backward(model_path):
+    """<d image / d theta . v, w> from render_forward equals <grad_theta <image, w>, v>."""
+    scene = mi.load_string(_scene_xml(model_path))
+    params = mi.traverse(scene)
+    params.keep(r"surf\.channels\.sh|surf\.position")
+    rng = np.random.default_rng(2)
+    weights = mi.TensorXf(rng.normal(size=(H, W, 4)).astype(np.float32))
+    tangent_pos = mi.Point3f(*rng.normal(size=(3, 40)).astype(np.float32))
+    dr.enable_grad(params["surf.position"])
+    dr.set_grad(params["surf.position"], tangent_pos)
+    img = mi.render(scene, params)
+    dr.forward_to(img)
+    fwd = float(np.asarray(dr.sum(dr.grad(img) * weights, axis=None)))
+    dr.disable_grad(params["surf.position"])
+    dr.enable_grad(params["surf.position"])
+    img = mi.render(scene, params)
+    dr.backward(dr.sum(img * weights, axis=None))
+    g = np.asarray(dr.grad(params["surf.position"]))
+    bwd = float(np.sum(g * np.asarray(tangent_pos)))
+    dr.disable_grad(params["surf.position"])
+    assert abs(fwd) > 1e-3
+    # float32 sums over ~1e3 pixels in different orders.
+    assert abs(fwd - bwd) <= 1e-4 * abs(bwd) + 1e-5, (fwd, bwd)
+
+
+def test_adam_loop_reduces_loss(tmp_path):
+    # Target: the model as saved. Start: the same geometry with wrong colours and opacities.
+    _write_model(tmp_path / "target.ply", seed=5)
+    scene = mi.load_string(_scene_xml(tmp_path / "target.ply"))
+    target = mi.TensorXf(np.asarray(mi.render(scene)))
+    params = mi.traverse(scene)
+    params["surf.channels.sh"] = mi.TensorXf(np.zeros((40, 12), np.float32))
+    # Not exactly 0: surfels.stable_sigmoid has a zero derivative at a logit of exactly 0.
+    params["surf.opacity_logit"] = dr.full(mi.Float, -0.5, 40)
+    params.update()
+    opt = mi.ad.Adam(lr=0.1)
+    opt["surf.channels.sh"] = params["surf.channels.sh"]
+    opt["surf.opacity_logit"] = params["surf.opacity_logit"]
+    params.update(opt)
+    losses = []
+    for it in range(30):
+        img = mi.render(scene, params, seed=it)
+        loss = dr.mean(dr.square(img - target), axis=None)
+        dr.backward(loss)
+        opt.step()
+        params.update(opt)
+        losses.append(float(np.asarray(loss)))
+    assert losses[0] > 1e-3
+    # Measured: the loss falls to 1.7% of its start in 30 steps; require 10x.
+    assert losses[-1] < 0.1 * losses[0], losses
+
+
+def test_bad_properties_are_named(model_path, tmp_path):
+    def load(xml):
+        return mi.load_string(xml)
+
+    with pytest.raises(Exception, match="filename"):
+        load(_scene_xml(model_path).replace(f'<string name="filename" value="{model_path}"/>',
+                                            ""))
+    with pytest.raises(Exception, match=r"missing\.ply"):
+        load(_scene_xml(tmp_path / "missing.ply"))
+    with pytest.raises(Exception, match="unknown AOV 'bogus'"):
+        load(_scene_xml(model_path, aovs="depth,bogus"))
+    with pytest.raises(Exception, match="colour channel 'metallic'"):
+        load(_scene_xml(model_path, extra='<string name="color_channel" value="metallic"/>'))
+    with pytest.raises(Exception, match="cutoff_sigma"):
+        load(_scene_xml(model_path, extra='<float name="cutoff_sigma" value="-1"/>'))
+
+
+@pytest.mark.cuda
+def test_cuda_render_matches_llvm(model_path, request):
+    """The plugin on cuda_ad_rgb renders what it renders on llvm_ad_rgb, and differentiates."""
+    xml = _scene_xml(model_path, aovs="depth,normal")
+    llvm_img = np.asarray(mi.render(mi.load_string(xml)))
+    request.getfixturevalue("cuda_variant")
+    scene = mi.load_string(xml)
+    params = mi.traverse(scene)
+    params.keep(r"surf\.position")
+    dr.enable_grad(params["surf.position"])
+    img = mi.render(scene, params)
+    dr.backward(dr.sum(img, axis=None))
+    grad = np.asarray(dr.grad(params["surf.position"]))
+    # Different hardware, same float32 maths: only summation order and fused ops differ.
+    np.testing.assert_allclose(np.asarray(img), llvm_img, atol=1e-4)
+    assert np.isfinite(grad).all() and np.abs(grad).max() > 0
+
+
+def test_relative_filename_and_grey_background(tmp_path):
+    _write_model(tmp_path / "rel.ply", seed=3)
+    xml = _scene_xml("rel.ply", extra='<float name="background" value="0.5"/>')
+    (tmp_path / "scene.xml").write_text(xml)
+    scene = mi.load_file(str(tmp_path / "scene.xml"))  # resolves rel.ply beside the scene
+    assert scene.integrator().filename == str(tmp_path / "rel.ply")
+    img = np.asarray(mi.render(scene))
+    empty = img[..., 3] == 0
+    assert empty.any()
+    np.testing.assert_array_equal(img[empty][:, :3], 0.5)
