@@ -69,13 +69,8 @@ def configure_llvm() -> str | None:
     path = find_libllvm()
     if path is None:
         return None
-    if "drjit" in sys.modules:
-        # Too late to influence the already-initialised backend; say so once.
-        print(
-            "mi_shadowgs: drjit was imported before mi_shadowgs; set "
-            f"{LLVM_ENV}={path} yourself if the LLVM backend fails",
-            file=sys.stderr,
-        )
+    # Dr.Jit reads the variable when its LLVM backend first initialises (at the first LLVM
+    # array or variant), so this also works after a bare `import drjit`.
     os.environ[LLVM_ENV] = path
     return path
 
