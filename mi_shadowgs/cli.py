@@ -16,6 +16,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("mi_shadowgs.dataset.generate_cli",
                  "render a shadowed synthetic dataset from a scene XML"),
     "render": ("mi_shadowgs.render_cli", "render a surfel model (PLY) from dataset cameras"),
+    "segment": ("mi_shadowgs.segment_cli",
+                "material segments: contrastive surfel features + K-means (stage 2)"),
+    "train": ("mi_shadowgs.train_cli", "optimise a stage of the method on a dataset (geometry)"),
 }
 
 

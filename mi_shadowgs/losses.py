@@ -1,0 +1,189 @@
+"""Differentiable image losses over Dr.Jit tensors (stage 1 and later stages).
+
+Images are ``mi.TensorXf`` of shape [H, W, C] (row 0 at the top). Every loss returns a
+scalar ``mi.Float`` (width 1), the mean over pixels (and channels), so that its gradient
+does not depend on the resolution's pixel count. Nothing here reads back to the host.
+
+- ``l1``, ``ssim``/``d_ssim`` (11x11 Gaussian window, sigma 1.5, separable, zero padding as
+  2DGS's ``F.conv2d(padding=5)``);
+- ``normal_consistency``: 2DGS's ``1 - n_rendered . n_from_depth`` with the depth normal
+  weighted by the (detached) accumulated opacity;
+- ``distortion_loss``: mean of the rasterizer's "distortion" AOV (2DGS);
+- ``mask_bce``: Eq. 13 of the paper on the accumulated opacity.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01 ** 2  # (K1 * L)^2 with L = 1 (images in [0, 1])
+SSIM_C2 = 0.03 ** 2
+# Opacity is clamped to [eps, 1 - eps] inside the BCE log (keeps the loss finite at 0 / 1).
+BCE_EPS = 1e-6
+
+
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np.ndarray:
+    """The normalised 1D Gaussian [size] of SSIM (float64)."""
+    x = np.arange(size, dtype=np.float64) - (size // 2)
+    g = np.exp(-x * x / (2.0 * sigma * sigma))
+    return g / g.sum()
+
+
+def _check_image(t: mi.TensorXf, what: str) -> tuple[int, int, int]:
+    if not isinstance(t, mi.TensorXf) or len(t.shape) != 3:
+        shape = tuple(t.shape) if hasattr(t, "shape") else type(t).__name__
+        raise ValueError(f"{what}: expected a TensorXf [H, W, C], got {shape}")
+    return tuple(int(s) for s in t.shape)
+
+
+def _mean(x) -> mi.Float:
+    return dr.mean(x.array if isinstance(x, mi.TensorXf) else x)
+
+
+def l1(render: mi.TensorXf, target: mi.TensorXf) -> mi.Float:
+    """Mean absolute difference of two [H, W, C] images."""
+    if _check_image(render, "l1 render") != _check_image(target, "l1 target"):
+        raise ValueError(f"l1: shapes differ: {tuple(render.shape)} vs {tuple(target.shape)}")
+    return _mean(dr.abs(render.array - target.array))
+
+
+def _blur(x: mi.Float, h: int, w: int, c: int, taps: np.ndarray) -> mi.Float:
+    """Separable zero-padded convolution of a flat [H, W, C] image with ``taps`` (odd)."""
+    r = len(taps) // 2
+    idx = dr.arange(mi.UInt32, h * w * c)
+    pix = idx // c
+    yi = mi.Int32(pix // w)
+    xi = mi.Int32(pix - (pix // w) * w)
+    out = mi.Float(0.0)
+    for k, wk in enumerate(taps):  # along x
+        dx = k - r
+        xs = xi + dx
+        ok = (xs >= 0) & (xs < w)
+        out += float(wk) * dr.gather(mi.Float, x, mi.UInt32(mi.Int32(idx) + dx * c), ok)
+    res = mi.Float(0.0)
+    for k, wk in enumerate(taps):  # along y
+        dy = k - r
+        ys = yi + dy
+        ok = (ys >= 0) & (ys < h)
+        res += float(wk) * dr.gather(mi.Float, out, mi.UInt32(mi.Int32(idx) + dy * w * c), ok)
+    return res
+
+
+def ssim_map(a: mi.TensorXf, b: mi.TensorXf, window: int = SSIM_WINDOW,
+             sigma: float = SSIM_SIGMA) -> mi.TensorXf:
+    """Per-pixel, per-channel SSIM [H, W, C] of two images (Gaussian window, zero padding)."""
+    shape = _check_image(a, "ssim a")
+    if shape != _check_image(b, "ssim b"):
+        raise ValueError(f"ssim: shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}")
+    h, w, c = shape
+    taps = gaussian_window(window, sigma)
+    x, y = a.array, b.array
+    mu_x = _blur(x, h, w, c, taps)
+    mu_y = _blur(y, h, w, c, taps)
+    sxx = _blur(x * x, h, w, c, taps) - mu_x * mu_x
+    syy = _blur(y * y, h, w, c, taps) - mu_y * mu_y
+    sxy = _blur(x * y, h, w, c, taps) - mu_x * mu_y
+    num = (2.0 * mu_x * mu_y + SSIM_C1) * (2.0 * sxy + SSIM_C2)
+    den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sxx + syy + SSIM_C2)
+    return mi.TensorXf(num / den, shape=shape)
+
+
+def ssim(a: mi.TensorXf, b: mi.TensorXf) -> mi.Float:
+    """Mean SSIM of two [H, W, C] images."""
+    return _mean(ssim_map(a, b))
+
+
+def d_ssim(a: mi.TensorXf, b: mi.TensorXf) -> mi.Float:
+    """1 - SSIM (the D-SSIM term of 3DGS/2DGS's photometric loss)."""
+    return 1.0 - ssim(a, b)
+
+
+def _camera_rotation(camera) -> list[list[mi.Float]]:
+    """World -> CV camera rotation as opaque scalars (new cameras reuse the kernels)."""
+    w2c = camera.world_to_cv()
+    return [[dr.opaque(mi.Float, float(w2c[i, j])) for j in range(3)] for i in range(3)]
+
+
+def depth_normals(depth: mi.TensorXf, camera) -> tuple[mi.Vector3f, mi.Bool]:
+    """Unit normals [H*W] (CV camera frame, facing the camera) from a z-depth map [H, W, 1].
+
+    Points are unprojected at pixel centres; the normal is the cross product of central
+    differences (2DGS's ``depth_to_normal``). Border pixels, and pixels with a zero-depth
+    neighbour, are invalid (second return value False) and get a zero normal.
+    """
+    h, w, c = _check_image(depth, "depth_normals depth")
+    if c != 1:
+        raise ValueError(f"depth_normals: depth must be [H, W, 1], got {tuple(depth.shape)}")
+    if camera.is_ortho:
+        raise ValueError("depth_normals: perspective cameras only")
+    f = dr.opaque(mi.Float, camera.focal)
+    cx, cy = (dr.opaque(mi.Float, v) for v in camera.principal_point)
+    z = depth.array
+    idx = dr.arange(mi.UInt32, h * w)
+    yi = idx // w
+    xi = idx - yi * w
+    # [H*W] camera-frame points
+    px = (mi.Float(xi) + 0.5 - cx) / f * z
+    py = (mi.Float(yi) + 0.5 - cy) / f * z
+    pts = mi.Vector3f(px, py, z)
+    inner = (xi > 0) & (xi < w - 1) & (yi > 0) & (yi < h - 1)
+
+    def at(off):
+        return dr.gather(mi.Vector3f, pts, mi.UInt32(mi.Int32(idx) + off), inner)
+
+    right, left, down, up = at(1), at(-1), at(w), at(-w)
+    valid = inner & (right.z > 0) & (left.z > 0) & (down.z > 0) & (up.z > 0) & (z > 0)
+    n = dr.cross(right - left, down - up)
+    n2 = dr.squared_norm(n)
+    valid &= n2 > 0
+    n = n * dr.rsqrt(dr.select(valid, n2, 1.0))
+    # Face the camera: the view ray is +pts in the camera frame.
+    n = dr.select(dr.dot(n, pts) > 0, -n, n)
+    return dr.select(valid, n, 0.0), valid
+
+
+def normal_consistency(normal: mi.TensorXf, depth: mi.TensorXf, alpha: mi.TensorXf,
+                       camera) -> mi.Float:
+    """2DGS's normal consistency: mean over pixels of 1 - n_rend . (alpha * n_depth).
+
+    ``normal`` [H, W, 3] is the rasterizer's world-space normal AOV (alpha-weighted, facing
+    the camera), ``depth`` [H, W, 1] its expected z-depth, ``alpha`` [H, W, 1] its opacity
+    (detached here, as 2DGS does). Gradients reach both the normals and the depth.
+    """
+    h, w, _ = _check_image(normal, "normal_consistency normal")
+    nd, _ = depth_normals(depth, camera)  # [H*W] camera frame
+    r = _camera_rotation(camera)
+    nw = dr.unravel(mi.Vector3f, normal.array)  # [H*W] world
+    nc = mi.Vector3f(*(r[i][0] * nw.x + r[i][1] * nw.y + r[i][2] * nw.z for i in range(3)))
+    a = dr.detach(alpha.array)
+    return dr.mean(1.0 - a * dr.dot(nc, nd))
+
+
+def distortion_loss(distortion: mi.TensorXf) -> mi.Float:
+    """Mean of the rasterizer's depth-distortion AOV [H, W, 1] (2DGS L_d)."""
+    _check_image(distortion, "distortion_loss")
+    return _mean(distortion)
+
+
+def mask_bce(alpha: mi.TensorXf, mask: mi.TensorXf) -> mi.Float:
+    """Eq. 13: mean of -M log O - (1 - M) log(1 - O), O = accumulated opacity [H, W, 1].
+
+    ``mask`` [H, W, 1] holds values in [0, 1] (binary or soft coverage).
+    """
+    if _check_image(alpha, "mask_bce alpha") != _check_image(mask, "mask_bce mask"):
+        raise ValueError(f"mask_bce: shapes differ: {tuple(alpha.shape)} vs "
+                         f"{tuple(mask.shape)}")
+    o = dr.clip(alpha.array, BCE_EPS, 1.0 - BCE_EPS)
+    m = mask.array
+    return dr.mean(-m * dr.log(o) - (1.0 - m) * dr.log(1.0 - o))
+
+
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB of images in [0, 1] for a mean squared error (host-side helper)."""
+    return 10.0 * math.log10(1.0 / max(mse, 1e-20))

@@ -1,0 +1,169 @@
+"""Stage 1 end to end on tiny scenes: PSNR reached, resume after interruption, atomic
+checkpoints, clear errors on bad datasets, no NaN with grazing views."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+
+import numpy as np
+import pytest
+from mi_shadowgs.scenes import scene_path
+
+from mi_shadowgs import checkpoint as ckpt
+from mi_shadowgs import cli
+from mi_shadowgs import stage_geometry as sg
+from mi_shadowgs.dataset.generate import get_config as gen_config
+from mi_shadowgs.dataset.loader import load_dataset
+from mi_shadowgs.dataset.writer import write_dataset
+from mi_shadowgs.densify import DensifyConfig
+
+# A tiny version of cpu-small: 32x32, few iterations, densification early and often.
+TINY = dataclasses.replace(
+    sg.get_config("cpu-small"), iterations=300, sh_degree=0, init_points=1500,
+    hull_resolution=24, normal_from=150, dist_from=250, log_every=10,
+    densify=DensifyConfig(start=50, stop=250, interval=50, opacity_reset_interval=0,
+                          max_surfels=6000))
+
+
+def _write(tmp_path_factory, name, **over):
+    out = tmp_path_factory.mktemp("ds") / name
+    cfg = gen_config("cpu-small")
+    cfg = dataclasses.replace(cfg, width=32, height=32, n_train=16, n_test=4, spp=8, **over)
+    write_dataset(scene_path("default"), out, cfg, "cpu-small", seed=1, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return _write(tmp_path_factory, "tiny")
+
+
+def test_short_run_reaches_psnr(tiny):
+    train = load_dataset(tiny, "train")
+    t0 = time.perf_counter()
+    logs = []
+    surfels = sg.train_geometry(train, TINY, callbacks=sg.Callbacks(on_log=logs.append),
+                                progress=False)
+    elapsed = time.perf_counter() - t0
+    assert elapsed < 60.0, f"the short run took {elapsed:.1f} s"
+    m = sg.evaluate(surfels, train)
+    # Measured 2025-11-22 on 2 loaded cores: 19.7 dB on the training views after 300 steps
+    # (the first 10 steps average ~10 dB). 18 dB leaves margin for run-to-run differences
+    # (float atomics reorder sums) while a broken loss, optimiser or densification stays
+    # far below.
+    assert m["psnr"] >= 18.0, m
+    assert logs[0]["psnr"] < 13.0  # it really learned
+    assert m["mask_iou"] >= 0.9
+
+
+def test_resume_after_interruption_continues_the_run(tiny, tmp_path):
+    train = load_dataset(tiny, "train")
+    cfg = dataclasses.replace(TINY, iterations=60, checkpoint_every=20)
+    cdir = tmp_path / "ckpt"
+
+    def save(state):
+        ckpt.save_checkpoint(cdir, state.to_numpy(), {"step": state.step})
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_50(step):
+        if step == 50:
+            raise Killed
+
+    with pytest.raises(Killed):
+        sg.train_geometry(train, cfg, callbacks=sg.Callbacks(on_checkpoint=save,
+                                                             on_step=kill_at_50),
+                          progress=False)
+    arrays, meta = ckpt.load_checkpoint(cdir)
+    assert meta["step"] == 40  # the last checkpoint before the interruption
+    state = sg.TrainState.from_numpy(arrays, cfg)
+    assert state.step == 40 and state.opt.t == 40
+    resumed = sg.train_geometry(train, cfg, state=state, progress=False)
+    straight = sg.train_geometry(train, cfg, progress=False)
+    a, b = resumed.to_numpy(), straight.to_numpy()
+    assert a["position"].shape == b["position"].shape
+    # Same schedule, views and densification; float atomics in the rasterizer's scatter may
+    # reorder sums, so positions agree to ~1e-4 rather than bit for bit.
+    np.testing.assert_allclose(a["position"], b["position"], atol=1e-3)
+    np.testing.assert_allclose(a["opacity"], b["opacity"], atol=1e-3)
+
+
+def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
+    ckpt.save_checkpoint(tmp_path, {"x": np.arange(3)}, {"step": 1})
+
+    def broken_savez(f, **arrays):
+        f.write(b"PK\x03\x04 half a zip")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", broken_savez)
+    with pytest.raises(OSError, match="disk full"):
+        ckpt.save_checkpoint(tmp_path, {"x": np.arange(5)}, {"step": 2})
+    arrays, meta = ckpt.load_checkpoint(tmp_path)
+    assert meta["step"] == 1 and arrays["x"].tolist() == [0, 1, 2]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.npz"]  # no leftovers
+    (tmp_path / "checkpoint.npz").write_bytes(b"garbage")
+    with pytest.raises(ckpt.CheckpointError, match="checkpoint.npz: unreadable"):
+        ckpt.load_checkpoint(tmp_path)
+
+
+def test_train_cli_writes_run_and_rejects_bad_data(tiny, tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sg.PRESETS, "cpu-small", dataclasses.replace(
+        TINY, iterations=20, preview_every=10, checkpoint_every=10))
+    run = tmp_path / "run"
+    assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress"]) == 0
+    g = run / "geometry"
+    names = sorted(p.name for p in g.iterdir())
+    assert names == ["checkpoint", "config.json", "log.csv", "metrics.json", "model.ply",
+                     "previews"]
+    m = json.loads((g / "metrics.json").read_text())
+    for key in ("psnr", "ssim", "normal_error_median_deg", "depth_error_mean_abs", "mask_iou"):
+        assert np.isfinite(m[key])
+    assert len((g / "log.csv").read_text().splitlines()) == 1 + 2
+    assert sorted(p.name for p in (g / "previews").iterdir()) == ["iter_000010.png",
+                                                                  "iter_000020.png"]
+    # A second run refuses to clobber; --resume at the end is a no-op that keeps the log.
+    assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress"]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress", "--resume",
+                     "--no-eval"]) == 0
+    assert len((g / "log.csv").read_text().splitlines()) == 1 + 2
+
+    # Empty mask: the loader names the file.
+    bad = tmp_path / "bad"
+    import shutil
+    shutil.copytree(tiny, bad)
+    from mi_shadowgs.imageio import read_png, write_png
+    png = bad / "train" / "r_003.png"
+    img = read_png(png)
+    img[..., 3] = 0
+    write_png(png, img.astype(np.float32) / 255.0, srgb=False)
+    for p in (bad / "train").glob("r_003.exr"):
+        p.unlink()
+    assert cli.main(["train", str(bad), "--out", str(tmp_path / "r2"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "r_003" in err and "empty" in err
+    # Missing frame.
+    png.unlink()
+    assert cli.main(["train", str(bad), "--out", str(tmp_path / "r3"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "r_003" in err and "missing" in err
+
+
+def test_no_nan_with_grazing_views(tmp_path_factory):
+    # Cameras 1-4 degrees above the base: the base and object tops are seen edge-on.
+    ds = _write(tmp_path_factory, "grazing", train_elevation_deg=(1.0, 4.0),
+                test_elevation_deg=(1.0, 4.0))
+    cfg = dataclasses.replace(TINY, iterations=200, normal_from=0, dist_from=0,
+                              init="random", log_every=5)
+    train = load_dataset(ds, "train")
+    logs = []
+    # train_geometry raises FloatingPointError on any non-finite logged term.
+    surfels = sg.train_geometry(train, cfg, callbacks=sg.Callbacks(on_log=logs.append),
+                                progress=False)
+    assert len(logs) == 40
+    for key, a in surfels.to_numpy().items():
+        assert np.all(np.isfinite(a)), key
+    assert logs[-1]["psnr"] > logs[0]["psnr"] + 3.0

@@ -1,0 +1,124 @@
+"""Stage-1 acceptance (issue 4): train geometry on a dataset, evaluate on its test views.
+
+    python -m validation.geometry --data /tmp/default --out /tmp/val_geometry [--preset P]
+
+Writes ``OUT/geometry.json`` (test-view PSNR/SSIM, normal and depth error, mask IoU, wall
+times, surfel count, load average, pass/fail of each acceptance item) and
+``OUT/previews/<view>.png`` (render | ground truth over normals | ground-truth normals).
+``run(out_dir, quick)`` follows ``validation.run_all``'s interface (default scene, generated
+into ``out_dir``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from mi_shadowgs.atomic import atomic_path, write_json
+
+# Issue 4 acceptance at cpu-small.
+ACCEPT = {"psnr": 30.0, "normal_error_median_deg": 10.0, "mask_iou": 0.98, "wall_s": 480.0}
+
+
+def _preview(view, r) -> np.ndarray:
+    from mi_shadowgs.imageio import linear_to_srgb
+
+    def nrm(n, cover):
+        return np.where(cover[..., None], np.clip(n * 0.5 + 0.5, 0, 1), 0.0)
+
+    rgb = linear_to_srgb(np.clip(np.concatenate([r["rgb"], view.image], 1), 0, 1))
+    n_gt = view.normal if view.normal is not None else np.zeros_like(r["normal"])
+    nn = np.concatenate([nrm(r["normal"], r["alpha"] > 0), nrm(n_gt, view.mask)], 1)
+    return np.concatenate([rgb, nn], 0)
+
+
+def validate(data: Path, out: Path, preset: str = "cpu-small", iterations: int | None = None,
+             progress: bool = True) -> dict:
+    from mi_shadowgs.config import with_overrides
+    from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.imageio import write_png
+    from mi_shadowgs.ply import save_ply
+    from mi_shadowgs.stage_geometry import evaluate, get_config, train_geometry
+
+    config = get_config(preset)
+    if iterations:
+        config = with_overrides(config, {"iterations": iterations}, "geometry")
+    load0 = os.getloadavg()
+    t0 = time.perf_counter()
+    train = load_dataset(data, "train")
+    surfels = train_geometry(train, config, progress=progress)
+    t_train = time.perf_counter() - t0
+    test = load_dataset(data, "test")
+    (out / "previews").mkdir(parents=True, exist_ok=True)
+
+    def on_view(view, r):
+        with atomic_path(out / "previews" / f"{Path(view.name).name}.png") as tmp:
+            write_png(tmp, _preview(view, r), srgb=False)
+
+    m = evaluate(surfels, test, config.raster, on_view=on_view)
+    wall = time.perf_counter() - t0
+    save_ply(out / "model.ply", surfels)
+    m.update(dataset=str(data), preset=preset, iterations=config.iterations,
+             surfels=surfels.count, train_s=t_train, wall_s=wall,
+             loadavg_start=list(load0), loadavg_end=list(os.getloadavg()))
+    m["accept"] = {"psnr": m["psnr"] >= ACCEPT["psnr"],
+                   "normal_error_median_deg": m.get("normal_error_median_deg", 1e9) <=
+                   ACCEPT["normal_error_median_deg"],
+                   "mask_iou": m["mask_iou"] >= ACCEPT["mask_iou"],
+                   "wall_s": wall <= ACCEPT["wall_s"]}
+    write_json(out / "geometry.json", m)
+    return m
+
+
+def _markdown(m: dict) -> str:
+    ok = m["accept"]
+    return (f"| {Path(m['dataset']).name} | {m['psnr']:.2f} ({'ok' if ok['psnr'] else 'FAIL'}) "
+            f"| {m['ssim']:.4f} | {m.get('normal_error_median_deg', float('nan')):.2f} "
+            f"({'ok' if ok['normal_error_median_deg'] else 'FAIL'}) "
+            f"| {m.get('depth_error_mean_abs', float('nan')):.3f} | {m['mask_iou']:.4f} "
+            f"({'ok' if ok['mask_iou'] else 'FAIL'}) | {m['wall_s']:.0f} s "
+            f"({'ok' if ok['wall_s'] else 'FAIL'}) | {m['surfels']} |")
+
+
+def run(out_dir: Path, quick: bool) -> dict:
+    """validation.run_all entry: generate the default scene at cpu-small and validate."""
+    from mi_shadowgs.scenes import scene_path
+
+    from mi_shadowgs.dataset.generate import get_config as gen_config
+    from mi_shadowgs.dataset.writer import write_dataset
+
+    out_dir = Path(out_dir) / "geometry"
+    data = out_dir / "data"
+    if not data.exists():
+        write_dataset(scene_path("default"), data, gen_config("cpu-small"), "cpu-small",
+                      seed=0, progress=False)
+    m = validate(data, out_dir, "cpu-small", iterations=200 if quick else None,
+                 progress=False)
+    header = ("| dataset | PSNR dB | SSIM | median normal err deg | depth err | mask IoU | wall "
+              "| surfels |\n|---|---|---|---|---|---|---|---|\n")
+    m["markdown"] = header + _markdown(m)
+    return m
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, help="dataset folder")
+    ap.add_argument("--out", required=True, help="output folder")
+    ap.add_argument("--preset", default="cpu-small")
+    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+    m = validate(Path(args.data), Path(args.out), args.preset, args.iterations,
+                 progress=not args.no_progress)
+    print(_markdown(m))
+    return 0 if all(m["accept"].values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
