@@ -1,0 +1,181 @@
+"""Stage 4 (mi_shadowgs.stage_material, mi_shadowgs.shading): kernels and a tiny fit."""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_shadowgs import shading as S
+from mi_shadowgs import stage_material as SM
+from mi_shadowgs.camera import Camera
+from mi_shadowgs.config import ConfigError, with_overrides
+from mi_shadowgs.directions import light_grid, solid_angle
+from mi_shadowgs.geometry import frame_to_quaternion
+from mi_shadowgs.raster import rasterize
+from mi_shadowgs.surfels import Surfels
+from mi_shadowgs.visibility import SceneBounds, VisibilityConfig, render_shadow_maps
+
+
+def test_presets_and_paper_defaults():
+    p = SM.get_config("paper")
+    assert (p.iterations, p.lambda_ind2, p.lambda_tv, p.lambda_brdf, p.lambda_reg) == \
+        (5000, 0.01, 0.01, 1.0, 0.001)
+    assert (p.n_directions, p.sh_degree) == (128, 2)
+    assert SM.get_config("cpu-small").iterations < p.iterations
+    with pytest.raises(ConfigError):
+        SM.get_config("nope")
+    with pytest.raises(ValueError, match="specular"):
+        SM.MaterialConfig(specular="maybe")
+
+
+def test_segment_average_exact():
+    rng = np.random.default_rng(3)
+    n, k = 1000, 7
+    vals = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    seg = rng.integers(0, k, n)
+    seg[seg == 4] = 5  # an empty segment id must not break anything
+    out = SM.segment_average(mi.TensorXf(vals), mi.UInt32(seg.astype(np.uint32)), k).numpy()
+    ref = np.zeros_like(vals, dtype=np.float64)
+    for s in np.unique(seg):
+        ref[seg == s] = vals[seg == s].astype(np.float64).mean(0)
+    # float32 sums of ~150 values in [0, 1]: a few ulps of the sum.
+    np.testing.assert_allclose(out, ref, rtol=0, atol=2e-6)
+    # Idempotent: averaging an averaged field changes nothing.
+    again = SM.segment_average(mi.TensorXf(out), mi.UInt32(seg.astype(np.uint32)), k).numpy()
+    np.testing.assert_allclose(again, out, rtol=0, atol=2e-6)
+
+
+def test_segment_channel_errors():
+    s = _plane_scene()[0]
+    del s.channels["segment"]
+    with pytest.raises(ValueError, match="segment"):
+        SM.segment_ids(s)
+    s.channels["segment"] = mi.TensorXf(np.full((s.count, 1), -1.0, np.float32))
+    with pytest.raises(ValueError, match="non-negative integer"):
+        SM.segment_ids(s)
+
+
+# -- a tiny synthetic scene: a floor with an occluding tile above it ------------------------
+def _grid_surfels(center, half, n, normal, opacity=0.99):
+    u = (np.arange(n) + 0.5) / n * 2 - 1
+    uu, vv = np.meshgrid(u * half, u * half)
+    pos = np.stack([uu.ravel(), np.zeros(n * n), vv.ravel()], -1) + np.asarray(center)
+    sigma = 0.8 * 2 * half / n
+    return pos, np.full((n * n, 2), sigma), np.tile(normal, (n * n, 1))
+
+
+def _plane_scene():
+    floor = _grid_surfels([0, 0, 0], 1.0, 48, [0, 1, 0])
+    tile = _grid_surfels([0.1, 0.45, -0.05], 0.25, 16, [0, 1, 0])
+    pos = np.concatenate([floor[0], tile[0]])
+    scale = np.concatenate([floor[1], tile[1]])
+    nrm = np.concatenate([floor[2], tile[2]])
+    seg = np.concatenate([np.zeros(len(floor[0])), np.ones(len(tile[0]))])
+    albedo = np.where(seg[:, None] == 0, [[0.6, 0.5, 0.3]], [[0.2, 0.4, 0.7]])
+    s = Surfels.from_numpy(pos, scale, frame_to_quaternion(nrm), np.full(len(pos), 0.99),
+                           channels={"segment": seg[:, None].astype(np.float32),
+                                     "albedo_gt": albedo})
+    cams = [Camera.look_at(np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
+                           np.zeros(3), fov_x=0.9, width=32, height=32)
+            for a in np.linspace(0, 2 * math.pi, 4, endpoint=False)]
+    bounds = SceneBounds((0.0, 0.2, 0.0), 1.5, 3.0)
+    return s, cams, bounds
+
+
+def test_splat_matches_rasterize():
+    s, cams, _ = _plane_scene()
+    vals = mi.TensorXf(np.random.default_rng(0).uniform(0, 1, (s.count, 4)).astype(np.float32))
+    pairs = S.splat_pairs(s, cams[1])
+    got = S.splat(pairs, vals).numpy()
+    ref = rasterize(s, cams[1], {"v": vals}, aovs=())["v"].numpy().reshape(-1)
+    # Same pairs and weights; only the summation order of the scatter may differ.
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5)
+    assert ref.max() > 0.5
+
+
+def test_sh_irradiance_against_numpy():
+    rng = np.random.default_rng(2)
+    npx = 50
+    coef = rng.normal(size=(npx, 27)).astype(np.float32)
+    n = rng.normal(size=(npx, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    got = S.sh_irradiance(mi.Float(coef.ravel()), mi.Vector3f(*(n[:, k].astype(np.float32)
+                                                                 for k in range(3))), 2)
+    got = np.stack([np.asarray(got[c]) for c in range(3)], -1)
+    x, y, z = n.T
+    c0, c1 = 0.28209479177387814, 0.4886025119029199
+    c2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+          -1.0925484305920792, 0.5462742152960396)
+    basis = np.stack([np.full(npx, c0), -c1 * y, c1 * z, -c1 * x, c2[0] * x * y, c2[1] * y * z,
+                      c2[2] * (2 * z * z - x * x - y * y), c2[3] * x * z, c2[4] * (x * x - y * y)],
+                     -1)
+    ref = np.maximum(np.einsum("pk,pkc->pc", basis, coef.reshape(npx, 9, 3).astype(np.float64)),
+                     0)
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
+
+
+def _render_truth(s, cams, bounds, light_idx, irradiance, vcfg):
+    """Targets rendered by the model itself with the true albedo and one grid light."""
+    grid = light_grid(128)
+    d = grid[[light_idx]]
+    maps = render_shadow_maps(s, d, bounds, vcfg)
+    e = mi.Float(float(irradiance))
+    lights = S.LightSet(d, mi.Color3f(e, e, e))
+    truth = dict(s.channels)
+    truth["albedo"] = s.channels["albedo_gt"]
+    imgs, masks = [], []
+    for cam in cams:
+        pairs = S.splat_pairs(s, cam)
+        geom = S.pixel_geometry(s, cam)
+        a = S.splat(pairs, truth["albedo"])
+        albedo = mi.Color3f(*(S.channel(a, 3, c) for c in range(3)))
+        zero = dr.zeros(mi.Float, dr.width(geom.alpha))
+        vis = maps.evaluate(geom.points, geom.normal)
+        rgb = S.shade(geom, albedo, zero + 1.0, zero, lights, vis, None, False)
+        imgs.append(np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
+                    .reshape(cam.height, cam.width, 3))
+        masks.append(geom.alpha.numpy().reshape(cam.height, cam.width) > 0.5)
+    return imgs, masks
+
+
+def test_tiny_decomposition_recovers_albedo_and_light():
+    """Floor + occluding tile, one light on a grid direction, no indirect light.
+
+    Albedo (up to the global albedo x light scale) and the light direction must come back:
+    the shadow of the tile on the floor is what pins the direction down.
+    """
+    s, cams, bounds = _plane_scene()
+    vcfg = VisibilityConfig(resolution=128)
+    k_true = int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))  # ~49 degrees elevation
+    e_true = 2.0
+    imgs, masks = _render_truth(s, cams, bounds, k_true, e_true, vcfg)
+    cfg = with_overrides(SM.get_config("cpu-small"),
+                         {"iterations": 250, "warmup": 80, "specular": "off",
+                          "log_every": 50}, "material")
+    res = SM.fit_material(s, cams, imgs, masks, cfg, bounds, vcfg, progress=False)
+    # Light: the true direction dominates the fitted map.
+    gt_map = np.zeros(128)
+    gt_map[k_true] = e_true / solid_angle(128)
+    est = res.light.radiance
+    cos = est @ gt_map / (np.linalg.norm(est) * np.linalg.norm(gt_map))
+    # Neighbouring grid directions cast nearly the same shadow at 40 px: 0.6 still means the
+    # peak is at the right place (a wrong direction gives < 0.2).
+    assert cos > 0.6, cos
+    assert int(np.argmax(est)) == k_true
+    # Pruning dropped most of the 128 directions.
+    assert len(res.light.active) < 40
+    # Albedo: one segment-constant value each; their per-channel ratio is scale-free.
+    a = res.surfels.channels["albedo"].numpy()
+    seg = res.surfels.channels["segment"].numpy()[:, 0]
+    a0, a1 = a[seg == 0].mean(0), a[seg == 1].mean(0)
+    assert np.ptp(a[seg == 0], axis=0).max() < 1e-6  # the hard constraint holds exactly
+    ratio, ratio_true = a0 / a1, np.array([0.6, 0.5, 0.3]) / np.array([0.2, 0.4, 0.7])
+    # 250 steps of a 4-view 32 px fit are not converged (L1 ~0.02, measured ratio
+    # [2.4, 1.05, 0.63] vs [3, 1.25, 0.43]): the colours must separate the right way
+    # (with the indirect light fitted from step 0 they did not: ratio [1, 1, 1]).
+    assert ratio[0] > 2.0 and 0.85 < ratio[1] < 1.5 and ratio[2] < 0.8, (ratio, ratio_true)
+    assert res.history[-1][1] < 0.5 * res.history[0][1]  # the loss went down
