@@ -1,0 +1,538 @@
+"""Visibility against Mitsuba ray tracing: paper Table 2 and a speed-vs-error sweep (issue 5).
+
+For each scene (the embedded default and the bunny), views on the test spiral and 8 light
+directions spread in azimuth and elevation (down to 10 degrees), the ground truth is Mitsuba's
+``ray_test`` toward the light from the true surface (``dataset.generate.trace_ground_truth``).
+Every method gets the same ground-truth surface points (unprojected GT depth) and normals and
+surfels sampled on the true shapes (object dense, base sparse near the object); the score is
+the IoU of the shadowed set (V < 0.5, ground truth V = 0 or n . l <= 0) inside the mask,
+averaged over views and directions. With ``--model`` (a stage-1 PLY) and ``--data`` (its
+dataset), the points come from the model's own rendered median depth and normals instead.
+
+    python -m validation.visibility --out validation-out/visibility [--quick]
+        [--model RUN/geometry/model.ply --data DATASET]
+
+Writes (atomically) ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``,
+``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import json
+import math
+import time
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
+from mi_shadowgs.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.dataset.cameras import test_cameras
+from mi_shadowgs.dataset.generate import trace_ground_truth
+from mi_shadowgs.dataset.layout import DATASET_JSON, NERF_CAMERA_ANGLE_X, transforms_name
+from mi_shadowgs.dataset.scene import Light, load_scene
+from mi_shadowgs.directions import direction_from_angles, light_grid
+from mi_shadowgs.geometry import frame_to_quaternion
+from mi_shadowgs.sampling import sample_surface
+from mi_shadowgs.surfels import Surfels
+from mi_shadowgs.visibility import (
+    SceneBounds,
+    VisibilityConfig,
+    mean_camera_distance,
+    render_shadow_maps,
+    unproject_depth,
+)
+from mi_shadowgs.visibility_baselines import (
+    GaussianTraceConfig,
+    VoxelConfig,
+    trace_surfels,
+    voxelize_surfels,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+BUNNY = SHARED / "meshes" / "bunny" / "bunny.ply"
+
+# 8 light directions (azimuth, elevation) in degrees: all azimuth octants, low to high.
+LIGHTS = ((20.0, 10.0), (65.0, 25.0), (110.0, 40.0), (155.0, 60.0),
+          (200.0, 15.0), (245.0, 30.0), (290.0, 50.0), (335.0, 75.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidationConfig:
+    """Sizes of the visibility validation; ``quick`` is a smoke run."""
+
+    n_views: int = 8  # views on the test spiral
+    resolution: int = 128  # view width = height (the cpu-small dataset's)
+    camera_distance: float = 4.0  # as the dataset generator (object radius 1)
+    object_surfels: int = 20_000  # sampled on the object's shapes
+    base_surfels: int = 4_000  # on the base, within base_radius object radii of the centre
+    base_radius: float = 2.5
+    sigma_factor: float = 0.7  # surfel std-dev / mean sample spacing
+    lights: tuple = LIGHTS
+    timing_views: int = 200  # maps amortised over this many views (the paper's test set)
+    repeats: int = 2  # Table 2 and N_l timings: median of this many warm runs
+    sweep_repeats: int = 1  # sweep timings (many settings; the 1024^2 maps are slow on CPU)
+    timing_map_resolutions: tuple = (128, 256)  # map sizes of the N_l timing
+    sweep_resolutions: tuple = (64, 128, 256, 512, 1024)
+    sweep_taus: tuple = (0.0, 1e-4, 3e-4, 8e-4, 2e-3, 5e-3, 1e-2, 3e-2)
+    sweep_distances: tuple = (2.0, 5.0, 10.0, 30.0, 100.0)
+    sweep_lights: tuple = (8, 32, 128)
+
+
+QUICK = ValidationConfig(n_views=2, resolution=96, object_surfels=8_000, base_surfels=1_500,
+                         repeats=1, timing_map_resolutions=(128,), sweep_resolutions=(128, 512),
+                         sweep_taus=(0.0, 8e-4, 1e-2),
+                         sweep_distances=(5.0, 30.0), sweep_lights=(8, 128))
+
+
+# -- set-up -------------------------------------------------------------------------------
+@dataclasses.dataclass
+class Case:
+    """One scene's ground truth and the inputs every method gets."""
+
+    name: str
+    surfels: Surfels
+    bounds: SceneBounds
+    directions: np.ndarray  # [L, 3]
+    cameras: list
+    points: list  # per view: mi.Point3f [H*W]
+    normals: list  # per view: mi.Vector3f [H*W]
+    mask: np.ndarray  # [V, H, W] bool
+    gt_shadow: np.ndarray  # [V, H, W, L] bool
+
+
+def scene_surfels(setup, cfg: ValidationConfig, seed: int = 0) -> Surfels:
+    """Surfels on the true shapes: the object densely, the base sparsely near the object."""
+    shapes = setup.scene.shapes()
+    obj = [s for s in shapes if s.id().startswith("object_")]
+    base = [s for s in shapes if s.id() == "base"]
+    parts = []
+    for group, count, keep_radius in ((obj, cfg.object_surfels, None),
+                                      (base, cfg.base_surfels, cfg.base_radius)):
+        if not group or count == 0:
+            continue
+        total = count
+        if keep_radius is not None:  # sample the whole base densely enough, keep a disk
+            area = sum(float(np.asarray(s.surface_area()).ravel()[0]) for s in group)
+            disk = math.pi * (keep_radius * setup.object_radius) ** 2
+            total = int(count * max(1.0, area / disk))
+        s = sample_surface(group, total, seed)
+        keep = np.ones(len(s.position), bool)
+        if keep_radius is not None:
+            dxz = (s.position - setup.object_center)[:, [0, 2]]
+            keep = np.linalg.norm(dxz, axis=1) <= keep_radius * setup.object_radius
+        sigma = cfg.sigma_factor * math.sqrt(s.total_area / total)
+        parts.append((s.position[keep], s.normal[keep], np.full(keep.sum(), sigma)))
+    pos = np.concatenate([p for p, _, _ in parts])
+    nrm = np.concatenate([n for _, n, _ in parts])
+    sig = np.concatenate([s for _, _, s in parts])
+    return Surfels.from_numpy(pos, np.stack([sig, sig], 1), frame_to_quaternion(nrm),
+                              np.full(len(pos), 0.99))
+
+
+def make_lights(angles) -> tuple[list[Light], np.ndarray]:
+    lights, dirs = [], []
+    for k, (az, el) in enumerate(angles):
+        d = direction_from_angles(az, el)
+        lights.append(Light(f"v{k}", tuple(d.tolist()), (1.0, 1.0, 1.0), az, el))
+        dirs.append(d)
+    return lights, np.stack(dirs)
+
+
+def ground_truth_case(name: str, scene_path, overrides, cfg: ValidationConfig) -> Case:
+    setup = load_scene(scene_path, overrides)
+    cams = test_cameras(cfg.n_views, setup.object_center, cfg.camera_distance,
+                        NERF_CAMERA_ANGLE_X, cfg.resolution, cfg.resolution, 15.0, 60.0)
+    lights, dirs = make_lights(cfg.lights)
+    gt = trace_ground_truth(setup, cams, lights)
+    mask = gt["mask"].astype(bool)
+    normal = gt["normal"].astype(np.float64)  # [V, H, W, 3]
+    facing = np.einsum("vhwk,lk->vhwl", normal, dirs) > 0
+    gt_shadow = (gt["visibility"] < 0.5) | ~facing
+    points, normals = [], []
+    for v, cam in enumerate(cams):
+        depth = mi.TensorXf(gt["depth"][v].astype(np.float32)[..., None])
+        points.append(unproject_depth(depth, cam))
+        n = normal[v].reshape(-1, 3).astype(np.float32)
+        normals.append(mi.Vector3f(n[:, 0], n[:, 1], n[:, 2]))
+    bounds = SceneBounds(tuple(np.asarray(setup.object_center, float).tolist()),
+                         float(setup.object_radius),
+                         mean_camera_distance(cams, setup.object_center))
+    return Case(name, scene_surfels(setup, cfg), bounds, dirs, cams, points, normals, mask,
+                gt_shadow)
+
+
+# -- scoring ------------------------------------------------------------------------------
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.count_nonzero(a | b)
+    return float("nan") if union == 0 else np.count_nonzero(a & b) / union
+
+
+def score(vis: list[np.ndarray], case: Case) -> dict:
+    """Mean over views and lights of shadow IoU, visible IoU and accuracy within the mask."""
+    s_iou, v_iou, acc = [], [], []
+    for v, vv in enumerate(vis):  # vv [H, W, L]
+        m = case.mask[v]
+        for k in range(vv.shape[-1]):
+            pred = vv[..., k][m] < 0.5
+            gt = case.gt_shadow[v, ..., k][m]
+            s_iou.append(iou(pred, gt))
+            v_iou.append(iou(~pred, ~gt))
+            acc.append(float(np.mean(pred == gt)))
+    return {"shadow_iou": float(np.nanmean(s_iou)), "visible_iou": float(np.nanmean(v_iou)),
+            "accuracy": float(np.mean(acc)), "pairs": len(acc)}
+
+
+def _sync_time(fn):
+    dr.sync_thread()
+    t0 = time.perf_counter()
+    out = fn()
+    dr.sync_thread()
+    return out, time.perf_counter() - t0
+
+
+def run_method(build, case: Case, repeats: int = 1) -> dict:
+    """Build a method, evaluate every view; build and per-view times (median of warm runs)."""
+    times_b, times_e, method = [], [], None
+    for r in range(repeats + 1):  # run 0 compiles the kernels; it is not timed
+        method, tb = _sync_time(build)
+        vis = []
+        te = 0.0
+        for v in range(len(case.cameras)):
+            out, t = _sync_time(lambda v=v, m=method: np.asarray(
+                m.evaluate(case.points[v], case.normals[v]), dtype=np.float32))
+            te += t
+            h, w = case.mask.shape[1:]
+            vis.append(out.reshape(h, w, method.count))
+        if r > 0 or repeats == 0:
+            times_b.append(tb)
+            times_e.append(te / len(case.cameras))
+    res = score(vis, case)
+    res["build_s"] = float(np.median(times_b))
+    res["eval_ms_per_view"] = 1e3 * float(np.median(times_e))
+    res["vis"] = vis
+    return res
+
+
+def methods(cfg_vis: VisibilityConfig, quick: bool):
+    """Table 2's methods: name -> builder(surfels, directions, bounds)."""
+    g = GaussianTraceConfig(max_hits=16) if quick else GaussianTraceConfig()
+    vx = VoxelConfig(resolution=48) if quick else VoxelConfig()
+    return {
+        "Voxel-based": lambda s, d, b: voxelize_surfels(s, d, b, vx),
+        "Gaussian-based": lambda s, d, b: trace_surfels(s, d, b, g),
+        "Pixel-based (ours)": lambda s, d, b: render_shadow_maps(s, d, b, cfg_vis),
+        "Pixel-based (ours, orthographic)": lambda s, d, b: render_shadow_maps(
+            s, d, b, dataclasses.replace(cfg_vis, projection="orthographic")),
+    }
+
+
+# -- stage-1 model ------------------------------------------------------------------------
+def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
+    """The test views of ``data`` with points from the stage-1 model's rendered geometry."""
+    from mi_shadowgs.dataset.loader import load_cameras
+    from mi_shadowgs.ply import load_ply
+    from mi_shadowgs.raster import rasterize
+
+    info_path = data / DATASET_JSON
+    if not info_path.is_file():
+        raise FileNotFoundError(f"{info_path}: needed to reload the dataset's scene")
+    info = json.loads(info_path.read_text())
+    computed = {"object_to_world", "mesh_type"}
+    params = {k: v for k, v in (info.get("parameters") or {}).items()
+              if k not in computed and not k.endswith("_direction")}
+    setup = load_scene(info["scene"], params)
+    cams = [c for _, c in load_cameras(data / transforms_name("test"))][:cfg.n_views]
+    surfels = load_ply(model)
+    lights, dirs = make_lights(cfg.lights)
+    gt = trace_ground_truth(setup, cams, lights)
+    facing_gt = np.einsum("vhwk,lk->vhwl", gt["normal"].astype(np.float64), dirs) > 0
+    gt_shadow = (gt["visibility"] < 0.5) | ~facing_gt
+    points, normals, masks = [], [], []
+    for v, cam in enumerate(cams):
+        with dr.suspend_grad():
+            out = rasterize(surfels, cam, None, aovs=("alpha", "median_depth", "normal"))
+        alpha = np.asarray(out["alpha"].array).reshape(cam.height, cam.width)
+        points.append(unproject_depth(out["median_depth"], cam))
+        n = np.asarray(out["normal"].array, dtype=np.float64).reshape(-1, 3)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        n = n.astype(np.float32)
+        normals.append(mi.Vector3f(n[:, 0], n[:, 1], n[:, 2]))
+        masks.append(gt["mask"][v].astype(bool) & (alpha > 0.5))
+    # Frame the maps on the occluders: the model's own surface points inside the object masks
+    # (an input of the method), not every surfel (the base would blow the map up).
+    obj = np.concatenate([np.asarray(p, dtype=np.float64).reshape(3, -1).T[
+        (gt["object"][v].astype(bool) & masks[v]).ravel()] for v, p in enumerate(points)])
+    if len(obj) == 0:
+        raise ValueError(f"{model}: the model covers no object pixel of the test views")
+    bounds = SceneBounds.from_points(obj, cams)
+    return Case("stage-1 model", surfels, bounds, dirs, cams, points, normals, np.stack(masks),
+                gt_shadow)
+
+
+# -- sweep --------------------------------------------------------------------------------
+def sweep_configs(cfg: ValidationConfig, base: VisibilityConfig) -> list[tuple[str, dict]]:
+    out = [("paper", {})]
+    out += [("resolution", {"resolution": r}) for r in cfg.sweep_resolutions
+            if r != base.resolution]
+    out += [("tau", {"tau": t}) for t in cfg.sweep_taus if t != base.tau]
+    out += [("distance_factor", {"distance_factor": d}) for d in cfg.sweep_distances
+            if d != base.distance_factor]
+    out += [("projection", {"projection": "orthographic"}),
+            ("projection", {"projection": "orthographic", "resolution": 256}),
+            ("depth", {"depth": "expected"}),
+            ("normal_offset", {"normal_offset": 1.0})]
+    return out
+
+
+def run_sweep(case: Case, cfg: ValidationConfig, base: VisibilityConfig, progress) -> list:
+    rows = []
+    for group, over in progress(sweep_configs(cfg, base), desc="sweep"):
+        vc = dataclasses.replace(base, **over)
+        res = run_method(lambda vc=vc: render_shadow_maps(case.surfels, case.directions,
+                                                          case.bounds, vc), case,
+                         cfg.sweep_repeats)
+        n_l = len(case.directions)
+        rows.append({"group": group, "setting": ", ".join(f"{k}={v}" for k, v in over.items())
+                     or "paper defaults", **dataclasses.asdict(vc),
+                     "shadow_iou": res["shadow_iou"], "visible_iou": res["visible_iou"],
+                     "accuracy": res["accuracy"], "map_ms_per_direction":
+                     1e3 * res["build_s"] / n_l, "lookup_ms_per_view": res["eval_ms_per_view"],
+                     "ms_per_view_amortised": res["eval_ms_per_view"]
+                     + 1e3 * res["build_s"] / cfg.timing_views})
+    return rows
+
+
+def time_directions(case: Case, cfg: ValidationConfig, base: VisibilityConfig, progress
+                    ) -> list:
+    """Shadow-map visibility time for N_l grid directions (maps of each of
+    ``cfg.timing_map_resolutions``) for a view of cfg.resolution^2 pixels (all pixels, as
+    the training pipeline does)."""
+    rows = []
+    pts, nrm = case.points[0], case.normals[0]
+    for res_map in cfg.timing_map_resolutions:
+        vc = dataclasses.replace(base, resolution=res_map)
+        for n_l in progress(cfg.sweep_lights, desc=f"N_l @ {res_map}^2"):
+            dirs = light_grid(n_l)
+            tm, tl = [], []
+            for r in range(cfg.repeats + 1):
+                maps, t_map = _sync_time(lambda vc=vc, dirs=dirs: render_shadow_maps(
+                    case.surfels, dirs, case.bounds, vc))
+                _, t_look = _sync_time(lambda m=maps: dr.eval(m.evaluate(pts, nrm)))
+                if r > 0 or cfg.repeats == 0:
+                    tm.append(t_map)
+                    tl.append(t_look)
+            t_map, t_look = float(np.median(tm)), float(np.median(tl))
+            rows.append({"map_resolution": res_map, "n_directions": n_l,
+                         "view_pixels": dr.width(pts), "maps_s": t_map,
+                         "lookup_s_per_view": t_look,
+                         "s_per_view_amortised": t_look + t_map / cfg.timing_views,
+                         "s_single_view_with_maps": t_look + t_map})
+    return rows
+
+
+# -- reports ------------------------------------------------------------------------------
+def _csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    return buf.getvalue()
+
+
+def plot_sweep(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mi_shadowgs.atomic import atomic_path
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    groups = sorted({r["group"] for r in rows})
+    for g in groups:
+        rs = [r for r in rows if r["group"] == g]
+        ax.scatter([r["ms_per_view_amortised"] for r in rs], [r["shadow_iou"] for r in rs],
+                   label=g, s=30)
+        for r in rs:
+            ax.annotate(r["setting"].replace("distance_factor", "df"),
+                        (r["ms_per_view_amortised"], r["shadow_iou"]), fontsize=6,
+                        xytext=(3, 2), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("ms per view (lookup + maps amortised over views), 8 directions")
+    ax.set_ylabel("mean shadow IoU vs ray tracing")
+    ax.set_title("Shadow-map visibility: speed vs error (default scene)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+def table2_markdown(results: dict, cases: list[str]) -> str:
+    head = "| Method | " + " | ".join(f"IoU {c}" for c in cases) + \
+        " | mean IoU | build (s) | eval ms/view | ms/view (200 views) |"
+    lines = [head, "|" + "---|" * (len(cases) + 5)]
+    for m, per in results.items():
+        ious = [per[c]["shadow_iou"] for c in cases]
+        build = np.mean([per[c]["build_s"] for c in cases])
+        ev = np.mean([per[c]["eval_ms_per_view"] for c in cases])
+        lines.append(f"| {m} | " + " | ".join(f"{x:.3f}" for x in ious)
+                     + f" | {np.mean(ious):.3f} | {build:.2f} | {ev:.0f} | "
+                       f"{ev + 1e3 * build / 200:.0f} |")
+    return "\n".join(lines)
+
+
+def tau_summary(rows: list[dict]) -> str:
+    taus = sorted([r for r in rows if r["group"] in ("tau", "paper")], key=lambda r: r["tau"])
+    out = ["| tau | shadow IoU | visible IoU | accuracy |", "|---|---|---|---|"]
+    out += [f"| {r['tau']:g} | {r['shadow_iou']:.4f} | {r['visible_iou']:.4f} | "
+            f"{r['accuracy']:.4f} |" for r in taus]
+    best = max(taus, key=lambda r: r["shadow_iou"])
+    out += ["", f"Best tau here: {best['tau']:g} (shadow IoU {best['shadow_iou']:.4f}). "
+            "tau is relative to the map depth (the light camera stands at 30x the camera "
+            "distance, so d_l ~ 120 scene units and tau = 8e-4 is ~0.1 scene units): too small "
+            "and the surfels' own depth (median-depth jitter, tangent planes of curved parts) "
+            "shadows the receiver (acne, shadow IoU falls through false positives); too large "
+            "and occluders closer than tau * d_l to the receiver are ignored (contact shadows "
+            "shrink, light leaks under the object)."]
+    return "\n".join(out)
+
+
+def projection_note(rows: list[dict]) -> str:
+    """Why orthographic maps can beat the paper's far perspective camera."""
+    by = {r["setting"]: r for r in rows}
+    persp, ortho = by.get("paper defaults"), by.get("projection=orthographic")
+    if not persp or not ortho:
+        return ""
+    return (f"Projection: orthographic maps give shadow IoU {ortho['shadow_iou']:.4f} against "
+            f"{persp['shadow_iou']:.4f} for the paper's perspective camera at 30x the camera "
+            "distance. A perspective map is the shadow of a point light at that distance: its "
+            "rays diverge from l by up to r / D (~0.5 degrees here), which shifts shadow edges "
+            "by (occluder-receiver distance) x that angle; moving the camera farther does not "
+            "fix it because tau is relative, so the absolute slack tau * d_l grows with the "
+            "distance and contact shadows are lost (see the distance_factor rows).")
+
+
+def best_tradeoff(rows: list[dict]) -> dict:
+    """Fastest setting within 0.005 of the best shadow IoU."""
+    top = max(r["shadow_iou"] for r in rows)
+    ok = [r for r in rows if r["shadow_iou"] >= top - 0.005]
+    return min(ok, key=lambda r: r["ms_per_view_amortised"])
+
+
+# -- entry points -------------------------------------------------------------------------
+def _progress(quiet: bool):
+    from tqdm import tqdm
+
+    return lambda it, desc: tqdm(list(it), desc=desc, disable=quiet, leave=False)
+
+
+def run(out_dir, quick: bool = False, model: str | None = None, data: str | None = None,
+        quiet: bool = False) -> dict:
+    """Everything above; writes into ``out_dir`` (replaced atomically). Returns a summary
+    dict with a ``markdown`` entry."""
+    cfg = QUICK if quick else ValidationConfig()
+    base = VisibilityConfig()
+    progress = _progress(quiet)
+    scenes = [("default", REPO / "scenes" / "default.xml", None)]
+    notes = []
+    if BUNNY.is_file():
+        scenes.append(("bunny", REPO / "scenes" / "mesh.xml", {"mesh": str(BUNNY)}))
+    else:
+        notes.append(f"bunny skipped: {BUNNY} is absent (shared data not installed)")
+        print(f"visibility validation: {notes[-1]}", flush=True)
+    t_start = time.perf_counter()
+    cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
+    if model:
+        if not data:
+            raise ValueError("--model needs --data (the dataset the model was trained on)")
+        cases.append(model_case(Path(model), Path(data), cfg))
+    results = {}
+    for name, build in methods(base, quick).items():
+        results[name] = {}
+        for case in progress(cases, desc=name):
+            res = run_method(lambda b=build, c=case: b(c.surfels, c.directions, c.bounds),
+                             case, cfg.repeats)
+            res.pop("vis")
+            results[name][case.name] = res
+    sweep = run_sweep(cases[0], cfg, base, progress)
+    timing = time_directions(cases[0], cfg, base, progress)
+    best = best_tradeoff(sweep)
+    names = [c.name for c in cases]
+    baselines = [m for m in results if not m.startswith("Pixel")]
+    wins_md = []
+    for m in (m for m in results if m.startswith("Pixel")):
+        wins = {c: all(results[m][c]["shadow_iou"] > results[b][c]["shadow_iou"]
+                       for b in baselines) for c in names}
+        wins_md.append(f"{m} beats both baselines on: "
+                       f"{', '.join(c for c, w in wins.items() if w) or 'none'}; not on: "
+                       f"{', '.join(c for c, w in wins.items() if not w) or 'none'}.")
+    t128 = [r for r in timing if r["map_resolution"] == 128 and r["n_directions"] == 128]
+    table = table2_markdown(results, names)
+    table_rows = [{"method": m, "case": c, **{k: v for k, v in r.items()}}
+                  for m, per in results.items() for c, r in per.items()]
+    md = [f"## Visibility ({'quick' if quick else 'full'})", "",
+          f"{len(cfg.lights)} light directions (az, el deg): {list(cfg.lights)}; "
+          f"{cfg.n_views} test-spiral views at {cfg.resolution}^2; surfels sampled on the true "
+          f"shapes ({cfg.object_surfels} object + {cfg.base_surfels} base, sigma "
+          f"{cfg.sigma_factor} x spacing). Shadow IoU (V < 0.5) vs Mitsuba ray tracing.", "",
+          "### Table 2", "", table, ""]
+    md += wins_md + [""]
+    if any("not on: none" not in w for w in wins_md):
+        md += ["Where a baseline wins: on surfels sampled exactly on the surface, tracing them "
+               "is nearly exact; the pixel method loses map texels, the tau slack and "
+               "(perspective maps) the divergence of the light camera's rays from l.", ""]
+    if t128:
+        r = t128[0]
+        md += [f"Shadow-map visibility, 128 directions, maps 128^2, view {cfg.resolution}^2: "
+               f"maps {r['maps_s']:.2f} s (once for all views), lookup "
+               f"{r['lookup_s_per_view']:.3f} s/view, amortised over {cfg.timing_views} views "
+               f"{r['s_per_view_amortised']:.3f} s/view, one view with its maps "
+               f"{r['s_single_view_with_maps']:.2f} s.", ""]
+    md += [f"Sweep best trade-off (fastest within 0.005 IoU of the best): {best['setting']} "
+           f"-> IoU {best['shadow_iou']:.4f}, {best['ms_per_view_amortised']:.1f} ms/view.", ""]
+    md += ["### Threshold tau", "", tau_summary(sweep), "", projection_note(sweep), ""]
+    md += [f"Note: {n}" for n in notes]
+    markdown = "\n".join(md)
+    summary = {"config": dataclasses.asdict(cfg), "results": results, "best_tradeoff": best,
+               "timing": timing, "notes": notes, "wall_s": time.perf_counter() - t_start,
+               "loadavg": list(__import__("os").getloadavg())}
+    with atomic_dir(out_dir, overwrite=True) as tmp:
+        write_text(tmp / "table2.md", table + "\n")
+        write_text(tmp / "table2.csv", _csv(table_rows))
+        write_text(tmp / "sweep.csv", _csv(sweep))
+        write_text(tmp / "sweep.md", tau_summary(sweep) + "\n\n" + projection_note(sweep) + "\n")
+        write_text(tmp / "timing.csv", _csv(timing))
+        plot_sweep(sweep, tmp / "sweep.png")
+        write_json(tmp / "summary.json", summary)
+        write_text(tmp / "README.md", markdown + "\n")
+    summary["markdown"] = markdown
+    return summary
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description="Visibility validation against ray tracing "
+                                             "(paper Table 2, speed-vs-error sweep).")
+    ap.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    ap.add_argument("--quick", action="store_true", help="small smoke run")
+    ap.add_argument("--model", help="stage-1 model PLY (RUN/geometry/model.ply)")
+    ap.add_argument("--data", help="the dataset folder the model was trained on")
+    ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = ap.parse_args(argv)
+    summary = run(args.out, args.quick, args.model, args.data, args.quiet)
+    print(summary["markdown"])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
