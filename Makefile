@@ -14,7 +14,7 @@ $(VENV)/.installed: pyproject.toml scripts/setup.sh
 install: $(VENV)/.installed
 
 demo: install
-	$(CLI) generate $(SCENE) --out $(DEMO_DIR)/data --preset $(PRESET) --overwrite
+	$(CLI) generate $(SCENE) --out $(DEMO_DIR)/data --preset $(PRESET)
 	$(CLI) run $(DEMO_DIR)/data --out $(DEMO_DIR)/run --preset $(PRESET)
 	$(CLI) report $(DEMO_DIR)/run
 

@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "segment": ("mi_shadowgs.segment_cli",
                 "material segments: contrastive surfel features + K-means (stage 2)"),
     "train": ("mi_shadowgs.train_cli", "optimise a stage of the method on a dataset (geometry)"),
+    "run": ("mi_shadowgs.run_cli", "the whole method on a dataset (stages 1-5) and its report"),
+    "report": ("mi_shadowgs.report_cli", "write the HTML report of a run"),
 }
 
 
