@@ -272,9 +272,11 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig,
         metrics["fit_s"] = fit_s
         with atomic_dir(folder, overwrite=True) as tmp:
             save_ply(tmp / "model.ply", res.surfels)
-            write_json(tmp / "light.json", {"radiance": res.light.radiance.tolist(),
-                                            "active": res.light.active.tolist(),
-                                            "specular": res.specular})
+            write_json(tmp / "light.json", {
+                "radiance": res.light.radiance.tolist(), "active": res.light.active.tolist(),
+                "directions": np.asarray(res.light.light_set().directions).tolist(),
+                "irradiance": res.light.weights.tolist() if res.light.weights is not None
+                else None, "specular": res.specular})
             grid = write_figures(tmp / "figures", test, images, config.figure_views)
             write_json(tmp / "grid.json", grid)
             write_json(tmp / "metrics.json", metrics)

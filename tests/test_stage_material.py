@@ -179,3 +179,28 @@ def test_tiny_decomposition_recovers_albedo_and_light():
     # (with the indirect light fitted from step 0 they did not: ratio [1, 1, 1]).
     assert ratio[0] > 2.0 and 0.85 < ratio[1] < 1.5 and ratio[2] < 0.8, (ratio, ratio_true)
     assert res.history[-1][1] < 0.5 * res.history[0][1]  # the loss went down
+
+
+def test_merge_directions_recovers_an_off_grid_light():
+    """A light between grid directions, fitted as its neighbours' energies, merges back to
+    (nearly) its own direction; lights far apart stay apart."""
+    grid = light_grid(128)
+    a = 40
+    b = int(np.argsort(-(grid @ grid[a]))[1])  # a's nearest neighbour on the grid
+    # The light sits between them; a fit spreads its energy over the two in proportion.
+    w = np.array([0.6, 0.4])
+    true = w[0] * grid[a] + w[1] * grid[b]
+    true /= np.linalg.norm(true)
+    near = np.array([a, b])
+    cos = grid @ true
+    far = grid[np.argmin(cos)]  # the grid direction farthest from the light
+    dirs = np.concatenate([grid[near], far[None]])
+    energy = np.concatenate([w * 10.0, [1.0]])
+    merged, e = SM.merge_directions(dirs, energy, 20.0)
+    assert len(merged) == 2
+    # Weighted mean of unit vectors, renormalised: exact for the least-squares weights.
+    assert np.degrees(np.arccos(np.clip(merged[0] @ true, -1, 1))) < 0.01
+    assert np.allclose(merged[1], far) and math.isclose(e[1], 1.0)
+    assert math.isclose(e.sum(), energy.sum())
+    # Nothing merges when the angle is below the grid spacing (~13 degrees).
+    assert len(SM.merge_directions(dirs, energy, 5.0)[0]) == len(dirs)
