@@ -10,10 +10,9 @@ SIZE = 48  # pixels: big enough for the base's shadows to span several pixels
 
 def tiny_dataset(root):
     """A small dataset of the embedded default scene under ``root`` (about 10 s)."""
-    from mi_shadowgs.scenes import scene_path
-
     from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.scenes import scene_path
 
     config = dataclasses.replace(get_config("cpu-small"), width=SIZE, height=SIZE, n_train=8,
                                  n_test=3, spp=16, relight=())
@@ -23,10 +22,9 @@ def tiny_dataset(root):
 
 def standin_surfels(count: int = 3000, seed: int = 0):
     """Surfels sampled on the default scene's true shapes, and the scene set-up."""
-    from mi_shadowgs.scenes import scene_path
-
     from mi_shadowgs.dataset.scene import load_scene
     from mi_shadowgs.sampling import surfels_on_surface
+    from mi_shadowgs.scenes import scene_path
 
     setup = load_scene(scene_path("default"))
     return surfels_on_surface(list(setup.scene.shapes()), count, seed=seed), setup

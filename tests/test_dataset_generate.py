@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mi_shadowgs.scenes import scene_path
 from scipy.ndimage import map_coordinates, maximum_filter, minimum_filter
 
 from mi_shadowgs.camera import Camera
@@ -28,6 +27,7 @@ from mi_shadowgs.dataset.generate import (
 )
 from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.directions import direction_from_angles
+from mi_shadowgs.scenes import scene_path
 
 SIZE = 64
 

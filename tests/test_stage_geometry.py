@@ -9,7 +9,6 @@ import time
 
 import numpy as np
 import pytest
-from mi_shadowgs.scenes import scene_path
 
 from mi_shadowgs import checkpoint as ckpt
 from mi_shadowgs import cli
@@ -18,6 +17,7 @@ from mi_shadowgs.dataset.generate import get_config as gen_config
 from mi_shadowgs.dataset.loader import load_dataset
 from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.densify import DensifyConfig
+from mi_shadowgs.scenes import scene_path
 
 # A tiny version of cpu-small: 32x32, few iterations, densification early and often.
 TINY = dataclasses.replace(

@@ -1,6 +1,6 @@
 """Stage-1 acceptance (issue 4): train geometry on a dataset, evaluate on its test views.
 
-    python -m validation.geometry --data /tmp/default --out /tmp/val_geometry [--preset P]
+    python -m validation.geometry --data DATA --out OUT [--preset P]
 
 Writes ``OUT/geometry.json`` (test-view PSNR/SSIM, normal and depth error, mask IoU, wall
 times, surfel count, load average, pass/fail of each acceptance item) and
@@ -88,10 +88,9 @@ def _markdown(m: dict) -> str:
 
 def run(out_dir: Path, quick: bool) -> dict:
     """validation.run_all entry: generate the default scene at cpu-small and validate."""
-    from mi_shadowgs.scenes import scene_path
-
     from mi_shadowgs.dataset.generate import get_config as gen_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.scenes import scene_path
 
     out_dir = Path(out_dir) / "geometry"
     data = out_dir / "data"

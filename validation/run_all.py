@@ -27,9 +27,16 @@ def _visibility(out_dir: Path, quick: bool) -> dict:
     return visibility.run(out_dir, quick=quick)
 
 
+def _pipeline(out_dir: Path, quick: bool) -> dict:
+    from . import pipeline
+
+    return pipeline.run(out_dir, quick=quick)
+
+
 # name -> fn(out_dir, quick) -> {"markdown": ...}; each writes under out_dir/<name>/.
 VALIDATIONS: dict[str, Callable[[Path, bool], dict]] = {
     "visibility": _visibility,
+    "pipeline": _pipeline,  # stages 1-5 per scene: issues 4, 6, 7 and Tables 1 and 3
 }
 
 

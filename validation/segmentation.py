@@ -6,7 +6,7 @@ stage-1 model (``--model-default`` / ``--model-hotdog``): train features on the 
 masks and on the chromaticity masks, cluster, render the test views' segment maps, and
 report ARI, Hungarian mIoU, the lit/shadowed base check, and the stage's wall time::
 
-    python -m validation.segmentation --out /tmp/seg_val [--data-root /tmp] [--quick]
+    python -m validation.segmentation --out OUT [--data-root DIR] [--quick]
 """
 
 from __future__ import annotations
@@ -52,10 +52,9 @@ def standin_surfels(setup, n_object: int, n_base: int, object_sigma: float = 0.7
 
 
 def _dataset(root: Path, scene: str) -> Path:
-    from mi_shadowgs.scenes import scene_path
-
     from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.scenes import scene_path
 
     name, overrides = SCENES[scene]
     write_dataset(scene_path(name), root, get_config("cpu-small"), "cpu-small",
@@ -67,7 +66,6 @@ def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
              preset: str = "cpu-small", n_object: int = 8000, n_base: int = 12000,
              overrides: dict | None = None) -> dict:
     import numpy as np
-    from mi_shadowgs.scenes import scene_path
 
     from mi_shadowgs import masks as masks_mod
     from mi_shadowgs import segmentation as seg
@@ -76,6 +74,7 @@ def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
     from mi_shadowgs.dataset.scene import load_scene
     from mi_shadowgs.imageio import write_png
     from mi_shadowgs.ply import load_ply, save_ply
+    from mi_shadowgs.scenes import scene_path
 
     name, scene_overrides = SCENES[scene]
     setup = load_scene(scene_path(name), scene_overrides or None)
@@ -139,7 +138,7 @@ def markdown(rows: list[dict], command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(out_dir: Path, quick: bool = False, data_root: Path = Path("/tmp"),
+def run(out_dir: Path, quick: bool = False, data_root: Path | None = None,
         models: dict | None = None, mask_sources=("material", "chromaticity"),
         command: str = "python -m validation.segmentation") -> dict:
     from mi_shadowgs.atomic import write_json, write_text
@@ -152,7 +151,8 @@ def run(out_dir: Path, quick: bool = False, data_root: Path = Path("/tmp"),
         if scene == "hotdog" and not HOTDOG.is_file():
             continue
         # Its own folders: regenerated (overwrite) only when the dataset code or scene changed.
-        data = _dataset(data_root / f"seg_val_{scene}", scene)
+        root = out_dir / "data" if data_root is None else Path(data_root)
+        data = _dataset(root / f"seg_val_{scene}", scene)
         for masks in mask_sources:
             ov = dict(overrides or {})
             if masks == "chromaticity":  # see SegmentationConfig.min_label_fraction
@@ -172,7 +172,8 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--data-root", default="/tmp", help="where the datasets are (made)")
+    ap.add_argument("--data-root", default=None,
+                    help="where the datasets are (made); default: OUT/data")
     ap.add_argument("--quick", action="store_true", help="40 iterations: a smoke run")
     ap.add_argument("--model-default", default=None, help="stage-1 model PLY (default)")
     ap.add_argument("--model-hotdog", default=None, help="stage-1 model PLY (hotdog)")
@@ -180,7 +181,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     models = {k: Path(v) for k, v in (("default", args.model_default),
                                       ("hotdog", args.model_hotdog)) if v}
-    res = run(Path(args.out), args.quick, Path(args.data_root), models,
+    res = run(Path(args.out), args.quick, args.data_root, models,
               tuple(args.masks or ("material", "chromaticity")),
               "python -m validation.segmentation " + " ".join(argv or sys.argv[1:]))
     print(res["markdown"])
