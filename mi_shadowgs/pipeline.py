@@ -306,8 +306,10 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
              r.get("shadow_iou"), r.get("relight_psnr"), r.get("relight_ssim"),
              r.get("relight_render_s")] for name, r in results.items()]
     secs = {name: s for name, s in stages}
+    info = _json_or_empty(data / "dataset.json")
+    scene = Path(str(info.get("scene", data.name))).stem
     summary = {
-        "title": f"mi_shadowgs run: {data.name}",
+        "title": f"mi_shadowgs run: {scene} ({data.name})",
         "dataset": str(data.resolve()), "preset": config.preset, "variant": mi.variant(),
         "date": time.strftime("%Y-%m-%d %H:%M"), "total_seconds": seconds,
         "tables": [{"title": "Decomposition and relighting (paper Tables 1 and 3)",
@@ -319,8 +321,9 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
         "stages": [],
     }
     if geo:
+        scalars = {k: v for k, v in geo.items() if not isinstance(v, (list, dict))}
         summary["stages"].append({"name": "Stage 1: geometry", "seconds": secs.get("geometry"),
-                                  "metrics": geo, "figures": _previews(run)})
+                                  "metrics": scalars, "figures": _previews(run)})
     if seg:
         m = dict(seg.get("metrics", {}))
         m.update({"K": seg.get("k"), "masks": seg.get("masks")})

@@ -30,7 +30,7 @@ th { background: #f3f3f3; } td:first-child, th:first-child { text-align: left; }
 figure { display: inline-block; margin: 0.3em; text-align: center; }
 figure img { image-rendering: pixelated; width: 192px; border: 1px solid #ddd; }
 figcaption { font-size: 0.8em; }
-.grid img { width: 150px; image-rendering: pixelated; }
+.grid img { width: 128px; image-rendering: pixelated; }
 .note { color: #666; font-size: 0.9em; }
 """
 

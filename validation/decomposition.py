@@ -16,7 +16,6 @@ irradiance (estimate | GT), light map 22x12 (estimate | GT), relit (estimate | G
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -24,8 +23,7 @@ from pathlib import Path
 import numpy as np  # noqa: I001
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
-from mi_shadowgs import evaluation as E
-from mi_shadowgs import relight as R
+from mi_shadowgs import pipeline as P
 from mi_shadowgs import stage_material as SM
 from mi_shadowgs import visibility as V
 from mi_shadowgs.atomic import atomic_dir, write_json
@@ -36,8 +34,7 @@ from mi_shadowgs.directions import map_to_blocks
 from mi_shadowgs.imageio import write_png
 from mi_shadowgs.standin import standin_surfels
 
-VARIANTS = {"full": {}, "no_visibility": {"use_visibility": False},
-            "no_segmentation": {"segment_average": False}}
+VARIANTS = P.VARIANTS
 # Bounds of the occluders' shadow maps: the object's sphere times this covers the shadows it
 # casts on the base down to ~30 degrees of light elevation.
 BOUNDS_FACTOR = 2.5
@@ -50,61 +47,25 @@ def scene_bounds(setup, cameras) -> V.SceneBounds:
 
 
 def run_variant(name, overrides, surfels, train, test, bounds, preset, extra) -> dict:
-    cfg = with_overrides(SM.get_config(preset), {**overrides, **extra}, "material")
-    vcfg = V.preset(preset)
+    """Fit one variant on the stand-in and evaluate it (``mi_shadowgs.pipeline``)."""
     t0 = time.perf_counter()
-    res = SM.fit_material(surfels, train.cameras, [v.image for v in train.views],
-                          [v.mask for v in train.views], cfg, bounds, vcfg)
+    res = P.decompose(surfels, train, preset, bounds, {**overrides, **extra})
     fit_s = time.perf_counter() - t0
-    model = R.RelightModel(res.surfels, res.specular, res.use_visibility,
-                           res.light.light_set())
-    # Decomposition under the estimated training light, on the test views.
-    views, _ = R.relight_views(model, test.cameras, res.light.light_set(), bounds,
-                               R.get_config(preset), vcfg)
-    mask = test.stack("mask")
-    est_alb = np.stack([v["albedo"] for v in views])
-    gt_alb = test.stack("albedo")
-    alb = E.albedo_metrics(est_alb, gt_alb, test.stack("material"), mask)
-    est_irr = np.stack([v["direct_irradiance"] for v in views])
-    gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W]
-    gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
-    out = {"albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
-           "light_cosine": E.light_cosine(res.light.radiance, gt_map),
-           "shadow_iou": E.shadow_iou(est_irr, gt_irr, mask),
-           "fit_s": fit_s, "specular": res.specular,
-           "active_directions": int(len(res.light.active)), "timings": res.timings,
-           "history": res.history}
+    out, images = P.evaluate_decomposition(res, train, test, bounds, preset)
+    out.update(fit_s=fit_s, timings=res.timings, history=res.history)
+    cfg = with_overrides(SM.get_config(preset), {**overrides, **extra}, "material")
     steps_w = min(cfg.warmup, cfg.iterations)
     if steps_w and "warmup_total_s" in res.timings:
         out["step_ms_warmup"] = 1e3 * res.timings["warmup_total_s"] / steps_w
     if cfg.iterations > cfg.warmup and "main_s" in res.timings:
         out["step_ms_main"] = 1e3 * res.timings["main_s"] / (cfg.iterations - cfg.warmup)
-    # Relighting: albedo rescaled by one global per-channel factor (estimate vs GT).
-    scale = E.global_albedo_scale(est_alb, gt_alb, mask)
-    scaled = dataclasses.replace(model.surfels, channels=dict(model.surfels.channels))
-    import mitsuba as mi
-
-    a = scaled.channels["albedo"].numpy() * scale[None].astype(np.float32)
-    scaled.channels["albedo"] = mi.TensorXf(np.clip(a, 0, None).astype(np.float32))
-    smodel = dataclasses.replace(model, surfels=scaled)
-    relit = {}
-    figs = {"albedo": (est_alb[0], gt_alb[0]), "irradiance": (est_irr[0], gt_irr[0])}
-    for entry in train.lights.get("relightings", []):
-        if entry.get("type") != "directional":
-            continue
-        lights = R.lights_from_json(entry)
-        rv, secs = R.relight_views(smodel, test.cameras, lights, bounds, R.get_config(preset),
-                                   vcfg)
-        est = np.stack([v["rgb"] for v in rv])
-        gt = np.stack([v.relit[entry["name"]] for v in test.views])
-        m = E.image_metrics(est, gt, mask)
-        relit[entry["name"]] = {**m, "render_s": secs, "views": len(rv)}
-        figs[f"relit_{entry['name']}"] = (est[0], gt[0])
-    out["relighting"] = relit
-    out["relight_psnr"] = float(np.mean([r["psnr"] for r in relit.values()]))
-    out["relight_ssim"] = float(np.mean([r["ssim"] for r in relit.values()]))
-    out["relight_render_s"] = float(np.median([r["render_s"] for r in relit.values()]))
-    figs["light_map"] = (map_to_blocks(res.light.radiance), map_to_blocks(gt_map.mean(1)))
+    figs = {"albedo": (images["albedo"][0], images["gt/albedo"][0]),
+            "irradiance": (images["irradiance"][0], images["gt/irradiance"][0]),
+            "light_map": (map_to_blocks(images["light_map"]),
+                          map_to_blocks(images["gt/light_map"]))}
+    for key in images:
+        if key.startswith("relit/"):
+            figs[f"relit_{key[6:]}"] = (images[key][0], images[f"gt/{key}"][0])
     return out, figs
 
 
