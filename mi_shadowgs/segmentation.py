@@ -500,10 +500,8 @@ def miou_hungarian(pred: np.ndarray, gt: np.ndarray) -> tuple[float, dict[int, i
     gt = np.asarray(gt).ravel()
     if pred.shape != gt.shape:
         raise ValueError(f"miou_hungarian: {pred.size} predictions for {gt.size} labels")
-    gv, gi = np.unique(gt, return_inverse=True)
-    pv, pi = np.unique(pred, return_inverse=True)
-    inter = np.zeros((gv.size, pv.size), np.float64)
-    np.add.at(inter, (gi, pi), 1.0)
+    gv, pv = np.unique(gt), np.unique(pred)
+    inter = contingency(gt, pred).astype(np.float64)  # [gt classes, predicted classes]
     union = inter.sum(1, keepdims=True) + inter.sum(0, keepdims=True) - inter
     iou = np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
     rows, cols = linear_sum_assignment(-iou)
