@@ -212,16 +212,12 @@ def count_pairs(surfels, camera, config) -> dict:
 
     from mi_shadowgs import raster
 
-    w, h = camera.width, camera.height
+    box_pairs, pairs = raster.pair_counts(surfels, camera, config)
     with dr.suspend_grad():
-        # No public pair-count API yet: these private helpers are the rasterizer's own steps.
-        g = raster._project(surfels, camera, config).detach()
-        box = raster._boxes(g, w, h, config)[3]
-        built = raster._build_pairs(g, w, h, config)
         count = raster.rasterize(surfels, camera, {}, aovs=("count",), config=config)["count"]
         return {
-            "box_pairs": int(np.asarray(box.numpy(), dtype=np.int64).sum()),
-            "pairs": 0 if built is None else int(dr.width(built[0])),
+            "box_pairs": box_pairs,
+            "pairs": pairs,
             "contributing": int(round(float(np.asarray(count.numpy(), np.float64).sum()))),
         }
 

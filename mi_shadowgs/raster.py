@@ -270,6 +270,73 @@ def _segment_exclusive(x: mi.Float64, pix: mi.UInt32, first: mi.Bool, npix: int)
     return cs - dr.gather(mi.Float64, base, pix)
 
 
+@dataclasses.dataclass
+class _Scan:
+    """Front-to-back compositing of the sorted pairs [P] (see ``_scan``)."""
+
+    ar: mi.UInt32  # pair index
+    last_idx: mi.UInt32  # P - 1, opaque
+    first: mi.Bool  # the pixel's first pair
+    last: mi.Bool  # the pixel's last pair
+    t_before: mi.Float64  # transmittance in front of the pair
+    t_after: mi.Float64  # transmittance behind it
+    contrib: mi.Bool  # the pair is composited (2DGS early stop)
+    w64: mi.Float64  # its weight T alpha (0 where it does not contribute)
+
+
+def _scan(alpha: mi.Float, pix: mi.UInt32, npix: int, config: RasterConfig) -> _Scan:
+    """Transmittance and weights of pairs sorted by (pixel, depth): a Float64 prefix sum of
+    log(1 - alpha) restarted at each pixel (differentiable, unlike a product scan)."""
+    npairs = dr.width(pix)
+    ar = dr.arange(mi.UInt32, npairs)
+    prev_pix = dr.gather(mi.UInt32, pix, dr.maximum(ar, 1) - 1)
+    last_idx = dr.opaque(mi.UInt32, npairs - 1)  # opaque: P must not be baked into kernels
+    next_pix = dr.gather(mi.UInt32, pix, dr.minimum(ar + 1, last_idx))
+    first = (ar == 0) | (prev_pix != pix)
+    last = (ar == last_idx) | (next_pix != pix)
+    a64 = mi.Float64(alpha)
+    t_before = dr.exp(_segment_exclusive(dr.log(1.0 - a64), pix, first, npix))
+    t_after = t_before * (1.0 - a64)
+    # 2DGS stops a pixel before the splat that would take T below transmittance_min.
+    contrib = dr.detach(t_after) >= config.transmittance_min
+    w64 = dr.select(contrib, t_before * a64, 0.0)
+    return _Scan(ar, last_idx, first, last, t_before, t_after, contrib, w64)
+
+
+def splat_pairs(surfels: Surfels, camera: Camera, config: RasterConfig = RasterConfig()
+                ) -> tuple[mi.UInt32, mi.UInt32, mi.Float]:
+    """The contributing (surfel id, pixel id) pairs of a view and their weights T_i alpha_i,
+    detached, in compositing order: exactly what ``rasterize`` blends. Stages whose
+    geometry is fixed compute them once per view and reuse them (``shading.splat``)."""
+    with dr.suspend_grad():
+        g = _project(surfels, camera, config).detach()
+        dr.eval(*(getattr(g, f.name) for f in dataclasses.fields(g)))
+        w, h = camera.width, camera.height
+        pairs = _build_pairs(g, w, h, config) if surfels.count else None
+        if pairs is None:
+            return mi.UInt32(), mi.UInt32(), mi.Float()
+        sid, pix = pairs
+        pyi = pix // w
+        q = g.gather(sid, _PAIR_FIELDS)
+        alpha, _, _ = _pair_eval(q, mi.Float(pix - pyi * w) + 0.5, mi.Float(pyi) + 0.5, config)
+        weight = mi.Float(_scan(alpha, pix, h * w, config).w64)
+        keep = dr.compress(weight > 0)
+        sid, pix, weight = (dr.gather(type(x), x, keep) for x in (sid, pix, weight))
+        dr.eval(sid, pix, weight)
+    return sid, pix, weight
+
+
+def pair_counts(surfels: Surfels, camera: Camera, config: RasterConfig = RasterConfig()
+                ) -> tuple[int, int]:
+    """(pixel-box pairs, pairs kept after the alpha/cutoff tests) of a view (benchmarks)."""
+    with dr.suspend_grad():
+        g = _project(surfels, camera, config).detach()
+        box = _boxes(g, camera.width, camera.height, config)[3]
+        built = _build_pairs(g, camera.width, camera.height, config)
+        return int(dr.sum(mi.UInt64(box))[0] if dr.width(box) else 0), \
+            0 if built is None else dr.width(built[0])
+
+
 def _resolve_channels(surfels: Surfels, channels):
     channels = channels or {}
     n = surfels.count
@@ -337,7 +404,6 @@ def rasterize(surfels: Surfels, camera: Camera,
             out[a] = image(dr.zeros(mi.Float, npix * AOV_CHANNELS[a]), AOV_CHANNELS[a])
         return out
     sid, pix = pairs
-    npairs = dr.width(sid)
 
     # Per-pair quantities with AD, in sorted order.
     q = g.gather(sid, _PAIR_FIELDS)
@@ -345,20 +411,9 @@ def rasterize(surfels: Surfels, camera: Camera,
     pxi = pix - pyi * W
     alpha, _, depth = _pair_eval(q, mi.Float(pxi) + 0.5, mi.Float(pyi) + 0.5, config)
 
-    ar = dr.arange(mi.UInt32, npairs)
-    prev_pix = dr.gather(mi.UInt32, pix, dr.maximum(ar, 1) - 1)
-    last_idx = dr.opaque(mi.UInt32, npairs - 1)  # opaque: P must not be baked into kernels
-    next_pix = dr.gather(mi.UInt32, pix, dr.minimum(ar + 1, last_idx))
-    first = (ar == 0) | (prev_pix != pix)
-    last = (ar == last_idx) | (next_pix != pix)
-
-    a64 = mi.Float64(alpha)
-    log_t = _segment_exclusive(dr.log(1.0 - a64), pix, first, npix)
-    t_before = dr.exp(log_t)  # [P] transmittance in front of each pair
-    t_after = t_before * (1.0 - a64)
-    # 2DGS stops a pixel before the splat that would take T below transmittance_min.
-    contrib = dr.detach(t_after) >= config.transmittance_min
-    w64 = dr.select(contrib, t_before * a64, 0.0)
+    sc = _scan(alpha, pix, npix, config)
+    ar, last_idx, last, first = sc.ar, sc.last_idx, sc.last, sc.first
+    t_before, t_after, contrib, w64 = sc.t_before, sc.t_after, sc.contrib, sc.w64
     w = mi.Float(w64)
 
     def accumulate(values, c):  # values: list of c per-pair Float

@@ -72,37 +72,12 @@ class PixelGeometry:
 
 def splat_pairs(surfels: Surfels, camera: Camera,
                 config: RasterConfig = DEFAULT_RASTER) -> SplatPairs:
-    """The pair list and weights the rasterizer would use for ``camera`` (no gradient).
+    """The pair list and weights the rasterizer blends for ``camera`` (no gradient); with
+    them ``splat`` reproduces ``rasterize`` channel images exactly (tested)."""
+    from .raster import splat_pairs as raster_pairs
 
-    Reuses ``raster``'s internal pair builder (same culling, order and transmittance), so
-    ``splat`` reproduces ``rasterize`` channel images exactly; tested against it.
-    """
-    from . import raster as R
-
-    h, w = camera.height, camera.width
-    with dr.suspend_grad():
-        g = R._project(surfels, camera, config).detach()
-        dr.eval(*(getattr(g, f.name) for f in dataclasses.fields(g)))
-        pairs = R._build_pairs(g, w, h, config) if surfels.count else None
-        if pairs is None:
-            return SplatPairs(mi.UInt32(), mi.UInt32(), mi.Float(), h, w)
-        sid, pix = pairs
-        n = dr.width(sid)
-        q = g.gather(sid, R._PAIR_FIELDS)
-        pyi = pix // w
-        pxi = pix - pyi * w
-        alpha, _, _ = R._pair_eval(q, mi.Float(pxi) + 0.5, mi.Float(pyi) + 0.5, config)
-        ar = dr.arange(mi.UInt32, n)
-        prev = dr.gather(mi.UInt32, pix, dr.maximum(ar, 1) - 1)
-        first = (ar == 0) | (prev != pix)
-        a64 = mi.Float64(alpha)
-        t_before = dr.exp(R._segment_exclusive(dr.log(1.0 - a64), pix, first, h * w))
-        contrib = t_before * (1.0 - a64) >= config.transmittance_min
-        weight = mi.Float(dr.select(contrib, t_before * a64, 0.0))
-        keep = dr.compress(weight > 0)
-        sid, pix, weight = (dr.gather(type(x), x, keep) for x in (sid, pix, weight))
-        dr.eval(sid, pix, weight)
-    return SplatPairs(sid, pix, weight, h, w)
+    sid, pix, weight = raster_pairs(surfels, camera, config)
+    return SplatPairs(sid, pix, weight, camera.height, camera.width)
 
 
 def splat(pairs: SplatPairs, values: mi.TensorXf) -> mi.Float:
