@@ -152,3 +152,15 @@ class FilmLayout:
         parts.append(dr.full(mi.TensorXf, 1.0, (h, w, 1)))  # sample weight: one per pixel
         parts += [images[name] for name, _ in self.aovs]
         return dr.concat(parts, axis=-1)
+
+
+def develop_film(film, layout: FilmLayout, aov_names: Sequence[str],
+                 images: Mapping[str, mi.TensorXf], plugin: str) -> mi.TensorXf:
+    """Put ``images`` into ``film`` (prepared for ``aov_names``) and develop it; shared by
+    the integrator plugins, whose Mitsuba films must hold exactly ``layout``'s channels."""
+    count = film.prepare(list(aov_names))
+    if count != layout.storage_channels:
+        raise ValueError(f"{plugin}: film {film.class_name()} stores {count} channels, "
+                         f"expected {layout.storage_channels} (use an hdrfilm)")
+    film.put_block(mi.ImageBlock(layout.assemble(images), mi.ScalarPoint2i(film.crop_offset())))
+    return film.develop()

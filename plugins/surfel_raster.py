@@ -102,16 +102,10 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
         layout = sr.FilmLayout(
             has_alpha=mi.has_flag(film.flags(), mi.FilmFlags.Alpha),
             aovs=tuple((n, tuple(c)) for n, c in sr.aov_layout(self.aovs, self.surfels)))
-        count = film.prepare(self.aov_names())
-        if count != layout.storage_channels:
-            raise ValueError(f"surfel_raster: film {film.class_name()} stores {count} "
-                             f"channels, expected {layout.storage_channels} (use an hdrfilm)")
         images = sr.render_surfels(self.surfels, camera, color_channel=self.color_channel,
                                    aovs=self.aovs, background=self.background,
                                    config=self.config)
-        block = mi.ImageBlock(layout.assemble(images), mi.ScalarPoint2i(film.crop_offset()))
-        film.put_block(block)
-        return film.develop()
+        return sr.develop_film(film, layout, self.aov_names(), images, "surfel_raster")
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not develop:

@@ -97,14 +97,8 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         film = sensor.film()
         has_alpha = mi.has_flag(film.flags(), mi.FilmFlags.Alpha)
         layout = sr.FilmLayout(has_alpha=has_alpha, aovs=())
-        count = film.prepare([])
-        if count != layout.storage_channels:
-            raise ValueError(f"surfel_relight: film stores {count} channels, expected "
-                             f"{layout.storage_channels} (use an hdrfilm)")
         images = {"rgb": mi.TensorXf(out["rgb"]), "alpha": mi.TensorXf(out["alpha"][..., None])}
-        block = mi.ImageBlock(layout.assemble(images), mi.ScalarPoint2i(film.crop_offset()))
-        film.put_block(block)
-        return film.develop()
+        return sr.develop_film(film, layout, [], images, "surfel_relight")
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not develop:
