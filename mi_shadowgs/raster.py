@@ -35,12 +35,19 @@ AOV_CHANNELS = {"alpha": 1, "depth": 1, "median_depth": 1, "normal": 3, "distort
 
 @dataclasses.dataclass(frozen=True)
 class RasterConfig:
-    """Rasterizer settings; the defaults are those of the 2DGS reference implementation."""
+    """Rasterizer settings; the defaults are those of the 2DGS reference implementation,
+    except the low-pass filter (``lowpass_inv_var``)."""
 
     alpha_max: float = 0.99  # clamp of a splat's alpha (keeps log(1 - alpha) finite)
     alpha_min: float = 1.0 / 255.0  # pairs below this alpha are dropped
     transmittance_min: float = 1e-4  # a splat that would bring T below this ends the pixel
-    lowpass_inv_var: float = 2.0  # screen-space filter: rho2d = lowpass_inv_var * |d|^2 (px)
+    # Screen-space filter: rho2d = lowpass_inv_var * |d|^2 (d in pixels), the splat's alpha
+    # uses min(rho3d, rho2d). 12 is a filter of std 1/sqrt(12) px, that of a one-pixel box.
+    # 2DGS's 2 (std 0.71 px) dilates every splat, and stage 1 pays for the dilation by
+    # moving surfaces back along the view rays: surfels placed on the true default scene and
+    # trained 600 steps drifted 0.04 units (~1.4 px) inside at 2, ~0.02 at 8, < 0.01 at 32
+    # (BENCHMARKS.md, "Stage 1: the low-pass filter").
+    lowpass_inv_var: float = 12.0
     cutoff_sigma: float = 3.0  # pairs with rho > cutoff_sigma^2 are dropped; sets the box
     near: float = 0.2  # centres and intersections with z-depth below this are culled
     distortion_near: float = 0.2  # NDC-like depth mapping of the distortion term (2DGS)

@@ -194,7 +194,8 @@ def relight_view(model: RelightModel, camera: Camera, lights: S.LightSet, maps,
     h, w = camera.height, camera.width
     geom, albedo, rough, metal, ind = render_buffers(model, camera, raster)
     with dr.suspend_grad():
-        vis = maps.evaluate(geom.points, geom.normal) if maps is not None else None
+        vis = None if maps is None else \
+            maps.evaluate(geom.points, geom.normal, geom.footprint)
         indirect = ind * factor if ind is not None and factor > 0 else None
         rgb = S.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
         ones = mi.Color3f(1.0)

@@ -68,6 +68,7 @@ class PixelGeometry:
     normal: mi.Vector3f  # unit (zero where alpha = 0)
     view: mi.Vector3f  # unit, toward the camera
     points: mi.Point3f  # world
+    footprint: mi.Float  # world size of each pixel at its depth (visibility's receiver offset)
 
 
 def splat_pairs(surfels: Surfels, camera: Camera,
@@ -107,7 +108,7 @@ def pixel_geometry(surfels: Surfels, camera: Camera,
 
 def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
     """PixelGeometry from a ``rasterize`` result holding "alpha", "depth" and "normal"."""
-    from .visibility import unproject_depth
+    from .visibility import pixel_footprint, unproject_depth
 
     with dr.suspend_grad():
         nimg = out["normal"]
@@ -122,8 +123,9 @@ def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
         # Empty pixels unproject onto the camera centre: no direction there (not NaN).
         ok = (alpha > 0) & (d2 > 0)
         view = dr.select(ok, to_cam * dr.rsqrt(dr.select(ok, d2, 1.0)), 0.0)
-        dr.eval(n, pts, view, alpha)
-    return PixelGeometry(alpha, out["depth"], nimg, n, view, pts)
+        footprint = pixel_footprint(out["depth"], camera)
+        dr.eval(n, pts, view, alpha, footprint)
+    return PixelGeometry(alpha, out["depth"], nimg, n, view, pts, footprint)
 
 
 def sh_irradiance(sh_flat: mi.Float, normal: mi.Vector3f, degree: int) -> mi.Color3f:
@@ -139,18 +141,19 @@ def sh_irradiance(sh_flat: mi.Float, normal: mi.Vector3f, degree: int) -> mi.Col
     return mi.Color3f(*out)
 
 
-def direct(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float, metallic: mi.Float,
-           lights: LightSet, vis: mi.Float | None, with_specular: bool) -> mi.Color3f:
-    """sum_k f_r (n . l_k)^+ V_k E_k per pixel [H * W]; ``vis`` is [H * W * K] pixel-major
-    (None: V = 1, the "w/o visibility" ablation)."""
-    k_count = lights.count
+def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float,
+                     metallic: mi.Float, directions: np.ndarray, vis: mi.Float | None,
+                     with_specular: bool) -> mi.Color3f:
+    """f_r (n . l_k)^+ V_k per pixel and direction, unit irradiance: [H * W * K] pixel-major.
+
+    ``directions`` [K, 3]; ``vis`` [H * W * K] pixel-major (None: V = 1).
+    """
+    k_count = len(directions)
     npix = dr.width(geom.alpha)
     idx = dr.arange(mi.UInt32, npix * k_count)
     pi, li = idx // k_count, idx % k_count
-    d = lights.directions
-    l_dir = mi.Vector3f(*(dr.gather(mi.Float, mi.Float(d[:, c].astype(np.float32)), li)
-                          for c in range(3)))
-    e = dr.gather(mi.Color3f, lights.weights, li)
+    d = np.asarray(directions, np.float32)
+    l_dir = mi.Vector3f(*(dr.gather(mi.Float, mi.Float(d[:, c]), li) for c in range(3)))
     n = dr.gather(mi.Vector3f, geom.normal, pi)
     a = dr.gather(mi.Color3f, albedo, pi)
     m = dr.gather(mi.Float, metallic, pi)
@@ -160,9 +163,19 @@ def direct(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float, metalli
         f = brdf.cook_torrance(n, l_dir, v, a, r, m, with_specular=True)
     else:
         f = brdf.diffuse(n, l_dir, a, m)
-    contrib = f * e
-    if vis is not None:
-        contrib = contrib * vis
+    return f * vis if vis is not None else f
+
+
+def direct(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float, metallic: mi.Float,
+           lights: LightSet, vis: mi.Float | None, with_specular: bool) -> mi.Color3f:
+    """sum_k f_r (n . l_k)^+ V_k E_k per pixel [H * W]; ``vis`` is [H * W * K] pixel-major
+    (None: V = 1, the "w/o visibility" ablation)."""
+    k_count = lights.count
+    npix = dr.width(geom.alpha)
+    li = dr.arange(mi.UInt32, npix * k_count) % k_count
+    e = dr.gather(mi.Color3f, lights.weights, li)
+    contrib = direct_per_light(geom, albedo, roughness, metallic, lights.directions, vis,
+                               with_specular) * e
     return mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, contrib[c], k_count)
                         for c in range(3)))
 

@@ -33,6 +33,7 @@ import numpy as np
 
 from .config import get_preset
 from .geometry import quaternion_to_matrix
+from .visibility import lift_receivers
 
 
 # -- configs ------------------------------------------------------------------------------
@@ -45,6 +46,7 @@ class GaussianTraceConfig:
     alpha_min: float = 1.0 / 255.0  # surfels with a lower opacity are not traced
     alpha_max: float = 0.99  # as the rasterizer: keeps one hit from being fully opaque
     offset: float = 1.0  # ray origin pushed along the normal by this many median sigmas
+    receiver_offset: float = 0.5  # as VisibilityConfig.receiver_offset (pixel footprints)
     stagger: float = 0.2  # per-surfel random normal shift range, in median sigmas (module doc)
     seed: int = 0  # of the stagger
     soft: bool = False  # return the transmittance instead of [T >= 0.5]
@@ -66,6 +68,7 @@ class VoxelConfig:
     density: float = 3.0  # optical depth of one fully occupied voxel crossed straight
     step: float = 0.5  # march step in voxels
     start_offset: float = 1.5  # march starts this many voxels off the surface
+    receiver_offset: float = 0.5  # as VisibilityConfig.receiver_offset (pixel footprints)
     splat_sigma: float = 1.0  # each surfel splats 5 points: centre and +-this sigma on t_u, t_v
     soft: bool = False  # return exp(-optical depth) instead of [V >= 0.5]
     tau_stop: float = 7.0  # (soft) a march stops above this optical depth (T < 1e-3)
@@ -224,9 +227,11 @@ class GaussianVisibility:
             idx = dr.gather(mi.UInt32, idx, dr.compress(hit & (t_new >= stop)))
         return trans
 
-    def evaluate(self, points: mi.Point3f, normals: mi.Vector3f | None = None) -> mi.Float:
+    def evaluate(self, points: mi.Point3f, normals: mi.Vector3f | None = None,
+                 footprint: mi.Float | None = None) -> mi.Float:
         """V [P * L] (point-major); soft transmittance or [T >= 0.5]."""
         with dr.suspend_grad():
+            points = lift_receivers(points, normals, footprint, self.config.receiver_offset)
             p, d, n, facing = _rays(points, normals, self.directions)
             if n is not None:
                 p = p + n * (self.config.offset * self.sigma)
@@ -340,9 +345,11 @@ class VoxelVisibility:
                                        labels=("t", "tau", "i", "act"))
         return tau
 
-    def evaluate(self, points: mi.Point3f, normals: mi.Vector3f | None = None) -> mi.Float:
+    def evaluate(self, points: mi.Point3f, normals: mi.Vector3f | None = None,
+                 footprint: mi.Float | None = None) -> mi.Float:
         """V [P * L] (point-major); soft exp(-optical depth) or its threshold at 0.5."""
         with dr.suspend_grad():
+            points = lift_receivers(points, normals, footprint, self.config.receiver_offset)
             p, d, n, facing = _rays(points, normals, self.directions)
             off = self.config.start_offset * self.voxel
             p = p + d * off if n is None else p + n * off

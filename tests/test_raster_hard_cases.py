@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import drjit as dr
@@ -62,11 +63,15 @@ def test_edge_on_surfels():
     persp = Camera.look_at([3.0, 0.0, 0.0], [0.0, 0.0, 0.0], width=9, height=9, fov_x=0.3)
     s = raw_surfels([[0.0, 0.0, 0.0]], [[math.log(0.1)] * 2], [[1.0, 0.0, 0.0, 0.0]], [0.0])
     for cam in (ortho, persp):
-        res, grads = render_checked(s, cam)
-        # The centre projects onto pixel (4, 4)'s centre: rho2d = 0 there, alpha = 0.5.
-        assert res["alpha"][4, 4, 0] == pytest.approx(0.5, abs=1e-6)  # float32 sigmoid(0)
-        # One pixel away rho2d = 2: alpha = 0.5 exp(-1) (the filter, not the plane).
-        assert res["alpha"][4, 5, 0] == pytest.approx(0.5 * math.exp(-1.0), abs=1e-5)
+        for k in (2.0, CFG.lowpass_inv_var):  # 2DGS's filter and ours
+            res, grads = render_checked(s, cam, dataclasses.replace(CFG, lowpass_inv_var=k))
+            # The centre projects onto pixel (4, 4)'s centre: rho2d = 0, alpha = 0.5.
+            assert res["alpha"][4, 4, 0] == pytest.approx(0.5, abs=1e-6)  # sigmoid(0)
+            # One pixel away rho2d = k: alpha = 0.5 exp(-k / 2) (the filter, not the
+            # plane), or nothing below alpha_min (k = 12: 0.5 exp(-6) = 0.0012 < 1/255).
+            want = 0.5 * math.exp(-0.5 * k)
+            want = want if want >= CFG.alpha_min else 0.0
+            assert res["alpha"][4, 5, 0] == pytest.approx(want, abs=1e-5)
         assert res["depth"][4, 4, 0] == pytest.approx(3.0, rel=1e-6)  # the centre's depth
         assert np.abs(grads["opacity_logit"]).max() > 0
     # Random surfels turned almost edge-on to their view rays (within ~1e-7 rad).
@@ -214,7 +219,9 @@ def test_far_virtual_camera(kind):
     hit = ok & (ref["alpha"] > 0.5)
     # Neighbouring surfels of the dense sphere often share a centre depth to within float32
     # precision at 75 units (either order is right); those pixels are skipped (<= 25%).
-    assert ok.mean() > 0.75 and hit.sum() > 400
+    # The sphere covers ~550 of the 2304 pixels: 300 compared opaque pixels keep the case
+    # non-trivial (measured 386 perspective with the default filter).
+    assert ok.mean() > 0.75 and hit.sum() > 300
     np.testing.assert_allclose(got["alpha"][ok, 0], ref["alpha"][ok], atol=1e-4)
     # Shadow maps compare depths: relative error 1e-6 at 75 units is ~1e-4 absolute, well
     # under a surfel's size (0.02) and any shadow bias.

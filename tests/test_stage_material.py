@@ -80,7 +80,7 @@ def _plane_scene():
                            channels={"segment": seg[:, None].astype(np.float32),
                                      "albedo_gt": albedo})
     cams = [Camera.look_at(np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
-                           np.zeros(3), fov_x=0.9, width=32, height=32)
+                           np.zeros(3), fov_x=0.9, width=48, height=48)
             for a in np.linspace(0, 2 * math.pi, 4, endpoint=False)]
     bounds = SceneBounds((0.0, 0.2, 0.0), 1.5, 3.0)
     return s, cams, bounds
@@ -134,7 +134,7 @@ def _render_truth(s, cams, bounds, light_idx, irradiance, vcfg):
         a = S.splat(pairs, truth["albedo"])
         albedo = mi.Color3f(*(S.channel(a, 3, c) for c in range(3)))
         zero = dr.zeros(mi.Float, dr.width(geom.alpha))
-        vis = maps.evaluate(geom.points, geom.normal)
+        vis = maps.evaluate(geom.points, geom.normal, geom.footprint)
         rgb = S.shade(geom, albedo, zero + 1.0, zero, lights, vis, None, False)
         imgs.append(np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
                     .reshape(cam.height, cam.width, 3))
@@ -204,3 +204,79 @@ def test_merge_directions_recovers_an_off_grid_light():
     assert math.isclose(e.sum(), energy.sum())
     # Nothing merges when the angle is below the grid spacing (~13 degrees).
     assert len(SM.merge_directions(dirs, energy, 5.0)[0]) == len(dirs)
+
+
+def test_candidate_directions_grid():
+    d = light_grid(128)[60]
+    cand = SM.candidate_directions(d, 8.0, 2.0)
+    assert np.allclose(cand[0], d)  # the current direction is a candidate (ties keep it)
+    np.testing.assert_allclose(np.linalg.norm(cand, axis=1), 1.0, atol=1e-12)
+    ang = np.degrees(np.arccos(np.clip(cand @ d, -1, 1)))
+    # The grid is gnomonic: the angle of (i, j) steps is atan(hypot(tan i s, tan j s)) <=
+    # the radius, and the axis neighbours sit exactly one step away.
+    assert ang.max() <= 8.0 + 1e-9 and len(cand) == 1 + sum(
+        1 for i in range(-4, 5) for j in range(-4, 5) if (i or j) and math.hypot(i, j) <= 4)
+    assert np.isclose(np.sort(ang)[1], 2.0)
+    # A light at the horizon keeps only the candidates above it.
+    low = SM.candidate_directions(np.array([1.0, 0.01, 0.0]), 8.0, 2.0)
+    assert (low[:, 1] > 0).all() and 0 < len(low) < len(cand)
+
+
+def _one_light_views(s, cams, bounds, direction, irradiance, vcfg):
+    """Training views of ``s`` (true albedo, no indirect light) under one directional light,
+    with the channels that produced them."""
+    d = np.asarray(direction, np.float64)[None]
+    maps = render_shadow_maps(s, d, bounds, vcfg)
+    e = mi.Float(float(irradiance))
+    lights = S.LightSet(d, mi.Color3f(e, e, e))
+    n = s.count
+    ch = {"albedo": s.channels["albedo_gt"],
+          "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
+          "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))}
+    cfg = SM.get_config("cpu-small")
+    views = []
+    for cam in cams:
+        geom = S.pixel_geometry(s, cam)
+        albedo, rough, metal, _ = SM.view_maps(S.splat_pairs(s, cam), ch, 2, geom.normal)
+        rgb = S.shade(geom, albedo, rough, metal, lights, maps.evaluate(geom.points, geom.normal,
+                                                    geom.footprint),
+                      None, False)
+        img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
+        mask = geom.alpha.numpy() > 0.5
+        views.append(SM.prepare_view(s, cam, img.reshape(cam.height, cam.width, 3),
+                                     mask.reshape(cam.height, cam.width), cfg))
+    return views, ch
+
+
+def test_refine_directions_recovers_a_light_between_grid_directions():
+    """The grid search moves a light that starts 6 degrees off back onto the true direction
+    (the tile's shadow on the floor and the floor's n . l pin it), and refits its
+    irradiance; the error of the true direction is ~0 (the views are rendered by it)."""
+    from mi_shadowgs.directions import direction_from_angles
+
+    s, _, bounds = _plane_scene()
+    cams = [Camera.look_at(np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
+                           np.zeros(3), fov_x=0.9, width=64, height=64)
+            for a in np.linspace(0, 2 * math.pi, 4, endpoint=False)]
+    vcfg = VisibilityConfig(resolution=256, projection="orthographic")
+    true = direction_from_angles(47.0, 52.0)
+    views, ch = _one_light_views(s, cams, bounds, true, 2.0, vcfg)
+    start = direction_from_angles(52.0, 48.0)
+    assert np.degrees(np.arccos(start @ true)) > 5.0
+
+    def render(dirs):
+        return render_shadow_maps(s, dirs, bounds, vcfg)
+
+    cfg = SM.get_config("cpu-small")
+    lights = S.LightSet(start[None], mi.Color3f(1.5))
+    err, fit = SM._candidate_scores(views, ch, lights, render(start[None]), 0,
+                                    render(np.stack([true, start])), cfg, False)
+    # The true direction's error is round-off only: float32 sums per view, and the error is
+    # s_rr - 2 E s_rb + E^2 s_bb, which cancels to ~1e-6 of s_rr (measured 2e-6 of err[1]).
+    assert err[0] < 1e-4 * err[1] and abs(fit[0] - 2.0) < 1e-3, (err, fit)
+    dirs, irr = SM.refine_directions(views, ch, start[None], np.array([1.5]),
+                                     render(start[None]), render, cfg, False)
+    ang = np.degrees(np.arccos(np.clip(dirs[0] @ true, -1, 1)))
+    # The fine pass steps by 0.5 degrees: the optimum is within half a step per axis.
+    assert ang < 0.5, ang
+    assert abs(irr[0] - 2.0) < 0.05 * 2.0, irr

@@ -82,7 +82,8 @@ def _compare(scene_dict, occluder_keys, directions, camera, config=None,
     maps = render_shadow_maps(surfels, np.asarray(directions), bounds, config)
     depth, normal, mask, v_gt = _ray_traced(scene, camera, directions)
     v = np.asarray(view_visibility(mi.TensorXf(depth), camera, maps,
-                                   mi.TensorXf(normal) if use_normals else None))
+                                   mi.TensorXf(normal) if use_normals else None,
+                                   rendered=False))
     ious = []
     for k in range(len(directions)):
         a = (v[..., k] < 0.5) & mask
@@ -232,3 +233,55 @@ def test_bad_settings_are_refused():
     with pytest.raises(ValueError, match="need points"):
         SceneBounds.from_points(np.zeros((0, 3)), [])
     assert math.isfinite(VisibilityConfig().tau)
+
+
+def test_receiver_offset_removes_acne_of_a_thick_fitted_surface():
+    """A fitted surface is a few pixel-sized surfels thick. Here a floor of two faint surfel
+    layers 1.5 view-pixel footprints apart, seen at 128^2: the view's median depth often
+    lands on the lower layer, while a grazing light's map sees the upper one, so without
+    the receiver offset a quarter of the unoccluded floor is in its own shadow (acne; tau
+    and the normal offset absorb ~1.3 footprints here); with 0.5 footprints (the default)
+    it is lit. The lift itself is exactly ``amount * footprint`` along n."""
+    from mi_shadowgs.geometry import frame_to_quaternion
+    from mi_shadowgs.raster import rasterize
+    from mi_shadowgs.surfels import Surfels
+    from mi_shadowgs.visibility import lift_receivers, pixel_footprint
+
+    cam = Camera.look_at(np.array([0.0, 2.0, 3.0]), np.zeros(3), width=128, height=128,
+                         fov_x=0.7)
+    footprint = float(np.linalg.norm(cam.origin)) / cam.focal  # at the floor's centre
+    n = 90
+    u = (np.arange(n) + 0.5) / n * 3.0 - 1.5
+    uu, vv = np.meshgrid(u, u)
+    rng = np.random.default_rng(0)
+    layers = []
+    for y in (0.0, -1.5 * footprint):
+        jitter = rng.uniform(-0.3, 0.3, (2, n * n)) * (3.0 / n)  # no aligned rows
+        layers.append(np.stack([uu.ravel() + jitter[0], np.full(n * n, y),
+                                vv.ravel() + jitter[1]], -1))
+    pos = np.concatenate(layers)
+    sigma = 0.7 * 3.0 / n
+    up = np.tile([0.0, 1.0, 0.0], (len(pos), 1))
+    floor = Surfels.from_numpy(pos, np.full((len(pos), 2), sigma), frame_to_quaternion(up),
+                               np.full(len(pos), 0.25))
+    out = rasterize(floor, cam, None, aovs=("alpha", "median_depth", "normal"))
+    mask = out["alpha"].numpy().reshape(128, 128) > 0.5
+    dirs = np.stack([direction_from_angles(a, 12.0) for a in (30.0, 150.0, 270.0)])
+    bounds = SceneBounds((0.0, 0.0, 0.0), 1.5, float(np.linalg.norm(cam.origin)))
+    lit = {}
+    for amount in (0.0, 0.5):
+        cfg = VisibilityConfig(projection="orthographic", receiver_offset=amount)
+        maps = render_shadow_maps(floor, dirs, bounds, cfg)
+        v = view_visibility(out["median_depth"], cam, maps, out["normal"]).numpy()
+        lit[amount] = float(np.mean(v[mask] >= 0.5))
+    # Nothing occludes the floor: every receiver should be lit.
+    # Measured: 0.754 without, 0.9998 with.
+    assert lit[0.5] > 0.99 and lit[0.0] < 0.9, lit
+    # The lift: amount * footprint along the normal, and none without footprints.
+    p = mi.Point3f(0.0, 0.0, 0.0)
+    nrm = mi.Vector3f(0.0, 1.0, 0.0)
+    assert np.allclose(np.asarray(lift_receivers(p, nrm, mi.Float(0.02), 0.5)).ravel(),
+                       [0.0, 0.01, 0.0])
+    assert lift_receivers(p, nrm, None, 0.5) is p
+    fp = pixel_footprint(mi.TensorXf(np.full((2, 2, 1), 4.0, np.float32)), cam).numpy()
+    assert np.allclose(fp, 4.0 / cam.focal)

@@ -7,7 +7,8 @@ Every method gets the same ground-truth surface points (unprojected GT depth) an
 surfels sampled on the true shapes (object dense, base sparse near the object); the score is
 the IoU of the shadowed set (V < 0.5, ground truth V = 0 or n . l <= 0) inside the mask,
 averaged over views and directions. With ``--model`` (a stage-1 PLY) and ``--data`` (its
-dataset), the points come from the model's own rendered median depth and normals instead.
+dataset), the points come from the model's own rendered median depth and normals instead
+(with their pixel footprints, so the methods' receiver offset applies).
 
     python -m validation.visibility --out validation-out/visibility [--quick]
         [--model RUN/geometry/model.ply --data DATASET]
@@ -45,6 +46,7 @@ from mi_shadowgs.visibility import (
     SceneBounds,
     VisibilityConfig,
     mean_camera_distance,
+    pixel_footprint,
     render_shadow_maps,
     unproject_depth,
 )
@@ -106,6 +108,12 @@ class Case:
     normals: list  # per view: mi.Vector3f [H*W]
     mask: np.ndarray  # [V, H, W] bool
     gt_shadow: np.ndarray  # [V, H, W, L] bool
+    # per view: mi.Float [H*W] pixel footprints when the points come from rendered depth
+    # (the receiver offset applies); None for exact ray-traced points
+    footprints: list | None = None
+
+    def footprint(self, view: int):
+        return None if self.footprints is None else self.footprints[view]
 
 
 def scene_surfels(setup, cfg: ValidationConfig, seed: int = 0) -> Surfels:
@@ -207,7 +215,8 @@ def run_method(build, case: Case, repeats: int = 1) -> dict:
         te = 0.0
         for v in range(len(case.cameras)):
             out, t = _sync_time(lambda v=v, m=method: np.asarray(
-                m.evaluate(case.points[v], case.normals[v]), dtype=np.float32))
+                m.evaluate(case.points[v], case.normals[v], case.footprint(v)),
+                dtype=np.float32))
             te += t
             h, w = case.mask.shape[1:]
             vis.append(out.reshape(h, w, method.count))
@@ -255,12 +264,13 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
     gt = trace_ground_truth(setup, cams, lights)
     facing_gt = np.einsum("vhwk,lk->vhwl", gt["normal"].astype(np.float64), dirs) > 0
     gt_shadow = (gt["visibility"] < 0.5) | ~facing_gt
-    points, normals, masks = [], [], []
+    points, normals, masks, footprints = [], [], [], []
     for v, cam in enumerate(cams):
         with dr.suspend_grad():
             out = rasterize(surfels, cam, None, aovs=("alpha", "median_depth", "normal"))
         alpha = np.asarray(out["alpha"].array).reshape(cam.height, cam.width)
         points.append(unproject_depth(out["median_depth"], cam))
+        footprints.append(pixel_footprint(out["median_depth"], cam))
         n = np.asarray(out["normal"].array, dtype=np.float64).reshape(-1, 3)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         n = n.astype(np.float32)
@@ -274,7 +284,7 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
         raise ValueError(f"{model}: the model covers no object pixel of the test views")
     bounds = SceneBounds.from_points(obj, cams)
     return Case("stage-1 model", surfels, bounds, dirs, cams, points, normals, np.stack(masks),
-                gt_shadow)
+                gt_shadow, footprints)
 
 
 # -- sweep --------------------------------------------------------------------------------
@@ -316,7 +326,7 @@ def time_directions(case: Case, cfg: ValidationConfig, base: VisibilityConfig, p
     ``cfg.timing_map_resolutions``) for a view of cfg.resolution^2 pixels (all pixels, as
     the training pipeline does)."""
     rows = []
-    pts, nrm = case.points[0], case.normals[0]
+    pts, nrm, foot = case.points[0], case.normals[0], case.footprint(0)
     for res_map in cfg.timing_map_resolutions:
         vc = dataclasses.replace(base, resolution=res_map)
         for n_l in progress(cfg.sweep_lights, desc=f"N_l @ {res_map}^2"):
@@ -325,7 +335,7 @@ def time_directions(case: Case, cfg: ValidationConfig, base: VisibilityConfig, p
             for r in range(cfg.repeats + 1):
                 maps, t_map = _sync_time(lambda vc=vc, dirs=dirs: render_shadow_maps(
                     case.surfels, dirs, case.bounds, vc))
-                _, t_look = _sync_time(lambda m=maps: dr.eval(m.evaluate(pts, nrm)))
+                _, t_look = _sync_time(lambda m=maps: dr.eval(m.evaluate(pts, nrm, foot)))
                 if r > 0 or cfg.repeats == 0:
                     tm.append(t_map)
                     tl.append(t_look)
