@@ -116,6 +116,11 @@ class MaterialConfig:
                              f"{self.specular!r}")
         if self.iterations < 0 or self.warmup < 0 or self.views_per_step < 1:
             raise ValueError(f"MaterialConfig: invalid iteration counts: {self}")
+        if any(len(p) != 2 or not 0.0 < p[1] <= p[0] for p in self.refine_passes) or \
+                self.refine_views < 1:
+            raise ValueError(f"MaterialConfig.refine_passes must be (radius, step) pairs with "
+                             f"0 < step <= radius, and refine_views >= 1: "
+                             f"{self.refine_passes}, {self.refine_views}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")
@@ -406,7 +411,9 @@ def candidate_directions(direction: np.ndarray, radius_deg: float, step_deg: flo
                     math.tan(math.radians(j * step_deg)) * t2
                 out.append(c / np.linalg.norm(c))
     out = np.array(out)
-    return out[out[:, 1] > 0.0]
+    keep = out[:, 1] > 0.0
+    keep[0] = True  # the current direction stays a candidate even at the horizon
+    return out[keep]
 
 
 def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet, maps,

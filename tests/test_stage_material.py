@@ -30,6 +30,8 @@ def test_presets_and_paper_defaults():
         SM.get_config("nope")
     with pytest.raises(ValueError, match="specular"):
         SM.MaterialConfig(specular="maybe")
+    with pytest.raises(ValueError, match="refine_passes"):
+        SM.MaterialConfig(refine_passes=((2.0, 4.0),))
 
 
 def test_segment_average_exact():
@@ -220,6 +222,9 @@ def test_candidate_directions_grid():
     # A light at the horizon keeps only the candidates above it.
     low = SM.candidate_directions(np.array([1.0, 0.01, 0.0]), 8.0, 2.0)
     assert (low[:, 1] > 0).all() and 0 < len(low) < len(cand)
+    # ...and one exactly on it keeps at least itself.
+    flat = SM.candidate_directions(np.array([1.0, 0.0, 0.0]), 8.0, 2.0)
+    assert np.allclose(flat[0], [1.0, 0.0, 0.0]) and (flat[1:, 1] > 0).all()
 
 
 def _one_light_views(s, cams, bounds, direction, irradiance, vcfg):

@@ -33,10 +33,17 @@ def _pipeline(out_dir: Path, quick: bool) -> dict:
     return pipeline.run(out_dir, quick=quick)
 
 
+def _lowpass_drift(out_dir: Path, quick: bool) -> dict:
+    from . import lowpass_drift
+
+    return lowpass_drift.run(out_dir, quick=quick)
+
+
 # name -> fn(out_dir, quick) -> {"markdown": ...}; each writes under out_dir/<name>/.
 VALIDATIONS: dict[str, Callable[[Path, bool], dict]] = {
     "visibility": _visibility,
     "pipeline": _pipeline,  # stages 1-5 per scene: issues 4, 6, 7 and Tables 1 and 3
+    "lowpass_drift": _lowpass_drift,  # does stage 1 keep a correct surface in place?
 }
 
 
