@@ -185,7 +185,7 @@ def _photo_inconsistency(views, pts: np.ndarray) -> np.ndarray:
     return np.where(n >= 3, dev, np.inf)
 
 
-def _mean_colour(views, pts: np.ndarray) -> np.ndarray:
+def mean_colour(views, pts: np.ndarray) -> np.ndarray:
     """Mean image colour [M, 3] over the views whose mask covers each point's projection."""
     acc = np.zeros((len(pts), 3))
     n = np.zeros(len(pts))
@@ -219,7 +219,7 @@ def init_params(views, config: GeometryConfig) -> dict[str, np.ndarray]:
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     k = (config.sh_degree + 1) ** 2
     sh = np.zeros((n, k * 3))
-    sh[:, :3] = (_mean_colour(views, pts) - 0.5) / SH_C0
+    sh[:, :3] = (mean_colour(views, pts) - 0.5) / SH_C0
     logit = math.log(config.init_opacity) - math.log1p(-config.init_opacity)
     return {"position": pts.astype(np.float32),
             "log_scale": np.log(np.repeat(dist[:, None], 2, axis=1)).astype(np.float32),
@@ -336,12 +336,18 @@ def _learning_rates(config: GeometryConfig, step: int, extent: float) -> dict[st
 
 
 def initial_state(dataset, config: GeometryConfig) -> TrainState:
-    params = init_params(dataset.views, config)
-    _, radius = scene_bounds(dataset.cameras)
+    return state_from_params(init_params(dataset.views, config), dataset.cameras, config)
+
+
+def state_from_params(params: dict[str, np.ndarray], cameras, config: GeometryConfig,
+                      step: int = 0) -> TrainState:
+    """A fresh training state (new Adam moments) from raw parameters [N, C] (as
+    ``init_params`` returns), with the learning rates of ``step``."""
+    _, radius = scene_bounds(cameras)
     extent = 1.1 * radius  # 3DGS's cameras_extent
-    opt = SurfelAdam(_split_sh(params), _learning_rates_split(config, 0, extent))
+    opt = SurfelAdam(_split_sh(params), _learning_rates_split(config, step, extent))
     strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed)
-    return TrainState(0, opt, strategy, extent)
+    return TrainState(step, opt, strategy, extent)
 
 
 def _split_sh(params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -63,7 +63,7 @@ def _initial_params(setup, train, cfg: DriftConfig, sh_degree: int) -> dict:
     d = scene_surfels(setup, vcfg).to_numpy()
     n = len(d["position"])
     sh = np.zeros((n, 3 * (sh_degree + 1) ** 2), np.float32)
-    sh[:, :3] = (G._mean_colour(train.views, d["position"]) - 0.5) / G.SH_C0
+    sh[:, :3] = (G.mean_colour(train.views, d["position"]) - 0.5) / G.SH_C0
     return {"position": d["position"].astype(np.float32),
             "log_scale": np.log(d["scale"]).astype(np.float32),
             "rotation": d["rotation"].astype(np.float32),
@@ -91,8 +91,7 @@ def depth_bias(surfels, test, raster, views: int, base_id: int | None) -> float:
 def run_drift(data: Path, cfg: DriftConfig) -> list[dict]:
     from mi_shadowgs import stage_geometry as G
     from mi_shadowgs.dataset.loader import load_dataset
-    from mi_shadowgs.densify import DensifyConfig, DensifyStrategy
-    from mi_shadowgs.optim import SurfelAdam
+    from mi_shadowgs.densify import DensifyConfig
 
     setup = _scene_of(data)
     info = json.loads((data / "dataset.json").read_text())
@@ -101,19 +100,14 @@ def run_drift(data: Path, cfg: DriftConfig) -> list[dict]:
     train, test = load_dataset(data, "train"), load_dataset(data, "test")
     base = G.get_config("cpu-small")
     params = _initial_params(setup, train, cfg, base.sh_degree)
-    _, radius = G.scene_bounds(train.cameras)
-    extent = 1.1 * radius
     rows = []
     for k in cfg.ks:
         raster = dataclasses.replace(base.raster, lowpass_inv_var=k)
         gcfg = dataclasses.replace(
             base, raster=raster, iterations=cfg.start_step + cfg.steps,
             densify=DensifyConfig(start=10**9, stop=0, opacity_reset_interval=0))
-        opt = SurfelAdam(G._split_sh(params), G._learning_rates_split(gcfg, cfg.start_step,
-                                                                      extent))
-        state = G.TrainState(cfg.start_step, opt,
-                             DensifyStrategy(gcfg.densify, extent, opt.count, 0), extent)
-        start = G.model_surfels({k2: v for k2, v in opt.params.items()})
+        state = G.state_from_params(params, train.cameras, gcfg, cfg.start_step)
+        start = G.model_surfels(dict(state.opt.params))
         bias0 = depth_bias(start, test, raster, cfg.test_views, base_id)
         model = G.train_geometry(train, gcfg, state=state, progress=False)
         m = G.evaluate(model, test, raster)
