@@ -28,14 +28,27 @@ def get_preset(presets: dict[str, T], name: str, what: str) -> T:
 
 
 def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
-    """A copy of ``config`` with some fields replaced; unknown fields raise ConfigError."""
+    """A copy of ``config`` with some fields replaced; unknown fields raise ConfigError.
+
+    A field that holds a dataclass takes a dict of its own overrides (e.g. a stage's
+    ``{"raster": {"lowpass_inv_var": 8}}``), checked the same way.
+    """
     if not overrides:
         return config
     names = {f.name for f in dataclasses.fields(config)}
     unknown = sorted(set(overrides) - names)
     if unknown:
         raise ConfigError(f"unknown {what} setting(s) {unknown}; known: {sorted(names)}")
-    return dataclasses.replace(config, **overrides)
+    values = dict(overrides)
+    for name, value in overrides.items():
+        current = getattr(config, name)
+        if dataclasses.is_dataclass(current) and not isinstance(current, type):
+            if isinstance(value, dict):
+                values[name] = with_overrides(current, value, f"{what}.{name}")
+            elif not isinstance(value, type(current)):
+                raise ConfigError(f"{what} setting {name!r} takes a dict of its own settings "
+                                  f"or a {type(current).__name__}, got {value!r}")
+    return dataclasses.replace(config, **values)
 
 
 def to_dict(config: Any) -> dict[str, Any]:

@@ -285,3 +285,18 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     # The fine pass steps by 0.5 degrees: the optimum is within half a step per axis.
     assert ang < 0.5, ang
     assert abs(irr[0] - 2.0) < 0.05 * 2.0, irr
+
+
+def test_overrides_reach_nested_settings():
+    """A stage's nested config (the rasterizer's) takes its own dict of overrides, checked
+    like the top level, instead of being replaced by a dict that fails much later."""
+    from mi_shadowgs.stage_geometry import get_config as geometry_config
+
+    cfg = with_overrides(geometry_config("cpu-small"),
+                         {"iterations": 10, "raster": {"lowpass_inv_var": 8.0}}, "geometry")
+    assert cfg.iterations == 10 and cfg.raster.lowpass_inv_var == 8.0
+    assert cfg.raster.alpha_max == geometry_config("cpu-small").raster.alpha_max
+    with pytest.raises(ConfigError, match=r"geometry\.raster.*lowpass"):
+        with_overrides(geometry_config("cpu-small"), {"raster": {"lowpass": 8.0}}, "geometry")
+    with pytest.raises(ConfigError, match="takes a dict"):
+        with_overrides(geometry_config("cpu-small"), {"raster": 8.0}, "geometry")
