@@ -123,8 +123,9 @@ class MaterialConfig:
         if any(len(p) != 2 or not 0.0 < p[1] <= p[0] for p in self.refine_passes) or \
                 self.refine_views < 1 or self.refine_max_lights < 0:
             raise ValueError(f"MaterialConfig.refine_passes must be (radius, step) pairs with "
-                             f"0 < step <= radius, and refine_views >= 1: "
-                             f"{self.refine_passes}, {self.refine_views}")
+                             f"0 < step <= radius, refine_views >= 1, refine_max_lights >= 0:"
+                             f" {self.refine_passes}, {self.refine_views}, "
+                             f"{self.refine_max_lights}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")
