@@ -427,9 +427,9 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet
     """(squared error [C], fitted irradiance [C]) of the views when light ``k`` moves to
     each candidate direction of ``cand_maps``, its irradiance re-fitted by least squares."""
     n_cand = cand_maps.count
-    s_rb = np.zeros(n_cand)
-    s_bb = np.zeros(n_cand)
-    s_rr = 0.0
+    s_rb = dr.zeros(mi.Float64, n_cand)  # summed in Dr.Jit, read once at the end
+    s_bb = dr.zeros(mi.Float64, n_cand)
+    s_rr = mi.Float64(0.0)
     with dr.suspend_grad():
         for v in views:
             albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree,
@@ -460,9 +460,12 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet
             src = (cm % npix) * n_cand + cm // npix
             rb = dr.gather(mi.Float, dr.sum(r * b), src)
             bb = dr.gather(mi.Float, dr.squared_norm(b), src)
-            s_rb += np.asarray(dr.block_reduce(dr.ReduceOp.Add, rb, npix), np.float64)
-            s_bb += np.asarray(dr.block_reduce(dr.ReduceOp.Add, bb, npix), np.float64)
-            s_rr += float(dr.sum(dr.squared_norm(resid))[0])
+            s_rb += mi.Float64(dr.block_reduce(dr.ReduceOp.Add, rb, npix))
+            s_bb += mi.Float64(dr.block_reduce(dr.ReduceOp.Add, bb, npix))
+            s_rr += mi.Float64(dr.sum(dr.squared_norm(resid)))
+            dr.eval(s_rb, s_bb, s_rr)  # one kernel per view, not one growing graph
+    s_rb, s_bb = s_rb.numpy(), s_bb.numpy()
+    s_rr = float(s_rr.numpy()[0])
     irr = np.where(s_bb > 0, np.maximum(s_rb, 0.0) / np.maximum(s_bb, 1e-30), 0.0)
     err = s_rr - 2.0 * irr * s_rb + irr * irr * s_bb
     return err, irr

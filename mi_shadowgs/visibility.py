@@ -51,7 +51,7 @@ class VisibilityConfig:
     # blends them. Lift such points by receiver_offset * (the pixel's footprint) along n so
     # that the surfels of their own pixel do not shadow them. Applies only when the caller
     # gives footprints (exact points, e.g. ray-traced depth, get none). Stage-1 surfels of
-    # the default scene: 0.842 -> 0.855 visibility IoU at 0.5 (BENCHMARKS.md, Visibility).
+    # the default scene: 0.819 -> 0.836 visibility IoU at 0.5 (BENCHMARKS.md, Visibility).
     receiver_offset: float = 0.5
     pcf: int = 0  # soft visibility: average over a (2 pcf + 1)^2 texel window (0 = hard)
     # n . l at or below this is "light below the surface's horizon": V = 0. Not exactly 0:

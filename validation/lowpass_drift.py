@@ -43,17 +43,6 @@ QUICK = DriftConfig(ks=(2.0, 12.0), steps=300, object_surfels=8_000, base_surfel
                     test_views=4)
 
 
-def _scene_of(data: Path):
-    from mi_shadowgs.dataset.layout import DATASET_JSON
-    from mi_shadowgs.dataset.scene import load_scene
-
-    info = json.loads((data / DATASET_JSON).read_text())
-    computed = {"object_to_world", "mesh_type"}
-    params = {k: v for k, v in (info.get("parameters") or {}).items()
-              if k not in computed and not k.endswith("_direction")}
-    return load_scene(info["scene"], params)
-
-
 def _initial_params(setup, train, cfg: DriftConfig, sh_degree: int) -> dict:
     from mi_shadowgs import stage_geometry as G
     from validation.visibility import ValidationConfig, scene_surfels
@@ -90,11 +79,13 @@ def depth_bias(surfels, test, raster, views: int, base_id: int | None) -> float:
 
 def run_drift(data: Path, cfg: DriftConfig) -> list[dict]:
     from mi_shadowgs import stage_geometry as G
+    from mi_shadowgs.dataset.layout import DATASET_JSON
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.densify import DensifyConfig
+    from validation.visibility import dataset_scene
 
-    setup = _scene_of(data)
-    info = json.loads((data / "dataset.json").read_text())
+    setup = dataset_scene(data)
+    info = json.loads((data / DATASET_JSON).read_text())
     base_id = next((m["id"] for m in info.get("materials", []) if m.get("name") == "base"),
                    None)
     train, test = load_dataset(data, "train"), load_dataset(data, "test")

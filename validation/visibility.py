@@ -244,20 +244,25 @@ def methods(cfg_vis: VisibilityConfig, quick: bool):
 
 
 # -- stage-1 model ------------------------------------------------------------------------
+def dataset_scene(data: Path):
+    """The scene a generated dataset was rendered from (its ``dataset.json``), reloaded."""
+    info_path = data / DATASET_JSON
+    if not info_path.is_file():
+        raise FileNotFoundError(f"{info_path}: needed to reload the dataset's scene")
+    info = json.loads(info_path.read_text())
+    computed = {"object_to_world", "mesh_type"}  # derived by the scene from the others
+    params = {k: v for k, v in (info.get("parameters") or {}).items()
+              if k not in computed and not k.endswith("_direction")}
+    return load_scene(info["scene"], params)
+
+
 def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
     """The test views of ``data`` with points from the stage-1 model's rendered geometry."""
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.ply import load_ply
     from mi_shadowgs.raster import rasterize
 
-    info_path = data / DATASET_JSON
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{info_path}: needed to reload the dataset's scene")
-    info = json.loads(info_path.read_text())
-    computed = {"object_to_world", "mesh_type"}
-    params = {k: v for k, v in (info.get("parameters") or {}).items()
-              if k not in computed and not k.endswith("_direction")}
-    setup = load_scene(info["scene"], params)
+    setup = dataset_scene(data)
     cams = [c for _, c in load_cameras(data / transforms_name("test"))][:cfg.n_views]
     surfels = load_ply(model)
     lights, dirs = make_lights(cfg.lights)
