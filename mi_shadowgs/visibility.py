@@ -47,12 +47,15 @@ class VisibilityConfig:
     # The paper uses tau alone (normal_offset = 0); that leaves acne at grazing light.
     normal_offset: float = 1.5
     # Receiver points unprojected from a rendered depth map are only known to about the size
-    # of their pixel: a fitted surface is a few pixel-sized surfels thick, and a view's depth
-    # blends them. Lift such points by receiver_offset * (the pixel's footprint) along n so
-    # that the surfels of their own pixel do not shadow them. Applies only when the caller
-    # gives footprints (exact points, e.g. ray-traced depth, get none). Stage-1 surfels of
-    # the default scene: 0.819 -> 0.836 visibility IoU at 0.5 (BENCHMARKS.md, Visibility).
-    receiver_offset: float = 0.5
+    # of their pixel: a fitted surface can be a few pixel-sized surfels thick, and a view's
+    # depth blends them. Lift such points by receiver_offset * (the pixel's footprint) along
+    # n so that the surfels of their own pixel do not shadow them. Applies only when the
+    # caller gives footprints (exact points, e.g. ray-traced depth, get none). 0: since
+    # stage 1 weights its distortion term enough to collapse those layers (lambda_d 3e4),
+    # the lift only costs contact shadows (stage-1 surfels, default / bunny visibility IoU:
+    # 0.882 / 0.837 at 0, 0.883 / 0.817 at 0.5); with the earlier, layered fits 0.5 took the
+    # default scene from 0.819 to 0.836 (BENCHMARKS.md, Visibility).
+    receiver_offset: float = 0.0
     pcf: int = 0  # soft visibility: average over a (2 pcf + 1)^2 texel window (0 = hard)
     # n . l at or below this is "light below the surface's horizon": V = 0. Not exactly 0:
     # float32 normals of a flat surface carry ~1e-7 tilts that would make a light exactly

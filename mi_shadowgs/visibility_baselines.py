@@ -46,7 +46,7 @@ class GaussianTraceConfig:
     alpha_min: float = 1.0 / 255.0  # surfels with a lower opacity are not traced
     alpha_max: float = 0.99  # as the rasterizer: keeps one hit from being fully opaque
     offset: float = 1.0  # ray origin pushed along the normal by this many median sigmas
-    receiver_offset: float = 0.5  # as VisibilityConfig.receiver_offset (pixel footprints)
+    receiver_offset: float = 0.0  # as VisibilityConfig.receiver_offset (pixel footprints)
     stagger: float = 0.2  # per-surfel random normal shift range, in median sigmas (module doc)
     seed: int = 0  # of the stagger
     soft: bool = False  # return the transmittance instead of [T >= 0.5]
@@ -68,7 +68,7 @@ class VoxelConfig:
     density: float = 3.0  # optical depth of one fully occupied voxel crossed straight
     step: float = 0.5  # march step in voxels
     start_offset: float = 1.5  # march starts this many voxels off the surface
-    receiver_offset: float = 0.5  # as VisibilityConfig.receiver_offset (pixel footprints)
+    receiver_offset: float = 0.0  # as VisibilityConfig.receiver_offset (pixel footprints)
     splat_sigma: float = 1.0  # each surfel splats 5 points: centre and +-this sigma on t_u, t_v
     soft: bool = False  # return exp(-optical depth) instead of [V >= 0.5]
     tau_stop: float = 7.0  # (soft) a march stops above this optical depth (T < 1e-3)

@@ -22,9 +22,13 @@ from mi_shadowgs.atomic import atomic_dir, write_json, write_text
 
 
 def _visibility(out_dir: Path, quick: bool) -> dict:
+    """Table 2 on ground-truth surfels, plus its stage-1 rows for the models the pipeline
+    validation (run before it) trained, when there are any."""
     from . import visibility
 
-    return visibility.run(out_dir, quick=quick)
+    models = sorted((out_dir.parent / "pipeline").glob("*/run/geometry/model.ply"))
+    datas = [m.parents[2] / "data" for m in models]
+    return visibility.run(out_dir, quick=quick, model=models, data=datas)
 
 
 def _pipeline(out_dir: Path, quick: bool) -> dict:
@@ -41,8 +45,8 @@ def _lowpass_drift(out_dir: Path, quick: bool) -> dict:
 
 # name -> fn(out_dir, quick) -> {"markdown": ...}; each writes under out_dir/<name>/.
 VALIDATIONS: dict[str, Callable[[Path, bool], dict]] = {
-    "visibility": _visibility,
     "pipeline": _pipeline,  # stages 1-5 per scene: issues 4, 6, 7 and Tables 1 and 3
+    "visibility": _visibility,  # after the pipeline: its stage-1 models get Table 2 rows
     "lowpass_drift": _lowpass_drift,  # does stage 1 keep a correct surface in place?
 }
 

@@ -8,10 +8,11 @@ surfels sampled on the true shapes (object dense, base sparse near the object); 
 the IoU of the shadowed set (V < 0.5, ground truth V = 0 or n . l <= 0) inside the mask,
 averaged over views and directions. With ``--model`` (a stage-1 PLY) and ``--data`` (its
 dataset), the points come from the model's own rendered median depth and normals instead
-(with their pixel footprints, so the methods' receiver offset applies).
+(with their pixel footprints, so the methods' receiver offset applies); both repeat, in
+pairs, for one stage-1 table over several scenes.
 
     python -m validation.visibility --out validation-out/visibility [--quick]
-        [--model RUN/geometry/model.ply --data DATASET]
+        [--model RUN/geometry/model.ply --data DATASET ...]
 
 Writes (atomically) ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``,
 ``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md``.
@@ -257,7 +258,8 @@ def dataset_scene(data: Path):
 
 
 def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
-    """The test views of ``data`` with points from the stage-1 model's rendered geometry."""
+    """The test views of ``data`` with points from the stage-1 model's rendered geometry;
+    named after the dataset folder (its parent when the folder is called "data")."""
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.ply import load_ply
     from mi_shadowgs.raster import rasterize
@@ -288,8 +290,9 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
     if len(obj) == 0:
         raise ValueError(f"{model}: the model covers no object pixel of the test views")
     bounds = SceneBounds.from_points(obj, cams)
-    return Case("stage-1 model", surfels, bounds, dirs, cams, points, normals, np.stack(masks),
-                gt_shadow, footprints)
+    scene = data.parent.name if data.name == "data" else data.name
+    return Case(f"stage-1 {scene}", surfels, bounds, dirs, cams, points, normals,
+                np.stack(masks), gt_shadow, footprints)
 
 
 # -- sweep --------------------------------------------------------------------------------
@@ -452,10 +455,10 @@ def _progress(quiet: bool):
     return lambda it, desc: tqdm(list(it), desc=desc, disable=quiet, leave=False)
 
 
-def run(out_dir, quick: bool = False, model: str | None = None, data: str | None = None,
-        quiet: bool = False) -> dict:
-    """Everything above; writes into ``out_dir`` (replaced atomically). Returns a summary
-    dict with a ``markdown`` entry."""
+def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False) -> dict:
+    """Everything above; writes into ``out_dir`` (replaced atomically). ``model`` and
+    ``data``: a stage-1 PLY and its dataset, or equally long lists of them. Returns a
+    summary dict with a ``markdown`` entry."""
     cfg = QUICK if quick else ValidationConfig()
     base = VisibilityConfig()
     progress = _progress(quiet)
@@ -468,10 +471,12 @@ def run(out_dir, quick: bool = False, model: str | None = None, data: str | None
         print(f"visibility validation: {notes[-1]}", flush=True)
     t_start = time.perf_counter()
     cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
-    if model:
-        if not data:
-            raise ValueError("--model needs --data (the dataset the model was trained on)")
-        cases.append(model_case(Path(model), Path(data), cfg))
+    models = [model] if isinstance(model, str | Path) else list(model or [])
+    datas = [data] if isinstance(data, str | Path) else list(data or [])
+    if len(models) != len(datas):
+        raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
+                         f"{len(models)} models, {len(datas)} datasets")
+    cases += [model_case(Path(m), Path(d), cfg) for m, d in zip(models, datas, strict=True)]
     results = {}
     for name, build in methods(base, quick).items():
         results[name] = {}
@@ -484,6 +489,8 @@ def run(out_dir, quick: bool = False, model: str | None = None, data: str | None
     timing = time_directions(cases[0], cfg, base, progress)
     best = best_tradeoff(sweep)
     names = [c.name for c in cases]
+    gt_names = [c.name for c in cases if c.footprints is None]
+    model_names = [c.name for c in cases if c.footprints is not None]
     baselines = [m for m in results if not m.startswith("Pixel")]
     wins_md = []
     for m in (m for m in results if m.startswith("Pixel")):
@@ -493,7 +500,10 @@ def run(out_dir, quick: bool = False, model: str | None = None, data: str | None
                        f"{', '.join(c for c, w in wins.items() if w) or 'none'}; not on: "
                        f"{', '.join(c for c, w in wins.items() if not w) or 'none'}.")
     t128 = [r for r in timing if r["map_resolution"] == 128 and r["n_directions"] == 128]
-    table = table2_markdown(results, names)
+    table = table2_markdown(results, gt_names)
+    if model_names:
+        table += "\n\nFrom stage-1 surfels (the models' own rendered depth and normals):\n\n" \
+            + table2_markdown(results, model_names)
     table_rows = [{"method": m, "case": c, **{k: v for k, v in r.items()}}
                   for m, per in results.items() for c, r in per.items()]
     md = [f"## Visibility ({'quick' if quick else 'full'})", "",
@@ -540,8 +550,10 @@ def main(argv=None) -> int:
                                              "(paper Table 2, speed-vs-error sweep).")
     ap.add_argument("--out", required=True, help="output folder (replaced atomically)")
     ap.add_argument("--quick", action="store_true", help="small smoke run")
-    ap.add_argument("--model", help="stage-1 model PLY (RUN/geometry/model.ply)")
-    ap.add_argument("--data", help="the dataset folder the model was trained on")
+    ap.add_argument("--model", action="append",
+                    help="stage-1 model PLY (RUN/geometry/model.ply); repeat with --data")
+    ap.add_argument("--data", action="append",
+                    help="the dataset folder each --model was trained on, in the same order")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     summary = run(args.out, args.quick, args.model, args.data, args.quiet)
