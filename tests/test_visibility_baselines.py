@@ -233,3 +233,25 @@ def test_validation_score_counts_shadowed_pixels_in_mask():
     assert s["shadow_iou"] == pytest.approx(1 / 3)
     assert s["visible_iou"] == pytest.approx(1 / 3)
     assert s["accuracy"] == pytest.approx(2 / 4)
+
+
+def test_make_validate_gives_the_pipeline_models_to_the_visibility_table(tmp_path, monkeypatch):
+    """run_all runs the pipeline before the visibility validation and hands it each scene's
+    stage-1 model with that scene's dataset; unpaired --model/--data fail before any work."""
+    import validation.visibility as vv
+    from validation import run_all
+
+    names = list(run_all.VALIDATIONS)
+    assert names.index("pipeline") < names.index("visibility")
+    for scene in ("bunny", "default"):
+        (tmp_path / "pipeline" / scene / "run" / "geometry").mkdir(parents=True)
+        (tmp_path / "pipeline" / scene / "run" / "geometry" / "model.ply").write_text("")
+    seen = {}
+    monkeypatch.setattr(vv, "run", lambda out, quick, model, data: seen.update(
+        model=model, data=data) or {"markdown": ""})
+    run_all._visibility(tmp_path / "visibility", True)
+    assert [m.parts[-4] for m in seen["model"]] == ["bunny", "default"]
+    assert seen["data"] == [tmp_path / "pipeline" / s / "data" for s in ("bunny", "default")]
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="every --model needs its --data"):
+        vv.run(tmp_path / "out", quick=True, model=["a.ply", "b.ply"], data=["d"])

@@ -459,6 +459,11 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     """Everything above; writes into ``out_dir`` (replaced atomically). ``model`` and
     ``data``: a stage-1 PLY and its dataset, or equally long lists of them. Returns a
     summary dict with a ``markdown`` entry."""
+    models = [model] if isinstance(model, str | Path) else list(model or [])
+    datas = [data] if isinstance(data, str | Path) else list(data or [])
+    if len(models) != len(datas):
+        raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
+                         f"{len(models)} models, {len(datas)} datasets")
     cfg = QUICK if quick else ValidationConfig()
     base = VisibilityConfig()
     progress = _progress(quiet)
@@ -471,11 +476,6 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         print(f"visibility validation: {notes[-1]}", flush=True)
     t_start = time.perf_counter()
     cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
-    models = [model] if isinstance(model, str | Path) else list(model or [])
-    datas = [data] if isinstance(data, str | Path) else list(data or [])
-    if len(models) != len(datas):
-        raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
-                         f"{len(models)} models, {len(datas)} datasets")
     cases += [model_case(Path(m), Path(d), cfg) for m, d in zip(models, datas, strict=True)]
     results = {}
     for name, build in methods(base, quick).items():
