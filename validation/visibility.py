@@ -477,6 +477,9 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     t_start = time.perf_counter()
     cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
     cases += [model_case(Path(m), Path(d), cfg) for m, d in zip(models, datas, strict=True)]
+    names = [c.name for c in cases]
+    if len(set(names)) != len(names):  # results are keyed by case name
+        raise ValueError(f"two --data folders give the same scene name: {names}")
     results = {}
     for name, build in methods(base, quick).items():
         results[name] = {}
@@ -488,7 +491,6 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     sweep = run_sweep(cases[0], cfg, base, progress)
     timing = time_directions(cases[0], cfg, base, progress)
     best = best_tradeoff(sweep)
-    names = [c.name for c in cases]
     gt_names = [c.name for c in cases if c.footprints is None]
     model_names = [c.name for c in cases if c.footprints is not None]
     baselines = [m for m in results if not m.startswith("Pixel")]
