@@ -11,7 +11,10 @@ DEMO_DIR ?= runs/demo
 $(VENV)/.installed: pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
 
+# The libLLVM check runs every time (cached, under a second): a library removed after the
+# venv was made is put back before any test imports drjit.
 install: $(VENV)/.installed
+	@bash scripts/setup.sh --llvm
 
 demo: install
 	$(CLI) generate $(SCENE) --out $(DEMO_DIR)/data --preset $(PRESET)

@@ -1,77 +1,67 @@
 """The one place where mi_shadowgs picks its JIT backend and Mitsuba variant.
 
-Dr.Jit 1.5's LLVM backend crashes with libLLVM 14 and 15 ("Cannot select: fminimum") and
-works with 19, so before drjit is imported we look for a usable libLLVM and point
-``DRJIT_LIBLLVM_PATH`` at it. Variants: ``llvm_ad_rgb`` (CPU, the default, always
-available) and ``cuda_ad_rgb`` (asked for explicitly, or through ``MI_SHADOWGS_VARIANT``).
+Dr.Jit 1.5's LLVM backend refuses libLLVM 14 and aborts the process on 15 ("Cannot select:
+fminimum"); it works with 19. So before drjit initialises its LLVM backend we point
+``DRJIT_LIBLLVM_PATH`` at a library that ``mi_shadowgs.libllvm`` has seen run a Dr.Jit
+kernel (the same check ``scripts/setup.sh`` makes). Where there is none, drjit is pointed
+at no library at all, so that it fails with an error instead of loading a broken LLVM, and
+``set_variant`` raises ``BackendError`` saying what to install. Variants: ``llvm_ad_rgb``
+(CPU, the default, always available) and ``cuda_ad_rgb`` (asked for explicitly, or through
+``MI_SHADOWGS_VARIANT``).
 """
 
 from __future__ import annotations
 
-import glob
 import importlib
 import os
 import pkgutil
-import re
 import sys
+
+from . import libllvm
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 VARIANT_ENV = "MI_SHADOWGS_VARIANT"
 LLVM_ENV = "DRJIT_LIBLLVM_PATH"
-# Major versions known to crash Dr.Jit 1.5 (measured on these machines).
-BROKEN_LLVM_MAJORS = (14, 15)
-# Searched in order; the first major version that is not broken wins, newest first.
-LLVM_SEARCH_GLOBS = (
-    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
-    "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
-    "/usr/lib/llvm-*/lib/libLLVM*.so*",
-    "/usr/lib64/libLLVM*.so*",
-    "/usr/local/lib/libLLVM*.so*",
-    "/opt/homebrew/opt/llvm/lib/libLLVM*.dylib",
-)
-INSTALL_HINT = (
-    "mi_shadowgs: no usable libLLVM found (Dr.Jit 1.5 crashes with LLVM 14/15); "
-    "install LLVM 19, e.g. `apt-get install -y libllvm19`, or set DRJIT_LIBLLVM_PATH"
-)
+# Set beside LLVM_ENV once a library passed the check: child processes trust it.
+CHECKED_ENV = "MI_SHADOWGS_LIBLLVM_CHECKED"
+# What drjit is pointed at when nothing usable exists: a clean "not found" beats an abort.
+NO_LIBRARY = os.path.join(os.sep, "nonexistent", "mi_shadowgs-no-usable-libLLVM.so")
 
 
 class BackendError(RuntimeError):
     """The requested JIT backend cannot run on this machine."""
 
 
-def _llvm_major(path: str) -> int | None:
-    name = os.path.basename(path)
-    match = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", name)
-    return int(match.group(1)) if match else None
+# Why the LLVM backend is unusable here, once configure_llvm failed (set_variant raises it).
+_llvm_error: BackendError | None = None
 
 
-def find_libllvm() -> str | None:
-    """Path of the newest libLLVM on this machine that Dr.Jit 1.5 can use, or None."""
-    candidates = []
-    for pattern in LLVM_SEARCH_GLOBS:
-        for path in glob.glob(pattern):
-            major = _llvm_major(path)
-            if major is None or major in BROKEN_LLVM_MAJORS or major < 11:
-                continue
-            candidates.append((major, path))
-    if not candidates:
-        return None
-    candidates.sort(key=lambda mp: (-mp[0], len(mp[1])))
-    return candidates[0][1]
+def configure_llvm() -> str:
+    """Point DRJIT_LIBLLVM_PATH at a libLLVM that Dr.Jit can use; returns its path.
 
-
-def configure_llvm() -> str | None:
-    """Point DRJIT_LIBLLVM_PATH at a usable libLLVM before drjit loads; returns the path."""
+    Must run before drjit first initialises its LLVM backend (``import mi_shadowgs`` does).
+    A path the user set is checked like any other. Raises BackendError naming what to do.
+    """
+    global _llvm_error
     current = os.environ.get(LLVM_ENV)
-    if current:
+    if current and os.environ.get(CHECKED_ENV) == current:
         return current
-    path = find_libllvm()
+    if current:
+        ok, reason = libllvm.judge(current, sys.executable)
+        path = current if ok else None
+        problem = f"{LLVM_ENV}={current} is not usable: {reason}"
+    else:
+        path, _ = libllvm.find_usable(python=sys.executable)
+        problem = libllvm.INSTALL_HINT
     if path is None:
-        return None
-    # Dr.Jit reads the variable when its LLVM backend first initialises (at the first LLVM
-    # array or variant), so this also works after a bare `import drjit`.
+        os.environ[LLVM_ENV] = NO_LIBRARY
+        os.environ[CHECKED_ENV] = NO_LIBRARY
+        _llvm_error = BackendError(f"mi_shadowgs: {problem}")
+        raise _llvm_error
     os.environ[LLVM_ENV] = path
+    os.environ[CHECKED_ENV] = path
+    _llvm_error = None
     return path
 
 
@@ -95,7 +85,6 @@ def _llvm_available() -> bool:
 
 def variant_available(name: str) -> bool:
     """Whether ``name`` can run here (the backend library loads)."""
-    configure_llvm()
     if name == "cuda_ad_rgb":
         return _cuda_available()
     if name == "llvm_ad_rgb":
@@ -138,11 +127,12 @@ def set_variant(name: str | None = None) -> str:
         raise BackendError(
             f"mi_shadowgs: unsupported variant {name!r}; choose one of {SUPPORTED_VARIANTS}"
         )
-    configure_llvm()
+    if name == "llvm_ad_rgb" and _llvm_error is not None:
+        raise _llvm_error
     import mitsuba as mi
 
     if name == "llvm_ad_rgb" and not _llvm_available():
-        raise BackendError(INSTALL_HINT)
+        raise BackendError(f"mi_shadowgs: {libllvm.INSTALL_HINT}")
     if name == "cuda_ad_rgb" and not _cuda_available():
         raise BackendError(
             "mi_shadowgs: variant cuda_ad_rgb needs an NVIDIA GPU with its driver; "
@@ -164,9 +154,3 @@ def ensure_variant() -> str:
     if current in SUPPORTED_VARIANTS and _registered_for == current:
         return current
     return set_variant(current if current in SUPPORTED_VARIANTS else None)
-
-
-def is_cuda() -> bool:
-    import mitsuba as mi
-
-    return mi.variant() == "cuda_ad_rgb"

@@ -1,22 +1,43 @@
 #!/usr/bin/env bash
-# Creates .venv and installs mi_shadowgs (editable) with its dev tools.
-# Installs Debian's libllvm19 when no usable libLLVM is present and we are root:
-# Dr.Jit 1.5's LLVM backend crashes with LLVM 14/15.
+# Creates .venv and installs mi_shadowgs (editable) with its dev tools, on a machine where
+# Dr.Jit's LLVM backend can run.
+#
+# Whether a libLLVM is usable is decided by mi_shadowgs/libllvm.py (stdlib only, so it runs
+# with the system Python before the venv exists): it asks each library for its version and,
+# once drjit is installed, runs a Dr.Jit kernel on it. Dr.Jit 1.5 refuses LLVM 14 and aborts
+# on 15, whatever the file is called. With no usable one we install Debian's libllvm19 when
+# root, else print what to install and fail.
+#   scripts/setup.sh          set up everything (make install)
+#   scripts/setup.sh --llvm   only make sure a usable libLLVM is installed
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
+LLVM_PACKAGE=libllvm19
 
-have_llvm() {
-  ls /usr/lib/*-linux-gnu/libLLVM*.so* /usr/lib/llvm-*/lib/libLLVM*.so* 2>/dev/null \
-    | grep -vE 'LLVM[-.]?(so\.)?1[45]([.-]|$)' | grep -q .
-}
-if ! have_llvm; then
-  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "setup: installing libllvm19 (Dr.Jit's LLVM backend needs LLVM >= 16; 14/15 crash)"
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null
-  else
-    echo "setup: no usable libLLVM found; install it: sudo apt-get install -y libllvm19" >&2
+ensure_llvm() {  # $1: a Python with drjit, or empty before the venv exists
+  local probe=()
+  [ -n "${1:-}" ] && probe=(--python "$1")
+  if "$PYTHON" mi_shadowgs/libllvm.py "${probe[@]}" >/dev/null; then
+    return 0
   fi
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "setup: no libLLVM that Dr.Jit can run; installing $LLVM_PACKAGE"
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$LLVM_PACKAGE" >/dev/null
+    if "$PYTHON" mi_shadowgs/libllvm.py "${probe[@]}" --no-cache -v >/dev/null; then
+      return 0
+    fi
+    echo "setup: $LLVM_PACKAGE was installed but Dr.Jit still cannot run on it" >&2
+  else
+    "$PYTHON" mi_shadowgs/libllvm.py "${probe[@]}" | sed 's/^install: /setup: /' >&2
+  fi
+  exit 1
+}
+
+ensure_llvm ""
+if [ "${1:-}" = "--llvm" ]; then
+  [ -x .venv/bin/python ] && ensure_llvm "$PWD/.venv/bin/python"
+  exit 0
 fi
 
 if [ ! -x .venv/bin/python ]; then
@@ -24,4 +45,6 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
 .venv/bin/python -m pip install -q -e '.[dev]'
+# Now that drjit is installed, the library must also run a Dr.Jit kernel.
+ensure_llvm "$PWD/.venv/bin/python"
 touch .venv/.installed
