@@ -242,7 +242,7 @@ def _foreign_entries(folder: Path, parts: tuple[str, ...]) -> list[str]:
 class Output:
     """One command's output folder, created lazily; its manifest lists every file before the
     file is written. Use as a context manager: a block that fails before writing any file
-    leaves no folder behind."""
+    leaves no folder (or manifest) of its own behind."""
 
     def __init__(self, folder: Path, command: str, provenance: Provenance,
                  manifest: dict | None):
@@ -338,10 +338,10 @@ class Output:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None or not (self.folder / MANIFEST_NAME).is_file() or self.reused:
+        if exc_type is None or self.reused or not (self.folder / MANIFEST_NAME).is_file():
             return
-        if any(_inside(self.folder, n).exists() for n in self._manifest["files"]) or \
-                any((self.folder / p).exists() for p in self._manifest["parts"]):
-            return
-        clear(self.folder, self._manifest)
+        if any(_inside(self.folder, n).exists() for n in self._manifest["files"]):
+            return  # partial work stays for a rerun (resume) or --overwrite
+        # Parts keep their own manifests (a stage written before the failure stays usable).
+        clear(self.folder, {**self._manifest, "parts": []})
         _prune_empty(self.folder, self._existing_root)
