@@ -162,10 +162,13 @@ def is_dataset_folder(path: str | os.PathLike) -> bool:
                            or any(p.glob("*_*/metadata.json")))
 
 
-def check_output_location(folder: str | os.PathLike, inputs=()) -> None:
-    """Refuse an output folder inside a dataset folder, or one that holds an input."""
+def check_output_location(folder: str | os.PathLike, inputs=(),
+                          writes_dataset: bool = False) -> None:
+    """Refuse an output folder inside a dataset folder, or one that holds an input.
+    ``writes_dataset``: the output is a dataset (``generate``), so ``folder`` itself may be
+    one; its ancestors still may not."""
     folder = Path(folder).resolve()
-    for p in (folder, *folder.parents):
+    for p in (folder.parents if writes_dataset else (folder, *folder.parents)):
         if is_dataset_folder(p):
             raise ProvenanceError(f"{folder}: inside the dataset folder {p}; outputs never go "
                                   "into a dataset: choose another folder")
@@ -259,16 +262,17 @@ class Output:
     def open(cls, folder: str | os.PathLike, command: str, provenance: Provenance, *,
              overwrite: bool = False, reuse: bool = False, inputs=(), parts=(),
              compare: tuple[str, ...] = ("dataset", "inputs", "settings"),
-             continue_flag: str | None = None) -> Output:
+             continue_flag: str | None = None, writes_dataset: bool = False) -> Output:
         """Claim ``folder`` for ``command``.
 
         A previous output of the same command is removed (``overwrite``), reused when its
         provenance matches on ``compare`` (``reuse``; ProvenanceError naming what differs
         otherwise), or refused. ``inputs`` are files the output must not overwrite;
-        ``parts`` are sub-folders other commands may have written first (a run's stages).
+        ``parts`` are sub-folders other commands may have written first (a run's stages);
+        ``writes_dataset``: see ``check_output_location``.
         """
         folder = Path(folder)
-        check_output_location(folder, inputs)
+        check_output_location(folder, inputs, writes_dataset)
         if folder.exists() and not folder.is_dir():
             raise ProvenanceError(f"{folder}: exists and is not a folder")
         manifest = read_manifest(folder) if folder.exists() else None

@@ -252,3 +252,17 @@ def test_overwrite_clears_parts_and_a_run_may_adopt_stage_folders(tmp_path):
     P.Output.open(run, "run", _prov(ds), overwrite=True, parts=("geometry",))
     assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == \
         ["geometry", "geometry/mine.txt"]
+
+
+def test_a_dataset_writer_may_rewrite_its_own_dataset_but_not_nest_one(tmp_path):
+    ds = _dataset(tmp_path / "ds")
+    with pytest.raises(P.ProvenanceError, match="did not write"):  # no manifest: not ours
+        P.Output.open(ds, "generate", P.Provenance(), overwrite=True, writes_dataset=True)
+    out = P.Output.open(tmp_path / "gen", "generate", P.Provenance(), writes_dataset=True)
+    out.path("transforms_train.json").write_text("{}")
+    out.finish()
+    again = P.Output.open(tmp_path / "gen", "generate", P.Provenance(), overwrite=True,
+                          writes_dataset=True)
+    assert not (tmp_path / "gen" / "transforms_train.json").exists() and not again.reused
+    with pytest.raises(P.ProvenanceError, match="inside the dataset folder"):
+        P.Output.open(ds / "inner", "generate", P.Provenance(), writes_dataset=True)
