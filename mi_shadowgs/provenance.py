@@ -159,7 +159,8 @@ def is_dataset_folder(path: str | os.PathLike) -> bool:
     """A folder holding a dataset: ``transforms_*.json``, ``dataset.json`` or TensoIR views."""
     p = Path(path)
     return p.is_dir() and (any(p.glob("transforms_*.json")) or (p / "dataset.json").is_file()
-                           or any(p.glob("*_*/metadata.json")))
+                           or any(p.glob("train_*/metadata.json"))
+                           or any(p.glob("test_*/metadata.json")))
 
 
 def check_output_location(folder: str | os.PathLike, inputs=(),

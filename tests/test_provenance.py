@@ -165,6 +165,12 @@ def test_output_refuses_dataset_folders_inputs_and_foreign_folders(tmp_path):
     for where in (ds, ds / "train", ds / "new" / "deep"):
         with pytest.raises(P.ProvenanceError, match="inside the dataset folder"):
             P.Output.open(where, "render", P.Provenance())
+    for sub in ("tensoir/train_0", "notes/my_notes"):  # TensoIR's views; a user's folder
+        (tmp_path / sub).mkdir(parents=True)
+        (tmp_path / sub / "metadata.json").write_text("{}")
+    with pytest.raises(P.ProvenanceError, match="inside the dataset folder"):
+        P.Output.open(tmp_path / "tensoir" / "out", "render", P.Provenance())
+    P.Output.open(tmp_path / "notes" / "out", "render", P.Provenance())
     model = tmp_path / "geo" / "model.ply"
     model.parent.mkdir()
     model.write_text("m")
