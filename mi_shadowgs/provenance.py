@@ -171,7 +171,8 @@ def check_output_location(folder: str | os.PathLike, inputs=(),
     folder = Path(folder).resolve()
     for p in (folder.parents if writes_dataset else (folder, *folder.parents)):
         if is_dataset_folder(p):
-            raise ProvenanceError(f"{folder}: inside the dataset folder {p}; outputs never go "
+            where = "is" if p == folder else "is inside"
+            raise ProvenanceError(f"{folder}: {where} the dataset folder {p}; outputs never go "
                                   "into a dataset: choose another folder")
     for item in inputs:
         item = Path(item).resolve()

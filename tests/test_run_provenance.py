@@ -175,7 +175,7 @@ def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(finished
     assert rc == 2 and "pass --overwrite" in capsys.readouterr().err
     assert cli.main(["segment", str(run), "--data", str(data[0]), "--out",
                      str(data[0] / "segments"), "--quiet"]) == 2
-    assert "inside the dataset folder" in capsys.readouterr().err
+    assert "outputs never go into a dataset" in capsys.readouterr().err
     assert not (data[0] / "segments").exists()
 
 
