@@ -24,15 +24,17 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 from pathlib import Path
 
 from .atomic import remove_stale, write_json
 
 MANIFEST_NAME = ".mi_shadowgs_manifest.json"
 FORMAT_VERSION = 1
-# What the dataset fingerprint covers: every file the loader may read (transforms,
-# dataset.json, lights.json, TensoIR metadata, images); hidden files are not the dataset's.
-DATASET_SUFFIXES = (".json", ".png", ".exr", ".jpg", ".jpeg")
+# What the dataset fingerprint covers: every file the loader may read (images, transforms,
+# dataset.json, lights.json, TensoIR metadata), not other files such as a writer's manifest.
+IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg")
+DATASET_JSON = re.compile(r"transforms_.*\.json|dataset\.json|lights\.json|metadata\.json")
 _CHUNK = 1 << 20
 _MAX_LISTED = 8  # differing settings named in one message
 
@@ -56,7 +58,8 @@ def _dataset_files(root: Path) -> list[tuple[str, os.stat_result]]:
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
         for name in filenames:
-            if not name.startswith(".") and name.lower().endswith(DATASET_SUFFIXES):
+            if not name.startswith(".") and (name.lower().endswith(IMAGE_SUFFIXES) or
+                                             DATASET_JSON.fullmatch(name)):
                 p = Path(dirpath) / name
                 found.append((p.relative_to(root).as_posix(), p.stat()))
     return sorted(found, key=lambda item: item[0])

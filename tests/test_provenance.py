@@ -104,12 +104,16 @@ def test_dataset_fingerprint_follows_contents_not_times_or_hidden_files(tmp_path
     os.utime(b / "train" / "r_0.png", (1, 1))
     (b / ".mi_shadowgs_manifest.json").write_text("{}")
     (b / "notes.txt").write_text("not a dataset file")
+    (b / "manifest.json").write_text("{}")  # a writer's list of files, not the loader's
     assert P.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 999 + b"\x07")  # one byte, same size
     assert P.dataset_fingerprint(b) != fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 1000)
     assert P.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").rename(b / "train" / "r_9.png")
+    assert P.dataset_fingerprint(b) != fp
+    (b / "train" / "r_9.png").rename(b / "train" / "r_1.png")
+    (b / "transforms_train.json").write_text(json.dumps({"frames": [None]}))
     assert P.dataset_fingerprint(b) != fp
 
 
