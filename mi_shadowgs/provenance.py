@@ -337,6 +337,7 @@ class Output:
         """Own the sub-folder ``name`` (with a manifest of its own) for ``--overwrite``."""
         if name not in self._manifest["parts"]:
             self._manifest["parts"].append(name)
+            self._manifest["complete"] = False
         self._save()
 
     def finish(self) -> None:
