@@ -496,6 +496,10 @@ def rasterize(surfels: Surfels, camera: Camera,
     "normal" (world space, facing the camera, not renormalised), "distortion" (2DGS depth
     distortion), "count" (contributing splats, no gradient). Differentiable in reverse mode
     with respect to all surfel parameters and channel values.
+
+    A render whose pair list would exceed ``config.memory_budget_bytes`` is drawn in bands of
+    rows when no input needs a gradient, and raises RasterMemoryError (a ValueError) when
+    one does.
     """
     for a in aovs:
         if a not in AOV_CHANNELS:

@@ -176,8 +176,8 @@ class Surfels:
             opacity_logit=mi.Float(logit.astype(f32)),
         )
         for name, arr in (channels or {}).items():
-            check_finite(where, f"channel {name}", np.asarray(arr))
             surf.channels[name] = _tensor_nc(arr, n, f"Surfels.from_numpy channel {name!r}")
+            check_finite(where, f"channel {name}", np.asarray(arr))
         return surf
 
     def to_numpy(self) -> dict[str, np.ndarray]:
