@@ -127,8 +127,8 @@ class Camera:
             raise ValueError("look_at: origin and target coincide")
         back /= n
         right = np.cross(u, back)
-        if np.linalg.norm(right) < 1e-9:  # looking straight along up: pick another up
-            right = np.cross(np.array([0.0, 0.0, 1.0]), back)
+        if np.linalg.norm(right) < 1e-9:  # looking straight along up: the world axis least
+            right = np.cross(np.eye(3)[np.argmin(np.abs(back))], back)  # along the view
         right /= np.linalg.norm(right)
         true_up = np.cross(back, right)
         c2w = np.eye(4)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
+from .surfel_checks import check_finite, check_log_scale, check_nonempty, check_quaternion
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -235,16 +236,24 @@ def write_ply_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray]) 
 
 # -- surfel models ------------------------------------------------------------------------
 def read_ply_model(path: str | os.PathLike) -> PlyModel:
-    """Read a 2DGS-layout PLY as raw float32 parameters (PlyError names file and property)."""
+    """Read a 2DGS-layout PLY as raw float32 parameters (PlyError names file and property).
+
+    Refuses (``mi_shadowgs.surfel_checks``) an empty model, non-finite values in any
+    property, log-scales whose exp is zero in float32 or above 1e12, and zero quaternions,
+    naming the property, the first bad vertex and the number of bad vertices.
+    """
     props = read_ply_vertices(path)
     missing = [name for name in REQUIRED if name not in props]
     if missing:
         raise PlyError(f"{path}: missing required vertex propert"
                        f"{'y' if len(missing) == 1 else 'ies'} {', '.join(missing)}")
+    check_nonempty(str(path), len(props["x"]), PlyError)
     for name, col in props.items():
-        if col.dtype.kind == "f" and np.isnan(col).any():
-            bad = int(np.flatnonzero(np.isnan(col))[0])
-            raise PlyError(f"{path}: property {name!r} holds NaN (first at vertex {bad})")
+        check_finite(str(path), name, col, PlyError)
+    for name in ("scale_0", "scale_1"):
+        check_log_scale(str(path), name, props[name], PlyError)
+    check_quaternion(str(path), "rot_0..rot_3",
+                     np.stack([props[f"rot_{i}"] for i in range(4)], axis=-1), PlyError)
 
     def stack(names):
         return np.stack([props[n].astype(np.float32) for n in names], axis=-1)

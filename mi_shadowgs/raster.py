@@ -4,6 +4,8 @@ Pipeline (one ``rasterize`` call):
 1. per surfel: activate, build the tangent frame, move to the CV camera frame, project,
    and bound the ``cutoff_sigma`` ellipse and the low-pass footprint by a pixel box;
 2. pair list: box sizes -> prefix sum -> (surfel, pixel) per pair (one host read of P);
+   when the list would not fit the memory budget (``RasterConfig``), steps 2-4 run per band
+   of image rows (forward renders) or the render is refused (renders with gradients);
 3. per pair, detached: the 2DGS ray-splat intersection, low-pass filter and alpha; pairs
    that cannot contribute are compressed away, the rest sorted by (pixel, centre depth);
 4. per kept pair, with AD: alpha again, a Float64 prefix sum of log(1 - alpha) segmented
@@ -25,6 +27,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from . import memory
 from .camera import Camera
 from .config import get_preset
 from .surfels import Surfels
@@ -55,7 +58,24 @@ class RasterConfig:
     scale_min: float = 1e-20  # surfels with a smaller tangent std-dev are culled (no plane)
     edge_on_eps: float = 1e-6  # |s_z| <= eps (|s_x|+|s_y|): ray ~ parallel to the plane
     box_margin: float = 0.01  # pixels; covers float32 rounding of the bounding box
-    max_pairs: int = 1 << 30  # refuse larger pair lists (memory) with a clear error
+    max_pairs: int = 1 << 30  # most pairs in one list (< 2^32: UInt32 pair indices)
+    # Memory guard (``_plan_bands``). A render's peak memory is about reserve_bytes (kernel
+    # compilation, images) plus a cost per pixel-box pair (measured 14 MiB + 52 B forward,
+    # 32 MiB + 87 B forward+backward over every AOV: BENCHMARKS.md, "Rasterizer memory per
+    # pixel-splat pair"). A render that would take this process's resident memory past the
+    # budget is drawn in bands of image rows when nothing needs its gradient, and refused
+    # (RasterMemoryError) when something does: the AD graph would keep every band's pairs
+    # alive until the backward pass.
+    memory_budget_bytes: int | None = None  # None: resident now + fraction of MemAvailable
+    memory_budget_fraction: float = 0.5
+    bytes_per_pair: int = 64  # forward only
+    bytes_per_pair_grad: int = 112  # with gradients
+    reserve_bytes: int = 48 << 20
+
+
+class RasterMemoryError(MemoryError, ValueError):
+    """A render's pair list does not fit the memory budget or ``max_pairs``; a ValueError
+    too, so that the CLI reports it in one line with exit status 2."""
 
 
 PRESETS = {"paper": RasterConfig(), "cpu-small": RasterConfig()}
@@ -149,8 +169,10 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
                  surfels.opacity(), normal)
 
 
-def _boxes(g: _Proj, width: int, height: int, config: RasterConfig):
-    """Integer pixel boxes [x0, x1] x [y0, y1] (inclusive) per surfel and their pixel count."""
+def _boxes(g: _Proj, width: int, height: int, config: RasterConfig, rows=None):
+    """Integer pixel boxes [x0, x1] x [y0, y1] (inclusive) per surfel, clipped to the image
+    (and to the rows [r0, r1) of ``rows``, a pair of opaque Int32): (x0, y0, box width, box
+    height, pixel count). A splat larger than the image thus counts at most H * W pixels."""
     k2 = config.cutoff_sigma ** 2
     # Dual conic of the k-sigma ellipse, in pixel offsets from the projected centre.
     c00 = g.a0 * g.a0 + g.a1 * g.a1
@@ -187,10 +209,91 @@ def _boxes(g: _Proj, width: int, height: int, config: RasterConfig):
     x1 = dr.minimum(hi(xmax, width), width - 1)
     y0 = dr.maximum(lo(ymin, height), 0)
     y1 = dr.minimum(hi(ymax, height), height - 1)
+    if rows is not None:
+        y0 = dr.maximum(y0, rows[0])
+        y1 = dr.minimum(y1, rows[1] - 1)
     bw = dr.maximum(x1 - x0 + 1, 0)
     bh = dr.maximum(y1 - y0 + 1, 0)
     count = dr.select(g.valid, mi.UInt32(bw * bh), 0)
-    return mi.UInt32(x0), mi.UInt32(y0), mi.UInt32(bw), count
+    return mi.UInt32(x0), mi.UInt32(y0), mi.UInt32(bw), mi.UInt32(bh), count
+
+
+def _total(count: mi.UInt32) -> int:
+    """Sum of per-surfel pair counts, in 64 bits (a UInt32 sum wraps past 4G pairs)."""
+    return int(dr.sum(mi.UInt64(count))[0]) if dr.width(count) else 0
+
+
+def _memory(config: RasterConfig, need: int) -> tuple[int, int] | None:
+    """(budget, resident) in bytes for a render that needs ``need`` more, or None where the
+    figures cannot be read (no /proc)."""
+    def read():
+        resident = memory.resident_bytes()
+        budget = config.memory_budget_bytes
+        if budget is None and resident is not None:
+            avail = memory.available_bytes()
+            budget = None if avail is None else \
+                resident + int(config.memory_budget_fraction * avail)
+        return None if resident is None or budget is None else (budget, resident)
+
+    got = read()
+    if got is not None and got[1] + need > got[0]:
+        dr.flush_malloc_cache()  # Dr.Jit's cache of freed blocks counts as resident
+        got = read()
+    return got
+
+
+def _budget_text(config: RasterConfig, budget: int, resident: int) -> str:
+    gib = 1 << 30
+    setting = f"RasterConfig.memory_budget_bytes={config.memory_budget_bytes}" \
+        if config.memory_budget_bytes is not None else \
+        (f"RasterConfig.memory_budget_bytes=None: {config.memory_budget_fraction:g} of "
+         f"MemAvailable")
+    return (f"the memory budget ({setting}) is {budget / gib:.2f} GiB and this process "
+            f"already holds {resident / gib:.2f} GiB")
+
+
+def _plan_bands(g: _Proj, width: int, height: int, config: RasterConfig,
+                grad: bool) -> list[tuple[int, int]]:
+    """Bands of rows [r0, r1) whose pair lists fit the memory budget and ``max_pairs``: the
+    whole image when it fits, else consecutive bands (no ``grad``), else RasterMemoryError."""
+    _, y0, bw, bh, count = _boxes(g, width, height, config)
+    total = _total(count)
+    per_pair = config.bytes_per_pair_grad if grad else config.bytes_per_pair
+    need = total * per_pair + config.reserve_bytes
+    mem = _memory(config, need) if total else None
+    over = mem is not None and mem[1] + need > mem[0]
+    if not over and total <= config.max_pairs:
+        return [(0, height)]
+    hint = "(surfels too large for the image?)"
+    why = (f"{_budget_text(config, *mem)}" if over else
+           f"RasterConfig.max_pairs is {config.max_pairs}")
+    if grad:
+        raise RasterMemoryError(
+            f"rasterize: {total} pixel-splat pairs need ~{need / (1 << 30):.2f} GiB, but "
+            f"{why}; a render with gradients is not split into bands {hint}")
+    limit = config.max_pairs
+    if over:
+        budget, resident = mem
+        limit = min(limit, (budget - resident - config.reserve_bytes) // per_pair)
+    # Pairs per row: each box adds its width to its rows y0 .. y0 + bh - 1.
+    y0n, bwn, bhn, cn = (np.asarray(v, np.int64) for v in (y0, bw, bh, count))
+    w = np.where(cn > 0, bwn, 0).astype(np.float64)
+    edges = np.bincount(np.minimum(y0n, height), w, height + 1) \
+        - np.bincount(np.minimum(y0n + bhn, height), w, height + 1)
+    per_row = np.cumsum(edges)[:height]  # [H], exact integers in float64
+    if per_row.max() > limit:
+        raise RasterMemoryError(
+            f"rasterize: one image row holds {int(per_row.max())} pixel-splat pairs "
+            f"(~{per_row.max() * per_pair / (1 << 30):.2f} GiB), but {why} "
+            f"{hint}")
+    bands, start, acc = [], 0, 0.0
+    for r, c in enumerate(per_row):
+        if acc + c > limit:
+            bands.append((start, r))
+            start, acc = r, 0.0
+        acc += c
+    bands.append((start, height))
+    return bands
 
 
 def _pair_eval(q: dict, px: mi.Float, py: mi.Float, config: RasterConfig):
@@ -226,18 +329,24 @@ def _depth_key(z: mi.Float) -> mi.UInt32:
     return dr.select(b >= 0x80000000, ~b, b | 0x80000000)
 
 
-def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig):
-    """Sorted (surfel id, pixel id) of the pairs that contribute; detached. None if none."""
+def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
+                 rows: tuple[int, int] | None = None):
+    """Sorted (surfel id, pixel id) of the pairs that contribute; detached. None if none.
+
+    ``rows`` = (r0, r1) restricts the pairs to those image rows; pixel ids then count from
+    row r0 (pixel (x, y) is (y - r0) * width + x)."""
     n = dr.width(g.xc)
-    x0, y0, bw, count = _boxes(g, width, height, config)
-    offsets = dr.prefix_sum(count)
-    dr.eval(offsets, count)
-    total = int(dr.gather(mi.UInt32, offsets + count, dr.opaque(mi.UInt32, n - 1))[0])
+    r0, r1 = (0, height) if rows is None else rows
+    x0, y0, bw, _, count = _boxes(g, width, height, config,
+                                  (dr.opaque(mi.Int32, r0), dr.opaque(mi.Int32, r1)))
+    total = _total(count)
     if total > config.max_pairs:
-        raise MemoryError(f"rasterize: {total} pixel-splat pairs exceed RasterConfig.max_pairs="
-                          f"{config.max_pairs} (surfels too large for the image?)")
+        raise RasterMemoryError(f"rasterize: {total} pixel-splat pairs exceed "
+                                f"RasterConfig.max_pairs={config.max_pairs} (surfels too "
+                                f"large for the image?)")
     if total == 0:
         return None
+    offsets = dr.prefix_sum(count)  # UInt32 is safe: total <= max_pairs < 2^32
     # Surfel id of each pair: mark each non-empty box's first pair with its surfel index and
     # carry it forward with a max-scan (ids increase along the list).
     sid = dr.zeros(mi.UInt32, total)
@@ -260,7 +369,7 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig):
     if dr.width(idx) == 0:
         return None
     sid = dr.gather(mi.UInt32, sid, idx)
-    pix = dr.gather(mi.UInt32, pyi * width + pxi, idx)
+    pix = dr.gather(mi.UInt32, (pyi - dr.opaque(mi.UInt32, r0)) * width + pxi, idx)
     key = (mi.UInt64(pix) << 32) | mi.UInt64(_depth_key(dr.gather(mi.Float, g.z2, sid)))
     order = dr.argsort(key)
     sid = dr.gather(mi.UInt32, sid, order)
@@ -310,27 +419,42 @@ def _scan(alpha: mi.Float, pix: mi.UInt32, npix: int, config: RasterConfig) -> _
     return _Scan(ar, last_idx, first, last, t_before, t_after, contrib, w64)
 
 
+def _centres(pix: mi.UInt32, width: int, r0: int) -> tuple[mi.Float, mi.Float]:
+    """Pixel centres (x, y) [P] of band-relative pixel ids (the band starts at row r0)."""
+    y = pix // width
+    return mi.Float(pix - y * width) + 0.5, mi.Float(y + dr.opaque(mi.UInt32, r0)) + 0.5
+
+
 def splat_pairs(surfels: Surfels, camera: Camera, config: RasterConfig = RasterConfig()
                 ) -> tuple[mi.UInt32, mi.UInt32, mi.Float]:
     """The contributing (surfel id, pixel id) pairs of a view and their weights T_i alpha_i,
     detached, in compositing order: exactly what ``rasterize`` blends. Stages whose
-    geometry is fixed compute them once per view and reuse them (``shading.splat``)."""
+    geometry is fixed compute them once per view and reuse them (``shading.splat``).
+    Built in bands of rows when the whole list would not fit the memory budget."""
+    parts = []
     with dr.suspend_grad():
         g = _project(surfels, camera, config).detach()
         dr.eval(*(getattr(g, f.name) for f in dataclasses.fields(g)))
         w, h = camera.width, camera.height
-        pairs = _build_pairs(g, w, h, config) if surfels.count else None
-        if pairs is None:
-            return mi.UInt32(), mi.UInt32(), mi.Float()
-        sid, pix = pairs
-        pyi = pix // w
-        q = g.gather(sid, _PAIR_FIELDS)
-        alpha, _, _ = _pair_eval(q, mi.Float(pix - pyi * w) + 0.5, mi.Float(pyi) + 0.5, config)
-        weight = mi.Float(_scan(alpha, pix, h * w, config).w64)
-        keep = dr.compress(weight > 0)
-        sid, pix, weight = (dr.gather(type(x), x, keep) for x in (sid, pix, weight))
-        dr.eval(sid, pix, weight)
-    return sid, pix, weight
+        bands = _plan_bands(g, w, h, config, grad=False) if surfels.count else []
+        for r0, r1 in bands:
+            pairs = _build_pairs(g, w, h, config, (r0, r1))
+            if pairs is None:
+                continue
+            sid, pix = pairs
+            q = g.gather(sid, _PAIR_FIELDS)
+            alpha, _, _ = _pair_eval(q, *_centres(pix, w, r0), config)
+            weight = mi.Float(_scan(alpha, pix, (r1 - r0) * w, config).w64)
+            keep = dr.compress(weight > 0)
+            sid, pix, weight = (dr.gather(type(x), x, keep) for x in (sid, pix, weight))
+            pix = pix + dr.opaque(mi.UInt32, r0 * w)
+            dr.eval(sid, pix, weight)
+            parts.append((sid, pix, weight))
+    if not parts:
+        return mi.UInt32(), mi.UInt32(), mi.Float()
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(dr.concat([p[k] for p in parts]) for k in range(3))
 
 
 def pair_counts(surfels: Surfels, camera: Camera, config: RasterConfig = RasterConfig()
@@ -338,10 +462,9 @@ def pair_counts(surfels: Surfels, camera: Camera, config: RasterConfig = RasterC
     """(pixel-box pairs, pairs kept after the alpha/cutoff tests) of a view (benchmarks)."""
     with dr.suspend_grad():
         g = _project(surfels, camera, config).detach()
-        box = _boxes(g, camera.width, camera.height, config)[3]
+        box = _boxes(g, camera.width, camera.height, config)[4]
         built = _build_pairs(g, camera.width, camera.height, config)
-        return int(dr.sum(mi.UInt64(box))[0] if dr.width(box) else 0), \
-            0 if built is None else dr.width(built[0])
+        return _total(box), 0 if built is None else dr.width(built[0])
 
 
 def _resolve_channels(surfels: Surfels, channels):
@@ -373,6 +496,10 @@ def rasterize(surfels: Surfels, camera: Camera,
     "normal" (world space, facing the camera, not renormalised), "distortion" (2DGS depth
     distortion), "count" (contributing splats, no gradient). Differentiable in reverse mode
     with respect to all surfel parameters and channel values.
+
+    A render whose pair list would exceed ``config.memory_budget_bytes`` is drawn in bands of
+    rows when no input needs a gradient, and raises RasterMemoryError (a ValueError) when
+    one does.
     """
     for a in aovs:
         if a not in AOV_CHANNELS:
@@ -391,32 +518,47 @@ def rasterize(surfels: Surfels, camera: Camera,
                              f"channel has {chans[name].shape[1]}")
         bg[name] = vals
     H, W = camera.height, camera.width
-    npix = H * W
 
     g = _project(surfels, camera, config)
     # One per-surfel kernel now, rather than whatever set of pending variables the first
     # gather happens to evaluate (that set varies and defeats the kernel cache).
     dr.eval(*(getattr(g, f.name) for f in dataclasses.fields(g)))
-    pairs = _build_pairs(g.detach(), W, H, config) if surfels.count else None
+    gd = g.detach()
+    grad = any(dr.grad_enabled(getattr(g, f.name)) for f in dataclasses.fields(g)) or \
+        any(dr.grad_enabled(t) for t in chans.values())
+    bands = _plan_bands(gd, W, H, config, grad) if surfels.count else [(0, H)]
+    parts = []
+    for r0, r1 in bands:
+        part = _render_rows(g, gd, r0, r1, W, H, chans, aovs, bg, config)
+        if len(bands) > 1:  # free this band's pairs before the next one is built
+            dr.eval(*part.values())
+            dr.flush_malloc_cache()
+        parts.append(part)
+    widths = {name: t.shape[1] for name, t in chans.items()} | \
+        {a: AOV_CHANNELS[a] for a in aovs}
+    return {name: mi.TensorXf(parts[0][name] if len(parts) == 1 else
+                              dr.concat([p[name] for p in parts]), shape=(H, W, c))
+            for name, c in widths.items()}
 
-    def image(flat, c):
-        return mi.TensorXf(flat, shape=(H, W, c))
 
+def _render_rows(g: _Proj, gd: _Proj, r0: int, r1: int, W: int, H: int, chans: dict,
+                 aovs: Sequence[str], bg: dict, config: RasterConfig) -> dict[str, mi.Float]:
+    """Rows [r0, r1) of every output of ``rasterize``, flat ([(r1 - r0) * W * C] each);
+    ``g`` the projected surfels with AD, ``gd`` detached."""
+    npix = (r1 - r0) * W
+    pairs = _build_pairs(gd, W, H, config, (r0, r1)) if dr.width(gd.xc) else None
     if pairs is None:
-        out = {name: image(dr.zeros(mi.Float, npix * t.shape[1]), t.shape[1])
-               for name, t in chans.items()}
+        out = {name: dr.zeros(mi.Float, npix * t.shape[1]) for name, t in chans.items()}
         for name, vals in bg.items():
-            out[name] = image(dr.tile(mi.Float(vals), npix), len(vals))
+            out[name] = dr.tile(mi.Float(vals), npix)
         for a in aovs:
-            out[a] = image(dr.zeros(mi.Float, npix * AOV_CHANNELS[a]), AOV_CHANNELS[a])
+            out[a] = dr.zeros(mi.Float, npix * AOV_CHANNELS[a])
         return out
     sid, pix = pairs
 
     # Per-pair quantities with AD, in sorted order.
     q = g.gather(sid, _PAIR_FIELDS)
-    pyi = pix // W
-    pxi = pix - pyi * W
-    alpha, _, depth = _pair_eval(q, mi.Float(pxi) + 0.5, mi.Float(pyi) + 0.5, config)
+    alpha, _, depth = _pair_eval(q, *_centres(pix, W, r0), config)
 
     sc = _scan(alpha, pix, npix, config)
     ar, last_idx, last, first = sc.ar, sc.last_idx, sc.last, sc.first
@@ -439,22 +581,22 @@ def rasterize(surfels: Surfels, camera: Camera,
         img = accumulate(vals, c)
         if name in bg:
             img = img + dr.tile(mi.Float(bg[name]), npix) * dr.repeat(1.0 - alpha_img, c)
-        out[name] = image(img, c)
+        out[name] = img
     if "alpha" in aovs:
-        out["alpha"] = image(alpha_img, 1)
+        out["alpha"] = alpha_img
     if "depth" in aovs:
         acc = accumulate([w * depth], 1)
         ok = alpha_img > 0
-        out["depth"] = image(dr.select(ok, acc / dr.select(ok, alpha_img, 1.0), 0.0), 1)
+        out["depth"] = dr.select(ok, acc / dr.select(ok, alpha_img, 1.0), 0.0)
     if "median_depth" in aovs:
         # The last contributing splat with T > 0.5 in front of it (2DGS).
         nxt_contrib = dr.gather(mi.Bool, contrib, dr.minimum(ar + 1, last_idx))
         end = last | ~nxt_contrib | (dr.detach(t_after) <= 0.5)
         sel = contrib & (dr.detach(t_before) > 0.5) & end
-        out["median_depth"] = image(accumulate([dr.select(sel, depth, 0.0)], 1), 1)
+        out["median_depth"] = accumulate([dr.select(sel, depth, 0.0)], 1)
     if "normal" in aovs:
         n = g.gather(sid, ("normal",))["normal"]
-        out["normal"] = image(accumulate([w * n.x, w * n.y, w * n.z], 3), 3)
+        out["normal"] = accumulate([w * n.x, w * n.y, w * n.z], 3)
     if "distortion" in aovs:
         near, far = config.distortion_near, config.distortion_far
         m = mi.Float64(far / (far - near)) * (1.0 - near / mi.Float64(depth))
@@ -463,7 +605,7 @@ def rasterize(surfels: Surfels, camera: Camera,
         m2 = _segment_exclusive(wm * m, pix, first, npix)
         acc = 1.0 - t_before  # = sum of the weights in front (all of them contribute)
         d = w64 * (m * m * acc + m2 - 2.0 * m * m1)
-        out["distortion"] = image(accumulate([mi.Float(d)], 1), 1)
+        out["distortion"] = accumulate([mi.Float(d)], 1)
     if "count" in aovs:
-        out["count"] = image(accumulate([dr.select(contrib, mi.Float(1.0), 0.0)], 1), 1)
+        out["count"] = accumulate([dr.select(contrib, mi.Float(1.0), 0.0)], 1)
     return out

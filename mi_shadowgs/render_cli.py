@@ -36,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--color-channel", default="sh",
                         help="channel giving RGB: 'sh' (view-dependent, default) or e.g. "
                              "'albedo'")
+    parser.add_argument("--memory-budget", default=None, metavar="SIZE",
+                        help="most memory this process may hold while rendering, e.g. 4G "
+                             "(default: what it holds plus half of the available memory); "
+                             "larger renders are drawn in bands of rows")
 
 
 def _exr_names(width: int) -> list[str]:
@@ -65,10 +69,11 @@ def _preview(name: str, img: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 
 def run(args) -> int:
-
     from .dataset.loader import load_cameras
+    from .memory import parse_bytes
     from .ply import load_ply
     from .provenance import Output, Provenance, input_ref
+    from .raster import RasterConfig
     from .surfel_render import aov_layout, parse_background
 
     model = Path(args.model)
@@ -80,6 +85,8 @@ def run(args) -> int:
     aovs = list(dict.fromkeys(args.aov))
     aov_layout(aovs, surfels)  # unknown names fail before any rendering
     background = parse_background(args.background, "--background")
+    raster = RasterConfig() if args.memory_budget is None else \
+        RasterConfig(memory_budget_bytes=parse_bytes(args.memory_budget, "--memory-budget"))
     if args.color_channel not in surfels.channels:
         raise ValueError(f"{model}: no channel {args.color_channel!r} for --color-channel "
                          f"(channels: {sorted(surfels.channels)})")
@@ -94,13 +101,15 @@ def run(args) -> int:
                      inputs=[model, args.cameras]) as out:
         out.claim(*(f"{stem}{suffix}" for stem in stems for suffix in
                     [".exr", ".png"] + [f"_{a}{ext}" for a in aovs for ext in (".exr", ".png")]))
-        _render_views(out.folder, surfels, cameras, stems, aovs, background, args.color_channel)
+        _render_views(out.folder, surfels, cameras, stems, aovs, background, args.color_channel,
+                      raster)
         out.finish()
     print(f"rendered {len(cameras)} view(s) of {surfels.count} surfels to {out.folder}")
     return 0
 
 
-def _render_views(out: Path, surfels, cameras, stems, aovs, background, color_channel) -> None:
+def _render_views(out: Path, surfels, cameras, stems, aovs, background, color_channel,
+                  raster) -> None:
     from tqdm import tqdm
 
     from .imageio import write_exr, write_png
@@ -109,7 +118,7 @@ def _render_views(out: Path, surfels, cameras, stems, aovs, background, color_ch
     for stem, (_, camera) in tqdm(list(zip(stems, cameras, strict=True)), desc="render",
                                   unit="view"):
         images = render_surfels(surfels, camera, color_channel=color_channel, aovs=aovs,
-                                background=background)
+                                background=background, config=raster)
         arrays = {k: np.asarray(v.numpy(), dtype=np.float32) for k, v in images.items()}
         rgb, alpha = arrays["rgb"], arrays["alpha"]
         write_exr(out / f"{stem}.exr", np.concatenate([rgb, alpha], axis=-1))

@@ -15,6 +15,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .surfel_checks import (
+    check_finite,
+    check_log_scale,
+    check_nonempty,
+    check_quaternion,
+    refuse,
+)
+
 # Real SH basis constants of 3DGS/2DGS (degree 0..3).
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -130,8 +138,10 @@ class Surfels:
     def from_numpy(position, scale, rotation, opacity, channels: dict | None = None) -> Surfels:
         """Surfels from activated numpy values.
 
-        position [N, 3]; scale [N, 2] standard deviations (>= 0); rotation [N, 4] (w, x, y, z);
-        opacity [N] in [0, 1]; channels name -> [N, C] (or [N]).
+        position [N, 3]; scale [N, 2] standard deviations in [FLT_MIN, 1e12]; rotation
+        [N, 4] (w, x, y, z), not zero; opacity [N] in [0, 1]; channels name -> [N, C] (or
+        [N]). N >= 1 and every value finite (``mi_shadowgs.surfel_checks``); a ValueError
+        names the field and the first bad vertex.
         """
         p = np.asarray(position, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
@@ -145,12 +155,18 @@ class Surfels:
             if arr.shape != shape:
                 raise ValueError(f"Surfels.from_numpy: {name} must be {list(shape)}, "
                                  f"got {list(arr.shape)}")
-        if np.any(s < 0) or np.any(np.isnan(s)):
-            raise ValueError("Surfels.from_numpy: scale must be >= 0 (standard deviations)")
-        if np.any(o < 0) or np.any(o > 1) or np.any(np.isnan(o)):
-            raise ValueError("Surfels.from_numpy: opacity must lie in [0, 1]")
+        where = "Surfels.from_numpy"
+        check_nonempty(where, n)
+        for name, arr in (("position", p), ("scale", s), ("rotation", r), ("opacity", o)):
+            check_finite(where, name, arr)
+        refuse(where, "field 'scale' must be > 0 (standard deviations)",
+               (s <= 0).any(axis=1))
+        refuse(where, "field 'opacity' must lie in [0, 1]", (o < 0) | (o > 1))
+        log_s = np.log(s)
+        for i in range(2):
+            check_log_scale(where, f"scale[:, {i}] (log)", log_s[:, i])
+        check_quaternion(where, "rotation", r)
         with np.errstate(divide="ignore"):
-            log_s = np.log(s)  # 0 -> -inf: exp gives back exactly 0
             logit = np.log(o) - np.log1p(-o)  # 1 -> +inf, 0 -> -inf (handled by the sigmoid)
         f32 = np.float32
         surf = Surfels(
@@ -161,6 +177,7 @@ class Surfels:
         )
         for name, arr in (channels or {}).items():
             surf.channels[name] = _tensor_nc(arr, n, f"Surfels.from_numpy channel {name!r}")
+            check_finite(where, f"channel {name}", np.asarray(arr))
         return surf
 
     def to_numpy(self) -> dict[str, np.ndarray]:

@@ -25,7 +25,7 @@ from mi_shadowgs.dataset.generate import (
     get_config,
     trace_ground_truth,
 )
-from mi_shadowgs.dataset.scene import load_scene
+from mi_shadowgs.dataset.scene import SceneError, load_scene
 from mi_shadowgs.directions import direction_from_angles
 from mi_shadowgs.scenes import scene_path
 
@@ -268,6 +268,21 @@ def test_unknown_preset_is_config_error():
 
     with pytest.raises(ConfigError, match="'nope'"):
         get_config("nope")
+
+
+def test_computed_parameters_are_refused(tmp_path, capsys):
+    # The loader computes these and used to drop a -D of them without a word.
+    out = tmp_path / "out"
+    for define, instead in (("light0_direction=0,-1,0", ("light0_azimuth", "light0_elevation")),
+                            ("light1_direction=1,0,0", ("light1_azimuth", "light1_elevation")),
+                            ("object_to_world=2 0 0 0 0 2 0 0 0 0 2 0 0 0 0 1",
+                             ("normalize",))):
+        line = _assert_error(["default", "--out", str(out), "-D", define, *TINY], capsys,
+                             tmp_path, repr(define.partition("=")[0]))
+        assert "computed" in line and all(repr(p) in line for p in instead), line
+    assert not out.exists()
+    with pytest.raises(SceneError, match="'mesh_type' is computed.*'mesh'"):
+        load_scene(scene_path("mesh"), {"mesh": "x.ply", "mesh_type": "obj"})
 
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"

@@ -62,7 +62,9 @@ def test_round_trip_without_sh_and_empty(tmp_path):
     assert "f_dc_0" not in ply.read_ply_vertices(tmp_path / "a.ply")
     empty = _model(n=0, extra=False)
     ply.write_ply_model(tmp_path / "e.ply", empty)
-    assert ply.read_ply_model(tmp_path / "e.ply").count == 0
+    assert ply.read_ply_vertices(tmp_path / "e.ply")["x"].shape == (0,)
+    with pytest.raises(ply.PlyError, match=r"e\.ply: no surfels"):  # not a surfel model
+        ply.read_ply_model(tmp_path / "e.ply")
 
 
 def test_byte_layout_is_2dgs(tmp_path):

@@ -6,6 +6,7 @@ background is 0. Emitters ``light<k>`` are ``directional``; Python turns the par
 ``light<k>_azimuth``/``_elevation`` into ``light<k>_direction`` (the propagation direction,
 ``-l``). ``object_to_world`` is computed from the object's bounding box so that its bounding
 sphere has radius 1, centred on the Y axis, standing on y = 0 (unless ``normalize=false``).
+Overriding a computed parameter is an error naming the parameters to set instead.
 
 ``mesh.xml`` takes ``-D mesh=PATH``; with ``parts=auto`` and a ``<stem>_parts.json`` beside
 the mesh, the object is loaded as one shape per part with the part's material.
@@ -204,6 +205,20 @@ def _resolve_mesh(path: Path, params: dict) -> Path | None:
     return mesh.resolve()
 
 
+def _computed_params(root: ET.Element, defaults: dict) -> dict[str, str]:
+    """Parameters that ``load_scene`` computes (name -> what to set instead)."""
+    out = {"object_to_world": "set 'normalize' instead (true: the object scaled to a unit "
+                              "bounding sphere standing on y = 0; false: its own coordinates)"}
+    if "mesh" in defaults:
+        out["mesh_type"] = "it follows the suffix of 'mesh'; set 'mesh' instead"
+    for em in root.findall("emitter"):
+        name = em.get("id") or ""
+        if LIGHT_ID.match(name):
+            out[f"{name}_direction"] = (f"set '{name}_azimuth' and '{name}_elevation' "
+                                        f"(degrees) instead")
+    return {k: v for k, v in out.items() if k in defaults}
+
+
 def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> SceneSetup:
     """Load a scene XML with ``overrides`` of its ``<default>`` parameters (see module doc)."""
     import mitsuba as mi
@@ -212,9 +227,13 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
     root = _parse_xml(path)
     defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
     params = dict(defaults)
+    computed = _computed_params(root, defaults)
     for k, v in (overrides or {}).items():
         if k not in defaults:
             raise SceneError(f"{path}: unknown scene parameter {k!r}; known: {sorted(defaults)}")
+        if k in computed:  # the loader would overwrite it: refuse rather than ignore
+            raise SceneError(f"{path}: scene parameter {k!r} is computed, not set; "
+                             f"{computed[k]}")
         params[k] = str(v)
 
     shapes = [s for s in root.findall("shape")]
