@@ -1,11 +1,15 @@
-"""Write a generated dataset in the NeRF-synthetic/TensoIR layout (see ``layout.py``), atomically.
+"""Write a generated dataset in the NeRF-synthetic/TensoIR layout (see ``layout.py``).
 
 ``write_dataset`` checks every input first (scene, mesh, env map, output folder), then
-builds the whole dataset in a temporary sibling folder that is renamed into place at the
-end (``mi_shadowgs.atomic.atomic_dir``): a half-written dataset never looks complete, and a
-failure writes nothing. ``dataset.json`` holds a fingerprint of the inputs, so a re-run with
-the same inputs is recognised, and a folder holding a different dataset is an error unless
-``overwrite``.
+renders into a hidden sibling ``.NAME.<fingerprint>.partial`` that is renamed into place at
+the end: a half-written dataset never looks complete, and a failure before any rendering
+writes nothing. Each file is written atomically and a view's image EXR last, so a view whose
+EXR exists is finished: a killed run leaves the partial folder, and the same command again
+renders only the views it lacks (the folder's name holds the fingerprint of the settings,
+so only a run with the same settings reuses it; partial folders of other settings are
+removed). ``dataset.json`` holds the fingerprint, so a re-run with the same inputs is
+recognised, and ``manifest.json`` lists the files written: ``overwrite`` replaces a dataset
+only when the folder holds nothing else.
 """
 
 from __future__ import annotations
@@ -13,11 +17,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_dir, write_json
+from ..atomic import write_json
 from ..directions import N_LIGHT_DIRECTIONS, directional_lights_to_map
 from ..imageio import write_exr, write_png
 from . import layout
@@ -75,14 +82,101 @@ def _check_output(out: Path, fp: str, overwrite: bool) -> bool:
             old = None
         if old == fp and not overwrite:
             return True
-    if overwrite:
-        return False
     if not any(out.iterdir()):  # an empty folder is free to use
         out.rmdir()
+        return False
+    if overwrite:
+        _check_only_ours(out)
         return False
     what = "a different dataset" if info_path.is_file() else "other files"
     raise OutputExistsError(f"output folder {out} already holds {what}; pass --overwrite to "
                             "replace it")
+
+
+# -- the manifest: what --overwrite may remove ------------------------------------------------
+def _listed(folder: Path) -> set[str]:
+    """The files (relative POSIX paths) the manifest of ``folder`` lists; none without one."""
+    try:
+        return set(json.loads((folder / layout.MANIFEST_JSON).read_text())["files"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
+
+
+def _check_only_ours(out: Path) -> None:
+    """OutputExistsError naming the first file or folder in ``out`` that generate did not
+    write (not in its manifest)."""
+    files = _listed(out) | {layout.MANIFEST_JSON}
+    folders = {str(Path(f).parent) for f in files}
+    for p in sorted(out.rglob("*")):
+        rel = p.relative_to(out).as_posix()
+        if rel not in (folders if p.is_dir() and not p.is_symlink() else files):
+            raise OutputExistsError(
+                f"{p} was not written by mi-shadowgs generate (not in {out}/"
+                f"{layout.MANIFEST_JSON}); --overwrite removes only files it wrote: move it "
+                "away or choose another --out")
+
+
+def _write_manifest(folder: Path, fp: str) -> None:
+    files = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+    write_json(folder / layout.MANIFEST_JSON,
+               {"command": "generate", "fingerprint": fp, "files": files})
+
+
+def _remove_listed(folder: Path) -> None:
+    """Delete the files the manifest of ``folder`` lists, then the manifest and the folders
+    they leave empty (``folder`` included); anything else stays."""
+    files = _listed(folder)
+    for rel in files:
+        (folder / rel).unlink(missing_ok=True)
+    (folder / layout.MANIFEST_JSON).unlink(missing_ok=True)
+    for d in sorted({(folder / f).parent for f in files}, key=lambda p: -len(p.parts)) + \
+            [folder]:
+        if d.is_dir() and not any(d.iterdir()):
+            d.rmdir()
+
+
+# -- the partial folder ---------------------------------------------------------------------------
+def _partial_dir(out: Path, fp: str) -> Path:
+    return out.with_name(f".{out.name}.{fp[:16]}.partial")
+
+
+def _prepare_partial(out: Path, fp: str) -> Path:
+    """The partial folder of these settings, created or kept; the partial folders of other
+    settings (and of ``atomic_dir``, which wrote datasets before) are removed, and so are the
+    temporaries of a file write that a kill cut short (hidden files: the layout has none)."""
+    partial = _partial_dir(out, fp)
+    pattern = re.compile(re.escape(f".{out.name}.") + r"(\w{8}|[0-9a-f]{16})\.partial")
+    if out.parent.is_dir():
+        for p in out.parent.iterdir():
+            if p != partial and pattern.fullmatch(p.name) and p.is_dir():
+                shutil.rmtree(p)
+    partial.mkdir(parents=True, exist_ok=True)
+    for p in partial.rglob(".*"):
+        if p.is_file():
+            p.unlink()
+    return partial
+
+
+def _swap_in(partial: Path, out: Path) -> None:
+    """Move ``partial`` to ``out``; a dataset already there (``overwrite``, checked to hold
+    only our files) goes aside to ``.NAME.old`` first and is then removed by its manifest."""
+    old = out.with_name(f".{out.name}.old")
+    if out.exists():
+        os.replace(out, old)
+    os.replace(partial, out)
+    if old.exists():
+        _remove_listed(old)
+
+
+def _finish_swap(out: Path) -> None:
+    """Complete a ``_swap_in`` that a kill cut short: between its two renames the previous
+    dataset comes back; after them only its removal is left to do."""
+    old = out.with_name(f".{out.name}.old")
+    if old.is_dir():
+        if out.exists():
+            _remove_listed(old)
+        else:
+            os.replace(old, out)
 
 
 def _seed(seed: int, stream: int, index: int) -> int:
@@ -91,7 +185,7 @@ def _seed(seed: int, stream: int, index: int) -> int:
 
 
 def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> None:
-    write_exr(root / (stem + layout.IMAGE_EXR), rgba)
+    """The files of one view; its image EXR last, which marks the view finished."""
     write_png(root / (stem + layout.IMAGE_PNG), rgba)
     write_exr(root / (stem + layout.ALBEDO), gt["albedo"][i])
     write_exr(root / (stem + layout.NORMAL), gt["normal"][i])
@@ -104,6 +198,7 @@ def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> No
                   channels=[f"V{k:02d}" for k in range(vis.shape[-1])])
     for k in range(gt["irradiance"].shape[-2]):
         write_exr(root / (stem + layout.IRRADIANCE.format(k=k)), gt["irradiance"][i, :, :, k])
+    write_exr(root / (stem + layout.IMAGE_EXR), rgba)
 
 
 def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None) -> dict:
@@ -143,6 +238,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     if not setup.lights:
         raise ValueError(f"{scene_path}: no directional light (emitters light0, light1, ...)")
     fp = fingerprint(setup, config, seed, envmap)
+    _finish_swap(out)
     if _check_output(out, fp, overwrite):
         return out, False
 
@@ -162,45 +258,57 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                                                           envmap_scale=config.envmap_scale)))
     renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth)
     total = config.n_train + config.n_test * (1 + len(relights))
-    with atomic_dir(out, overwrite=overwrite) as tmp, \
-            tqdm(total=total, desc=f"generate {out.name}", unit="view",
-                 disable=not progress) as bar:
+    # Ground truth for this many views at a time: what a kill loses beside one render.
+    per_chunk = max(1, config.gt_chunk_rays // (config.width * config.height))
+    partial = _prepare_partial(out, fp)
+    with tqdm(total=total, desc=f"generate {out.name}", unit="view",
+              disable=not progress) as bar:
         for split_no, split in enumerate(layout.SPLITS):
-            (tmp / split).mkdir()
+            (partial / split).mkdir(exist_ok=True)
             views = cams[split]
-            gt = trace_ground_truth(setup, views, chunk_rays=config.gt_chunk_rays)
-            frames = []
-            for i, cam in enumerate(views):
-                stem = layout.view_stem(split, i)
-                rgba = renderer.render(setup.scene, cam, _seed(seed, split_no, i))
-                _write_view(tmp, stem, rgba, gt, i)
-                bar.update()
-                if split == "test":
-                    for j, (name, sc) in enumerate(relights):
-                        img = renderer.render(sc, cam, _seed(seed, 2 + j, i))
-                        img[..., 3] = rgba[..., 3]  # coverage does not depend on the light
-                        write_exr(tmp / (stem + layout.RELIT.format(name=name)), img)
-                        bar.update()
-                frames.append(cam.to_frame_json("./" + stem))
-            write_json(tmp / layout.transforms_name(split),
+            renders = 1 + (len(relights) if split == "test" else 0)
+            todo = [i for i, _ in enumerate(views)
+                    if not (partial / (layout.view_stem(split, i) + layout.IMAGE_EXR)).is_file()]
+            bar.update((len(views) - len(todo)) * renders)
+            for c0 in range(0, len(todo), per_chunk):
+                chunk = todo[c0:c0 + per_chunk]
+                gt = trace_ground_truth(setup, [views[i] for i in chunk],
+                                        chunk_rays=config.gt_chunk_rays)
+                for j, i in enumerate(chunk):
+                    stem = layout.view_stem(split, i)
+                    rgba = renderer.render(setup.scene, views[i], _seed(seed, split_no, i))
+                    if split == "test":
+                        for k, (name, sc) in enumerate(relights):
+                            img = renderer.render(sc, views[i], _seed(seed, 2 + k, i))
+                            img[..., 3] = rgba[..., 3]  # coverage does not depend on the light
+                            write_exr(partial / (stem + layout.RELIT.format(name=name)), img)
+                    _write_view(partial, stem, rgba, gt, j)
+                    bar.update(renders)
+            frames = [cam.to_frame_json("./" + layout.view_stem(split, i))
+                      for i, cam in enumerate(views)]
+            write_json(partial / layout.transforms_name(split),
                        {"camera_angle_x": config.camera_angle_x, "w": config.width,
                         "h": config.height, "frames": frames})
-        write_json(tmp / layout.LIGHTS_JSON, lights_json(setup, config, envmap))
-        import mitsuba as mi
+    write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmap))
+    import mitsuba as mi
 
-        write_json(tmp / layout.DATASET_JSON, {
-            "format_version": layout.FORMAT_VERSION,
-            "scene": str(Path(scene_path).resolve()),
-            "parameters": setup.params,
-            "preset": preset,
-            "config": dataclasses.asdict(config),
-            "seed": seed,
-            "envmap": str(envmap) if envmap else None,
-            "fingerprint": fp,
-            "materials": setup.materials_json(),
-            "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,
-                       "to_world": setup.object_to_world.tolist()},
-            "mitsuba_version": mi.__version__,
-            "variant": mi.variant(),
-        })
+    write_json(partial / layout.DATASET_JSON, {
+        "format_version": layout.FORMAT_VERSION,
+        "scene": str(Path(scene_path).resolve()),
+        "parameters": setup.params,
+        "preset": preset,
+        "config": dataclasses.asdict(config),
+        "seed": seed,
+        "envmap": str(envmap) if envmap else None,
+        "fingerprint": fp,
+        "materials": setup.materials_json(),
+        "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,
+                   "to_world": setup.object_to_world.tolist()},
+        "mitsuba_version": mi.__version__,
+        "variant": mi.variant(),
+    })
+    _write_manifest(partial, fp)
+    if out.exists():  # --overwrite: check again, files may have come while we rendered
+        _check_only_ours(out)
+    _swap_in(partial, out)
     return out, True
