@@ -1,14 +1,55 @@
-"""Atomic outputs: a reader never sees a half-written file or dataset folder."""
+"""Atomic outputs: a reader never sees a half-written file or dataset folder.
+
+Temporary siblings are hidden (``.NAME.XXXXXXXX.tmp.EXT`` files, ``.NAME.XXXXXXXX.partial``
+folders). A write killed half-way leaves one behind; the next write of the same output
+removes it. Outputs get the permissions of a plain ``open`` (0666 / 0777 less the umask),
+not the 0600 / 0700 that ``tempfile`` gives its files and folders.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+_TMP_FILE = ".tmp"  # suffix stem of atomic_path's files
+_TMP_DIR = ".partial"  # suffix of atomic_dir's folders
+
+
+def _umask() -> int:
+    # Reading the umask means setting it; the CLI is single-threaded where this runs.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _stale_siblings(path: Path, suffix: str) -> list[Path]:
+    """Temporaries that ``tempfile`` made for ``path`` with ``suffix`` (8 random characters
+    between the prefix and the suffix), so that another output's are never matched."""
+    pattern = re.compile(re.escape(f".{path.name}.") + r"[A-Za-z0-9_]{8}" + re.escape(suffix))
+    if not path.parent.is_dir():
+        return []
+    return [p for p in path.parent.iterdir() if pattern.fullmatch(p.name)]
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def remove_stale(path: str | os.PathLike) -> None:
+    """Remove the temporaries that killed atomic writes of ``path`` left beside it."""
+    path = Path(path)
+    for stale in _stale_siblings(path, _TMP_FILE + path.suffix) + \
+            _stale_siblings(path, _TMP_DIR):
+        _remove(stale)
 
 
 @contextlib.contextmanager
@@ -16,12 +57,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; it replaces ``path`` only if the block succeeds."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix,
+    remove_stale(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=_TMP_FILE + path.suffix,
                                dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -45,20 +88,26 @@ def write_json(path: str | os.PathLike, obj) -> None:
 def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Build a folder in a temporary sibling and move it into place when the block succeeds.
 
-    With ``overwrite`` an existing folder is replaced (moved aside, then deleted, so that a
-    crash in between leaves either the old or the new folder whole, never a mix).
+    With ``overwrite`` an existing folder is replaced (moved aside to ``.NAME.old``, then
+    deleted). A crash in between leaves the old folder whole there; the next call puts it
+    back before anything else, so ``path`` is never lost and never a mix.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    old = path.with_name(f".{path.name}.old")
+    if old.exists():
+        if path.exists():
+            shutil.rmtree(old)
+        else:
+            os.replace(old, path)
+    remove_stale(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=_TMP_DIR, dir=path.parent))
     try:
         yield tmp
+        os.chmod(tmp, 0o777 & ~_umask())
         if path.exists():
             if not overwrite:
                 raise FileExistsError(f"{path} already exists")
-            old = path.with_name(f".{path.name}.old")
-            if old.exists():
-                shutil.rmtree(old)
             os.replace(path, old)
             os.replace(tmp, path)
             shutil.rmtree(old)

@@ -5,7 +5,11 @@ Arrays are numpy, [H, W] or [H, W, C], row 0 at the top of the image.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +17,42 @@ import numpy as np
 from .atomic import atomic_path
 
 _CHANNEL_NAMES = {1: ["Y"], 2: ["Y", "A"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+class ImageReadError(ValueError):
+    """An image file is corrupt or not of its kind; the one-line message names the file."""
+
+
+@contextlib.contextmanager
+def _captured_output() -> Iterator[list[str]]:
+    """Collect what C libraries print on file descriptors 1 and 2 during the block.
+
+    OpenEXR reports a corrupt file on both before it raises; the caller keeps the first
+    line as the reason instead of letting several half-messages reach the terminal.
+    """
+    lines: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            lines.extend(ln.strip() for ln in sink.read().decode(errors="replace").splitlines()
+                         if ln.strip())
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
@@ -53,16 +93,19 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"EXR file not found: {path}")
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
-            chans = exr.channels()
-            names = list(chans)
-            order = [c for c in ("R", "G", "B", "A") if c in names]
-            order = order if order else names
-            if order == ["Y"] or (len(order) < len(names) and "Y" in names and not order):
-                order = ["Y"]
-            planes = [np.asarray(chans[c].pixels, dtype=np.float32) for c in order]
+        with _captured_output() as printed:
+            with OpenEXR.File(str(path), separate_channels=True) as exr:
+                chans = exr.channels()
+                names = list(chans)
+                order = [c for c in ("R", "G", "B", "A") if c in names]
+                order = order if order else names
+                if order == ["Y"] or (len(order) < len(names) and "Y" in names and not order):
+                    order = ["Y"]
+                planes = [np.asarray(chans[c].pixels, dtype=np.float32) for c in order]
     except Exception as exc:  # OpenEXR raises plain exceptions with no file name
-        raise OSError(f"cannot read EXR {path}: {exc}") from exc
+        # Its printed diagnosis ("found corrupt leader") says more than the exception.
+        reason = printed[0].removeprefix(f"{path}: ") if printed else _first_line(exc)
+        raise ImageReadError(f"{path}: corrupt or unreadable EXR: {reason}") from None
     return np.stack(planes, axis=-1)
 
 
@@ -98,5 +141,13 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"PNG file not found: {path}")
-    img = iio.imread(path)
+    if path.suffix.lower() == ".png":
+        with open(path, "rb") as f:
+            if f.read(len(_PNG_SIGNATURE)) != _PNG_SIGNATURE:
+                # imageio would answer with advice to install plugins.
+                raise ImageReadError(f"{path}: not a PNG file (no PNG signature)")
+    try:
+        img = iio.imread(path)
+    except Exception as exc:  # Pillow: "image file is truncated", zlib errors, ...
+        raise ImageReadError(f"{path}: corrupt PNG: {_first_line(exc)}") from None
     return img if img.ndim == 3 else img[..., None]

@@ -67,10 +67,14 @@ def occluder_bounds(surfels, cameras, quantile: float) -> V.SceneBounds:
     return V.SceneBounds.from_points(pos, cameras, quantile)
 
 
+def material_config(preset: str, overrides: dict | None = None) -> SM.MaterialConfig:
+    return with_overrides(SM.get_config(preset), overrides, "material")
+
+
 def decompose(surfels, train, preset: str, bounds: V.SceneBounds, overrides: dict | None = None,
               progress: bool = True) -> SM.MaterialResult:
     """Stage 4 on the training views of ``train`` (a loaded Dataset)."""
-    cfg = with_overrides(SM.get_config(preset), overrides, "material")
+    cfg = material_config(preset, overrides)
     return SM.fit_material(surfels, train.cameras, [v.image for v in train.views],
                            [v.mask for v in train.views], cfg, bounds, V.preset(preset),
                            progress=progress)
@@ -198,13 +202,73 @@ def write_figures(folder: Path, test, images: dict, count: int) -> dict:
 
 
 # -- end to end -----------------------------------------------------------------------------
-def _stage_args(module, argv: list[str]):
-    """Parse ``argv`` with a command module's own parser (so stages run as their CLI does)."""
-    import argparse
+def check_evaluation_inputs(train, test) -> None:
+    """What ``evaluate_decomposition`` reads, checked before stage 1 starts (DatasetError
+    naming the file or field): the training light map and the test views' ground truth."""
+    from .dataset.loader import DatasetError
 
-    parser = argparse.ArgumentParser()
-    module.add_arguments(parser)
-    return parser.parse_args(argv)
+    path = train.root / "lights.json"
+    if train.lights is None:
+        raise DatasetError(f"{path}: file not found (the evaluation compares the estimated "
+                           "light map with its training.light_map)")
+    try:
+        np.asarray(train.lights["training"]["light_map"]["radiance"], np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise DatasetError(f"{path}: missing or malformed field "
+                           "'training.light_map.radiance'") from None
+    for field in ("albedo", "irradiance", "material"):
+        missing = [v.name for v in test.views if getattr(v, field) is None]
+        if missing:
+            raise DatasetError(f"{test.root}: test view {missing[0]!r} has no {field} ground "
+                               "truth, which the evaluation needs")
+    for entry in train.lights.get("relightings", []):
+        if entry.get("type") == "directional":
+            missing = [v.name for v in test.views if entry.get("name") not in v.relit]
+            if missing:
+                raise DatasetError(f"{test.root}: test view {missing[0]!r} has no relit image "
+                                   f"for relighting {entry.get('name')!r} of {path.name}")
+
+
+def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, test,
+                   bounds: V.SceneBounds, config: RunConfig, overwrite: bool,
+                   progress: bool) -> tuple[dict, float | None]:
+    """Stages 3-5 of one variant into ``material/<name>`` of the run ``top`` (an Output);
+    returns (metrics, fit seconds), the seconds None when a finished output of the same
+    provenance is reused."""
+    from .ply import save_ply
+    from .provenance import Output, Provenance, dataset_ref, input_ref
+
+    folder = top.folder / "material" / name
+    seg_model = top.folder / "segmentation" / "model.ply"
+    cfg = material_config(config.preset, overrides)
+    settings = {"variant": name, "material": dataclasses.asdict(cfg),
+                "visibility": dataclasses.asdict(V.preset(config.preset)),
+                "relight": dataclasses.asdict(R.get_config(config.preset)),
+                "bounds_quantile": config.bounds_quantile, "figure_views": config.figure_views}
+    provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(seg_model)},
+                            settings=settings)
+    top.add_part(f"material/{name}")
+    with Output.open(folder, "run", provenance, overwrite=overwrite, reuse=True,
+                     inputs=[data, seg_model]) as out:
+        if out.complete:
+            return json.loads((folder / "metrics.json").read_text()), None
+        res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds, overrides,
+                                              progress))
+        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset)
+        metrics["fit_s"] = fit_s
+        save_ply(out.path("model.ply"), res.surfels)
+        write_json(out.path("light.json"), {
+            "radiance": res.light.radiance.tolist(), "active": res.light.active.tolist(),
+            "directions": np.asarray(res.light.light_set().directions).tolist(),
+            "irradiance": res.light.weights.tolist() if res.light.weights is not None
+            else None, "specular": res.specular})
+        with atomic_dir(folder / "figures", overwrite=True) as tmp:
+            grid = write_figures(tmp, test, images, config.figure_views)
+            out.claim(*(f"figures/{p.name}" for p in sorted(tmp.iterdir())))
+        write_json(out.path("grid.json"), grid)
+        write_json(out.path("metrics.json"), metrics)
+        out.finish()
+    return metrics, fit_s
 
 
 def _timed(fn):
@@ -213,79 +277,75 @@ def _timed(fn):
     return out, time.perf_counter() - t0
 
 
-def run_pipeline(data: str | Path, out: str | Path, config: RunConfig,
-                 progress: bool = True) -> dict:
+def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress: bool = True,
+                 overwrite: bool = False, log=print) -> dict:
     """Stages 1-5 on dataset ``data`` into run folder ``out``; returns the summary.
 
-    Resumable: a stage whose outputs exist is skipped; stage 1 continues from its last
-    checkpoint after an interruption.
+    Every input (both splits, ground truth, lights.json) is read and checked first. Each
+    stage's output is reused when it is finished and was made from the same dataset, input
+    model and settings; stage 1 continues from its last checkpoint after an interruption;
+    anything else exits with a ProvenanceError naming what differs, unless ``overwrite``
+    removes the run's files first. ``log`` takes the stages' one-line summaries.
     """
-    from . import segment_cli, train_cli
+    from . import stage_geometry
     from .dataset.loader import load_dataset
-    from .ply import load_ply, save_ply
+    from .ply import load_ply
+    from .provenance import Output, Provenance, dataset_ref
     from .report import write_report
+    from .runners import load_training_views, run_geometry, run_segmentation, segmentation_config
 
     data, run = Path(data), Path(out)
-    run.mkdir(parents=True, exist_ok=True)
-    quiet = [] if progress else ["--no-progress"]
-    stages = []
     t_start = time.perf_counter()
-
-    # Stage 1: geometry (resumes from its checkpoint).
-    geo = run / "geometry"
-    if not (geo / "model.ply").is_file():
-        from .checkpoint import has_checkpoint
-
-        resume = ["--resume"] if has_checkpoint(geo / "checkpoint") else ["--overwrite"]
-        _, secs = _timed(lambda: train_cli.run(_stage_args(train_cli, [
-            str(data), "--out", str(run), "--preset", config.preset, *resume, *quiet])))
-        stages.append(("geometry", secs))
-    # Stage 2: segmentation.
-    seg = run / "segmentation"
-    train = load_dataset(data, "train")
+    train = load_training_views(data)
+    test = load_dataset(data, "test")
+    check_evaluation_inputs(train, test)
     masks = config.masks
     if masks == "auto":
         masks = "material" if all(v.material is not None for v in train.views) else \
             "chromaticity"
-    if not (seg / "segmentation.json").is_file():
-        argv = [str(run), "--data", str(data), "--out", str(seg), "--preset", config.preset,
-                "--masks", masks] + ([] if progress else ["--quiet"])
-        _, secs = _timed(lambda: segment_cli.run(_stage_args(segment_cli, argv)))
-        stages.append(("segmentation", secs))
-    surfels = load_ply(seg / "model.ply")
-    bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
-    test = load_dataset(data, "test")
-    overrides = {} if config.material_iterations is None else \
-        {"iterations": config.material_iterations}
+    provenance = Provenance(dataset=dataset_ref(data), settings=dataclasses.asdict(config))
+    stages = []
 
-    # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
-    variants = VARIANTS if config.ablations else {"full": VARIANTS["full"]}
-    results = {}
-    for name, ov in variants.items():
-        folder = run / "material" / name
-        if (folder / "metrics.json").is_file():
-            results[name] = json.loads((folder / "metrics.json").read_text())
-            continue
-        res, fit_s = _timed(lambda ov=ov: decompose(surfels, train, config.preset, bounds,
-                                                    {**overrides, **ov}, progress))
-        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset)
-        metrics["fit_s"] = fit_s
-        with atomic_dir(folder, overwrite=True) as tmp:
-            save_ply(tmp / "model.ply", res.surfels)
-            write_json(tmp / "light.json", {
-                "radiance": res.light.radiance.tolist(), "active": res.light.active.tolist(),
-                "directions": np.asarray(res.light.light_set().directions).tolist(),
-                "irradiance": res.light.weights.tolist() if res.light.weights is not None
-                else None, "specular": res.specular})
-            grid = write_figures(tmp / "figures", test, images, config.figure_views)
-            write_json(tmp / "grid.json", grid)
-            write_json(tmp / "metrics.json", metrics)
-        results[name] = metrics
-        stages.append((f"material ({name})", fit_s))
-    summary = build_summary(run, data, config, results, stages,
-                            time.perf_counter() - t_start)
-    write_json(run / "summary.json", summary)
-    write_report(run)
+    def done(name: str, stage) -> None:
+        if stage.ran:
+            stages.append((name, stage.seconds))
+            if stage.summary and log:
+                log(stage.summary)
+
+    with Output.open(run, "run", provenance, overwrite=overwrite, reuse=True,
+                     compare=("dataset",), inputs=[data],
+                     parts=("geometry", "segmentation", "material")) as top:
+        top.add_part("geometry")
+        geo = run_geometry(data, run / "geometry", stage_geometry.get_config(config.preset),
+                           preset=config.preset, reuse=True, overwrite=overwrite,
+                           progress=progress, train=train, test=test)
+        done("geometry", geo)
+        top.add_part("segmentation")
+        seg = run_segmentation(run / "geometry" / "model.ply", data, run / "segmentation",
+                               segmentation_config(config.preset, masks), masks=masks,
+                               preset=config.preset, overwrite=overwrite, reuse=True,
+                               progress=progress, train=train, views=test)
+        done("segmentation", seg)
+        surfels = load_ply(run / "segmentation" / "model.ply")
+        bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
+        overrides = {} if config.material_iterations is None else \
+            {"iterations": config.material_iterations}
+
+        # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
+        variants = VARIANTS if config.ablations else {"full": VARIANTS["full"]}
+        results = {}
+        for name, ov in variants.items():
+            results[name], fit_s = material_stage(top, name, {**overrides, **ov}, data,
+                                                  surfels, train, test, bounds, config,
+                                                  overwrite, progress)
+            if fit_s is not None:
+                stages.append((f"material ({name})", fit_s))
+        summary = build_summary(run, data, config, results, stages,
+                                time.perf_counter() - t_start)
+        write_json(top.path("summary.json"), summary)
+        top.claim("report.html")
+        write_report(run)
+        top.finish()
     return summary
 
 

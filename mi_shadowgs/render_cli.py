@@ -3,6 +3,9 @@
 Per view (named after the frame's ``file_path``): ``NAME.exr`` linear RGBA (colour
 premultiplied over black, or composited over ``--background``), ``NAME.png`` an sRGB preview,
 and for each ``--aov``: ``NAME_AOV.exr`` plus a normalised ``NAME_AOV.png`` preview.
+OUT is new, or holds an earlier render: ``--overwrite`` removes the files its manifest lists
+(``mi_shadowgs.provenance``) so that old and new renders never mix. OUT is never a dataset
+folder or inside one.
 """
 
 from __future__ import annotations
@@ -20,7 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", help="surfel model (PLY, 2DGS layout)")
     parser.add_argument("--cameras", required=True,
                         help="NeRF-synthetic transforms_*.json with the views to render")
-    parser.add_argument("--out", required=True, help="output folder (created)")
+    parser.add_argument("--out", required=True,
+                        help="output folder: new, or holding an earlier render")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an earlier render there (only its files)")
     parser.add_argument("--aov", action="append", default=[], metavar="NAME",
                         help="extra output: alpha, depth, median_depth, normal, distortion, "
                              "count, or a per-surfel channel (repeatable)")
@@ -59,12 +65,11 @@ def _preview(name: str, img: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 
 def run(args) -> int:
-    from tqdm import tqdm
 
     from .dataset.loader import load_cameras
-    from .imageio import write_exr, write_png
     from .ply import load_ply
-    from .surfel_render import aov_layout, parse_background, render_surfels
+    from .provenance import Output, Provenance, input_ref
+    from .surfel_render import aov_layout, parse_background
 
     model = Path(args.model)
     if not model.is_file():
@@ -79,14 +84,31 @@ def run(args) -> int:
         raise ValueError(f"{model}: no channel {args.color_channel!r} for --color-channel "
                          f"(channels: {sorted(surfels.channels)})")
     cameras = load_cameras(args.cameras)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     stems = [Path(name).name or f"view_{i:03d}" for i, (name, _) in enumerate(cameras)]
     if len(set(stems)) != len(stems):  # frames from different folders with equal names
         stems = [f"{i:03d}_{s}" for i, s in enumerate(stems)]
+    provenance = Provenance(
+        inputs={"model": input_ref(model), "cameras": input_ref(args.cameras)},
+        settings={"aovs": aovs, "background": background, "color_channel": args.color_channel})
+    with Output.open(args.out, "render", provenance, overwrite=args.overwrite,
+                     inputs=[model, args.cameras]) as out:
+        out.claim(*(f"{stem}{suffix}" for stem in stems for suffix in
+                    [".exr", ".png"] + [f"_{a}{ext}" for a in aovs for ext in (".exr", ".png")]))
+        _render_views(out.folder, surfels, cameras, stems, aovs, background, args.color_channel)
+        out.finish()
+    print(f"rendered {len(cameras)} view(s) of {surfels.count} surfels to {out.folder}")
+    return 0
+
+
+def _render_views(out: Path, surfels, cameras, stems, aovs, background, color_channel) -> None:
+    from tqdm import tqdm
+
+    from .imageio import write_exr, write_png
+    from .surfel_render import render_surfels
+
     for stem, (_, camera) in tqdm(list(zip(stems, cameras, strict=True)), desc="render",
                                   unit="view"):
-        images = render_surfels(surfels, camera, color_channel=args.color_channel, aovs=aovs,
+        images = render_surfels(surfels, camera, color_channel=color_channel, aovs=aovs,
                                 background=background)
         arrays = {k: np.asarray(v.numpy(), dtype=np.float32) for k, v in images.items()}
         rgb, alpha = arrays["rgb"], arrays["alpha"]
@@ -102,5 +124,3 @@ def run(args) -> int:
             write_exr(out / f"{stem}_{name}.exr", img, channels=_exr_names(img.shape[-1]))
             write_png(out / f"{stem}_{name}.png", _preview(name, img, alpha),
                       srgb=name not in ("normal", "alpha") + _RANGE_AOVS)
-    print(f"rendered {len(cameras)} view(s) of {surfels.count} surfels to {out}")
-    return 0

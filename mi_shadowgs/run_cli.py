@@ -2,7 +2,9 @@
 
 Writes ``RUN/geometry/`` (stage 1), ``RUN/segmentation/`` (stage 2),
 ``RUN/material/<variant>/`` (stages 3-5: model, light map, metrics, figures),
-``RUN/summary.json`` and ``RUN/report.html``. Re-running continues an interrupted run.
+``RUN/summary.json`` and ``RUN/report.html``. Re-running continues an interrupted run;
+each stage is reused only when it was made from the same dataset, input model and settings
+(manifests, ``mi_shadowgs.provenance``), otherwise the run stops naming what differs.
 """
 
 from __future__ import annotations
@@ -13,6 +15,9 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("data", help="dataset folder (mi-shadowgs generate, or TensoIR layout)")
     parser.add_argument("--out", required=True, help="run folder (created; resumed if present)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="start over, removing the files of an earlier run there (only "
+                             "those)")
     parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
     parser.add_argument("--masks", default=None, choices=("auto", "material", "chromaticity"),
                         help="segmentation labels (default: material ids when present)")
@@ -36,7 +41,8 @@ def run(args) -> int:
     if args.material_iterations is not None:
         overrides["material_iterations"] = args.material_iterations
     config = with_overrides(config, overrides, "run")
-    summary = run_pipeline(args.data, args.out, config, progress=not args.no_progress)
+    summary = run_pipeline(args.data, args.out, config, progress=not args.no_progress,
+                           overwrite=args.overwrite)
     table = summary["tables"][0]
     for row in table["rows"]:
         print("  ".join(f"{c}={v:.4g}" if isinstance(v, float) else f"{c}={v}"

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
 
 import numpy as np
 import pytest
@@ -32,7 +34,9 @@ def setup(tmp_path_factory):
             for o in ((0.3, 0.4, 2.5), (-2.0, 0.5, 1.0))]
     meta = {"camera_angle_x": 0.8, "w": W, "h": H,
             "frames": [c.to_frame_json(f"./test/r_{i}") for i, c in enumerate(cams)]}
-    (root / "transforms_test.json").write_text(json.dumps(meta))
+    # The cameras sit in a dataset folder of their own: no output may go into one.
+    (root / "data").mkdir()
+    (root / "data" / "transforms_test.json").write_text(json.dumps(meta))
     return root, cams
 
 
@@ -40,7 +44,7 @@ def test_render_writes_views_and_aovs(setup):
     root, cams = setup
     out = root / "out"
     rc = cli.main(["render", str(root / "model.ply"), "--cameras",
-                   str(root / "transforms_test.json"), "--out", str(out),
+                   str(root / "data" / "transforms_test.json"), "--out", str(out),
                    "--aov", "depth", "--aov", "normal", "--aov", "albedo"])
     assert rc == 0
     surfels = ply.load_ply(root / "model.ply")
@@ -70,7 +74,7 @@ def test_background_composites(setup):
     root, cams = setup
     out = root / "out_bg"
     rc = cli.main(["render", str(root / "model.ply"), "--cameras",
-                   str(root / "transforms_test.json"), "--out", str(out),
+                   str(root / "data" / "transforms_test.json"), "--out", str(out),
                    "--background", "1,0.5,0", "--color-channel", "albedo"])
     assert rc == 0
     surfels = ply.load_ply(root / "model.ply")
@@ -85,7 +89,7 @@ def test_background_composites(setup):
 
 def test_errors_name_the_input(setup, tmp_path, capsys):
     root, _ = setup
-    cams = str(root / "transforms_test.json")
+    cams = str(root / "data" / "transforms_test.json")
     rc = cli.main(["render", str(tmp_path / "none.ply"), "--cameras", cams, "--out",
                    str(tmp_path / "o")])
     assert rc == 2 and "none.ply" in capsys.readouterr().err
@@ -99,3 +103,64 @@ def test_errors_name_the_input(setup, tmp_path, capsys):
                    str(tmp_path / "o"), "--background", "1,2"])
     assert rc == 2 and "--background" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()  # nothing written on bad input
+
+
+def _render(root, out, *extra, cameras=None):
+    return cli.main(["render", str(root / "model.ply"), "--cameras",
+                     str(cameras or root / "data" / "transforms_test.json"), "--out", str(out),
+                     *extra])
+
+
+def test_render_never_writes_into_a_dataset_or_over_its_input(setup, tmp_path, capsys):
+    root, _ = setup
+    data = tmp_path / "data"
+    shutil.copytree(root / "data", data)
+    (data / "test").mkdir()
+    (data / "test" / "r_0.png").write_bytes(b"ground truth")
+    for out in (data, data / "test", data / "new"):
+        assert _render(root, out, cameras=data / "transforms_test.json") == 2
+        assert "inside the dataset folder" in capsys.readouterr().err
+    assert (data / "test" / "r_0.png").read_bytes() == b"ground truth"
+    assert not (data / "new").exists()
+    model_dir = tmp_path / "m"
+    model_dir.mkdir()
+    shutil.copy(root / "model.ply", model_dir / "model.ply")
+    rc = cli.main(["render", str(model_dir / "model.ply"), "--cameras",
+                   str(data / "transforms_test.json"), "--out", str(model_dir)])
+    assert rc == 2 and "holds the input" in capsys.readouterr().err
+
+
+def test_renders_never_mix_and_overwrite_removes_only_renders(setup, tmp_path, capsys):
+    root, cams = setup
+    out = tmp_path / "out"
+    assert _render(root, out, "--aov", "depth") == 0
+    assert (out / "r_1_depth.exr").stat().st_mode & 0o777 == 0o666 & ~_umask()
+    (out / "notes.txt").write_text("mine")
+    one = tmp_path / "one.json"  # another camera set: one view under another name
+    one.write_text(json.dumps({"camera_angle_x": 0.8, "w": W, "h": H,
+                               "frames": [cams[0].to_frame_json("./test/other")]}))
+    assert _render(root, out, cameras=one) == 2
+    assert "already holds an output of `mi-shadowgs render`: pass --overwrite" in \
+        capsys.readouterr().err
+    assert _render(root, out, "--overwrite", cameras=one) == 0
+    assert sorted(p.name for p in out.iterdir() if p.name[0] != ".") == \
+        ["notes.txt", "other.exr", "other.png"]
+
+
+def test_a_failed_render_leaves_no_folder(setup, tmp_path, monkeypatch):
+    root, _ = setup
+    from mi_shadowgs import surfel_render
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("out of memory")
+
+    monkeypatch.setattr(surfel_render, "render_surfels", broken)
+    with pytest.raises(RuntimeError):
+        _render(root, tmp_path / "a" / "out")
+    assert not (tmp_path / "a").exists()
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

@@ -118,8 +118,8 @@ def test_train_cli_writes_run_and_rejects_bad_data(tiny, tmp_path, capsys, monke
     assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress"]) == 0
     g = run / "geometry"
     names = sorted(p.name for p in g.iterdir())
-    assert names == ["checkpoint", "config.json", "log.csv", "metrics.json", "model.ply",
-                     "previews"]
+    assert names == [".mi_shadowgs_manifest.json", "checkpoint", "config.json", "log.csv",
+                     "metrics.json", "model.ply", "previews"]
     m = json.loads((g / "metrics.json").read_text())
     for key in ("psnr", "ssim", "normal_error_median_deg", "depth_error_mean_abs", "mask_iou"):
         assert np.isfinite(m[key])

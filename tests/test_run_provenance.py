@@ -1,0 +1,222 @@
+"""`run`, `train`, `segment` and `report` on tiny datasets: the pipeline end to end, stages
+reused only for the same dataset, model and settings, no output over an input, and every
+input checked before the first training step (issue 12, items 2, 3 and 5)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+
+import pytest
+
+from mi_shadowgs import cli, ply
+from mi_shadowgs import segmentation as seg
+from mi_shadowgs import stage_geometry as sg
+from mi_shadowgs import stage_material as sm
+from mi_shadowgs import visibility as vis
+from mi_shadowgs.dataset.generate import get_config as gen_config
+from mi_shadowgs.dataset.writer import write_dataset
+from mi_shadowgs.provenance import MANIFEST_NAME
+from mi_shadowgs.scenes import scene_path
+
+# Every stage cut to seconds: the checks here are about which files are written, kept or
+# refused, not about the fits' quality (tests/test_stage_*.py measure that).
+TINY = [
+    (sg.PRESETS, dataclasses.replace(
+        sg.get_config("cpu-small"), iterations=20, sh_degree=0, init_points=500,
+        hull_resolution=16, log_every=10, preview_every=10, checkpoint_every=10,
+        densify=dataclasses.replace(sg.get_config("cpu-small").densify, start=5, stop=15,
+                                    interval=5, opacity_reset_interval=0,
+                                    max_surfels=2000))),
+    (seg.PRESETS, dataclasses.replace(seg.get_config("cpu-small"), iterations=20,
+                                      n_samples=256)),
+    (sm.PRESETS, dataclasses.replace(sm.get_config("cpu-small"), iterations=10, warmup=5,
+                                     refine_passes=(), refine_views=2)),
+    (vis.PRESETS, dataclasses.replace(vis.preset("cpu-small"), resolution=64)),
+]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def tiny_presets():
+    with pytest.MonkeyPatch.context() as mp:
+        for presets, config in TINY:
+            mp.setitem(presets, "cpu-small", config)
+        yield
+
+
+def _dataset(root, seed):
+    cfg = dataclasses.replace(gen_config("cpu-small"), width=32, height=32, n_train=8,
+                              n_test=2, spp=4)
+    write_dataset(scene_path("default"), root, cfg, "cpu-small", seed=seed, progress=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    base = tmp_path_factory.mktemp("data")
+    return _dataset(base / "A", 1), _dataset(base / "B", 2)
+
+
+@pytest.fixture(scope="module")
+def finished(data, tmp_path_factory):
+    """A finished run of dataset A (about 10 s)."""
+    run = tmp_path_factory.mktemp("runs") / "A"
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 0
+    return run
+
+
+def _copy(run, tmp_path):
+    shutil.copytree(run, tmp_path / "run")
+    return tmp_path / "run"
+
+
+def _snapshot(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_run_writes_every_stage_and_a_rerun_reuses_them(finished, data, capsys):
+    names = {p.relative_to(finished).as_posix() for p in finished.rglob("*") if p.is_file()}
+    for name in ("summary.json", "report.html", "geometry/model.ply", "geometry/config.json",
+                 "geometry/metrics.json", "geometry/log.csv", "geometry/previews/iter_000020.png",
+                 "geometry/checkpoint/checkpoint.npz", "segmentation/model.ply",
+                 "segmentation/segmentation.json", "segmentation/segments/r_000_overlay.png",
+                 "material/full/model.ply", "material/full/light.json",
+                 "material/full/metrics.json", "material/full/grid.json",
+                 "material/full/figures/light_map.png"):
+        assert name in names
+    manifests = sorted(n for n in names if n.endswith(MANIFEST_NAME))
+    assert manifests == [f"{d}{MANIFEST_NAME}" for d in
+                         ("", "geometry/", "material/full/", "segmentation/")]
+    for m in manifests:  # every file of the run is listed in its folder's manifest
+        listed = json.loads((finished / m).read_text())
+        assert listed["complete"]
+        folder = m[:-len(MANIFEST_NAME)]
+        own = {n for n in names if n.startswith(folder) and not n.endswith(MANIFEST_NAME)
+               and not any(n.startswith(f"{folder}{p}/") for p in listed["parts"])}
+        assert own == {folder + f for f in listed["files"]}
+    before = _snapshot(finished / "material")
+    capsys.readouterr()
+    assert cli.main(["run", str(data[0]), "--out", str(finished), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "geometry:" not in out and "segmented" not in out  # nothing ran again
+    assert _snapshot(finished / "material") == before
+    assert cli.main(["report", str(finished)]) == 0
+
+
+def test_a_run_of_another_dataset_does_not_relabel_a_finished_run(finished, data, tmp_path,
+                                                                  capsys):
+    run = _copy(finished, tmp_path)
+    before = _snapshot(run)
+    assert cli.main(["run", str(data[1]), "--out", str(run), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"made from dataset {data[0]}" in err and str(data[1]) in err
+    assert "--overwrite" in err and "\n" not in err
+    assert _snapshot(run) == before
+
+
+def test_run_does_not_take_a_stage_1_of_other_settings(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli.main(["train", str(data[0]), "--out", str(run), "--iterations", "5",
+                     "--no-eval", "--no-progress"]) == 0
+    before = _snapshot(run)
+    capsys.readouterr()
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "geometry" in err and "iterations: 5 there, 20 now" in err and "--overwrite" in err
+    assert _snapshot(run) == before  # and no run manifest or empty folder left behind
+
+
+def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data, tmp_path,
+                                                                 capsys):
+    run = _copy(finished, tmp_path)
+    model = ply.read_ply_model(run / "geometry" / "model.ply")
+    model.position[0] += 0.01
+    ply.write_ply_model(run / "geometry" / "model.ply", model)
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "segmentation" in err and "input model differs" in err
+
+
+def test_train_resume_against_another_dataset_changes_nothing(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli.main(["train", str(data[0]), "--out", str(run), "--no-eval",
+                     "--no-progress"]) == 0
+    before = _snapshot(run)
+    assert cli.main(["train", str(data[1]), "--out", str(run), "--resume", "--no-eval",
+                     "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"made from dataset {data[0]}" in err and "--overwrite" in err
+    assert cli.main(["train", str(data[0]), "--out", str(run), "--resume", "--iterations",
+                     "30", "--no-eval", "--no-progress"]) == 2
+    assert "iterations: 20 there, 30 now" in capsys.readouterr().err
+    assert _snapshot(run) == before  # config.json, log and checkpoint untouched
+    assert cli.main(["train", str(data[1]), "--out", str(run), "--overwrite", "--no-eval",
+                     "--no-progress"]) == 0
+    cfg = json.loads((run / "geometry" / "config.json").read_text())
+    assert cfg["data"] == str(data[1])
+
+
+def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(finished, data,
+                                                                       tmp_path, capsys):
+    run = _copy(finished, tmp_path)
+    model = run / "geometry" / "model.ply"
+    before = model.read_bytes()
+    rc = cli.main(["segment", str(run), "--data", str(data[0]), "--out",
+                   str(run / "geometry"), "--quiet"])
+    assert rc == 2 and "holds the input" in capsys.readouterr().err
+    assert model.read_bytes() == before
+    rc = cli.main(["segment", str(run), "--data", str(data[0]), "--out",
+                   str(run / "segmentation"), "--quiet"])
+    assert rc == 2 and "pass --overwrite" in capsys.readouterr().err
+    assert cli.main(["segment", str(run), "--data", str(data[0]), "--out",
+                     str(data[0] / "segments"), "--quiet"]) == 2
+    assert "inside the dataset folder" in capsys.readouterr().err
+    assert not (data[0] / "segments").exists()
+
+
+def test_report_writes_only_into_a_run_folder(tmp_path, capsys):
+    (tmp_path / "summary.json").write_text(json.dumps({"stages": []}))
+    assert cli.main(["report", str(tmp_path)]) == 2
+    assert "not a run folder" in capsys.readouterr().err
+    assert not (tmp_path / "report.html").exists()
+
+
+# -- inputs checked before work -------------------------------------------------------------
+def _broken_copy(src, tmp_path, name="data"):
+    dst = tmp_path / name
+    shutil.copytree(src, dst)
+    return dst
+
+
+@pytest.mark.parametrize("command", ["train", "run"])
+def test_a_corrupt_test_image_stops_the_command_before_training(data, tmp_path, capsys,
+                                                                command):
+    bad = _broken_copy(data[0], tmp_path)
+    exr = bad / "test" / "r_001_albedo.exr" if command == "run" else bad / "test" / "r_001.exr"
+    exr.write_bytes(exr.read_bytes()[:200])
+    rc = cli.main([command, str(bad), "--out", str(tmp_path / "out" / "run"), "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and str(exr) in err and "\n" not in err and "plugin" not in err
+    assert not (tmp_path / "out").exists()  # no training, no folder left behind
+
+
+def test_run_checks_the_ground_truth_it_evaluates_against_first(data, tmp_path, capsys):
+    bad = _broken_copy(data[0], tmp_path)
+    (bad / "lights.json").unlink()
+    assert cli.main(["run", str(bad), "--out", str(tmp_path / "run"), "--no-progress"]) == 2
+    assert "lights.json: file not found" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
+def test_one_training_view_warns(data, tmp_path, capsys):
+    one = _broken_copy(data[0], tmp_path)
+    meta = json.loads((one / "transforms_train.json").read_text())
+    meta["frames"] = meta["frames"][:1]
+    (one / "transforms_train.json").write_text(json.dumps(meta))
+    assert cli.main(["train", str(one), "--out", str(tmp_path / "run"), "--iterations", "2",
+                     "--no-eval", "--no-progress"]) == 0
+    warnings = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
+    assert len(warnings) == 1
+    assert "1 training view(s)" in warnings[0] and "at least 8" in warnings[0]
