@@ -27,6 +27,7 @@ from mi_shadowgs.dataset.generate import (
 )
 from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.directions import direction_from_angles
+from mi_shadowgs.provenance import MANIFEST_NAME
 from mi_shadowgs.scenes import scene_path
 
 SIZE = 64
@@ -206,9 +207,9 @@ def test_generate_deterministic_and_recognised(tmp_path, capsys):
     assert _run(["default", "--out", str(b), "--seed", "7", *TINY], capsys)[0] == 0
     la, lb = _listing(a), _listing(b)
     # 2 + 1 views x 10 files, 3 relit test images, 2 transforms, lights.json, dataset.json,
-    # manifest.json
+    # the manifest
     assert len(la) == 3 * 10 + 3 + 5
-    assert json.loads(la["manifest.json"])["files"] == sorted(set(la) - {"manifest.json"})
+    assert json.loads(la[MANIFEST_NAME])["files"] == sorted(set(la) - {MANIFEST_NAME})
     assert la.keys() == lb.keys()
     differ = [k for k in la if la[k] != lb[k]]
     assert differ == []  # bit-identical for the same seed
@@ -316,14 +317,16 @@ def test_overwrite_removes_only_what_generate_wrote(tmp_path, capsys):
                   tmp_path, "extra")
     (out / "extra").rmdir()
     # A dataset without a manifest (an older version wrote it) is not replaced either.
-    (out / "manifest.json").rename(tmp_path / "manifest.json")
+    (out / MANIFEST_NAME).rename(tmp_path / "manifest")
     _assert_error(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY], capsys,
                   tmp_path, "dataset.json")
-    (tmp_path / "manifest.json").rename(out / "manifest.json")
+    (tmp_path / "manifest").rename(out / MANIFEST_NAME)
     assert _run(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY],
                 capsys)[0] == 0
     assert json.loads((out / "dataset.json").read_text())["seed"] == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    _assert_error(["default", "--out", str(out / "nested"), *TINY], capsys, tmp_path,
+                  "inside the dataset folder")
 
 
 def test_a_swap_cut_short_is_completed(tmp_path, capsys):

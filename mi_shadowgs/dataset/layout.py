@@ -9,7 +9,6 @@ from __future__ import annotations
 SPLITS = ("train", "test")
 DATASET_JSON = "dataset.json"
 LIGHTS_JSON = "lights.json"
-MANIFEST_JSON = "manifest.json"  # the files generate wrote (what --overwrite may remove)
 FORMAT_VERSION = 1
 # The angle NeRF-synthetic uses (0.6911 rad, ~39.6 degrees).
 NERF_CAMERA_ANGLE_X = 0.6911112070083618

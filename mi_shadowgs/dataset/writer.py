@@ -8,8 +8,8 @@ EXR exists is finished: a killed run leaves the partial folder, and the same com
 renders only the views it lacks (the folder's name holds the fingerprint of the settings,
 so only a run with the same settings reuses it; partial folders of other settings are
 removed). ``dataset.json`` holds the fingerprint, so a re-run with the same inputs is
-recognised, and ``manifest.json`` lists the files written: ``overwrite`` replaces a dataset
-only when the folder holds nothing else.
+recognised, and the manifest (``mi_shadowgs.provenance``) lists the files written:
+``overwrite`` replaces a dataset only when the folder holds nothing else.
 """
 
 from __future__ import annotations
@@ -24,9 +24,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import write_json
+from ..atomic import remove_stale, write_json
 from ..directions import N_LIGHT_DIRECTIONS, directional_lights_to_map
 from ..imageio import write_exr, write_png
+from ..provenance import (
+    MANIFEST_NAME,
+    Output,
+    Provenance,
+    check_output_location,
+    clear,
+    input_ref,
+    read_manifest,
+)
 from . import layout
 from .cameras import test_cameras, train_cameras
 from .generate import (
@@ -94,45 +103,34 @@ def _check_output(out: Path, fp: str, overwrite: bool) -> bool:
 
 
 # -- the manifest: what --overwrite may remove ------------------------------------------------
-def _listed(folder: Path) -> set[str]:
-    """The files (relative POSIX paths) the manifest of ``folder`` lists; none without one."""
-    try:
-        return set(json.loads((folder / layout.MANIFEST_JSON).read_text())["files"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return set()
-
-
 def _check_only_ours(out: Path) -> None:
     """OutputExistsError naming the first file or folder in ``out`` that generate did not
     write (not in its manifest)."""
-    files = _listed(out) | {layout.MANIFEST_JSON}
+    manifest = read_manifest(out)
+    files = set(manifest["files"]) if manifest and manifest.get("command") == "generate" \
+        else set()
+    files.add(MANIFEST_NAME)
     folders = {str(Path(f).parent) for f in files}
     for p in sorted(out.rglob("*")):
         rel = p.relative_to(out).as_posix()
         if rel not in (folders if p.is_dir() and not p.is_symlink() else files):
             raise OutputExistsError(
-                f"{p} was not written by mi-shadowgs generate (not in {out}/"
-                f"{layout.MANIFEST_JSON}); --overwrite removes only files it wrote: move it "
-                "away or choose another --out")
+                f"{p} was not written by mi-shadowgs generate (not in {out / MANIFEST_NAME}); "
+                "--overwrite removes only files it wrote: move it away or choose another --out")
 
 
-def _write_manifest(folder: Path, fp: str) -> None:
-    files = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
-    write_json(folder / layout.MANIFEST_JSON,
-               {"command": "generate", "fingerprint": fp, "files": files})
+def _write_manifest(folder: Path, provenance: Provenance) -> None:
+    out = Output(folder, "generate", provenance, None)
+    out.claim(*sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                      if p.is_file()))
+    out.finish()
 
 
-def _remove_listed(folder: Path) -> None:
-    """Delete the files the manifest of ``folder`` lists, then the manifest and the folders
-    they leave empty (``folder`` included); anything else stays."""
-    files = _listed(folder)
-    for rel in files:
-        (folder / rel).unlink(missing_ok=True)
-    (folder / layout.MANIFEST_JSON).unlink(missing_ok=True)
-    for d in sorted({(folder / f).parent for f in files}, key=lambda p: -len(p.parts)) + \
-            [folder]:
-        if d.is_dir() and not any(d.iterdir()):
-            d.rmdir()
+def _remove_ours(folder: Path) -> None:
+    """Delete what the manifest of ``folder`` lists and, when nothing else is left, it."""
+    clear(folder)
+    if not any(folder.iterdir()):
+        folder.rmdir()
 
 
 # -- the partial folder ---------------------------------------------------------------------------
@@ -145,11 +143,11 @@ def _prepare_partial(out: Path, fp: str) -> Path:
     settings (and of ``atomic_dir``, which wrote datasets before) are removed, and so are the
     temporaries of a file write that a kill cut short (hidden files: the layout has none)."""
     partial = _partial_dir(out, fp)
-    pattern = re.compile(re.escape(f".{out.name}.") + r"(\w{8}|[0-9a-f]{16})\.partial")
-    if out.parent.is_dir():
-        for p in out.parent.iterdir():
-            if p != partial and pattern.fullmatch(p.name) and p.is_dir():
-                shutil.rmtree(p)
+    remove_stale(out)  # what atomic_dir, which wrote datasets before, left
+    pattern = re.compile(re.escape(f".{out.name}.") + r"[0-9a-f]{16}\.partial")
+    for p in out.parent.iterdir() if out.parent.is_dir() else ():
+        if p != partial and pattern.fullmatch(p.name) and p.is_dir():
+            shutil.rmtree(p)
     partial.mkdir(parents=True, exist_ok=True)
     for p in partial.rglob(".*"):
         if p.is_file():
@@ -165,7 +163,7 @@ def _swap_in(partial: Path, out: Path) -> None:
         os.replace(out, old)
     os.replace(partial, out)
     if old.exists():
-        _remove_listed(old)
+        _remove_ours(old)
 
 
 def _finish_swap(out: Path) -> None:
@@ -174,7 +172,7 @@ def _finish_swap(out: Path) -> None:
     old = out.with_name(f".{out.name}.old")
     if old.is_dir():
         if out.exists():
-            _remove_listed(old)
+            _remove_ours(old)
         else:
             os.replace(old, out)
 
@@ -238,6 +236,12 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     if not setup.lights:
         raise ValueError(f"{scene_path}: no directional light (emitters light0, light1, ...)")
     fp = fingerprint(setup, config, seed, envmap)
+    inputs = {"scene": input_ref(setup.path)}
+    if setup.params.get("mesh"):
+        inputs["mesh"] = input_ref(setup.params["mesh"])
+    if envmap is not None:
+        inputs["envmap"] = input_ref(envmap)
+    check_output_location(out, [i["path"] for i in inputs.values()], writes_dataset=True)
     _finish_swap(out)
     if _check_output(out, fp, overwrite):
         return out, False
@@ -307,7 +311,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
         "mitsuba_version": mi.__version__,
         "variant": mi.variant(),
     })
-    _write_manifest(partial, fp)
+    _write_manifest(partial, Provenance(inputs=inputs, settings={"fingerprint": fp}))
     if out.exists():  # --overwrite: check again, files may have come while we rendered
         _check_only_ours(out)
     _swap_in(partial, out)
