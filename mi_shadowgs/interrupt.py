@@ -44,6 +44,7 @@ def _handler(signum, frame) -> None:
     if _deferring and _pending is None:
         _pending = signum
         return
+    _pending = None  # this one stops the command
     raise Interrupted(signum)
 
 
