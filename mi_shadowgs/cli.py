@@ -44,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # What an interrupted command says about continuing (default: run it again).
-RESUME_HINTS = {"train": "run it again with --resume to continue"}
+RESUME_HINTS = {"train": "run it again with --resume to continue",
+                "segment": "run it again with --resume to continue"}
 
 
 def main(argv: list[str] | None = None) -> int:
