@@ -5,7 +5,8 @@ renders into a hidden sibling ``.NAME.<fingerprint>.partial`` that is renamed in
 the end: a half-written dataset never looks complete, and a failure before any rendering
 writes nothing. Each file is written atomically and a view's image EXR last, so a view whose
 EXR exists is finished: a killed run leaves the partial folder, and the same command again
-renders only the views it lacks (the folder's name holds the fingerprint of the settings,
+renders only the views (and relit images) it lacks (the folder's name holds the
+fingerprint of the settings,
 so only a run with the same settings reuses it; partial folders of other settings are
 removed). ``dataset.json`` holds the fingerprint, so a re-run with the same inputs is
 recognised, and the manifest (``mi_shadowgs.provenance``) lists the files written:
@@ -281,11 +282,12 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                 for j, i in enumerate(chunk):
                     stem = layout.view_stem(split, i)
                     rgba = renderer.render(setup.scene, views[i], _seed(seed, split_no, i))
-                    if split == "test":
-                        for k, (name, sc) in enumerate(relights):
+                    for k, (name, sc) in enumerate(relights if split == "test" else []):
+                        path = partial / (stem + layout.RELIT.format(name=name))
+                        if not path.is_file():  # a kill may have come after some of them
                             img = renderer.render(sc, views[i], _seed(seed, 2 + k, i))
                             img[..., 3] = rgba[..., 3]  # coverage does not depend on the light
-                            write_exr(partial / (stem + layout.RELIT.format(name=name)), img)
+                            write_exr(path, img)
                     _write_view(partial, stem, rgba, gt, j)
                     bar.update(renders)
             frames = [cam.to_frame_json("./" + layout.view_stem(split, i))
