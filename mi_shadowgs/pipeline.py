@@ -286,7 +286,8 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
 
     Every input (both splits, ground truth, lights.json) is read and checked first. Each
     stage's output is reused when it is finished and was made from the same dataset, input
-    model and settings; stage 1 continues from its last checkpoint after an interruption;
+    model and settings; stages 1, 2 and 4 continue from their last checkpoints after an
+    interruption (a kill loses at most their ``checkpoint_seconds``);
     anything else exits with a ProvenanceError naming what differs, unless ``overwrite``
     removes the run's files first. ``log`` takes the stages' one-line summaries.
     """
