@@ -5,12 +5,11 @@ renders into a hidden sibling ``.NAME.<fingerprint>.partial`` that is renamed in
 the end: a half-written dataset never looks complete, and a failure before any rendering
 writes nothing. Each file is written atomically and a view's image EXR last, so a view whose
 EXR exists is finished: a killed run leaves the partial folder, and the same command again
-renders only the views (and relit images) it lacks (the folder's name holds the
-fingerprint of the settings,
-so only a run with the same settings reuses it; partial folders of other settings are
-removed). ``dataset.json`` holds the fingerprint, so a re-run with the same inputs is
-recognised, and the manifest (``mi_shadowgs.provenance``) lists the files written:
-``overwrite`` replaces a dataset only when the folder holds nothing else.
+renders only the views (and relit images) it lacks. The folder's name holds the
+fingerprint of the settings, so only a run with the same settings reuses it; partial
+folders of other settings are removed. ``dataset.json`` holds the fingerprint, so a re-run
+with the same inputs is recognised, and the manifest (``mi_shadowgs.provenance``) lists the
+files written: ``overwrite`` replaces a dataset only when the folder holds nothing else.
 """
 
 from __future__ import annotations
