@@ -82,10 +82,11 @@ class CheckpointClock:
         self.seconds = seconds
         self.last = time.monotonic()
 
-    def due(self, step: int) -> bool:
-        """Whether to checkpoint after ``step`` finished steps."""
-        return (self.every > 0 and step % self.every == 0) or _pending is not None or \
-            time.monotonic() - self.last >= self.seconds
+    def due(self, step: int | None = None) -> bool:
+        """Whether to checkpoint after ``step`` finished steps (None: inside a step, where
+        only the wall time and a signal count)."""
+        return (step is not None and self.every > 0 and step % self.every == 0) or \
+            _pending is not None or time.monotonic() - self.last >= self.seconds
 
     def saved(self) -> None:
         self.last = time.monotonic()

@@ -202,6 +202,8 @@ class MaterialState:
     loss_sum: mi.Float  # [1] loss summed since the last history entry
     history: list
     timings: dict  # seconds: "prepare_s", finished phases, "phase_s" into the current one
+    # A refinement of step ``step`` (not finished) that a checkpoint interrupted.
+    refine: Refinement | None = None
 
     def to_checkpoint(self) -> tuple[dict[str, np.ndarray], dict]:
         """(arrays, JSON meta) for ``mi_shadowgs.checkpoint.save_checkpoint``."""
@@ -212,6 +214,11 @@ class MaterialState:
                        for k, v in self.channels.items()})
         arrays["directions"] = np.asarray(self.directions, np.float64)
         arrays["loss_sum"] = np.asarray(self.loss_sum.numpy(), np.float32)
+        if self.refine is not None:
+            arrays.update({"refine/dirs": self.refine.dirs,
+                           "refine/irradiance": self.refine.irradiance,
+                           "refine/lights": self.refine.lights,
+                           "refine/done": np.array([self.refine.done])})
         return arrays, {"step": self.step, "specular": self.specular,
                         "rng": self.rng.bit_generator.state, "history": self.history,
                         "timings": self.timings}
@@ -226,10 +233,13 @@ class MaterialState:
         rng.bit_generator.state = meta["rng"]
         channels = {k[len("channel/"):]: mi.TensorXf(a) for k, a in arrays.items()
                     if k.startswith("channel/")}
+        refine = Refinement(arrays["refine/dirs"], arrays["refine/irradiance"],
+                            arrays["refine/lights"], int(arrays["refine/done"][0])) \
+            if "refine/dirs" in arrays else None
         return MaterialState(int(meta["step"]), opt, channels, arrays["directions"],
                              bool(meta["specular"]), rng, mi.Float(arrays["loss_sum"]),
                              [(int(i), float(x)) for i, x in meta["history"]],
-                             dict(meta["timings"]))
+                             dict(meta["timings"]), refine)
 
 
 def init_channels(surfels: Surfels, config: MaterialConfig) -> dict[str, mi.TensorXf]:
@@ -397,17 +407,25 @@ def _prune(opt, dirs: np.ndarray, maps, config: MaterialConfig, render_maps):
 _LIGHT_KEYS = ("log_light",)
 
 
-def _refine(views, ch: dict, opt, dirs: np.ndarray, maps, render_maps,
-            config: MaterialConfig, with_specular: bool) -> np.ndarray:
-    """``refine_directions`` on the optimiser's current state; sets the refitted light."""
+def _refine(views, state: MaterialState, maps, render_maps, config: MaterialConfig,
+            on_unit) -> np.ndarray:
+    """``refine_directions`` on the optimiser's current state, or the rest of
+    ``state.refine`` when a checkpoint was written inside it; sets the refitted light and
+    returns the directions."""
     dw = solid_angle(config.n_directions)
-    cur = dict(ch)
+    opt = state.opt
+    cur = dict(state.channels)
     for key in opt.keys():
         if key not in _LIGHT_KEYS:
             cur[key] = opt[key]
-    irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
-    dirs, irr = refine_directions(views, cur, dirs, irr, maps, render_maps, config,
-                                  with_specular)
+    if state.refine is None:
+        irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
+        state.refine = Refinement.start(state.directions, irr, config)
+    else:
+        maps = render_maps(state.refine.dirs)
+    state.refine.run(views, cur, maps, render_maps, config, state.specular, on_unit)
+    dirs, irr = state.refine.dirs, state.refine.irradiance
+    state.refine = None
     opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
     opt.set_learning_rate({"log_light": config.lr_light})
     return dirs
@@ -522,6 +540,46 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet
     return err, irr
 
 
+@dataclasses.dataclass
+class Refinement:
+    """A light-direction refinement (``refine_directions``) in progress: it continues after
+    each finished (light, pass) unit, so that a checkpoint can be written between units
+    (at the cpu-small preset the two refinements of a fit each took ~80 s, one unit ~20 s)."""
+
+    dirs: np.ndarray  # [K, 3] the lights' directions so far
+    irradiance: np.ndarray  # [K]
+    lights: np.ndarray  # [R] the lights refined, strongest first
+    done: int = 0  # finished (light, pass) units
+
+    @staticmethod
+    def start(dirs: np.ndarray, irradiance: np.ndarray, config: MaterialConfig) -> Refinement:
+        irr = np.array(irradiance, np.float64)
+        # The strongest first: it shapes the residual most.
+        return Refinement(np.array(dirs, np.float64), irr,
+                          np.argsort(-irr)[:config.refine_max_lights])
+
+    def run(self, views: list[TrainView], channels: dict, maps, render_maps,
+            config: MaterialConfig, with_specular: bool, on_unit=None) -> None:
+        """The units left; ``maps``: the shadow maps of ``dirs``; ``on_unit()`` after each."""
+        pick = np.unique(np.linspace(0, len(views) - 1, min(config.refine_views, len(views)))
+                         .round().astype(int))
+        sub = [views[i] for i in pick]
+        units = [(int(k), r, st) for k in self.lights for r, st in config.refine_passes]
+        for k, radius, step in units[self.done:]:
+            cand = candidate_directions(self.dirs[k], radius, step)
+            irr = mi.Float(self.irradiance.astype(np.float32))
+            lights = S.LightSet(self.dirs, mi.Color3f(irr, irr, irr))
+            err, fit = _candidate_scores(sub, channels, lights, maps, k, render_maps(cand),
+                                         config, with_specular)
+            best = int(np.argmin(err))
+            if best != 0 and fit[best] > 0:
+                self.dirs[k], self.irradiance[k] = cand[best], fit[best]
+                maps = render_maps(self.dirs)
+            self.done += 1
+            if on_unit:
+                on_unit()
+
+
 def refine_directions(views: list[TrainView], channels: dict, dirs: np.ndarray,
                       irradiance: np.ndarray, maps, render_maps, config: MaterialConfig,
                       with_specular: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -530,23 +588,9 @@ def refine_directions(views: list[TrainView], channels: dict, dirs: np.ndarray,
     ``dirs`` [K, 3] and ``irradiance`` [K] are the current lights; ``maps`` their shadow
     maps; ``render_maps(directions)`` renders maps. Returns the refined (dirs, irradiance).
     """
-    dirs = np.array(dirs, np.float64)
-    irr = np.array(irradiance, np.float64)
-    pick = np.unique(np.linspace(0, len(views) - 1, min(config.refine_views, len(views)))
-                     .round().astype(int))
-    sub = [views[i] for i in pick]
-    # The strongest first: it shapes the residual most.
-    for k in np.argsort(-irr)[:config.refine_max_lights]:
-        for radius, step in config.refine_passes:
-            cand = candidate_directions(dirs[k], radius, step)
-            lights = S.LightSet(dirs, mi.Color3f(*(mi.Float(irr.astype(np.float32)),) * 3))
-            err, fit = _candidate_scores(sub, channels, lights, maps, int(k),
-                                         render_maps(cand), config, with_specular)
-            best = int(np.argmin(err))
-            if best != 0 and fit[best] > 0:
-                dirs[k], irr[k] = cand[best], fit[best]
-                maps = render_maps(dirs)
-    return dirs, irr
+    refinement = Refinement.start(dirs, irradiance, config)
+    refinement.run(views, channels, maps, render_maps, config, with_specular)
+    return refinement.dirs, refinement.irradiance
 
 
 def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
@@ -590,31 +634,56 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
         time.perf_counter() - t0
     # Per-view point/normal lookups are fixed: visibility of all active directions per view
     # is re-evaluated on the fly (cheap gathers) rather than stored (V x H x W x L floats).
-    maps = shadow_maps(state.directions,
-                       warmup_res if state.step <= config.warmup else None)
+    # The warm-up's maps up to its end (unless the checkpoint is inside the refinement that
+    # follows it), the full-resolution ones after.
+    maps = shadow_maps(state.directions, warmup_res if state.step < config.warmup or (
+        state.step == config.warmup and state.refine is None) else None)
     opt, ch = state.opt, state.channels
     bar = tqdm(total=config.iterations, initial=state.step, desc="stage 4: fit",
                disable=not progress)
     t_phase = time.perf_counter() - state.timings.pop("phase_s", 0.0)
     refine_again = (config.warmup + config.iterations) // 2 \
         if config.iterations > config.warmup + 1 else -1
+
+    def save() -> None:
+        state.timings["phase_s"] = time.perf_counter() - t_phase
+        on_checkpoint(state)
+        del state.timings["phase_s"]
+        clock.saved()
+
+    def refined_one() -> None:
+        """After each unit of a refinement: a refinement can take minutes."""
+        if on_checkpoint and clock.due():
+            save()
+        raise_pending(f"stage 4 stopped in the light refinement of step {state.step + 1}"
+                      + (", checkpoint written" if on_checkpoint else ""))
+
     with bar, clock.running():
         while state.step < config.iterations:
             it = state.step
-            if config.prune and it > config.warmup and config.prune_every > 0 and \
-                    (it - config.warmup) % config.prune_every == 0:
-                # A host read every prune_every steps (not per step): drop dark directions.
-                state.directions, maps = _prune(opt, state.directions, maps, config,
-                                                shadow_maps)
-            if it == config.warmup:
-                dr.sync_thread()
-                state.timings["warmup_total_s"] = time.perf_counter() - t_phase
-                maps = _end_warmup(state, views, maps, config, shadow_maps)
-                t_phase = time.perf_counter()
-            if it == refine_again and config.refine_passes and maps is not None:
-                state.directions = _refine(views, ch, opt, state.directions, maps,
-                                           shadow_maps, config, state.specular)
+            if state.refine is None:  # else this step resumes inside its refinement
+                if config.prune and it > config.warmup and config.prune_every > 0 and \
+                        (it - config.warmup) % config.prune_every == 0:
+                    # A host read every prune_every steps (not per step): drop dark lights.
+                    state.directions, maps = _prune(opt, state.directions, maps, config,
+                                                    shadow_maps)
+                if it == config.warmup:
+                    dr.sync_thread()
+                    state.timings["warmup_total_s"] = time.perf_counter() - t_phase
+                    # One host read at the phase boundary: prune, the survivors' maps at
+                    # full resolution.
+                    if config.prune:
+                        state.directions, maps = _prune(opt, state.directions, maps, config,
+                                                        shadow_maps)
+                    maps = shadow_maps(state.directions)
+            if it in (config.warmup, refine_again) and config.refine_passes and \
+                    maps is not None:
+                state.directions = _refine(views, state, maps, shadow_maps, config,
+                                           refined_one)
                 maps = shadow_maps(state.directions)
+            if it == config.warmup:
+                _end_warmup(state, config)
+                t_phase = time.perf_counter()
             w_light = dr.exp(opt["log_light"]) * dw
             lights = S.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
             cur = dict(ch)
@@ -648,10 +717,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
                 state.loss_sum = mi.Float(0.0)
             bar.update(1)
             if on_checkpoint and (clock.due(state.step) or state.step == config.iterations):
-                state.timings["phase_s"] = time.perf_counter() - t_phase
-                on_checkpoint(state)
-                del state.timings["phase_s"]
-                clock.saved()
+                save()
             raise_pending(f"stage 4 stopped at step {state.step} of {config.iterations}"
                           + (", checkpoint written" if on_checkpoint else ""))
     dr.sync_thread()
@@ -702,18 +768,10 @@ def _initial_state(surfels: Surfels, images: list[np.ndarray], views: list[Train
                          mi.Float(0.0), [], {})
 
 
-def _end_warmup(state: MaterialState, views, maps, config: MaterialConfig, render_maps):
-    """The phase boundary (one host read): prune, re-render the survivors' maps at full
-    resolution, refine their directions, add the indirect light, decide on the lobe.
-    Returns the new maps."""
+def _end_warmup(state: MaterialState, config: MaterialConfig) -> None:
+    """After the warm-up's pruning and refinement: add the indirect light and decide on the
+    specular lobe (one host read)."""
     opt, ch = state.opt, state.channels
-    if config.prune:
-        state.directions, maps = _prune(opt, state.directions, maps, config, render_maps)
-    maps = render_maps(state.directions)  # the survivors at full resolution
-    if config.refine_passes and maps is not None:
-        state.directions = _refine(views, ch, opt, state.directions, maps, render_maps,
-                                   config, state.specular)
-        maps = render_maps(state.directions)
     opt[S.INDIRECT_CHANNEL] = ch[S.INDIRECT_CHANNEL]
     opt.set_learning_rate({S.INDIRECT_CHANNEL: config.lr_indirect})
     if state.specular and config.specular == "auto":
@@ -725,4 +783,3 @@ def _end_warmup(state: MaterialState, views, maps, config: MaterialConfig, rende
                 del opt[k]
             n = len(m)
             ch["metallic"] = mi.TensorXf(dr.zeros(mi.Float, n), (n, 1))
-    return maps

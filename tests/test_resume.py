@@ -25,7 +25,7 @@ from mi_shadowgs import stage_geometry as sg
 from mi_shadowgs import stage_material as sm
 from mi_shadowgs.checkpoint import load_checkpoint, save_checkpoint
 from mi_shadowgs.dataset.loader import load_dataset
-from mi_shadowgs.directions import light_grid
+from mi_shadowgs.directions import direction_from_angles
 from mi_shadowgs.masks import material_masks
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.visibility import VisibilityConfig
@@ -146,23 +146,41 @@ def test_stage2_resumes_bit_identically(data, tmp_path):
         assert resumed.history == straight.history
 
 
-@pytest.mark.parametrize("specular, stops", [("auto", (20, 21, 31, 40, 60)), ("on", (21, 40))])
-def test_stage4_resumes_bit_identically(specular, stops, tmp_path):
+def _where(state) -> tuple:
+    """(finished steps, finished units of the refinement in progress or None)."""
+    return state.step, None if state.refine is None else state.refine.done
+
+
+@pytest.mark.parametrize("specular", ["auto", "on"])
+def test_stage4_resumes_bit_identically(specular, tmp_path):
     s, cams, bounds = _plane_scene()
     vcfg = VisibilityConfig(resolution=64)
-    k_true = int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))
-    imgs, masks = _render_truth(s, cams, bounds, k_true, 2.0, vcfg)
-    # The warm-up ends at 20, pruning every 10 after it, the second refinement at step 40.
-    config = dataclasses.replace(sm.get_config(TINY), checkpoint_every=1, specular=specular)
+    # Two lights between grid directions: each unit of the refinements moves one of the
+    # lights, and the others' shadows enter its score.
+    imgs, masks = _render_truth(s, cams, bounds, [direction_from_angles(47.0, 52.0),
+                                                  direction_from_angles(200.0, 35.0)],
+                                [2.0, 1.5], vcfg)
+    # The warm-up ends at 20, pruning every 10 after it, the second refinement at step 40;
+    # a checkpoint after every step and every refinement unit.
+    config = dataclasses.replace(sm.get_config(TINY), checkpoint_every=1,
+                                 checkpoint_seconds=1e-9, specular=specular,
+                                 refine_passes=((4.0, 2.0), (2.0, 1.0)))
 
     def fit(**kw):
         return sm.fit_material(s, cams, imgs, masks, config, bounds, vcfg, progress=False, **kw)
 
-    straight = fit()
+    seen = []
+    straight = fit(on_checkpoint=lambda state: seen.append(_where(state)))
     assert straight.specular == (specular == "on")  # "auto" drops the lobe: a diffuse scene
-    for stop in stops:
+    stops = [(20, None), (20, 3), (21, None), (31, None), (40, 5), (60, None)]
+    assert all(stop in seen for stop in stops)
+    for stop in stops if specular == "auto" else stops[1:5:3]:
+        def on_checkpoint(state, stop=stop):
+            save_checkpoint(tmp_path, *state.to_checkpoint())
+            if _where(state) == stop:
+                raise Stop
         with pytest.raises(Stop):
-            fit(on_checkpoint=_stopping_at(stop, tmp_path))
+            fit(on_checkpoint=on_checkpoint)
         resumed = fit(state=sm.MaterialState.from_checkpoint(*load_checkpoint(tmp_path)))
         for key in ("albedo", "roughness", "metallic", "indirect_sh"):
             np.testing.assert_array_equal(resumed.surfels.channels[key].numpy(),
