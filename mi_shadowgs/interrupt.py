@@ -8,8 +8,11 @@ step, writes a checkpoint (``due`` says so) and only then raises ``Interrupted``
 at once. Outside the CLI (library use, tests) nothing is installed and signals keep their
 default action.
 
-``CheckpointClock`` also times the regular checkpoints: every ``every`` steps and at least
-every ``seconds`` of wall time, so a ``kill -9`` loses at most that much work.
+``CheckpointClock`` also times the regular checkpoints: every ``every`` steps, and by wall
+time so that no more than ``seconds`` pass between two checkpoints: a ``kill -9`` loses at
+most that much work. A loop can only checkpoint between its steps (or the units of a long
+step), so the clock checkpoints early when the next step, taken to last as long as the
+longest stretch between two of its calls so far, would end past ``seconds``.
 """
 
 from __future__ import annotations
@@ -71,8 +74,9 @@ def raise_pending(detail: str) -> None:
 
 
 class CheckpointClock:
-    """When a loop writes a checkpoint: every ``every`` steps (0: never by count), at least
-    every ``seconds`` of wall time, and when a signal is pending."""
+    """When a loop writes a checkpoint: every ``every`` steps (0: never by count), within
+    ``seconds`` of wall time of the last one (see the module doc), and when a signal is
+    pending. Created when the work starts: initialisation counts as work a kill loses."""
 
     def __init__(self, every: int, seconds: float):
         if every < 0 or not seconds > 0:
@@ -80,13 +84,18 @@ class CheckpointClock:
                              f"got {every} and {seconds}")
         self.every = every
         self.seconds = seconds
-        self.last = time.monotonic()
+        self.last = self.previous = time.monotonic()  # last checkpoint, last call
+        self.longest = 0.0  # the longest stretch between two calls
 
     def due(self, step: int | None = None) -> bool:
         """Whether to checkpoint after ``step`` finished steps (None: inside a step, where
-        only the wall time and a signal count)."""
+        only the wall time and a signal count). Call it at every point where the loop could
+        checkpoint."""
+        now = time.monotonic()
+        self.longest = max(self.longest, now - self.previous)
+        self.previous = now
         return (step is not None and self.every > 0 and step % self.every == 0) or \
-            _pending is not None or time.monotonic() - self.last >= self.seconds
+            _pending is not None or now - self.last + self.longest >= self.seconds
 
     def saved(self) -> None:
         self.last = time.monotonic()

@@ -544,7 +544,8 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet
 class Refinement:
     """A light-direction refinement (``refine_directions``) in progress: it continues after
     each finished (light, pass) unit, so that a checkpoint can be written between units
-    (at the cpu-small preset the two refinements of a fit each took ~80 s, one unit ~20 s)."""
+    (cpu-small, 25k surfels, 2 cores: 40 s per refinement on quiet cores, 80 s on loaded
+    ones; a unit ~10 s)."""
 
     dirs: np.ndarray  # [K, 3] the lights' directions so far
     irradiance: np.ndarray  # [K]

@@ -69,13 +69,18 @@ def test_checkpoint_clock(monkeypatch):
     now = [100.0]
     monkeypatch.setattr(interrupt.time, "monotonic", lambda: now[0])
     clock = interrupt.CheckpointClock(every=10, seconds=60.0)
-    assert clock.due(10) and clock.due(20) and not clock.due(11)
-    now[0] += 59.0
-    assert not clock.due(11)
-    now[0] += 1.0
-    assert clock.due(11)  # a minute since the last one
+    assert clock.due(10) and not clock.due(11)  # by count
+    due = []
+    for _ in range(100):  # steps of 1 s
+        now[0] += 1.0
+        due.append(clock.due())
+    # In time for a kill to lose at most 60 s: the next step could end at 160 s.
+    assert due.index(True) == 58
     clock.saved()
-    assert not clock.due(12)
+    now[0] += 20.0  # a long step: the next ones may be as long
+    assert not clock.due()
+    now[0] += 20.0
+    assert clock.due()
     assert interrupt.CheckpointClock(every=0, seconds=1.0).due(0) is False  # by time only
     with pytest.raises(ValueError, match="seconds > 0"):
         interrupt.CheckpointClock(10, 0.0)
