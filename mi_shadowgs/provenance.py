@@ -24,15 +24,17 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 from pathlib import Path
 
 from .atomic import remove_stale, write_json
 
 MANIFEST_NAME = ".mi_shadowgs_manifest.json"
 FORMAT_VERSION = 1
-# What the dataset fingerprint covers: every file the loader may read (transforms,
-# dataset.json, lights.json, TensoIR metadata, images); hidden files are not the dataset's.
-DATASET_SUFFIXES = (".json", ".png", ".exr", ".jpg", ".jpeg")
+# What the dataset fingerprint covers: every file the loader may read (images, transforms,
+# dataset.json, lights.json, TensoIR metadata), not other files such as a writer's manifest.
+IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg")
+DATASET_JSON = re.compile(r"transforms_.*\.json|dataset\.json|lights\.json|metadata\.json")
 _CHUNK = 1 << 20
 _MAX_LISTED = 8  # differing settings named in one message
 
@@ -56,7 +58,8 @@ def _dataset_files(root: Path) -> list[tuple[str, os.stat_result]]:
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
         for name in filenames:
-            if not name.startswith(".") and name.lower().endswith(DATASET_SUFFIXES):
+            if not name.startswith(".") and (name.lower().endswith(IMAGE_SUFFIXES) or
+                                             DATASET_JSON.fullmatch(name)):
                 p = Path(dirpath) / name
                 found.append((p.relative_to(root).as_posix(), p.stat()))
     return sorted(found, key=lambda item: item[0])
@@ -159,7 +162,8 @@ def is_dataset_folder(path: str | os.PathLike) -> bool:
     """A folder holding a dataset: ``transforms_*.json``, ``dataset.json`` or TensoIR views."""
     p = Path(path)
     return p.is_dir() and (any(p.glob("transforms_*.json")) or (p / "dataset.json").is_file()
-                           or any(p.glob("*_*/metadata.json")))
+                           or any(p.glob("train_*/metadata.json"))
+                           or any(p.glob("test_*/metadata.json")))
 
 
 def check_output_location(folder: str | os.PathLike, inputs=(),
@@ -170,7 +174,8 @@ def check_output_location(folder: str | os.PathLike, inputs=(),
     folder = Path(folder).resolve()
     for p in (folder.parents if writes_dataset else (folder, *folder.parents)):
         if is_dataset_folder(p):
-            raise ProvenanceError(f"{folder}: inside the dataset folder {p}; outputs never go "
+            where = "is" if p == folder else "is inside"
+            raise ProvenanceError(f"{folder}: {where} the dataset folder {p}; outputs never go "
                                   "into a dataset: choose another folder")
     for item in inputs:
         item = Path(item).resolve()
@@ -332,6 +337,7 @@ class Output:
         """Own the sub-folder ``name`` (with a manifest of its own) for ``--overwrite``."""
         if name not in self._manifest["parts"]:
             self._manifest["parts"].append(name)
+            self._manifest["complete"] = False
         self._save()
 
     def finish(self) -> None:

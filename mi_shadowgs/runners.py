@@ -135,6 +135,9 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     from .stage_geometry import Callbacks, TrainState, train_geometry
     from .stage_geometry import evaluate as evaluate_geometry
 
+    if resume and overwrite:
+        raise ValueError("--resume continues the stage's files and --overwrite removes them: "
+                         "pass one of them")
     t0 = time.perf_counter()
     folder = Path(folder)
     # Every input is read before the first step: a bad test image fails now, not after.

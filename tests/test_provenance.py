@@ -104,12 +104,16 @@ def test_dataset_fingerprint_follows_contents_not_times_or_hidden_files(tmp_path
     os.utime(b / "train" / "r_0.png", (1, 1))
     (b / ".mi_shadowgs_manifest.json").write_text("{}")
     (b / "notes.txt").write_text("not a dataset file")
+    (b / "manifest.json").write_text("{}")  # a writer's list of files, not the loader's
     assert P.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 999 + b"\x07")  # one byte, same size
     assert P.dataset_fingerprint(b) != fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 1000)
     assert P.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").rename(b / "train" / "r_9.png")
+    assert P.dataset_fingerprint(b) != fp
+    (b / "train" / "r_9.png").rename(b / "train" / "r_1.png")
+    (b / "transforms_train.json").write_text(json.dumps({"frames": [None]}))
     assert P.dataset_fingerprint(b) != fp
 
 
@@ -163,8 +167,14 @@ def test_a_failed_command_leaves_no_folder(tmp_path):
 def test_output_refuses_dataset_folders_inputs_and_foreign_folders(tmp_path):
     ds = _dataset(tmp_path / "ds")
     for where in (ds, ds / "train", ds / "new" / "deep"):
-        with pytest.raises(P.ProvenanceError, match="inside the dataset folder"):
+        with pytest.raises(P.ProvenanceError, match="outputs never go into a dataset"):
             P.Output.open(where, "render", P.Provenance())
+    for sub in ("tensoir/train_0", "notes/my_notes"):  # TensoIR's views; a user's folder
+        (tmp_path / sub).mkdir(parents=True)
+        (tmp_path / sub / "metadata.json").write_text("{}")
+    with pytest.raises(P.ProvenanceError, match="outputs never go into a dataset"):
+        P.Output.open(tmp_path / "tensoir" / "out", "render", P.Provenance())
+    P.Output.open(tmp_path / "notes" / "out", "render", P.Provenance())
     model = tmp_path / "geo" / "model.ply"
     model.parent.mkdir()
     model.write_text("m")
@@ -264,5 +274,5 @@ def test_a_dataset_writer_may_rewrite_its_own_dataset_but_not_nest_one(tmp_path)
     again = P.Output.open(tmp_path / "gen", "generate", P.Provenance(), overwrite=True,
                           writes_dataset=True)
     assert not (tmp_path / "gen" / "transforms_train.json").exists() and not again.reused
-    with pytest.raises(P.ProvenanceError, match="inside the dataset folder"):
+    with pytest.raises(P.ProvenanceError, match="outputs never go into a dataset"):
         P.Output.open(ds / "inner", "generate", P.Provenance(), writes_dataset=True)

@@ -119,7 +119,7 @@ def test_render_never_writes_into_a_dataset_or_over_its_input(setup, tmp_path, c
     (data / "test" / "r_0.png").write_bytes(b"ground truth")
     for out in (data, data / "test", data / "new"):
         assert _render(root, out, cameras=data / "transforms_test.json") == 2
-        assert "inside the dataset folder" in capsys.readouterr().err
+        assert "outputs never go into a dataset" in capsys.readouterr().err
     assert (data / "test" / "r_0.png").read_bytes() == b"ground truth"
     assert not (data / "new").exists()
     model_dir = tmp_path / "m"

@@ -151,6 +151,9 @@ def test_train_resume_against_another_dataset_changes_nothing(data, tmp_path, ca
     assert cli.main(["train", str(data[0]), "--out", str(run), "--resume", "--iterations",
                      "30", "--no-eval", "--no-progress"]) == 2
     assert "iterations: 20 there, 30 now" in capsys.readouterr().err
+    assert cli.main(["train", str(data[0]), "--out", str(run), "--resume", "--overwrite",
+                     "--no-progress"]) == 2
+    assert "pass one of them" in capsys.readouterr().err
     assert _snapshot(run) == before  # config.json, log and checkpoint untouched
     assert cli.main(["train", str(data[1]), "--out", str(run), "--overwrite", "--no-eval",
                      "--no-progress"]) == 0
@@ -172,7 +175,7 @@ def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(finished
     assert rc == 2 and "or --overwrite to replace it" in capsys.readouterr().err
     assert cli.main(["segment", str(run), "--data", str(data[0]), "--out",
                      str(data[0] / "segments"), "--quiet"]) == 2
-    assert "inside the dataset folder" in capsys.readouterr().err
+    assert "outputs never go into a dataset" in capsys.readouterr().err
     assert not (data[0] / "segments").exists()
 
 
