@@ -18,7 +18,7 @@ from .atomic import atomic_path
 
 CHECKPOINT_NAME = "checkpoint.npz"
 _META_KEY = "__meta__"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: stage 1 saves its log sums; stages 2 and 4 have checkpoints
 
 
 class CheckpointError(ValueError):

@@ -43,21 +43,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# What an interrupted command says about continuing (default: run it again).
+RESUME_HINTS = {"train": "run it again with --resume to continue",
+                "segment": "run it again with --resume to continue"}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     from . import backend
+    from .interrupt import Interrupted, handle_signals
 
     try:
-        backend.set_variant(args.variant)
-        return int(importlib.import_module(args._module).run(args) or 0)
+        with handle_signals():
+            backend.set_variant(args.variant)
+            return int(importlib.import_module(args._module).run(args) or 0)
     except (CLIError, backend.BackendError, FileNotFoundError, FileExistsError,
             ValueError) as exc:
         print(f"mi-shadowgs {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"mi-shadowgs {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except Interrupted as exc:
+        hint = RESUME_HINTS.get(args.command, "run the same command again to continue")
+        print(f"mi-shadowgs {args.command}: interrupted by {exc}; {hint}", file=sys.stderr)
+        return exc.exit_code
 
 
 if __name__ == "__main__":

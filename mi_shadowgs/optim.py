@@ -117,3 +117,38 @@ class SurfelAdam:
             dr.enable_grad(q)
             self.params[key] = q
         dr.eval(self.params, self.m, self.v)
+
+
+# -- checkpoints of drjit.opt.Adam (mi.ad.Adam) ------------------------------------------------
+# Its state per parameter is (value, promoted, lr, (t, m, v, v_max)) (Dr.Jit 1.5, pinned in
+# pyproject.toml); these two functions are the only code that knows that layout.
+def adam_to_numpy(opt, prefix: str) -> dict[str, np.ndarray]:
+    """The parameters, moments, step counts and learning rates of ``opt`` as arrays named
+    ``prefix + "<key>/value"`` etc., ``prefix + "keys"`` (the registration order) and
+    ``prefix + "lr"`` (the default learning rate)."""
+    out = {prefix + "keys": np.array(list(opt.keys()), dtype=str),
+           prefix + "lr": np.array([opt.lr], np.float64)}
+    for key, (value, _, lr, (t, m, v, _)) in opt.state.items():
+        shape = value.shape if isinstance(value, mi.TensorXf) else (dr.width(value),)
+        out[f"{prefix}{key}/value"] = np.asarray(value.numpy(), np.float32).reshape(shape)
+        out[f"{prefix}{key}/m"] = np.asarray(m.numpy(), np.float32)
+        out[f"{prefix}{key}/v"] = np.asarray(v.numpy(), np.float32)
+        out[f"{prefix}{key}/t"] = np.asarray(t.numpy(), np.uint32)
+        if lr is not None:
+            out[f"{prefix}{key}/lr"] = np.array([lr], np.float64)
+    return out
+
+
+def adam_from_numpy(opt, arrays: dict[str, np.ndarray], prefix: str) -> None:
+    """Register the parameters of ``adam_to_numpy`` in ``opt`` with their whole state (in
+    the saved order: a resumed loop visits them as the original did). A 1-D value comes
+    back as ``mi.Float``, any other as ``mi.TensorXf``."""
+    opt.set_learning_rate(float(arrays[prefix + "lr"][0]))
+    for key in arrays[prefix + "keys"].tolist():
+        a = arrays[f"{prefix}{key}/value"]
+        opt[key] = mi.Float(a) if a.ndim == 1 else mi.TensorXf(a)
+        value, promoted, _, _ = opt.state[key]
+        lr = arrays.get(f"{prefix}{key}/lr")
+        extra = (mi.UInt32(arrays[f"{prefix}{key}/t"]), mi.Float(arrays[f"{prefix}{key}/m"]),
+                 mi.Float(arrays[f"{prefix}{key}/v"]), None)
+        opt.state[key] = (value, promoted, None if lr is None else float(lr[0]), extra)

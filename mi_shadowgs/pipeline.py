@@ -72,12 +72,13 @@ def material_config(preset: str, overrides: dict | None = None) -> SM.MaterialCo
 
 
 def decompose(surfels, train, preset: str, bounds: V.SceneBounds, overrides: dict | None = None,
-              progress: bool = True) -> SM.MaterialResult:
-    """Stage 4 on the training views of ``train`` (a loaded Dataset)."""
+              progress: bool = True, **checkpoints) -> SM.MaterialResult:
+    """Stage 4 on the training views of ``train`` (a loaded Dataset); ``checkpoints``:
+    ``state`` and ``on_checkpoint`` of ``fit_material``."""
     cfg = material_config(preset, overrides)
     return SM.fit_material(surfels, train.cameras, [v.image for v in train.views],
                            [v.mask for v in train.views], cfg, bounds, V.preset(preset),
-                           progress=progress)
+                           progress=progress, **checkpoints)
 
 
 def _scaled_albedo_model(model: R.RelightModel, scale: np.ndarray) -> R.RelightModel:
@@ -237,6 +238,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     provenance is reused."""
     from .ply import save_ply
     from .provenance import Output, Provenance, dataset_ref, input_ref
+    from .runners import checkpoint_hooks
 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
@@ -252,8 +254,9 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
                      inputs=[data, seg_model]) as out:
         if out.complete:
             return json.loads((folder / "metrics.json").read_text()), None
+        checkpoints = checkpoint_hooks(out, SM.MaterialState.from_checkpoint)
         res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds, overrides,
-                                              progress))
+                                              progress, **checkpoints))
         metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset)
         metrics["fit_s"] = fit_s
         save_ply(out.path("model.ply"), res.surfels)
@@ -283,7 +286,8 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
 
     Every input (both splits, ground truth, lights.json) is read and checked first. Each
     stage's output is reused when it is finished and was made from the same dataset, input
-    model and settings; stage 1 continues from its last checkpoint after an interruption;
+    model and settings; stages 1, 2 and 4 continue from their last checkpoints after an
+    interruption (a kill loses at most their ``checkpoint_seconds``);
     anything else exits with a ProvenanceError naming what differs, unless ``overwrite``
     removes the run's files first. ``log`` takes the stages' one-line summaries.
     """

@@ -21,7 +21,7 @@ import numpy as np
 
 from .atomic import write_json, write_text
 from .config import to_dict, with_overrides
-from .provenance import Output, Provenance, ProvenanceError, dataset_ref, input_ref
+from .provenance import Output, Provenance, dataset_ref, input_ref
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "psnr", "surfels",
               "time")
@@ -154,8 +154,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
         ckpt_dir = folder / "checkpoint"
         if out.reused and has_checkpoint(ckpt_dir):
             state = TrainState.from_numpy(load_checkpoint(ckpt_dir)[0], config)
-        elif resume:
-            raise ProvenanceError(f"{ckpt_dir}: no checkpoint to resume from")
+        elif resume:  # killed before its first checkpoint: that was < checkpoint_seconds
+            warn(f"{ckpt_dir}: no checkpoint yet; starting from step 0")
         write_json(out.path("config.json"), {"stage": "geometry", "preset": preset,
                                              "data": str(Path(data).resolve()),
                                              "config": cfg_dict})
@@ -205,9 +205,10 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     """Stage 2: segments of the surfel model ``model`` from ``data``'s training label maps.
 
     Writes ``model.ply`` (with ``feature_*`` and ``segment``), ``segments/NAME.png`` and
-    ``NAME_overlay.png`` per view of ``split``, and ``segmentation.json`` into ``folder``.
-    An existing output is replaced (``overwrite``), returned when finished with the same
-    dataset, model and settings (``reuse``), or refused. ``train`` / ``views``: the
+    ``NAME_overlay.png`` per view of ``split``, ``segmentation.json`` and the feature
+    training's ``checkpoint/checkpoint.npz`` into ``folder``. An existing output is replaced
+    (``overwrite``), returned when finished with the same dataset, model and settings or
+    else continued from its checkpoint (``reuse``), or refused. ``train`` / ``views``: the
     training split and ``split``, when the caller has loaded them already.
     """
     from tqdm import tqdm
@@ -231,14 +232,15 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(model)},
                             settings=settings)
     out = Output.open(folder, "segment", provenance, overwrite=overwrite, reuse=reuse,
-                      inputs=[model, data])
+                      inputs=[model, data], continue_flag="--resume")
     if out.complete:
         return StageRun(folder, False, 0.0, "")
     t0 = time.perf_counter()
     label_maps = masks_mod.masks_for(train, masks, mask_config)
     t_masks = time.perf_counter() - t0
     result = seg.segment_surfels(surfels, train.cameras, label_maps, config,
-                                 progress=progress, names=[v.name for v in train.views])
+                                 progress=progress, names=[v.name for v in train.views],
+                                 **checkpoint_hooks(out, seg.FeatureState.from_checkpoint))
     t_stage = time.perf_counter() - t0
     stems = [Path(v.name).name for v in views.views]
     with out:
@@ -267,6 +269,23 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     line = (f"segmented {surfels.count} surfels into {result.k} segments in {t_stage:.1f} s; "
             f"wrote {folder} {json.dumps(summary) if summary else ''}").rstrip()
     return StageRun(folder, True, time.perf_counter() - t0, line)
+
+
+def checkpoint_hooks(out: Output, from_checkpoint) -> dict:
+    """``state`` and ``on_checkpoint`` of a loop whose state has ``to_checkpoint`` (stages 2
+    and 4), saved in ``out``'s ``checkpoint/``: the state is the checkpoint's when ``out``
+    is a reused output that has one."""
+    from .checkpoint import has_checkpoint, load_checkpoint, save_checkpoint
+
+    folder = out.folder / "checkpoint"
+
+    def on_checkpoint(state) -> None:
+        out.claim("checkpoint/checkpoint.npz")
+        save_checkpoint(folder, *state.to_checkpoint())
+
+    state = from_checkpoint(*load_checkpoint(folder)) \
+        if out.reused and has_checkpoint(folder) else None
+    return {"state": state, "on_checkpoint": on_checkpoint}
 
 
 def _segmentation_metrics(maps: list, views) -> dict:

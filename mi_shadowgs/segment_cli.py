@@ -28,6 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output folder: new, or holding an earlier segment output")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an earlier segment output there (only its files)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted segment output there from its checkpoint")
     parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
     parser.add_argument("--masks", default="material", choices=("material", "chromaticity"),
                         help="label maps to train on (default: the dataset's material ids)")
@@ -86,6 +88,7 @@ def run(args) -> int:
     result = run_segmentation(resolve_model(args.model), args.data, args.out,
                               segmentation_config(args.preset, args.masks, overrides),
                               masks=args.masks, preset=args.preset, split=args.split,
-                              overwrite=args.overwrite, progress=not args.quiet)
+                              overwrite=args.overwrite, reuse=args.resume,
+                              progress=not args.quiet)
     print(result.summary)
     return 0

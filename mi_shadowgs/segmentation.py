@@ -74,6 +74,9 @@ class SegmentationConfig:
     init_std: float = 0.01
     seed: int = 0
     log_every: int = 25  # iterations between progress-bar loss reads (host syncs)
+    # Resumable checkpoints: every so many iterations and at least this often in wall time.
+    checkpoint_every: int = 500
+    checkpoint_seconds: float = 60.0
 
 
 PRESETS = {
@@ -262,78 +265,139 @@ class TrainResult:
     seconds: float
 
 
+@dataclasses.dataclass
+class FeatureState:
+    """Everything a checkpoint of ``train_features`` needs to continue it exactly."""
+
+    step: int  # finished iterations
+    opt: mi.ad.Adam  # the features [N, D] and their Adam state
+    coverage: mi.Float  # [N] summed splat weight so far
+    proto: list  # D x mi.Float [n_labels + 1], the prototype sums so far
+    rng: np.random.Generator  # view order and pixel samples
+    order: list  # views left in the current shuffled round
+    history: list
+    elapsed: float = 0.0  # seconds of training before this process
+
+    def to_checkpoint(self) -> tuple[dict[str, np.ndarray], dict]:
+        """(arrays, JSON meta) for ``mi_shadowgs.checkpoint.save_checkpoint``."""
+        from .optim import adam_to_numpy
+
+        arrays = adam_to_numpy(self.opt, "adam/")
+        arrays["coverage"] = np.asarray(self.coverage.numpy(), np.float32)
+        arrays["proto"] = np.stack([np.asarray(c.numpy(), np.float32) for c in self.proto])
+        arrays["order"] = np.asarray(self.order, np.int64)
+        return arrays, {"step": self.step, "elapsed": self.elapsed, "history": self.history,
+                        "rng": self.rng.bit_generator.state}
+
+    @staticmethod
+    def from_checkpoint(arrays: dict[str, np.ndarray], meta: dict) -> FeatureState:
+        from .optim import adam_from_numpy
+
+        opt = mi.ad.Adam(lr=0.0)
+        adam_from_numpy(opt, arrays, "adam/")
+        rng = np.random.default_rng()
+        rng.bit_generator.state = meta["rng"]
+        return FeatureState(int(meta["step"]), opt, mi.Float(arrays["coverage"]),
+                            [mi.Float(c) for c in arrays["proto"]], rng,
+                            arrays["order"].tolist(),
+                            [(int(i), dict(v)) for i, v in meta["history"]],
+                            float(meta["elapsed"]))
+
+
 def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet,
                    config: SegmentationConfig, raster: RasterConfig = _RASTER,
-                   progress: bool = True) -> TrainResult:
+                   progress: bool = True, state: FeatureState | None = None,
+                   on_checkpoint=None) -> TrainResult:
     """Optimise per-surfel features (geometry fixed) with Eq. 11 for ``config.iterations``.
 
     Each iteration renders the features of one training view (views visited in shuffled
     rounds) and samples ``n_samples`` of its labelled pixels. Views without labelled pixels
     are skipped. The per-surfel coverage (summed splat weight) is accumulated from the same
     renders through the gradient of a constant channel, at no extra rasterization.
+
+    ``state`` (``FeatureState.from_checkpoint``) continues an interrupted run;
+    ``on_checkpoint(state)`` is called every ``checkpoint_every`` iterations, every
+    ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.interrupt``).
     """
     import time
 
     from tqdm import tqdm
 
+    from .interrupt import CheckpointClock, raise_pending
+
+    clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
     if surfels.count == 0:
         raise ValueError("segmentation: the model has no surfels")
     usable = [v for v in range(len(cameras)) if labels.pixels[v].size >= 2]
     if not usable:
         raise ValueError("segmentation: no training view has labelled pixels")
-    rng = np.random.default_rng(config.seed)
     n = surfels.count
     geom = Surfels(dr.detach(surfels.position), dr.detach(surfels.log_scale),
                    dr.detach(surfels.rotation), dr.detach(surfels.opacity_logit))
-    start = surfels.channels.get(FEATURE)
-    if start is None or start.shape[1] != config.feature_dim:
-        start = init_features(n, config.feature_dim, config.seed, config.init_std)
-    opt = mi.ad.Adam(lr=config.lr)
-    opt[FEATURE] = mi.TensorXf(start)
-    coverage = dr.zeros(mi.Float, n)
-    proto = [dr.zeros(mi.Float, labels.n_labels + 1) for _ in range(config.feature_dim)]
+    if state is None:
+        start = surfels.channels.get(FEATURE)
+        if start is None or start.shape[1] != config.feature_dim:
+            start = init_features(n, config.feature_dim, config.seed, config.init_std)
+        opt = mi.ad.Adam(lr=config.lr)
+        opt[FEATURE] = mi.TensorXf(start)
+        state = FeatureState(0, opt, dr.zeros(mi.Float, n),
+                             [dr.zeros(mi.Float, labels.n_labels + 1)
+                              for _ in range(config.feature_dim)],
+                             np.random.default_rng(config.seed), [], [])
+    opt, rng, proto = state.opt, state.rng, state.proto
     proto_from = config.iterations - max(1, config.iterations // 4)
     half = max(1, config.n_samples // 2)
-    order: list[int] = []
-    history = []
-    t0 = time.perf_counter()
-    bar = tqdm(range(config.iterations), desc="segment", unit="it", disable=not progress)
-    for it in bar:
-        if not order:
-            order = rng.permutation(usable).tolist()
-        v = order.pop()
-        feats = opt[FEATURE]
-        ones = dr.ones(mi.TensorXf, (n, 1))
-        dr.enable_grad(ones)
-        img = rasterize(geom, cameras[v], {FEATURE: feats, "cover": ones}, aovs=(),
-                        config=raster)
-        # Samples drawn on the host from host-side label lists: no device read-back.
-        pix, lab = labels.pixels[v], labels.labels[v]
-        pick = rng.integers(0, pix.size, size=2 * half)
-        p1, p2 = mi.UInt32(pix[pick[:half]]), mi.UInt32(pix[pick[half:]])
-        q1, q2 = mi.UInt32(lab[pick[:half]]), mi.UInt32(lab[pick[half:]])
-        terms = segmentation_loss(img[FEATURE], feats, p1, q1, p2, q2, labels.n_labels,
-                                  config)
-        # d(sum of the cover image)/d(ones_i) = surfel i's summed splat weight.
-        dr.backward(terms["total"] + dr.sum(img["cover"].array))
-        coverage = coverage + ones.grad.array
-        if it >= proto_from:  # label prototypes of the (nearly) trained features
-            img_d = dr.detach(img[FEATURE])
-            for p, q in ((p1, q1), (p2, q2)):
-                for acc, c in zip(proto, normalize_rows(gather_pixels(img_d, p)), strict=True):
-                    dr.scatter_reduce(dr.ReduceOp.Add, acc, c, q)
-        opt.step()
-        dr.eval(coverage, proto)
-        if (it + 1) % config.log_every == 0 or it + 1 == config.iterations:
-            vals = {k: float(t.numpy().reshape(-1)[0]) for k, t in terms.items()}
-            history.append((it + 1, vals))
-            bar.set_postfix(loss=f"{vals['total']:.4f}")
+    t0 = time.perf_counter() - state.elapsed
+    bar = tqdm(total=config.iterations, initial=state.step, desc="segment", unit="it",
+               disable=not progress)
+    with bar, clock.running():
+        while state.step < config.iterations:
+            it = state.step
+            if not state.order:
+                state.order = rng.permutation(usable).tolist()
+            v = state.order.pop()
+            feats = opt[FEATURE]
+            ones = dr.ones(mi.TensorXf, (n, 1))
+            dr.enable_grad(ones)
+            img = rasterize(geom, cameras[v], {FEATURE: feats, "cover": ones}, aovs=(),
+                            config=raster)
+            # Samples drawn on the host from host-side label lists: no device read-back.
+            pix, lab = labels.pixels[v], labels.labels[v]
+            pick = rng.integers(0, pix.size, size=2 * half)
+            p1, p2 = mi.UInt32(pix[pick[:half]]), mi.UInt32(pix[pick[half:]])
+            q1, q2 = mi.UInt32(lab[pick[:half]]), mi.UInt32(lab[pick[half:]])
+            terms = segmentation_loss(img[FEATURE], feats, p1, q1, p2, q2, labels.n_labels,
+                                      config)
+            # d(sum of the cover image)/d(ones_i) = surfel i's summed splat weight.
+            dr.backward(terms["total"] + dr.sum(img["cover"].array))
+            state.coverage = state.coverage + ones.grad.array
+            if it >= proto_from:  # label prototypes of the (nearly) trained features
+                img_d = dr.detach(img[FEATURE])
+                for p, q in ((p1, q1), (p2, q2)):
+                    for acc, c in zip(proto, normalize_rows(gather_pixels(img_d, p)),
+                                      strict=True):
+                        dr.scatter_reduce(dr.ReduceOp.Add, acc, c, q)
+            opt.step()
+            dr.eval(state.coverage, proto)
+            state.step = it + 1
+            if state.step % config.log_every == 0 or state.step == config.iterations:
+                vals = {k: float(t.numpy().reshape(-1)[0]) for k, t in terms.items()}
+                state.history.append((state.step, vals))
+                bar.set_postfix(loss=f"{vals['total']:.4f}")
+            bar.update(1)
+            if on_checkpoint and (clock.due(state.step) or state.step == config.iterations):
+                state.elapsed = time.perf_counter() - t0
+                on_checkpoint(state)
+                clock.saved()
+            raise_pending(f"segmentation stopped at iteration {state.step} of "
+                          f"{config.iterations}" + (", checkpoint written" if on_checkpoint
+                                                    else ""))
     feats = opt[FEATURE]
     out = np.asarray(feats.numpy(), dtype=np.float32).reshape(n, config.feature_dim)
-    cov = np.asarray(coverage.numpy(), dtype=np.float64)
+    cov = np.asarray(state.coverage.numpy(), dtype=np.float64)
     protos = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in proto], axis=-1)[1:]
     dr.sync_thread()
-    return TrainResult(out, cov, protos, history, time.perf_counter() - t0)
+    return TrainResult(out, cov, protos, state.history, time.perf_counter() - t0)
 
 
 # -- K-means ------------------------------------------------------------------------------
@@ -403,11 +467,14 @@ class SegmentationResult:
 def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                     label_maps: Sequence[np.ndarray], config: SegmentationConfig,
                     raster: RasterConfig = _RASTER, progress: bool = True,
-                    names: Sequence[str] | None = None) -> SegmentationResult:
-    """The whole stage: train features on ``label_maps`` (one per camera), then K-means."""
+                    names: Sequence[str] | None = None, state: FeatureState | None = None,
+                    on_checkpoint=None) -> SegmentationResult:
+    """The whole stage: train features on ``label_maps`` (one per camera), then K-means.
+    ``state`` and ``on_checkpoint``: see ``train_features``."""
     labels = prepare_labels(label_maps, cameras, names)
     k = auto_k(labels, config)
-    tr = train_features(surfels, cameras, labels, config, raster, progress)
+    tr = train_features(surfels, cameras, labels, config, raster, progress, state,
+                        on_checkpoint)
     seg, _ = kmeans_segments(tr.features, k, tr.coverage >= config.min_coverage, config.seed,
                              config.kmeans_restarts, config.kmeans_iterations,
                              prototype_seeds(tr.prototypes, labels, k))

@@ -27,6 +27,7 @@ import numpy as np
 from . import losses, metrics
 from .config import get_preset
 from .densify import DensifyConfig, DensifyStrategy
+from .interrupt import CheckpointClock, raise_pending
 from .optim import SurfelAdam, surfels_from_params
 from .raster import RasterConfig, rasterize
 from .surfels import SH_C0, Surfels, sh_colors
@@ -71,6 +72,8 @@ class GeometryConfig:
     log_every: int = 100
     preview_every: int = 2000
     checkpoint_every: int = 2000
+    # ... and at least this often in wall time (a kill loses at most this much work).
+    checkpoint_seconds: float = 60.0
 
 
 PRESETS = {
@@ -312,6 +315,9 @@ class TrainState:
     strategy: DensifyStrategy
     extent: float
     elapsed: float = 0.0  # seconds of training before this process
+    # Loss terms summed since the last log row, so that a resumed run logs the same means.
+    log_sums: dict = dataclasses.field(default_factory=dict)  # name -> mi.Float [1]
+    log_count: int = 0
 
     def to_numpy(self) -> dict[str, np.ndarray]:
         p, m, v = self.opt.to_numpy()
@@ -319,20 +325,23 @@ class TrainState:
         out.update({f"adam_m/{k}": a for k, a in m.items()})
         out.update({f"adam_v/{k}": a for k, a in v.items()})
         out.update({f"densify/{k}": a for k, a in self.strategy.state_numpy().items()})
-        out["scalars"] = np.array([self.step, self.opt.t, self.extent, self.elapsed],
-                                  np.float64)
+        out.update({f"log/{k}": np.asarray(x.numpy(), np.float32)
+                    for k, x in self.log_sums.items()})
+        out["scalars"] = np.array([self.step, self.opt.t, self.extent, self.elapsed,
+                                   self.log_count], np.float64)
         return out
 
     @staticmethod
     def from_numpy(arrays: dict[str, np.ndarray], config: GeometryConfig) -> TrainState:
         def group(prefix):
             return {k[len(prefix):]: a for k, a in arrays.items() if k.startswith(prefix)}
-        step, t, extent, elapsed = (float(x) for x in arrays["scalars"])
+        step, t, extent, elapsed, log_count = (float(x) for x in arrays["scalars"])
         opt = SurfelAdam(group("param/"), _learning_rates_split(config, int(step), extent))
         opt.load(group("param/"), group("adam_m/"), group("adam_v/"), int(t))
         strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed)
         strategy.load_state(group("densify/"))
-        return TrainState(int(step), opt, strategy, extent, elapsed)
+        sums = {k: mi.Float(a) for k, a in group("log/").items()}
+        return TrainState(int(step), opt, strategy, extent, elapsed, sums, int(log_count))
 
 
 def _learning_rates(config: GeometryConfig, step: int, extent: float) -> dict[str, float]:
@@ -398,8 +407,9 @@ class Callbacks:
     """Hooks of the training loop (I/O lives in the caller). Each may be None.
 
     ``on_log(record: dict)`` every ``log_every`` steps; ``on_preview(step, render, view)``
-    every ``preview_every``; ``on_checkpoint(state)`` every ``checkpoint_every`` (and at the
-    end); ``on_step(step)`` after every step (tests use it to interrupt a run).
+    every ``preview_every``; ``on_checkpoint(state)`` every ``checkpoint_every`` steps, every
+    ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.interrupt``);
+    ``on_step(step)`` after every step (tests use it to interrupt a run).
     """
 
     on_log: Callable | None = None
@@ -418,6 +428,7 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     from tqdm import tqdm
 
     cb = callbacks or Callbacks()
+    clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
     if len(dataset.views) == 0:
         raise ValueError(f"{dataset.root}: split {dataset.split!r} has no views")
     for v in dataset.views:
@@ -426,13 +437,11 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     views = [_view_data(v) for v in dataset.views]
     if state is None:
         state = initial_state(dataset, config)
-    opt, strategy = state.opt, state.strategy
+    opt, strategy, sums = state.opt, state.strategy, state.log_sums
     t0 = time.perf_counter() - state.elapsed
-    sums: dict[str, mi.Float] = {}
-    n_sum = 0
     bar = tqdm(total=config.iterations, initial=state.step, disable=not progress,
                desc="geometry", dynamic_ncols=True, leave=False)
-    try:
+    with bar, clock.running():
         while state.step < config.iterations:
             step = state.step
             opt.lr.update(_learning_rates_split(config, step, state.extent))
@@ -446,11 +455,11 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
             dr.schedule(sums)
             opt.step()
             state.step = step + 1
-            n_sum += 1
+            state.log_count += 1
             strategy.step(state.step, opt)
             if state.step % config.log_every == 0 or state.step == config.iterations:
                 # The only per-interval host read: mean terms since the last log.
-                rec = {k: float(v[0]) / n_sum for k, v in sums.items()}
+                rec = {k: float(v[0]) / state.log_count for k, v in sums.items()}
                 rec["psnr"] = losses.psnr_from_mse(rec.pop("mse"))
                 dr.sync_thread()
                 rec.update(iteration=state.step, surfels=opt.count,
@@ -462,19 +471,21 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
                                 n=opt.count)
                 if cb.on_log:
                     cb.on_log(rec)
-                sums, n_sum = {}, 0
+                sums.clear()
+                state.log_count = 0
             bar.update(1)
             if cb.on_preview and (state.step % config.preview_every == 0 or
                                   state.step == config.iterations):
                 cb.on_preview(state.step, model_surfels(opt.params), dataset.views[0])
-            if cb.on_checkpoint and (state.step % config.checkpoint_every == 0 or
+            if cb.on_checkpoint and (clock.due(state.step) or
                                      state.step == config.iterations):
                 state.elapsed = time.perf_counter() - t0
                 cb.on_checkpoint(state)
+                clock.saved()
+            raise_pending(f"geometry stopped at step {state.step} of {config.iterations}"
+                          + (", checkpoint written" if cb.on_checkpoint else ""))
             if cb.on_step:
                 cb.on_step(state.step)
-    finally:
-        bar.close()
     final = model_surfels({k: dr.detach(v) for k, v in opt.params.items()})
     return final
 

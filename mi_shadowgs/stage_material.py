@@ -112,6 +112,9 @@ class MaterialConfig:
     views_per_step: int = 1
     mask_alpha: float = 0.5  # pixels with rendered alpha below this are not supervised
     log_every: int = 100  # host reads of the loss (progress bar) every this many steps
+    # Resumable checkpoints: every so many steps and at least this often in wall time.
+    checkpoint_every: int = 1000
+    checkpoint_seconds: float = 60.0
     seed: int = 0
 
     def __post_init__(self):
@@ -179,6 +182,64 @@ class MaterialResult:
     use_visibility: bool
     history: list  # (step, loss) read every log_every steps
     timings: dict  # seconds: prepare, warmup, main, per-step medians
+
+
+@dataclasses.dataclass
+class MaterialState:
+    """Everything a checkpoint of ``fit_material`` needs to continue it exactly.
+
+    The shadow maps are not saved: they follow from ``directions`` (each map is rendered on
+    its own, so re-rendering the survivors equals the maps the fit gathered them from), at
+    the warm-up resolution up to the end of the warm-up and at the full one after it.
+    """
+
+    step: int  # finished iterations
+    opt: mi.ad.Adam  # the fitted channels and log L_dir, with their Adam state
+    channels: dict  # name -> mi.TensorXf [N, C]: all four (those not in opt keep their value)
+    directions: np.ndarray  # [K, 3] the lights: the grid, then pruned, merged, refined
+    specular: bool  # whether the GGX lobe is still modelled
+    rng: np.random.Generator  # the training views' order
+    loss_sum: mi.Float  # [1] loss summed since the last history entry
+    history: list
+    timings: dict  # seconds: "prepare_s", finished phases, "phase_s" into the current one
+    # A refinement of step ``step`` (not finished) that a checkpoint interrupted.
+    refine: Refinement | None = None
+
+    def to_checkpoint(self) -> tuple[dict[str, np.ndarray], dict]:
+        """(arrays, JSON meta) for ``mi_shadowgs.checkpoint.save_checkpoint``."""
+        from .optim import adam_to_numpy
+
+        arrays = adam_to_numpy(self.opt, "adam/")
+        arrays.update({f"channel/{k}": np.asarray(v.numpy(), np.float32)
+                       for k, v in self.channels.items()})
+        arrays["directions"] = np.asarray(self.directions, np.float64)
+        arrays["loss_sum"] = np.asarray(self.loss_sum.numpy(), np.float32)
+        if self.refine is not None:
+            arrays.update({"refine/dirs": self.refine.dirs,
+                           "refine/irradiance": self.refine.irradiance,
+                           "refine/lights": self.refine.lights,
+                           "refine/done": np.array([self.refine.done])})
+        return arrays, {"step": self.step, "specular": self.specular,
+                        "rng": self.rng.bit_generator.state, "history": self.history,
+                        "timings": self.timings}
+
+    @staticmethod
+    def from_checkpoint(arrays: dict[str, np.ndarray], meta: dict) -> MaterialState:
+        from .optim import adam_from_numpy
+
+        opt = mi.ad.Adam(lr=0.0)
+        adam_from_numpy(opt, arrays, "adam/")
+        rng = np.random.default_rng()
+        rng.bit_generator.state = meta["rng"]
+        channels = {k[len("channel/"):]: mi.TensorXf(a) for k, a in arrays.items()
+                    if k.startswith("channel/")}
+        refine = Refinement(arrays["refine/dirs"], arrays["refine/irradiance"],
+                            arrays["refine/lights"], int(arrays["refine/done"][0])) \
+            if "refine/dirs" in arrays else None
+        return MaterialState(int(meta["step"]), opt, channels, arrays["directions"],
+                             bool(meta["specular"]), rng, mi.Float(arrays["loss_sum"]),
+                             [(int(i), float(x)) for i, x in meta["history"]],
+                             dict(meta["timings"]), refine)
 
 
 def init_channels(surfels: Surfels, config: MaterialConfig) -> dict[str, mi.TensorXf]:
@@ -346,17 +407,25 @@ def _prune(opt, dirs: np.ndarray, maps, config: MaterialConfig, render_maps):
 _LIGHT_KEYS = ("log_light",)
 
 
-def _refine(views, ch: dict, opt, dirs: np.ndarray, maps, render_maps,
-            config: MaterialConfig, with_specular: bool) -> np.ndarray:
-    """``refine_directions`` on the optimiser's current state; sets the refitted light."""
+def _refine(views, state: MaterialState, maps, render_maps, config: MaterialConfig,
+            on_unit) -> np.ndarray:
+    """``refine_directions`` on the optimiser's current state, or the rest of
+    ``state.refine`` when a checkpoint was written inside it; sets the refitted light and
+    returns the directions."""
     dw = solid_angle(config.n_directions)
-    cur = dict(ch)
+    opt = state.opt
+    cur = dict(state.channels)
     for key in opt.keys():
         if key not in _LIGHT_KEYS:
             cur[key] = opt[key]
-    irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
-    dirs, irr = refine_directions(views, cur, dirs, irr, maps, render_maps, config,
-                                  with_specular)
+    if state.refine is None:
+        irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
+        state.refine = Refinement.start(state.directions, irr, config)
+    else:
+        maps = render_maps(state.refine.dirs)
+    state.refine.run(views, cur, maps, render_maps, config, state.specular, on_unit)
+    dirs, irr = state.refine.dirs, state.refine.irradiance
+    state.refine = None
     opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
     opt.set_learning_rate({"log_light": config.lr_light})
     return dirs
@@ -471,6 +540,47 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet
     return err, irr
 
 
+@dataclasses.dataclass
+class Refinement:
+    """A light-direction refinement (``refine_directions``) in progress: it continues after
+    each finished (light, pass) unit, so that a checkpoint can be written between units
+    (cpu-small, 25k surfels, 2 cores: 40 s per refinement on quiet cores, 80 s on loaded
+    ones; a unit ~10 s)."""
+
+    dirs: np.ndarray  # [K, 3] the lights' directions so far
+    irradiance: np.ndarray  # [K]
+    lights: np.ndarray  # [R] the lights refined, strongest first
+    done: int = 0  # finished (light, pass) units
+
+    @staticmethod
+    def start(dirs: np.ndarray, irradiance: np.ndarray, config: MaterialConfig) -> Refinement:
+        irr = np.array(irradiance, np.float64)
+        # The strongest first: it shapes the residual most.
+        return Refinement(np.array(dirs, np.float64), irr,
+                          np.argsort(-irr)[:config.refine_max_lights])
+
+    def run(self, views: list[TrainView], channels: dict, maps, render_maps,
+            config: MaterialConfig, with_specular: bool, on_unit=None) -> None:
+        """The units left; ``maps``: the shadow maps of ``dirs``; ``on_unit()`` after each."""
+        pick = np.unique(np.linspace(0, len(views) - 1, min(config.refine_views, len(views)))
+                         .round().astype(int))
+        sub = [views[i] for i in pick]
+        units = [(int(k), r, st) for k in self.lights for r, st in config.refine_passes]
+        for k, radius, step in units[self.done:]:
+            cand = candidate_directions(self.dirs[k], radius, step)
+            irr = mi.Float(self.irradiance.astype(np.float32))
+            lights = S.LightSet(self.dirs, mi.Color3f(irr, irr, irr))
+            err, fit = _candidate_scores(sub, channels, lights, maps, k, render_maps(cand),
+                                         config, with_specular)
+            best = int(np.argmin(err))
+            if best != 0 and fit[best] > 0:
+                self.dirs[k], self.irradiance[k] = cand[best], fit[best]
+                maps = render_maps(self.dirs)
+            self.done += 1
+            if on_unit:
+                on_unit()
+
+
 def refine_directions(views: list[TrainView], channels: dict, dirs: np.ndarray,
                       irradiance: np.ndarray, maps, render_maps, config: MaterialConfig,
                       with_specular: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -479,35 +589,29 @@ def refine_directions(views: list[TrainView], channels: dict, dirs: np.ndarray,
     ``dirs`` [K, 3] and ``irradiance`` [K] are the current lights; ``maps`` their shadow
     maps; ``render_maps(directions)`` renders maps. Returns the refined (dirs, irradiance).
     """
-    dirs = np.array(dirs, np.float64)
-    irr = np.array(irradiance, np.float64)
-    pick = np.unique(np.linspace(0, len(views) - 1, min(config.refine_views, len(views)))
-                     .round().astype(int))
-    sub = [views[i] for i in pick]
-    # The strongest first: it shapes the residual most.
-    for k in np.argsort(-irr)[:config.refine_max_lights]:
-        for radius, step in config.refine_passes:
-            cand = candidate_directions(dirs[k], radius, step)
-            lights = S.LightSet(dirs, mi.Color3f(*(mi.Float(irr.astype(np.float32)),) * 3))
-            err, fit = _candidate_scores(sub, channels, lights, maps, int(k),
-                                         render_maps(cand), config, with_specular)
-            best = int(np.argmin(err))
-            if best != 0 and fit[best] > 0:
-                dirs[k], irr[k] = cand[best], fit[best]
-                maps = render_maps(dirs)
-    return dirs, irr
+    refinement = Refinement.start(dirs, irradiance, config)
+    refinement.run(views, channels, maps, render_maps, config, with_specular)
+    return refinement.dirs, refinement.irradiance
 
 
 def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
                  masks: list[np.ndarray], config: MaterialConfig, bounds: SceneBounds,
                  vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
-                 raster: RasterConfig = DEFAULT_RASTER, progress: bool = True
-                 ) -> MaterialResult:
-    """Fit materials, light map and indirect light to the training views (the loop)."""
+                 raster: RasterConfig = DEFAULT_RASTER, progress: bool = True,
+                 state: MaterialState | None = None, on_checkpoint=None) -> MaterialResult:
+    """Fit materials, light map and indirect light to the training views (the loop).
+
+    ``state`` (``MaterialState.from_checkpoint``) continues an interrupted fit;
+    ``on_checkpoint(state)`` is called every ``checkpoint_every`` steps, every
+    ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.interrupt``).
+    """
     from tqdm import tqdm
+
+    from .interrupt import CheckpointClock, raise_pending
 
     if not (len(cameras) == len(images) == len(masks)) or not cameras:
         raise ValueError("fit_material: need as many images and masks as cameras (>= 1)")
+    clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
     t0 = time.perf_counter()
     seg = segment_ids(surfels)
     n_seg = int(np.max(seg.numpy())) + 1 if surfels.count else 1
@@ -516,7 +620,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
                                  images, masks, strict=True)]
     grid = light_grid(config.n_directions)
     dw = solid_angle(config.n_directions)
-    dirs = grid  # [K, 3] the directions that carry light: all, then pruned and merged
+    warmup_res = min(config.warmup_map_resolution, vis_config.resolution)
 
     def shadow_maps(directions, resolution=None):
         if not config.use_visibility:
@@ -525,9 +629,119 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
             dataclasses.replace(vis_config, resolution=resolution)
         return render_shadow_maps(surfels, directions, bounds, cfg)
 
-    maps = shadow_maps(dirs, min(config.warmup_map_resolution, vis_config.resolution))
+    if state is None:
+        state = _initial_state(surfels, images, views, seg, n_seg, config)
+    state.timings["prepare_s"] = state.timings.get("prepare_s", 0.0) + \
+        time.perf_counter() - t0
     # Per-view point/normal lookups are fixed: visibility of all active directions per view
     # is re-evaluated on the fly (cheap gathers) rather than stored (V x H x W x L floats).
+    # The warm-up's maps up to its end (unless the checkpoint is inside the refinement that
+    # follows it), the full-resolution ones after.
+    maps = shadow_maps(state.directions, warmup_res if state.step < config.warmup or (
+        state.step == config.warmup and state.refine is None) else None)
+    opt, ch = state.opt, state.channels
+    bar = tqdm(total=config.iterations, initial=state.step, desc="stage 4: fit",
+               disable=not progress)
+    t_phase = time.perf_counter() - state.timings.pop("phase_s", 0.0)
+    refine_again = (config.warmup + config.iterations) // 2 \
+        if config.iterations > config.warmup + 1 else -1
+
+    def save() -> None:
+        state.timings["phase_s"] = time.perf_counter() - t_phase
+        on_checkpoint(state)
+        del state.timings["phase_s"]
+        clock.saved()
+
+    def refined_one() -> None:
+        """After each unit of a refinement: a refinement can take minutes."""
+        if on_checkpoint and clock.due():
+            save()
+        raise_pending(f"stage 4 stopped in the light refinement of step {state.step + 1}"
+                      + (", checkpoint written" if on_checkpoint else ""))
+
+    with bar, clock.running():
+        while state.step < config.iterations:
+            it = state.step
+            if state.refine is None:  # else this step resumes inside its refinement
+                if config.prune and it > config.warmup and config.prune_every > 0 and \
+                        (it - config.warmup) % config.prune_every == 0:
+                    # A host read every prune_every steps (not per step): drop dark lights.
+                    state.directions, maps = _prune(opt, state.directions, maps, config,
+                                                    shadow_maps)
+                if it == config.warmup:
+                    dr.sync_thread()
+                    state.timings["warmup_total_s"] = time.perf_counter() - t_phase
+                    # One host read at the phase boundary: prune, the survivors' maps at
+                    # full resolution.
+                    if config.prune:
+                        state.directions, maps = _prune(opt, state.directions, maps, config,
+                                                        shadow_maps)
+                    maps = shadow_maps(state.directions)
+            if it in (config.warmup, refine_again) and config.refine_passes and \
+                    maps is not None:
+                state.directions = _refine(views, state, maps, shadow_maps, config,
+                                           refined_one)
+                maps = shadow_maps(state.directions)
+            if it == config.warmup:
+                _end_warmup(state, config)
+                t_phase = time.perf_counter()
+            w_light = dr.exp(opt["log_light"]) * dw
+            lights = S.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
+            cur = dict(ch)
+            for k in opt.keys():
+                if k not in _LIGHT_KEYS:
+                    cur[k] = opt[k]
+            total = mi.Float(0.0)
+            for _ in range(config.views_per_step):
+                v = views[int(state.rng.integers(len(views)))]
+                vis = None if maps is None else \
+                    maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+                total += view_loss(v, cur, lights, vis, config, state.specular)
+            total = total / config.views_per_step
+            dr.backward(total)
+            opt.step()
+            for k in opt.keys():
+                if k not in _LIGHT_KEYS:
+                    ch[k] = opt[k]
+            _clamp_channels(ch, seg, n_seg, config, state.specular)
+            for k in opt.keys():
+                if k not in _LIGHT_KEYS:
+                    opt[k] = ch[k]  # keeps Adam's state (same shape)
+            state.loss_sum += dr.detach(total)
+            state.step = it + 1
+            if state.step % config.log_every == 0:
+                # A host read every log_every steps.
+                mean = float(state.loss_sum.numpy()[0]) / config.log_every
+                state.history.append((state.step, mean))
+                bar.set_postfix(loss=f"{mean:.4f}", dirs=len(state.directions),
+                                spec=int(state.specular))
+                state.loss_sum = mi.Float(0.0)
+            bar.update(1)
+            if on_checkpoint and (clock.due(state.step) or state.step == config.iterations):
+                save()
+            raise_pending(f"stage 4 stopped at step {state.step} of {config.iterations}"
+                          + (", checkpoint written" if on_checkpoint else ""))
+    dr.sync_thread()
+    phase = "main_s" if config.iterations > config.warmup else "warmup_total_s"
+    state.timings[phase] = time.perf_counter() - t_phase
+    # The light map over the grid: each light at its nearest grid direction (as the
+    # dataset builds the ground-truth map from its directional lights).
+    light = np.exp(opt["log_light"].numpy().astype(np.float64))
+    active = nearest_grid_index(state.directions, grid)
+    radiance = np.zeros(config.n_directions)
+    np.add.at(radiance, active, light)
+    out = Surfels(surfels.position, surfels.log_scale, surfels.rotation, surfels.opacity_logit,
+                  dict(surfels.channels))
+    for k in ("albedo", "roughness", "metallic", S.INDIRECT_CHANNEL):
+        out.channels[k] = mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
+    return MaterialResult(out, LightModel(radiance, active, state.directions, light * dw),
+                          state.specular, config.use_visibility, state.history,
+                          dict(state.timings))
+
+
+def _initial_state(surfels: Surfels, images: list[np.ndarray], views: list[TrainView], seg,
+                   n_seg: int, config: MaterialConfig) -> MaterialState:
+    """Step 0: initial channels, the light on every grid direction, Adam over them."""
     ch = init_channels(surfels, config)
     with_specular = config.specular != "off"
     if not with_specular:
@@ -548,91 +762,25 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
         sup = [np.asarray(im, np.float64).reshape(-1, np.shape(im)[-1])[:, :3]
                [np.asarray(v.weight.numpy(), bool)] for im, v in zip(images, views, strict=True)]
         light0 = max(float(np.mean(np.concatenate(sup))), 1e-3) / config.albedo_init
-    opt["log_light"] = mi.Float(np.full(len(dirs), math.log(light0), np.float32))
+    grid = light_grid(config.n_directions)
+    opt["log_light"] = mi.Float(np.full(len(grid), math.log(light0), np.float32))
     opt.set_learning_rate({"log_light": config.lr_light})
-    t_prep = time.perf_counter() - t0
+    return MaterialState(0, opt, ch, grid, with_specular, np.random.default_rng(config.seed),
+                         mi.Float(0.0), [], {})
 
-    rng = np.random.default_rng(config.seed)
-    history = []
-    step_times = {"warmup": [], "main": []}
-    bar = tqdm(range(config.iterations), desc="stage 4: fit", disable=not progress)
-    acc = mi.Float(0.0)
-    t_phase = time.perf_counter()
-    refine_again = (config.warmup + config.iterations) // 2 \
-        if config.iterations > config.warmup + 1 else -1
-    for it in bar:
-        at_warmup = it == config.warmup
-        if config.prune and it > config.warmup and config.prune_every > 0 and \
-                (it - config.warmup) % config.prune_every == 0:
-            # A host read every prune_every steps (not per step): drop dark directions.
-            dirs, maps = _prune(opt, dirs, maps, config, shadow_maps)
-        if at_warmup:
-            dr.sync_thread()
-            step_times["warmup_total"] = time.perf_counter() - t_phase
-            # One host read at the phase boundary: prune and decide on the specular lobe.
-            if config.prune:
-                dirs, maps = _prune(opt, dirs, maps, config, shadow_maps)
-            maps = shadow_maps(dirs)  # the survivors at full resolution
-            if config.refine_passes and maps is not None:
-                dirs = _refine(views, ch, opt, dirs, maps, shadow_maps, config, with_specular)
-                maps = shadow_maps(dirs)
-            opt[S.INDIRECT_CHANNEL] = ch[S.INDIRECT_CHANNEL]
-            opt.set_learning_rate({S.INDIRECT_CHANNEL: config.lr_indirect})
-            if with_specular and config.specular == "auto":
-                m = opt["metallic"].numpy().reshape(-1)
-                r = opt["roughness"].numpy().reshape(-1)
-                if m.max() < config.auto_metallic_max and r.min() > config.auto_roughness_min:
-                    with_specular = False
-                    for k in ("roughness", "metallic"):
-                        del opt[k]
-                    ch["metallic"] = mi.TensorXf(dr.zeros(mi.Float, surfels.count),
-                                                 (surfels.count, 1))
-            t_phase = time.perf_counter()
-        if it == refine_again and config.refine_passes and maps is not None:
-            dirs = _refine(views, ch, opt, dirs, maps, shadow_maps, config, with_specular)
-            maps = shadow_maps(dirs)
-        w_light = dr.exp(opt["log_light"]) * dw
-        lights = S.LightSet(dirs, mi.Color3f(w_light, w_light, w_light))
-        cur = dict(ch)
-        for k in opt.keys():
-            if k not in _LIGHT_KEYS:
-                cur[k] = opt[k]
-        total = mi.Float(0.0)
-        for _ in range(config.views_per_step):
-            v = views[int(rng.integers(len(views)))]
-            vis = None if maps is None else \
-                maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-            total += view_loss(v, cur, lights, vis, config, with_specular)
-        total = total / config.views_per_step
-        dr.backward(total)
-        opt.step()
-        for k in opt.keys():
-            if k not in _LIGHT_KEYS:
-                ch[k] = opt[k]
-        _clamp_channels(ch, seg, n_seg, config, with_specular)
-        for k in opt.keys():
-            if k not in _LIGHT_KEYS:
-                opt[k] = ch[k]  # keeps Adam's state (same shape)
-        acc += dr.detach(total)
-        if (it + 1) % config.log_every == 0:
-            mean = float(acc.numpy()[0]) / config.log_every  # host read every log_every steps
-            history.append((it + 1, mean))
-            bar.set_postfix(loss=f"{mean:.4f}", dirs=len(dirs), spec=int(with_specular))
-            acc = mi.Float(0.0)
-    dr.sync_thread()
-    phase = "main" if config.iterations > config.warmup else "warmup_total"
-    step_times[phase] = time.perf_counter() - t_phase
-    step_times.pop("warmup", None)
-    # The light map over the grid: each light at its nearest grid direction (as the
-    # dataset builds the ground-truth map from its directional lights).
-    light = np.exp(opt["log_light"].numpy().astype(np.float64))
-    active = nearest_grid_index(dirs, grid)
-    radiance = np.zeros(config.n_directions)
-    np.add.at(radiance, active, light)
-    out = Surfels(surfels.position, surfels.log_scale, surfels.rotation, surfels.opacity_logit,
-                  dict(surfels.channels))
-    for k in ("albedo", "roughness", "metallic", S.INDIRECT_CHANNEL):
-        out.channels[k] = mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
-    timings = {"prepare_s": t_prep, **{f"{k}_s": v for k, v in step_times.items()}}
-    return MaterialResult(out, LightModel(radiance, active, dirs, light * dw), with_specular,
-                          config.use_visibility, history, timings)
+
+def _end_warmup(state: MaterialState, config: MaterialConfig) -> None:
+    """After the warm-up's pruning and refinement: add the indirect light and decide on the
+    specular lobe (one host read)."""
+    opt, ch = state.opt, state.channels
+    opt[S.INDIRECT_CHANNEL] = ch[S.INDIRECT_CHANNEL]
+    opt.set_learning_rate({S.INDIRECT_CHANNEL: config.lr_indirect})
+    if state.specular and config.specular == "auto":
+        m = opt["metallic"].numpy().reshape(-1)
+        r = opt["roughness"].numpy().reshape(-1)
+        if m.max() < config.auto_metallic_max and r.min() > config.auto_roughness_min:
+            state.specular = False
+            for k in ("roughness", "metallic"):
+                del opt[k]
+            n = len(m)
+            ch["metallic"] = mi.TensorXf(dr.zeros(mi.Float, n), (n, 1))

@@ -23,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
     parser.add_argument("--iterations", type=int, default=None, help="override the preset")
     parser.add_argument("--resume", action="store_true",
-                        help="continue from the stage's last checkpoint")
+                        help="continue from the stage's last checkpoint (from step 0 when "
+                             "it was stopped before its first)")
     parser.add_argument("--overwrite", action="store_true",
                         help="start afresh, removing the files of an earlier train there")
     parser.add_argument("--no-eval", action="store_true", help="skip the test-view metrics")

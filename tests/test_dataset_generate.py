@@ -27,6 +27,7 @@ from mi_shadowgs.dataset.generate import (
 )
 from mi_shadowgs.dataset.scene import SceneError, load_scene
 from mi_shadowgs.directions import direction_from_angles
+from mi_shadowgs.provenance import MANIFEST_NAME
 from mi_shadowgs.scenes import scene_path
 
 SIZE = 64
@@ -205,8 +206,10 @@ def test_generate_deterministic_and_recognised(tmp_path, capsys):
                 capsys)[0] == 0
     assert _run(["default", "--out", str(b), "--seed", "7", *TINY], capsys)[0] == 0
     la, lb = _listing(a), _listing(b)
-    # 2 + 1 views x 10 files, 3 relit test images, 2 transforms, lights.json, dataset.json
-    assert len(la) == 3 * 10 + 3 + 4
+    # 2 + 1 views x 10 files, 3 relit test images, 2 transforms, lights.json, dataset.json,
+    # the manifest
+    assert len(la) == 3 * 10 + 3 + 5
+    assert json.loads(la[MANIFEST_NAME])["files"] == sorted(set(la) - {MANIFEST_NAME})
     assert la.keys() == lb.keys()
     differ = [k for k in la if la[k] != lb[k]]
     assert differ == []  # bit-identical for the same seed
@@ -261,6 +264,89 @@ def test_e_bad_input(tmp_path, capsys):
     assert _run(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY],
                 capsys)[0] == 0
     assert json.loads((out / "dataset.json").read_text())["seed"] == 2
+
+
+def test_killed_generate_resumes_from_its_views(tmp_path, capsys, monkeypatch):
+    """A run stopped after some renders leaves its partial folder; the same command again
+    renders only the missing views and writes the bytes of an uninterrupted run."""
+    from mi_shadowgs.dataset import generate
+
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    argv = ["default", "--seed", "3", *TINY]
+    assert _run([*argv, "--out", str(ref)], capsys)[0] == 0
+    render = generate.ViewRenderer.render
+    calls = []
+
+    def dying_render(self, *a, **kw):
+        calls.append(1)
+        if len(calls) == 5:  # the test view's second relit image: 2 train views are finished
+            raise KeyboardInterrupt
+        return render(self, *a, **kw)
+
+    monkeypatch.setattr(generate.ViewRenderer, "render", dying_render)
+    with pytest.raises(KeyboardInterrupt):
+        cli_main(["generate", *argv, "--out", str(out)])
+    (partial,) = [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+    assert partial.name.endswith(".partial") and not out.exists()
+    assert (partial / "train" / "r_001.exr").is_file()
+    relit = sorted(p.name for p in (partial / "test").glob("*relit*"))
+    assert relit == ["r_000_relit_sun_high.exr"] and not (partial / "test" / "r_000.exr").exists()
+    (partial / "train" / ".r_001.exr.abcdefgh.tmp.exr").write_bytes(b"cut short")
+    # A stale partial folder of other settings goes; the one of these settings is reused.
+    stale = tmp_path / ".out.0123456789abcdef.partial"
+    stale.mkdir()
+    calls.clear()
+    monkeypatch.setattr(generate.ViewRenderer, "render", lambda self, *a, **kw:
+                        (calls.append(1), render(self, *a, **kw))[1])
+    assert _run([*argv, "--out", str(out)], capsys)[0] == 0
+    assert len(calls) == 1 + 2  # the test view and 2 of its 3 relit images: nothing else
+    assert _listing(out) == _listing(ref)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "ref"]
+
+
+def test_overwrite_removes_only_what_generate_wrote(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert _run(["default", "--out", str(out), "--seed", "1", *TINY], capsys)[0] == 0
+    (out / "train" / "notes.txt").write_text("mine")
+    msg = _assert_error(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY],
+                        capsys, tmp_path, "notes.txt")
+    assert "not written by mi-shadowgs generate" in msg
+    assert json.loads((out / "dataset.json").read_text())["seed"] == 1
+    (out / "train" / "notes.txt").unlink()
+    (out / "extra").mkdir()  # a folder of someone else's, even empty, is not ours either
+    _assert_error(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY], capsys,
+                  tmp_path, "extra")
+    (out / "extra").rmdir()
+    # A dataset without a manifest (an older version wrote it) is not replaced either.
+    (out / MANIFEST_NAME).rename(tmp_path / "manifest")
+    _assert_error(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY], capsys,
+                  tmp_path, "dataset.json")
+    (tmp_path / "manifest").rename(out / MANIFEST_NAME)
+    assert _run(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY],
+                capsys)[0] == 0
+    assert json.loads((out / "dataset.json").read_text())["seed"] == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    _assert_error(["default", "--out", str(out / "nested"), *TINY], capsys, tmp_path,
+                  "inside the dataset folder")
+
+
+def test_a_swap_cut_short_is_completed(tmp_path, capsys):
+    """A kill between the two renames of an --overwrite leaves ``.out.old`` and no ``out``:
+    the next run puts the previous dataset back; after both renames it removes it."""
+    out, old = tmp_path / "out", tmp_path / ".out.old"
+    argv = ["default", "--out", str(out), "--seed", "1", *TINY]
+    assert _run(argv, capsys)[0] == 0
+    before = _listing(out)
+    out.rename(old)
+    rc, cap = _run(argv, capsys)
+    assert rc == 0 and "nothing to do" in cap.out
+    assert _listing(out) == before and not old.exists()
+    import shutil
+
+    shutil.copytree(out, old)
+    (old / "left.txt").write_text("not ours")  # the removal follows the manifest
+    assert _run(argv, capsys)[0] == 0
+    assert sorted(p.name for p in old.iterdir()) == ["left.txt"]
 
 
 def test_unknown_preset_is_config_error():

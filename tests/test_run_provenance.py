@@ -172,7 +172,7 @@ def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(finished
     assert model.read_bytes() == before
     rc = cli.main(["segment", str(run), "--data", str(data[0]), "--out",
                    str(run / "segmentation"), "--quiet"])
-    assert rc == 2 and "pass --overwrite" in capsys.readouterr().err
+    assert rc == 2 and "or --overwrite to replace it" in capsys.readouterr().err
     assert cli.main(["segment", str(run), "--data", str(data[0]), "--out",
                      str(data[0] / "segments"), "--quiet"]) == 2
     assert "outputs never go into a dataset" in capsys.readouterr().err

@@ -120,12 +120,12 @@ def test_sh_irradiance_against_numpy():
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
 
-def _render_truth(s, cams, bounds, light_idx, irradiance, vcfg):
-    """Targets rendered by the model itself with the true albedo and one grid light."""
-    grid = light_grid(128)
-    d = grid[[light_idx]]
+def _render_truth(s, cams, bounds, directions, irradiance, vcfg):
+    """Targets rendered by the model itself with the true albedo and lights ([L, 3] or [3]
+    directions, [L] or scalar irradiance)."""
+    d = np.atleast_2d(np.asarray(directions, np.float64))
     maps = render_shadow_maps(s, d, bounds, vcfg)
-    e = mi.Float(float(irradiance))
+    e = mi.Float(np.broadcast_to(np.asarray(irradiance, np.float32), len(d)))
     lights = S.LightSet(d, mi.Color3f(e, e, e))
     truth = dict(s.channels)
     truth["albedo"] = s.channels["albedo_gt"]
@@ -154,7 +154,7 @@ def test_tiny_decomposition_recovers_albedo_and_light():
     vcfg = VisibilityConfig(resolution=128)
     k_true = int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))  # ~49 degrees elevation
     e_true = 2.0
-    imgs, masks = _render_truth(s, cams, bounds, k_true, e_true, vcfg)
+    imgs, masks = _render_truth(s, cams, bounds, light_grid(128)[k_true], e_true, vcfg)
     cfg = with_overrides(SM.get_config("cpu-small"),
                          {"iterations": 250, "warmup": 80, "specular": "off",
                           "log_every": 50}, "material")

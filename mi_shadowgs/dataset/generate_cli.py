@@ -1,4 +1,6 @@
-"""``mi-shadowgs generate SCENE.xml --out DIR``: render a shadowed synthetic dataset."""
+"""``mi-shadowgs generate SCENE.xml --out DIR``: render a shadowed synthetic dataset.
+
+Killed part-way, the same command again continues from the views already rendered."""
 
 from __future__ import annotations
 
@@ -23,7 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--envmap", default=None,
                         help="an environment map (EXR/HDR) for one more relit test set")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace an output folder that holds a different dataset")
+                        help="replace a dataset that generate wrote before (refused when "
+                             "the folder holds files not in its manifest.json)")
     parser.add_argument("-D", dest="defines", action="append", default=[],
                         metavar="NAME=VALUE", help="set a scene <default> parameter")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")

@@ -1,11 +1,15 @@
-"""Write a generated dataset in the NeRF-synthetic/TensoIR layout (see ``layout.py``), atomically.
+"""Write a generated dataset in the NeRF-synthetic/TensoIR layout (see ``layout.py``).
 
 ``write_dataset`` checks every input first (scene, mesh, env map, output folder), then
-builds the whole dataset in a temporary sibling folder that is renamed into place at the
-end (``mi_shadowgs.atomic.atomic_dir``): a half-written dataset never looks complete, and a
-failure writes nothing. ``dataset.json`` holds a fingerprint of the inputs, so a re-run with
-the same inputs is recognised, and a folder holding a different dataset is an error unless
-``overwrite``.
+renders into a hidden sibling ``.NAME.<fingerprint>.partial`` that is renamed into place at
+the end: a half-written dataset never looks complete, and a failure before any rendering
+writes nothing. Each file is written atomically and a view's image EXR last, so a view whose
+EXR exists is finished: a killed run leaves the partial folder, and the same command again
+renders only the views (and relit images) it lacks. The folder's name holds the
+fingerprint of the settings, so only a run with the same settings reuses it; partial
+folders of other settings are removed. ``dataset.json`` holds the fingerprint, so a re-run
+with the same inputs is recognised, and the manifest (``mi_shadowgs.provenance``) lists the
+files written: ``overwrite`` replaces a dataset only when the folder holds nothing else.
 """
 
 from __future__ import annotations
@@ -13,13 +17,25 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_dir, write_json
+from ..atomic import remove_stale, write_json
 from ..directions import N_LIGHT_DIRECTIONS, directional_lights_to_map
 from ..imageio import write_exr, write_png
+from ..provenance import (
+    MANIFEST_NAME,
+    Output,
+    Provenance,
+    check_output_location,
+    clear,
+    input_ref,
+    read_manifest,
+)
 from . import layout
 from .cameras import test_cameras, train_cameras
 from .generate import (
@@ -75,14 +91,90 @@ def _check_output(out: Path, fp: str, overwrite: bool) -> bool:
             old = None
         if old == fp and not overwrite:
             return True
-    if overwrite:
-        return False
     if not any(out.iterdir()):  # an empty folder is free to use
         out.rmdir()
+        return False
+    if overwrite:
+        _check_only_ours(out)
         return False
     what = "a different dataset" if info_path.is_file() else "other files"
     raise OutputExistsError(f"output folder {out} already holds {what}; pass --overwrite to "
                             "replace it")
+
+
+# -- the manifest: what --overwrite may remove ------------------------------------------------
+def _check_only_ours(out: Path) -> None:
+    """OutputExistsError naming the first file or folder in ``out`` that generate did not
+    write (not in its manifest)."""
+    manifest = read_manifest(out)
+    files = set(manifest["files"]) if manifest and manifest.get("command") == "generate" \
+        else set()
+    files.add(MANIFEST_NAME)
+    folders = {str(Path(f).parent) for f in files}
+    for p in sorted(out.rglob("*")):
+        rel = p.relative_to(out).as_posix()
+        if rel not in (folders if p.is_dir() and not p.is_symlink() else files):
+            raise OutputExistsError(
+                f"{p} was not written by mi-shadowgs generate (not in {out / MANIFEST_NAME}); "
+                "--overwrite removes only files it wrote: move it away or choose another --out")
+
+
+def _write_manifest(folder: Path, provenance: Provenance) -> None:
+    out = Output(folder, "generate", provenance, None)
+    out.claim(*sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                      if p.is_file()))
+    out.finish()
+
+
+def _remove_ours(folder: Path) -> None:
+    """Delete what the manifest of ``folder`` lists and, when nothing else is left, it."""
+    clear(folder)
+    if not any(folder.iterdir()):
+        folder.rmdir()
+
+
+# -- the partial folder ---------------------------------------------------------------------------
+def _partial_dir(out: Path, fp: str) -> Path:
+    return out.with_name(f".{out.name}.{fp[:16]}.partial")
+
+
+def _prepare_partial(out: Path, fp: str) -> Path:
+    """The partial folder of these settings, created or kept; the partial folders of other
+    settings (and of ``atomic_dir``, which wrote datasets before) are removed, and so are the
+    temporaries of a file write that a kill cut short (hidden files: the layout has none)."""
+    partial = _partial_dir(out, fp)
+    remove_stale(out)  # what atomic_dir, which wrote datasets before, left
+    pattern = re.compile(re.escape(f".{out.name}.") + r"[0-9a-f]{16}\.partial")
+    for p in out.parent.iterdir() if out.parent.is_dir() else ():
+        if p != partial and pattern.fullmatch(p.name) and p.is_dir():
+            shutil.rmtree(p)
+    partial.mkdir(parents=True, exist_ok=True)
+    for p in partial.rglob(".*"):
+        if p.is_file():
+            p.unlink()
+    return partial
+
+
+def _swap_in(partial: Path, out: Path) -> None:
+    """Move ``partial`` to ``out``; a dataset already there (``overwrite``, checked to hold
+    only our files) goes aside to ``.NAME.old`` first and is then removed by its manifest."""
+    old = out.with_name(f".{out.name}.old")
+    if out.exists():
+        os.replace(out, old)
+    os.replace(partial, out)
+    if old.exists():
+        _remove_ours(old)
+
+
+def _finish_swap(out: Path) -> None:
+    """Complete a ``_swap_in`` that a kill cut short: between its two renames the previous
+    dataset comes back; after them only its removal is left to do."""
+    old = out.with_name(f".{out.name}.old")
+    if old.is_dir():
+        if out.exists():
+            _remove_ours(old)
+        else:
+            os.replace(old, out)
 
 
 def _seed(seed: int, stream: int, index: int) -> int:
@@ -91,7 +183,7 @@ def _seed(seed: int, stream: int, index: int) -> int:
 
 
 def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> None:
-    write_exr(root / (stem + layout.IMAGE_EXR), rgba)
+    """The files of one view; its image EXR last, which marks the view finished."""
     write_png(root / (stem + layout.IMAGE_PNG), rgba)
     write_exr(root / (stem + layout.ALBEDO), gt["albedo"][i])
     write_exr(root / (stem + layout.NORMAL), gt["normal"][i])
@@ -104,6 +196,7 @@ def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> No
                   channels=[f"V{k:02d}" for k in range(vis.shape[-1])])
     for k in range(gt["irradiance"].shape[-2]):
         write_exr(root / (stem + layout.IRRADIANCE.format(k=k)), gt["irradiance"][i, :, :, k])
+    write_exr(root / (stem + layout.IMAGE_EXR), rgba)
 
 
 def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None) -> dict:
@@ -143,6 +236,13 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     if not setup.lights:
         raise ValueError(f"{scene_path}: no directional light (emitters light0, light1, ...)")
     fp = fingerprint(setup, config, seed, envmap)
+    inputs = {"scene": input_ref(setup.path)}
+    if setup.params.get("mesh"):
+        inputs["mesh"] = input_ref(setup.params["mesh"])
+    if envmap is not None:
+        inputs["envmap"] = input_ref(envmap)
+    check_output_location(out, [i["path"] for i in inputs.values()], writes_dataset=True)
+    _finish_swap(out)
     if _check_output(out, fp, overwrite):
         return out, False
 
@@ -162,45 +262,58 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                                                           envmap_scale=config.envmap_scale)))
     renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth)
     total = config.n_train + config.n_test * (1 + len(relights))
-    with atomic_dir(out, overwrite=overwrite) as tmp, \
-            tqdm(total=total, desc=f"generate {out.name}", unit="view",
-                 disable=not progress) as bar:
+    # Ground truth for this many views at a time: what a kill loses beside one render.
+    per_chunk = max(1, config.gt_chunk_rays // (config.width * config.height))
+    partial = _prepare_partial(out, fp)
+    with tqdm(total=total, desc=f"generate {out.name}", unit="view",
+              disable=not progress) as bar:
         for split_no, split in enumerate(layout.SPLITS):
-            (tmp / split).mkdir()
+            (partial / split).mkdir(exist_ok=True)
             views = cams[split]
-            gt = trace_ground_truth(setup, views, chunk_rays=config.gt_chunk_rays)
-            frames = []
-            for i, cam in enumerate(views):
-                stem = layout.view_stem(split, i)
-                rgba = renderer.render(setup.scene, cam, _seed(seed, split_no, i))
-                _write_view(tmp, stem, rgba, gt, i)
-                bar.update()
-                if split == "test":
-                    for j, (name, sc) in enumerate(relights):
-                        img = renderer.render(sc, cam, _seed(seed, 2 + j, i))
-                        img[..., 3] = rgba[..., 3]  # coverage does not depend on the light
-                        write_exr(tmp / (stem + layout.RELIT.format(name=name)), img)
-                        bar.update()
-                frames.append(cam.to_frame_json("./" + stem))
-            write_json(tmp / layout.transforms_name(split),
+            renders = 1 + (len(relights) if split == "test" else 0)
+            todo = [i for i, _ in enumerate(views)
+                    if not (partial / (layout.view_stem(split, i) + layout.IMAGE_EXR)).is_file()]
+            bar.update((len(views) - len(todo)) * renders)
+            for c0 in range(0, len(todo), per_chunk):
+                chunk = todo[c0:c0 + per_chunk]
+                gt = trace_ground_truth(setup, [views[i] for i in chunk],
+                                        chunk_rays=config.gt_chunk_rays)
+                for j, i in enumerate(chunk):
+                    stem = layout.view_stem(split, i)
+                    rgba = renderer.render(setup.scene, views[i], _seed(seed, split_no, i))
+                    for k, (name, sc) in enumerate(relights if split == "test" else []):
+                        path = partial / (stem + layout.RELIT.format(name=name))
+                        if not path.is_file():  # a kill may have come after some of them
+                            img = renderer.render(sc, views[i], _seed(seed, 2 + k, i))
+                            img[..., 3] = rgba[..., 3]  # coverage does not depend on the light
+                            write_exr(path, img)
+                    _write_view(partial, stem, rgba, gt, j)
+                    bar.update(renders)
+            frames = [cam.to_frame_json("./" + layout.view_stem(split, i))
+                      for i, cam in enumerate(views)]
+            write_json(partial / layout.transforms_name(split),
                        {"camera_angle_x": config.camera_angle_x, "w": config.width,
                         "h": config.height, "frames": frames})
-        write_json(tmp / layout.LIGHTS_JSON, lights_json(setup, config, envmap))
-        import mitsuba as mi
+    write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmap))
+    import mitsuba as mi
 
-        write_json(tmp / layout.DATASET_JSON, {
-            "format_version": layout.FORMAT_VERSION,
-            "scene": str(Path(scene_path).resolve()),
-            "parameters": setup.params,
-            "preset": preset,
-            "config": dataclasses.asdict(config),
-            "seed": seed,
-            "envmap": str(envmap) if envmap else None,
-            "fingerprint": fp,
-            "materials": setup.materials_json(),
-            "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,
-                       "to_world": setup.object_to_world.tolist()},
-            "mitsuba_version": mi.__version__,
-            "variant": mi.variant(),
-        })
+    write_json(partial / layout.DATASET_JSON, {
+        "format_version": layout.FORMAT_VERSION,
+        "scene": str(Path(scene_path).resolve()),
+        "parameters": setup.params,
+        "preset": preset,
+        "config": dataclasses.asdict(config),
+        "seed": seed,
+        "envmap": str(envmap) if envmap else None,
+        "fingerprint": fp,
+        "materials": setup.materials_json(),
+        "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,
+                   "to_world": setup.object_to_world.tolist()},
+        "mitsuba_version": mi.__version__,
+        "variant": mi.variant(),
+    })
+    _write_manifest(partial, Provenance(inputs=inputs, settings={"fingerprint": fp}))
+    if out.exists():  # --overwrite: check again, files may have come while we rendered
+        _check_only_ours(out)
+    _swap_in(partial, out)
     return out, True

@@ -1,0 +1,281 @@
+"""Checkpoints and signals (issue 12, item 4): every training loop resumes from a checkpoint
+to the bit-identical result of an uninterrupted run, from any step; SIGINT/SIGTERM write a
+checkpoint and end the command with one line and exit 130/143.
+
+Run on one Dr.Jit thread: with more, float atomics make even two uninterrupted runs differ
+in the last bits (tests/test_kill.py says more).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+
+import drjit as dr
+import numpy as np
+import pytest
+import tiny_cli
+from segmentation_fixtures import standin_surfels
+from test_stage_material import _plane_scene, _render_truth
+
+from mi_shadowgs import cli, interrupt, runners
+from mi_shadowgs import segmentation as seg
+from mi_shadowgs import stage_geometry as sg
+from mi_shadowgs import stage_material as sm
+from mi_shadowgs.checkpoint import load_checkpoint, save_checkpoint
+from mi_shadowgs.dataset.loader import load_dataset
+from mi_shadowgs.directions import direction_from_angles
+from mi_shadowgs.masks import material_masks
+from mi_shadowgs.scenes import scene_path
+from mi_shadowgs.visibility import VisibilityConfig
+
+TINY = tiny_cli.TINY
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread_tiny_presets():
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    with pytest.MonkeyPatch.context() as mp:
+        for table, config in tiny_cli.presets():
+            mp.setitem(table, TINY, config)
+        yield
+    dr.set_thread_count(threads)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory, one_thread_tiny_presets):
+    out = tmp_path_factory.mktemp("resume") / "data"
+    assert cli.main(["generate", str(scene_path("default")), "--out", str(out), "--preset",
+                     TINY, "--no-progress"]) == 0
+    return out
+
+
+class Stop(Exception):
+    pass
+
+
+def _stopping_at(stop: int, folder):
+    """on_checkpoint: save like the CLI does; stop the run after the checkpoint at ``stop``."""
+    def on_checkpoint(state):
+        save_checkpoint(folder, *state.to_checkpoint())
+        if state.step == stop:
+            raise Stop
+    return on_checkpoint
+
+
+def test_checkpoint_clock(monkeypatch):
+    now = [100.0]
+    monkeypatch.setattr(interrupt.time, "monotonic", lambda: now[0])
+    clock = interrupt.CheckpointClock(every=10, seconds=60.0)
+    assert clock.due(10) and not clock.due(11)  # by count
+    due = []
+    for _ in range(100):  # steps of 1 s
+        now[0] += 1.0
+        due.append(clock.due())
+    # In time for a kill to lose at most 60 s: the next step could end at 160 s.
+    assert due.index(True) == 58
+    clock.saved()
+    now[0] += 20.0  # a long step: the next ones may be as long
+    assert not clock.due()
+    now[0] += 20.0
+    assert clock.due()
+    assert interrupt.CheckpointClock(every=0, seconds=1.0).due(0) is False  # by time only
+    with pytest.raises(ValueError, match="seconds > 0"):
+        interrupt.CheckpointClock(10, 0.0)
+
+
+def test_signals_are_deferred_in_a_loop_and_immediate_outside():
+    with interrupt.handle_signals():
+        with pytest.raises(interrupt.Interrupted) as exc:
+            os.kill(os.getpid(), signal.SIGINT)
+        assert exc.value.exit_code == 130
+        clock = interrupt.CheckpointClock(5, 60.0)
+        with clock.running():
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert clock.due(3)  # the loop checkpoints now...
+            with pytest.raises(interrupt.Interrupted, match="SIGTERM .step 3.") as exc:
+                interrupt.raise_pending("step 3")  # ... and then stops
+            assert exc.value.exit_code == 143
+            os.kill(os.getpid(), signal.SIGTERM)
+            with pytest.raises(interrupt.Interrupted):  # a second signal stops at once
+                os.kill(os.getpid(), signal.SIGINT)
+        interrupt.raise_pending("nothing pending")  # the state was reset
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_stage1_resumes_bit_identically(data, tmp_path):
+    train = load_dataset(data, "train")
+    config = dataclasses.replace(sg.get_config(TINY), checkpoint_every=7,
+                                 checkpoint_seconds=1e9)
+    logs = []
+    straight = sg.train_geometry(train, config, callbacks=sg.Callbacks(on_log=logs.append),
+                                 progress=False)
+    for stop in (14, 35, 77):  # between log rows (every 10), around densification (20-60)
+        def on_checkpoint(state, stop=stop):
+            save_checkpoint(tmp_path, state.to_numpy(), {})
+            if state.step == stop:
+                raise Stop
+        with pytest.raises(Stop):
+            sg.train_geometry(train, config, callbacks=sg.Callbacks(on_checkpoint=on_checkpoint),
+                              progress=False)
+        state = sg.TrainState.from_numpy(load_checkpoint(tmp_path)[0], config)
+        resumed_logs = []
+        resumed = sg.train_geometry(train, config, state=state, progress=False,
+                                    callbacks=sg.Callbacks(on_log=resumed_logs.append))
+        for key, a in straight.to_numpy().items():
+            np.testing.assert_array_equal(resumed.to_numpy()[key], a, err_msg=key)
+        # The log rows after the checkpoint, the first one included, are the same.
+        assert [{k: v for k, v in r.items() if k != "time"} for r in resumed_logs] == \
+            [{k: v for k, v in r.items() if k != "time"} for r in logs
+             if r["iteration"] > stop], stop
+
+
+def test_stage2_resumes_bit_identically(data, tmp_path):
+    train = load_dataset(data, "train")
+    surfels, _ = standin_surfels(800)
+    labels = seg.prepare_labels(material_masks(train), train.cameras)
+    config = dataclasses.replace(seg.get_config(TINY), checkpoint_every=1)
+    straight = seg.train_features(surfels, train.cameras, labels, config, progress=False)
+    for stop in (5, 16, 35):  # inside a round of the 8 views; in the prototype quarter
+        with pytest.raises(Stop):
+            seg.train_features(surfels, train.cameras, labels, config, progress=False,
+                               on_checkpoint=_stopping_at(stop, tmp_path))
+        state = seg.FeatureState.from_checkpoint(*load_checkpoint(tmp_path))
+        assert state.step == stop
+        resumed = seg.train_features(surfels, train.cameras, labels, config, progress=False,
+                                     state=state)
+        for key in ("features", "coverage", "prototypes"):
+            np.testing.assert_array_equal(getattr(resumed, key), getattr(straight, key))
+        assert resumed.history == straight.history
+
+
+def _where(state) -> tuple:
+    """(finished steps, finished units of the refinement in progress or None)."""
+    return state.step, None if state.refine is None else state.refine.done
+
+
+@pytest.mark.parametrize("specular", ["auto", "on"])
+def test_stage4_resumes_bit_identically(specular, tmp_path):
+    s, cams, bounds = _plane_scene()
+    vcfg = VisibilityConfig(resolution=64)
+    # Two lights between grid directions: each unit of the refinements moves one of the
+    # lights, and the others' shadows enter its score.
+    imgs, masks = _render_truth(s, cams, bounds, [direction_from_angles(47.0, 52.0),
+                                                  direction_from_angles(200.0, 35.0)],
+                                [2.0, 1.5], vcfg)
+    # The warm-up ends at 20, pruning every 10 after it, the second refinement at step 40;
+    # a checkpoint after every step and every refinement unit.
+    config = dataclasses.replace(sm.get_config(TINY), checkpoint_every=1,
+                                 checkpoint_seconds=1e-9, specular=specular,
+                                 refine_passes=((4.0, 2.0), (2.0, 1.0)))
+
+    def fit(**kw):
+        return sm.fit_material(s, cams, imgs, masks, config, bounds, vcfg, progress=False, **kw)
+
+    seen = []
+    straight = fit(on_checkpoint=lambda state: seen.append(_where(state)))
+    assert straight.specular == (specular == "on")  # "auto" drops the lobe: a diffuse scene
+    stops = [(20, None), (20, 3), (21, None), (31, None), (40, 5), (60, None)]
+    assert all(stop in seen for stop in stops)
+    for stop in stops if specular == "auto" else stops[1:5:3]:
+        def on_checkpoint(state, stop=stop):
+            save_checkpoint(tmp_path, *state.to_checkpoint())
+            if _where(state) == stop:
+                raise Stop
+        with pytest.raises(Stop):
+            fit(on_checkpoint=on_checkpoint)
+        resumed = fit(state=sm.MaterialState.from_checkpoint(*load_checkpoint(tmp_path)))
+        for key in ("albedo", "roughness", "metallic", "indirect_sh"):
+            np.testing.assert_array_equal(resumed.surfels.channels[key].numpy(),
+                                          straight.surfels.channels[key].numpy(), err_msg=key)
+        np.testing.assert_array_equal(resumed.light.directions, straight.light.directions)
+        np.testing.assert_array_equal(resumed.light.weights, straight.light.weights)
+        assert resumed.history == straight.history
+
+
+def _sigterm_on_call(monkeypatch, module, name: str, call: int) -> None:
+    """Make the ``call``-th call of ``module.name`` send this process SIGTERM first."""
+    original, calls = getattr(module, name), []
+
+    def sending(*a, **kw):
+        calls.append(1)
+        if len(calls) == call:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return original(*a, **kw)
+
+    monkeypatch.setattr(module, name, sending)
+
+
+def _files(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*.ply")) + sorted(folder.rglob("*.png"))}
+
+
+def test_sigterm_checkpoints_and_resume_continues(data, tmp_path, capsys, monkeypatch):
+    argv = ["train", str(data), "--preset", TINY, "--no-progress"]
+    assert cli.main([*argv, "--out", str(tmp_path / "ref")]) == 0
+    run = tmp_path / "run"
+    with monkeypatch.context() as mp:
+        _sigterm_on_call(mp, sg, "geometry_loss", 33)
+        assert cli.main([*argv, "--out", str(run)]) == 143
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "SIGTERM" in err[0] and "step 33 of 80, checkpoint written" in \
+        err[0] and "--resume" in err[0], err
+    assert load_checkpoint(run / "geometry" / "checkpoint")[1]["step"] == 33
+    assert cli.main([*argv, "--out", str(run), "--resume"]) == 0
+    assert _files(run) == _files(tmp_path / "ref")
+
+
+def test_resume_before_the_first_checkpoint_starts_afresh(data, tmp_path, capsys,
+                                                          monkeypatch):
+    """A kill before the first checkpoint used to leave --resume with "no checkpoint"."""
+    argv = ["train", str(data), "--preset", TINY, "--no-progress", "--no-eval"]
+    run = tmp_path / "run"
+    with monkeypatch.context() as mp:
+        mp.setattr(sg, "geometry_loss", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+        with pytest.raises(KeyboardInterrupt):  # as a kill -9 would, before any checkpoint
+            cli.main([*argv, "--out", str(run)])
+    assert not (run / "geometry" / "checkpoint").exists()
+    assert cli.main([*argv, "--out", str(run), "--resume"]) == 0
+    assert "no checkpoint yet; starting from step 0" in capsys.readouterr().err
+    assert (run / "geometry" / "model.ply").is_file()
+
+
+def test_signal_outside_a_loop_stops_at_once(data, tmp_path, capsys, monkeypatch):
+    def load(*a):
+        os.kill(os.getpid(), signal.SIGINT)
+        raise AssertionError("the signal did not stop the command")
+
+    monkeypatch.setattr(runners, "load_training_views", load)
+    assert cli.main(["run", str(data), "--out", str(tmp_path / "run"), "--preset", TINY,
+                     "--no-progress"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["mi-shadowgs run: interrupted by SIGINT; run the same command again to "
+                   "continue"]
+
+
+def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatch):
+    """SIGTERM in stage 2 (``segment``) and in stage 4 (``run``): the rerun continues from the
+    checkpoint to the files of an uninterrupted run."""
+    run, ref = tmp_path / "run", tmp_path / "ref"
+    argv = ["run", str(data), "--preset", TINY, "--no-progress"]
+    assert cli.main([*argv, "--out", str(ref)]) == 0
+    with monkeypatch.context() as mp:
+        _sigterm_on_call(mp, sm, "view_loss", 27)
+        assert cli.main([*argv, "--out", str(run)]) == 143
+    assert "stage 4 stopped at step 27 of 60" in capsys.readouterr().err
+    assert cli.main([*argv, "--out", str(run)]) == 0
+    assert _files(run) == _files(ref)
+
+    seg_argv = ["segment", str(ref), "--data", str(data), "--preset", TINY, "--quiet",
+                "--out", str(tmp_path / "seg")]
+    with monkeypatch.context() as mp:
+        _sigterm_on_call(mp, seg, "segmentation_loss", 9)
+        assert cli.main(seg_argv) == 143
+    assert "run it again with --resume" in capsys.readouterr().err
+    assert cli.main(seg_argv) == 2
+    assert "pass --resume to continue it" in capsys.readouterr().err
+    assert cli.main([*seg_argv, "--resume"]) == 0
+    assert _files(tmp_path / "seg") == _files(ref / "segmentation")
