@@ -121,6 +121,11 @@ def _flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
+# Settings that only say when to checkpoint: a resume is bit-identical whatever they are, so
+# an output made with other values is still the same output.
+RESULT_NEUTRAL_SETTINGS = ("checkpoint_every", "checkpoint_seconds")
+
+
 def differences(manifest: dict, provenance: Provenance,
                 compare: tuple[str, ...] = ("dataset", "inputs", "settings")) -> list[str]:
     """What differs between an existing output and ``provenance``, one phrase per item."""
@@ -147,7 +152,8 @@ def differences(manifest: dict, provenance: Provenance,
                            f"{str(b.get('digest'))[:12]} now)")
     if "settings" in compare:
         old_s, new_s = _flatten(manifest.get("settings") or {}), _flatten(new["settings"])
-        keys = sorted(k for k in set(old_s) | set(new_s) if old_s.get(k) != new_s.get(k))
+        keys = sorted(k for k in set(old_s) | set(new_s) if old_s.get(k) != new_s.get(k)
+                      and k.rsplit(".", 1)[-1] not in RESULT_NEUTRAL_SETTINGS)
         phrases = [f"{k}: {json.dumps(old_s.get(k))} there, {json.dumps(new_s.get(k))} now"
                    for k in keys[:_MAX_LISTED]]
         if len(keys) > _MAX_LISTED:

@@ -232,6 +232,10 @@ def test_reuse_only_with_the_same_dataset_inputs_and_settings(tmp_path):
                                                   "k": [1, 2]}))
     assert "iterations: 60 there, 2500 now" in msg and "densify.start: 5 there, 9 now" in msg
     assert "k:" not in msg  # a tuple equals the list it reads back as
+    # When to checkpoint is no part of what was made (a resume is bit-identical).
+    assert P.Output.open(tmp_path / "o", "segment", dataclasses_replace(
+        prov, settings={**prov.settings, "checkpoint_seconds": 5.0,
+                        "densify": {"start": 5, "checkpoint_every": 3}}), reuse=True).reused
     model.write_text("geometry B")
     msg = err(dataclasses_replace(prov, inputs={"model": P.input_ref(model)}))
     assert "input model differs" in msg
