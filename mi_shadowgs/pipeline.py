@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import evaluation as E
-from . import relight as R
-from . import stage_material as SM
-from . import visibility as V
-from .atomic import atomic_dir, write_json
-from .config import get_preset, with_overrides
-from .directions import map_to_blocks
+from mi_shadowgs.config import get_preset, with_overrides
+from mi_shadowgs.core.directions import map_to_blocks
+from mi_shadowgs.io.atomic import atomic_dir, write_json
+from mi_shadowgs.stages.material import fit as SM
+from mi_shadowgs.stages.relight import evaluation as E
+from mi_shadowgs.stages.relight import render as R
+from mi_shadowgs.stages.visibility import shadow_maps as V
 
 VARIANTS = {
     "full": {},
@@ -168,7 +168,7 @@ def light_map_image(radiance: np.ndarray, block: int = 8) -> np.ndarray:
 def write_figures(folder: Path, test, images: dict, count: int) -> dict:
     """PNG figures of the first ``count`` test views (spread over the split); returns the
     report grid (rows of relative paths)."""
-    from .imageio import write_png
+    from mi_shadowgs.io.images import write_png
 
     n = len(test.views)
     picks = sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
@@ -206,7 +206,7 @@ def write_figures(folder: Path, test, images: dict, count: int) -> dict:
 def check_evaluation_inputs(train, test) -> None:
     """What ``evaluate_decomposition`` reads, checked before stage 1 starts (DatasetError
     naming the file or field): the training light map and the test views' ground truth."""
-    from .dataset.loader import DatasetError
+    from mi_shadowgs.dataset.loader import DatasetError
 
     path = train.root / "lights.json"
     if train.lights is None:
@@ -236,9 +236,9 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     """Stages 3-5 of one variant into ``material/<name>`` of the run ``top`` (an Output);
     returns (metrics, fit seconds), the seconds None when a finished output of the same
     provenance is reused."""
-    from .ply import save_ply
-    from .provenance import Output, Provenance, dataset_ref, input_ref
-    from .runners import checkpoint_hooks
+    from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
+    from mi_shadowgs.stages.geometry.runner import checkpoint_hooks
 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
@@ -291,12 +291,17 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     anything else exits with a ProvenanceError naming what differs, unless ``overwrite``
     removes the run's files first. ``log`` takes the stages' one-line summaries.
     """
-    from . import stage_geometry
-    from .dataset.loader import load_dataset
-    from .ply import load_ply
-    from .provenance import Output, Provenance, dataset_ref
-    from .report import write_report
-    from .runners import load_training_views, run_geometry, run_segmentation, segmentation_config
+    from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref
+    from mi_shadowgs.io.report import write_report
+    from mi_shadowgs.stages.geometry import train as stage_geometry
+    from mi_shadowgs.stages.geometry.runner import (
+        load_training_views,
+        run_geometry,
+        run_segmentation,
+        segmentation_config,
+    )
 
     data, run = Path(data), Path(out)
     t_start = time.perf_counter()
@@ -359,7 +364,7 @@ def _json_or_empty(path: Path) -> dict:
 
 def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stages: list,
                   seconds: float) -> dict:
-    """The report's ``summary.json`` (see ``mi_shadowgs.report``) from the run's files."""
+    """The report's ``summary.json`` (see ``mi_shadowgs.io.report``) from the run's files."""
     import mitsuba as mi
 
     geo = _json_or_empty(run / "geometry" / "metrics.json")

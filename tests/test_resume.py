@@ -19,16 +19,18 @@ import tiny_cli
 from segmentation_fixtures import standin_surfels
 from test_stage_material import _plane_scene, _render_truth
 
-from mi_shadowgs import cli, interrupt, runners
-from mi_shadowgs import segmentation as seg
-from mi_shadowgs import stage_geometry as sg
-from mi_shadowgs import stage_material as sm
-from mi_shadowgs.checkpoint import load_checkpoint, save_checkpoint
+from mi_shadowgs import cli
+from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.dataset.loader import load_dataset
-from mi_shadowgs.directions import direction_from_angles
-from mi_shadowgs.masks import material_masks
+from mi_shadowgs.io import interrupt
+from mi_shadowgs.io.checkpoint import load_checkpoint, save_checkpoint
 from mi_shadowgs.scenes import scene_path
-from mi_shadowgs.visibility import VisibilityConfig
+from mi_shadowgs.stages.geometry import runner as runners
+from mi_shadowgs.stages.geometry import train as sg
+from mi_shadowgs.stages.material import fit as sm
+from mi_shadowgs.stages.segmentation import features as seg
+from mi_shadowgs.stages.segmentation.masks import material_masks
+from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
 
 TINY = tiny_cli.TINY
 

@@ -1,6 +1,6 @@
 """Stage 4-5 end to end on the ground-truth-geometry stand-in (issue 7 acceptance, Table 3).
 
-Surfels are sampled on the dataset scene's true shapes (``mi_shadowgs.standin``; segment =
+Surfels are sampled on the dataset scene's true shapes (``mi_shadowgs.dataset.standin``; segment =
 shape), so the decomposition and relighting are measured independently of stage 1. For the
 full method and the two ablations (w/o visibility, w/o segmentation) it fits stage 4 on the
 training views, then on the test views evaluates albedo PSNR/SSIM (per-region per-channel
@@ -24,15 +24,15 @@ import numpy as np  # noqa: I001
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
 from mi_shadowgs import pipeline as P
-from mi_shadowgs import stage_material as SM
-from mi_shadowgs import visibility as V
-from mi_shadowgs.atomic import atomic_dir, write_json
 from mi_shadowgs.config import with_overrides
+from mi_shadowgs.core.directions import map_to_blocks
 from mi_shadowgs.dataset.loader import load_dataset
 from mi_shadowgs.dataset.scene import load_scene
-from mi_shadowgs.directions import map_to_blocks
-from mi_shadowgs.imageio import write_png
-from mi_shadowgs.standin import standin_surfels
+from mi_shadowgs.dataset.standin import standin_surfels
+from mi_shadowgs.io.atomic import atomic_dir, write_json
+from mi_shadowgs.io.images import write_png
+from mi_shadowgs.stages.material import fit as SM
+from mi_shadowgs.stages.visibility import shadow_maps as V
 
 VARIANTS = P.VARIANTS
 # Bounds of the occluders' shadow maps: the object's sphere times this covers the shadows it
