@@ -34,7 +34,7 @@ TINY = [
                                       n_samples=256)),
     (sm.PRESETS, dataclasses.replace(sm.get_config("cpu-small"), iterations=10, warmup=5,
                                      refine_passes=(), refine_views=2)),
-    (vis.PRESETS, dataclasses.replace(vis.preset("cpu-small"), resolution=64)),
+    (vis.PRESETS, dataclasses.replace(vis.get_config("cpu-small"), resolution=64)),
 ]
 
 

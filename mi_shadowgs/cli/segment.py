@@ -80,7 +80,7 @@ def _parse_sets(items: list[str]) -> dict:
 
 
 def run(args) -> int:
-    from mi_shadowgs.stages.geometry.runner import run_segmentation, segmentation_config
+    from mi_shadowgs.stages.segmentation import run_segmentation, segmentation_config
 
     overrides = _parse_sets(args.set)
     if args.k is not None:

@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from mi_shadowgs.config import with_overrides
-    from mi_shadowgs.stages.geometry.runner import run_geometry
+    from mi_shadowgs.stages.geometry import run_geometry
     from mi_shadowgs.stages.geometry.train import get_config
 
     config = get_config(args.preset)

@@ -83,7 +83,7 @@ PRESETS = {
 }
 
 
-def preset(name: str) -> VisibilityConfig:
+def get_config(name: str) -> VisibilityConfig:
     return get_preset(PRESETS, name, "visibility")
 
 
