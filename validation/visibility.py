@@ -34,6 +34,7 @@ import mitsuba as mi
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
+from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 from mi_shadowgs.core.directions import direction_from_angles, light_grid
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.sampling import sample_surface
@@ -53,9 +54,7 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
     VisibilityConfig,
     mean_camera_distance,
-    pixel_footprint,
     render_shadow_maps,
-    unproject_depth,
 )
 
 REPO = Path(__file__).resolve().parents[1]

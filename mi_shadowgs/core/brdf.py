@@ -53,14 +53,6 @@ def schlick_f(v_dot_h, f0):
     return f0 + (1.0 - f0) * (x2 * x2 * x)
 
 
-def smith_g1(n_dot_x, roughness):
-    """Exact GGX Smith masking G1 for one direction."""
-    a = dr.square(dr.maximum(roughness, ROUGHNESS_MIN))
-    a2 = a * a
-    c = _clamp_cos(n_dot_x)
-    return 2.0 * c / (c + dr.sqrt(a2 + (1.0 - a2) * c * c))
-
-
 def smith_vis(n_dot_l, n_dot_v, roughness):
     """G / (4 (n . l)(n . v)) for the separable Smith G = G1(l) G1(v), finite at 0."""
     a = dr.square(dr.maximum(roughness, ROUGHNESS_MIN))

@@ -44,15 +44,6 @@ def direction_from_angles(azimuth_deg: float, elevation_deg: float) -> np.ndarra
     return np.array([math.cos(el) * math.cos(az), math.sin(el), -math.cos(el) * math.sin(az)])
 
 
-def angles_from_direction(d: np.ndarray) -> tuple[float, float]:
-    """Inverse of direction_from_angles: (azimuth_deg in [0, 360), elevation_deg)."""
-    d = np.asarray(d, dtype=np.float64)
-    d = d / np.linalg.norm(d)
-    el = math.degrees(math.asin(float(np.clip(d[1], -1.0, 1.0))))
-    az = math.degrees(math.atan2(-d[2], d[0])) % 360.0
-    return az, el
-
-
 def nearest_grid_index(directions: np.ndarray, grid: np.ndarray | None = None) -> np.ndarray:
     """Index of the grid direction closest in angle to each of ``directions`` [M, 3] -> [M]."""
     grid = light_grid() if grid is None else grid

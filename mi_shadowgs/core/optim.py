@@ -15,9 +15,6 @@ import numpy as np
 
 from mi_shadowgs.core.surfels import Surfels
 
-# Parameter name -> columns; "sh" has (degree + 1)^2 * 3 columns.
-GEOMETRY_COLUMNS = {"position": 3, "log_scale": 2, "rotation": 4, "opacity_logit": 1}
-
 
 def tensor_nc(a: np.ndarray) -> mi.TensorXf:
     a = np.asarray(a, dtype=np.float32)
@@ -43,19 +40,6 @@ def surfels_from_params(params: dict[str, mi.TensorXf], sh_columns: int | None =
                    rotation=dr.unravel(mi.Vector4f, params["rotation"].array),
                    opacity_logit=mi.Float(params["opacity_logit"].array),
                    channels={"sh": sh})
-
-
-def params_from_surfels(surfels: Surfels) -> dict[str, np.ndarray]:
-    """Raw [N, C] float32 arrays of ``surfels`` (inverse of ``surfels_from_params``)."""
-    n = surfels.count
-
-    def cols(v, c):
-        return np.asarray(v, dtype=np.float32).reshape(c, n).T.copy()
-
-    return {"position": cols(surfels.position, 3), "log_scale": cols(surfels.log_scale, 2),
-            "rotation": cols(surfels.rotation, 4),
-            "opacity_logit": np.asarray(surfels.opacity_logit, np.float32).reshape(n, 1),
-            "sh": np.asarray(surfels.channels["sh"].numpy(), np.float32).reshape(n, -1)}
 
 
 class SurfelAdam:

@@ -108,7 +108,7 @@ def pixel_geometry(surfels: Surfels, camera: Camera,
 
 def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
     """PixelGeometry from a ``rasterize`` result holding "alpha", "depth" and "normal"."""
-    from mi_shadowgs.stages.visibility.shadow_maps import pixel_footprint, unproject_depth
+    from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 
     with dr.suspend_grad():
         nimg = out["normal"]

@@ -102,10 +102,6 @@ class Surfels:
         """World-space (t_u, t_v, normal) [N] from the normalised quaternion."""
         return quaternion_frame(self.rotation)
 
-    def rotation_matrix(self) -> mi.Matrix3f:
-        t_u, t_v, n = self.tangent_frame()
-        return mi.Matrix3f(t_u.x, t_v.x, n.x, t_u.y, t_v.y, n.y, t_u.z, t_v.z, n.z)
-
     # -- optimiser interface ----------------------------------------------------------
     def params(self) -> dict:
         """The raw parameters by name (the same objects, e.g. for ``mi.ad.Adam``)."""

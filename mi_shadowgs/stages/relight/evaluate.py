@@ -64,7 +64,7 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     relit = {}
     for entry in train.lights.get("relightings", []):
         if entry.get("type") != "directional":
-            continue  # env-map relighting needs the emitter: see relight.envmap_light_set
+            continue  # env-map scoring: render.envmap_light_set, left to issue 14
         name = entry["name"]
         rv, secs = relight.relight_views(smodel, test.cameras, relight.lights_from_json(entry),
                                          bounds, rcfg, vcfg)

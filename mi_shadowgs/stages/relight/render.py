@@ -138,6 +138,11 @@ def envmap_grid_radiance(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np
 
 
 def envmap_light_set(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> S.LightSet:
+    """The 128-direction light set of an infinite emitter (``envmap``, ``constant``).
+
+    Not yet called by the evaluation: scoring the env-map relightings of ``lights.json``
+    needs the emitter rebuilt from its entry, which is issue 14's ("The paper's evaluation
+    in full"); ``evaluate_decomposition`` skips those entries until then."""
     return grid_light_set(envmap_grid_radiance(emitter, config), config.n_directions)
 
 

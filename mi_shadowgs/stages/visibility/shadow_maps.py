@@ -22,6 +22,7 @@ import numpy as np
 
 from mi_shadowgs.config import get_preset
 from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 
 PROJECTIONS = ("perspective", "orthographic")
 DEPTH_KINDS = ("median", "expected")
@@ -217,13 +218,6 @@ def lift_receivers(points: mi.Point3f, normals: mi.Vector3f | None,
     return mi.Point3f(points + normals * (footprint * amount))
 
 
-def pixel_footprint(depth: mi.TensorXf, camera: Camera) -> mi.Float:
-    """World size [H * W] of a pixel at the z-depth [H, W, 1] of each pixel."""
-    if camera.is_ortho:
-        return dr.full(mi.Float, camera.ortho_width / camera.width, dr.width(depth.array))
-    return depth.array * (1.0 / camera.focal)
-
-
 def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f | None = None,
                      footprint: mi.Float | None = None) -> mi.Float:
     """V(x, l) for P points and the L maps' directions, flattened point-major: [P * L].
@@ -278,24 +272,6 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
             acc += dr.select(delta <= cfg.tau, 1.0, 0.0)
     vis = acc / float((2 * radius + 1) ** 2)
     return dr.select(facing, vis, 0.0)
-
-
-def unproject_depth(depth: mi.TensorXf, camera: Camera) -> mi.Point3f:
-    """World points [H * W] of a z-depth image [H, W, 1] (row-major pixel order)."""
-    h, w = depth.shape[0], depth.shape[1]
-    idx = dr.arange(mi.UInt32, h * w)
-    px = mi.Float(idx % w) + 0.5
-    py = mi.Float(idx // w) + 0.5
-    z = depth.array
-    cx, cy = camera.principal_point
-    f = camera.focal
-    if camera.is_ortho:
-        xc, yc = (px - cx) / f, (py - cy) / f
-    else:
-        xc, yc = (px - cx) / f * z, (py - cy) / f * z
-    c2w = np.linalg.inv(camera.world_to_cv())
-    m = [[float(c2w[i, j]) for j in range(4)] for i in range(3)]
-    return mi.Point3f(*(m[i][0] * xc + m[i][1] * yc + m[i][2] * z + m[i][3] for i in range(3)))
 
 
 def view_visibility(depth: mi.TensorXf, camera: Camera, maps,
