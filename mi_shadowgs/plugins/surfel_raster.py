@@ -29,7 +29,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_shadowgs.config import ConfigError, with_overrides
-from mi_shadowgs.core import render as sr
+from mi_shadowgs.core import render as core_render
 from mi_shadowgs.io import ply
 
 _CONFIG_PROPS = ("alpha_min", "alpha_max", "transmittance_min", "cutoff_sigma",
@@ -47,17 +47,17 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
         path = mi.file_resolver().resolve(name)
         self.filename = str(path)
         self.surfels = ply.load_ply(self.filename)
-        self.color_channel = str(props.get("color_channel", sr.DEFAULT_COLOR_CHANNEL))
+        self.color_channel = str(props.get("color_channel", core_render.DEFAULT_COLOR_CHANNEL))
         aovs = str(props.get("aovs", ""))
         self.aovs = tuple(a.strip() for a in aovs.split(",") if a.strip())
         bg = props.get("background", None)
         try:
             if bg is not None and not isinstance(bg, int | float | str):
                 bg = list(bg)  # an rgb property (ScalarColor3d)
-            self.background = sr.parse_background(bg, "'background'")
-            sr.aov_layout(self.aovs, self.surfels)
+            self.background = core_render.parse_background(bg, "'background'")
+            core_render.aov_layout(self.aovs, self.surfels)
             if self.color_channel not in self.surfels.channels:
-                raise sr.RenderError(f"colour channel {self.color_channel!r} is not in "
+                raise core_render.RenderError(f"colour channel {self.color_channel!r} is not in "
                                      f"{self.filename} (channels: "
                                      f"{sorted(self.surfels.channels)})")
             known = {f.name for f in dataclasses.fields(RasterConfig)}
@@ -65,10 +65,10 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
                          if k in known and k in props}
             for k, v in overrides.items():
                 if not 0.0 < v < float("inf") or (k == "alpha_max" and v >= 1.0):
-                    raise sr.RenderError(f"property {k!r} must be a positive finite number"
+                    raise core_render.RenderError(f"property {k!r} must be a positive finite number"
                                          f"{' below 1' if k == 'alpha_max' else ''}, got {v}")
             self.config = with_overrides(RasterConfig(), overrides, "surfel_raster")
-        except (sr.RenderError, ConfigError) as exc:
+        except (core_render.RenderError, ConfigError) as exc:
             raise ValueError(f"surfel_raster ({self.filename}): {exc}") from None
 
     # -- parameters -----------------------------------------------------------------------
@@ -85,7 +85,7 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
                                  f"position has {n}")
 
     def aov_names(self):
-        return [c for _, names in sr.aov_layout(self.aovs, self.surfels) for c in names]
+        return [c for _, names in core_render.aov_layout(self.aovs, self.surfels) for c in names]
 
     def to_string(self):
         return (f"SurfelRasterIntegrator[filename={self.filename!r}, "
@@ -97,15 +97,15 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
         """The developed film tensor [H, W, C]; attached when AD is enabled."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        camera = sr.sensor_camera(sensor)
+        camera = core_render.sensor_camera(sensor)
         film = sensor.film()
-        layout = sr.FilmLayout(
+        layout = core_render.FilmLayout(
             has_alpha=mi.has_flag(film.flags(), mi.FilmFlags.Alpha),
-            aovs=tuple((n, tuple(c)) for n, c in sr.aov_layout(self.aovs, self.surfels)))
-        images = sr.render_surfels(self.surfels, camera, color_channel=self.color_channel,
+            aovs=tuple((n, tuple(c)) for n, c in core_render.aov_layout(self.aovs, self.surfels)))
+        images = core_render.render_surfels(self.surfels, camera, color_channel=self.color_channel,
                                    aovs=self.aovs, background=self.background,
                                    config=self.config)
-        return sr.develop_film(film, layout, self.aov_names(), images, "surfel_raster")
+        return core_render.develop_film(film, layout, self.aov_names(), images, "surfel_raster")
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not develop:

@@ -26,10 +26,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.core import render as sr
-from mi_shadowgs.core import shading as S
+from mi_shadowgs.core import render as core_render
+from mi_shadowgs.core import shading
 from mi_shadowgs.io import ply
-from mi_shadowgs.stages.relight import render as R
+from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, VisibilityConfig
 
 
@@ -44,7 +44,7 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
             raise ValueError("surfel_relight: the 'filename' property (a PLY model) is required")
         self.filename = str(mi.file_resolver().resolve(str(props.get("filename"))))
         self.surfels = ply.load_ply(self.filename)
-        missing = [c for c in S.MATERIAL_CHANNELS if c not in self.surfels.channels]
+        missing = [c for c in shading.MATERIAL_CHANNELS if c not in self.surfels.channels]
         if missing:
             raise ValueError(f"surfel_relight ({self.filename}): the model lacks channel(s) "
                              f"{missing}; it needs albedo, roughness and metallic (stage 4)")
@@ -59,9 +59,9 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         if res < 1 or env < 1:
             raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
         self.vis_config = VisibilityConfig(resolution=res)
-        self.relight_config = R.RelightConfig(indirect=self.indirect, env_samples=env)
+        self.relight_config = relight.RelightConfig(indirect=self.indirect, env_samples=env)
 
-    def light_set(self, scene) -> S.LightSet:
+    def light_set(self, scene) -> shading.LightSet:
         dirs, weights = [], []
         for e in scene.emitters():
             name = e.class_name()
@@ -73,8 +73,8 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
                 dirs.append(-prop / np.linalg.norm(prop))
                 weights.append(np.asarray(p["irradiance.value"], np.float64).reshape(-1)[:3])
             elif mi.has_flag(e.flags(), mi.EmitterFlags.Infinite):
-                rad = R.envmap_grid_radiance(e, self.relight_config)
-                ls = R.grid_light_set(rad)
+                rad = relight.envmap_grid_radiance(e, self.relight_config)
+                ls = relight.grid_light_set(rad)
                 dirs += list(ls.directions)
                 weights += list(np.stack([np.asarray(ls.weights[k]) for k in range(3)], -1))
             else:
@@ -82,24 +82,24 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
                                  "use directional or infinite (envmap, constant) emitters")
         if not dirs:
             raise ValueError("surfel_relight: the scene has no emitter to relight with")
-        return R.directional_light_set(np.array(dirs), np.array(weights))
+        return relight.directional_light_set(np.array(dirs), np.array(weights))
 
     def _image(self, scene, sensor) -> mi.TensorXf:
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        camera = sr.sensor_camera(sensor)
+        camera = core_render.sensor_camera(sensor)
         lights = self.light_set(scene)
         pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
         bounds = SceneBounds.from_points(pos, [camera])
-        model = R.RelightModel(self.surfels, self.specular, self.visibility)
-        maps = R.shadow_maps_for(model, lights, bounds, self.vis_config)
-        factor = R.indirect_factor(model, lights, self.relight_config)
-        out = R.relight_view(model, camera, lights, maps, factor)
+        model = relight.RelightModel(self.surfels, self.specular, self.visibility)
+        maps = relight.shadow_maps_for(model, lights, bounds, self.vis_config)
+        factor = relight.indirect_factor(model, lights, self.relight_config)
+        out = relight.relight_view(model, camera, lights, maps, factor)
         film = sensor.film()
         has_alpha = mi.has_flag(film.flags(), mi.FilmFlags.Alpha)
-        layout = sr.FilmLayout(has_alpha=has_alpha, aovs=())
+        layout = core_render.FilmLayout(has_alpha=has_alpha, aovs=())
         images = {"rgb": mi.TensorXf(out["rgb"]), "alpha": mi.TensorXf(out["alpha"][..., None])}
-        return sr.develop_film(film, layout, [], images, "surfel_relight")
+        return core_render.develop_film(film, layout, [], images, "surfel_relight")
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not develop:

@@ -41,7 +41,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.core import shading as S
+from mi_shadowgs.core import shading
 from mi_shadowgs.core.brdf import ROUGHNESS_MIN
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
@@ -169,13 +169,13 @@ class LightModel:
     directions: np.ndarray | None = None  # [K, 3] unit; None: the grid directions
     weights: np.ndarray | None = None  # [K] irradiance; None: radiance[active] * dw
 
-    def light_set(self, n_directions: int | None = None) -> S.LightSet:
+    def light_set(self, n_directions: int | None = None) -> shading.LightSet:
         n = len(self.radiance) if n_directions is None else n_directions
         dirs = light_grid(n)[self.active] if self.directions is None else self.directions
         w = self.radiance[self.active] * solid_angle(n) if self.weights is None else \
             self.weights
         w = np.asarray(w, np.float32)
-        return S.LightSet(np.asarray(dirs, np.float64), mi.Color3f(w, w, w))
+        return shading.LightSet(np.asarray(dirs, np.float64), mi.Color3f(w, w, w))
 
 
 @dataclasses.dataclass
@@ -255,7 +255,7 @@ def init_channels(surfels: Surfels, config: MaterialConfig) -> dict[str, mi.Tens
     return {"albedo": mi.TensorXf(np.full((n, 3), config.albedo_init, np.float32)),
             "roughness": mi.TensorXf(np.full((n, 1), config.roughness_init, np.float32)),
             "metallic": mi.TensorXf(np.full((n, 1), config.metallic_init, np.float32)),
-            S.INDIRECT_CHANNEL: mi.TensorXf(sh)}
+            shading.INDIRECT_CHANNEL: mi.TensorXf(sh)}
 
 
 def segment_ids(surfels: Surfels) -> mi.UInt32:
@@ -293,8 +293,8 @@ def segment_average(values: mi.TensorXf, seg: mi.UInt32, n_segments: int) -> mi.
 @dataclasses.dataclass
 class TrainView:
     camera: Camera
-    pairs: S.SplatPairs
-    geom: S.PixelGeometry
+    pairs: shading.SplatPairs
+    geom: shading.PixelGeometry
     weight: mi.Float  # [H * W] 1 on supervised pixels
     target: mi.Color3f  # [H * W]
     inv_count: mi.Float  # 1 / supervised pixels, opaque: a literal would recompile per view
@@ -305,8 +305,8 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
     """Pairs, geometry buffers and the target of one view (computed once: fixed geometry)."""
     h, w = camera.height, camera.width
     img = np.asarray(image, np.float32).reshape(h * w, -1)[:, :3]
-    pairs = S.splat_pairs(surfels, camera, raster)
-    geom = S.pixel_geometry(surfels, camera, raster)
+    pairs = shading.splat_pairs(surfels, camera, raster)
+    geom = shading.pixel_geometry(surfels, camera, raster)
     sup = np.asarray(mask, bool).reshape(-1) & (geom.alpha.numpy() >= config.mask_alpha)
     weight = mi.Float(sup.astype(np.float32))
     target = mi.Color3f(*(img[:, c] for c in range(3)))
@@ -314,16 +314,17 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
     return TrainView(camera, pairs, geom, weight, target, inv)
 
 
-def view_maps(pairs: S.SplatPairs, channels: dict[str, mi.TensorXf], sh_degree: int,
+def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf], sh_degree: int,
               normal: mi.Vector3f):
     """Per-pixel albedo [Color3f], roughness, metallic and indirect radiance of a view."""
-    a = S.splat(pairs, channels["albedo"])
-    albedo = mi.Color3f(*(S.channel(a, 3, c) for c in range(3)))
-    rough = S.splat(pairs, channels["roughness"])
-    metal = S.splat(pairs, channels["metallic"])
+    a = shading.splat(pairs, channels["albedo"])
+    albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
+    rough = shading.splat(pairs, channels["roughness"])
+    metal = shading.splat(pairs, channels["metallic"])
     ind = None
-    if S.INDIRECT_CHANNEL in channels:
-        ind = S.sh_irradiance(S.splat(pairs, channels[S.INDIRECT_CHANNEL]), normal, sh_degree)
+    if shading.INDIRECT_CHANNEL in channels:
+        sh = shading.splat(pairs, channels[shading.INDIRECT_CHANNEL])
+        ind = shading.sh_irradiance(sh, normal, sh_degree)
     return albedo, rough, metal, ind
 
 
@@ -340,13 +341,13 @@ def _tv(x: mi.Float, weight: mi.Float, h: int, w: int) -> mi.Float:
     return dr.sum((dx + dy) * weight)
 
 
-def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: S.LightSet,
+def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading.LightSet,
               vis: mi.Float | None, config: MaterialConfig, with_specular: bool) -> mi.Float:
     """Eq. 18 for one view (means over its supervised pixels)."""
     h, w = view.pairs.height, view.pairs.width
     albedo, rough, metal, ind = view_maps(view.pairs, channels, config.sh_degree,
                                           view.geom.normal)
-    rgb = S.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
+    rgb = shading.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
     wgt = view.weight
     inv = view.inv_count
     l_rend = dr.sum((dr.abs(rgb.x - view.target.x) + dr.abs(rgb.y - view.target.y)
@@ -494,7 +495,7 @@ def candidate_directions(direction: np.ndarray, radius_deg: float, step_deg: flo
     return out[keep]
 
 
-def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet, maps,
+def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.LightSet, maps,
                       k: int, cand_maps, config: MaterialConfig, with_specular: bool
                       ) -> tuple[np.ndarray, np.ndarray]:
     """(squared error [C], fitted irradiance [C]) of the views when light ``k`` moves to
@@ -509,7 +510,7 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet
                                                   v.geom.normal)
             vis = None if maps is None else \
                 maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-            per = S.direct_per_light(v.geom, albedo, rough, metal, lights.directions, vis,
+            per = shading.direct_per_light(v.geom, albedo, rough, metal, lights.directions, vis,
                                      with_specular)  # [P * K]
             npix = dr.width(v.geom.alpha)
             kk = lights.count
@@ -521,7 +522,7 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: S.LightSet
             if ind is not None:
                 rest = rest + (1.0 - metal) * albedo * ind
             resid = (v.target - rest) * v.weight  # [P], what light k has to explain
-            b = S.direct_per_light(v.geom, albedo, rough, metal, cand_maps.directions,
+            b = shading.direct_per_light(v.geom, albedo, rough, metal, cand_maps.directions,
                                    cand_maps.evaluate(v.geom.points, v.geom.normal,
                                                       v.geom.footprint),
                                    with_specular)  # [P * C] pixel-major
@@ -573,7 +574,7 @@ class Refinement:
         for k, radius, step in units[self.done:]:
             cand = candidate_directions(self.dirs[k], radius, step)
             irr = mi.Float(self.irradiance.astype(np.float32))
-            lights = S.LightSet(self.dirs, mi.Color3f(irr, irr, irr))
+            lights = shading.LightSet(self.dirs, mi.Color3f(irr, irr, irr))
             err, fit = _candidate_scores(sub, channels, lights, maps, k, render_maps(cand),
                                          config, with_specular)
             best = int(np.argmin(err))
@@ -690,7 +691,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
                 _end_warmup(state, config)
                 t_phase = time.perf_counter()
             w_light = dr.exp(opt["log_light"]) * dw
-            lights = S.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
+            lights = shading.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
             cur = dict(ch)
             for k in opt.keys():
                 if k not in _LIGHT_KEYS:
@@ -736,7 +737,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
     np.add.at(radiance, active, light)
     out = Surfels(surfels.position, surfels.log_scale, surfels.rotation, surfels.opacity_logit,
                   dict(surfels.channels))
-    for k in ("albedo", "roughness", "metallic", S.INDIRECT_CHANNEL):
+    for k in ("albedo", "roughness", "metallic", shading.INDIRECT_CHANNEL):
         out.channels[k] = mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
     return MaterialResult(out, LightModel(radiance, active, state.directions, light * dw),
                           state.specular, config.use_visibility, state.history,
@@ -777,8 +778,8 @@ def _end_warmup(state: MaterialState, config: MaterialConfig) -> None:
     """After the warm-up's pruning and refinement: add the indirect light and decide on the
     specular lobe (one host read)."""
     opt, ch = state.opt, state.channels
-    opt[S.INDIRECT_CHANNEL] = ch[S.INDIRECT_CHANNEL]
-    opt.set_learning_rate({S.INDIRECT_CHANNEL: config.lr_indirect})
+    opt[shading.INDIRECT_CHANNEL] = ch[shading.INDIRECT_CHANNEL]
+    opt.set_learning_rate({shading.INDIRECT_CHANNEL: config.lr_indirect})
     if state.specular and config.specular == "auto":
         m = opt["metallic"].numpy().reshape(-1)
         r = opt["roughness"].numpy().reshape(-1)

@@ -27,7 +27,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.core import shading as S
+from mi_shadowgs.core import shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
 from mi_shadowgs.core.raster import RasterConfig, rasterize
@@ -70,10 +70,10 @@ class RelightModel:
     surfels: Surfels  # with albedo/roughness/metallic/indirect_sh channels
     specular: bool  # the GGX lobe is modelled
     use_visibility: bool  # False: V = 1 (the "w/o visibility" ablation)
-    train_lights: S.LightSet | None = None  # for the indirect scaling
+    train_lights: shading.LightSet | None = None  # for the indirect scaling
 
 
-def directional_light_set(directions, irradiance) -> S.LightSet:
+def directional_light_set(directions, irradiance) -> shading.LightSet:
     """Directional lights: unit directions toward the lights [K, 3], irradiance [K] or [K, 3]."""
     d = np.atleast_2d(np.asarray(directions, np.float64))
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
@@ -83,10 +83,10 @@ def directional_light_set(directions, irradiance) -> S.LightSet:
     if e.shape[1] != 3 or not np.all(np.isfinite(e)) or not np.all(np.isfinite(d)):
         raise ValueError(f"directional lights: bad directions {d.shape} or irradiance {e.shape}")
     e = e.astype(np.float32)
-    return S.LightSet(d, mi.Color3f(e[:, 0], e[:, 1], e[:, 2]))
+    return shading.LightSet(d, mi.Color3f(e[:, 0], e[:, 1], e[:, 2]))
 
 
-def lights_from_json(entry: dict) -> S.LightSet:
+def lights_from_json(entry: dict) -> shading.LightSet:
     """A ``lights.json`` relighting entry of type "directional"."""
     if entry.get("type") != "directional":
         raise ValueError(f"lights.json: relighting {entry.get('name')!r} has type "
@@ -97,7 +97,7 @@ def lights_from_json(entry: dict) -> S.LightSet:
     return directional_light_set([lt["direction"] for lt in lts], [lt["irradiance"] for lt in lts])
 
 
-def grid_light_set(radiance: np.ndarray, n: int | None = None) -> S.LightSet:
+def grid_light_set(radiance: np.ndarray, n: int | None = None) -> shading.LightSet:
     """A radiance map over the grid ([n] white or [n, 3]) as a LightSet (L dw per direction);
     directions with zero radiance are left out (no shadow map, no shading work)."""
     rad = np.asarray(radiance, np.float64)
@@ -105,7 +105,7 @@ def grid_light_set(radiance: np.ndarray, n: int | None = None) -> S.LightSet:
     n = len(rad) if n is None else n
     keep = np.flatnonzero(np.any(rad > 0, axis=1))
     w = (rad[keep] * solid_angle(n)).astype(np.float32)
-    return S.LightSet(light_grid(n)[keep], mi.Color3f(w[:, 0], w[:, 1], w[:, 2]))
+    return shading.LightSet(light_grid(n)[keep], mi.Color3f(w[:, 0], w[:, 1], w[:, 2]))
 
 
 def envmap_grid_radiance(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np.ndarray:
@@ -137,7 +137,7 @@ def envmap_grid_radiance(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np
     return acc / np.maximum(cnt, 1.0)[:, None]
 
 
-def envmap_light_set(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> S.LightSet:
+def envmap_light_set(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> shading.LightSet:
     """The 128-direction light set of an infinite emitter (``envmap``, ``constant``).
 
     Not yet called by the evaluation: scoring the env-map relightings of ``lights.json``
@@ -146,13 +146,13 @@ def envmap_light_set(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> S.Ligh
     return grid_light_set(envmap_grid_radiance(emitter, config), config.n_directions)
 
 
-def upward_irradiance(lights: S.LightSet) -> float:
+def upward_irradiance(lights: shading.LightSet) -> float:
     """Mean-RGB irradiance the lights give an unoccluded surface facing +Y."""
     w = np.stack([np.asarray(lights.weights[k], np.float64) for k in range(3)], -1)
     return float(np.sum(w.mean(1) * np.maximum(lights.directions[:, 1], 0.0)))
 
 
-def indirect_factor(model: RelightModel, lights: S.LightSet, config: RelightConfig) -> float:
+def indirect_factor(model: RelightModel, lights: shading.LightSet, config: RelightConfig) -> float:
     if config.indirect == "none":
         return 0.0
     if config.indirect == "keep" or model.train_lights is None:
@@ -162,7 +162,7 @@ def indirect_factor(model: RelightModel, lights: S.LightSet, config: RelightConf
 
 
 def _check_model(surfels: Surfels) -> None:
-    missing = [c for c in S.MATERIAL_CHANNELS if c not in surfels.channels]
+    missing = [c for c in shading.MATERIAL_CHANNELS if c not in surfels.channels]
     if missing:
         raise ValueError(f"relight: the model lacks channel(s) {missing} (run stage 4)")
 
@@ -172,30 +172,30 @@ def render_buffers(model: RelightModel, camera: Camera,
     """One rasterization of a view: geometry, albedo, roughness, metallic, indirect."""
     surf = model.surfels
     _check_model(surf)
-    chans = {k: surf.channels[k] for k in S.MATERIAL_CHANNELS}
-    has_ind = S.INDIRECT_CHANNEL in surf.channels
+    chans = {k: surf.channels[k] for k in shading.MATERIAL_CHANNELS}
+    has_ind = shading.INDIRECT_CHANNEL in surf.channels
     if has_ind:
-        chans[S.INDIRECT_CHANNEL] = surf.channels[S.INDIRECT_CHANNEL]
+        chans[shading.INDIRECT_CHANNEL] = surf.channels[shading.INDIRECT_CHANNEL]
     with dr.suspend_grad():
         out = rasterize(surf, camera, chans, aovs=("alpha", "depth", "normal"), config=raster)
-        geom = S.geometry_from_aovs(out, camera)
+        geom = shading.geometry_from_aovs(out, camera)
         a = out["albedo"].array
-        albedo = mi.Color3f(*(S.channel(a, 3, c) for c in range(3)))
+        albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
         ind = None
         if has_ind:
-            t = out[S.INDIRECT_CHANNEL]
-            ind = S.sh_irradiance(t.array, geom.normal, sh_degree(t.shape[2] // 3))
+            t = out[shading.INDIRECT_CHANNEL]
+            ind = shading.sh_irradiance(t.array, geom.normal, sh_degree(t.shape[2] // 3))
     return geom, albedo, out["roughness"].array, out["metallic"].array, ind
 
 
-def shadow_maps_for(model: RelightModel, lights: S.LightSet, bounds: SceneBounds,
+def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: SceneBounds,
                     vis_config: VisibilityConfig = DEFAULT_VISIBILITY):
     if not model.use_visibility or lights.count == 0:
         return None
     return render_shadow_maps(model.surfels, lights.directions, bounds, vis_config)
 
 
-def relight_view(model: RelightModel, camera: Camera, lights: S.LightSet, maps,
+def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, maps,
                  factor: float, raster: RasterConfig = DEFAULT_RASTER) -> dict:
     """Relit image and buffers of one view: "rgb" [H, W, 3], "albedo" [H, W, 3] (diffuse,
     (1 - m) a), "direct_irradiance" [H, W] (white sum_k E_k (n . l_k)^+ V_k, mean RGB),
@@ -206,9 +206,9 @@ def relight_view(model: RelightModel, camera: Camera, lights: S.LightSet, maps,
         vis = None if maps is None else \
             maps.evaluate(geom.points, geom.normal, geom.footprint)
         indirect = ind * factor if ind is not None and factor > 0 else None
-        rgb = S.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
+        rgb = shading.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
         ones = mi.Color3f(1.0)
-        irr = S.direct(geom, ones * dr.pi, dr.zeros(mi.Float, dr.width(geom.alpha)),
+        irr = shading.direct(geom, ones * dr.pi, dr.zeros(mi.Float, dr.width(geom.alpha)),
                        dr.zeros(mi.Float, dr.width(geom.alpha)), lights, vis, False)
         diff_albedo = albedo * (1.0 - metal)
     return {"rgb": _img(rgb, h, w), "albedo": _img(diff_albedo, h, w),
@@ -220,7 +220,7 @@ def _img(c: mi.Color3f, h: int, w: int) -> np.ndarray:
     return np.stack([np.asarray(c[k], np.float32) for k in range(3)], -1).reshape(h, w, 3)
 
 
-def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: S.LightSet,
+def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shading.LightSet,
                   bounds: SceneBounds, config: RelightConfig = DEFAULT_RELIGHT,
                   vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
                   raster: RasterConfig = DEFAULT_RASTER, progress: bool = False
