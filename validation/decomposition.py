@@ -31,6 +31,7 @@ from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.dataset.standin import standin_surfels
 from mi_shadowgs.io.atomic import atomic_dir, write_json
 from mi_shadowgs.io.images import write_png
+from mi_shadowgs.stages import material, relight
 from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -49,9 +50,9 @@ def scene_bounds(setup, cameras) -> shadow_maps.SceneBounds:
 def run_variant(name, overrides, surfels, train, test, bounds, preset, extra) -> dict:
     """Fit one variant on the stand-in and evaluate it (``mi_shadowgs.pipeline``)."""
     t0 = time.perf_counter()
-    res = pipeline.decompose(surfels, train, preset, bounds, {**overrides, **extra})
+    res = material.decompose(surfels, train, preset, bounds, {**overrides, **extra})
     fit_s = time.perf_counter() - t0
-    out, images = pipeline.evaluate_decomposition(res, train, test, bounds, preset)
+    out, images = relight.evaluate_decomposition(res, train, test, bounds, preset)
     out.update(fit_s=fit_s, timings=res.timings, history=res.history)
     cfg = with_overrides(material_fit.get_config(preset), {**overrides, **extra}, "material")
     steps_w = min(cfg.warmup, cfg.iterations)
