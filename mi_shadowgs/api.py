@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from mi_shadowgs import backend
+from mi_shadowgs import backend, stages
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.render import render_surfels
 from mi_shadowgs.dataset.loader import Dataset, load_dataset
@@ -89,5 +89,5 @@ __all__ = [
     "Camera", "Dataset", "RunConfig", "directional_light_set", "export_ply",
     "generate_dataset", "get_config", "lights_from_json", "load_dataset", "load_model",
     "relight", "render", "run", "run_geometry", "run_pipeline", "run_segmentation",
-    "scene_path", "set_variant",
+    "scene_path", "set_variant", "stages",
 ]
