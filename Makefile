@@ -3,7 +3,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 CLI := $(VENV)/bin/mi-shadowgs
 PRESET ?= cpu-small
-SCENE ?= scenes/default.xml
+SCENE ?= mi_shadowgs/scenes/default.xml
 DEMO_DIR ?= runs/demo
 
 .PHONY: install demo test test-cuda bench validate lint clean

@@ -1,4 +1,4 @@
-"""What the dataset fingerprint of run provenance costs (``mi_shadowgs.provenance``).
+"""What the dataset fingerprint of run provenance costs (``mi_shadowgs.io.provenance``).
 
 Every ``train`` / ``segment`` / ``run`` hashes the dataset's files once per process. This
 times that hash on the cpu-small dataset layout (128^2, 64 + 32 views, every ground-truth
@@ -36,11 +36,11 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
 
 
 def _measure(out: Path, data: Path, log) -> dict:
-    from mi_shadowgs import provenance
-    from mi_shadowgs.atomic import write_json
     from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.io import provenance
+    from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.scenes import scene_path
 
     write_dataset(scene_path("default"), data, dataclasses.replace(get_config("cpu-small"),

@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects llvm_ad_rgb)
-from mi_shadowgs.atomic import atomic_path, write_json, write_text
 from mi_shadowgs.config import get_preset
+from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
 
 from .workloads import Workload, WorkloadConfig, build_workload
 
@@ -150,15 +150,15 @@ class _Runner:
 
 
 class OursRunner(_Runner):
-    """``mi_shadowgs.raster.rasterize`` with an "rgb" channel and the "alpha" AOV."""
+    """``mi_shadowgs.core.raster.rasterize`` with an "rgb" channel and the "alpha" AOV."""
 
     name = "ours"
     grad_names = ("position", "log_scale", "rotation", "opacity_logit", "rgb")
 
     def __init__(self, workload: Workload, raster_config=None):
         super().__init__(workload)
-        from mi_shadowgs.raster import RasterConfig
-        from mi_shadowgs.surfels import Surfels
+        from mi_shadowgs.core.raster import RasterConfig
+        from mi_shadowgs.core.surfels import Surfels
 
         mi, dr = self._mi, self._dr
         wl = workload
@@ -188,7 +188,7 @@ class OursRunner(_Runner):
         self.surfels.position = pos
 
     def render(self):
-        from mi_shadowgs.raster import rasterize
+        from mi_shadowgs.core.raster import rasterize
 
         out = rasterize(self.surfels, self.workload.camera, {"rgb": self.colors},
                         aovs=("alpha",), config=self.config)
@@ -210,7 +210,7 @@ def count_pairs(surfels, camera, config) -> dict:
     """
     import drjit as dr
 
-    from mi_shadowgs import raster
+    from mi_shadowgs.core import raster
 
     box_pairs, pairs = raster.pair_counts(surfels, camera, config)
     with dr.suspend_grad():
@@ -568,7 +568,7 @@ def plot_renders(path: Path, images: dict, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mi_shadowgs.imageio import linear_to_srgb
+    from mi_shadowgs.io.images import linear_to_srgb
 
     panels = [("ours: 2DGS rasterizer" if k == "ours" else "Mitsuba ellipsoids + volprim_rf_basic",
                images[k]) for k in ("ours", "mitsuba") if k in images]

@@ -40,21 +40,22 @@ def _model(n: int, seed: int = 0) -> dict:
 
 
 def _camera(res: int):
-    from mi_shadowgs.camera import Camera
+    from mi_shadowgs.core.camera import Camera
 
     return Camera.look_at((0.3, 0.4, 2.5), (0.0, 0.0, 0.0), width=res, height=res, fov_x=0.8)
 
 
 def run_case(n: int, res: int, mode: str) -> dict:
     """In this process: render once, return pairs and RSS figures (bytes)."""
-    from mi_shadowgs import backend, memory
+    from mi_shadowgs import backend
+    from mi_shadowgs.core import memory
 
     backend.set_variant(None)
     import drjit as dr
     import mitsuba as mi
 
-    from mi_shadowgs.raster import AOV_CHANNELS, rasterize
-    from mi_shadowgs.surfels import Surfels
+    from mi_shadowgs.core.raster import AOV_CHANNELS, rasterize
+    from mi_shadowgs.core.surfels import Surfels
 
     m = _model(n)
     s = Surfels.from_numpy(m["position"], m["scale"], m["rotation"], m["opacity"])
@@ -88,8 +89,8 @@ def _subprocess_case(n: int, res: int, mode: str) -> dict:
 
 def budget_case(n: int, res: int, budget: str, folder: Path) -> dict:
     """``mi-shadowgs render --memory-budget`` of the 1e6-scale model: exit code, peak RSS."""
-    from mi_shadowgs import ply
-    from mi_shadowgs.memory import parse_bytes
+    from mi_shadowgs.core.memory import parse_bytes
+    from mi_shadowgs.io import ply
 
     m = _model(n)
     logit = np.log(m["opacity"]) - np.log1p(-m["opacity"])

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from mi_shadowgs.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
 
 
 def discover_suites() -> dict[str, object]:

@@ -12,9 +12,9 @@ import math
 
 import numpy as np
 
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.directions import direction_from_angles
-from mi_shadowgs.geometry import frame_to_quaternion
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.core.frames import frame_to_quaternion
 
 # Real SH band-0 constant: both renderers map a DC coefficient c to colour SH_C0 * c + 0.5.
 SH_C0 = 0.28209479177387814

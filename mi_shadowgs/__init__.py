@@ -4,7 +4,7 @@ Importing the package finds a libLLVM that Dr.Jit can run (before drjit loads), 
 default variant when none is active, and registers the Mitsuba plugins for it.
 """
 
-from . import backend as _backend
+from mi_shadowgs import backend as _backend
 
 __version__ = "0.1.0"
 

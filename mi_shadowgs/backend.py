@@ -17,7 +17,7 @@ import os
 import pkgutil
 import sys
 
-from . import libllvm
+from mi_shadowgs import libllvm
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
@@ -98,7 +98,7 @@ def register_plugins() -> list[str]:
     Plugin classes subclass variant-specific Mitsuba types, so after a variant switch
     the modules are reloaded rather than reused.
     """
-    from . import plugins
+    from mi_shadowgs import plugins
 
     names = []
     for info in pkgutil.iter_modules(plugins.__path__):

@@ -1,11 +1,9 @@
-"""Stages 3-5 over a fitted geometry, and the whole method end to end (``mi-shadowgs run``).
+"""The whole method end to end (``mi-shadowgs run``): stage 1 (geometry), stage 2
+(segmentation), then stages 3-5 per variant (visibility and the material/light
+decomposition, evaluation and relighting), the summary and the report.
 
-``decompose`` fits stage 4 (visibility from the surfels' shadow maps, Cook-Torrance
-materials, the light map, indirect SH) on the training views; ``evaluate_decomposition``
-measures it on the test views the way the paper does (Sec. V-A3) and relights them under
-every setup of ``lights.json``. ``run_pipeline`` chains stage 1 (geometry), stage 2
-(segmentation), these, the figures and the report, each stage resumable: a stage whose
-outputs are complete is not run again.
+``run_pipeline`` calls each stage's library runner; each stage is resumable, and a stage
+whose outputs are complete and were made from the same inputs is not run again.
 """
 
 from __future__ import annotations
@@ -15,15 +13,19 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
-
-from . import evaluation as E
-from . import relight as R
-from . import stage_material as SM
-from . import visibility as V
-from .atomic import atomic_dir, write_json
-from .config import get_preset, with_overrides
-from .directions import map_to_blocks
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.io.atomic import atomic_dir, write_json
+from mi_shadowgs.stages import geometry, segmentation
+from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
+from mi_shadowgs.stages.relight import render as relight
+from mi_shadowgs.stages.relight.evaluate import (
+    check_evaluation_inputs,
+    evaluate_decomposition,
+    light_json,
+    write_figures,
+)
+from mi_shadowgs.stages.visibility import shadow_maps
 
 VARIANTS = {
     "full": {},
@@ -59,193 +61,22 @@ def get_config(name: str) -> RunConfig:
     return get_preset(PRESETS, name, "run")
 
 
-# -- stage 4 ------------------------------------------------------------------------------
-def occluder_bounds(surfels, cameras, quantile: float) -> V.SceneBounds:
-    """Shadow-map bounds from the surfels themselves (paper: their centroid), robust to
-    floaters through ``quantile``."""
-    pos = surfels.to_numpy()["position"]
-    return V.SceneBounds.from_points(pos, cameras, quantile)
-
-
-def material_config(preset: str, overrides: dict | None = None) -> SM.MaterialConfig:
-    return with_overrides(SM.get_config(preset), overrides, "material")
-
-
-def decompose(surfels, train, preset: str, bounds: V.SceneBounds, overrides: dict | None = None,
-              progress: bool = True, **checkpoints) -> SM.MaterialResult:
-    """Stage 4 on the training views of ``train`` (a loaded Dataset); ``checkpoints``:
-    ``state`` and ``on_checkpoint`` of ``fit_material``."""
-    cfg = material_config(preset, overrides)
-    return SM.fit_material(surfels, train.cameras, [v.image for v in train.views],
-                           [v.mask for v in train.views], cfg, bounds, V.preset(preset),
-                           progress=progress, **checkpoints)
-
-
-def _scaled_albedo_model(model: R.RelightModel, scale: np.ndarray) -> R.RelightModel:
-    """The model with its albedo times a per-channel factor (ground-truth alignment)."""
-    import mitsuba as mi
-
-    surf = dataclasses.replace(model.surfels, channels=dict(model.surfels.channels))
-    a = surf.channels["albedo"].numpy() * scale[None].astype(np.float32)
-    surf.channels["albedo"] = mi.TensorXf(np.clip(a, 0.0, None).astype(np.float32))
-    return dataclasses.replace(model, surfels=surf)
-
-
-def evaluate_decomposition(result: SM.MaterialResult, train, test, bounds: V.SceneBounds,
-                           preset: str) -> tuple[dict, dict]:
-    """Paper Sec. V-A3 metrics on the test views, and the images behind them.
-
-    Returns (metrics, images): images hold [V, H, W, ...] stacks "albedo", "irradiance" and
-    "relit/<setup>" with their ground truth under "gt/...", and the light maps.
-    """
-    vcfg = V.preset(preset)
-    rcfg = R.get_config(preset)
-    model = R.RelightModel(result.surfels, result.specular, result.use_visibility,
-                           result.light.light_set())
-    views, decomp_s = R.relight_views(model, test.cameras, result.light.light_set(), bounds,
-                                      rcfg, vcfg)
-    mask = test.stack("mask")
-    est_alb = np.stack([v["albedo"] for v in views])
-    gt_alb = test.stack("albedo")
-    alb = E.albedo_metrics(est_alb, gt_alb, test.stack("material"), mask)
-    est_irr = np.stack([v["direct_irradiance"] for v in views])
-    gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
-    gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
-    metrics = {
-        "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
-        "light_cosine": E.light_cosine(result.light.radiance, gt_map),
-        "shadow_iou": E.shadow_iou(est_irr, gt_irr, mask),
-        "specular": result.specular, "active_directions": int(len(result.light.active)),
-        "decomposition_render_s": decomp_s,
-    }
-    images = {"albedo": E.align_albedo(est_alb, test.stack("material"),
-                                       E.albedo_scales(est_alb, gt_alb, test.stack("material"),
-                                                       mask)),
-              "gt/albedo": gt_alb, "irradiance": est_irr, "gt/irradiance": gt_irr,
-              "light_map": result.light.radiance, "gt/light_map": gt_map.mean(-1)}
-    # Relighting: the albedo is aligned to ground truth by one global per-channel factor.
-    smodel = _scaled_albedo_model(model, E.global_albedo_scale(est_alb, gt_alb, mask))
-    relit = {}
-    for entry in train.lights.get("relightings", []):
-        if entry.get("type") != "directional":
-            continue  # env-map relighting needs the emitter: see relight.envmap_light_set
-        name = entry["name"]
-        rv, secs = R.relight_views(smodel, test.cameras, R.lights_from_json(entry), bounds,
-                                   rcfg, vcfg)
-        est = np.stack([v["rgb"] for v in rv])
-        gt = np.stack([v.relit[name] for v in test.views])
-        relit[name] = {**E.image_metrics(est, gt, mask), "render_s": secs, "views": len(rv)}
-        images[f"relit/{name}"] = est
-        images[f"gt/relit/{name}"] = gt
-    if relit:
-        metrics["relight_psnr"] = float(np.mean([r["psnr"] for r in relit.values()]))
-        metrics["relight_ssim"] = float(np.mean([r["ssim"] for r in relit.values()]))
-        metrics["relight_render_s"] = float(np.median([r["render_s"] for r in relit.values()]))
-    metrics["relighting"] = relit
-    return metrics, images
-
-
-# -- figures --------------------------------------------------------------------------------
-def _display(img: np.ndarray, scale: float | None = None) -> np.ndarray:
-    """Linear [H, W] or [H, W, 3] -> [H, W, 3] in [0, 1] (optionally divided by scale)."""
-    a = np.asarray(img, np.float64)
-    if a.ndim == 2:
-        a = np.repeat(a[..., None], 3, axis=-1)
-    if scale:
-        a = a / scale
-    return np.clip(a, 0.0, 1.0)
-
-
-def light_map_image(radiance: np.ndarray, block: int = 8) -> np.ndarray:
-    """The paper's 22 x 12 block view of a grid light map, normalised, upscaled [H, W, 3]."""
-    blocks = map_to_blocks(np.asarray(radiance, np.float64))  # [12, 22]
-    peak = blocks.max()
-    img = blocks / peak if peak > 0 else blocks
-    img = np.repeat(np.repeat(img, block, 0), block, 1)
-    return np.repeat(img[..., None], 3, axis=-1)
-
-
-def write_figures(folder: Path, test, images: dict, count: int) -> dict:
-    """PNG figures of the first ``count`` test views (spread over the split); returns the
-    report grid (rows of relative paths)."""
-    from .imageio import write_png
-
-    n = len(test.views)
-    picks = sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
-    relits = sorted(k[len("relit/"):] for k in images if k.startswith("relit/"))
-    columns = ["input", "albedo", "albedo (GT)", "irradiance", "irradiance (GT)"]
-    for name in relits:
-        columns += [f"relit {name}", f"relit {name} (GT)"]
-    # One exposure for estimate and ground truth of a kind, so that they compare.
-    irr_scale = float(np.percentile(images["irradiance"], 99)) or 1.0
-    gt_irr_scale = float(np.percentile(images["gt/irradiance"], 99)) or 1.0
-    rows = []
-    for i in picks:
-        stem = Path(test.views[i].name).name
-        cells = {"input": test.views[i].image, "albedo": images["albedo"][i],
-                 "albedo (GT)": images["gt/albedo"][i],
-                 "irradiance": _display(images["irradiance"][i], irr_scale),
-                 "irradiance (GT)": _display(images["gt/irradiance"][i], gt_irr_scale)}
-        for name in relits:
-            cells[f"relit {name}"] = images[f"relit/{name}"][i]
-            cells[f"relit {name} (GT)"] = images[f"gt/relit/{name}"][i]
-        paths = []
-        for col in columns:
-            fname = f"{stem}_{col.replace(' ', '_').replace('(', '').replace(')', '')}.png"
-            srgb = not col.startswith("irradiance")
-            write_png(folder / fname, _display(cells[col]), srgb=srgb)
-            paths.append(fname)
-        rows.append({"label": stem, "cells": paths})
-    est, gt = light_map_image(images["light_map"]), light_map_image(images["gt/light_map"])
-    gap = np.ones((est.shape[0], 4, 3))
-    write_png(folder / "light_map.png", np.concatenate([est, gap, gt], axis=1), srgb=False)
-    return {"columns": columns, "rows": rows}
-
-
-# -- end to end -----------------------------------------------------------------------------
-def check_evaluation_inputs(train, test) -> None:
-    """What ``evaluate_decomposition`` reads, checked before stage 1 starts (DatasetError
-    naming the file or field): the training light map and the test views' ground truth."""
-    from .dataset.loader import DatasetError
-
-    path = train.root / "lights.json"
-    if train.lights is None:
-        raise DatasetError(f"{path}: file not found (the evaluation compares the estimated "
-                           "light map with its training.light_map)")
-    try:
-        np.asarray(train.lights["training"]["light_map"]["radiance"], np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise DatasetError(f"{path}: missing or malformed field "
-                           "'training.light_map.radiance'") from None
-    for field in ("albedo", "irradiance", "material"):
-        missing = [v.name for v in test.views if getattr(v, field) is None]
-        if missing:
-            raise DatasetError(f"{test.root}: test view {missing[0]!r} has no {field} ground "
-                               "truth, which the evaluation needs")
-    for entry in train.lights.get("relightings", []):
-        if entry.get("type") == "directional":
-            missing = [v.name for v in test.views if entry.get("name") not in v.relit]
-            if missing:
-                raise DatasetError(f"{test.root}: test view {missing[0]!r} has no relit image "
-                                   f"for relighting {entry.get('name')!r} of {path.name}")
-
-
 def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, test,
-                   bounds: V.SceneBounds, config: RunConfig, overwrite: bool,
+                   bounds: shadow_maps.SceneBounds, config: RunConfig, overwrite: bool,
                    progress: bool) -> tuple[dict, float | None]:
     """Stages 3-5 of one variant into ``material/<name>`` of the run ``top`` (an Output);
     returns (metrics, fit seconds), the seconds None when a finished output of the same
     provenance is reused."""
-    from .ply import save_ply
-    from .provenance import Output, Provenance, dataset_ref, input_ref
-    from .runners import checkpoint_hooks
+    from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
+    from mi_shadowgs.stages.common import checkpoint_hooks
 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
     cfg = material_config(config.preset, overrides)
     settings = {"variant": name, "material": dataclasses.asdict(cfg),
-                "visibility": dataclasses.asdict(V.preset(config.preset)),
-                "relight": dataclasses.asdict(R.get_config(config.preset)),
+                "visibility": dataclasses.asdict(shadow_maps.get_config(config.preset)),
+                "relight": dataclasses.asdict(relight.get_config(config.preset)),
                 "bounds_quantile": config.bounds_quantile, "figure_views": config.figure_views}
     provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(seg_model)},
                             settings=settings)
@@ -254,17 +85,13 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
                      inputs=[data, seg_model]) as out:
         if out.complete:
             return json.loads((folder / "metrics.json").read_text()), None
-        checkpoints = checkpoint_hooks(out, SM.MaterialState.from_checkpoint)
+        checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
         res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds, overrides,
                                               progress, **checkpoints))
         metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset)
         metrics["fit_s"] = fit_s
         save_ply(out.path("model.ply"), res.surfels)
-        write_json(out.path("light.json"), {
-            "radiance": res.light.radiance.tolist(), "active": res.light.active.tolist(),
-            "directions": np.asarray(res.light.light_set().directions).tolist(),
-            "irradiance": res.light.weights.tolist() if res.light.weights is not None
-            else None, "specular": res.specular})
+        write_json(out.path("light.json"), light_json(res))
         with atomic_dir(folder / "figures", overwrite=True) as tmp:
             grid = write_figures(tmp, test, images, config.figure_views)
             out.claim(*(f"figures/{p.name}" for p in sorted(tmp.iterdir())))
@@ -291,12 +118,11 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     anything else exits with a ProvenanceError naming what differs, unless ``overwrite``
     removes the run's files first. ``log`` takes the stages' one-line summaries.
     """
-    from . import stage_geometry
-    from .dataset.loader import load_dataset
-    from .ply import load_ply
-    from .provenance import Output, Provenance, dataset_ref
-    from .report import write_report
-    from .runners import load_training_views, run_geometry, run_segmentation, segmentation_config
+    from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref
+    from mi_shadowgs.io.report import write_report
+    from mi_shadowgs.stages.common import load_training_views
 
     data, run = Path(data), Path(out)
     t_start = time.perf_counter()
@@ -320,15 +146,16 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
                      compare=("dataset",), inputs=[data],
                      parts=("geometry", "segmentation", "material")) as top:
         top.add_part("geometry")
-        geo = run_geometry(data, run / "geometry", stage_geometry.get_config(config.preset),
-                           preset=config.preset, reuse=True, overwrite=overwrite,
-                           progress=progress, train=train, test=test)
+        geo = geometry.run_geometry(data, run / "geometry", geometry.get_config(config.preset),
+                                    preset=config.preset, reuse=True, overwrite=overwrite,
+                                    progress=progress, train=train, test=test)
         done("geometry", geo)
         top.add_part("segmentation")
-        seg = run_segmentation(run / "geometry" / "model.ply", data, run / "segmentation",
-                               segmentation_config(config.preset, masks), masks=masks,
-                               preset=config.preset, overwrite=overwrite, reuse=True,
-                               progress=progress, train=train, views=test)
+        seg = segmentation.run_segmentation(
+            run / "geometry" / "model.ply", data, run / "segmentation",
+            segmentation.segmentation_config(config.preset, masks), masks=masks,
+            preset=config.preset, overwrite=overwrite, reuse=True, progress=progress,
+            train=train, views=test)
         done("segmentation", seg)
         surfels = load_ply(run / "segmentation" / "model.ply")
         bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
@@ -359,7 +186,7 @@ def _json_or_empty(path: Path) -> dict:
 
 def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stages: list,
                   seconds: float) -> dict:
-    """The report's ``summary.json`` (see ``mi_shadowgs.report``) from the run's files."""
+    """The report's ``summary.json`` (see ``mi_shadowgs.io.report``) from the run's files."""
     import mitsuba as mi
 
     geo = _json_or_empty(run / "geometry" / "metrics.json")

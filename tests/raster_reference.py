@@ -1,6 +1,6 @@
 """Independent float64 NumPy reference of the 2DGS rasterizer maths (no Dr.Jit).
 
-Written from the maths, not from mi_shadowgs.raster: rays come from ``Camera.unproject``,
+Written from the maths, not from mi_shadowgs.core.raster: rays come from ``Camera.unproject``,
 the ray-splat intersection is a plain world-space ray-plane hit, rotations come from
 SciPy, and there is no bounding box or pair list (every pixel meets every surfel; the
 ``cutoff_sigma`` test is a per-pair threshold). Compositing is vectorised over pixels.
@@ -166,7 +166,7 @@ def to_surfels(raw):
     """Dr.Jit Surfels holding exactly the raw parameters (float32)."""
     import mitsuba as mi
 
-    from mi_shadowgs.surfels import Surfels
+    from mi_shadowgs.core.surfels import Surfels
 
     def cols(a):
         return [np.ascontiguousarray(a[:, i], dtype=np.float32) for i in range(a.shape[1])]

@@ -22,8 +22,8 @@ def tiny_dataset(root):
 
 def standin_surfels(count: int = 3000, seed: int = 0):
     """Surfels sampled on the default scene's true shapes, and the scene set-up."""
+    from mi_shadowgs.core.sampling import surfels_on_surface
     from mi_shadowgs.dataset.scene import load_scene
-    from mi_shadowgs.sampling import surfels_on_surface
     from mi_shadowgs.scenes import scene_path
 
     setup = load_scene(scene_path("default"))

@@ -10,7 +10,7 @@ import pytest
 
 from benchmarks import bm_raster
 from benchmarks.workloads import SH_C0, WorkloadConfig, build_workload, split_by_area
-from mi_shadowgs.geometry import quaternion_to_matrix
+from mi_shadowgs.core.frames import quaternion_to_matrix
 
 TINY = {"n": 600, "res": 32, "warmup": 0, "iters": 1}
 

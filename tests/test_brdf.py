@@ -1,4 +1,4 @@
-"""Cook-Torrance BRDF (mi_shadowgs.brdf) against an independent float64 NumPy reference."""
+"""Cook-Torrance BRDF (mi_shadowgs.core.brdf) against an independent float64 NumPy reference."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs import brdf
+from mi_shadowgs.core import brdf
 
 # float32 evaluation of formulas whose float64 values span ~1e-3..1e5 (D near a sharp peak):
 # relative 1e-4 covers a few float32 roundings through the ~20 operations of the lobe.

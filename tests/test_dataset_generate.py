@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates, maximum_filter, minimum_filter
 
-from mi_shadowgs.camera import Camera
 from mi_shadowgs.cli import main as cli_main
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.cameras import train_cameras
 from mi_shadowgs.dataset.generate import (
@@ -26,8 +27,7 @@ from mi_shadowgs.dataset.generate import (
     trace_ground_truth,
 )
 from mi_shadowgs.dataset.scene import SceneError, load_scene
-from mi_shadowgs.directions import direction_from_angles
-from mi_shadowgs.provenance import MANIFEST_NAME
+from mi_shadowgs.io.provenance import MANIFEST_NAME
 from mi_shadowgs.scenes import scene_path
 
 SIZE = 64

@@ -9,13 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from mi_shadowgs.camera import Camera
+from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.generate import get_config, trace_ground_truth
 from mi_shadowgs.dataset.loader import DatasetError, load_cameras, load_dataset
 from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.dataset.writer import write_dataset
-from mi_shadowgs.imageio import read_exr, write_png
+from mi_shadowgs.io.images import read_exr, write_png
 from mi_shadowgs.scenes import scene_path
 
 

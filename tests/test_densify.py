@@ -9,9 +9,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.densify import DensifyConfig, DensifyStrategy, _quat_to_matrix
-from mi_shadowgs.optim import SurfelAdam
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.optim import SurfelAdam
+from mi_shadowgs.stages.geometry.densify import DensifyConfig, DensifyStrategy, _quat_to_matrix
 
 LR = {"position": 1e-3, "log_scale": 1e-3, "rotation": 1e-3, "opacity_logit": 1e-2,
       "sh_dc": 1e-3}

@@ -1,4 +1,4 @@
-"""Evaluation metrics of stage 5 (mi_shadowgs.evaluation) on hand-computed cases."""
+"""Evaluation metrics of stage 5 (mi_shadowgs.stages.relight.evaluation) on hand-computed cases."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mi_shadowgs import evaluation as E
+from mi_shadowgs.stages.relight import evaluation as E
 
 
 def test_albedo_alignment_per_region_and_channel():

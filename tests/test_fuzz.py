@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mi_shadowgs import surfels
-from mi_shadowgs.camera import Camera
+from mi_shadowgs.core import surfels
+from mi_shadowgs.core.camera import Camera
 from validation.fuzz import run_fuzz
 
 

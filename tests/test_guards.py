@@ -14,10 +14,12 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from mi_shadowgs import cli, memory, ply, raster
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.raster import AOV_CHANNELS, RasterConfig, RasterMemoryError, rasterize
-from mi_shadowgs.surfels import Surfels
+from mi_shadowgs import cli
+from mi_shadowgs.core import memory, raster
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.raster import AOV_CHANNELS, RasterConfig, RasterMemoryError, rasterize
+from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.io import ply
 
 N = 8
 
@@ -249,7 +251,7 @@ def test_render_of_1e6_scale_surfels_stays_under_the_budget(tmp_path):
     rc, peak, err = render("400M", "out")
     assert rc == 0, err
     assert peak < budget, f"peak RSS {peak / 2**20:.0f} MiB over the 400 MiB budget"
-    from mi_shadowgs.imageio import read_exr
+    from mi_shadowgs.io.images import read_exr
 
     rgba = read_exr(tmp_path / "out" / "r_0.exr")
     assert np.isfinite(rgba).all() and rgba[..., 3].min() > 0.99  # covered everywhere

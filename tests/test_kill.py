@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_shadowgs.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from mi_shadowgs.io.checkpoint import CHECKPOINT_NAME, load_checkpoint
 
 pytestmark = pytest.mark.kill
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,8 +8,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs import losses, metrics
-from mi_shadowgs.camera import Camera
+from mi_shadowgs.core import losses, metrics
+from mi_shadowgs.core.camera import Camera
 
 
 def _t(a) -> mi.TensorXf:

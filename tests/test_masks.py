@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from segmentation_fixtures import standin_surfels, tiny_dataset
 
-from mi_shadowgs import masks
-from mi_shadowgs import segmentation as seg
 from mi_shadowgs.dataset.loader import load_dataset
+from mi_shadowgs.stages.segmentation import features as seg
+from mi_shadowgs.stages.segmentation import masks
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +103,7 @@ def test_material_masks_and_errors(tiny):
 
 def test_segment_command(tiny, tmp_path):
     from mi_shadowgs.cli import main
-    from mi_shadowgs.ply import load_ply, save_ply
+    from mi_shadowgs.io.ply import load_ply, save_ply
 
     surf, _ = standin_surfels(3000)
     save_ply(tmp_path / "model.ply", surf)

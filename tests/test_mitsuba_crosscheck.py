@@ -45,7 +45,7 @@ def quat_z_to(normals: np.ndarray) -> np.ndarray:
 
 
 def write_sphere_model(path) -> None:
-    from mi_shadowgs import ply
+    from mi_shadowgs.io import ply
 
     normals = fibonacci_sphere(N_SURFELS)
     spacing = np.sqrt(4.0 * np.pi * RADIUS**2 / N_SURFELS)
@@ -62,7 +62,7 @@ def crosscheck(kind: str, model_path) -> dict:
     """Render both ways from one Mitsuba sensor; returns the figures and the images."""
     import mitsuba as mi
 
-    from mi_shadowgs.camera import Camera
+    from mi_shadowgs.core.camera import Camera
 
     sens, scale = SENSORS[kind]
     lookat = (f'<lookat origin="{", ".join(map(str, ORIGIN))}" '

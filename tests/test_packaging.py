@@ -44,7 +44,7 @@ def wheel_path(tmp_path_factory) -> Path:
     src = tmp_path_factory.mktemp("src")
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(ROOT / name, src / name)
-    for name in ("mi_shadowgs", "plugins", "scenes"):
+    for name in ("mi_shadowgs",):
         shutil.copytree(ROOT / name, src / name,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     out = tmp_path_factory.mktemp("wheel")
@@ -67,8 +67,8 @@ def test_wheel_contents(wheel_path):
     names = set(zipfile.ZipFile(wheel_path).namelist())
     assert "mi_shadowgs/plugins/surfel_raster.py" in names
     assert "mi_shadowgs/plugins/__init__.py" in names
-    scenes = sorted(p.name for p in (ROOT / "scenes").glob("*.xml"))
-    assert scenes, "scenes/ holds no XML scene to ship"
+    scenes = sorted(p.name for p in (ROOT / "mi_shadowgs" / "scenes").glob("*.xml"))
+    assert scenes, "mi_shadowgs/scenes/ holds no XML scene to ship"
     for name in scenes:
         assert f"mi_shadowgs/scenes/{name}" in names
     # Every package of the source tree is in the wheel (a forgotten subpackage breaks installs).
@@ -84,7 +84,7 @@ def test_wheel_contents(wheel_path):
 def test_plugin_loads_from_installed_wheel(wheel_path, tmp_path):
     site = tmp_path / "site"
     zipfile.ZipFile(wheel_path).extractall(site)
-    from mi_shadowgs import ply
+    from mi_shadowgs.io import ply
 
     rng = np.random.default_rng(0)
     n = 8

@@ -8,10 +8,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs import ply
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.raster import rasterize
-from mi_shadowgs.surfels import sh_colors
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.raster import rasterize
+from mi_shadowgs.core.surfels import sh_colors
+from mi_shadowgs.io import ply
 
 W, H = 24, 18
 

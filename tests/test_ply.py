@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mi_shadowgs import ply
+from mi_shadowgs.io import ply
 
 
 def _model(n=7, degree=3, seed=0, extra=True):
@@ -162,7 +162,7 @@ def test_errors_name_file_and_property(tmp_path):
 
 
 def test_surfels_round_trip(tmp_path):
-    from mi_shadowgs import surfels as surfels_mod
+    from mi_shadowgs.core import surfels as surfels_mod
 
     m = _model(n=6)
     s = m.to_surfels()

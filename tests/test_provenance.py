@@ -10,9 +10,9 @@ import shutil
 import numpy as np
 import pytest
 
-from mi_shadowgs import atomic
-from mi_shadowgs import provenance as P
-from mi_shadowgs.imageio import ImageReadError, read_exr, read_png, write_exr, write_png
+from mi_shadowgs.io import atomic
+from mi_shadowgs.io import provenance as P
+from mi_shadowgs.io.images import ImageReadError, read_exr, read_png, write_exr, write_png
 
 
 @pytest.fixture

@@ -9,9 +9,9 @@ import pytest
 from raster_reference import random_scene, reference, to_surfels
 from scipy.spatial.transform import Rotation
 
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.raster import RasterConfig, rasterize
-from mi_shadowgs.surfels import Surfels, eval_sh, sh_colors
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.raster import RasterConfig, rasterize
+from mi_shadowgs.core.surfels import Surfels, eval_sh, sh_colors
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
 CFG = RasterConfig()

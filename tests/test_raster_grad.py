@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from raster_reference import random_scene, reference, structure_equal, to_surfels
 
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.raster import RasterConfig, rasterize
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.raster import RasterConfig, rasterize
 
 CFG = RasterConfig()
 # Outputs in the loss; each gets its own random weights.

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from raster_reference import random_scene, reference, to_surfels
 
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.raster import RasterConfig, rasterize
-from mi_shadowgs.surfels import Surfels
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.raster import RasterConfig, rasterize
+from mi_shadowgs.core.surfels import Surfels
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
 CFG = RasterConfig()

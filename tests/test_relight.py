@@ -1,4 +1,4 @@
-"""Relighting (mi_shadowgs.relight) against Mitsuba ray tracing and hand cases."""
+"""Relighting (mi_shadowgs.stages.relight.render) against Mitsuba ray tracing and hand cases."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs import relight as R
-from mi_shadowgs import shading as S
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.sampling import surfels_on_surface
-from mi_shadowgs.visibility import SceneBounds, VisibilityConfig
+from mi_shadowgs.core import shading as S
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.sampling import surfels_on_surface
+from mi_shadowgs.stages.relight import render as R
+from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, VisibilityConfig
 
 LIGHT = np.array([0.5, 0.75, -0.3])
 LIGHT = LIGHT / np.linalg.norm(LIGHT)
@@ -116,7 +116,7 @@ def test_indirect_factor_modes():
 
 def test_surfel_relight_plugin_matches_library(tmp_path):
     """The Mitsuba integrator reads the scene's directional emitter and gives relight_view."""
-    from mi_shadowgs.ply import load_ply, save_ply
+    from mi_shadowgs.io.ply import load_ply, save_ply
 
     scene = _scene(_directional())
     surf = surfels_on_surface(list(scene.shapes()), 3000, sigma_factor=0.7)

@@ -9,10 +9,11 @@ import shutil
 import numpy as np
 import pytest
 
-from mi_shadowgs import cli, ply
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.imageio import read_exr, read_png
-from mi_shadowgs.surfel_render import render_surfels
+from mi_shadowgs import cli
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.render import render_surfels
+from mi_shadowgs.io import ply
+from mi_shadowgs.io.images import read_exr, read_png
 
 W, H = 20, 16
 
@@ -149,7 +150,7 @@ def test_renders_never_mix_and_overwrite_removes_only_renders(setup, tmp_path, c
 
 def test_a_failed_render_leaves_no_folder(setup, tmp_path, monkeypatch):
     root, _ = setup
-    from mi_shadowgs import surfel_render
+    from mi_shadowgs.core import render as surfel_render
 
     def broken(*args, **kwargs):
         raise RuntimeError("out of memory")

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from mi_shadowgs.imageio import write_png
-from mi_shadowgs.report import render_html, write_report
+from mi_shadowgs.io.images import write_png
+from mi_shadowgs.io.report import render_html, write_report
 
 
 def test_report_shows_tables_grid_and_stage_figures(tmp_path):

@@ -19,16 +19,18 @@ import tiny_cli
 from segmentation_fixtures import standin_surfels
 from test_stage_material import _plane_scene, _render_truth
 
-from mi_shadowgs import cli, interrupt, runners
-from mi_shadowgs import segmentation as seg
-from mi_shadowgs import stage_geometry as sg
-from mi_shadowgs import stage_material as sm
-from mi_shadowgs.checkpoint import load_checkpoint, save_checkpoint
+from mi_shadowgs import cli
+from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.dataset.loader import load_dataset
-from mi_shadowgs.directions import direction_from_angles
-from mi_shadowgs.masks import material_masks
+from mi_shadowgs.io import interrupt
+from mi_shadowgs.io.checkpoint import load_checkpoint, save_checkpoint
 from mi_shadowgs.scenes import scene_path
-from mi_shadowgs.visibility import VisibilityConfig
+from mi_shadowgs.stages import common as stage_common
+from mi_shadowgs.stages.geometry import train as sg
+from mi_shadowgs.stages.material import fit as sm
+from mi_shadowgs.stages.segmentation import features as seg
+from mi_shadowgs.stages.segmentation.masks import material_masks
+from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
 
 TINY = tiny_cli.TINY
 
@@ -248,7 +250,7 @@ def test_signal_outside_a_loop_stops_at_once(data, tmp_path, capsys, monkeypatch
         os.kill(os.getpid(), signal.SIGINT)
         raise AssertionError("the signal did not stop the command")
 
-    monkeypatch.setattr(runners, "load_training_views", load)
+    monkeypatch.setattr(stage_common, "load_training_views", load)
     assert cli.main(["run", str(data), "--out", str(tmp_path / "run"), "--preset", TINY,
                      "--no-progress"]) == 130
     err = capsys.readouterr().err.strip().splitlines()

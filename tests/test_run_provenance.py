@@ -10,15 +10,16 @@ import shutil
 
 import pytest
 
-from mi_shadowgs import cli, ply
-from mi_shadowgs import segmentation as seg
-from mi_shadowgs import stage_geometry as sg
-from mi_shadowgs import stage_material as sm
-from mi_shadowgs import visibility as vis
+from mi_shadowgs import cli
 from mi_shadowgs.dataset.generate import get_config as gen_config
 from mi_shadowgs.dataset.writer import write_dataset
-from mi_shadowgs.provenance import MANIFEST_NAME
+from mi_shadowgs.io import ply
+from mi_shadowgs.io.provenance import MANIFEST_NAME
 from mi_shadowgs.scenes import scene_path
+from mi_shadowgs.stages.geometry import train as sg
+from mi_shadowgs.stages.material import fit as sm
+from mi_shadowgs.stages.segmentation import features as seg
+from mi_shadowgs.stages.visibility import shadow_maps as vis
 
 # Every stage cut to seconds: the checks here are about which files are written, kept or
 # refused, not about the fits' quality (tests/test_stage_*.py measure that).
@@ -33,7 +34,7 @@ TINY = [
                                       n_samples=256)),
     (sm.PRESETS, dataclasses.replace(sm.get_config("cpu-small"), iterations=10, warmup=5,
                                      refine_passes=(), refine_views=2)),
-    (vis.PRESETS, dataclasses.replace(vis.preset("cpu-small"), resolution=64)),
+    (vis.PRESETS, dataclasses.replace(vis.get_config("cpu-small"), resolution=64)),
 ]
 
 

@@ -9,9 +9,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs import segmentation as seg
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.surfels import Surfels
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.stages.segmentation import features as seg
 
 # Float32 kernels against float64 references: sums of a few thousand O(1) terms carry a
 # relative rounding error of ~1e-6; 1e-5 leaves margin without hiding a wrong term.
@@ -147,7 +147,7 @@ def test_segmentation_loss_gradient_matches_central_differences():
     q1, q2 = mi.UInt32(lab[:30]), mi.UInt32(lab[30:])
     # margin -2: every negative pair is active, so the loss is smooth in the features.
     cfg = seg.SegmentationConfig(margin=-2.0, lambda_norm=0.1)
-    from mi_shadowgs.raster import rasterize
+    from mi_shadowgs.core.raster import rasterize
 
     def loss(f, grad=False):
         t = mi.TensorXf(f)
@@ -240,7 +240,7 @@ def test_two_material_plane_is_segmented():
         cams.append(Camera(c2w, 32, 32, fov_x=math.radians(30.0)))
     # Label maps: left of x = 0 is material 1, right is 2; from each camera's own render.
     side = mi.TensorXf((pos[:, :1] > 0).astype(np.float32))
-    from mi_shadowgs.raster import rasterize
+    from mi_shadowgs.core.raster import rasterize
 
     maps = []
     for c in cams:

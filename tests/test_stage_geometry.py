@@ -10,14 +10,14 @@ import time
 import numpy as np
 import pytest
 
-from mi_shadowgs import checkpoint as ckpt
 from mi_shadowgs import cli
-from mi_shadowgs import stage_geometry as sg
 from mi_shadowgs.dataset.generate import get_config as gen_config
 from mi_shadowgs.dataset.loader import load_dataset
 from mi_shadowgs.dataset.writer import write_dataset
-from mi_shadowgs.densify import DensifyConfig
+from mi_shadowgs.io import checkpoint as ckpt
 from mi_shadowgs.scenes import scene_path
+from mi_shadowgs.stages.geometry import train as sg
+from mi_shadowgs.stages.geometry.densify import DensifyConfig
 
 # A tiny version of cpu-small: 32x32, few iterations, densification early and often.
 # lambda_dist stays at 100: cpu-small's 3e4 was tuned at 128^2; on this 32^2, 1500-surfel
@@ -137,7 +137,7 @@ def test_train_cli_writes_run_and_rejects_bad_data(tiny, tmp_path, capsys, monke
     bad = tmp_path / "bad"
     import shutil
     shutil.copytree(tiny, bad)
-    from mi_shadowgs.imageio import read_png, write_png
+    from mi_shadowgs.io.images import read_png, write_png
     png = bad / "train" / "r_003.png"
     img = read_png(png)
     img[..., 3] = 0

@@ -1,4 +1,4 @@
-"""Stage 4 (mi_shadowgs.stage_material, mi_shadowgs.shading): kernels and a tiny fit."""
+"""Stage 4 (mi_shadowgs.stages.material.fit, mi_shadowgs.core.shading): kernels and a tiny fit."""
 
 from __future__ import annotations
 
@@ -9,15 +9,19 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs import shading as S
-from mi_shadowgs import stage_material as SM
-from mi_shadowgs.camera import Camera
 from mi_shadowgs.config import ConfigError, with_overrides
-from mi_shadowgs.directions import light_grid, solid_angle
-from mi_shadowgs.geometry import frame_to_quaternion
-from mi_shadowgs.raster import rasterize
-from mi_shadowgs.surfels import Surfels
-from mi_shadowgs.visibility import SceneBounds, VisibilityConfig, render_shadow_maps
+from mi_shadowgs.core import shading as S
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import light_grid, solid_angle
+from mi_shadowgs.core.frames import frame_to_quaternion
+from mi_shadowgs.core.raster import rasterize
+from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.stages.material import fit as SM
+from mi_shadowgs.stages.visibility.shadow_maps import (
+    SceneBounds,
+    VisibilityConfig,
+    render_shadow_maps,
+)
 
 
 def test_presets_and_paper_defaults():
@@ -257,7 +261,7 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     """The grid search moves a light that starts 6 degrees off back onto the true direction
     (the tile's shadow on the floor and the floor's n . l pin it), and refits its
     irradiance; the error of the true direction is ~0 (the views are rendered by it)."""
-    from mi_shadowgs.directions import direction_from_angles
+    from mi_shadowgs.core.directions import direction_from_angles
 
     s, _, bounds = _plane_scene()
     cams = [Camera.look_at(np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
@@ -290,7 +294,7 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
 def test_overrides_reach_nested_settings():
     """A stage's nested config (the rasterizer's) takes its own dict of overrides, checked
     like the top level, instead of being replaced by a dict that fails much later."""
-    from mi_shadowgs.stage_geometry import get_config as geometry_config
+    from mi_shadowgs.stages.geometry.train import get_config as geometry_config
 
     cfg = with_overrides(geometry_config("cpu-small"),
                          {"iterations": 10, "raster": {"lowpass_inv_var": 8.0}}, "geometry")

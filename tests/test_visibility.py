@@ -10,10 +10,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs.camera import Camera
-from mi_shadowgs.directions import direction_from_angles
-from mi_shadowgs.sampling import surfels_on_surface
-from mi_shadowgs.visibility import (
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.core.sampling import surfels_on_surface
+from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
     VisibilityConfig,
     render_shadow_maps,
@@ -242,10 +242,11 @@ def test_receiver_offset_removes_acne_of_a_thick_fitted_surface():
     the receiver offset a quarter of the unoccluded floor is in its own shadow (acne; tau
     and the normal offset absorb ~1.3 footprints here); with 0.5 footprints (the default)
     it is lit. The lift itself is exactly ``amount * footprint`` along n."""
-    from mi_shadowgs.geometry import frame_to_quaternion
-    from mi_shadowgs.raster import rasterize
-    from mi_shadowgs.surfels import Surfels
-    from mi_shadowgs.visibility import lift_receivers, pixel_footprint
+    from mi_shadowgs.core.depth import pixel_footprint
+    from mi_shadowgs.core.frames import frame_to_quaternion
+    from mi_shadowgs.core.raster import rasterize
+    from mi_shadowgs.core.surfels import Surfels
+    from mi_shadowgs.stages.visibility.shadow_maps import lift_receivers
 
     cam = Camera.look_at(np.array([0.0, 2.0, 3.0]), np.zeros(3), width=128, height=128,
                          fov_x=0.7)

@@ -10,11 +10,11 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_shadowgs import visibility_baselines as vb
 from mi_shadowgs.config import ConfigError
-from mi_shadowgs.geometry import frame_to_quaternion
-from mi_shadowgs.surfels import Surfels
-from mi_shadowgs.visibility import SceneBounds
+from mi_shadowgs.core.frames import frame_to_quaternion
+from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.stages.visibility import baselines as vb
+from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
 
 SPACING = 0.03
 DISK_R, DISK_H = 0.5, 1.0

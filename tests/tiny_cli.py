@@ -18,11 +18,15 @@ TINY = "test-tiny"
 
 def presets() -> list[tuple[dict, object]]:
     """(a stage's PRESETS dict, its test-tiny settings) for every stage."""
-    from mi_shadowgs import masks, pipeline, relight, segmentation, visibility
-    from mi_shadowgs import stage_geometry as sg
-    from mi_shadowgs import stage_material as sm
+    from mi_shadowgs import pipeline
     from mi_shadowgs.dataset import generate
-    from mi_shadowgs.densify import DensifyConfig
+    from mi_shadowgs.stages.geometry import train as sg
+    from mi_shadowgs.stages.geometry.densify import DensifyConfig
+    from mi_shadowgs.stages.material import fit as sm
+    from mi_shadowgs.stages.relight import render as relight
+    from mi_shadowgs.stages.segmentation import features as segmentation
+    from mi_shadowgs.stages.segmentation import masks
+    from mi_shadowgs.stages.visibility import shadow_maps as visibility
 
     return [
         (generate.PRESETS, dataclasses.replace(
@@ -41,7 +45,7 @@ def presets() -> list[tuple[dict, object]]:
             sm.get_config("cpu-small"), iterations=60, warmup=20, prune_every=10,
             warmup_map_resolution=32, refine_passes=((4.0, 2.0),), refine_views=4,
             log_every=10, checkpoint_every=15, checkpoint_seconds=0.5)),
-        (visibility.PRESETS, dataclasses.replace(visibility.preset("cpu-small"),
+        (visibility.PRESETS, dataclasses.replace(visibility.get_config("cpu-small"),
                                                  resolution=64)),
         (relight.PRESETS, relight.get_config("cpu-small")),
         (masks.PRESETS, masks.get_config("cpu-small")),

@@ -1,6 +1,6 @@
 """Stage 4-5 end to end on the ground-truth-geometry stand-in (issue 7 acceptance, Table 3).
 
-Surfels are sampled on the dataset scene's true shapes (``mi_shadowgs.standin``; segment =
+Surfels are sampled on the dataset scene's true shapes (``mi_shadowgs.dataset.standin``; segment =
 shape), so the decomposition and relighting are measured independently of stage 1. For the
 full method and the two ablations (w/o visibility, w/o segmentation) it fits stage 4 on the
 training views, then on the test views evaluates albedo PSNR/SSIM (per-region per-channel
@@ -23,37 +23,38 @@ from pathlib import Path
 import numpy as np  # noqa: I001
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
-from mi_shadowgs import pipeline as P
-from mi_shadowgs import stage_material as SM
-from mi_shadowgs import visibility as V
-from mi_shadowgs.atomic import atomic_dir, write_json
+from mi_shadowgs import pipeline
 from mi_shadowgs.config import with_overrides
+from mi_shadowgs.core.directions import map_to_blocks
 from mi_shadowgs.dataset.loader import load_dataset
 from mi_shadowgs.dataset.scene import load_scene
-from mi_shadowgs.directions import map_to_blocks
-from mi_shadowgs.imageio import write_png
-from mi_shadowgs.standin import standin_surfels
+from mi_shadowgs.dataset.standin import standin_surfels
+from mi_shadowgs.io.atomic import atomic_dir, write_json
+from mi_shadowgs.io.images import write_png
+from mi_shadowgs.stages import material, relight
+from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.visibility import shadow_maps
 
-VARIANTS = P.VARIANTS
+VARIANTS = pipeline.VARIANTS
 # Bounds of the occluders' shadow maps: the object's sphere times this covers the shadows it
 # casts on the base down to ~30 degrees of light elevation.
 BOUNDS_FACTOR = 2.5
 
 
-def scene_bounds(setup, cameras) -> V.SceneBounds:
+def scene_bounds(setup, cameras) -> shadow_maps.SceneBounds:
     c = np.asarray(setup.object_center, np.float64)
-    return V.SceneBounds(tuple(c.tolist()), BOUNDS_FACTOR * float(setup.object_radius),
-                         V.mean_camera_distance(cameras, c))
+    return shadow_maps.SceneBounds(tuple(c.tolist()), BOUNDS_FACTOR * float(setup.object_radius),
+                         shadow_maps.mean_camera_distance(cameras, c))
 
 
 def run_variant(name, overrides, surfels, train, test, bounds, preset, extra) -> dict:
     """Fit one variant on the stand-in and evaluate it (``mi_shadowgs.pipeline``)."""
     t0 = time.perf_counter()
-    res = P.decompose(surfels, train, preset, bounds, {**overrides, **extra})
+    res = material.decompose(surfels, train, preset, bounds, {**overrides, **extra})
     fit_s = time.perf_counter() - t0
-    out, images = P.evaluate_decomposition(res, train, test, bounds, preset)
+    out, images = relight.evaluate_decomposition(res, train, test, bounds, preset)
     out.update(fit_s=fit_s, timings=res.timings, history=res.history)
-    cfg = with_overrides(SM.get_config(preset), {**overrides, **extra}, "material")
+    cfg = with_overrides(material_fit.get_config(preset), {**overrides, **extra}, "material")
     steps_w = min(cfg.warmup, cfg.iterations)
     if steps_w and "warmup_total_s" in res.timings:
         out["step_ms_warmup"] = 1e3 * res.timings["warmup_total_s"] / steps_w

@@ -61,7 +61,7 @@ class FuzzCase:
     def surfels(self):
         import mitsuba as mi
 
-        from mi_shadowgs.surfels import Surfels
+        from mi_shadowgs.core.surfels import Surfels
 
         def cols(values, k):
             a = np.asarray(values, np.float32).reshape(len(self.position), k)
@@ -73,7 +73,7 @@ class FuzzCase:
                        opacity_logit=mi.Float(np.asarray(self.opacity_logit, np.float32)))
 
     def camera(self):
-        from mi_shadowgs.camera import Camera
+        from mi_shadowgs.core.camera import Camera
 
         return Camera.look_at(self.cam_origin, self.cam_target, self.cam_up, width=self.width,
                               height=self.height, fov_x=self.fov_x, ortho_width=self.ortho_width)
@@ -128,7 +128,7 @@ def fuzz_cases(draw) -> FuzzCase:
         origin = np.asarray(draw(st.tuples(*[st.floats(-0.8, 0.8)] * 3)))
         target = origin + np.asarray(draw(_unit3()))
     elif kind == "grazing":
-        from mi_shadowgs.geometry import quaternion_to_matrix
+        from mi_shadowgs.core.frames import quaternion_to_matrix
 
         i = draw(st.integers(0, n - 1))
         frame = quaternion_to_matrix(np.asarray([rotation[i]]))[0]  # columns t_u, t_v, n
@@ -162,7 +162,7 @@ def check_case(case: FuzzCase) -> list[str]:
     import drjit as dr
     import mitsuba as mi
 
-    from mi_shadowgs.raster import AOV_CHANNELS, rasterize
+    from mi_shadowgs.core.raster import AOV_CHANNELS, rasterize
 
     try:
         s = case.surfels()

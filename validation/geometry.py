@@ -20,14 +20,14 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from mi_shadowgs.atomic import atomic_path, write_json
+from mi_shadowgs.io.atomic import atomic_path, write_json
 
 # Issue 4 acceptance at cpu-small.
 ACCEPT = {"psnr": 30.0, "normal_error_median_deg": 10.0, "mask_iou": 0.98, "wall_s": 480.0}
 
 
 def _preview(view, r) -> np.ndarray:
-    from mi_shadowgs.imageio import linear_to_srgb
+    from mi_shadowgs.io.images import linear_to_srgb
 
     def nrm(n, cover):
         return np.where(cover[..., None], np.clip(n * 0.5 + 0.5, 0, 1), 0.0)
@@ -42,9 +42,9 @@ def validate(data: Path, out: Path, preset: str = "cpu-small", iterations: int |
              progress: bool = True) -> dict:
     from mi_shadowgs.config import with_overrides
     from mi_shadowgs.dataset.loader import load_dataset
-    from mi_shadowgs.imageio import write_png
-    from mi_shadowgs.ply import save_ply
-    from mi_shadowgs.stage_geometry import evaluate, get_config, train_geometry
+    from mi_shadowgs.io.images import write_png
+    from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.stages.geometry.train import evaluate, get_config, train_geometry
 
     config = get_config(preset)
     if iterations:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from mi_shadowgs.atomic import write_json, write_text
+from mi_shadowgs.io.atomic import write_json, write_text
 
 KS = (2.0, 8.0, 12.0, 32.0)
 
@@ -44,7 +44,7 @@ QUICK = DriftConfig(ks=(2.0, 12.0), steps=300, object_surfels=8_000, base_surfel
 
 
 def _initial_params(setup, train, cfg: DriftConfig, sh_degree: int) -> dict:
-    from mi_shadowgs import stage_geometry as G
+    from mi_shadowgs.stages.geometry import train as G
     from validation.visibility import ValidationConfig, scene_surfels
 
     vcfg = ValidationConfig(object_surfels=cfg.object_surfels, base_surfels=cfg.base_surfels,
@@ -62,7 +62,7 @@ def _initial_params(setup, train, cfg: DriftConfig, sh_degree: int) -> dict:
 def depth_bias(surfels, test, raster, views: int, base_id: int | None) -> float:
     """Median over the object's pixels (material id > 0, not the base) of
     (median depth - true depth) / true depth."""
-    from mi_shadowgs.raster import rasterize
+    from mi_shadowgs.core.raster import rasterize
 
     rel = []
     for view in test.views[:views]:
@@ -78,10 +78,10 @@ def depth_bias(surfels, test, raster, views: int, base_id: int | None) -> float:
 
 
 def run_drift(data: Path, cfg: DriftConfig) -> list[dict]:
-    from mi_shadowgs import stage_geometry as G
     from mi_shadowgs.dataset.layout import DATASET_JSON
     from mi_shadowgs.dataset.loader import load_dataset
-    from mi_shadowgs.densify import DensifyConfig
+    from mi_shadowgs.stages.geometry import train as G
+    from mi_shadowgs.stages.geometry.densify import DensifyConfig
     from validation.visibility import dataset_scene
 
     setup = dataset_scene(data)

@@ -117,7 +117,7 @@ def markdown(rows: list[dict], command: str) -> str:
 def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
         command: str = "python -m validation.pipeline") -> dict:
     """validation.run_all entry."""
-    from mi_shadowgs.atomic import write_json, write_text
+    from mi_shadowgs.io.atomic import write_json, write_text
 
     out_dir = Path(out_dir)
     avail = available_scenes()

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from mi_shadowgs.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
 
 
 def _visibility(out_dir: Path, quick: bool) -> dict:

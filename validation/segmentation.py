@@ -32,8 +32,8 @@ def standin_surfels(setup, n_object: int, n_base: int, object_sigma: float = 0.7
     stand-in for a trained stage-1 model. Returns (surfels, true material id per surfel)."""
     import numpy as np
 
-    from mi_shadowgs.sampling import sample_surface, surfels_on_surface
-    from mi_shadowgs.surfels import Surfels
+    from mi_shadowgs.core.sampling import sample_surface, surfels_on_surface
+    from mi_shadowgs.core.surfels import Surfels
 
     shapes = list(setup.scene.shapes())
     ids = setup.shape_material_ids()
@@ -67,14 +67,14 @@ def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
              overrides: dict | None = None) -> dict:
     import numpy as np
 
-    from mi_shadowgs import masks as masks_mod
-    from mi_shadowgs import segmentation as seg
     from mi_shadowgs.config import with_overrides
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.dataset.scene import load_scene
-    from mi_shadowgs.imageio import write_png
-    from mi_shadowgs.ply import load_ply, save_ply
+    from mi_shadowgs.io.images import write_png
+    from mi_shadowgs.io.ply import load_ply, save_ply
     from mi_shadowgs.scenes import scene_path
+    from mi_shadowgs.stages.segmentation import features as seg
+    from mi_shadowgs.stages.segmentation import masks as masks_mod
 
     name, scene_overrides = SCENES[scene]
     setup = load_scene(scene_path(name), scene_overrides or None)
@@ -141,7 +141,7 @@ def markdown(rows: list[dict], command: str) -> str:
 def run(out_dir: Path, quick: bool = False, data_root: Path | None = None,
         models: dict | None = None, mask_sources=("material", "chromaticity"),
         command: str = "python -m validation.segmentation") -> dict:
-    from mi_shadowgs.atomic import write_json, write_text
+    from mi_shadowgs.io.atomic import write_json, write_text
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -34,28 +34,27 @@ import mitsuba as mi
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
-from mi_shadowgs.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
+from mi_shadowgs.core.directions import direction_from_angles, light_grid
+from mi_shadowgs.core.frames import frame_to_quaternion
+from mi_shadowgs.core.sampling import sample_surface
+from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.dataset.cameras import test_cameras
 from mi_shadowgs.dataset.generate import trace_ground_truth
 from mi_shadowgs.dataset.layout import DATASET_JSON, NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, load_scene
-from mi_shadowgs.directions import direction_from_angles, light_grid
-from mi_shadowgs.geometry import frame_to_quaternion
-from mi_shadowgs.sampling import sample_surface
-from mi_shadowgs.surfels import Surfels
-from mi_shadowgs.visibility import (
-    SceneBounds,
-    VisibilityConfig,
-    mean_camera_distance,
-    pixel_footprint,
-    render_shadow_maps,
-    unproject_depth,
-)
-from mi_shadowgs.visibility_baselines import (
+from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.stages.visibility.baselines import (
     GaussianTraceConfig,
     VoxelConfig,
     trace_surfels,
     voxelize_surfels,
+)
+from mi_shadowgs.stages.visibility.shadow_maps import (
+    SceneBounds,
+    VisibilityConfig,
+    mean_camera_distance,
+    render_shadow_maps,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -260,9 +259,9 @@ def dataset_scene(data: Path):
 def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
     """The test views of ``data`` with points from the stage-1 model's rendered geometry;
     named after the dataset folder (its parent when the folder is called "data")."""
+    from mi_shadowgs.core.raster import rasterize
     from mi_shadowgs.dataset.loader import load_cameras
-    from mi_shadowgs.ply import load_ply
-    from mi_shadowgs.raster import rasterize
+    from mi_shadowgs.io.ply import load_ply
 
     setup = dataset_scene(data)
     cams = [c for _, c in load_cameras(data / transforms_name("test"))][:cfg.n_views]
@@ -372,7 +371,7 @@ def plot_sweep(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from mi_shadowgs.atomic import atomic_path
+    from mi_shadowgs.io.atomic import atomic_path
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     groups = sorted({r["group"] for r in rows})
@@ -467,10 +466,10 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     cfg = QUICK if quick else ValidationConfig()
     base = VisibilityConfig()
     progress = _progress(quiet)
-    scenes = [("default", REPO / "scenes" / "default.xml", None)]
+    scenes = [("default", REPO / "mi_shadowgs" / "scenes" / "default.xml", None)]
     notes = []
     if BUNNY.is_file():
-        scenes.append(("bunny", REPO / "scenes" / "mesh.xml", {"mesh": str(BUNNY)}))
+        scenes.append(("bunny", REPO / "mi_shadowgs" / "scenes" / "mesh.xml", {"mesh": str(BUNNY)}))
     else:
         notes.append(f"bunny skipped: {BUNNY} is absent (shared data not installed)")
         print(f"visibility validation: {notes[-1]}", flush=True)

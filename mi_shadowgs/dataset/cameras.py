@@ -11,8 +11,8 @@ import math
 
 import numpy as np
 
-from ..camera import Camera
-from ..directions import direction_from_angles
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import direction_from_angles
 
 
 def _camera(direction: np.ndarray, target: np.ndarray, distance: float, fov_x: float,

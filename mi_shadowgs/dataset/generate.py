@@ -15,11 +15,11 @@ import math
 
 import numpy as np
 
-from ..camera import Camera
-from ..config import get_preset
-from ..directions import direction_from_angles
-from .layout import NERF_CAMERA_ANGLE_X
-from .scene import Light, SceneSetup
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X
+from mi_shadowgs.dataset.scene import Light, SceneSetup
 
 # Relighting setups that differ from the training lights (azimuth, elevation, irradiance).
 DEFAULT_RELIGHT = (

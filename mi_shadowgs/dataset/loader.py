@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
-from ..imageio import read_exr, read_png, srgb_to_linear
-from . import layout
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.dataset import layout
+from mi_shadowgs.io.images import read_exr, read_png, srgb_to_linear
 
 # Blender Z-up world -> our Y-up world (a rotation of -90 degrees about +X).
 BLENDER_TO_YUP = np.array([[1.0, 0.0, 0.0, 0.0],

@@ -1,7 +1,7 @@
 """Load a scene XML with parameters: lights from angles, the object normalised, parts numbered.
 
-Scene conventions (scenes/default.xml): shapes with ids ``object_<part>`` are the object's
-parts, numbered 1.. in XML order (their material ids); ``base`` is the base (id P + 1);
+Scene conventions (mi_shadowgs/scenes/default.xml): shapes with ids ``object_<part>`` are
+the object's parts, numbered 1.. in XML order (their material ids); ``base`` is the base (id P + 1);
 background is 0. Emitters ``light<k>`` are ``directional``; Python turns the parameters
 ``light<k>_azimuth``/``_elevation`` into ``light<k>_direction`` (the propagation direction,
 ``-l``). ``object_to_world`` is computed from the object's bounding box so that its bounding
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..directions import direction_from_angles
+from mi_shadowgs.core.directions import direction_from_angles
 
 LIGHT_ID = re.compile(r"^light(\d+)$")
 

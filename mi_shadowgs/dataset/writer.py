@@ -8,7 +8,7 @@ EXR exists is finished: a killed run leaves the partial folder, and the same com
 renders only the views (and relit images) it lacks. The folder's name holds the
 fingerprint of the settings, so only a run with the same settings reuses it; partial
 folders of other settings are removed. ``dataset.json`` holds the fingerprint, so a re-run
-with the same inputs is recognised, and the manifest (``mi_shadowgs.provenance``) lists the
+with the same inputs is recognised, and the manifest (``mi_shadowgs.io.provenance``) lists the
 files written: ``overwrite`` replaces a dataset only when the folder holds nothing else.
 """
 
@@ -24,10 +24,20 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import remove_stale, write_json
-from ..directions import N_LIGHT_DIRECTIONS, directional_lights_to_map
-from ..imageio import write_exr, write_png
-from ..provenance import (
+from mi_shadowgs.core.directions import N_LIGHT_DIRECTIONS, directional_lights_to_map
+from mi_shadowgs.dataset import layout
+from mi_shadowgs.dataset.cameras import test_cameras, train_cameras
+from mi_shadowgs.dataset.generate import (
+    GenerateConfig,
+    ViewRenderer,
+    lit_scene,
+    relight_lights,
+    trace_ground_truth,
+)
+from mi_shadowgs.dataset.scene import SceneSetup, load_scene
+from mi_shadowgs.io.atomic import remove_stale, write_json
+from mi_shadowgs.io.images import write_exr, write_png
+from mi_shadowgs.io.provenance import (
     MANIFEST_NAME,
     Output,
     Provenance,
@@ -36,16 +46,6 @@ from ..provenance import (
     input_ref,
     read_manifest,
 )
-from . import layout
-from .cameras import test_cameras, train_cameras
-from .generate import (
-    GenerateConfig,
-    ViewRenderer,
-    lit_scene,
-    relight_lights,
-    trace_ground_truth,
-)
-from .scene import SceneSetup, load_scene
 
 
 class OutputExistsError(FileExistsError):
@@ -213,7 +213,7 @@ def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None) 
         "convention": "direction = unit vector toward the light (Y-up world); irradiance in "
                       "W/m^2 at normal incidence, linear RGB",
         "training": {"lights": train,
-                     "light_map": {"grid": f"mi_shadowgs.directions.light_grid"
+                     "light_map": {"grid": f"mi_shadowgs.core.directions.light_grid"
                                            f"({N_LIGHT_DIRECTIONS})",
                                    "radiance": light_map.tolist()}},
         "relightings": relit,

@@ -1,0 +1,93 @@
+"""The public face of mi_shadowgs: what a user scripts from Python.
+
+    import mi_shadowgs.api as msg
+
+    data = msg.generate_dataset(msg.scene_path("default"), "runs/data", preset="cpu-small")
+    summary = msg.run("runs/data", "runs/run", preset="cpu-small")    # stages 1-5 + report
+    model = msg.load_model("runs/run/segmentation/model.ply")
+    images = msg.render(model, msg.load_dataset("runs/data", "test").cameras[0])
+
+Each stage can also be run alone (``run_geometry``, ``run_segmentation``) or used through
+its package (``mi_shadowgs.stages.<stage>``: ``get_config(preset)``, its maths, its runner).
+Everything here is a re-export or a thin wrapper; the CLI (``mi-shadowgs``) calls the same
+functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from mi_shadowgs import backend, stages
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.render import render_surfels
+from mi_shadowgs.dataset.loader import Dataset, load_dataset
+from mi_shadowgs.io.ply import load_ply, save_ply
+from mi_shadowgs.pipeline import RunConfig, get_config, run_pipeline
+from mi_shadowgs.scenes import scene_path
+from mi_shadowgs.stages.geometry import run_geometry
+from mi_shadowgs.stages.relight import (
+    RelightModel,
+    directional_light_set,
+    lights_from_json,
+    relight_views,
+)
+from mi_shadowgs.stages.segmentation import run_segmentation
+
+set_variant = backend.set_variant
+
+
+def generate_dataset(scene: str | Path, out: str | Path, preset: str = "cpu-small",
+                     seed: int = 0, overwrite: bool = False, progress: bool = False) -> Path:
+    """Render a shadowed synthetic dataset of the scene XML ``scene`` into ``out``
+    (``mi-shadowgs generate``): train/test views, masks, ground truth and ``lights.json``."""
+    from mi_shadowgs.dataset.generate import get_config as generate_config
+    from mi_shadowgs.dataset.writer import write_dataset
+
+    write_dataset(scene, out, generate_config(preset), preset, seed=seed, overwrite=overwrite,
+                  progress=progress)
+    return Path(out)
+
+
+def run(data: str | Path, out: str | Path, preset: str = "cpu-small", progress: bool = False,
+        overwrite: bool = False, **settings) -> dict:
+    """The whole method (stages 1-5, evaluation, report) on dataset ``data`` into run folder
+    ``out`` (``mi-shadowgs run``); ``settings`` override fields of ``RunConfig`` (``masks``,
+    ``ablations``, ``material_iterations``, ...). Returns the run's summary."""
+    config = dataclasses.replace(get_config(preset), **settings)
+    return run_pipeline(data, out, config, progress=progress, overwrite=overwrite)
+
+
+def load_model(path: str | Path):
+    """A surfel model (``Surfels``) from a PLY a stage wrote (2DGS layout plus channels)."""
+    return load_ply(path)
+
+
+def export_ply(path: str | Path, surfels) -> None:
+    """Write ``surfels`` as a PLY (atomically; the 2DGS layout plus named channels)."""
+    save_ply(path, surfels)
+
+
+def render(surfels, camera: Camera, aovs=(), background=None) -> dict:
+    """Rasterize a surfel model from ``camera``: {"rgb", "alpha", AOV...} as [H, W, C]
+    Mitsuba tensors (the ``surfel_raster`` plugin renders the same)."""
+    return render_surfels(surfels, camera, aovs=aovs, background=background)
+
+
+def relight(surfels, cameras, lights, bounds, specular: bool = True, preset: str = "cpu-small"):
+    """Render a fitted model (stage 4's PLY) under ``lights`` (``directional_light_set`` or
+    ``lights_from_json``) with shadows recomputed from the surfels; returns (views, seconds)."""
+    from mi_shadowgs.stages.relight import get_config as relight_config
+    from mi_shadowgs.stages.visibility import get_config as visibility_config
+
+    model = RelightModel(surfels, specular, True)
+    return relight_views(model, cameras, lights, bounds, relight_config(preset),
+                         visibility_config(preset))
+
+
+__all__ = [
+    "Camera", "Dataset", "RunConfig", "directional_light_set", "export_ply",
+    "generate_dataset", "get_config", "lights_from_json", "load_dataset", "load_model",
+    "relight", "render", "run", "run_geometry", "run_pipeline", "run_segmentation",
+    "scene_path", "set_variant", "stages",
+]

@@ -1,0 +1,68 @@
+"""The ``mi-shadowgs`` command line.
+
+Each subcommand lives in a module of the stage that owns it; this file only lists them.
+A command module provides ``add_arguments(parser)`` and ``run(args) -> int``, and keeps its
+heavy imports inside ``run`` so that ``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "generate": ("mi_shadowgs.cli.generate",
+                 "render a shadowed synthetic dataset from a scene XML"),
+    "render": ("mi_shadowgs.cli.render", "render a surfel model (PLY) from dataset cameras"),
+    "segment": ("mi_shadowgs.cli.segment",
+                "material segments: contrastive surfel features + K-means (stage 2)"),
+    "train": ("mi_shadowgs.cli.train", "optimise a stage of the method on a dataset (geometry)"),
+    "run": ("mi_shadowgs.cli.run", "the whole method on a dataset (stages 1-5) and its report"),
+    "report": ("mi_shadowgs.cli.report", "write the HTML report of a run"),
+}
+
+
+class CLIError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mi-shadowgs",
+        description="Shadow-aware inverse rendering with 2D Gaussian surfels (Mitsuba 3).",
+    )
+    parser.add_argument("--variant", default=None,
+                        help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+# What an interrupted command says about continuing (default: run it again).
+RESUME_HINTS = {"train": "run it again with --resume to continue",
+                "segment": "run it again with --resume to continue"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from mi_shadowgs import backend
+    from mi_shadowgs.io.interrupt import Interrupted, handle_signals
+
+    try:
+        with handle_signals():
+            backend.set_variant(args.variant)
+            return int(importlib.import_module(args._module).run(args) or 0)
+    except (CLIError, backend.BackendError, FileNotFoundError, FileExistsError,
+            ValueError) as exc:
+        print(f"mi-shadowgs {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except Interrupted as exc:
+        hint = RESUME_HINTS.get(args.command, "run the same command again to continue")
+        print(f"mi-shadowgs {args.command}: interrupted by {exc}; {hint}", file=sys.stderr)
+        return exc.exit_code

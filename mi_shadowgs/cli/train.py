@@ -1,0 +1,47 @@
+"""``mi-shadowgs train DATA --out RUN --stage geometry [--preset P] [--resume]``.
+
+Writes ``RUN/geometry/``: ``model.ply`` (2DGS layout), ``checkpoint/checkpoint.npz``
+(atomic; ``--resume`` continues from it), ``log.csv`` (iteration, loss terms, PSNR, surfel
+count, seconds), ``previews/iter_NNNNNN.png`` (render | ground truth of the first training
+view), ``metrics.json`` (test-view evaluation), ``config.json`` and the manifest
+(``mi_shadowgs.io.provenance``): ``--resume`` continues only a run of the same dataset and
+settings, ``--overwrite`` removes only the files the manifest lists.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+STAGES = ("geometry",)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("data", help="dataset folder (transforms_train.json, ...)")
+    parser.add_argument("--out", required=True, help="run folder; the stage writes a subfolder")
+    parser.add_argument("--stage", choices=STAGES, default="geometry")
+    parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
+    parser.add_argument("--iterations", type=int, default=None, help="override the preset")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the stage's last checkpoint (from step 0 when "
+                             "it was stopped before its first)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="start afresh, removing the files of an earlier train there")
+    parser.add_argument("--no-eval", action="store_true", help="skip the test-view metrics")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def run(args) -> int:
+    from mi_shadowgs.config import with_overrides
+    from mi_shadowgs.stages.geometry import run_geometry
+    from mi_shadowgs.stages.geometry.train import get_config
+
+    config = get_config(args.preset)
+    if args.iterations is not None:
+        config = with_overrides(config, {"iterations": args.iterations}, "geometry")
+    result = run_geometry(args.data, Path(args.out) / args.stage, config, preset=args.preset,
+                          resume=args.resume, overwrite=args.overwrite,
+                          evaluate=not args.no_eval, progress=not args.no_progress)
+    if result.summary:
+        print(result.summary)
+    return 0

@@ -1,0 +1,364 @@
+"""What an output was made from, and which files in its folder are ours.
+
+Every folder a command writes (a run, a stage, renders, a dataset) holds a manifest,
+``.mi_shadowgs_manifest.json``::
+
+    {"format": 1, "command": "train", "complete": false,
+     "dataset": {"path": "/abs/DATA", "fingerprint": "<blake2b>"},
+     "inputs": {"model": {"path": "/abs/model.ply", "digest": "<blake2b>"}},
+     "settings": {...the stage's resolved settings...},
+     "files": ["model.ply", "previews/iter_000100.png", ...], "parts": ["geometry", ...]}
+
+- A command writes only into a new (or empty) folder or one whose manifest names the same
+  command (``Output.open``), never into a dataset folder or over its own inputs.
+- An output is reused or continued only when its dataset fingerprint, input digests and
+  settings all match (``ProvenanceError`` names what differs otherwise).
+- ``--overwrite`` removes only the files (and the ``parts``: sub-folders with their own
+  manifests) that the manifest lists; ``files`` is written *before* each file, so it covers
+  everything a killed command left behind.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import re
+from pathlib import Path
+
+from mi_shadowgs.io.atomic import remove_stale, write_json
+
+MANIFEST_NAME = ".mi_shadowgs_manifest.json"
+FORMAT_VERSION = 1
+# What the dataset fingerprint covers: every file the loader may read (images, transforms,
+# dataset.json, lights.json, TensoIR metadata), not other files such as a writer's manifest.
+IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg")
+DATASET_JSON = re.compile(r"transforms_.*\.json|dataset\.json|lights\.json|metadata\.json")
+_CHUNK = 1 << 20
+_MAX_LISTED = 8  # differing settings named in one message
+
+
+class ProvenanceError(ValueError):
+    """An output folder cannot be written or reused as asked; the message says why."""
+
+
+# -- fingerprints -------------------------------------------------------------------------
+def file_digest(path: str | os.PathLike) -> str:
+    """blake2b-128 of a file's bytes (hex)."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _dataset_files(root: Path) -> list[tuple[str, os.stat_result]]:
+    found = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+        for name in filenames:
+            if not name.startswith(".") and (name.lower().endswith(IMAGE_SUFFIXES) or
+                                             DATASET_JSON.fullmatch(name)):
+                p = Path(dirpath) / name
+                found.append((p.relative_to(root).as_posix(), p.stat()))
+    return sorted(found, key=lambda item: item[0])
+
+
+# (path, size, mtime, inode) -> content digest: the stages of one `run` each ask for the
+# dataset's fingerprint; a file whose stat changed is read again.
+_DIGESTS: dict[tuple, str] = {}
+
+
+def dataset_fingerprint(root: str | os.PathLike) -> str:
+    """blake2b-128 over (relative path, size, content digest) of the dataset's files.
+
+    Contents, not modification times, decide: a copied dataset has the fingerprint of its
+    original; an edited image changes it. The cpu-small dataset (1060 files, 21 MB) takes
+    0.05-0.08 s, a tenth of loading it (BENCHMARKS.md, "Dataset fingerprint").
+    """
+    root = Path(root).resolve()
+    h = hashlib.blake2b(digest_size=16)
+    for rel, st in _dataset_files(root):
+        key = (str(root / rel), st.st_size, st.st_mtime_ns, st.st_ino)
+        if key not in _DIGESTS:
+            _DIGESTS[key] = file_digest(root / rel)
+        h.update(f"{rel}\0{st.st_size}\0{_DIGESTS[key]}\n".encode())
+    return h.hexdigest()
+
+
+def dataset_ref(root: str | os.PathLike) -> dict:
+    """The ``dataset`` entry of a manifest: absolute path and fingerprint."""
+    return {"path": str(Path(root).resolve()), "fingerprint": dataset_fingerprint(root)}
+
+
+def input_ref(path: str | os.PathLike) -> dict:
+    """An ``inputs`` entry of a manifest: absolute path and content digest of a file."""
+    return {"path": str(Path(path).resolve()), "digest": file_digest(path)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Provenance:
+    """What an output is made from: dataset, input files and resolved settings."""
+
+    dataset: dict | None = None  # dataset_ref(...)
+    inputs: dict = dataclasses.field(default_factory=dict)  # name -> input_ref(...)
+    settings: dict = dataclasses.field(default_factory=dict)  # JSON values
+
+    def to_json(self) -> dict:
+        # Through JSON so that tuples compare equal to the lists a manifest reads back.
+        return json.loads(json.dumps({"dataset": self.dataset, "inputs": self.inputs,
+                                      "settings": self.settings}))
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and v:
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+# Settings that only say when to checkpoint: a resume is bit-identical whatever they are, so
+# an output made with other values is still the same output.
+RESULT_NEUTRAL_SETTINGS = ("checkpoint_every", "checkpoint_seconds")
+
+
+def differences(manifest: dict, provenance: Provenance,
+                compare: tuple[str, ...] = ("dataset", "inputs", "settings")) -> list[str]:
+    """What differs between an existing output and ``provenance``, one phrase per item."""
+    new = provenance.to_json()
+    out = []
+    if "dataset" in compare:
+        old_d, new_d = manifest.get("dataset") or {}, new["dataset"] or {}
+        if old_d.get("fingerprint") != new_d.get("fingerprint"):
+            if old_d.get("path") == new_d.get("path"):
+                out.append(f"the dataset {new_d.get('path')} changed since (fingerprint "
+                           f"{str(old_d.get('fingerprint'))[:12]} then, "
+                           f"{str(new_d.get('fingerprint'))[:12]} now)")
+            else:
+                out.append(f"it was made from dataset {old_d.get('path')} (fingerprint "
+                           f"{str(old_d.get('fingerprint'))[:12]}), not {new_d.get('path')} "
+                           f"(fingerprint {str(new_d.get('fingerprint'))[:12]})")
+    if "inputs" in compare:
+        old_i, new_i = manifest.get("inputs") or {}, new["inputs"]
+        for name in sorted(set(old_i) | set(new_i)):
+            a, b = old_i.get(name) or {}, new_i.get(name) or {}
+            if a.get("digest") != b.get("digest"):
+                out.append(f"its input {name} differs ({a.get('path')}, digest "
+                           f"{str(a.get('digest'))[:12]} then; {b.get('path')}, digest "
+                           f"{str(b.get('digest'))[:12]} now)")
+    if "settings" in compare:
+        old_s, new_s = _flatten(manifest.get("settings") or {}), _flatten(new["settings"])
+        keys = sorted(k for k in set(old_s) | set(new_s) if old_s.get(k) != new_s.get(k)
+                      and k.rsplit(".", 1)[-1] not in RESULT_NEUTRAL_SETTINGS)
+        phrases = [f"{k}: {json.dumps(old_s.get(k))} there, {json.dumps(new_s.get(k))} now"
+                   for k in keys[:_MAX_LISTED]]
+        if len(keys) > _MAX_LISTED:
+            phrases.append(f"and {len(keys) - _MAX_LISTED} more")
+        if phrases:
+            out.append("other settings (" + "; ".join(phrases) + ")")
+    return out
+
+
+# -- where a command may write ------------------------------------------------------------
+def is_dataset_folder(path: str | os.PathLike) -> bool:
+    """A folder holding a dataset: ``transforms_*.json``, ``dataset.json`` or TensoIR views."""
+    p = Path(path)
+    return p.is_dir() and (any(p.glob("transforms_*.json")) or (p / "dataset.json").is_file()
+                           or any(p.glob("train_*/metadata.json"))
+                           or any(p.glob("test_*/metadata.json")))
+
+
+def check_output_location(folder: str | os.PathLike, inputs=(),
+                          writes_dataset: bool = False) -> None:
+    """Refuse an output folder inside a dataset folder, or one that holds an input.
+    ``writes_dataset``: the output is a dataset (``generate``), so ``folder`` itself may be
+    one; its ancestors still may not."""
+    folder = Path(folder).resolve()
+    for p in (folder.parents if writes_dataset else (folder, *folder.parents)):
+        if is_dataset_folder(p):
+            where = "is" if p == folder else "is inside"
+            raise ProvenanceError(f"{folder}: {where} the dataset folder {p}; outputs never go "
+                                  "into a dataset: choose another folder")
+    for item in inputs:
+        item = Path(item).resolve()
+        if item == folder or folder in item.parents:
+            raise ProvenanceError(f"{folder}: the output folder holds the input {item}, which "
+                                  "the output would overwrite: choose another folder")
+
+
+def read_manifest(folder: str | os.PathLike) -> dict | None:
+    """The folder's manifest, or None when it has none."""
+    path = Path(folder) / MANIFEST_NAME
+    if not path.is_file():
+        return None
+    try:
+        manifest = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ProvenanceError(f"{path}: malformed manifest: {exc}") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_VERSION or \
+            not isinstance(manifest.get("files"), list):
+        raise ProvenanceError(f"{path}: not a mi_shadowgs manifest of format {FORMAT_VERSION}")
+    return manifest
+
+
+def _inside(folder: Path, name: str) -> Path:
+    path = (folder / name).resolve()
+    if folder.resolve() not in path.parents:
+        raise ProvenanceError(f"{folder / MANIFEST_NAME}: lists {name!r}, outside the folder")
+    return path
+
+
+def _prune_empty(folder: Path, below: Path) -> None:
+    """Remove ``folder`` and its parents while they are empty, stopping at ``below``."""
+    below = below.resolve()
+    folder = folder.resolve()
+    while folder != below and below in folder.parents and folder.is_dir() and \
+            not any(folder.iterdir()):
+        folder.rmdir()
+        folder = folder.parent
+
+
+def clear(folder: str | os.PathLike, manifest: dict | None = None) -> None:
+    """Remove what the manifest lists (files, their stale temporaries, parts) and itself;
+    folders left empty go too. Files the manifest does not list stay."""
+    folder = Path(folder)
+    manifest = read_manifest(folder) if manifest is None else manifest
+    if manifest is None:
+        return
+    for part in manifest.get("parts", []):
+        clear(_inside(folder, part))
+    dirs = set()
+    for name in manifest["files"]:
+        path = _inside(folder, name)
+        remove_stale(path)
+        path.unlink(missing_ok=True)
+        dirs.add(path.parent)
+    remove_stale(folder / MANIFEST_NAME)
+    (folder / MANIFEST_NAME).unlink(missing_ok=True)
+    for d in sorted(dirs, key=lambda p: len(p.parts), reverse=True):
+        if d != folder.resolve():
+            remove_stale(d)  # e.g. a killed atomic_dir of figures/
+        _prune_empty(d, folder)
+    for part in manifest.get("parts", []):
+        _prune_empty(_inside(folder, part), folder)
+
+
+def _foreign_entries(folder: Path, parts: tuple[str, ...]) -> list[str]:
+    """Entries of a folder without a manifest that are not ours to write beside."""
+    manifest_tmp = f".{MANIFEST_NAME}."  # a killed first manifest write
+    return sorted(p.name for p in folder.iterdir()
+                  if p.name not in parts and not p.name.startswith(manifest_tmp))
+
+
+class Output:
+    """One command's output folder, created lazily; its manifest lists every file before the
+    file is written. Use as a context manager: a block that fails before writing any file
+    leaves no folder (or manifest) of its own behind."""
+
+    def __init__(self, folder: Path, command: str, provenance: Provenance,
+                 manifest: dict | None):
+        self.folder = folder
+        self.command = command
+        self.reused = manifest is not None  # an existing output of the same provenance
+        self._manifest = manifest or {"format": FORMAT_VERSION, "command": command,
+                                      "complete": False, **provenance.to_json(),
+                                      "files": [], "parts": []}
+        self._existing_root = next(p for p in (folder, *folder.parents) if p.exists())
+
+    @classmethod
+    def open(cls, folder: str | os.PathLike, command: str, provenance: Provenance, *,
+             overwrite: bool = False, reuse: bool = False, inputs=(), parts=(),
+             compare: tuple[str, ...] = ("dataset", "inputs", "settings"),
+             continue_flag: str | None = None, writes_dataset: bool = False) -> Output:
+        """Claim ``folder`` for ``command``.
+
+        A previous output of the same command is removed (``overwrite``), reused when its
+        provenance matches on ``compare`` (``reuse``; ProvenanceError naming what differs
+        otherwise), or refused. ``inputs`` are files the output must not overwrite;
+        ``parts`` are sub-folders other commands may have written first (a run's stages);
+        ``writes_dataset``: see ``check_output_location``.
+        """
+        folder = Path(folder)
+        check_output_location(folder, inputs, writes_dataset)
+        if folder.exists() and not folder.is_dir():
+            raise ProvenanceError(f"{folder}: exists and is not a folder")
+        manifest = read_manifest(folder) if folder.exists() else None
+        if manifest is None and folder.exists():
+            foreign = _foreign_entries(folder, tuple(parts))
+            if foreign:
+                raise ProvenanceError(
+                    f"{folder}: holds files that mi-shadowgs did not write (no {MANIFEST_NAME};"
+                    f" e.g. {foreign[0]}); choose a new or empty folder")
+        if manifest is not None and manifest.get("command") != command:
+            raise ProvenanceError(f"{folder}: holds the output of `mi-shadowgs "
+                                  f"{manifest.get('command')}`, not of `mi-shadowgs {command}`;"
+                                  " choose another folder")
+        if manifest is not None and overwrite:
+            clear(folder, manifest)
+            manifest = None
+        if manifest is not None and not reuse:
+            hint = f"{continue_flag} to continue it or " if continue_flag else ""
+            raise ProvenanceError(f"{folder}: already holds an output of `mi-shadowgs "
+                                  f"{command}`: pass {hint}--overwrite to replace it")
+        if manifest is not None:
+            diff = differences(manifest, provenance, compare)
+            if diff:
+                raise ProvenanceError(f"{folder}: " + "; ".join(diff) +
+                                      ". Pass --overwrite to start over (it removes only the "
+                                      "files mi-shadowgs listed there)")
+            for key in ("dataset", "inputs", "settings"):
+                manifest[key] = provenance.to_json()[key]  # e.g. a run's new ablations
+        return cls(folder, command, provenance, manifest)
+
+    @property
+    def complete(self) -> bool:
+        return bool(self._manifest["complete"])
+
+    @property
+    def files(self) -> list[str]:
+        return list(self._manifest["files"])
+
+    def _save(self) -> None:
+        write_json(self.folder / MANIFEST_NAME, self._manifest)
+
+    def claim(self, *names: str) -> None:
+        """List files (paths relative to the folder) before writing them."""
+        new = [n for n in names if n not in self._manifest["files"]]
+        if new or not (self.folder / MANIFEST_NAME).is_file():
+            self._manifest["files"].extend(new)
+            self._manifest["complete"] = False
+            self._save()
+
+    def path(self, name: str) -> Path:
+        """``folder / name``, claimed, its parent folder made."""
+        self.claim(name)
+        (self.folder / name).parent.mkdir(parents=True, exist_ok=True)
+        return self.folder / name
+
+    def add_part(self, name: str) -> None:
+        """Own the sub-folder ``name`` (with a manifest of its own) for ``--overwrite``."""
+        if name not in self._manifest["parts"]:
+            self._manifest["parts"].append(name)
+            self._manifest["complete"] = False
+        self._save()
+
+    def finish(self) -> None:
+        """Mark the output complete: every listed file is written."""
+        self._manifest["complete"] = True
+        self._save()
+
+    def __enter__(self) -> Output:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None or self.reused or not (self.folder / MANIFEST_NAME).is_file():
+            return
+        if any(_inside(self.folder, n).exists() for n in self._manifest["files"]):
+            return  # partial work stays for a rerun (resume) or --overwrite
+        # Parts keep their own manifests (a stage written before the failure stays usable).
+        clear(self.folder, {**self._manifest, "parts": []})
+        _prune_empty(self.folder, self._existing_root)

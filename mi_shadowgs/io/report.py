@@ -1,0 +1,114 @@
+"""The run report: one self-contained HTML page plus PNG figures.
+
+The pipeline records what each stage produced in ``RUN/summary.json``::
+
+    {"title": ..., "dataset": ..., "preset": ..., "variant": ...,
+     "stages": [{"name": ..., "seconds": ..., "metrics": {...},
+                 "figures": [{"title": ..., "path": "relative/to/RUN.png"}]}],
+     "tables": [{"title": ..., "columns": [...], "rows": [[...], ...], "note": ...}],
+     "grid": {"columns": [...], "rows": [{"label": ..., "cells": ["path", ...]}]}}
+
+and this module turns it into ``RUN/report.html``. It knows nothing about the stages, so a
+stage adds figures or metrics without touching the report.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+from pathlib import Path
+
+from mi_shadowgs.io.atomic import write_text
+
+_CSS = """
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1200px; color: #222; }
+h1 { font-size: 1.6em; } h2 { margin-top: 1.6em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.6em 0; }
+td, th { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
+th { background: #f3f3f3; } td:first-child, th:first-child { text-align: left; }
+figure { display: inline-block; margin: 0.3em; text-align: center; }
+figure img { image-rendering: pixelated; width: 192px; border: 1px solid #ddd; }
+figcaption { font-size: 0.8em; }
+.grid img { width: 128px; image-rendering: pixelated; }
+.note { color: #666; font-size: 0.9em; }
+"""
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        if v != v:  # NaN
+            return "n/a"
+        return f"{v:.4g}" if abs(v) < 1e4 else f"{v:.3e}"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_fmt(x) for x in v)
+    return html.escape(str(v))
+
+
+def _img(run: Path, rel: str, alt: str) -> str:
+    if not (run / rel).is_file():
+        return f"<span class='note'>missing: {html.escape(rel)}</span>"
+    return f"<img src='{html.escape(rel)}' alt='{html.escape(alt)}'>"
+
+
+def render_html(summary: dict, run: Path) -> str:
+    """The report page for ``summary`` (see module docstring); image paths relative to run."""
+    title = summary.get("title", "mi_shadowgs run")
+    out = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
+           f"</title><style>{_CSS}</style></head><body><h1>{html.escape(title)}</h1>"]
+    info = {k: summary[k] for k in ("dataset", "preset", "variant", "date", "total_seconds")
+            if k in summary}
+    if info:
+        out.append("<table>" + "".join(f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>"
+                                       for k, v in info.items()) + "</table>")
+    for table in summary.get("tables", []):
+        out.append(f"<h2>{html.escape(table['title'])}</h2><table><tr>")
+        out.extend(f"<th>{html.escape(str(c))}</th>" for c in table["columns"])
+        out.append("</tr>")
+        for row in table["rows"]:
+            out.append("<tr>" + "".join(f"<td>{_fmt(v)}</td>" for v in row) + "</tr>")
+        out.append("</table>")
+        if table.get("note"):
+            out.append(f"<p class='note'>{html.escape(table['note'])}</p>")
+    grid = summary.get("grid")
+    if grid and grid.get("rows"):
+        out.append(f"<h2>{html.escape(grid.get('title', 'Decomposition and relighting'))}</h2>")
+        out.append("<table class='grid'><tr><th></th>")
+        out.extend(f"<th>{html.escape(c)}</th>" for c in grid["columns"])
+        out.append("</tr>")
+        for row in grid["rows"]:
+            cells = "".join(f"<td>{_img(run, p, c) if p else ''}</td>"
+                            for p, c in zip(row["cells"], grid["columns"], strict=True))
+            out.append(f"<tr><th>{html.escape(row['label'])}</th>{cells}</tr>")
+        out.append("</table>")
+    for stage in summary.get("stages", []):
+        secs = stage.get("seconds")
+        head = html.escape(stage["name"]) + (f" <small>({secs:.1f} s)</small>" if secs else "")
+        out.append(f"<h2>{head}</h2>")
+        metrics = stage.get("metrics") or {}
+        if metrics:
+            out.append("<table>" + "".join(
+                f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>"
+                for k, v in metrics.items()) + "</table>")
+        for fig in stage.get("figures", []):
+            out.append(f"<figure>{_img(run, fig['path'], fig['title'])}"
+                       f"<figcaption>{html.escape(fig['title'])}</figcaption></figure>")
+        if stage.get("note"):
+            out.append(f"<p class='note'>{html.escape(stage['note'])}</p>")
+    out.append("</body></html>\n")
+    return "".join(out)
+
+
+def write_report(run: str | os.PathLike) -> Path:
+    """Write ``RUN/report.html`` from ``RUN/summary.json``; returns the page's path."""
+    run = Path(run)
+    path = run / "summary.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no run summary (run `mi-shadowgs run` first)")
+    try:
+        summary = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: malformed JSON: {exc}") from None
+    page = run / "report.html"
+    write_text(page, render_html(summary, run))
+    return page

@@ -1,0 +1,119 @@
+"""``surfel_relight``: a Mitsuba integrator that relights a decomposed surfel model (PLY).
+
+Properties (see docs/plugins.md for the table):
+
+- ``filename`` (string, required): PLY model with ``albedo``, ``roughness`` and
+  ``metallic`` channels (stage 4's output; ``indirect_sh`` is optional), resolved with
+  Mitsuba's file resolver.
+- ``specular`` (boolean, default true): model the GGX lobe (false: diffuse only).
+- ``visibility`` (boolean, default true): shadows from shadow maps of the surfels (false:
+  V = 1, the "w/o visibility" ablation).
+- ``indirect`` (string, default "none"): "none" or "keep" (add the model's fitted
+  ``indirect_sh`` unchanged); the training light is not known here, so no scaling.
+- ``shadow_resolution`` (integer, default 512): shadow-map width = height in texels.
+- ``env_samples`` (integer, default 64): env-map samples per grid direction.
+
+Lights are the scene's emitters: every ``directional`` emitter (its direction and
+irradiance) and every infinite emitter (``envmap``, ``constant``), integrated over the
+128-direction grid (``mi_shadowgs.stages.relight.render.envmap_grid_radiance``). Other
+emitters raise an error. Rendering is deterministic (no sampler, spp ignored) and not
+differentiable.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_shadowgs.core import render as core_render
+from mi_shadowgs.core import shading
+from mi_shadowgs.io import ply
+from mi_shadowgs.stages.relight import render as relight
+from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, VisibilityConfig
+
+
+def _bool(props, name, default):
+    return bool(props.get(name, default))
+
+
+class SurfelRelightIntegrator(mi.SamplingIntegrator):
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        if "filename" not in props:
+            raise ValueError("surfel_relight: the 'filename' property (a PLY model) is required")
+        self.filename = str(mi.file_resolver().resolve(str(props.get("filename"))))
+        self.surfels = ply.load_ply(self.filename)
+        missing = [c for c in shading.MATERIAL_CHANNELS if c not in self.surfels.channels]
+        if missing:
+            raise ValueError(f"surfel_relight ({self.filename}): the model lacks channel(s) "
+                             f"{missing}; it needs albedo, roughness and metallic (stage 4)")
+        self.specular = _bool(props, "specular", True)
+        self.visibility = _bool(props, "visibility", True)
+        self.indirect = str(props.get("indirect", "none"))
+        if self.indirect not in ("none", "keep"):
+            raise ValueError(f"surfel_relight: 'indirect' must be 'none' or 'keep', got "
+                             f"{self.indirect!r}")
+        res = int(props.get("shadow_resolution", 512))
+        env = int(props.get("env_samples", 64))
+        if res < 1 or env < 1:
+            raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
+        self.vis_config = VisibilityConfig(resolution=res)
+        self.relight_config = relight.RelightConfig(indirect=self.indirect, env_samples=env)
+
+    def light_set(self, scene) -> shading.LightSet:
+        dirs, weights = [], []
+        for e in scene.emitters():
+            name = e.class_name()
+            if "Directional" in name:
+                p = mi.traverse(e)
+                to_world = mi.ScalarTransform4f(np.asarray(p["to_world"].matrix, np.float64)
+                                                .reshape(4, 4))
+                prop = np.asarray(to_world @ mi.ScalarVector3f(0, 0, 1), np.float64)
+                dirs.append(-prop / np.linalg.norm(prop))
+                weights.append(np.asarray(p["irradiance.value"], np.float64).reshape(-1)[:3])
+            elif mi.has_flag(e.flags(), mi.EmitterFlags.Infinite):
+                rad = relight.envmap_grid_radiance(e, self.relight_config)
+                ls = relight.grid_light_set(rad)
+                dirs += list(ls.directions)
+                weights += list(np.stack([np.asarray(ls.weights[k]) for k in range(3)], -1))
+            else:
+                raise ValueError(f"surfel_relight: emitter {e.id()!r} ({name}) is not supported; "
+                                 "use directional or infinite (envmap, constant) emitters")
+        if not dirs:
+            raise ValueError("surfel_relight: the scene has no emitter to relight with")
+        return relight.directional_light_set(np.array(dirs), np.array(weights))
+
+    def _image(self, scene, sensor) -> mi.TensorXf:
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        camera = core_render.sensor_camera(sensor)
+        lights = self.light_set(scene)
+        pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
+        bounds = SceneBounds.from_points(pos, [camera])
+        model = relight.RelightModel(self.surfels, self.specular, self.visibility)
+        maps = relight.shadow_maps_for(model, lights, bounds, self.vis_config)
+        factor = relight.indirect_factor(model, lights, self.relight_config)
+        out = relight.relight_view(model, camera, lights, maps, factor)
+        film = sensor.film()
+        has_alpha = mi.has_flag(film.flags(), mi.FilmFlags.Alpha)
+        layout = core_render.FilmLayout(has_alpha=has_alpha, aovs=())
+        images = {"rgb": mi.TensorXf(out["rgb"]), "alpha": mi.TensorXf(out["alpha"][..., None])}
+        return core_render.develop_film(film, layout, [], images, "surfel_relight")
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not develop:
+            raise ValueError("surfel_relight: only develop=True is supported")
+        with dr.suspend_grad():
+            image = self._image(scene, sensor)
+            if evaluate:
+                dr.eval(image)
+        return image
+
+    def to_string(self):
+        return (f"SurfelRelightIntegrator[filename={self.filename!r}, "
+                f"surfels={self.surfels.count}, specular={self.specular}, "
+                f"visibility={self.visibility}]")
+
+
+mi.register_integrator("surfel_relight", lambda props: SurfelRelightIntegrator(props))

@@ -1,0 +1,133 @@
+"""Stage 1's library runner: ``run_geometry(data, folder, config, ...)`` trains the 2DGS
+geometry on a dataset and writes its files (model, checkpoint, log, previews, metrics).
+``mi-shadowgs train`` and ``mi_shadowgs.pipeline.run_pipeline`` call it; the manifest rules
+are in ``mi_shadowgs.stages.common``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mi_shadowgs.io.atomic import write_json, write_text
+from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref
+from mi_shadowgs.stages.common import StageRun, load_training_views, settings_dict, warn
+
+LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "psnr", "surfels",
+              "time")
+class GeometryWriter:
+    """The geometry stage's files as the loop produces them: log, previews, checkpoints."""
+
+    def __init__(self, out: Output, config_dict: dict):
+        self.out = out
+        self.config_dict = config_dict
+        self.log_path = out.path("log.csv")
+
+    def start_log(self, from_step: int) -> None:
+        """Keep the log rows up to ``from_step`` (a resumed run rewrites what came after)."""
+        rows = []
+        if from_step > 0 and self.log_path.is_file():
+            with open(self.log_path, newline="") as f:
+                rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= from_step]
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=LOG_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+        write_text(self.log_path, buf.getvalue())
+
+    def on_log(self, record: dict) -> None:
+        with open(self.log_path, "a", newline="") as f:
+            csv.DictWriter(f, fieldnames=LOG_FIELDS, extrasaction="ignore").writerow(
+                {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in record.items()})
+
+    def on_preview(self, step: int, surfels, view) -> None:
+        from mi_shadowgs.io.images import linear_to_srgb, write_png
+        from mi_shadowgs.stages.geometry.train import render_view
+
+        r = render_view(surfels, view.camera)
+        normal = np.where(r["alpha"][..., None] > 0, r["normal"] * 0.5 + 0.5, 0.0)
+        row = np.concatenate([np.clip(r["rgb"], 0, 1), np.clip(view.image, 0, 1)], axis=1)
+        row2 = np.concatenate([linear_to_srgb(np.clip(normal, 0, 1)),
+                               np.repeat(r["alpha"][..., None], 3, -1)], axis=1)
+        img = np.concatenate([linear_to_srgb(row), row2], axis=0)
+        write_png(self.out.path(f"previews/iter_{step:06d}.png"), img, srgb=False)
+
+    def on_checkpoint(self, state) -> None:
+        from mi_shadowgs.io.checkpoint import save_checkpoint
+
+        save_checkpoint(self.out.folder / "checkpoint", state.to_numpy(),
+                        {"stage": "geometry", "step": state.step, "config": self.config_dict})
+
+
+def geometry_line(metrics: dict) -> str:
+    return (f"geometry: {metrics['surfels']} surfels; test PSNR {metrics['psnr']:.2f} dB, SSIM "
+            f"{metrics['ssim']:.4f}, median normal error "
+            f"{metrics.get('normal_error_median_deg', float('nan')):.2f} deg, mask IoU "
+            f"{metrics['mask_iou']:.4f}")
+
+
+def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
+                 resume: bool = False, overwrite: bool = False, reuse: bool = False,
+                 evaluate: bool = True, progress: bool = True, train=None,
+                 test=None) -> StageRun:
+    """Stage 1 on dataset ``data`` into ``folder`` (a run's ``geometry/``).
+
+    Writes ``model.ply``, ``checkpoint/checkpoint.npz``, ``log.csv``, ``previews/``,
+    ``config.json`` and, with ``evaluate``, ``metrics.json`` (test views). An existing output
+    is replaced (``overwrite``), continued from its checkpoint (``resume``), returned as it
+    is when finished or else continued (``reuse``, as ``run`` does), or refused; it is
+    continued or reused only when its dataset fingerprint and settings match.
+    ``train`` / ``test``: the splits, when the caller has loaded them already.
+    """
+    from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.io.checkpoint import has_checkpoint, load_checkpoint
+    from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.stages.geometry.train import Callbacks, TrainState, train_geometry
+    from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
+
+    if resume and overwrite:
+        raise ValueError("--resume continues the stage's files and --overwrite removes them: "
+                         "pass one of them")
+    t0 = time.perf_counter()
+    folder = Path(folder)
+    # Every input is read before the first step: a bad test image fails now, not after.
+    train = train if train is not None else load_training_views(data)
+    if evaluate and test is None:
+        test = load_dataset(data, "test")
+    cfg_dict = settings_dict(config)
+    provenance = Provenance(dataset=dataset_ref(data), settings=cfg_dict)
+    with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,
+                     inputs=[data], continue_flag="--resume") as out:
+        if reuse and out.complete:
+            return StageRun(folder, False, 0.0, "")
+        state = None
+        ckpt_dir = folder / "checkpoint"
+        if out.reused and has_checkpoint(ckpt_dir):
+            state = TrainState.from_numpy(load_checkpoint(ckpt_dir)[0], config)
+        elif resume:  # killed before its first checkpoint: that was < checkpoint_seconds
+            warn(f"{ckpt_dir}: no checkpoint yet; starting from step 0")
+        write_json(out.path("config.json"), {"stage": "geometry", "preset": preset,
+                                             "data": str(Path(data).resolve()),
+                                             "config": cfg_dict})
+        out.claim("checkpoint/checkpoint.npz", "model.ply",
+                  *(["metrics.json"] if evaluate else []))
+        writer = GeometryWriter(out, cfg_dict)
+        writer.start_log(state.step if state else 0)
+        cb = Callbacks(on_log=writer.on_log, on_preview=writer.on_preview,
+                       on_checkpoint=writer.on_checkpoint)
+        surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
+        save_ply(folder / "model.ply", surfels)
+        line = ""
+        if evaluate:
+            m = evaluate_geometry(surfels, test, config.raster)
+            m["surfels"] = surfels.count
+            write_json(folder / "metrics.json", m)
+            line = geometry_line(m)
+        out.finish()
+    return StageRun(folder, True, time.perf_counter() - t0, line)
+
+

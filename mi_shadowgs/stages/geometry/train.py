@@ -1,0 +1,536 @@
+"""Stage 1: 2DGS geometry from multi-view images (paper Sec. IV-C1).
+
+L_geo = (1 - l_ssim) L1 + l_ssim D-SSIM + l_n L_n + l_d L_d + l_o L_o (Eq. 14 with 2DGS's
+photometric loss), optimised with Adam (per-group learning rates, 3DGS's exponential
+position schedule) and 3DGS/2DGS density control (``mi_shadowgs.stages.geometry.densify``).
+
+Only the training images, their masks (alpha: object plus base) and cameras are used;
+ground-truth normals and depth serve evaluation (``evaluate``) only.
+
+- ``GeometryConfig`` / ``PRESETS`` ("paper", "cpu-small");
+- ``scene_bounds``, ``visual_hull_points``, ``init_params``: initialisation;
+- ``train_geometry(dataset, config, ...) -> Surfels``: the loop (I/O through callbacks);
+- ``evaluate(surfels, dataset)``: test-view metrics (``mi_shadowgs.core.metrics``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.core import losses, metrics
+from mi_shadowgs.core.optim import SurfelAdam, surfels_from_params
+from mi_shadowgs.core.raster import RasterConfig, rasterize
+from mi_shadowgs.core.surfels import SH_C0, Surfels, sh_colors
+from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
+from mi_shadowgs.stages.geometry.densify import DensifyConfig, DensifyStrategy
+
+
+@dataclasses.dataclass(frozen=True)
+class GeometryConfig:
+    """Stage-1 hyperparameters; defaults are the paper's (and 2DGS's where it is silent)."""
+
+    iterations: int = 40000
+    sh_degree: int = 3
+    sh_degree_interval: int = 1000  # one more active SH degree every so many iterations
+    # Learning rates (3DGS/2DGS); position ones are multiplied by the scene extent.
+    lr_position_init: float = 0.00016
+    lr_position_final: float = 0.0000016
+    lr_position_delay_mult: float = 0.01
+    lr_position_delay_steps: int = 0
+    lr_position_max_steps: int | None = None  # None: the whole run
+    lr_sh_dc: float = 0.0025
+    lr_sh_rest: float = 0.0025 / 20.0
+    lr_opacity: float = 0.05
+    lr_scale: float = 0.005
+    lr_rotation: float = 0.001
+    # Loss weights (paper Sec. V: l_n, l_d, l_o = 0.05, 1000, 0.01; 2DGS: l_ssim = 0.2).
+    lambda_dssim: float = 0.2
+    lambda_normal: float = 0.05
+    lambda_dist: float = 1000.0
+    lambda_mask: float = 0.01
+    normal_from: int = 7000  # 2DGS switches the regularisers on late
+    dist_from: int = 3000
+    # Initialisation.
+    init: str = "hull"  # "hull" (visual hull of the masks) or "random" (scene bounds)
+    init_points: int = 100_000
+    init_opacity: float = 0.1  # not 0.5: logit 0 is a known zero-gradient point
+    hull_resolution: int = 96
+    init_consistent_fraction: float = 0.0  # share of hull points in photo-consistent cells
+    init_scale_factor: float = 1.0  # initial std-dev = factor * mean 3-NN distance (3DGS: 1)
+    densify: DensifyConfig = DensifyConfig()
+    raster: RasterConfig = RasterConfig()
+    seed: int = 0
+    # Reporting (the loop reads losses back only at these intervals).
+    log_every: int = 100
+    preview_every: int = 2000
+    checkpoint_every: int = 2000
+    # ... and at least this often in wall time (a kill loses at most this much work).
+    checkpoint_seconds: float = 60.0
+
+
+PRESETS = {
+    "paper": GeometryConfig(),
+    # 128x128, 64 views, 2 CPU cores, <= 8 minutes: fewer, denser steps; SH degree 1;
+    # regularisers on from a third of the run; densification over most of it.
+    "cpu-small": GeometryConfig(
+        iterations=2500, sh_degree=1, sh_degree_interval=500,
+        # 4x 2DGS's rates: ~15x fewer steps than the paper at 1/40 of the pixels.
+        lr_position_init=0.0016, lr_position_final=0.000016, lr_sh_dc=0.01,
+        lr_sh_rest=0.0005, lr_scale=0.01, lr_rotation=0.004,
+        # lambda_d = 3e4 (paper 1000): the distortion term is in 2DGS's NDC-like depth
+        # (near 0.2, far 100), ~0.008 per scene unit at the datasets' camera distance of 5,
+        # so at 100 or 1000 it did nothing here. Weighted enough, it collapses the fit's
+        # multi-layer fuzz; lambda_d 100 / 3e3 / 1e4 / 3e4: bunny median normal error 1.97 /
+        # 1.78 / 1.36 / 1.10 deg, stage-4 shadow IoU 0.821 / 0.831 / 0.851 / 0.859; default
+        # scene 0.853 / - / 0.868 / 0.883 at 35.78 / - / 35.86 / 35.69 dB; at 1e5 the default
+        # lost 1.1 dB. BENCHMARKS.md, "Stage 1: the distortion weight".
+        # lambda_n = 0.1 (paper 0.05) over ~1700 regularised steps instead of 2DGS's 23k:
+        # default / bunny test PSNR 35.43 -> 35.80 / 35.89 -> 36.82 dB, median normal error
+        # 2.79 -> 2.06 / 2.16 -> 1.85 deg, stage-4 shadow IoU 0.844 -> 0.858 / 0.812 ->
+        # 0.827; 0.2 made needle-like floaters (mask IoU 0.91). BENCHMARKS.md, Stage 1.
+        lambda_normal=0.1, lambda_dist=3e4, normal_from=800, dist_from=1200,
+        init_points=8000, hull_resolution=48, init_scale_factor=0.4,
+        init_consistent_fraction=0.5,
+        densify=DensifyConfig(start=200, stop=1800, interval=100, opacity_reset_interval=1000,
+                              grad_threshold=0.0002, max_surfels=40000),
+        log_every=25, preview_every=500, checkpoint_every=500),
+}
+
+
+def get_config(name: str) -> GeometryConfig:
+    return get_preset(PRESETS, name, "geometry")
+
+
+# -- initialisation -----------------------------------------------------------------------
+def scene_bounds(cameras) -> tuple[np.ndarray, float]:
+    """(centre [3], radius): the point nearest every optical axis, and the mean camera
+    distance to it. Everything the cameras aim at lies within about ``radius``."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for cam in cameras:
+        d = cam.forward
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ cam.origin
+    try:
+        centre = np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:  # parallel axes: fall back to the camera centroid
+        centre = np.mean([c.origin for c in cameras], axis=0)
+    radius = float(np.mean([np.linalg.norm(c.origin - centre) for c in cameras]))
+    return centre, radius
+
+
+def visual_hull_points(views, centre, radius: float, count: int, resolution: int,
+                       rng: np.random.Generator, consistent_fraction: float = 0.0
+                       ) -> np.ndarray:
+    """``count`` random points [count, 3] in the visual hull of the views' masks.
+
+    The hull is carved on a ``resolution``^3 grid over the cube centre +- radius: a cell
+    survives when every view that sees its centre (in front, inside the image) has it in
+    the mask. A mask of object plus base leaves the space above the base uncarved, so
+    ``consistent_fraction`` of the points go to the most photo-consistent cells (space
+    carving: a cell on a diffuse surface shows the same colour in the views that see it;
+    the score is the median over views of the colour's distance to the median colour,
+    robust to the views where the cell is occluded). Points are jittered uniformly within
+    their cells.
+    """
+    g = (np.arange(resolution) + 0.5) / resolution * 2.0 - 1.0
+    xs, ys, zs = np.meshgrid(g, g, g, indexing="ij")
+    pts = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], -1) * radius + centre  # [G^3, 3]
+    keep = np.ones(len(pts), bool)
+    for view in views:
+        xi, yi, inside = _pixel_of(view, pts)
+        hit = np.zeros(len(pts), bool)
+        hit[inside] = view.mask[yi[inside], xi[inside]]
+        keep &= hit | ~inside
+    cells = pts[keep]
+    if len(cells) == 0:
+        raise ValueError("visual hull is empty: the masks of the training views do not agree "
+                         "on any point (wrong cameras or masks?)")
+    cell = 2.0 * radius / resolution
+    n_cons = int(round(count * consistent_fraction))
+    pick = [rng.integers(0, len(cells), count - n_cons)]
+    if n_cons:
+        score = _photo_inconsistency(views, cells)
+        best = np.argsort(score, kind="stable")[:max(len(cells) // 20, 1)]  # top 5%
+        pick.append(best[rng.integers(0, len(best), n_cons)])
+    pick = np.concatenate(pick)
+    return cells[pick] + (rng.random((len(pick), 3)) - 0.5) * cell
+
+
+def _pixel_of(view, pts: np.ndarray):
+    """(x index, y index, inside) of ``pts`` [M, 3] in ``view``'s image."""
+    uv, z = view.camera.project(pts)
+    h, w = view.mask.shape
+    uv = np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)
+    xi = np.clip(np.floor(uv[:, 0]), -1, w).astype(np.int64)
+    yi = np.clip(np.floor(uv[:, 1]), -1, h).astype(np.int64)
+    inside = (z > view.camera.near) & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+    return xi, yi, inside
+
+
+def _photo_inconsistency(views, pts: np.ndarray) -> np.ndarray:
+    """[M] median over views of |colour - median colour| (inf where < 3 views see it)."""
+    cols = np.full((len(views), len(pts), 3), np.nan, np.float32)
+    for k, view in enumerate(views):
+        xi, yi, ok = _pixel_of(view, pts)
+        ok[ok] = view.mask[yi[ok], xi[ok]]
+        cols[k, ok] = view.image[yi[ok], xi[ok]]
+    n = np.sum(~np.isnan(cols[..., 0]), axis=0)
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(cols, axis=0)
+            dev = np.nanmedian(np.abs(cols - med).sum(-1), axis=0)
+    return np.where(n >= 3, dev, np.inf)
+
+
+def mean_colour(views, pts: np.ndarray) -> np.ndarray:
+    """Mean image colour [M, 3] over the views whose mask covers each point's projection."""
+    acc = np.zeros((len(pts), 3))
+    n = np.zeros(len(pts))
+    for view in views:
+        xi, yi, ok = _pixel_of(view, pts)
+        ok[ok] = view.mask[yi[ok], xi[ok]]
+        acc[ok] += view.image[yi[ok], xi[ok]]
+        n[ok] += 1
+    return np.where(n[:, None] > 0, acc / np.maximum(n, 1)[:, None], 0.5)
+
+
+def init_params(views, config: GeometryConfig) -> dict[str, np.ndarray]:
+    """Initial raw parameters [N, C] from training views (cameras and masks only for the
+    geometry; the colour is the mean of the images the points project to)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(config.seed)
+    centre, radius = scene_bounds([v.camera for v in views])
+    if config.init == "hull":
+        pts = visual_hull_points(views, centre, radius, config.init_points,
+                                 config.hull_resolution, rng, config.init_consistent_fraction)
+    elif config.init == "random":
+        pts = centre + (rng.random((config.init_points, 3)) * 2.0 - 1.0) * radius
+    else:
+        raise ValueError(f"GeometryConfig.init must be 'hull' or 'random', got {config.init!r}")
+    n = len(pts)
+    # 3DGS: scale from the mean distance to the 3 nearest neighbours.
+    d, _ = cKDTree(pts).query(pts, k=4)
+    dist = np.maximum(d[:, 1:].mean(axis=1) * config.init_scale_factor, 1e-7)
+    q = rng.standard_normal((n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    k = (config.sh_degree + 1) ** 2
+    sh = np.zeros((n, k * 3))
+    sh[:, :3] = (mean_colour(views, pts) - 0.5) / SH_C0
+    logit = math.log(config.init_opacity) - math.log1p(-config.init_opacity)
+    return {"position": pts.astype(np.float32),
+            "log_scale": np.log(np.repeat(dist[:, None], 2, axis=1)).astype(np.float32),
+            "rotation": q.astype(np.float32),
+            "opacity_logit": np.full((n, 1), logit, np.float32),
+            "sh": sh.astype(np.float32)}
+
+
+# -- schedules ------------------------------------------------------------------------------
+def position_lr(config: GeometryConfig, step: int, extent: float) -> float:
+    """3DGS's log-linear decay with an optional sine warm-up delay, times the extent."""
+    max_steps = config.lr_position_max_steps or config.iterations
+    t = min(max(step / max(max_steps, 1), 0.0), 1.0)
+    lr = math.exp(math.log(config.lr_position_init) * (1 - t) +
+                  math.log(config.lr_position_final) * t)
+    if config.lr_position_delay_steps > 0:
+        s = min(max(step / config.lr_position_delay_steps, 0.0), 1.0)
+        lr *= config.lr_position_delay_mult + (1 - config.lr_position_delay_mult) * \
+            math.sin(0.5 * math.pi * s)
+    return lr * extent
+
+
+def active_sh_degree(config: GeometryConfig, step: int) -> int:
+    return min(config.sh_degree, step // max(config.sh_degree_interval, 1))
+
+
+def view_order(config: GeometryConfig, n_views: int, step: int) -> int:
+    """The view of 0-based ``step``: a fresh permutation every epoch, reproducible on resume."""
+    epoch, k = divmod(step, n_views)
+    return int(np.random.default_rng([config.seed, epoch]).permutation(n_views)[k])
+
+
+# -- the loss -------------------------------------------------------------------------------
+@dataclasses.dataclass
+class ViewData:
+    """One training view as Dr.Jit tensors."""
+
+    camera: object
+    image: mi.TensorXf  # [H, W, 3]
+    mask: mi.TensorXf  # [H, W, 1]
+
+
+def _view_data(view) -> ViewData:
+    h, w = view.mask.shape
+    return ViewData(view.camera, mi.TensorXf(np.ascontiguousarray(view.image, np.float32)),
+                    mi.TensorXf(view.mask.astype(np.float32).reshape(h, w, 1)))
+
+
+def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int):
+    """(total loss, dict of detached terms incl. "mse") for one view at 0-based ``step``."""
+    rgb = sh_colors(surfels, view.camera.origin)
+    out = rasterize(surfels, view.camera, {"rgb": rgb},
+                    aovs=("alpha", "depth", "normal", "distortion"), config=config.raster)
+    img = out["rgb"]
+    l1 = losses.l1(img, view.image)
+    dssim = losses.d_ssim(img, view.image)
+    total = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * dssim
+    terms = {"l1": l1, "dssim": dssim}
+    if config.lambda_mask > 0:
+        lo = losses.mask_bce(out["alpha"], view.mask)
+        total = total + config.lambda_mask * lo
+        terms["mask"] = lo
+    if config.lambda_normal > 0 and step >= config.normal_from:
+        ln = losses.normal_consistency(out["normal"], out["depth"], out["alpha"], view.camera)
+        total = total + config.lambda_normal * ln
+        terms["normal"] = ln
+    if config.lambda_dist > 0 and step >= config.dist_from:
+        ld = losses.distortion_loss(out["distortion"])
+        total = total + config.lambda_dist * ld
+        terms["dist"] = ld
+    terms["mse"] = dr.mean(dr.square(img.array - view.image.array))
+    terms = {k: dr.detach(v) for k, v in terms.items()}
+    terms["loss"] = dr.detach(total)
+    return total, terms
+
+
+# -- training ---------------------------------------------------------------------------------
+@dataclasses.dataclass
+class TrainState:
+    """Everything a checkpoint needs to continue a run exactly."""
+
+    step: int  # finished iterations
+    opt: SurfelAdam
+    strategy: DensifyStrategy
+    extent: float
+    elapsed: float = 0.0  # seconds of training before this process
+    # Loss terms summed since the last log row, so that a resumed run logs the same means.
+    log_sums: dict = dataclasses.field(default_factory=dict)  # name -> mi.Float [1]
+    log_count: int = 0
+
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        p, m, v = self.opt.to_numpy()
+        out = {f"param/{k}": a for k, a in p.items()}
+        out.update({f"adam_m/{k}": a for k, a in m.items()})
+        out.update({f"adam_v/{k}": a for k, a in v.items()})
+        out.update({f"densify/{k}": a for k, a in self.strategy.state_numpy().items()})
+        out.update({f"log/{k}": np.asarray(x.numpy(), np.float32)
+                    for k, x in self.log_sums.items()})
+        out["scalars"] = np.array([self.step, self.opt.t, self.extent, self.elapsed,
+                                   self.log_count], np.float64)
+        return out
+
+    @staticmethod
+    def from_numpy(arrays: dict[str, np.ndarray], config: GeometryConfig) -> TrainState:
+        def group(prefix):
+            return {k[len(prefix):]: a for k, a in arrays.items() if k.startswith(prefix)}
+        step, t, extent, elapsed, log_count = (float(x) for x in arrays["scalars"])
+        opt = SurfelAdam(group("param/"), _learning_rates_split(config, int(step), extent))
+        opt.load(group("param/"), group("adam_m/"), group("adam_v/"), int(t))
+        strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed)
+        strategy.load_state(group("densify/"))
+        sums = {k: mi.Float(a) for k, a in group("log/").items()}
+        return TrainState(int(step), opt, strategy, extent, elapsed, sums, int(log_count))
+
+
+def _learning_rates(config: GeometryConfig, step: int, extent: float) -> dict[str, float]:
+    return {"position": position_lr(config, step, extent), "log_scale": config.lr_scale,
+            "rotation": config.lr_rotation, "opacity_logit": config.lr_opacity,
+            "sh": config.lr_sh_dc}
+
+
+def initial_state(dataset, config: GeometryConfig) -> TrainState:
+    return state_from_params(init_params(dataset.views, config), dataset.cameras, config)
+
+
+def state_from_params(params: dict[str, np.ndarray], cameras, config: GeometryConfig,
+                      step: int = 0) -> TrainState:
+    """A fresh training state (new Adam moments) from raw parameters [N, C] (as
+    ``init_params`` returns), with the learning rates of ``step``."""
+    _, radius = scene_bounds(cameras)
+    extent = 1.1 * radius  # 3DGS's cameras_extent
+    opt = SurfelAdam(_split_sh(params), _learning_rates_split(config, step, extent))
+    strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed)
+    return TrainState(step, opt, strategy, extent)
+
+
+def _split_sh(params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """"sh" [N, K*3] -> "sh_dc" [N, 3] and "sh_rest" [N, (K-1)*3] (their own lr groups)."""
+    out = {k: a for k, a in params.items() if k != "sh"}
+    out["sh_dc"] = params["sh"][:, :3]
+    if params["sh"].shape[1] > 3:
+        out["sh_rest"] = params["sh"][:, 3:]
+    return out
+
+
+def _learning_rates_split(config: GeometryConfig, step: int, extent: float) -> dict:
+    lr = _learning_rates(config, step, extent)
+    del lr["sh"]
+    lr["sh_dc"] = config.lr_sh_dc
+    lr["sh_rest"] = config.lr_sh_rest
+    return lr
+
+
+def model_surfels(params: dict[str, mi.TensorXf], sh_degree: int | None = None) -> Surfels:
+    """Surfels of the optimiser's parameter groups (sh_dc/sh_rest joined into "sh")."""
+    dc = params["sh_dc"]
+    n = dc.shape[0]
+    rest = params.get("sh_rest")
+    kc_all = 3 + (rest.shape[1] if rest is not None else 0)
+    kc = kc_all if sh_degree is None else min(kc_all, (sh_degree + 1) ** 2 * 3)
+    if kc == 3:
+        sh = dc
+    else:
+        idx = dr.arange(mi.UInt32, n * kc)
+        row = idx // kc
+        col = idx - row * kc
+        rc = kc_all - 3
+        a = dr.gather(mi.Float, dc.array, row * 3 + col, col < 3)
+        b = dr.gather(mi.Float, rest.array, row * rc + col - 3, col >= 3)
+        sh = mi.TensorXf(dr.select(col < 3, a, b), shape=(n, kc))
+    return surfels_from_params({**params, "sh": sh})
+
+
+@dataclasses.dataclass
+class Callbacks:
+    """Hooks of the training loop (I/O lives in the caller). Each may be None.
+
+    ``on_log(record: dict)`` every ``log_every`` steps; ``on_preview(step, render, view)``
+    every ``preview_every``; ``on_checkpoint(state)`` every ``checkpoint_every`` steps, every
+    ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.io.interrupt``);
+    ``on_step(step)`` after every step (tests use it to interrupt a run).
+    """
+
+    on_log: Callable | None = None
+    on_preview: Callable | None = None
+    on_checkpoint: Callable | None = None
+    on_step: Callable | None = None
+
+
+def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None = None,
+                   callbacks: Callbacks | None = None, progress: bool = True) -> Surfels:
+    """Optimise 2D surfels to ``dataset`` (training split): the stage-1 loop.
+
+    ``state`` resumes a run (from ``TrainState.from_numpy``); otherwise the model is
+    initialised by ``config.init``. Returns the final ``Surfels`` (detached, full SH).
+    """
+    from tqdm import tqdm
+
+    cb = callbacks or Callbacks()
+    clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
+    if len(dataset.views) == 0:
+        raise ValueError(f"{dataset.root}: split {dataset.split!r} has no views")
+    for v in dataset.views:
+        if not v.mask.any():
+            raise ValueError(f"{dataset.root}: view {v.name!r} has an empty mask")
+    views = [_view_data(v) for v in dataset.views]
+    if state is None:
+        state = initial_state(dataset, config)
+    opt, strategy, sums = state.opt, state.strategy, state.log_sums
+    t0 = time.perf_counter() - state.elapsed
+    bar = tqdm(total=config.iterations, initial=state.step, disable=not progress,
+               desc="geometry", dynamic_ncols=True, leave=False)
+    with bar, clock.running():
+        while state.step < config.iterations:
+            step = state.step
+            opt.lr.update(_learning_rates_split(config, step, state.extent))
+            view = views[view_order(config, len(views), step)]
+            surfels = model_surfels(opt.params, active_sh_degree(config, step))
+            total, terms = geometry_loss(surfels, view, config, step)
+            dr.backward(total)
+            strategy.observe(opt.params["position"], opt.params["log_scale"], view.camera)
+            for k, val in terms.items():
+                sums[k] = sums[k] + val if k in sums else val
+            dr.schedule(sums)
+            opt.step()
+            state.step = step + 1
+            state.log_count += 1
+            strategy.step(state.step, opt)
+            if state.step % config.log_every == 0 or state.step == config.iterations:
+                # The only per-interval host read: mean terms since the last log.
+                rec = {k: float(v[0]) / state.log_count for k, v in sums.items()}
+                rec["psnr"] = losses.psnr_from_mse(rec.pop("mse"))
+                dr.sync_thread()
+                rec.update(iteration=state.step, surfels=opt.count,
+                           time=time.perf_counter() - t0)
+                if not all(math.isfinite(x) for x in rec.values()):
+                    raise FloatingPointError(f"geometry: non-finite loss at iteration "
+                                             f"{state.step}: {rec}")
+                bar.set_postfix(loss=f"{rec['loss']:.4f}", psnr=f"{rec['psnr']:.2f}",
+                                n=opt.count)
+                if cb.on_log:
+                    cb.on_log(rec)
+                sums.clear()
+                state.log_count = 0
+            bar.update(1)
+            if cb.on_preview and (state.step % config.preview_every == 0 or
+                                  state.step == config.iterations):
+                cb.on_preview(state.step, model_surfels(opt.params), dataset.views[0])
+            if cb.on_checkpoint and (clock.due(state.step) or
+                                     state.step == config.iterations):
+                state.elapsed = time.perf_counter() - t0
+                cb.on_checkpoint(state)
+                clock.saved()
+            raise_pending(f"geometry stopped at step {state.step} of {config.iterations}"
+                          + (", checkpoint written" if cb.on_checkpoint else ""))
+            if cb.on_step:
+                cb.on_step(state.step)
+    final = model_surfels({k: dr.detach(v) for k, v in opt.params.items()})
+    return final
+
+
+# -- evaluation ---------------------------------------------------------------------------------
+def render_view(surfels: Surfels, camera, config: RasterConfig | None = None) -> dict:
+    """NumPy renders of one view: rgb [H, W, 3], alpha [H, W], depth [H, W], normal [H, W, 3]."""
+    config = config or RasterConfig()
+    with dr.suspend_grad():
+        out = rasterize(surfels, camera, {"rgb": sh_colors(surfels, camera.origin)},
+                        aovs=("alpha", "depth", "normal"), config=config)
+    return {"rgb": out["rgb"].numpy(), "alpha": out["alpha"].numpy()[..., 0],
+            "depth": out["depth"].numpy()[..., 0], "normal": out["normal"].numpy()}
+
+
+def evaluate(surfels: Surfels, dataset, config: RasterConfig | None = None,
+             on_view: Callable | None = None) -> dict:
+    """Test-view metrics: RGB PSNR/SSIM, normal angular error (degrees, over the pixels both
+    the ground-truth mask and normal cover), z-depth error, mask IoU (alpha > 0.5)."""
+    psnrs, ssims, angles, depth_abs, depth_rel, ious = [], [], [], [], [], []
+    for view in dataset.views:
+        r = render_view(surfels, view.camera, config)
+        rgb = np.clip(r["rgb"], 0.0, 1.0)
+        gt = np.clip(view.image, 0.0, 1.0)
+        psnrs.append(metrics.psnr(rgb, gt))
+        ssims.append(metrics.ssim(rgb, gt))
+        ious.append(metrics.mask_iou(r["alpha"] > 0.5, view.mask))
+        if view.normal is not None:
+            m = view.mask & (np.linalg.norm(view.normal, axis=-1) > 0.5)
+            angles.append(metrics.normal_angles_deg(r["normal"], view.normal, m))
+        if view.depth is not None:
+            m = view.mask & (view.depth > 0)
+            d = metrics.depth_errors(r["depth"], view.depth, m)
+            depth_abs.append(d["mean_abs"])
+            depth_rel.append(d["mean_rel"])
+        if on_view:
+            on_view(view, r)
+    out = {"views": len(dataset.views), "psnr": float(np.mean(psnrs)),
+           "ssim": float(np.mean(ssims)), "mask_iou": float(np.mean(ious)),
+           "psnr_per_view": [float(x) for x in psnrs]}
+    if angles:
+        a = np.concatenate(angles)
+        out.update(normal_error_median_deg=float(np.median(a)),
+                   normal_error_mean_deg=float(np.mean(a)))
+    if depth_abs:
+        out.update(depth_error_mean_abs=float(np.nanmean(depth_abs)),
+                   depth_error_mean_rel=float(np.nanmean(depth_rel)))
+    return out

@@ -1,0 +1,239 @@
+"""Stage 5: relight a decomposed surfel model under new lights (directional or env map).
+
+A model is surfels with "albedo", "roughness", "metallic" and "indirect_sh" channels
+(``stage_material``). New lights become a ``LightSet`` (directions with RGB weights):
+directional lights as they are (their exact directions, irradiance E), an environment map
+integrated over the 128 grid directions (mean radiance over each direction's cell times
+dw = 2 pi / 128). Visibility is recomputed for the new directions with new shadow maps of
+the surfels (rendered once per light, shared by every view).
+
+Indirect light under new lights: the fitted L_ind is what the *training* light bounced
+around; reusing it as is would keep the old lighting's glow, dropping it would darken the
+shadows that interreflection fills in. We keep its spatial pattern and scale it by the ratio
+of the new to the training lights' irradiance on an unoccluded upward-facing surface,
+E_up = sum_k E_k max(0, l_k . y) (mode "scaled", the default; "none" drops it, "keep" reuses
+it unchanged). This is a first-order guess, exact only when the new light illuminates the
+scene the way the old one did; it is documented as such.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.core import shading
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
+from mi_shadowgs.core.raster import RasterConfig, rasterize
+from mi_shadowgs.core.surfels import Surfels, sh_degree
+from mi_shadowgs.stages.visibility.shadow_maps import (
+    SceneBounds,
+    VisibilityConfig,
+    render_shadow_maps,
+)
+
+INDIRECT_MODES = ("scaled", "none", "keep")
+DEFAULT_RASTER = RasterConfig()
+DEFAULT_VISIBILITY = VisibilityConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class RelightConfig:
+    indirect: str = "scaled"  # see the module docstring
+    n_directions: int = 128  # grid of the environment-map integration
+    env_samples: int = 64  # env map samples per grid direction (stratified hemisphere)
+
+    def __post_init__(self):
+        if self.indirect not in INDIRECT_MODES:
+            raise ValueError(f"RelightConfig.indirect must be one of {INDIRECT_MODES}, got "
+                             f"{self.indirect!r}")
+
+
+PRESETS = {"paper": RelightConfig(), "cpu-small": RelightConfig(env_samples=32)}
+DEFAULT_RELIGHT = RelightConfig()
+
+
+def get_config(name: str) -> RelightConfig:
+    return get_preset(PRESETS, name, "relight")
+
+
+@dataclasses.dataclass
+class RelightModel:
+    """What relighting needs from stage 4."""
+
+    surfels: Surfels  # with albedo/roughness/metallic/indirect_sh channels
+    specular: bool  # the GGX lobe is modelled
+    use_visibility: bool  # False: V = 1 (the "w/o visibility" ablation)
+    train_lights: shading.LightSet | None = None  # for the indirect scaling
+
+
+def directional_light_set(directions, irradiance) -> shading.LightSet:
+    """Directional lights: unit directions toward the lights [K, 3], irradiance [K] or [K, 3]."""
+    d = np.atleast_2d(np.asarray(directions, np.float64))
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    e = np.asarray(irradiance, np.float64).reshape(len(d), -1)
+    if e.shape[1] == 1:
+        e = np.repeat(e, 3, axis=1)
+    if e.shape[1] != 3 or not np.all(np.isfinite(e)) or not np.all(np.isfinite(d)):
+        raise ValueError(f"directional lights: bad directions {d.shape} or irradiance {e.shape}")
+    e = e.astype(np.float32)
+    return shading.LightSet(d, mi.Color3f(e[:, 0], e[:, 1], e[:, 2]))
+
+
+def lights_from_json(entry: dict) -> shading.LightSet:
+    """A ``lights.json`` relighting entry of type "directional"."""
+    if entry.get("type") != "directional":
+        raise ValueError(f"lights.json: relighting {entry.get('name')!r} has type "
+                         f"{entry.get('type')!r}; use envmap_light_set for env maps")
+    lts = entry.get("lights") or []
+    if not lts:
+        raise ValueError(f"lights.json: relighting {entry.get('name')!r} has no lights")
+    return directional_light_set([lt["direction"] for lt in lts], [lt["irradiance"] for lt in lts])
+
+
+def grid_light_set(radiance: np.ndarray, n: int | None = None) -> shading.LightSet:
+    """A radiance map over the grid ([n] white or [n, 3]) as a LightSet (L dw per direction);
+    directions with zero radiance are left out (no shadow map, no shading work)."""
+    rad = np.asarray(radiance, np.float64)
+    rad = rad[:, None].repeat(3, 1) if rad.ndim == 1 else rad
+    n = len(rad) if n is None else n
+    keep = np.flatnonzero(np.any(rad > 0, axis=1))
+    w = (rad[keep] * solid_angle(n)).astype(np.float32)
+    return shading.LightSet(light_grid(n)[keep], mi.Color3f(w[:, 0], w[:, 1], w[:, 2]))
+
+
+def envmap_grid_radiance(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np.ndarray:
+    """Mean radiance [n, 3] of an infinite Mitsuba emitter over each grid direction's cell.
+
+    Stratified samples over the upper hemisphere, each assigned to its nearest grid
+    direction (the grid is equal-area, so cells are Voronoi cells of equal solid angle).
+    The lower hemisphere is left out: the base occludes it for everything above it.
+    """
+    n = config.n_directions
+    m = n * config.env_samples
+    side = int(np.ceil(np.sqrt(m)))
+    u, v = np.meshgrid((np.arange(side) + 0.5) / side, (np.arange(side) + 0.5) / side)
+    y = u.ravel()  # uniform in height = uniform in solid angle
+    phi = 2 * np.pi * v.ravel()
+    r = np.sqrt(np.maximum(0.0, 1 - y * y))
+    d = np.stack([r * np.cos(phi), y, r * np.sin(phi)], -1)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(d))
+    # Infinite emitters look up -wi: wi is the propagation direction (from the env inward).
+    si.wi = mi.Vector3f(*(-d[:, k].astype(np.float32) for k in range(3)))
+    with dr.suspend_grad():
+        val = emitter.eval(si)
+    rgb = np.stack([np.asarray(val[k], np.float64) for k in range(3)], -1)
+    cell = nearest_grid_index(d, light_grid(n))
+    acc = np.zeros((n, 3))
+    cnt = np.zeros(n)
+    np.add.at(acc, cell, rgb)
+    np.add.at(cnt, cell, 1.0)
+    return acc / np.maximum(cnt, 1.0)[:, None]
+
+
+def envmap_light_set(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> shading.LightSet:
+    """The 128-direction light set of an infinite emitter (``envmap``, ``constant``).
+
+    Not yet called by the evaluation: scoring the env-map relightings of ``lights.json``
+    needs the emitter rebuilt from its entry, which is issue 14's ("The paper's evaluation
+    in full"); ``evaluate_decomposition`` skips those entries until then."""
+    return grid_light_set(envmap_grid_radiance(emitter, config), config.n_directions)
+
+
+def upward_irradiance(lights: shading.LightSet) -> float:
+    """Mean-RGB irradiance the lights give an unoccluded surface facing +Y."""
+    w = np.stack([np.asarray(lights.weights[k], np.float64) for k in range(3)], -1)
+    return float(np.sum(w.mean(1) * np.maximum(lights.directions[:, 1], 0.0)))
+
+
+def indirect_factor(model: RelightModel, lights: shading.LightSet, config: RelightConfig) -> float:
+    if config.indirect == "none":
+        return 0.0
+    if config.indirect == "keep" or model.train_lights is None:
+        return 1.0
+    e_train = upward_irradiance(model.train_lights)
+    return upward_irradiance(lights) / e_train if e_train > 0 else 0.0
+
+
+def _check_model(surfels: Surfels) -> None:
+    missing = [c for c in shading.MATERIAL_CHANNELS if c not in surfels.channels]
+    if missing:
+        raise ValueError(f"relight: the model lacks channel(s) {missing} (run stage 4)")
+
+
+def render_buffers(model: RelightModel, camera: Camera,
+                   raster: RasterConfig = DEFAULT_RASTER):
+    """One rasterization of a view: geometry, albedo, roughness, metallic, indirect."""
+    surf = model.surfels
+    _check_model(surf)
+    chans = {k: surf.channels[k] for k in shading.MATERIAL_CHANNELS}
+    has_ind = shading.INDIRECT_CHANNEL in surf.channels
+    if has_ind:
+        chans[shading.INDIRECT_CHANNEL] = surf.channels[shading.INDIRECT_CHANNEL]
+    with dr.suspend_grad():
+        out = rasterize(surf, camera, chans, aovs=("alpha", "depth", "normal"), config=raster)
+        geom = shading.geometry_from_aovs(out, camera)
+        a = out["albedo"].array
+        albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
+        ind = None
+        if has_ind:
+            t = out[shading.INDIRECT_CHANNEL]
+            ind = shading.sh_irradiance(t.array, geom.normal, sh_degree(t.shape[2] // 3))
+    return geom, albedo, out["roughness"].array, out["metallic"].array, ind
+
+
+def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: SceneBounds,
+                    vis_config: VisibilityConfig = DEFAULT_VISIBILITY):
+    if not model.use_visibility or lights.count == 0:
+        return None
+    return render_shadow_maps(model.surfels, lights.directions, bounds, vis_config)
+
+
+def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, maps,
+                 factor: float, raster: RasterConfig = DEFAULT_RASTER) -> dict:
+    """Relit image and buffers of one view: "rgb" [H, W, 3], "albedo" [H, W, 3] (diffuse,
+    (1 - m) a), "direct_irradiance" [H, W] (white sum_k E_k (n . l_k)^+ V_k, mean RGB),
+    "alpha" [H, W] as numpy."""
+    h, w = camera.height, camera.width
+    geom, albedo, rough, metal, ind = render_buffers(model, camera, raster)
+    with dr.suspend_grad():
+        vis = None if maps is None else \
+            maps.evaluate(geom.points, geom.normal, geom.footprint)
+        indirect = ind * factor if ind is not None and factor > 0 else None
+        rgb = shading.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
+        ones = mi.Color3f(1.0)
+        irr = shading.direct(geom, ones * dr.pi, dr.zeros(mi.Float, dr.width(geom.alpha)),
+                       dr.zeros(mi.Float, dr.width(geom.alpha)), lights, vis, False)
+        diff_albedo = albedo * (1.0 - metal)
+    return {"rgb": _img(rgb, h, w), "albedo": _img(diff_albedo, h, w),
+            "direct_irradiance": _img(irr, h, w).mean(-1),
+            "alpha": geom.alpha.numpy().reshape(h, w)}
+
+
+def _img(c: mi.Color3f, h: int, w: int) -> np.ndarray:
+    return np.stack([np.asarray(c[k], np.float32) for k in range(3)], -1).reshape(h, w, 3)
+
+
+def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shading.LightSet,
+                  bounds: SceneBounds, config: RelightConfig = DEFAULT_RELIGHT,
+                  vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
+                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = False
+                  ) -> tuple[list[dict], float]:
+    """Relight every camera's view; returns the per-view dicts and the wall time (s),
+    shadow maps included."""
+    from tqdm import tqdm
+
+    dr.sync_thread()
+    t0 = time.perf_counter()
+    maps = shadow_maps_for(model, lights, bounds, vis_config)
+    factor = indirect_factor(model, lights, config)
+    out = [relight_view(model, cam, lights, maps, factor, raster)
+           for cam in tqdm(cameras, desc="relight", disable=not progress)]
+    dr.sync_thread()
+    return out, time.perf_counter() - t0

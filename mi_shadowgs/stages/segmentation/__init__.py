@@ -1,0 +1,29 @@
+"""Stage 2: material segmentation (Sec. III-B): contrastive per-surfel features trained on
+2D label maps, then K-means into one segment per surfel.
+
+``features``: config, losses, training, K-means and the segment metrics; ``masks``: the
+label maps (material ids or chromaticity regions); ``runner``: ``run_segmentation``.
+"""
+
+from __future__ import annotations
+
+from mi_shadowgs.stages.segmentation.features import (
+    PRESETS,
+    SegmentationConfig,
+    SegmentationResult,
+    get_config,
+    segment_surfels,
+)
+from mi_shadowgs.stages.segmentation.masks import masks_for
+from mi_shadowgs.stages.segmentation.runner import run_segmentation, segmentation_config
+
+__all__ = [
+    "PRESETS",
+    "SegmentationConfig",
+    "SegmentationResult",
+    "get_config",
+    "masks_for",
+    "run_segmentation",
+    "segment_surfels",
+    "segmentation_config",
+]

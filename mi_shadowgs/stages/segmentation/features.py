@@ -1,0 +1,611 @@
+"""Stage 2: material segmentation with contrastive per-surfel features and K-means (Sec. IV-B).
+
+Every surfel carries a feature f_i [D] (channel "feature"), rendered like colour:
+F(x) = sum_i T_i alpha_i f_i. Given one integer label map per training view (material ids,
+or the chromaticity segments of ``mi_shadowgs.stages.segmentation.masks``; label 0 =
+unlabelled, e.g. background), the features are trained with (Eq. 8-11)
+
+- ``L_pos``  = -1/(|X1||X2|) sum_{x1, x2} [M1 = M2] S(x1, x2),
+- ``L_neg``  =  1/(|X1||X2|) sum_{x1, x2} [M1 != M2] [S > delta] S(x1, x2),
+- ``L_mask`` = ``L_intra`` + ``L_inter`` over label prototypes mu_k (the mean of the
+  normalised features of the samples with label k, renormalised):
+  ``L_intra`` = mean_x (1 - cos(F(x), mu_M(x))) pulls features to their prototype;
+  ``L_inter`` = mean_k tau * log sum_{l != k} exp(cos(mu_k, mu_l) / tau), a soft maximum (at
+  temperature tau) of each prototype's similarity to the others, pushes prototypes apart;
+- ``L_norm`` = mean_i (|f_i| - 1)^2 over the per-surfel features (unit length: cosine
+  similarity ignores the magnitude, which would otherwise drift),
+
+L_seg = L_pos + lambda_neg L_neg + lambda_norm L_norm + lambda_mask L_mask, with S the cosine
+similarity of rendered features. The paper gives neither the form of L_intra/L_inter nor
+where tau enters; the forms above are our choice. X1 and X2 are the two halves of
+``n_samples`` labelled pixels drawn uniformly from one training view per iteration.
+After training, K-means on the normalised features of the surfels the training views see
+gives each surfel a segment id (channel "segment", 0..K-1); surfels no training view sees
+take the nearest centre.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.raster import RasterConfig, rasterize
+from mi_shadowgs.core.surfels import Surfels
+
+FEATURE = "feature"
+SEGMENT = "segment"
+_RASTER = RasterConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentationConfig:
+    """Stage-2 hyperparameters; defaults are the paper's (Sec. V-A1) where it gives them."""
+
+    # D: not given in the paper. 16 separates the 14 labels of the hotdog with room to
+    # spare, and each extra dimension costs one more rendered channel per iteration.
+    feature_dim: int = 16
+    iterations: int = 1000
+    lr: float = 0.005  # Adam
+    n_samples: int = 10_000  # labelled pixels per iteration, split into X1 and X2
+    lambda_neg: float = 0.1
+    lambda_norm: float = 1e-4
+    lambda_mask: float = 0.5
+    temperature: float = 0.3  # tau of L_inter
+    margin: float = 0.5  # delta of Eq. 9 (not given in the paper): cos 0.5 = 60 degrees
+    n_segments: int | None = None  # K; None: the number of labels of the masks
+    min_label_pixels: int = 20  # labels with fewer pixels (all views) do not count for K
+    # ... nor labels below this share of the labelled pixels (0.005 suits the chromaticity
+    # masks, whose edge and highlight slivers would otherwise each count; material ids of
+    # the hotdog go down to 0.11 %, hence 0 by default).
+    min_label_fraction: float = 0.0
+    kmeans_restarts: int = 5
+    kmeans_iterations: int = 50
+    min_coverage: float = 0.5  # surfels with less summed splat weight (pixels) are "unseen"
+    segment_alpha: float = 0.5  # rendered segment maps: background where alpha is lower
+    # Initial features N(0, init_std^2 / D) per coordinate: small, so that the trained
+    # direction dominates surfels that received few updates.
+    init_std: float = 0.01
+    seed: int = 0
+    log_every: int = 25  # iterations between progress-bar loss reads (host syncs)
+    # Resumable checkpoints: every so many iterations and at least this often in wall time.
+    checkpoint_every: int = 500
+    checkpoint_seconds: float = 60.0
+
+
+PRESETS = {
+    "paper": SegmentationConfig(),
+    # 2 CPU cores: fewer iterations (~0.2 s each at 128 px), a larger step to make up for
+    # them, and 2k samples (the pairwise term is n^2 / 4).
+    "cpu-small": SegmentationConfig(iterations=300, lr=0.02, n_samples=2048),
+}
+
+
+def get_config(name: str) -> SegmentationConfig:
+    return get_preset(PRESETS, name, "segmentation")
+
+
+# -- feature helpers ----------------------------------------------------------------------
+def init_features(count: int, dim: int, seed: int = 0, std: float = 1.0) -> mi.TensorXf:
+    """Random features [N, D], N(0, std^2 / D) per coordinate (norm ~ std)."""
+    rng = np.random.default_rng(seed)
+    f = rng.normal(0.0, std / math.sqrt(dim), size=(count, dim)).astype(np.float32)
+    return mi.TensorXf(f)
+
+
+def normalize_rows(f: list) -> list:
+    """Unit vectors from a feature given as D arrays [n]; a zero vector stays zero."""
+    n2 = f[0] * f[0]
+    for c in f[1:]:
+        n2 = n2 + c * c
+    inv = dr.select(n2 > 1e-24, dr.rsqrt(dr.maximum(n2, 1e-24)), 0.0)
+    return [c * inv for c in f]
+
+
+def gather_pixels(image: mi.TensorXf, pixels: mi.UInt32) -> list:
+    """The D channels of ``image`` [H, W, D] at flat pixel indices [n]: D arrays [n]."""
+    d = image.shape[2]
+    return [dr.gather(mi.Float, image.array, pixels * d + k) for k in range(d)]
+
+
+# -- losses (Eq. 8-11) --------------------------------------------------------------------
+def contrastive_losses(f1: list, l1: mi.UInt32, f2: list, l2: mi.UInt32,
+                       margin: float) -> tuple[mi.Float, mi.Float]:
+    """(L_pos, L_neg) of Eq. 8 and 9 over all pairs of X1 (D arrays [n1], labels [n1]) and
+    X2 (D arrays [n2], labels [n2]); features need not be normalised."""
+    n1, n2 = dr.width(l1), dr.width(l2)
+    u1, u2 = normalize_rows(f1), normalize_rows(f2)
+    k = dr.arange(mi.UInt32, n1 * n2)  # pair index = i * n2 + j
+    i = k // n2
+    j = k - i * n2
+    s = mi.Float(0.0)
+    for a, b in zip(u1, u2, strict=True):
+        s = s + dr.gather(mi.Float, a, i) * dr.gather(mi.Float, b, j)
+    same = dr.gather(mi.UInt32, l1, i) == dr.gather(mi.UInt32, l2, j)
+    inv = 1.0 / (n1 * n2)
+    pos = -dr.sum(dr.select(same, s, 0.0)) * inv
+    neg = dr.sum(dr.select(~same & (dr.detach(s) > margin), s, 0.0)) * inv
+    return pos, neg
+
+
+def mask_loss(f: list, labels: mi.UInt32, n_labels: int,
+              temperature: float) -> tuple[mi.Float, mi.Float]:
+    """(L_intra, L_inter) of Eq. 10 for features (D arrays [n]) with labels in
+    [1, n_labels] (0 is not allowed here: pass labelled samples only)."""
+    u = normalize_rows(f)
+    nl = n_labels + 1  # slot 0 unused, so labels index directly
+    sums = []
+    for c in u:
+        acc = dr.zeros(mi.Float, nl)
+        dr.scatter_reduce(dr.ReduceOp.Add, acc, c, labels)
+        sums.append(acc)
+    count = dr.zeros(mi.Float, nl)
+    dr.scatter_reduce(dr.ReduceOp.Add, count, mi.Float(1.0), labels)
+    present = dr.detach(count) > 0
+    mu = normalize_rows(sums)  # [nl] each; the mean's direction = the sum's direction
+    # intra: 1 - cos(F(x), mu_M(x))
+    cos_own = mi.Float(0.0)
+    for c, m in zip(u, mu, strict=True):
+        cos_own = cos_own + c * dr.gather(mi.Float, m, labels)
+    intra = dr.mean(1.0 - cos_own)
+    # inter: soft maximum over l != k of cos(mu_k, mu_l), for present k, l
+    kk = dr.arange(mi.UInt32, nl * nl)
+    a = kk // nl
+    b = kk - a * nl
+    cos_ab = mi.Float(0.0)
+    for m in mu:
+        cos_ab = cos_ab + dr.gather(mi.Float, m, a) * dr.gather(mi.Float, m, b)
+    valid = (dr.gather(mi.Bool, present, a) & dr.gather(mi.Bool, present, b)) & (a != b)
+    e = dr.select(valid, dr.exp(cos_ab / temperature), 0.0)
+    row = dr.zeros(mi.Float, nl)
+    dr.scatter_reduce(dr.ReduceOp.Add, row, e, a)
+    has_other = row > 0
+    lse = dr.select(has_other, temperature * dr.log(dr.select(has_other, row, 1.0)), 0.0)
+    n_rows = dr.sum(dr.select(dr.detach(has_other), mi.Float(1.0), 0.0))
+    inter = dr.sum(lse) / dr.maximum(n_rows, 1.0)
+    return intra, inter
+
+
+def norm_loss(features: mi.TensorXf) -> mi.Float:
+    """L_norm = mean_i (|f_i| - 1)^2 over per-surfel features [N, D]."""
+    n, d = features.shape
+    idx = dr.arange(mi.UInt32, n) * d
+    n2 = mi.Float(0.0)
+    for k in range(d):
+        c = dr.gather(mi.Float, features.array, idx + k)
+        n2 = n2 + c * c
+    return dr.mean(dr.square(dr.sqrt(n2) - 1.0))
+
+
+def segmentation_loss(image: mi.TensorXf, features: mi.TensorXf, pix1: mi.UInt32,
+                      lab1: mi.UInt32, pix2: mi.UInt32, lab2: mi.UInt32, n_labels: int,
+                      config: SegmentationConfig) -> dict[str, mi.Float]:
+    """Eq. 11 for one view: ``image`` [H, W, D] rendered features, ``features`` [N, D] the
+    per-surfel ones, X1/X2 as flat pixel indices with labels in [1, n_labels]."""
+    f1, f2 = gather_pixels(image, pix1), gather_pixels(image, pix2)
+    pos, neg = contrastive_losses(f1, lab1, f2, lab2, config.margin)
+    intra, inter = mask_loss([dr.concat([a, b]) for a, b in zip(f1, f2, strict=True)],
+                             dr.concat([lab1, lab2]), n_labels, config.temperature)
+    nrm = norm_loss(features)
+    total = (pos + config.lambda_neg * neg + config.lambda_norm * nrm
+             + config.lambda_mask * (intra + inter))
+    return {"total": total, "pos": pos, "neg": neg, "intra": intra, "inter": inter,
+            "norm": nrm}
+
+
+# -- labels -------------------------------------------------------------------------------
+@dataclasses.dataclass
+class LabelSet:
+    """Training labels prepared once (host side): per view the labelled pixels and their
+    labels remapped to 1..n_labels (consistent across views)."""
+
+    pixels: list[np.ndarray]  # per view [m_v] flat pixel indices (uint32)
+    labels: list[np.ndarray]  # per view [m_v] labels in 1..n_labels (uint32)
+    n_labels: int
+    original: np.ndarray  # [n_labels] the input label value of each remapped label
+    pixel_counts: np.ndarray  # [n_labels] labelled pixels over all views
+
+
+def prepare_labels(label_maps: Sequence[np.ndarray], cameras: Sequence[Camera],
+                   names: Sequence[str] | None = None) -> LabelSet:
+    """Check the label maps ([H, W] int, 0 = unlabelled) against the cameras and remap them."""
+    if len(label_maps) != len(cameras):
+        raise ValueError(f"segmentation: {len(label_maps)} label maps for {len(cameras)} views")
+    names = list(names) if names is not None else [f"view {i}" for i in range(len(cameras))]
+    maps = []
+    for m, cam, name in zip(label_maps, cameras, names, strict=True):
+        m = np.asarray(m)
+        if m.shape != (cam.height, cam.width):
+            raise ValueError(f"segmentation: label map of {name} is {m.shape}, the camera is "
+                             f"{cam.height}x{cam.width}")
+        if not np.issubdtype(m.dtype, np.integer) or (m < 0).any():
+            raise ValueError(f"segmentation: label map of {name} must hold integers >= 0")
+        maps.append(m.astype(np.int64).ravel())
+    values = np.unique(np.concatenate(maps))
+    values = values[values > 0]
+    if values.size == 0:
+        raise ValueError("segmentation: every label map is empty (all 0 = unlabelled)")
+    pixels, labels = [], []
+    counts = np.zeros(values.size, np.int64)
+    for m in maps:
+        idx = np.flatnonzero(m > 0)
+        lab = np.searchsorted(values, m[idx]) + 1
+        counts += np.bincount(lab - 1, minlength=values.size)
+        pixels.append(idx.astype(np.uint32))
+        labels.append(lab.astype(np.uint32))
+    return LabelSet(pixels, labels, int(values.size), values, counts)
+
+
+def auto_k(labels: LabelSet, config: SegmentationConfig) -> int:
+    """K: ``config.n_segments``, else the number of labels with enough pixels."""
+    if config.n_segments is not None:
+        if config.n_segments < 1:
+            raise ValueError(f"SegmentationConfig.n_segments must be >= 1, got "
+                             f"{config.n_segments}")
+        return int(config.n_segments)
+    least = max(config.min_label_pixels,
+                config.min_label_fraction * float(labels.pixel_counts.sum()))
+    return max(1, int((labels.pixel_counts >= least).sum()))
+
+
+# -- training -----------------------------------------------------------------------------
+@dataclasses.dataclass
+class TrainResult:
+    features: np.ndarray  # [N, D] trained per-surfel features
+    coverage: np.ndarray  # [N] summed splat weight over the rendered training views
+    prototypes: np.ndarray  # [n_labels, D] summed unit rendered features per label (last
+    # quarter of the iterations); a zero row: the label was never sampled then
+    history: list  # (iteration, {term: value}) read every log_every iterations
+    seconds: float
+
+
+@dataclasses.dataclass
+class FeatureState:
+    """Everything a checkpoint of ``train_features`` needs to continue it exactly."""
+
+    step: int  # finished iterations
+    opt: mi.ad.Adam  # the features [N, D] and their Adam state
+    coverage: mi.Float  # [N] summed splat weight so far
+    proto: list  # D x mi.Float [n_labels + 1], the prototype sums so far
+    rng: np.random.Generator  # view order and pixel samples
+    order: list  # views left in the current shuffled round
+    history: list
+    elapsed: float = 0.0  # seconds of training before this process
+
+    def to_checkpoint(self) -> tuple[dict[str, np.ndarray], dict]:
+        """(arrays, JSON meta) for ``mi_shadowgs.io.checkpoint.save_checkpoint``."""
+        from mi_shadowgs.core.optim import adam_to_numpy
+
+        arrays = adam_to_numpy(self.opt, "adam/")
+        arrays["coverage"] = np.asarray(self.coverage.numpy(), np.float32)
+        arrays["proto"] = np.stack([np.asarray(c.numpy(), np.float32) for c in self.proto])
+        arrays["order"] = np.asarray(self.order, np.int64)
+        return arrays, {"step": self.step, "elapsed": self.elapsed, "history": self.history,
+                        "rng": self.rng.bit_generator.state}
+
+    @staticmethod
+    def from_checkpoint(arrays: dict[str, np.ndarray], meta: dict) -> FeatureState:
+        from mi_shadowgs.core.optim import adam_from_numpy
+
+        opt = mi.ad.Adam(lr=0.0)
+        adam_from_numpy(opt, arrays, "adam/")
+        rng = np.random.default_rng()
+        rng.bit_generator.state = meta["rng"]
+        return FeatureState(int(meta["step"]), opt, mi.Float(arrays["coverage"]),
+                            [mi.Float(c) for c in arrays["proto"]], rng,
+                            arrays["order"].tolist(),
+                            [(int(i), dict(v)) for i, v in meta["history"]],
+                            float(meta["elapsed"]))
+
+
+def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet,
+                   config: SegmentationConfig, raster: RasterConfig = _RASTER,
+                   progress: bool = True, state: FeatureState | None = None,
+                   on_checkpoint=None) -> TrainResult:
+    """Optimise per-surfel features (geometry fixed) with Eq. 11 for ``config.iterations``.
+
+    Each iteration renders the features of one training view (views visited in shuffled
+    rounds) and samples ``n_samples`` of its labelled pixels. Views without labelled pixels
+    are skipped. The per-surfel coverage (summed splat weight) is accumulated from the same
+    renders through the gradient of a constant channel, at no extra rasterization.
+
+    ``state`` (``FeatureState.from_checkpoint``) continues an interrupted run;
+    ``on_checkpoint(state)`` is called every ``checkpoint_every`` iterations, every
+    ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.io.interrupt``).
+    """
+    import time
+
+    from tqdm import tqdm
+
+    from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
+
+    clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
+    if surfels.count == 0:
+        raise ValueError("segmentation: the model has no surfels")
+    usable = [v for v in range(len(cameras)) if labels.pixels[v].size >= 2]
+    if not usable:
+        raise ValueError("segmentation: no training view has labelled pixels")
+    n = surfels.count
+    geom = Surfels(dr.detach(surfels.position), dr.detach(surfels.log_scale),
+                   dr.detach(surfels.rotation), dr.detach(surfels.opacity_logit))
+    if state is None:
+        start = surfels.channels.get(FEATURE)
+        if start is None or start.shape[1] != config.feature_dim:
+            start = init_features(n, config.feature_dim, config.seed, config.init_std)
+        opt = mi.ad.Adam(lr=config.lr)
+        opt[FEATURE] = mi.TensorXf(start)
+        state = FeatureState(0, opt, dr.zeros(mi.Float, n),
+                             [dr.zeros(mi.Float, labels.n_labels + 1)
+                              for _ in range(config.feature_dim)],
+                             np.random.default_rng(config.seed), [], [])
+    opt, rng, proto = state.opt, state.rng, state.proto
+    proto_from = config.iterations - max(1, config.iterations // 4)
+    half = max(1, config.n_samples // 2)
+    t0 = time.perf_counter() - state.elapsed
+    bar = tqdm(total=config.iterations, initial=state.step, desc="segment", unit="it",
+               disable=not progress)
+    with bar, clock.running():
+        while state.step < config.iterations:
+            it = state.step
+            if not state.order:
+                state.order = rng.permutation(usable).tolist()
+            v = state.order.pop()
+            feats = opt[FEATURE]
+            ones = dr.ones(mi.TensorXf, (n, 1))
+            dr.enable_grad(ones)
+            img = rasterize(geom, cameras[v], {FEATURE: feats, "cover": ones}, aovs=(),
+                            config=raster)
+            # Samples drawn on the host from host-side label lists: no device read-back.
+            pix, lab = labels.pixels[v], labels.labels[v]
+            pick = rng.integers(0, pix.size, size=2 * half)
+            p1, p2 = mi.UInt32(pix[pick[:half]]), mi.UInt32(pix[pick[half:]])
+            q1, q2 = mi.UInt32(lab[pick[:half]]), mi.UInt32(lab[pick[half:]])
+            terms = segmentation_loss(img[FEATURE], feats, p1, q1, p2, q2, labels.n_labels,
+                                      config)
+            # d(sum of the cover image)/d(ones_i) = surfel i's summed splat weight.
+            dr.backward(terms["total"] + dr.sum(img["cover"].array))
+            state.coverage = state.coverage + ones.grad.array
+            if it >= proto_from:  # label prototypes of the (nearly) trained features
+                img_d = dr.detach(img[FEATURE])
+                for p, q in ((p1, q1), (p2, q2)):
+                    for acc, c in zip(proto, normalize_rows(gather_pixels(img_d, p)),
+                                      strict=True):
+                        dr.scatter_reduce(dr.ReduceOp.Add, acc, c, q)
+            opt.step()
+            dr.eval(state.coverage, proto)
+            state.step = it + 1
+            if state.step % config.log_every == 0 or state.step == config.iterations:
+                vals = {k: float(t.numpy().reshape(-1)[0]) for k, t in terms.items()}
+                state.history.append((state.step, vals))
+                bar.set_postfix(loss=f"{vals['total']:.4f}")
+            bar.update(1)
+            if on_checkpoint and (clock.due(state.step) or state.step == config.iterations):
+                state.elapsed = time.perf_counter() - t0
+                on_checkpoint(state)
+                clock.saved()
+            raise_pending(f"segmentation stopped at iteration {state.step} of "
+                          f"{config.iterations}" + (", checkpoint written" if on_checkpoint
+                                                    else ""))
+    feats = opt[FEATURE]
+    out = np.asarray(feats.numpy(), dtype=np.float32).reshape(n, config.feature_dim)
+    cov = np.asarray(state.coverage.numpy(), dtype=np.float64)
+    protos = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in proto], axis=-1)[1:]
+    dr.sync_thread()
+    return TrainResult(out, cov, protos, state.history, time.perf_counter() - t0)
+
+
+# -- K-means ------------------------------------------------------------------------------
+def kmeans_segments(features: np.ndarray, k: int, seen: np.ndarray | None = None,
+                    seed: int = 0, restarts: int = 5, iterations: int = 50,
+                    init: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(segment id per surfel [N] in 0..k-1, centres [k, D]) from K-means on the
+    unit-normalised features [N, D] of the ``seen`` surfels; every surfel then takes its
+    nearest centre.
+
+    Seeding: ``init`` [k, D] (e.g. the label prototypes) when given, else the best of
+    ``restarts`` k-means++ seedings. Prototype seeding matters when surfaces are very
+    unequal in size: from random seeds, K-means lowers its cost more by splitting the large
+    base than by giving a small part its own centre."""
+    from scipy.cluster.vq import kmeans2
+
+    f = np.asarray(features, dtype=np.float64)
+    if f.ndim != 2 or not np.all(np.isfinite(f)):
+        raise ValueError("kmeans_segments: features must be a finite [N, D] array")
+    u = f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
+    fit = u if seen is None or not np.any(seen) else u[np.asarray(seen, bool)]
+    k = int(min(k, len(fit)))
+    if k < 1:
+        raise ValueError("kmeans_segments: no surfels to cluster")
+    rng = np.random.default_rng(seed)
+    best, best_cost = None, np.inf
+    if init is not None:
+        c0 = np.asarray(init, dtype=np.float64)
+        if c0.shape != (k, u.shape[1]):
+            raise ValueError(f"kmeans_segments: init must be [{k}, {u.shape[1]}], got "
+                             f"{c0.shape}")
+        best, _ = kmeans2(fit, c0, iter=iterations, minit="matrix", missing="warn")
+    for _ in range(max(1, restarts) if init is None else 0):
+        centres, lab = kmeans2(fit, k, iter=iterations, minit="++", seed=rng, missing="warn")
+        cost = float(((fit - centres[lab]) ** 2).sum())
+        if cost < best_cost:
+            best, best_cost = centres, cost
+    d2 = ((u[:, None, :] - best[None, :, :]) ** 2).sum(-1) if len(u) * k <= 5e7 else None
+    if d2 is None:  # large models: assign in chunks
+        seg = np.concatenate([((c[:, None, :] - best[None]) ** 2).sum(-1).argmin(1)
+                              for c in np.array_split(u, max(1, len(u) * k // 10_000_000))])
+    else:
+        seg = d2.argmin(1)
+    return seg.astype(np.int32), best
+
+
+def prototype_seeds(prototypes: np.ndarray, labels: LabelSet, k: int) -> np.ndarray | None:
+    """K-means seeds [k, D] from the label prototypes: the unit prototypes of the k labels
+    with the most pixels, or None when fewer than k labels were sampled."""
+    p = np.asarray(prototypes, dtype=np.float64)
+    norm = np.linalg.norm(p, axis=1)
+    ok = np.flatnonzero(norm > 0)
+    if ok.size < k:
+        return None
+    top = ok[np.argsort(-labels.pixel_counts[ok], kind="stable")[:k]]
+    return p[top] / norm[top, None]
+
+
+@dataclasses.dataclass
+class SegmentationResult:
+    surfels: Surfels  # the input with channels "feature" [N, D] and "segment" [N, 1]
+    segments: np.ndarray  # [N] int, 0..k-1
+    k: int
+    train: TrainResult
+
+
+def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
+                    label_maps: Sequence[np.ndarray], config: SegmentationConfig,
+                    raster: RasterConfig = _RASTER, progress: bool = True,
+                    names: Sequence[str] | None = None, state: FeatureState | None = None,
+                    on_checkpoint=None) -> SegmentationResult:
+    """The whole stage: train features on ``label_maps`` (one per camera), then K-means.
+    ``state`` and ``on_checkpoint``: see ``train_features``."""
+    labels = prepare_labels(label_maps, cameras, names)
+    k = auto_k(labels, config)
+    tr = train_features(surfels, cameras, labels, config, raster, progress, state,
+                        on_checkpoint)
+    seg, _ = kmeans_segments(tr.features, k, tr.coverage >= config.min_coverage, config.seed,
+                             config.kmeans_restarts, config.kmeans_iterations,
+                             prototype_seeds(tr.prototypes, labels, k))
+    out = Surfels(surfels.position, surfels.log_scale, surfels.rotation,
+                  surfels.opacity_logit, dict(surfels.channels))
+    out.channels[FEATURE] = mi.TensorXf(tr.features)
+    out.channels[SEGMENT] = mi.TensorXf(seg.astype(np.float32)[:, None])
+    return SegmentationResult(out, seg, k, tr)
+
+
+# -- rendering segment maps ---------------------------------------------------------------
+def render_segment_map(surfels: Surfels, segments: np.ndarray, k: int, camera: Camera,
+                       alpha_min: float = 0.5,
+                       raster: RasterConfig = _RASTER) -> np.ndarray:
+    """[H, W] int map: 1 + the segment with the largest rendered one-hot weight, 0 where
+    the rendered alpha is below ``alpha_min`` (background)."""
+    seg = np.asarray(segments).reshape(-1).astype(np.int64)
+    if seg.size != surfels.count or (seg.size and (seg.min() < 0 or seg.max() >= k)):
+        raise ValueError(f"render_segment_map: need {surfels.count} segment ids in [0, {k})")
+    onehot = np.zeros((seg.size, k), np.float32)
+    onehot[np.arange(seg.size), seg] = 1.0
+    with dr.suspend_grad():
+        out = rasterize(surfels, camera, {"onehot": mi.TensorXf(onehot)}, aovs=("alpha",),
+                        config=raster)
+    w = np.asarray(out["onehot"].numpy()).reshape(camera.height, camera.width, k)
+    alpha = np.asarray(out["alpha"].numpy()).reshape(camera.height, camera.width)
+    return np.where(alpha >= alpha_min, w.argmax(-1) + 1, 0).astype(np.int32)
+
+
+def segment_colors(k: int) -> np.ndarray:
+    """[k + 1, 3] sRGB uint8 colours: index 0 (background) black, then well-spread hues."""
+    cols = np.zeros((k + 1, 3), np.uint8)
+    for i in range(k):
+        h = (i * 0.618033988749895) % 1.0  # golden-ratio hue steps
+        s, v = (0.75, 0.95) if i % 2 == 0 else (0.55, 0.75)
+        hsv = np.array([h, s, v])
+        cols[i + 1] = np.round(_hsv_to_rgb(hsv) * 255).astype(np.uint8)
+    return cols
+
+
+def _hsv_to_rgb(hsv: np.ndarray) -> np.ndarray:
+    h, s, v = hsv
+    i = int(h * 6.0) % 6
+    f = h * 6.0 - int(h * 6.0)
+    p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
+    return np.array([(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i])
+
+
+# -- metrics ------------------------------------------------------------------------------
+def _pairs(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    return x * (x - 1.0) / 2.0
+
+
+def contingency(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Contingency table [n_a_classes, n_b_classes] of two label arrays of equal size."""
+    a = np.asarray(a).ravel()
+    b = np.asarray(b).ravel()
+    if a.shape != b.shape:
+        raise ValueError(f"contingency: label arrays differ in size ({a.size} vs {b.size})")
+    _, ia = np.unique(a, return_inverse=True)
+    _, ib = np.unique(b, return_inverse=True)
+    table = np.zeros((ia.max(initial=-1) + 1, ib.max(initial=-1) + 1), np.int64)
+    np.add.at(table, (ia, ib), 1)
+    return table
+
+
+def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
+    """Adjusted Rand index (Hubert and Arabie) of two labelings of the same items."""
+    t = contingency(a, b)
+    n = t.sum()
+    if n < 2:
+        return 1.0
+    index = _pairs(t).sum()
+    sa, sb = _pairs(t.sum(1)).sum(), _pairs(t.sum(0)).sum()
+    expected = sa * sb / _pairs(n)
+    top = 0.5 * (sa + sb)
+    if top == expected:  # both labelings are one cluster (or all singletons): identical
+        return 1.0
+    return float((index - expected) / (top - expected))
+
+
+def miou_hungarian(pred: np.ndarray, gt: np.ndarray) -> tuple[float, dict[int, int]]:
+    """Mean IoU over the ground-truth classes after the one-to-one matching of predicted to
+    ground-truth classes that maximises the summed IoU; unmatched ground-truth classes
+    count 0. Returns (mIoU, {gt class: matched pred class})."""
+    from scipy.optimize import linear_sum_assignment
+
+    pred = np.asarray(pred).ravel()
+    gt = np.asarray(gt).ravel()
+    if pred.shape != gt.shape:
+        raise ValueError(f"miou_hungarian: {pred.size} predictions for {gt.size} labels")
+    gv, pv = np.unique(gt), np.unique(pred)
+    inter = contingency(gt, pred).astype(np.float64)  # [gt classes, predicted classes]
+    union = inter.sum(1, keepdims=True) + inter.sum(0, keepdims=True) - inter
+    iou = np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
+    rows, cols = linear_sum_assignment(-iou)
+    return float(iou[rows, cols].sum() / max(gv.size, 1)), \
+        {int(gv[r]): int(pv[c]) for r, c in zip(rows, cols, strict=True)}
+
+
+def evaluate_maps(pred_maps: Sequence[np.ndarray],
+                  gt_maps: Sequence[np.ndarray]) -> dict[str, float]:
+    """ARI and Hungarian mIoU pooled over the pixels whose ground truth is not background
+    (gt > 0); a predicted background (0) there counts as a class of its own."""
+    p = np.concatenate([np.asarray(m).ravel() for m in pred_maps])
+    g = np.concatenate([np.asarray(m).ravel() for m in gt_maps])
+    keep = g > 0
+    if not keep.any():
+        raise ValueError("evaluate_maps: the ground truth has no foreground pixel")
+    miou, _ = miou_hungarian(p[keep], g[keep])
+    return {"ari": adjusted_rand_index(p[keep], g[keep]), "miou": miou,
+            "pixels": int(keep.sum()), "pred_background": float((p[keep] == 0).mean())}
+
+
+def shadow_consistency(pred_maps: Sequence[np.ndarray], gt_maps: Sequence[np.ndarray],
+                       visibility: Sequence[np.ndarray], label: int) -> dict[str, float]:
+    """Do shadowed and lit pixels of the surface with ground-truth id ``label`` fall in one
+    segment? Shadowed: occluded from some training light (visibility < 0.5); lit: visible
+    from all. Returns the segment taken by most lit pixels and the fractions of lit and of
+    shadowed pixels that carry it."""
+    p = np.concatenate([np.asarray(m).ravel() for m in pred_maps])
+    g = np.concatenate([np.asarray(m).ravel() for m in gt_maps])
+    v = np.concatenate([np.asarray(m).reshape(-1, np.asarray(m).shape[-1]).min(-1)
+                        for m in visibility])
+    on = g == label
+    lit, shadow = on & (v >= 0.5), on & (v < 0.5)
+    if not lit.any() or not shadow.any():
+        raise ValueError(f"shadow_consistency: surface {label} has no "
+                         f"{'lit' if not lit.any() else 'shadowed'} pixel in these views")
+    major = int(np.bincount(p[lit]).argmax())
+    return {"segment": major, "lit_fraction": float((p[lit] == major).mean()),
+            "shadow_fraction": float((p[shadow] == major).mean()),
+            "lit_pixels": int(lit.sum()), "shadow_pixels": int(shadow.sum())}

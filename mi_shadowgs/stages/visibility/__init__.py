@@ -1,0 +1,30 @@
+"""Stage 3: pixelwise directional visibility (Sec. III-C) from shadow maps rasterized from
+the surfels' depth, one per light direction, reused by every view.
+
+``shadow_maps``: config, shadow cameras, maps and lookups; ``baselines``: the ray-traced and
+other visibility estimates it is compared with (validation).
+"""
+
+from __future__ import annotations
+
+from mi_shadowgs.stages.visibility.shadow_maps import (
+    PRESETS,
+    SceneBounds,
+    ShadowMaps,
+    VisibilityConfig,
+    get_config,
+    point_visibility,
+    render_shadow_maps,
+    view_visibility,
+)
+
+__all__ = [
+    "PRESETS",
+    "SceneBounds",
+    "ShadowMaps",
+    "VisibilityConfig",
+    "get_config",
+    "point_visibility",
+    "render_shadow_maps",
+    "view_visibility",
+]

@@ -1,0 +1,296 @@
+"""Pixelwise directional visibility from shadow maps of the surfels' depth (paper Eq. 6-7).
+
+For a light direction ``l`` a virtual camera looks at the scene from far along ``l``
+(perspective at ``distance_factor`` times the mean training-camera distance, as in the paper,
+or orthographic) and the surfels' depth is rasterized into a shadow map. A view pixel is
+unprojected to its surface point ``x``; projected into the map it has depth ``d_l`` and the map
+holds ``d_g``; ``V = [(d_l - d_g) / (d_l + eps) <= tau]``.
+
+A shadow map depends on the light, not on the view: ``render_shadow_maps`` renders each once
+and every view reuses them. Lookups for all pixels and all directions run in one Dr.Jit pass.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
+
+PROJECTIONS = ("perspective", "orthographic")
+DEPTH_KINDS = ("median", "expected")
+
+
+@dataclasses.dataclass(frozen=True)
+class VisibilityConfig:
+    """Shadow-map visibility settings; defaults are the paper's (Sec. V-A1)."""
+
+    resolution: int = 512  # shadow-map width = height, pixels
+    projection: str = "perspective"  # "perspective" (paper) or "orthographic"
+    distance_factor: float = 30.0  # virtual camera distance / mean training-camera distance
+    tau: float = 0.0008  # relative depth threshold of Eq. 6
+    eps: float = 1e-6  # the epsilon of Eq. 7
+    depth: str = "median"  # which rasterized depth the map holds: "median" or "expected"
+    empty_alpha: float = 0.5  # map pixels with less accumulated alpha hold no occluder
+    margin: float = 1.02  # the map frustum covers the scene's bounding sphere times this
+    # Push each point off its surface by normal_offset * texel * sin(angle(n, l)) before the
+    # lookup. A shadow map samples the occluder depth at texel centres, so a surface tilted by
+    # that angle differs from its own map depth by up to ~0.71 texel * tan(angle); the offset
+    # moves the point 1.5 texel * sin / cos = 1.5 texel * tan in front of its own surface
+    # along l, which removes self-shadowing ("acne") at every angle up to the horizon.
+    # The paper uses tau alone (normal_offset = 0); that leaves acne at grazing light.
+    normal_offset: float = 1.5
+    # Receiver points unprojected from a rendered depth map are only known to about the size
+    # of their pixel: a fitted surface can be a few pixel-sized surfels thick, and a view's
+    # depth blends them. Lift such points by receiver_offset * (the pixel's footprint) along
+    # n so that the surfels of their own pixel do not shadow them. Applies only when the
+    # caller gives footprints (exact points, e.g. ray-traced depth, get none). 0: since
+    # stage 1 weights its distortion term enough to collapse those layers (lambda_d 3e4),
+    # the lift only costs contact shadows (stage-1 surfels, default / bunny visibility IoU:
+    # 0.882 / 0.837 at 0, 0.883 / 0.817 at 0.5); with the earlier, layered fits 0.5 took the
+    # default scene from 0.819 to 0.836 (BENCHMARKS.md, Visibility).
+    receiver_offset: float = 0.0
+    pcf: int = 0  # soft visibility: average over a (2 pcf + 1)^2 texel window (0 = hard)
+    # n . l at or below this is "light below the surface's horizon": V = 0. Not exactly 0:
+    # float32 normals of a flat surface carry ~1e-7 tilts that would make a light exactly
+    # at the horizon flicker between lit and unlit.
+    horizon_cos: float = 1e-4
+
+    def __post_init__(self):
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"visibility projection must be one of {PROJECTIONS}, "
+                             f"got {self.projection!r}")
+        if self.depth not in DEPTH_KINDS:
+            raise ValueError(f"visibility depth must be one of {DEPTH_KINDS}, got {self.depth!r}")
+        if self.resolution < 1 or self.distance_factor <= 1.0 or self.tau < 0 or self.pcf < 0 \
+                or self.normal_offset < 0 or self.receiver_offset < 0:
+            raise ValueError(f"invalid visibility settings: {self}")
+
+
+PRESETS = {
+    "paper": VisibilityConfig(),
+    # the paper's Eq. 6-7 alone
+    "paper-exact": VisibilityConfig(normal_offset=0.0, receiver_offset=0.0),
+    # Orthographic maps: the light is directional, and the validation (BENCHMARKS.md,
+    # Visibility) measured them ahead of the paper's 30x perspective camera.
+    "cpu-small": VisibilityConfig(resolution=512, projection="orthographic"),
+}
+
+
+def get_config(name: str) -> VisibilityConfig:
+    return get_preset(PRESETS, name, "visibility")
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneBounds:
+    """Where the occluders are and how far the training cameras stand.
+
+    Every visibility method (shadow maps here, the baselines in ``visibility_baselines``)
+    is built from surfels, light directions and these bounds, and then answers
+    ``evaluate(points, normals) -> V [P * L]``.
+    """
+
+    center: tuple  # [3] centre of the occluders' bounding sphere (paper: surfel centroid)
+    radius: float  # radius of that sphere
+    mean_camera_distance: float  # mean distance of the training cameras to ``center``
+
+    @staticmethod
+    def from_points(points: np.ndarray, cameras: Sequence[Camera], quantile: float = 1.0
+                    ) -> SceneBounds:
+        """Bounds of points [M, 3] (e.g. surfel centres) around their centroid.
+
+        ``quantile`` < 1 ignores the farthest points (floaters) when sizing the sphere.
+        """
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+            raise ValueError(f"SceneBounds.from_points: need points [M, 3], got {pts.shape}")
+        center = pts.mean(axis=0)
+        radius = float(np.quantile(np.linalg.norm(pts - center, axis=1), quantile))
+        return SceneBounds(tuple(center.tolist()), max(radius, 1e-6),
+                           mean_camera_distance(cameras, center))
+
+
+def mean_camera_distance(cameras: Sequence[Camera], center: np.ndarray) -> float:
+    if not cameras:
+        raise ValueError("mean_camera_distance: no cameras")
+    c = np.asarray(center, dtype=np.float64)
+    return float(np.mean([np.linalg.norm(cam.origin - c) for cam in cameras]))
+
+
+@dataclasses.dataclass
+class ShadowMaps:
+    """Shadow maps for L light directions, rendered once and shared by every view."""
+
+    directions: np.ndarray  # [L, 3] unit, toward the light
+    cameras: list[Camera]  # L virtual cameras
+    depth: mi.Float  # [L * R * R] map depth, +inf where no occluder
+    resolution: int
+    config: VisibilityConfig
+    texel: float  # size of one map texel at the scene centre, scene units
+
+    @property
+    def count(self) -> int:
+        return len(self.cameras)
+
+    def evaluate(self, points: mi.Point3f, normals: mi.Vector3f | None = None,
+                 footprint: mi.Float | None = None) -> mi.Float:
+        """V [P * L] (point-major) for surface points [P]; see ``point_visibility``."""
+        return point_visibility(points, self, normals, footprint)
+
+    def depth_image(self, index: int) -> np.ndarray:
+        """Shadow map ``index`` as [R, R] numpy (inf = empty), for inspection and plots."""
+        r = self.resolution
+        return np.asarray(self.depth, dtype=np.float64)[index * r * r:(index + 1) * r * r] \
+            .reshape(r, r)
+
+
+def shadow_camera(direction: np.ndarray, center: np.ndarray, radius: float,
+                  mean_camera_distance: float, config: VisibilityConfig) -> Camera:
+    """The virtual camera that looks at ``center`` from far along ``direction`` [3]."""
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    center = np.asarray(center, dtype=np.float64)
+    distance = config.distance_factor * mean_camera_distance
+    reach = radius * config.margin
+    if distance <= reach:
+        raise ValueError(f"shadow camera at distance {distance:.3g} lies inside the scene "
+                         f"bound of radius {reach:.3g}; increase distance_factor")
+    # Up vector: any direction not parallel to d (lights at the zenith are common).
+    up = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.99 else np.array([0.0, 0.0, -1.0])
+    kw = dict(width=config.resolution, height=config.resolution,
+              near=max(1e-4, distance - 2.0 * reach), far=distance + 2.0 * reach)
+    if config.projection == "orthographic":
+        return Camera.look_at(center + d * distance, center, up, ortho_width=2.0 * reach, **kw)
+    fov = 2.0 * math.asin(min(1.0, reach / distance))
+    return Camera.look_at(center + d * distance, center, up, fov_x=fov, **kw)
+
+
+def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
+                       config: VisibilityConfig = VisibilityConfig()) -> ShadowMaps:
+    """Rasterize the surfels' depth from each of ``directions`` [L, 3] (one map per light)."""
+    from mi_shadowgs.core.raster import rasterize
+
+    directions = np.atleast_2d(np.asarray(directions, dtype=np.float64))
+    center = np.asarray(bounds.center, dtype=np.float64)
+    cams = [shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance, config)
+            for d in directions]
+    key = "median_depth" if config.depth == "median" else "depth"
+    maps = []
+    with dr.suspend_grad():
+        for cam in cams:
+            out = rasterize(surfels, cam, None, aovs=("alpha", key))
+            depth = out[key].array
+            empty = out["alpha"].array < config.empty_alpha
+            maps.append(dr.select(empty | (depth <= 0), dr.inf, depth))
+    depth = dr.concat(maps) if len(maps) > 1 else maps[0]  # [L * R * R]
+    dr.eval(depth)
+    cam = cams[0]
+    if cam.is_ortho:
+        texel = cam.ortho_width / config.resolution
+    else:
+        dist = float(np.linalg.norm(cam.origin - np.asarray(center, dtype=np.float64)))
+        texel = 2.0 * math.tan(0.5 * cam.fov_x) * dist / config.resolution
+    return ShadowMaps(directions, cams, depth, config.resolution, config, texel)
+
+
+def _camera_rows(cameras: Sequence[Camera]) -> tuple[list[mi.Float], mi.Float, mi.Float]:
+    """Per-light world->CV rows (12 arrays of length L), focal and principal point."""
+    w2c = np.stack([c.world_to_cv()[:3, :4] for c in cameras])  # [L, 3, 4]
+    rows = [mi.Float(w2c[:, i, j]) for i in range(3) for j in range(4)]
+    focal = mi.Float(np.array([c.focal for c in cameras]))
+    cx = mi.Float(np.array([c.principal_point[0] for c in cameras]))
+    return rows, focal, cx
+
+
+def lift_receivers(points: mi.Point3f, normals: mi.Vector3f | None,
+                   footprint: mi.Float | None, amount: float) -> mi.Point3f:
+    """``points`` [P] moved ``amount * footprint`` [P] along ``normals`` [P] (see
+    ``VisibilityConfig.receiver_offset``); unchanged without normals or footprints."""
+    if normals is None or footprint is None or amount <= 0:
+        return points
+    return mi.Point3f(points + normals * (footprint * amount))
+
+
+def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f | None = None,
+                     footprint: mi.Float | None = None) -> mi.Float:
+    """V(x, l) for P points and the L maps' directions, flattened point-major: [P * L].
+
+    ``points`` [P] are surface points in world space; with ``normals`` [P] the horizon is
+    exact (V = 0 where n . l <= horizon_cos) and the normal offset applies; with
+    ``footprint`` [P] (points from a rendered depth map) the receiver offset too. Soft (PCF)
+    when ``maps.config.pcf > 0``, else in {0, 1}.
+    """
+    cfg = maps.config
+    points = lift_receivers(points, normals, footprint, cfg.receiver_offset)
+    n_lights = maps.count
+    n_points = dr.width(points)
+    r = maps.resolution
+    idx = dr.arange(mi.UInt32, n_points * n_lights)
+    pi, li = idx // n_lights, idx % n_lights
+    p = dr.gather(mi.Point3f, points, pi)
+    rows, focal_l, cx_l = _camera_rows(maps.cameras)
+    m = [dr.gather(mi.Float, row, li) for row in rows]
+    focal = dr.gather(mi.Float, focal_l, li)
+    c = dr.gather(mi.Float, cx_l, li)  # square maps: cx == cy
+    light = mi.Vector3f(*(dr.gather(mi.Float, mi.Float(maps.directions[:, k]), li)
+                          for k in range(3)))
+    facing = mi.Bool(True)
+    if normals is not None:
+        n = dr.gather(mi.Vector3f, normals, pi)
+        cos = dr.dot(n, light)
+        facing = cos > cfg.horizon_cos
+        if cfg.normal_offset > 0:
+            sin = dr.safe_sqrt(1.0 - dr.square(dr.clip(cos, -1.0, 1.0)))
+            p = p + n * (cfg.normal_offset * maps.texel * sin)
+    x = m[0] * p.x + m[1] * p.y + m[2] * p.z + m[3]
+    y = m[4] * p.x + m[5] * p.y + m[6] * p.z + m[7]
+    z = m[8] * p.x + m[9] * p.y + m[10] * p.z + m[11]
+    if cfg.projection == "orthographic":
+        u, v = focal * x + c, focal * y + c
+    else:
+        inv_z = dr.rcp(dr.maximum(z, 1e-12))
+        u, v = focal * x * inv_z + c, focal * y * inv_z + c
+    base = li * (r * r)
+    radius = cfg.pcf
+    acc = mi.Float(0.0)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            ix = mi.Int32(dr.floor(u)) + dx
+            iy = mi.Int32(dr.floor(v)) + dy
+            inside = (ix >= 0) & (ix < r) & (iy >= 0) & (iy < r)
+            tex = base + mi.UInt32(dr.clip(iy, 0, r - 1)) * r + mi.UInt32(dr.clip(ix, 0, r - 1))
+            d_g = dr.gather(mi.Float, maps.depth, tex, inside)
+            d_g = dr.select(inside, d_g, dr.inf)
+            delta = (z - d_g) / (z + cfg.eps)  # Eq. 7; inf map depth => -inf => visible
+            acc += dr.select(delta <= cfg.tau, 1.0, 0.0)
+    vis = acc / float((2 * radius + 1) ** 2)
+    return dr.select(facing, vis, 0.0)
+
+
+def view_visibility(depth: mi.TensorXf, camera: Camera, maps,
+                    normal: mi.TensorXf | None = None, rendered: bool = True) -> mi.TensorXf:
+    """Visibility [H, W, L] of a view from its z-depth [H, W, 1] (and normals [H, W, 3]).
+
+    ``maps`` is any visibility method with ``evaluate(points, normals, footprint)`` and
+    ``count``. ``rendered``: the depth was rasterized from surfels, so the receiver offset
+    applies (False for exact, e.g. ray-traced, depth).
+    """
+    h, w = depth.shape[0], depth.shape[1]
+    points = unproject_depth(depth, camera)
+    normals = None
+    if normal is not None:
+        flat = normal.array
+        idx = dr.arange(mi.UInt32, h * w)
+        normals = dr.normalize(mi.Vector3f(dr.gather(mi.Float, flat, idx * 3),
+                                           dr.gather(mi.Float, flat, idx * 3 + 1),
+                                           dr.gather(mi.Float, flat, idx * 3 + 2)))
+    footprint = pixel_footprint(depth, camera) if rendered else None
+    vis = maps.evaluate(points, normals, footprint)
+    return mi.TensorXf(vis, (h, w, maps.count))
