@@ -30,10 +30,19 @@ import numpy as np
 
 from mi_shadowgs.imageio import linear_to_srgb
 
+try:
+    from threadpoolctl import threadpool_limits
+except ImportError:  # installed with the 'eval' extra; without it only the speed differs
+    threadpool_limits = None
+
 INSTALL_HINT = "pip install -e '.[eval]'"
 MIN_SIZE = 31  # conv1 (11, stride 4, pad 2) >= 7 px, pool >= 3, conv2, pool >= 1
 NORM_EPS = 1e-10  # as lpips.normalize_tensor
 CHUNK_VIEWS = 8  # views per forward: bounds memory (~25 MB of conv1 patches at 128^2)
+# The matmuls are small (<= 16 x 961 rows at 128^2): on a busy 2-core machine OpenBLAS's
+# second thread spins and made one pair 3-15x slower (BENCHMARKS.md). One thread also keeps
+# the summation order, hence the value, independent of the core count.
+BLAS_THREADS = 1
 
 # lpips.ScalingLayer: x <- (x - shift) / scale, on inputs in [-1, 1].
 _SHIFT = np.array([-0.030, -0.088, -0.188], np.float32)
@@ -157,6 +166,14 @@ def lpips_views(imgs_a, imgs_b, *, srgb_input: bool = False, mask=None, backgrou
     a = _prepare(a_in, "image a", srgb_input, mask, background)
     b = _prepare(b_in, "image b", srgb_input, mask, background)
     w = load_weights(weights)
+    if threadpool_limits is None:
+        return _lpips_chunks(a, b, w)
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        return _lpips_chunks(a, b, w)
+
+
+def _lpips_chunks(a, b, w) -> np.ndarray:
+    """LPIPS per view [V] of two prepared stacks [V, H, W, 3] in [-1, 1]."""
     out = np.empty(len(a), np.float64)
     for s in range(0, len(a), CHUNK_VIEWS):
         n = len(a[s:s + CHUNK_VIEWS])

@@ -233,3 +233,18 @@ def test_weights_file_with_code_is_refused(tmp_path):
     path.write_bytes(b"not a pickle")
     with pytest.raises(lp.LPIPSUnavailable, match="unreadable"):
         lp.load_weights(str(path))
+
+
+@needs_weights
+def test_runs_on_one_blas_thread(monkeypatch):
+    threadpoolctl = pytest.importorskip("threadpoolctl", reason="installed by the 'eval' extra")
+    seen, forward = [], lp._lpips_chunks
+
+    def spy(*args):
+        seen.extend(i["num_threads"] for i in threadpoolctl.threadpool_info()
+                    if i["user_api"] == "blas")
+        return forward(*args)
+
+    monkeypatch.setattr(lp, "_lpips_chunks", spy)
+    lp.lpips(scene(64), scene(64) * 0.9)
+    assert seen and set(seen) == {lp.BLAS_THREADS}
