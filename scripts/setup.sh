@@ -44,7 +44,7 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q -e '.[dev]'
+.venv/bin/python -m pip install -q -e '.[dev,eval]'
 # Now that drjit is installed, the library must also run a Dr.Jit kernel.
 ensure_llvm "$PWD/.venv/bin/python"
 touch .venv/.installed
