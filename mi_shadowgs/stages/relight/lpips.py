@@ -10,7 +10,7 @@ difference weighted by the linear layers, spatial mean, sum over layers.
 Protocol (the paper follows TensoIR / GS-IR): LPIPS of **display** images, sRGB-encoded in
 [0, 1], scaled to [-1, 1]. Our evaluation images are linear RGB, so by default
 (``srgb_input=False``) inputs are clamped to [0, 1] and sRGB-encoded first
-(``imageio.linear_to_srgb``); pass ``srgb_input=True`` for images already sRGB-encoded.
+(``io.images.linear_to_srgb``); pass ``srgb_input=True`` for images already sRGB-encoded.
 LPIPS is a whole-image metric (a mean of deep features with a large receptive field), not a
 per-pixel one: with ``mask`` the pixels outside it are set to ``background`` in *both*
 images and the whole image is scored, as the project's SSIM does (``evaluation.py``).
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .imageio import linear_to_srgb
+from mi_shadowgs.io.images import linear_to_srgb
 
 try:
     from threadpoolctl import threadpool_limits
