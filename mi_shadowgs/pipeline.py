@@ -191,11 +191,13 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
 
     geo = _json_or_empty(run / "geometry" / "metrics.json")
     seg = _json_or_empty(run / "segmentation" / "segmentation.json")
-    cols = ["variant", "albedo PSNR", "albedo SSIM", "light cosine", "shadow IoU",
-            "relight PSNR", "relight SSIM", "relight time (s)"]
-    rows = [[name, r.get("albedo_psnr"), r.get("albedo_ssim"), r.get("light_cosine"),
-             r.get("shadow_iou"), r.get("relight_psnr"), r.get("relight_ssim"),
-             r.get("relight_render_s")] for name, r in results.items()]
+    cols = ["variant", "albedo PSNR", "albedo SSIM", "albedo LPIPS", "light cosine",
+            "shadow IoU", "relight PSNR", "relight SSIM", "relight LPIPS", "relight time (s)"]
+    rows = [[name, r.get("albedo_psnr"), r.get("albedo_ssim"), r.get("albedo_lpips"),
+             r.get("light_cosine"), r.get("shadow_iou"), r.get("relight_psnr"),
+             r.get("relight_ssim"), r.get("relight_lpips"), r.get("relight_render_s")]
+            for name, r in results.items()]
+    skipped = sorted({r["lpips_skipped"] for r in results.values() if r.get("lpips_skipped")})
     secs = {name: s for name, s in stages}
     info = _json_or_empty(data / "dataset.json")
     scene = Path(str(info.get("scene", data.name))).stem
@@ -207,8 +209,9 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
                     "columns": cols, "rows": rows,
                     "note": "Albedo: per-channel median scale per material region; relit "
                             "views: one global per-channel albedo scale; shadow IoU: "
-                            "direct irradiance below half the view's median. LPIPS is left "
-                            "out: no offline LPIPS network is available here."}],
+                            "direct irradiance below half the view's median; LPIPS: AlexNet "
+                            "v0.1 on sRGB views, background at 0."
+                            + "".join(f" LPIPS not computed: {why}." for why in skipped)}],
         "stages": [],
     }
     if geo:

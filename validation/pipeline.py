@@ -35,8 +35,8 @@ SCENES = {
     "ficus": "ficus/ficus.ply",
     "toy_train": "toy_train/toy_train.ply",
 }
-TABLE_KEYS = ("albedo_psnr", "albedo_ssim", "light_cosine", "shadow_iou", "relight_psnr",
-              "relight_ssim", "relight_render_s")
+TABLE_KEYS = ("albedo_psnr", "albedo_ssim", "albedo_lpips", "light_cosine", "shadow_iou",
+              "relight_psnr", "relight_ssim", "relight_lpips", "relight_render_s")
 
 
 def available_scenes() -> dict[str, Path | None]:
@@ -98,14 +98,14 @@ def markdown(rows: list[dict], command: str) -> str:
                      f"| {s.get('miou', float('nan')):.3f} |")
     lines += ["", "Decomposition and relighting per variant (Table 1: full; Table 3: "
               "ablations); last row: mean over scenes:", "",
-              "| scene | variant | albedo PSNR | albedo SSIM | light cos | shadow IoU | "
-              "relit PSNR | relit SSIM | relight s (32 views) |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "| scene | variant | albedo PSNR | albedo SSIM | albedo LPIPS | light cos | "
+              "shadow IoU | relit PSNR | relit SSIM | relit LPIPS | relight s (32 views) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for variant in ("full", "no_visibility", "no_segmentation"):
         vals = []
         for r in rows:
             m = r["variants"][variant]
-            vals.append([m.get(k, float("nan")) for k in TABLE_KEYS])
+            vals.append([float("nan") if m.get(k) is None else m[k] for k in TABLE_KEYS])
             lines.append(f"| {r['scene']} | {variant} | " +
                          " | ".join(f"{v:.4g}" for v in vals[-1]) + " |")
         mean = np.nanmean(np.array(vals, dtype=np.float64), axis=0)

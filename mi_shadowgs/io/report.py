@@ -36,6 +36,8 @@ figcaption { font-size: 0.8em; }
 
 
 def _fmt(v) -> str:
+    if v is None:  # a metric that was not computed (the table's note says why)
+        return "n/a"
     if isinstance(v, float):
         if v != v:  # NaN
             return "n/a"

