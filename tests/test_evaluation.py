@@ -74,15 +74,48 @@ def test_global_albedo_scale():
                                [2.0, 1.0, 0.5])
 
 
-def test_light_cosine():
+def test_light_cosine_is_continuous_in_the_directions():
+    from mi_shadowgs.core.directions import direction_from_angles, light_grid
+
+    gt_dirs = np.array([direction_from_angles(35.0, 50.0), direction_from_angles(215.0, 35.0)])
+    gt_w = np.array([[3.0, 3.0, 3.0], [1.5, 1.5, 1.5]])
+    assert E.light_cosine(gt_dirs, gt_w, gt_dirs, gt_w) == pytest.approx(1.0, abs=1e-12)
+    # A light moved 1 degree in any direction changes the cosine by < 0.05 (issue 14), also
+    # where it crosses a grid cell border (the nearest-cell metric jumped there).
+    grid = light_grid(128)
+    border = (grid[0] + grid[1]) / np.linalg.norm(grid[0] + grid[1])
+    for base in (gt_dirs[0], border):
+        for az, el in ((1, 0), (-1, 0), (0, 1), (0, -1), (0.7, 0.7)):
+            a0 = np.degrees(np.arctan2(-base[2], base[0]))
+            e0 = np.degrees(np.arcsin(base[1]))
+            moved = direction_from_angles(a0 + az / np.cos(np.radians(e0)), e0 + el)
+            assert np.degrees(np.arccos(np.clip(moved @ base, -1, 1))) == \
+                pytest.approx(np.hypot(az, el), abs=0.02)
+            dirs = np.array([base, gt_dirs[1]])
+            fitted = np.array([moved, gt_dirs[1]])
+            assert abs(E.light_cosine(fitted, gt_w, dirs, gt_w) - 1.0) < 0.05
+    # Far off: low; a spurious third light lowers it and is reported.
+    assert E.light_cosine(-gt_dirs, gt_w, gt_dirs, gt_w) < 1e-6
+    extra = np.vstack([gt_dirs, [direction_from_angles(120.0, 20.0)]])
+    w3 = np.vstack([gt_w, [[1.0, 1.0, 1.0]]])
+    # Far-apart lights barely overlap: sqrt((3^2 + 1.5^2) / (3^2 + 1.5^2 + 1^2)).
+    assert E.light_cosine(extra, w3, gt_dirs, gt_w) == pytest.approx(np.sqrt(11.25 / 12.25),
+                                                                     abs=1e-3)
+    err = E.light_angular_errors(extra, w3, gt_dirs)
+    assert err["angular_error_deg"] == pytest.approx([0.0, 0.0], abs=1e-5)
+    assert err["spurious_irradiance_fraction"] == pytest.approx(1.0 / 5.5)
+    assert err["fitted_lights"] == 3
+
+
+def test_light_map_cosine():
     a = np.zeros(128)
     b = np.zeros(128)
     a[3], b[3], b[5] = 1.0, 1.0, 1.0
-    assert E.light_cosine(a, b) == pytest.approx(1 / math.sqrt(2))
-    assert E.light_cosine(a * 7, np.stack([b, b, b], -1)) == pytest.approx(1 / math.sqrt(2))
-    assert E.light_cosine(np.zeros(128), b) == 0.0
+    assert E.light_map_cosine(a, b) == pytest.approx(1 / math.sqrt(2))
+    assert E.light_map_cosine(a * 7, np.stack([b, b, b], -1)) == pytest.approx(1 / math.sqrt(2))
+    assert E.light_map_cosine(np.zeros(128), b) == 0.0
     with pytest.raises(ValueError):
-        E.light_cosine(a[:64], b)
+        E.light_map_cosine(a[:64], b)
 
 
 def test_shadow_mask_and_iou():

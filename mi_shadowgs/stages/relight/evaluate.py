@@ -47,10 +47,18 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     est_irr = np.stack([v["direct_irradiance"] for v in views])
     gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
     gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
+    est_light = result.light.light_set()
+    est_light_w = np.asarray(est_light.weights, np.float64).T  # [K, 3]
+    gt_lights = train.lights["training"]["lights"]
+    gt_dirs = np.array([lt["direction"] for lt in gt_lights], np.float64)  # [G, 3]
+    gt_irr_w = np.array([lt["irradiance"] for lt in gt_lights], np.float64)  # [G, 3]
     metrics = {
         "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"], "albedo_lpips": alb["lpips"],
         "albedo_per_view": alb["per_view"],
-        "light_cosine": evaluation.light_cosine(result.light.radiance, gt_map),
+        "light_cosine": evaluation.light_cosine(est_light.directions, est_light_w,
+                                                gt_dirs, gt_irr_w),
+        "light_map_cosine": evaluation.light_map_cosine(result.light.radiance, gt_map),
+        **evaluation.light_angular_errors(est_light.directions, est_light_w, gt_dirs),
         "shadow_iou": evaluation.shadow_iou(est_irr, gt_irr, mask),
         "specular": result.specular, "active_directions": int(len(result.light.active)),
         "decomposition_render_s": decomp_s,
