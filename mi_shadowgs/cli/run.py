@@ -45,7 +45,8 @@ def run(args) -> int:
                            overwrite=args.overwrite)
     table = summary["tables"][0]
     for row in table["rows"]:
-        print("  ".join(f"{c}={v:.4g}" if isinstance(v, float) else f"{c}={v}"
+        print("  ".join(f"{c}={v:.4g}" if isinstance(v, float) else
+                        f"{c}={'n/a' if v is None else v}"
                         for c, v in zip(table["columns"], row, strict=True)))
     print(f"report: {args.out}/report.html ({summary['total_seconds']:.0f} s)")
     return 0

@@ -30,6 +30,47 @@ DEFAULT_RELIGHT = (
 
 
 @dataclasses.dataclass(frozen=True)
+class SkyConfig:
+    """A procedural sky-and-sun env map (lat-long, Y-up), built in code so that every
+    dataset has an env-map relit test set without an external file (TensoIR's relighting
+    protocol is env maps). Radiance in linear RGB; the sun is a uniform disc."""
+
+    width: int = 256  # lat-long pixels: 1.4 degrees each, so the sun disc spans ~6 pixels
+    height: int = 128
+    sun_azimuth_deg: float = 250.0  # away from every training and relighting direction
+    sun_elevation_deg: float = 45.0
+    sun_radius_deg: float = 4.0
+    sun_irradiance: float = 2.0  # W/m^2 at normal incidence, white
+    zenith: tuple = (0.10, 0.16, 0.32)  # sky radiance at the zenith
+    horizon: tuple = (0.32, 0.36, 0.42)  # and at the horizon (a bluish gradient)
+    ground: tuple = (0.05, 0.05, 0.05)  # below the horizon (hidden by the base's plane)
+
+
+def sky_envmap_image(sky: SkyConfig) -> np.ndarray:
+    """The sky as a Mitsuba ``envmap`` image [height, width, 3] (float32, linear RGB).
+
+    Mitsuba's lat-long map: pixel (u, v) looks along theta = pi v from +Y and
+    atan2(x, -z) = 2 pi u, so with our azimuth (about +Y, from +X toward -Z) a direction of
+    azimuth az sits at u = (90 deg - az) / 360 deg.
+    """
+    v = (np.arange(sky.height) + 0.5) / sky.height
+    u = (np.arange(sky.width) + 0.5) / sky.width
+    theta = np.pi * v[:, None] * np.ones_like(u)[None]  # [H, W] from +Y
+    az = np.pi / 2 - 2 * np.pi * u[None] * np.ones_like(v)[:, None]
+    d = np.stack([np.sin(theta) * np.cos(az), np.cos(theta), -np.sin(theta) * np.sin(az)], -1)
+    up = np.clip(d[..., 1], 0.0, 1.0)[..., None]  # [H, W, 1]
+    t = np.sqrt(up)  # the sky darkens quickly towards the zenith, as a clear sky does
+    img = (1 - t) * np.array(sky.horizon) + t * np.array(sky.zenith)
+    img = np.where(d[..., 1:2] < 0, np.array(sky.ground), img)
+    sun = direction_from_angles(sky.sun_azimuth_deg, sky.sun_elevation_deg)
+    cos_r = np.cos(np.radians(sky.sun_radius_deg))
+    disc_solid_angle = 2 * np.pi * (1 - cos_r)
+    in_sun = (d @ sun) >= cos_r
+    img[in_sun] += sky.sun_irradiance / disc_solid_angle
+    return img.astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
 class GenerateConfig:
     """Dataset generation settings; defaults are the paper preset (TensoIR-like)."""
 
@@ -47,6 +88,9 @@ class GenerateConfig:
     train_elevation_deg: tuple = (5.0, 85.0)  # upper hemisphere, not grazing the base
     test_elevation_deg: tuple = (15.0, 60.0)  # spiral bounds
     relight: tuple = DEFAULT_RELIGHT  # (name, ((az, el, irradiance), ...)) setups
+    # A procedural sky for one more, env-map, relit test set when no --envmap is given (None:
+    # none).
+    sky: SkyConfig | None = SkyConfig()
     envmap_scale: float = 1.0
     gt_chunk_rays: int = 1 << 22  # rays per ground-truth kernel launch (memory bound)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 SPLITS = ("train", "test")
 DATASET_JSON = "dataset.json"
 LIGHTS_JSON = "lights.json"
+SKY_ENVMAP = "sky_envmap.exr"  # the procedural sky of the env-map relit test views
 FORMAT_VERSION = 1
 # The angle NeRF-synthetic uses (0.6911 rad, ~39.6 degrees).
 NERF_CAMERA_ANGLE_X = 0.6911112070083618

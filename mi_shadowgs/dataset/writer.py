@@ -32,6 +32,7 @@ from mi_shadowgs.dataset.generate import (
     ViewRenderer,
     lit_scene,
     relight_lights,
+    sky_envmap_image,
     trace_ground_truth,
 )
 from mi_shadowgs.dataset.scene import SceneSetup, load_scene
@@ -199,6 +200,10 @@ def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> No
     write_exr(root / (stem + layout.IMAGE_EXR), rgba)
 
 
+def envmap_relight_name(envmap: Path) -> str:
+    return f"env_{Path(envmap).stem}"
+
+
 def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None) -> dict:
     train = [lt.to_json() for lt in setup.lights]
     light_map = directional_lights_to_map(np.array([lt.direction for lt in setup.lights]),
@@ -206,7 +211,9 @@ def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None) 
     relit = [{"name": name, "type": "directional", "lights": [lt.to_json() for lt in lts]}
              for name, lts in relight_lights(config)]
     if envmap is not None:
-        relit.append({"name": f"env_{envmap.stem}", "type": "envmap", "path": str(envmap),
+        # The generated sky is named relative to the dataset (the partial folder is renamed).
+        path = envmap.name if envmap.name == layout.SKY_ENVMAP else str(envmap)
+        relit.append({"name": envmap_relight_name(envmap), "type": "envmap", "path": path,
                       "scale": config.envmap_scale,
                       "convention": "Mitsuba lat-long envmap, Y-up, identity to_world"})
     return {
@@ -257,14 +264,18 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                                  test_elevation_deg[0],
                                  max_elevation_deg=config.test_elevation_deg[1], **kw)}
     relights = [(name, lit_scene(setup, lights=lts)) for name, lts in relight_lights(config)]
+    partial = _prepare_partial(out, fp)
+    if envmap is None and config.sky is not None:
+        # The procedural sky lives in the dataset, so that the evaluation reads the same file.
+        write_exr(partial / layout.SKY_ENVMAP, sky_envmap_image(config.sky))
+        envmap = partial / layout.SKY_ENVMAP
     if envmap is not None:
-        relights.append((f"env_{envmap.stem}", lit_scene(setup, envmap=str(envmap),
-                                                          envmap_scale=config.envmap_scale)))
+        relights.append((envmap_relight_name(envmap), lit_scene(
+            setup, envmap=str(envmap), envmap_scale=config.envmap_scale)))
     renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth)
     total = config.n_train + config.n_test * (1 + len(relights))
     # Ground truth for this many views at a time: what a kill loses beside one render.
     per_chunk = max(1, config.gt_chunk_rays // (config.width * config.height))
-    partial = _prepare_partial(out, fp)
     with tqdm(total=total, desc=f"generate {out.name}", unit="view",
               disable=not progress) as bar:
         for split_no, split in enumerate(layout.SPLITS):
@@ -304,7 +315,8 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
         "preset": preset,
         "config": dataclasses.asdict(config),
         "seed": seed,
-        "envmap": str(envmap) if envmap else None,
+        "envmap": (envmap.name if envmap.name == layout.SKY_ENVMAP else str(envmap))
+        if envmap else None,
         "fingerprint": fp,
         "materials": setup.materials_json(),
         "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,

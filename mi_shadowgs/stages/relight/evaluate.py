@@ -72,15 +72,17 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     smodel = _scaled_albedo_model(model, evaluation.global_albedo_scale(est_alb, gt_alb, mask))
     relit = {}
     for entry in train.lights.get("relightings", []):
-        if entry.get("type") != "directional":
-            continue  # env-map scoring: render.envmap_light_set, left to issue 14
         name = entry["name"]
-        rv, secs = relight.relight_views(smodel, test.cameras, relight.lights_from_json(entry),
-                                         bounds, rcfg, vcfg)
+        if entry.get("type") == "envmap":  # its 128-direction light set, shadows included
+            lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
+        else:
+            lights = relight.lights_from_json(entry)
+        rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg)
         est = np.stack([v["rgb"] for v in rv])
         gt = np.stack([v.relit[name] for v in test.views])
         relit[name] = {**evaluation.image_metrics(est, gt, mask), "render_s": secs,
-                       "views": len(rv)}
+                       "views": len(rv), "type": entry.get("type", "directional"),
+                       "light_directions": lights.count}
         images[f"relit/{name}"] = est
         images[f"gt/relit/{name}"] = gt
     if relit:
@@ -170,12 +172,52 @@ def check_evaluation_inputs(train, test) -> None:
         if missing:
             raise DatasetError(f"{test.root}: test view {missing[0]!r} has no {field} ground "
                                "truth, which the evaluation needs")
+    try:
+        for lt in train.lights["training"]["lights"]:
+            np.asarray(lt["direction"], np.float64).reshape(3)
+            np.asarray(lt["irradiance"], np.float64).reshape(3)
+    except (KeyError, TypeError, ValueError):
+        raise DatasetError(f"{path}: missing or malformed field 'training.lights' (each with "
+                           "a direction and an RGB irradiance)") from None
     for entry in train.lights.get("relightings", []):
-        if entry.get("type") == "directional":
-            missing = [v.name for v in test.views if entry.get("name") not in v.relit]
-            if missing:
-                raise DatasetError(f"{test.root}: test view {missing[0]!r} has no relit image "
-                                   f"for relighting {entry.get('name')!r} of {path.name}")
+        kind = entry.get("type")
+        if kind not in RELIGHT_TYPES:
+            raise DatasetError(f"{path}: relighting {entry.get('name')!r} has type {kind!r}; "
+                               f"known: {', '.join(RELIGHT_TYPES)}")
+        if kind == "envmap":
+            envmap_file(entry, train.root)
+        missing = [v.name for v in test.views if entry.get("name") not in v.relit]
+        if missing:
+            raise DatasetError(f"{test.root}: test view {missing[0]!r} has no relit image "
+                               f"for relighting {entry.get('name')!r} of {path.name}")
+
+
+RELIGHT_TYPES = ("directional", "envmap")
+
+
+def envmap_file(entry: dict, root: Path) -> Path:
+    """The env-map file of a ``lights.json`` relighting (absolute, or relative to the
+    dataset); DatasetError naming it when it is missing."""
+    from mi_shadowgs.dataset.loader import DatasetError
+
+    if not entry.get("path"):
+        raise DatasetError(f"{root / 'lights.json'}: env-map relighting {entry.get('name')!r} "
+                           "has no 'path'")
+    path = Path(entry["path"])
+    path = path if path.is_absolute() else root / path
+    if not path.is_file():
+        raise DatasetError(f"{path}: env map of relighting {entry.get('name')!r} not found "
+                           f"({root / 'lights.json'})")
+    return path
+
+
+def load_envmap(entry: dict, root: Path):
+    """The Mitsuba ``envmap`` emitter of a ``lights.json`` relighting (Y-up lat-long,
+    identity to_world, as the generator rendered it)."""
+    import mitsuba as mi
+
+    return mi.load_dict({"type": "envmap", "filename": str(envmap_file(entry, root)),
+                         "scale": float(entry.get("scale", 1.0))})
 
 
 def light_json(result: fit.MaterialResult) -> dict:
