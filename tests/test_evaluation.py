@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mi_shadowgs.stages.relight import evaluation as E
+from mi_shadowgs.stages.relight import evaluation
 
 
 def test_albedo_alignment_per_region_and_channel():
@@ -20,18 +20,18 @@ def test_albedo_alignment_per_region_and_channel():
     est[regions == 1] *= [0.5, 0.25, 2.0]  # a different wrong scale per channel and region
     est[regions == 2] *= [3.0, 1.0, 0.1]
     mask = regions > 0
-    scales = E.albedo_scales(est, gt, regions, mask)
+    scales = evaluation.albedo_scales(est, gt, regions, mask)
     np.testing.assert_allclose(scales[1], [2.0, 4.0, 0.5], rtol=1e-12)
     np.testing.assert_allclose(scales[2], [1 / 3.0, 1.0, 10.0], rtol=1e-12)
-    m = E.albedo_metrics(est, gt, regions, mask)
+    m = evaluation.albedo_metrics(est, gt, regions, mask)
     assert m["psnr"] > 200 and m["ssim"] == pytest.approx(1.0, abs=1e-9)
     # The median is robust: a shadow stripe (est 10x darker on 1/8 of a region) does not
     # move the scale, and costs PSNR exactly where it is.
     est2 = gt.copy()
     est2[:, 0, :4] *= 0.1
-    s2 = E.albedo_scales(est2, gt, regions, mask)
+    s2 = evaluation.albedo_scales(est2, gt, regions, mask)
     np.testing.assert_allclose(s2[1], 1.0)
-    assert E.albedo_metrics(est2, gt, regions, mask)["psnr"] < 40
+    assert evaluation.albedo_metrics(est2, gt, regions, mask)["psnr"] < 40
 
 
 def test_image_metrics_psnr_hand_case():
@@ -39,10 +39,10 @@ def test_image_metrics_psnr_hand_case():
     est = gt + 0.1  # MSE 0.01 -> 20 dB
     mask = np.zeros((1, 4, 4), bool)
     mask[0, 1:3, 1:3] = True
-    m = E.image_metrics(est, gt, mask)
+    m = evaluation.image_metrics(est, gt, mask)
     assert m["psnr"] == pytest.approx(20.0, abs=1e-9)
     with pytest.raises(ValueError, match="shapes differ"):
-        E.image_metrics(est[..., :2], gt, mask)
+        evaluation.image_metrics(est[..., :2], gt, mask)
 
 
 def test_image_metrics_lpips_per_view_and_when_it_cannot_be_computed():
@@ -57,20 +57,20 @@ def test_image_metrics_lpips_per_view_and_when_it_cannot_be_computed():
     est = np.clip(gt + rng.normal(0.0, 0.05, gt.shape), 0, 1)
     mask = np.ones((3, 64, 64), bool)
     mask[1] = False  # an empty view is left out of every metric
-    m = E.image_metrics(est, gt, mask)
+    m = evaluation.image_metrics(est, gt, mask)
     want = lpips.lpips_views(est[[0, 2]], gt[[0, 2]], mask=mask[[0, 2]])
     np.testing.assert_allclose(m["per_view"]["lpips"], want, rtol=1e-12)
     assert m["lpips"] == pytest.approx(float(np.mean(want)), rel=1e-12) and m["lpips"] > 0.01
     assert len(m["per_view"]["psnr"]) == len(m["per_view"]["ssim"]) == 2
     assert "lpips_skipped" not in m
-    small = E.image_metrics(est[:, :24, :24], gt[:, :24, :24], mask[:, :24, :24])
+    small = evaluation.image_metrics(est[:, :24, :24], gt[:, :24, :24], mask[:, :24, :24])
     assert small["lpips"] is None and "below LPIPS's 31 px" in small["lpips_skipped"]
 
 
 def test_global_albedo_scale():
     gt = np.full((1, 2, 2, 3), 0.4)
     est = gt * [[0.5, 1.0, 2.0]]
-    np.testing.assert_allclose(E.global_albedo_scale(est, gt, np.ones((1, 2, 2), bool)),
+    np.testing.assert_allclose(evaluation.global_albedo_scale(est, gt, np.ones((1, 2, 2), bool)),
                                [2.0, 1.0, 0.5])
 
 
@@ -79,7 +79,7 @@ def test_light_cosine_is_continuous_in_the_directions():
 
     gt_dirs = np.array([direction_from_angles(35.0, 50.0), direction_from_angles(215.0, 35.0)])
     gt_w = np.array([[3.0, 3.0, 3.0], [1.5, 1.5, 1.5]])
-    assert E.light_cosine(gt_dirs, gt_w, gt_dirs, gt_w) == pytest.approx(1.0, abs=1e-12)
+    assert evaluation.light_cosine(gt_dirs, gt_w, gt_dirs, gt_w) == pytest.approx(1.0, abs=1e-12)
     # A light moved 1 degree in any direction changes the cosine by < 0.05 (issue 14), also
     # where it crosses a grid cell border (the nearest-cell metric jumped there).
     grid = light_grid(128)
@@ -93,15 +93,15 @@ def test_light_cosine_is_continuous_in_the_directions():
                 pytest.approx(np.hypot(az, el), abs=0.02)
             dirs = np.array([base, gt_dirs[1]])
             fitted = np.array([moved, gt_dirs[1]])
-            assert abs(E.light_cosine(fitted, gt_w, dirs, gt_w) - 1.0) < 0.05
+            assert abs(evaluation.light_cosine(fitted, gt_w, dirs, gt_w) - 1.0) < 0.05
     # Far off: low; a spurious third light lowers it and is reported.
-    assert E.light_cosine(-gt_dirs, gt_w, gt_dirs, gt_w) < 1e-6
+    assert evaluation.light_cosine(-gt_dirs, gt_w, gt_dirs, gt_w) < 1e-6
     extra = np.vstack([gt_dirs, [direction_from_angles(120.0, 20.0)]])
     w3 = np.vstack([gt_w, [[1.0, 1.0, 1.0]]])
     # Far-apart lights barely overlap: sqrt((3^2 + 1.5^2) / (3^2 + 1.5^2 + 1^2)).
-    assert E.light_cosine(extra, w3, gt_dirs, gt_w) == pytest.approx(np.sqrt(11.25 / 12.25),
-                                                                     abs=1e-3)
-    err = E.light_angular_errors(extra, w3, gt_dirs)
+    want = np.sqrt(11.25 / 12.25)
+    assert evaluation.light_cosine(extra, w3, gt_dirs, gt_w) == pytest.approx(want, abs=1e-3)
+    err = evaluation.light_angular_errors(extra, w3, gt_dirs)
     assert err["angular_error_deg"] == pytest.approx([0.0, 0.0], abs=1e-5)
     assert err["spurious_irradiance_fraction"] == pytest.approx(1.0 / 5.5)
     assert err["fitted_lights"] == 3
@@ -111,11 +111,12 @@ def test_light_map_cosine():
     a = np.zeros(128)
     b = np.zeros(128)
     a[3], b[3], b[5] = 1.0, 1.0, 1.0
-    assert E.light_map_cosine(a, b) == pytest.approx(1 / math.sqrt(2))
-    assert E.light_map_cosine(a * 7, np.stack([b, b, b], -1)) == pytest.approx(1 / math.sqrt(2))
-    assert E.light_map_cosine(np.zeros(128), b) == 0.0
+    assert evaluation.light_map_cosine(a, b) == pytest.approx(1 / math.sqrt(2))
+    assert evaluation.light_map_cosine(a * 7, np.stack([b, b, b], -1)) == \
+        pytest.approx(1 / math.sqrt(2))
+    assert evaluation.light_map_cosine(np.zeros(128), b) == 0.0
     with pytest.raises(ValueError):
-        E.light_map_cosine(a[:64], b)
+        evaluation.light_map_cosine(a[:64], b)
 
 
 def test_shadow_mask_and_iou():
@@ -123,10 +124,10 @@ def test_shadow_mask_and_iou():
     mask = np.ones((3, 3), bool)
     mask[0, 0] = False
     # Median over the 8 mask pixels (0, .2, .45, .6, 1, 1, 1, 1) is 0.8: shadow below 0.4.
-    sm = E.shadow_mask(irr, mask)
+    sm = evaluation.shadow_mask(irr, mask)
     assert sm.tolist() == [[False, False, False], [True, False, False], [True, False, False]]
     # Scale invariance: the estimate's global factor does not matter.
-    assert (E.shadow_mask(irr * 37.0, mask) == sm).all()
+    assert (evaluation.shadow_mask(irr * 37.0, mask) == sm).all()
     est = irr.copy()
     est[2, 0] = 0.8  # median 0.9, threshold 0.45: misses one shadow pixel: IoU = 1 / 2
-    assert E.shadow_iou(est[None], irr[None], mask[None]) == pytest.approx(1 / 2)
+    assert evaluation.shadow_iou(est[None], irr[None], mask[None]) == pytest.approx(1 / 2)

@@ -9,6 +9,9 @@ Every import in the package (module level or inside a function) is read with ``a
   only its own layer or lower ones;
 - stages in the method's order (geometry < segmentation < visibility < material < relight):
   a stage imports earlier stages (never a private ``_name`` of theirs) and never a later one.
+
+The checkers (``layer_violations``, ``cli_violations``) read module text, so that planted
+bad imports show that they report what they should.
 """
 
 from __future__ import annotations
@@ -45,10 +48,15 @@ def layer(mod: str) -> tuple[int, int]:
 
 def imports(path: Path) -> list[tuple[str, list[str], int]]:
     """(absolute module, imported names, line) of every mi_shadowgs import in ``path``."""
-    mod = module_name(path)
-    pkg = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
+    return imports_in(path.read_text(), module_name(path), path.name == "__init__.py")
+
+
+def imports_in(source: str, mod: str, is_package: bool = False
+               ) -> list[tuple[str, list[str], int]]:
+    """The same for the text ``source`` of module ``mod``."""
+    pkg = mod if is_package else mod.rsplit(".", 1)[0]
     out = []
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
@@ -67,49 +75,104 @@ def imports(path: Path) -> list[tuple[str, list[str], int]]:
     return out
 
 
+def cli_violations(mod: str, source: str, is_package: bool = False) -> list[str]:
+    """Imports of a ``mi_shadowgs.cli`` module in ``source`` (module ``mod``)."""
+    if mod == "mi_shadowgs.cli" or mod.startswith("mi_shadowgs.cli."):
+        return []
+    return [f"{mod}:{line} imports {target}"
+            for target, _, line in imports_in(source, mod, is_package)
+            if target == "mi_shadowgs.cli" or target.startswith("mi_shadowgs.cli.")]
+
+
+def layer_violations(mod: str, source: str, is_package: bool = False) -> list[str]:
+    """Imports in ``source`` (module ``mod`` of the package) that climb a layer or a stage."""
+    if mod == "mi_shadowgs":
+        return []
+    bad = []
+    s_layer, s_stage = layer(mod)
+    for target, names, line in imports_in(source, mod, is_package):
+        if target == "mi_shadowgs" or (mod, target) in ALLOWED or \
+                any(target.startswith(a + ".") for s, a in ALLOWED if s == mod):
+            continue
+        t_layer, t_stage = layer(target)
+        where = f"{mod}:{line} ({mod} -> {target})"
+        if t_layer > s_layer:
+            bad.append(f"{where}: {LAYERS[t_layer]} is above {LAYERS[s_layer]}")
+        elif t_layer == s_layer == LAYERS.index("stages") and t_stage != s_stage:
+            if t_stage > s_stage:  # mi_shadowgs.stages itself (99) lists them all
+                bad.append(f"{where}: a later stage")
+            elif any(n.startswith("_") for n in names):
+                bad.append(f"{where}: a private name of another stage")
+    return bad
+
+
 def package_files():
     return [p for p in PKG.rglob("*.py") if "__pycache__" not in p.parts]
 
 
+def _checked(path: Path, check) -> list[str]:
+    return check(module_name(path), path.read_text(), path.name == "__init__.py")
+
+
 def test_only_the_entry_point_imports_a_cli_module():
-    bad = []
     files = package_files() + [p for d in ("validation", "benchmarks")
                                for p in (ROOT / d).rglob("*.py")]
-    for path in files:
-        if path.is_relative_to(PKG / "cli"):
-            continue
-        for target, _, line in imports(path):
-            if target == "mi_shadowgs.cli" or target.startswith("mi_shadowgs.cli."):
-                bad.append(f"{path.relative_to(ROOT)}:{line} imports {target}")
+    bad = [b for path in files for b in _checked(path, cli_violations)]
     assert not bad, "\n".join(bad)
 
 
 def test_layers_go_one_way():
-    bad = []
-    for path in package_files():
-        src = module_name(path)
-        if src == "mi_shadowgs":
-            continue
-        s_layer, s_stage = layer(src)
-        for target, names, line in imports(path):
-            if target == "mi_shadowgs" or (src, target) in ALLOWED or \
-                    any(target.startswith(a + ".") for s, a in ALLOWED if s == src):
-                continue
-            t_layer, t_stage = layer(target)
-            where = f"{path.relative_to(ROOT)}:{line} ({src} -> {target})"
-            if t_layer > s_layer:
-                bad.append(f"{where}: {LAYERS[t_layer]} is above {LAYERS[s_layer]}")
-            elif t_layer == s_layer == LAYERS.index("stages") and t_stage != s_stage:
-                if t_stage > s_stage:  # mi_shadowgs.stages itself (99) lists them all
-                    bad.append(f"{where}: a later stage")
-                elif any(n.startswith("_") for n in names):
-                    bad.append(f"{where}: a private name of another stage")
+    bad = [b for path in package_files() for b in _checked(path, layer_violations)]
     assert not bad, "\n".join(bad)
 
 
-def test_the_checker_sees_a_violation(tmp_path):
-    """A test that cannot fail is a defect: the rules flag a planted bad import."""
+def test_the_layer_order():
     assert layer("mi_shadowgs.core.shading") < layer("mi_shadowgs.stages.visibility.x")
     assert layer("mi_shadowgs.stages.material.fit") > layer("mi_shadowgs.stages.visibility")
     assert layer("mi_shadowgs.stages.geometry.train") < layer("mi_shadowgs.stages.relight.x")
     assert layer("mi_shadowgs.cli.run")[0] == len(LAYERS) - 1
+
+
+# Planted modules: (module, text, what the checker must report; "" = nothing).
+PLANTED = [
+    # A later stage, at module level, inside a function, and relative.
+    ("mi_shadowgs.stages.geometry.train",
+     "from mi_shadowgs.stages.material.fit import fit_material\n", "a later stage"),
+    ("mi_shadowgs.stages.segmentation.features",
+     "def f():\n    from mi_shadowgs.stages.relight import render\n", "a later stage"),
+    ("mi_shadowgs.stages.geometry.train", "from ..material import fit\n", "a later stage"),
+    ("mi_shadowgs.stages.material.fit",
+     "from mi_shadowgs.stages.geometry.train import _private\n", "a private name"),
+    # A higher layer.
+    ("mi_shadowgs.core.shading", "import mi_shadowgs.stages.visibility.shadow_maps\n",
+     "stages is above core"),
+    ("mi_shadowgs.io.ply", "from mi_shadowgs import pipeline\n", "pipeline is above io"),
+    ("mi_shadowgs.pipeline", "from mi_shadowgs.cli import run\n", "cli is above pipeline"),
+    # Allowed: lower layers, earlier stages' public names, the backend's plugins.
+    ("mi_shadowgs.stages.material.fit",
+     "from mi_shadowgs.core import brdf\nfrom mi_shadowgs.stages.visibility import "
+     "shadow_maps\nimport numpy\n", ""),
+    ("mi_shadowgs.backend", "from mi_shadowgs import plugins\n", ""),
+]
+
+
+def test_the_layer_checker_reports_a_planted_bad_import():
+    """A checker that cannot fail is a defect: module texts with a bad import are reported,
+    and good ones are not."""
+    for mod, text, expected in PLANTED:
+        found = layer_violations(mod, text)
+        if expected:
+            assert len(found) == 1 and expected in found[0], (mod, text, found)
+        else:
+            assert found == [], (mod, text, found)
+
+
+def test_the_cli_checker_reports_a_planted_cli_import():
+    for mod in ("mi_shadowgs.pipeline", "mi_shadowgs.api", "validation.geometry",
+                "benchmarks.bm_raster"):
+        for text in ("from mi_shadowgs.cli import train\n", "import mi_shadowgs.cli.run\n",
+                     "def f():\n    from mi_shadowgs.cli.run import main\n"):
+            assert len(cli_violations(mod, text)) == 1, (mod, text)
+        assert cli_violations(mod, "from mi_shadowgs.stages import geometry\n") == []
+    # The entry point's package may.
+    assert cli_violations("mi_shadowgs.cli.main", "from mi_shadowgs.cli import run\n") == []

@@ -10,8 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from mi_shadowgs.io import atomic
-from mi_shadowgs.io import provenance as P
+from mi_shadowgs.io import atomic, provenance
 from mi_shadowgs.io.images import ImageReadError, read_exr, read_png, write_exr, write_png
 
 
@@ -97,68 +96,75 @@ def _dataset(root):
 
 def test_dataset_fingerprint_follows_contents_not_times_or_hidden_files(tmp_path):
     a = _dataset(tmp_path / "a")
-    fp = P.dataset_fingerprint(a)
+    fp = provenance.dataset_fingerprint(a)
     b = tmp_path / "b"
     shutil.copytree(a, b)  # another path, other times, same contents
-    assert P.dataset_fingerprint(b) == fp
+    assert provenance.dataset_fingerprint(b) == fp
     os.utime(b / "train" / "r_0.png", (1, 1))
     (b / ".mi_shadowgs_manifest.json").write_text("{}")
     (b / "notes.txt").write_text("not a dataset file")
     (b / "manifest.json").write_text("{}")  # a writer's list of files, not the loader's
-    assert P.dataset_fingerprint(b) == fp
+    assert provenance.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 999 + b"\x07")  # one byte, same size
-    assert P.dataset_fingerprint(b) != fp
+    assert provenance.dataset_fingerprint(b) != fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 1000)
-    assert P.dataset_fingerprint(b) == fp
+    assert provenance.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").rename(b / "train" / "r_9.png")
-    assert P.dataset_fingerprint(b) != fp
+    assert provenance.dataset_fingerprint(b) != fp
     (b / "train" / "r_9.png").rename(b / "train" / "r_1.png")
     (b / "transforms_train.json").write_text(json.dumps({"frames": [None]}))
-    assert P.dataset_fingerprint(b) != fp
+    assert provenance.dataset_fingerprint(b) != fp
 
 
 def test_dataset_fingerprint_reads_each_file_once_per_process(tmp_path, monkeypatch):
     a = _dataset(tmp_path / "a")
-    P.dataset_fingerprint(a)
+    provenance.dataset_fingerprint(a)
     reads = []
-    monkeypatch.setattr(P, "file_digest", lambda p: reads.append(p) or "x")
-    P.dataset_fingerprint(a)
+    monkeypatch.setattr(provenance, "file_digest", lambda p: reads.append(p) or "x")
+    provenance.dataset_fingerprint(a)
     assert reads == []
     (a / "train" / "r_2.png").write_bytes(b"changed")
-    P.dataset_fingerprint(a)
+    provenance.dataset_fingerprint(a)
     assert reads == [a / "train" / "r_2.png"]  # only the file whose stat changed
 
 
 def _prov(ds, **settings):
-    return P.Provenance(dataset=P.dataset_ref(ds), settings={"iterations": 100, **settings})
+    return provenance.Provenance(dataset=provenance.dataset_ref(ds),
+                                 settings={"iterations": 100, **settings})
 
 
 def test_output_claims_a_folder_lazily_and_lists_every_file(tmp_path):
     ds = _dataset(tmp_path / "ds")
     folder = tmp_path / "run" / "stage"
-    out = P.Output.open(folder, "train", _prov(ds))
+    out = provenance.Output.open(folder, "train", _prov(ds))
     assert not (tmp_path / "run").exists()  # nothing until the first file
     out.path("model.ply").write_text("m")
     out.claim("previews/a.png")
     out.finish()
-    m = P.read_manifest(folder)
+    m = provenance.read_manifest(folder)
     assert m["command"] == "train" and m["complete"] and m["settings"] == {"iterations": 100}
     assert m["files"] == ["model.ply", "previews/a.png"]
-    assert m["dataset"]["fingerprint"] == P.dataset_fingerprint(ds)
+    assert m["dataset"]["fingerprint"] == provenance.dataset_fingerprint(ds)
 
 
 def test_a_failed_command_leaves_no_folder(tmp_path):
     ds = _dataset(tmp_path / "ds")
-    with pytest.raises(RuntimeError), P.Output.open(tmp_path / "a" / "b", "x", _prov(ds)) as out:
+    with (
+        pytest.raises(RuntimeError),
+        provenance.Output.open(tmp_path / "a" / "b", "x", _prov(ds)) as out,
+    ):
         out.claim("f.txt")  # listed, then the command fails before writing it
         raise RuntimeError
     assert not (tmp_path / "a").exists()
     (tmp_path / "kept").mkdir()  # a folder the command did not create stays
-    with pytest.raises(RuntimeError), P.Output.open(tmp_path / "kept", "x", _prov(ds)) as out:
+    with (
+        pytest.raises(RuntimeError),
+        provenance.Output.open(tmp_path / "kept", "x", _prov(ds)) as out,
+    ):
         out.claim("f.txt")
         raise RuntimeError
     assert (tmp_path / "kept").is_dir() and not any((tmp_path / "kept").iterdir())
-    with pytest.raises(RuntimeError), P.Output.open(tmp_path / "c", "x", _prov(ds)) as out:
+    with pytest.raises(RuntimeError), provenance.Output.open(tmp_path / "c", "x", _prov(ds)) as out:
         out.path("f.txt").write_text("partial work stays for --resume / --overwrite")
         raise RuntimeError
     assert (tmp_path / "c" / "f.txt").is_file()
@@ -167,41 +173,43 @@ def test_a_failed_command_leaves_no_folder(tmp_path):
 def test_output_refuses_dataset_folders_inputs_and_foreign_folders(tmp_path):
     ds = _dataset(tmp_path / "ds")
     for where in (ds, ds / "train", ds / "new" / "deep"):
-        with pytest.raises(P.ProvenanceError, match="outputs never go into a dataset"):
-            P.Output.open(where, "render", P.Provenance())
+        with pytest.raises(provenance.ProvenanceError, match="outputs never go into a dataset"):
+            provenance.Output.open(where, "render", provenance.Provenance())
     for sub in ("tensoir/train_0", "notes/my_notes"):  # TensoIR's views; a user's folder
         (tmp_path / sub).mkdir(parents=True)
         (tmp_path / sub / "metadata.json").write_text("{}")
-    with pytest.raises(P.ProvenanceError, match="outputs never go into a dataset"):
-        P.Output.open(tmp_path / "tensoir" / "out", "render", P.Provenance())
-    P.Output.open(tmp_path / "notes" / "out", "render", P.Provenance())
+    with pytest.raises(provenance.ProvenanceError, match="outputs never go into a dataset"):
+        provenance.Output.open(tmp_path / "tensoir" / "out", "render", provenance.Provenance())
+    provenance.Output.open(tmp_path / "notes" / "out", "render", provenance.Provenance())
     model = tmp_path / "geo" / "model.ply"
     model.parent.mkdir()
     model.write_text("m")
-    with pytest.raises(P.ProvenanceError, match="holds the input .*model.ply"):
-        P.Output.open(tmp_path / "geo", "segment", P.Provenance(), inputs=[model])
+    with pytest.raises(provenance.ProvenanceError, match="holds the input .*model.ply"):
+        provenance.Output.open(tmp_path / "geo", "segment", provenance.Provenance(), inputs=[model])
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "thesis.tex").write_text("precious")
-    with pytest.raises(P.ProvenanceError, match="did not write.*thesis.tex"):
-        P.Output.open(tmp_path / "mine", "render", P.Provenance(), overwrite=True)
+    with pytest.raises(provenance.ProvenanceError, match="did not write.*thesis.tex"):
+        provenance.Output.open(tmp_path / "mine", "render", provenance.Provenance(), overwrite=True)
     assert (tmp_path / "mine" / "thesis.tex").read_text() == "precious"
 
 
 def test_overwrite_removes_only_listed_files_of_the_same_command(tmp_path):
     ds = _dataset(tmp_path / "ds")
     folder = tmp_path / "out"
-    out = P.Output.open(folder, "render", _prov(ds))
+    out = provenance.Output.open(folder, "render", _prov(ds))
     out.path("r_0.exr").write_text("old")
     out.path("sub/r_1.exr").write_text("old")
     (folder / ".r_0.exr.abcdefgh.tmp.exr").write_text("killed write")
     out.finish()
     (folder / "notes.txt").write_text("mine")
-    with pytest.raises(P.ProvenanceError, match="already holds an output.*--overwrite"):
-        P.Output.open(folder, "render", _prov(ds))
-    with pytest.raises(P.ProvenanceError, match="output of `mi-shadowgs render`, not of "
-                                                 "`mi-shadowgs segment`"):
-        P.Output.open(folder, "segment", _prov(ds), overwrite=True)
-    new = P.Output.open(folder, "render", _prov(ds, iterations=5), overwrite=True)
+    with pytest.raises(provenance.ProvenanceError, match="already holds an output.*--overwrite"):
+        provenance.Output.open(folder, "render", _prov(ds))
+    with pytest.raises(
+        provenance.ProvenanceError,
+        match="output of `mi-shadowgs render`, not of `mi-shadowgs segment`",
+    ):
+        provenance.Output.open(folder, "segment", _prov(ds), overwrite=True)
+    new = provenance.Output.open(folder, "render", _prov(ds, iterations=5), overwrite=True)
     assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
     assert not new.reused and new.files == []
 
@@ -211,40 +219,64 @@ def test_reuse_only_with_the_same_dataset_inputs_and_settings(tmp_path):
     (other / "train" / "r_0.png").write_bytes(b"another image")
     model = tmp_path / "model.ply"
     model.write_text("geometry A")
-    prov = P.Provenance(dataset=P.dataset_ref(ds), inputs={"model": P.input_ref(model)},
-                        settings={"iterations": 60, "densify": {"start": 5}, "k": (1, 2)})
-    out = P.Output.open(tmp_path / "o", "segment", prov)
+    prov = provenance.Provenance(
+        dataset=provenance.dataset_ref(ds),
+        inputs={"model": provenance.input_ref(model)},
+        settings={"iterations": 60, "densify": {"start": 5}, "k": (1, 2)},
+    )
+    out = provenance.Output.open(tmp_path / "o", "segment", prov)
     out.path("a").write_text("a")
     out.finish()
-    again = P.Output.open(tmp_path / "o", "segment", prov, reuse=True)
+    again = provenance.Output.open(tmp_path / "o", "segment", prov, reuse=True)
     assert again.reused and again.complete and again.files == ["a"]
 
     def err(p, **kw):
-        with pytest.raises(P.ProvenanceError) as info:
-            P.Output.open(tmp_path / "o", "segment", p, reuse=True, **kw)
+        with pytest.raises(provenance.ProvenanceError) as info:
+            provenance.Output.open(tmp_path / "o", "segment", p, reuse=True, **kw)
         assert "--overwrite" in str(info.value)
         return str(info.value)
 
-    msg = err(P.Provenance(dataset=P.dataset_ref(other), inputs=prov.inputs,
-                           settings=prov.settings))
+    msg = err(
+        provenance.Provenance(
+            dataset=provenance.dataset_ref(other), inputs=prov.inputs, settings=prov.settings
+        )
+    )
     assert f"made from dataset {ds}" in msg and str(other) in msg
-    msg = err(dataclasses_replace(prov, settings={"iterations": 2500, "densify": {"start": 9},
-                                                  "k": [1, 2]}))
+    msg = err(
+        dataclasses_replace(
+            prov, settings={"iterations": 2500, "densify": {"start": 9}, "k": [1, 2]}
+        )
+    )
     assert "iterations: 60 there, 2500 now" in msg and "densify.start: 5 there, 9 now" in msg
     assert "k:" not in msg  # a tuple equals the list it reads back as
     # When to checkpoint is no part of what was made (a resume is bit-identical).
-    assert P.Output.open(tmp_path / "o", "segment", dataclasses_replace(
-        prov, settings={**prov.settings, "checkpoint_seconds": 5.0,
-                        "densify": {"start": 5, "checkpoint_every": 3}}), reuse=True).reused
+    assert provenance.Output.open(
+        tmp_path / "o",
+        "segment",
+        dataclasses_replace(
+            prov,
+            settings={
+                **prov.settings,
+                "checkpoint_seconds": 5.0,
+                "densify": {"start": 5, "checkpoint_every": 3},
+            },
+        ),
+        reuse=True,
+    ).reused
     model.write_text("geometry B")
-    msg = err(dataclasses_replace(prov, inputs={"model": P.input_ref(model)}))
+    msg = err(dataclasses_replace(prov, inputs={"model": provenance.input_ref(model)}))
     assert "input model differs" in msg
     (ds / "train" / "r_1.png").write_bytes(b"edited")
-    msg = err(dataclasses_replace(prov, dataset=P.dataset_ref(ds)))
+    msg = err(dataclasses_replace(prov, dataset=provenance.dataset_ref(ds)))
     assert f"the dataset {ds} changed since" in msg
     # The run folder compares only the dataset; its stages compare the rest.
-    P.Output.open(tmp_path / "o", "segment", dataclasses_replace(prov, settings={}),
-                  reuse=True, compare=("dataset",))
+    provenance.Output.open(
+        tmp_path / "o",
+        "segment",
+        dataclasses_replace(prov, settings={}),
+        reuse=True,
+        compare=("dataset",),
+    )
 
 
 def dataclasses_replace(obj, **kw):
@@ -256,27 +288,36 @@ def dataclasses_replace(obj, **kw):
 def test_overwrite_clears_parts_and_a_run_may_adopt_stage_folders(tmp_path):
     ds = _dataset(tmp_path / "ds")
     run = tmp_path / "run"
-    geo = P.Output.open(run / "geometry", "train", _prov(ds))  # `train --out RUN` first
+    geo = provenance.Output.open(run / "geometry", "train", _prov(ds))  # `train --out RUN` first
     geo.path("model.ply").write_text("m")
     geo.finish()
-    top = P.Output.open(run, "run", _prov(ds), reuse=True, parts=("geometry", "material"))
+    top = provenance.Output.open(run, "run", _prov(ds), reuse=True, parts=("geometry", "material"))
     top.add_part("geometry")
     top.path("summary.json").write_text("{}")
     (run / "geometry" / "mine.txt").write_text("mine")
-    P.Output.open(run, "run", _prov(ds), overwrite=True, parts=("geometry",))
-    assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == \
-        ["geometry", "geometry/mine.txt"]
+    provenance.Output.open(run, "run", _prov(ds), overwrite=True, parts=("geometry",))
+    assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == [
+        "geometry",
+        "geometry/mine.txt",
+    ]
 
 
 def test_a_dataset_writer_may_rewrite_its_own_dataset_but_not_nest_one(tmp_path):
     ds = _dataset(tmp_path / "ds")
-    with pytest.raises(P.ProvenanceError, match="did not write"):  # no manifest: not ours
-        P.Output.open(ds, "generate", P.Provenance(), overwrite=True, writes_dataset=True)
-    out = P.Output.open(tmp_path / "gen", "generate", P.Provenance(), writes_dataset=True)
+    with pytest.raises(provenance.ProvenanceError, match="did not write"):  # no manifest: not ours
+        provenance.Output.open(
+            ds, "generate", provenance.Provenance(), overwrite=True, writes_dataset=True
+        )
+    out = provenance.Output.open(
+        tmp_path / "gen", "generate", provenance.Provenance(), writes_dataset=True
+    )
     out.path("transforms_train.json").write_text("{}")
     out.finish()
-    again = P.Output.open(tmp_path / "gen", "generate", P.Provenance(), overwrite=True,
-                          writes_dataset=True)
+    again = provenance.Output.open(
+        tmp_path / "gen", "generate", provenance.Provenance(), overwrite=True, writes_dataset=True
+    )
     assert not (tmp_path / "gen" / "transforms_train.json").exists() and not again.reused
-    with pytest.raises(P.ProvenanceError, match="outputs never go into a dataset"):
-        P.Output.open(ds / "inner", "generate", P.Provenance(), writes_dataset=True)
+    with pytest.raises(provenance.ProvenanceError, match="outputs never go into a dataset"):
+        provenance.Output.open(
+            ds / "inner", "generate", provenance.Provenance(), writes_dataset=True
+        )

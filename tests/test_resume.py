@@ -26,8 +26,8 @@ from mi_shadowgs.io import interrupt
 from mi_shadowgs.io.checkpoint import load_checkpoint, save_checkpoint
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages import common as stage_common
-from mi_shadowgs.stages.geometry import train as sg
-from mi_shadowgs.stages.material import fit as sm
+from mi_shadowgs.stages.geometry import train as geometry_train
+from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.segmentation import features as seg
 from mi_shadowgs.stages.segmentation.masks import material_masks
 from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
@@ -109,29 +109,41 @@ def test_signals_are_deferred_in_a_loop_and_immediate_outside():
 
 def test_stage1_resumes_bit_identically(data, tmp_path):
     train = load_dataset(data, "train")
-    config = dataclasses.replace(sg.get_config(TINY), checkpoint_every=7,
+    config = dataclasses.replace(geometry_train.get_config(TINY), checkpoint_every=7,
                                  checkpoint_seconds=1e9)
     logs = []
-    straight = sg.train_geometry(train, config, callbacks=sg.Callbacks(on_log=logs.append),
-                                 progress=False)
+    straight = geometry_train.train_geometry(
+        train, config, callbacks=geometry_train.Callbacks(on_log=logs.append), progress=False
+    )
     for stop in (14, 35, 77):  # between log rows (every 10), around densification (20-60)
+
         def on_checkpoint(state, stop=stop):
             save_checkpoint(tmp_path, state.to_numpy(), {})
             if state.step == stop:
                 raise Stop
+
         with pytest.raises(Stop):
-            sg.train_geometry(train, config, callbacks=sg.Callbacks(on_checkpoint=on_checkpoint),
-                              progress=False)
-        state = sg.TrainState.from_numpy(load_checkpoint(tmp_path)[0], config)
+            geometry_train.train_geometry(
+                train,
+                config,
+                callbacks=geometry_train.Callbacks(on_checkpoint=on_checkpoint),
+                progress=False,
+            )
+        state = geometry_train.TrainState.from_numpy(load_checkpoint(tmp_path)[0], config)
         resumed_logs = []
-        resumed = sg.train_geometry(train, config, state=state, progress=False,
-                                    callbacks=sg.Callbacks(on_log=resumed_logs.append))
+        resumed = geometry_train.train_geometry(
+            train,
+            config,
+            state=state,
+            progress=False,
+            callbacks=geometry_train.Callbacks(on_log=resumed_logs.append),
+        )
         for key, a in straight.to_numpy().items():
             np.testing.assert_array_equal(resumed.to_numpy()[key], a, err_msg=key)
         # The log rows after the checkpoint, the first one included, are the same.
-        assert [{k: v for k, v in r.items() if k != "time"} for r in resumed_logs] == \
-            [{k: v for k, v in r.items() if k != "time"} for r in logs
-             if r["iteration"] > stop], stop
+        assert [{k: v for k, v in r.items() if k != "time"} for r in resumed_logs] == [
+            {k: v for k, v in r.items() if k != "time"} for r in logs if r["iteration"] > stop
+        ], stop
 
 
 def test_stage2_resumes_bit_identically(data, tmp_path):
@@ -142,12 +154,19 @@ def test_stage2_resumes_bit_identically(data, tmp_path):
     straight = seg.train_features(surfels, train.cameras, labels, config, progress=False)
     for stop in (5, 16, 35):  # inside a round of the 8 views; in the prototype quarter
         with pytest.raises(Stop):
-            seg.train_features(surfels, train.cameras, labels, config, progress=False,
-                               on_checkpoint=_stopping_at(stop, tmp_path))
+            seg.train_features(
+                surfels,
+                train.cameras,
+                labels,
+                config,
+                progress=False,
+                on_checkpoint=_stopping_at(stop, tmp_path),
+            )
         state = seg.FeatureState.from_checkpoint(*load_checkpoint(tmp_path))
         assert state.step == stop
-        resumed = seg.train_features(surfels, train.cameras, labels, config, progress=False,
-                                     state=state)
+        resumed = seg.train_features(
+            surfels, train.cameras, labels, config, progress=False, state=state
+        )
         for key in ("features", "coverage", "prototypes"):
             np.testing.assert_array_equal(getattr(resumed, key), getattr(straight, key))
         assert resumed.history == straight.history
@@ -164,17 +183,28 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
     vcfg = VisibilityConfig(resolution=64)
     # Two lights between grid directions: each unit of the refinements moves one of the
     # lights, and the others' shadows enter its score.
-    imgs, masks = _render_truth(s, cams, bounds, [direction_from_angles(47.0, 52.0),
-                                                  direction_from_angles(200.0, 35.0)],
-                                [2.0, 1.5], vcfg)
+    imgs, masks = _render_truth(
+        s,
+        cams,
+        bounds,
+        [direction_from_angles(47.0, 52.0), direction_from_angles(200.0, 35.0)],
+        [2.0, 1.5],
+        vcfg,
+    )
     # The warm-up ends at 20, pruning every 10 after it, the second refinement at step 40;
     # a checkpoint after every step and every refinement unit.
-    config = dataclasses.replace(sm.get_config(TINY), checkpoint_every=1,
-                                 checkpoint_seconds=1e-9, specular=specular,
-                                 refine_passes=((4.0, 2.0), (2.0, 1.0)))
+    config = dataclasses.replace(
+        material_fit.get_config(TINY),
+        checkpoint_every=1,
+        checkpoint_seconds=1e-9,
+        specular=specular,
+        refine_passes=((4.0, 2.0), (2.0, 1.0)),
+    )
 
     def fit(**kw):
-        return sm.fit_material(s, cams, imgs, masks, config, bounds, vcfg, progress=False, **kw)
+        return material_fit.fit_material(
+            s, cams, imgs, masks, config, bounds, vcfg, progress=False, **kw
+        )
 
     seen = []
     straight = fit(on_checkpoint=lambda state: seen.append(_where(state)))
@@ -182,16 +212,21 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
     stops = [(20, None), (20, 3), (21, None), (31, None), (40, 5), (60, None)]
     assert all(stop in seen for stop in stops)
     for stop in stops if specular == "auto" else stops[1:5:3]:
+
         def on_checkpoint(state, stop=stop):
             save_checkpoint(tmp_path, *state.to_checkpoint())
             if _where(state) == stop:
                 raise Stop
+
         with pytest.raises(Stop):
             fit(on_checkpoint=on_checkpoint)
-        resumed = fit(state=sm.MaterialState.from_checkpoint(*load_checkpoint(tmp_path)))
+        resumed = fit(state=material_fit.MaterialState.from_checkpoint(*load_checkpoint(tmp_path)))
         for key in ("albedo", "roughness", "metallic", "indirect_sh"):
-            np.testing.assert_array_equal(resumed.surfels.channels[key].numpy(),
-                                          straight.surfels.channels[key].numpy(), err_msg=key)
+            np.testing.assert_array_equal(
+                resumed.surfels.channels[key].numpy(),
+                straight.surfels.channels[key].numpy(),
+                err_msg=key,
+            )
         np.testing.assert_array_equal(resumed.light.directions, straight.light.directions)
         np.testing.assert_array_equal(resumed.light.weights, straight.light.weights)
         assert resumed.history == straight.history
@@ -211,8 +246,10 @@ def _sigterm_on_call(monkeypatch, module, name: str, call: int) -> None:
 
 
 def _files(folder):
-    return {p.relative_to(folder).as_posix(): p.read_bytes()
-            for p in sorted(folder.rglob("*.ply")) + sorted(folder.rglob("*.png"))}
+    return {
+        p.relative_to(folder).as_posix(): p.read_bytes()
+        for p in sorted(folder.rglob("*.ply")) + sorted(folder.rglob("*.png"))
+    }
 
 
 def test_sigterm_checkpoints_and_resume_continues(data, tmp_path, capsys, monkeypatch):
@@ -220,23 +257,28 @@ def test_sigterm_checkpoints_and_resume_continues(data, tmp_path, capsys, monkey
     assert cli.main([*argv, "--out", str(tmp_path / "ref")]) == 0
     run = tmp_path / "run"
     with monkeypatch.context() as mp:
-        _sigterm_on_call(mp, sg, "geometry_loss", 33)
+        _sigterm_on_call(mp, geometry_train, "geometry_loss", 33)
         assert cli.main([*argv, "--out", str(run)]) == 143
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "SIGTERM" in err[0] and "step 33 of 80, checkpoint written" in \
-        err[0] and "--resume" in err[0], err
+    assert (
+        len(err) == 1
+        and "SIGTERM" in err[0]
+        and "step 33 of 80, checkpoint written" in err[0]
+        and "--resume" in err[0]
+    ), err
     assert load_checkpoint(run / "geometry" / "checkpoint")[1]["step"] == 33
     assert cli.main([*argv, "--out", str(run), "--resume"]) == 0
     assert _files(run) == _files(tmp_path / "ref")
 
 
-def test_resume_before_the_first_checkpoint_starts_afresh(data, tmp_path, capsys,
-                                                          monkeypatch):
+def test_resume_before_the_first_checkpoint_starts_afresh(data, tmp_path, capsys, monkeypatch):
     """A kill before the first checkpoint used to leave --resume with "no checkpoint"."""
     argv = ["train", str(data), "--preset", TINY, "--no-progress", "--no-eval"]
     run = tmp_path / "run"
     with monkeypatch.context() as mp:
-        mp.setattr(sg, "geometry_loss", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+        mp.setattr(
+            geometry_train, "geometry_loss", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt)
+        )
         with pytest.raises(KeyboardInterrupt):  # as a kill -9 would, before any checkpoint
             cli.main([*argv, "--out", str(run)])
     assert not (run / "geometry" / "checkpoint").exists()
@@ -251,11 +293,14 @@ def test_signal_outside_a_loop_stops_at_once(data, tmp_path, capsys, monkeypatch
         raise AssertionError("the signal did not stop the command")
 
     monkeypatch.setattr(stage_common, "load_training_views", load)
-    assert cli.main(["run", str(data), "--out", str(tmp_path / "run"), "--preset", TINY,
-                     "--no-progress"]) == 130
+    assert (
+        cli.main(
+            ["run", str(data), "--out", str(tmp_path / "run"), "--preset", TINY, "--no-progress"]
+        )
+        == 130
+    )
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["mi-shadowgs run: interrupted by SIGINT; run the same command again to "
-                   "continue"]
+    assert err == ["mi-shadowgs run: interrupted by SIGINT; run the same command again to continue"]
 
 
 def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatch):
@@ -265,14 +310,23 @@ def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatc
     argv = ["run", str(data), "--preset", TINY, "--no-progress"]
     assert cli.main([*argv, "--out", str(ref)]) == 0
     with monkeypatch.context() as mp:
-        _sigterm_on_call(mp, sm, "view_loss", 27)
+        _sigterm_on_call(mp, material_fit, "view_loss", 27)
         assert cli.main([*argv, "--out", str(run)]) == 143
     assert "stage 4 stopped at step 27 of 60" in capsys.readouterr().err
     assert cli.main([*argv, "--out", str(run)]) == 0
     assert _files(run) == _files(ref)
 
-    seg_argv = ["segment", str(ref), "--data", str(data), "--preset", TINY, "--quiet",
-                "--out", str(tmp_path / "seg")]
+    seg_argv = [
+        "segment",
+        str(ref),
+        "--data",
+        str(data),
+        "--preset",
+        TINY,
+        "--quiet",
+        "--out",
+        str(tmp_path / "seg"),
+    ]
     with monkeypatch.context() as mp:
         _sigterm_on_call(mp, seg, "segmentation_loss", 9)
         assert cli.main(seg_argv) == 143

@@ -16,24 +16,46 @@ from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.io import ply
 from mi_shadowgs.io.provenance import MANIFEST_NAME
 from mi_shadowgs.scenes import scene_path
-from mi_shadowgs.stages.geometry import train as sg
-from mi_shadowgs.stages.material import fit as sm
+from mi_shadowgs.stages.geometry import train as geometry_train
+from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.segmentation import features as seg
 from mi_shadowgs.stages.visibility import shadow_maps as vis
 
 # Every stage cut to seconds: the checks here are about which files are written, kept or
 # refused, not about the fits' quality (tests/test_stage_*.py measure that).
 TINY = [
-    (sg.PRESETS, dataclasses.replace(
-        sg.get_config("cpu-small"), iterations=20, sh_degree=0, init_points=500,
-        hull_resolution=16, log_every=10, preview_every=10, checkpoint_every=10,
-        densify=dataclasses.replace(sg.get_config("cpu-small").densify, start=5, stop=15,
-                                    interval=5, opacity_reset_interval=0,
-                                    max_surfels=2000))),
-    (seg.PRESETS, dataclasses.replace(seg.get_config("cpu-small"), iterations=20,
-                                      n_samples=256)),
-    (sm.PRESETS, dataclasses.replace(sm.get_config("cpu-small"), iterations=10, warmup=5,
-                                     refine_passes=(), refine_views=2)),
+    (
+        geometry_train.PRESETS,
+        dataclasses.replace(
+            geometry_train.get_config("cpu-small"),
+            iterations=20,
+            sh_degree=0,
+            init_points=500,
+            hull_resolution=16,
+            log_every=10,
+            preview_every=10,
+            checkpoint_every=10,
+            densify=dataclasses.replace(
+                geometry_train.get_config("cpu-small").densify,
+                start=5,
+                stop=15,
+                interval=5,
+                opacity_reset_interval=0,
+                max_surfels=2000,
+            ),
+        ),
+    ),
+    (seg.PRESETS, dataclasses.replace(seg.get_config("cpu-small"), iterations=20, n_samples=256)),
+    (
+        material_fit.PRESETS,
+        dataclasses.replace(
+            material_fit.get_config("cpu-small"),
+            iterations=10,
+            warmup=5,
+            refine_passes=(),
+            refine_views=2,
+        ),
+    ),
     (vis.PRESETS, dataclasses.replace(vis.get_config("cpu-small"), resolution=64)),
 ]
 
@@ -47,8 +69,9 @@ def tiny_presets():
 
 
 def _dataset(root, seed):
-    cfg = dataclasses.replace(gen_config("cpu-small"), width=32, height=32, n_train=8,
-                              n_test=2, spp=4)
+    cfg = dataclasses.replace(
+        gen_config("cpu-small"), width=32, height=32, n_train=8, n_test=2, spp=4
+    )
     write_dataset(scene_path("default"), root, cfg, "cpu-small", seed=seed, progress=False)
     return root
 
@@ -73,29 +96,49 @@ def _copy(run, tmp_path):
 
 
 def _snapshot(folder):
-    return {p.relative_to(folder).as_posix(): p.read_bytes()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_run_writes_every_stage_and_a_rerun_reuses_them(finished, data, capsys):
     names = {p.relative_to(finished).as_posix() for p in finished.rglob("*") if p.is_file()}
-    for name in ("summary.json", "report.html", "geometry/model.ply", "geometry/config.json",
-                 "geometry/metrics.json", "geometry/log.csv", "geometry/previews/iter_000020.png",
-                 "geometry/checkpoint/checkpoint.npz", "segmentation/model.ply",
-                 "segmentation/segmentation.json", "segmentation/segments/r_000_overlay.png",
-                 "material/full/model.ply", "material/full/light.json",
-                 "material/full/metrics.json", "material/full/grid.json",
-                 "material/full/figures/light_map.png"):
+    for name in (
+        "summary.json",
+        "report.html",
+        "geometry/model.ply",
+        "geometry/config.json",
+        "geometry/metrics.json",
+        "geometry/log.csv",
+        "geometry/previews/iter_000020.png",
+        "geometry/checkpoint/checkpoint.npz",
+        "segmentation/model.ply",
+        "segmentation/segmentation.json",
+        "segmentation/segments/r_000_overlay.png",
+        "material/full/model.ply",
+        "material/full/light.json",
+        "material/full/metrics.json",
+        "material/full/grid.json",
+        "material/full/figures/light_map.png",
+    ):
         assert name in names
     manifests = sorted(n for n in names if n.endswith(MANIFEST_NAME))
-    assert manifests == [f"{d}{MANIFEST_NAME}" for d in
-                         ("", "geometry/", "material/full/", "segmentation/")]
+    assert manifests == [
+        f"{d}{MANIFEST_NAME}" for d in ("", "geometry/", "material/full/", "segmentation/")
+    ]
     for m in manifests:  # every file of the run is listed in its folder's manifest
         listed = json.loads((finished / m).read_text())
         assert listed["complete"]
-        folder = m[:-len(MANIFEST_NAME)]
-        own = {n for n in names if n.startswith(folder) and not n.endswith(MANIFEST_NAME)
-               and not any(n.startswith(f"{folder}{p}/") for p in listed["parts"])}
+        folder = m[: -len(MANIFEST_NAME)]
+        own = {
+            n
+            for n in names
+            if n.startswith(folder)
+            and not n.endswith(MANIFEST_NAME)
+            and not any(n.startswith(f"{folder}{p}/") for p in listed["parts"])
+        }
         assert own == {folder + f for f in listed["files"]}
     before = _snapshot(finished / "material")
     capsys.readouterr()
@@ -106,8 +149,7 @@ def test_run_writes_every_stage_and_a_rerun_reuses_them(finished, data, capsys):
     assert cli.main(["report", str(finished)]) == 0
 
 
-def test_a_run_of_another_dataset_does_not_relabel_a_finished_run(finished, data, tmp_path,
-                                                                  capsys):
+def test_a_run_of_another_dataset_does_not_relabel_a_finished_run(finished, data, tmp_path, capsys):
     run = _copy(finished, tmp_path)
     before = _snapshot(run)
     assert cli.main(["run", str(data[1]), "--out", str(run), "--no-progress"]) == 2
@@ -119,8 +161,21 @@ def test_a_run_of_another_dataset_does_not_relabel_a_finished_run(finished, data
 
 def test_run_does_not_take_a_stage_1_of_other_settings(data, tmp_path, capsys):
     run = tmp_path / "run"
-    assert cli.main(["train", str(data[0]), "--out", str(run), "--iterations", "5",
-                     "--no-eval", "--no-progress"]) == 0
+    assert (
+        cli.main(
+            [
+                "train",
+                str(data[0]),
+                "--out",
+                str(run),
+                "--iterations",
+                "5",
+                "--no-eval",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     before = _snapshot(run)
     capsys.readouterr()
     assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 2
@@ -129,8 +184,7 @@ def test_run_does_not_take_a_stage_1_of_other_settings(data, tmp_path, capsys):
     assert _snapshot(run) == before  # and no run manifest or empty folder left behind
 
 
-def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data, tmp_path,
-                                                                 capsys):
+def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data, tmp_path, capsys):
     run = _copy(finished, tmp_path)
     model = ply.read_ply_model(run / "geometry" / "model.ply")
     model.position[0] += 0.01
@@ -142,40 +196,80 @@ def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data,
 
 def test_train_resume_against_another_dataset_changes_nothing(data, tmp_path, capsys):
     run = tmp_path / "run"
-    assert cli.main(["train", str(data[0]), "--out", str(run), "--no-eval",
-                     "--no-progress"]) == 0
+    assert cli.main(["train", str(data[0]), "--out", str(run), "--no-eval", "--no-progress"]) == 0
     before = _snapshot(run)
-    assert cli.main(["train", str(data[1]), "--out", str(run), "--resume", "--no-eval",
-                     "--no-progress"]) == 2
+    assert (
+        cli.main(
+            ["train", str(data[1]), "--out", str(run), "--resume", "--no-eval", "--no-progress"]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert f"made from dataset {data[0]}" in err and "--overwrite" in err
-    assert cli.main(["train", str(data[0]), "--out", str(run), "--resume", "--iterations",
-                     "30", "--no-eval", "--no-progress"]) == 2
+    assert (
+        cli.main(
+            [
+                "train",
+                str(data[0]),
+                "--out",
+                str(run),
+                "--resume",
+                "--iterations",
+                "30",
+                "--no-eval",
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     assert "iterations: 20 there, 30 now" in capsys.readouterr().err
-    assert cli.main(["train", str(data[0]), "--out", str(run), "--resume", "--overwrite",
-                     "--no-progress"]) == 2
+    assert (
+        cli.main(
+            ["train", str(data[0]), "--out", str(run), "--resume", "--overwrite", "--no-progress"]
+        )
+        == 2
+    )
     assert "pass one of them" in capsys.readouterr().err
     assert _snapshot(run) == before  # config.json, log and checkpoint untouched
-    assert cli.main(["train", str(data[1]), "--out", str(run), "--overwrite", "--no-eval",
-                     "--no-progress"]) == 0
+    assert (
+        cli.main(
+            ["train", str(data[1]), "--out", str(run), "--overwrite", "--no-eval", "--no-progress"]
+        )
+        == 0
+    )
     cfg = json.loads((run / "geometry" / "config.json").read_text())
     assert cfg["data"] == str(data[1])
 
 
-def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(finished, data,
-                                                                       tmp_path, capsys):
+def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(
+    finished, data, tmp_path, capsys
+):
     run = _copy(finished, tmp_path)
     model = run / "geometry" / "model.ply"
     before = model.read_bytes()
-    rc = cli.main(["segment", str(run), "--data", str(data[0]), "--out",
-                   str(run / "geometry"), "--quiet"])
+    rc = cli.main(
+        ["segment", str(run), "--data", str(data[0]), "--out", str(run / "geometry"), "--quiet"]
+    )
     assert rc == 2 and "holds the input" in capsys.readouterr().err
     assert model.read_bytes() == before
-    rc = cli.main(["segment", str(run), "--data", str(data[0]), "--out",
-                   str(run / "segmentation"), "--quiet"])
+    rc = cli.main(
+        ["segment", str(run), "--data", str(data[0]), "--out", str(run / "segmentation"), "--quiet"]
+    )
     assert rc == 2 and "or --overwrite to replace it" in capsys.readouterr().err
-    assert cli.main(["segment", str(run), "--data", str(data[0]), "--out",
-                     str(data[0] / "segments"), "--quiet"]) == 2
+    assert (
+        cli.main(
+            [
+                "segment",
+                str(run),
+                "--data",
+                str(data[0]),
+                "--out",
+                str(data[0] / "segments"),
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     assert "outputs never go into a dataset" in capsys.readouterr().err
     assert not (data[0] / "segments").exists()
 
@@ -195,8 +289,7 @@ def _broken_copy(src, tmp_path, name="data"):
 
 
 @pytest.mark.parametrize("command", ["train", "run"])
-def test_a_corrupt_test_image_stops_the_command_before_training(data, tmp_path, capsys,
-                                                                command):
+def test_a_corrupt_test_image_stops_the_command_before_training(data, tmp_path, capsys, command):
     bad = _broken_copy(data[0], tmp_path)
     exr = bad / "test" / "r_001_albedo.exr" if command == "run" else bad / "test" / "r_001.exr"
     exr.write_bytes(exr.read_bytes()[:200])
@@ -219,8 +312,21 @@ def test_one_training_view_warns(data, tmp_path, capsys):
     meta = json.loads((one / "transforms_train.json").read_text())
     meta["frames"] = meta["frames"][:1]
     (one / "transforms_train.json").write_text(json.dumps(meta))
-    assert cli.main(["train", str(one), "--out", str(tmp_path / "run"), "--iterations", "2",
-                     "--no-eval", "--no-progress"]) == 0
+    assert (
+        cli.main(
+            [
+                "train",
+                str(one),
+                "--out",
+                str(tmp_path / "run"),
+                "--iterations",
+                "2",
+                "--no-eval",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     warnings = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
     assert len(warnings) == 1
     assert "1 training view(s)" in warnings[0] and "at least 8" in warnings[0]

@@ -16,14 +16,14 @@ from mi_shadowgs.dataset.loader import load_dataset
 from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.io import checkpoint as ckpt
 from mi_shadowgs.scenes import scene_path
-from mi_shadowgs.stages.geometry import train as sg
+from mi_shadowgs.stages.geometry import train as geometry_train
 from mi_shadowgs.stages.geometry.densify import DensifyConfig
 
 # A tiny version of cpu-small: 32x32, few iterations, densification early and often.
 # lambda_dist stays at 100: cpu-small's 3e4 was tuned at 128^2; on this 32^2, 1500-surfel
 # run its last 50 steps at 1e4 already emptied silhouette pixels (mask IoU 0.76 against > 0.9).
 TINY = dataclasses.replace(
-    sg.get_config("cpu-small"), iterations=300, sh_degree=0, init_points=1500,
+    geometry_train.get_config("cpu-small"), iterations=300, sh_degree=0, init_points=1500,
     hull_resolution=24, normal_from=150, dist_from=250, lambda_dist=100.0, log_every=10,
     densify=DensifyConfig(start=50, stop=250, interval=50, opacity_reset_interval=0,
                           max_surfels=6000))
@@ -46,11 +46,12 @@ def test_short_run_reaches_psnr(tiny):
     train = load_dataset(tiny, "train")
     t0 = time.perf_counter()
     logs = []
-    surfels = sg.train_geometry(train, TINY, callbacks=sg.Callbacks(on_log=logs.append),
-                                progress=False)
+    surfels = geometry_train.train_geometry(
+        train, TINY, callbacks=geometry_train.Callbacks(on_log=logs.append), progress=False
+    )
     elapsed = time.perf_counter() - t0
     assert elapsed < 60.0, f"the short run took {elapsed:.1f} s"
-    m = sg.evaluate(surfels, train)
+    m = geometry_train.evaluate(surfels, train)
     # Measured 2025-11-22 on 2 loaded cores: 19.7 dB on the training views after 300 steps
     # (the first 10 steps average ~10 dB). 18 dB leaves margin for run-to-run differences
     # (float atomics reorder sums) while a broken loss, optimiser or densification stays
@@ -76,15 +77,18 @@ def test_resume_after_interruption_continues_the_run(tiny, tmp_path):
             raise Killed
 
     with pytest.raises(Killed):
-        sg.train_geometry(train, cfg, callbacks=sg.Callbacks(on_checkpoint=save,
-                                                             on_step=kill_at_50),
-                          progress=False)
+        geometry_train.train_geometry(
+            train,
+            cfg,
+            callbacks=geometry_train.Callbacks(on_checkpoint=save, on_step=kill_at_50),
+            progress=False,
+        )
     arrays, meta = ckpt.load_checkpoint(cdir)
     assert meta["step"] == 40  # the last checkpoint before the interruption
-    state = sg.TrainState.from_numpy(arrays, cfg)
+    state = geometry_train.TrainState.from_numpy(arrays, cfg)
     assert state.step == 40 and state.opt.t == 40
-    resumed = sg.train_geometry(train, cfg, state=state, progress=False)
-    straight = sg.train_geometry(train, cfg, progress=False)
+    resumed = geometry_train.train_geometry(train, cfg, state=state, progress=False)
+    straight = geometry_train.train_geometry(train, cfg, progress=False)
     a, b = resumed.to_numpy(), straight.to_numpy()
     assert a["position"].shape == b["position"].shape
     # Same schedule, views and densification; float atomics in the rasterizer's scatter may
@@ -112,32 +116,48 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
 
 
 def test_train_cli_writes_run_and_rejects_bad_data(tiny, tmp_path, capsys, monkeypatch):
-    monkeypatch.setitem(sg.PRESETS, "cpu-small", dataclasses.replace(
-        TINY, iterations=20, preview_every=10, checkpoint_every=10))
+    monkeypatch.setitem(
+        geometry_train.PRESETS,
+        "cpu-small",
+        dataclasses.replace(TINY, iterations=20, preview_every=10, checkpoint_every=10),
+    )
     run = tmp_path / "run"
     assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress"]) == 0
     g = run / "geometry"
     names = sorted(p.name for p in g.iterdir())
-    assert names == [".mi_shadowgs_manifest.json", "checkpoint", "config.json", "log.csv",
-                     "metrics.json", "model.ply", "previews"]
+    assert names == [
+        ".mi_shadowgs_manifest.json",
+        "checkpoint",
+        "config.json",
+        "log.csv",
+        "metrics.json",
+        "model.ply",
+        "previews",
+    ]
     m = json.loads((g / "metrics.json").read_text())
     for key in ("psnr", "ssim", "normal_error_median_deg", "depth_error_mean_abs", "mask_iou"):
         assert np.isfinite(m[key])
     assert len((g / "log.csv").read_text().splitlines()) == 1 + 2
-    assert sorted(p.name for p in (g / "previews").iterdir()) == ["iter_000010.png",
-                                                                  "iter_000020.png"]
+    assert sorted(p.name for p in (g / "previews").iterdir()) == [
+        "iter_000010.png",
+        "iter_000020.png",
+    ]
     # A second run refuses to clobber; --resume at the end is a no-op that keeps the log.
     assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress"]) == 2
     assert "--resume" in capsys.readouterr().err
-    assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress", "--resume",
-                     "--no-eval"]) == 0
+    assert (
+        cli.main(["train", str(tiny), "--out", str(run), "--no-progress", "--resume", "--no-eval"])
+        == 0
+    )
     assert len((g / "log.csv").read_text().splitlines()) == 1 + 2
 
     # Empty mask: the loader names the file.
     bad = tmp_path / "bad"
     import shutil
+
     shutil.copytree(tiny, bad)
     from mi_shadowgs.io.images import read_png, write_png
+
     png = bad / "train" / "r_003.png"
     img = read_png(png)
     img[..., 3] = 0
@@ -156,15 +176,18 @@ def test_train_cli_writes_run_and_rejects_bad_data(tiny, tmp_path, capsys, monke
 
 def test_no_nan_with_grazing_views(tmp_path_factory):
     # Cameras 1-4 degrees above the base: the base and object tops are seen edge-on.
-    ds = _write(tmp_path_factory, "grazing", train_elevation_deg=(1.0, 4.0),
-                test_elevation_deg=(1.0, 4.0))
-    cfg = dataclasses.replace(TINY, iterations=200, normal_from=0, dist_from=0,
-                              init="random", log_every=5)
+    ds = _write(
+        tmp_path_factory, "grazing", train_elevation_deg=(1.0, 4.0), test_elevation_deg=(1.0, 4.0)
+    )
+    cfg = dataclasses.replace(
+        TINY, iterations=200, normal_from=0, dist_from=0, init="random", log_every=5
+    )
     train = load_dataset(ds, "train")
     logs = []
     # train_geometry raises FloatingPointError on any non-finite logged term.
-    surfels = sg.train_geometry(train, cfg, callbacks=sg.Callbacks(on_log=logs.append),
-                                progress=False)
+    surfels = geometry_train.train_geometry(
+        train, cfg, callbacks=geometry_train.Callbacks(on_log=logs.append), progress=False
+    )
     assert len(logs) == 40
     for key, a in surfels.to_numpy().items():
         assert np.all(np.isfinite(a)), key

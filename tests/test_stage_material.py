@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from mi_shadowgs.config import ConfigError, with_overrides
-from mi_shadowgs.core import shading as S
+from mi_shadowgs.core import shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, solid_angle
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.raster import rasterize
 from mi_shadowgs.core.surfels import Surfels
-from mi_shadowgs.stages.material import fit as SM
+from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
     VisibilityConfig,
@@ -25,17 +25,17 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
 
 
 def test_presets_and_paper_defaults():
-    p = SM.get_config("paper")
+    p = material_fit.get_config("paper")
     assert (p.iterations, p.lambda_ind2, p.lambda_tv, p.lambda_brdf, p.lambda_reg) == \
         (5000, 0.01, 0.01, 1.0, 0.001)
     assert (p.n_directions, p.sh_degree) == (128, 2)
-    assert SM.get_config("cpu-small").iterations < p.iterations
+    assert material_fit.get_config("cpu-small").iterations < p.iterations
     with pytest.raises(ConfigError):
-        SM.get_config("nope")
+        material_fit.get_config("nope")
     with pytest.raises(ValueError, match="specular"):
-        SM.MaterialConfig(specular="maybe")
+        material_fit.MaterialConfig(specular="maybe")
     with pytest.raises(ValueError, match="refine_passes"):
-        SM.MaterialConfig(refine_passes=((2.0, 4.0),))
+        material_fit.MaterialConfig(refine_passes=((2.0, 4.0),))
 
 
 def test_segment_average_exact():
@@ -44,14 +44,18 @@ def test_segment_average_exact():
     vals = rng.uniform(0, 1, (n, 3)).astype(np.float32)
     seg = rng.integers(0, k, n)
     seg[seg == 4] = 5  # an empty segment id must not break anything
-    out = SM.segment_average(mi.TensorXf(vals), mi.UInt32(seg.astype(np.uint32)), k).numpy()
+    out = material_fit.segment_average(
+        mi.TensorXf(vals), mi.UInt32(seg.astype(np.uint32)), k
+    ).numpy()
     ref = np.zeros_like(vals, dtype=np.float64)
     for s in np.unique(seg):
         ref[seg == s] = vals[seg == s].astype(np.float64).mean(0)
     # float32 sums of ~150 values in [0, 1]: a few ulps of the sum.
     np.testing.assert_allclose(out, ref, rtol=0, atol=2e-6)
     # Idempotent: averaging an averaged field changes nothing.
-    again = SM.segment_average(mi.TensorXf(out), mi.UInt32(seg.astype(np.uint32)), k).numpy()
+    again = material_fit.segment_average(
+        mi.TensorXf(out), mi.UInt32(seg.astype(np.uint32)), k
+    ).numpy()
     np.testing.assert_allclose(again, out, rtol=0, atol=2e-6)
 
 
@@ -59,10 +63,10 @@ def test_segment_channel_errors():
     s = _plane_scene()[0]
     del s.channels["segment"]
     with pytest.raises(ValueError, match="segment"):
-        SM.segment_ids(s)
+        material_fit.segment_ids(s)
     s.channels["segment"] = mi.TensorXf(np.full((s.count, 1), -1.0, np.float32))
     with pytest.raises(ValueError, match="non-negative integer"):
-        SM.segment_ids(s)
+        material_fit.segment_ids(s)
 
 
 # -- a tiny synthetic scene: a floor with an occluding tile above it ------------------------
@@ -82,12 +86,23 @@ def _plane_scene():
     nrm = np.concatenate([floor[2], tile[2]])
     seg = np.concatenate([np.zeros(len(floor[0])), np.ones(len(tile[0]))])
     albedo = np.where(seg[:, None] == 0, [[0.6, 0.5, 0.3]], [[0.2, 0.4, 0.7]])
-    s = Surfels.from_numpy(pos, scale, frame_to_quaternion(nrm), np.full(len(pos), 0.99),
-                           channels={"segment": seg[:, None].astype(np.float32),
-                                     "albedo_gt": albedo})
-    cams = [Camera.look_at(np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
-                           np.zeros(3), fov_x=0.9, width=48, height=48)
-            for a in np.linspace(0, 2 * math.pi, 4, endpoint=False)]
+    s = Surfels.from_numpy(
+        pos,
+        scale,
+        frame_to_quaternion(nrm),
+        np.full(len(pos), 0.99),
+        channels={"segment": seg[:, None].astype(np.float32), "albedo_gt": albedo},
+    )
+    cams = [
+        Camera.look_at(
+            np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
+            np.zeros(3),
+            fov_x=0.9,
+            width=48,
+            height=48,
+        )
+        for a in np.linspace(0, 2 * math.pi, 4, endpoint=False)
+    ]
     bounds = SceneBounds((0.0, 0.2, 0.0), 1.5, 3.0)
     return s, cams, bounds
 
@@ -95,8 +110,8 @@ def _plane_scene():
 def test_splat_matches_rasterize():
     s, cams, _ = _plane_scene()
     vals = mi.TensorXf(np.random.default_rng(0).uniform(0, 1, (s.count, 4)).astype(np.float32))
-    pairs = S.splat_pairs(s, cams[1])
-    got = S.splat(pairs, vals).numpy()
+    pairs = shading.splat_pairs(s, cams[1])
+    got = shading.splat(pairs, vals).numpy()
     ref = rasterize(s, cams[1], {"v": vals}, aovs=())["v"].numpy().reshape(-1)
     # Same pairs and weights; only the summation order of the scatter may differ.
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5)
@@ -109,18 +124,34 @@ def test_sh_irradiance_against_numpy():
     coef = rng.normal(size=(npx, 27)).astype(np.float32)
     n = rng.normal(size=(npx, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    got = S.sh_irradiance(mi.Float(coef.ravel()), mi.Vector3f(*(n[:, k].astype(np.float32)
-                                                                 for k in range(3))), 2)
+    got = shading.sh_irradiance(
+        mi.Float(coef.ravel()), mi.Vector3f(*(n[:, k].astype(np.float32) for k in range(3))), 2
+    )
     got = np.stack([np.asarray(got[c]) for c in range(3)], -1)
     x, y, z = n.T
     c0, c1 = 0.28209479177387814, 0.4886025119029199
-    c2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
-          -1.0925484305920792, 0.5462742152960396)
-    basis = np.stack([np.full(npx, c0), -c1 * y, c1 * z, -c1 * x, c2[0] * x * y, c2[1] * y * z,
-                      c2[2] * (2 * z * z - x * x - y * y), c2[3] * x * z, c2[4] * (x * x - y * y)],
-                     -1)
-    ref = np.maximum(np.einsum("pk,pkc->pc", basis, coef.reshape(npx, 9, 3).astype(np.float64)),
-                     0)
+    c2 = (
+        1.0925484305920792,
+        -1.0925484305920792,
+        0.31539156525252005,
+        -1.0925484305920792,
+        0.5462742152960396,
+    )
+    basis = np.stack(
+        [
+            np.full(npx, c0),
+            -c1 * y,
+            c1 * z,
+            -c1 * x,
+            c2[0] * x * y,
+            c2[1] * y * z,
+            c2[2] * (2 * z * z - x * x - y * y),
+            c2[3] * x * z,
+            c2[4] * (x * x - y * y),
+        ],
+        -1,
+    )
+    ref = np.maximum(np.einsum("pk,pkc->pc", basis, coef.reshape(npx, 9, 3).astype(np.float64)), 0)
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5)
 
 
@@ -130,20 +161,21 @@ def _render_truth(s, cams, bounds, directions, irradiance, vcfg):
     d = np.atleast_2d(np.asarray(directions, np.float64))
     maps = render_shadow_maps(s, d, bounds, vcfg)
     e = mi.Float(np.broadcast_to(np.asarray(irradiance, np.float32), len(d)))
-    lights = S.LightSet(d, mi.Color3f(e, e, e))
+    lights = shading.LightSet(d, mi.Color3f(e, e, e))
     truth = dict(s.channels)
     truth["albedo"] = s.channels["albedo_gt"]
     imgs, masks = [], []
     for cam in cams:
-        pairs = S.splat_pairs(s, cam)
-        geom = S.pixel_geometry(s, cam)
-        a = S.splat(pairs, truth["albedo"])
-        albedo = mi.Color3f(*(S.channel(a, 3, c) for c in range(3)))
+        pairs = shading.splat_pairs(s, cam)
+        geom = shading.pixel_geometry(s, cam)
+        a = shading.splat(pairs, truth["albedo"])
+        albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
         zero = dr.zeros(mi.Float, dr.width(geom.alpha))
         vis = maps.evaluate(geom.points, geom.normal, geom.footprint)
-        rgb = S.shade(geom, albedo, zero + 1.0, zero, lights, vis, None, False)
-        imgs.append(np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
-                    .reshape(cam.height, cam.width, 3))
+        rgb = shading.shade(geom, albedo, zero + 1.0, zero, lights, vis, None, False)
+        imgs.append(
+            np.stack([np.asarray(rgb[c]) for c in range(3)], -1).reshape(cam.height, cam.width, 3)
+        )
         masks.append(geom.alpha.numpy().reshape(cam.height, cam.width) > 0.5)
     return imgs, masks
 
@@ -159,10 +191,12 @@ def test_tiny_decomposition_recovers_albedo_and_light():
     k_true = int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))  # ~49 degrees elevation
     e_true = 2.0
     imgs, masks = _render_truth(s, cams, bounds, light_grid(128)[k_true], e_true, vcfg)
-    cfg = with_overrides(SM.get_config("cpu-small"),
-                         {"iterations": 250, "warmup": 80, "specular": "off",
-                          "log_every": 50}, "material")
-    res = SM.fit_material(s, cams, imgs, masks, cfg, bounds, vcfg, progress=False)
+    cfg = with_overrides(
+        material_fit.get_config("cpu-small"),
+        {"iterations": 250, "warmup": 80, "specular": "off", "log_every": 50},
+        "material",
+    )
+    res = material_fit.fit_material(s, cams, imgs, masks, cfg, bounds, vcfg, progress=False)
     # Light: the true direction dominates the fitted map.
     gt_map = np.zeros(128)
     gt_map[k_true] = e_true / solid_angle(128)
@@ -202,32 +236,33 @@ def test_merge_directions_recovers_an_off_grid_light():
     far = grid[np.argmin(cos)]  # the grid direction farthest from the light
     dirs = np.concatenate([grid[near], far[None]])
     energy = np.concatenate([w * 10.0, [1.0]])
-    merged, e = SM.merge_directions(dirs, energy, 20.0)
+    merged, e = material_fit.merge_directions(dirs, energy, 20.0)
     assert len(merged) == 2
     # Weighted mean of unit vectors, renormalised: exact for the least-squares weights.
     assert np.degrees(np.arccos(np.clip(merged[0] @ true, -1, 1))) < 0.01
     assert np.allclose(merged[1], far) and math.isclose(e[1], 1.0)
     assert math.isclose(e.sum(), energy.sum())
     # Nothing merges when the angle is below the grid spacing (~13 degrees).
-    assert len(SM.merge_directions(dirs, energy, 5.0)[0]) == len(dirs)
+    assert len(material_fit.merge_directions(dirs, energy, 5.0)[0]) == len(dirs)
 
 
 def test_candidate_directions_grid():
     d = light_grid(128)[60]
-    cand = SM.candidate_directions(d, 8.0, 2.0)
+    cand = material_fit.candidate_directions(d, 8.0, 2.0)
     assert np.allclose(cand[0], d)  # the current direction is a candidate (ties keep it)
     np.testing.assert_allclose(np.linalg.norm(cand, axis=1), 1.0, atol=1e-12)
     ang = np.degrees(np.arccos(np.clip(cand @ d, -1, 1)))
     # The grid is gnomonic: the angle of (i, j) steps is atan(hypot(tan i s, tan j s)) <=
     # the radius, and the axis neighbours sit exactly one step away.
     assert ang.max() <= 8.0 + 1e-9 and len(cand) == 1 + sum(
-        1 for i in range(-4, 5) for j in range(-4, 5) if (i or j) and math.hypot(i, j) <= 4)
+        1 for i in range(-4, 5) for j in range(-4, 5) if (i or j) and math.hypot(i, j) <= 4
+    )
     assert np.isclose(np.sort(ang)[1], 2.0)
     # A light at the horizon keeps only the candidates above it.
-    low = SM.candidate_directions(np.array([1.0, 0.01, 0.0]), 8.0, 2.0)
+    low = material_fit.candidate_directions(np.array([1.0, 0.01, 0.0]), 8.0, 2.0)
     assert (low[:, 1] > 0).all() and 0 < len(low) < len(cand)
     # ...and one exactly on it keeps at least itself.
-    flat = SM.candidate_directions(np.array([1.0, 0.0, 0.0]), 8.0, 2.0)
+    flat = material_fit.candidate_directions(np.array([1.0, 0.0, 0.0]), 8.0, 2.0)
     assert np.allclose(flat[0], [1.0, 0.0, 0.0]) and (flat[1:, 1] > 0).all()
 
 
@@ -237,23 +272,41 @@ def _one_light_views(s, cams, bounds, direction, irradiance, vcfg):
     d = np.asarray(direction, np.float64)[None]
     maps = render_shadow_maps(s, d, bounds, vcfg)
     e = mi.Float(float(irradiance))
-    lights = S.LightSet(d, mi.Color3f(e, e, e))
+    lights = shading.LightSet(d, mi.Color3f(e, e, e))
     n = s.count
-    ch = {"albedo": s.channels["albedo_gt"],
-          "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
-          "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))}
-    cfg = SM.get_config("cpu-small")
+    ch = {
+        "albedo": s.channels["albedo_gt"],
+        "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
+        "metallic": mi.TensorXf(np.zeros((n, 1), np.float32)),
+    }
+    cfg = material_fit.get_config("cpu-small")
     views = []
     for cam in cams:
-        geom = S.pixel_geometry(s, cam)
-        albedo, rough, metal, _ = SM.view_maps(S.splat_pairs(s, cam), ch, 2, geom.normal)
-        rgb = S.shade(geom, albedo, rough, metal, lights, maps.evaluate(geom.points, geom.normal,
-                                                    geom.footprint),
-                      None, False)
+        geom = shading.pixel_geometry(s, cam)
+        albedo, rough, metal, _ = material_fit.view_maps(
+            shading.splat_pairs(s, cam), ch, 2, geom.normal
+        )
+        rgb = shading.shade(
+            geom,
+            albedo,
+            rough,
+            metal,
+            lights,
+            maps.evaluate(geom.points, geom.normal, geom.footprint),
+            None,
+            False,
+        )
         img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
         mask = geom.alpha.numpy() > 0.5
-        views.append(SM.prepare_view(s, cam, img.reshape(cam.height, cam.width, 3),
-                                     mask.reshape(cam.height, cam.width), cfg))
+        views.append(
+            material_fit.prepare_view(
+                s,
+                cam,
+                img.reshape(cam.height, cam.width, 3),
+                mask.reshape(cam.height, cam.width),
+                cfg,
+            )
+        )
     return views, ch
 
 
@@ -264,9 +317,16 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     from mi_shadowgs.core.directions import direction_from_angles
 
     s, _, bounds = _plane_scene()
-    cams = [Camera.look_at(np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
-                           np.zeros(3), fov_x=0.9, width=64, height=64)
-            for a in np.linspace(0, 2 * math.pi, 4, endpoint=False)]
+    cams = [
+        Camera.look_at(
+            np.array([2.2 * math.cos(a), 2.0, 2.2 * math.sin(a)]),
+            np.zeros(3),
+            fov_x=0.9,
+            width=64,
+            height=64,
+        )
+        for a in np.linspace(0, 2 * math.pi, 4, endpoint=False)
+    ]
     vcfg = VisibilityConfig(resolution=256, projection="orthographic")
     true = direction_from_angles(47.0, 52.0)
     views, ch = _one_light_views(s, cams, bounds, true, 2.0, vcfg)
@@ -276,15 +336,17 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     def render(dirs):
         return render_shadow_maps(s, dirs, bounds, vcfg)
 
-    cfg = SM.get_config("cpu-small")
-    lights = S.LightSet(start[None], mi.Color3f(1.5))
-    err, fit = SM._candidate_scores(views, ch, lights, render(start[None]), 0,
-                                    render(np.stack([true, start])), cfg, False)
+    cfg = material_fit.get_config("cpu-small")
+    lights = shading.LightSet(start[None], mi.Color3f(1.5))
+    err, fit = material_fit._candidate_scores(
+        views, ch, lights, render(start[None]), 0, render(np.stack([true, start])), cfg, False
+    )
     # The true direction's error is round-off only: float32 sums per view, and the error is
     # s_rr - 2 E s_rb + E^2 s_bb, which cancels to ~1e-6 of s_rr (measured 2e-6 of err[1]).
     assert err[0] < 1e-4 * err[1] and abs(fit[0] - 2.0) < 1e-3, (err, fit)
-    dirs, irr = SM.refine_directions(views, ch, start[None], np.array([1.5]),
-                                     render(start[None]), render, cfg, False)
+    dirs, irr = material_fit.refine_directions(
+        views, ch, start[None], np.array([1.5]), render(start[None]), render, cfg, False
+    )
     ang = np.degrees(np.arccos(np.clip(dirs[0] @ true, -1, 1)))
     # The fine pass steps by 0.5 degrees: the optimum is within half a step per axis.
     assert ang < 0.5, ang
@@ -296,8 +358,11 @@ def test_overrides_reach_nested_settings():
     like the top level, instead of being replaced by a dict that fails much later."""
     from mi_shadowgs.stages.geometry.train import get_config as geometry_config
 
-    cfg = with_overrides(geometry_config("cpu-small"),
-                         {"iterations": 10, "raster": {"lowpass_inv_var": 8.0}}, "geometry")
+    cfg = with_overrides(
+        geometry_config("cpu-small"),
+        {"iterations": 10, "raster": {"lowpass_inv_var": 8.0}},
+        "geometry",
+    )
     assert cfg.iterations == 10 and cfg.raster.lowpass_inv_var == 8.0
     assert cfg.raster.alpha_max == geometry_config("cpu-small").raster.alpha_max
     with pytest.raises(ConfigError, match=r"geometry\.raster.*lowpass"):

@@ -13,7 +13,7 @@ import pytest
 from mi_shadowgs.config import ConfigError
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.surfels import Surfels
-from mi_shadowgs.stages.visibility import baselines as vb
+from mi_shadowgs.stages.visibility import baselines
 from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
 
 SPACING = 0.03
@@ -61,8 +61,8 @@ def _iou(a, b):
 
 
 BUILDERS = {
-    "gaussian": lambda s, d, b: vb.trace_surfels(s, d, b, vb.GaussianTraceConfig()),
-    "voxel": lambda s, d, b: vb.voxelize_surfels(s, d, b, vb.VoxelConfig()),
+    "gaussian": lambda s, d, b: baselines.trace_surfels(s, d, b, baselines.GaussianTraceConfig()),
+    "voxel": lambda s, d, b: baselines.voxelize_surfels(s, d, b, baselines.VoxelConfig()),
 }
 
 
@@ -74,10 +74,10 @@ def test_gaussian_transmittance_matches_float64_reference():
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     surf = Surfels.from_numpy(rng.uniform(-0.3, 0.3, (n, 3)), rng.uniform(0.05, 0.15, (n, 2)),
                               frame_to_quaternion(normals), rng.uniform(0.2, 0.95, n))
-    cfg = vb.GaussianTraceConfig(soft=True, max_hits=64, t_min=0.0, offset=0.0)
-    tracer = vb.trace_surfels(surf, [[0.0, 1.0, 0.0]], SceneBounds((0, 0, 0), 0.6, 4.0), cfg)
-    arr = vb._surfel_arrays(surf)
-    _, _, centre, _ = vb.surfel_quads(arr, cfg)
+    cfg = baselines.GaussianTraceConfig(soft=True, max_hits=64, t_min=0.0, offset=0.0)
+    tracer = baselines.trace_surfels(surf, [[0.0, 1.0, 0.0]], SceneBounds((0, 0, 0), 0.6, 4.0), cfg)
+    arr = baselines._surfel_arrays(surf)
+    _, _, centre, _ = baselines.surfel_quads(arr, cfg)
     o = rng.uniform(-0.4, 0.4, (300, 3))
     o[:, 1] = -1.0
     d = rng.normal(size=(300, 3)) * 0.3 + [0.0, 1.0, 0.0]
@@ -104,14 +104,14 @@ def test_gaussian_transmittance_matches_float64_reference():
 
 def test_voxel_occupancy_and_march_match_float64_reference():
     surf = _disk()
-    cfg = vb.VoxelConfig(resolution=16, soft=True, tau_stop=1e9, start_offset=0.0)
-    vox = vb.voxelize_surfels(surf, [[0.0, 1.0, 0.0]], BOUNDS, cfg)
+    cfg = baselines.VoxelConfig(resolution=16, soft=True, tau_stop=1e9, start_offset=0.0)
+    vox = baselines.voxelize_surfels(surf, [[0.0, 1.0, 0.0]], BOUNDS, cfg)
     # Coverage is conserved where no voxel saturates (small surfels): the grid sums to
     # sum opacity * 2 pi s_u s_v / h^2, all five splat points landing inside the grid.
-    small = vb._surfel_arrays(_surfels(_grid_surfels(DISK_R, DISK_H, SPACING, DISK_R, 0.1)))
-    cfg64 = vb.VoxelConfig(resolution=64)
-    h64 = vb.grid_frame(BOUNDS, cfg64)[1]
-    unclipped = vb.occupancy_grid(small, BOUNDS, cfg64)
+    small = baselines._surfel_arrays(_surfels(_grid_surfels(DISK_R, DISK_H, SPACING, DISK_R, 0.1)))
+    cfg64 = baselines.VoxelConfig(resolution=64)
+    h64 = baselines.grid_frame(BOUNDS, cfg64)[1]
+    unclipped = baselines.occupancy_grid(small, BOUNDS, cfg64)
     raw = small["opacity"] * 2 * math.pi * small["scale"].prod(1) / h64 ** 2
     assert 0.0 < unclipped.max() < 1.0
     np.testing.assert_allclose(unclipped.sum(), raw.sum(), rtol=1e-9)  # float64 both sides
@@ -197,22 +197,22 @@ def test_grazing_light_no_acne_and_below_horizon(name):
 def test_soft_gaussian_visibility_in_unit_interval():
     light = np.array([[0.0, 1.0, 0.0]])
     _, pts, nrm = _plane_points(half=0.8, n=40)
-    soft = vb.trace_surfels(_disk(), light, BOUNDS, vb.GaussianTraceConfig(soft=True))
+    soft = baselines.trace_surfels(_disk(), light, BOUNDS, baselines.GaussianTraceConfig(soft=True))
     v = np.asarray(soft.evaluate(pts, nrm))
     assert np.all((v >= 0) & (v <= 1)) and np.any((v > 0.05) & (v < 0.95))  # soft rim
 
 
 def test_configs_and_presets():
-    assert vb.gaussian_preset("paper") == vb.GaussianTraceConfig()
-    assert vb.voxel_preset("cpu-small").resolution < vb.VoxelConfig().resolution
+    assert baselines.gaussian_preset("paper") == baselines.GaussianTraceConfig()
+    assert baselines.voxel_preset("cpu-small").resolution < baselines.VoxelConfig().resolution
     with pytest.raises(ConfigError, match="Gaussian-based"):
-        vb.gaussian_preset("nope")
+        baselines.gaussian_preset("nope")
     with pytest.raises(ValueError):
-        vb.VoxelConfig(resolution=1)
+        baselines.VoxelConfig(resolution=1)
     with pytest.raises(ValueError):
-        vb.GaussianTraceConfig(max_hits=0)
+        baselines.GaussianTraceConfig(max_hits=0)
     with pytest.raises(ValueError, match="directions"):
-        vb.trace_surfels(_disk(), np.zeros((1, 3)), BOUNDS)
+        baselines.trace_surfels(_disk(), np.zeros((1, 3)), BOUNDS)
 
 
 # -- validation scoring (validation/visibility.py) ----------------------------------------

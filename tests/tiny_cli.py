@@ -20,9 +20,9 @@ def presets() -> list[tuple[dict, object]]:
     """(a stage's PRESETS dict, its test-tiny settings) for every stage."""
     from mi_shadowgs import pipeline
     from mi_shadowgs.dataset import generate
-    from mi_shadowgs.stages.geometry import train as sg
+    from mi_shadowgs.stages.geometry import train as geometry_train
     from mi_shadowgs.stages.geometry.densify import DensifyConfig
-    from mi_shadowgs.stages.material import fit as sm
+    from mi_shadowgs.stages.material import fit as material_fit
     from mi_shadowgs.stages.relight import render as relight
     from mi_shadowgs.stages.segmentation import features as segmentation
     from mi_shadowgs.stages.segmentation import masks
@@ -32,8 +32,8 @@ def presets() -> list[tuple[dict, object]]:
         (generate.PRESETS, dataclasses.replace(
             generate.get_config("cpu-small"), width=24, height=24, n_train=8, n_test=2, spp=4,
             relight=generate.DEFAULT_RELIGHT[:1])),
-        (sg.PRESETS, dataclasses.replace(
-            sg.get_config("cpu-small"), iterations=80, sh_degree=0, init_points=600,
+        (geometry_train.PRESETS, dataclasses.replace(
+            geometry_train.get_config("cpu-small"), iterations=80, sh_degree=0, init_points=600,
             hull_resolution=16, normal_from=40, dist_from=60, lambda_dist=100.0, log_every=10,
             preview_every=40, checkpoint_every=25, checkpoint_seconds=0.5,
             densify=DensifyConfig(start=20, stop=60, interval=20, opacity_reset_interval=0,
@@ -41,8 +41,8 @@ def presets() -> list[tuple[dict, object]]:
         (segmentation.PRESETS, dataclasses.replace(
             segmentation.get_config("cpu-small"), iterations=40, n_samples=256, feature_dim=8,
             log_every=10, checkpoint_every=15, checkpoint_seconds=0.5)),
-        (sm.PRESETS, dataclasses.replace(
-            sm.get_config("cpu-small"), iterations=60, warmup=20, prune_every=10,
+        (material_fit.PRESETS, dataclasses.replace(
+            material_fit.get_config("cpu-small"), iterations=60, warmup=20, prune_every=10,
             warmup_map_resolution=32, refine_passes=((4.0, 2.0),), refine_views=4,
             log_every=10, checkpoint_every=15, checkpoint_seconds=0.5)),
         (visibility.PRESETS, dataclasses.replace(visibility.get_config("cpu-small"),

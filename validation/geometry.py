@@ -4,7 +4,9 @@
 
 Writes ``OUT/geometry.json`` (test-view PSNR/SSIM, normal and depth error, mask IoU, wall
 times, surfel count, load average, pass/fail of each acceptance item) and
-``OUT/previews/<view>.png`` (render | ground truth over normals | ground-truth normals).
+``OUT/previews/<view>.png`` (render | ground truth over normals | ground-truth normals);
+the stage itself is ``mi_shadowgs.stages.geometry.run_geometry``'s output in ``OUT/stage/``
+(``model.ply``, ``metrics.json``, ``log.csv``, checkpoint).
 ``run(out_dir, quick)`` follows ``validation.run_all``'s interface (default scene, generated
 into ``out_dir``).
 """
@@ -40,32 +42,35 @@ def _preview(view, r) -> np.ndarray:
 
 def validate(data: Path, out: Path, preset: str = "cpu-small", iterations: int | None = None,
              progress: bool = True) -> dict:
+    """Stage 1 through its library runner (``run_geometry``, into ``OUT/stage``), with a
+    preview per test view, then the acceptance table ``OUT/geometry.json``."""
+    import csv
+    import json
+
     from mi_shadowgs.config import with_overrides
-    from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.images import write_png
-    from mi_shadowgs.io.ply import save_ply
-    from mi_shadowgs.stages.geometry.train import evaluate, get_config, train_geometry
+    from mi_shadowgs.stages.geometry import get_config, run_geometry
 
     config = get_config(preset)
     if iterations:
         config = with_overrides(config, {"iterations": iterations}, "geometry")
     load0 = os.getloadavg()
-    t0 = time.perf_counter()
-    train = load_dataset(data, "train")
-    surfels = train_geometry(train, config, progress=progress)
-    t_train = time.perf_counter() - t0
-    test = load_dataset(data, "test")
     (out / "previews").mkdir(parents=True, exist_ok=True)
 
     def on_view(view, r):
         with atomic_path(out / "previews" / f"{Path(view.name).name}.png") as tmp:
             write_png(tmp, _preview(view, r), srgb=False)
 
-    m = evaluate(surfels, test, config.raster, on_view=on_view)
+    t0 = time.perf_counter()
+    stage = run_geometry(data, out / "stage", config, preset=preset, overwrite=True,
+                         progress=progress, on_test_view=on_view)
     wall = time.perf_counter() - t0
-    save_ply(out / "model.ply", surfels)
+    m = json.loads((stage.folder / "metrics.json").read_text())
+    with open(stage.folder / "log.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     m.update(dataset=str(data), preset=preset, iterations=config.iterations,
-             surfels=surfels.count, train_s=t_train, wall_s=wall,
+             model=str(stage.folder / "model.ply"),
+             train_s=float(rows[-1]["time"]) if rows else float("nan"), wall_s=wall,
              loadavg_start=list(load0), loadavg_end=list(os.getloadavg()))
     m["accept"] = {"psnr": m["psnr"] >= ACCEPT["psnr"],
                    "normal_error_median_deg": m.get("normal_error_median_deg", 1e9) <=

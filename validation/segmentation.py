@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import platform
-import time
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
@@ -65,45 +64,41 @@ def _dataset(root: Path, scene: str) -> Path:
 def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
              preset: str = "cpu-small", n_object: int = 8000, n_base: int = 12000,
              overrides: dict | None = None) -> dict:
+    """Stage 2 through its library runner (``run_segmentation``, into
+    ``OUT/<scene>_<masks>/``) on the stand-in geometry or ``model``; one table row."""
+    import json
+
     import numpy as np
 
-    from mi_shadowgs.config import with_overrides
-    from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.dataset.scene import load_scene
-    from mi_shadowgs.io.images import write_png
+    from mi_shadowgs.io.images import read_png, write_png
     from mi_shadowgs.io.ply import load_ply, save_ply
     from mi_shadowgs.scenes import scene_path
-    from mi_shadowgs.stages.segmentation import features as seg
-    from mi_shadowgs.stages.segmentation import masks as masks_mod
+    from mi_shadowgs.stages.segmentation import run_segmentation
+    from mi_shadowgs.stages.segmentation.runner import segmentation_config
 
-    name, scene_overrides = SCENES[scene]
-    setup = load_scene(scene_path(name), scene_overrides or None)
     if model is None:
+        name, scene_overrides = SCENES[scene]
+        setup = load_scene(scene_path(name), scene_overrides or None)
         surfels, _ = standin_surfels(setup, n_object, n_base)
         geometry = f"stand-in ({n_object} object + {n_base} base surfels on the true shapes)"
-        save_ply(out / f"{scene}_standin.ply", surfels)
+        model = out / f"{scene}_standin.ply"
+        save_ply(model, surfels)
     else:
-        surfels = load_ply(model)
-        geometry = f"stage-1 model {model} ({surfels.count} surfels)"
-    train, test = load_dataset(data, "train"), load_dataset(data, "test")
-    config = with_overrides(seg.get_config(preset), overrides, "segmentation")
-    t0 = time.perf_counter()
-    labels = masks_mod.masks_for(train, masks, masks_mod.get_config(preset))
-    t_masks = time.perf_counter() - t0
-    res = seg.segment_surfels(surfels, train.cameras, labels, config, progress=False)
-    t_stage = time.perf_counter() - t0
-    maps = [seg.render_segment_map(res.surfels, res.segments, res.k, v.camera,
-                                   config.segment_alpha) for v in test.views]
-    gt = [v.material for v in test.views]
-    metrics = seg.evaluate_maps(maps, gt)
-    shadow = seg.shadow_consistency(maps, gt, [v.visibility for v in test.views],
-                                    setup.base_id)
-    colors = seg.segment_colors(res.k)
-    strip = np.concatenate([colors[m] for m in maps[:6]], axis=1)
+        geometry = f"stage-1 model {model} ({load_ply(model).count} surfels)"
+    config = segmentation_config(preset, masks, overrides)
+    stage = run_segmentation(model, data, out / f"{scene}_{masks}", config, masks=masks,
+                             preset=preset, overwrite=True, progress=False)
+    report = json.loads((stage.folder / "segmentation.json").read_text())
+    metrics, shadow = report["metrics"], report["base_shadow"]
+    firsts = sorted((stage.folder / "segments").glob("*.png"))
+    firsts = [p for p in firsts if not p.stem.endswith("_overlay")][:6]
+    strip = np.concatenate([read_png(p)[..., :3] for p in firsts], axis=1)  # r_000...: in order
     write_png(out / f"{scene}_{masks}_segments.png", strip)
-    return {"scene": scene, "masks": masks, "geometry": geometry, "k": res.k,
-            "surfels": surfels.count, "iterations": config.iterations,
-            "seconds_masks": round(t_masks, 1), "seconds_stage": round(t_stage, 1),
+    return {"scene": scene, "masks": masks, "geometry": geometry, "k": report["k"],
+            "surfels": report["surfels"], "iterations": config.iterations,
+            "seconds_masks": round(report["seconds_masks"], 1),
+            "seconds_stage": round(report["seconds_stage"], 1),
             "ari": metrics["ari"], "miou": metrics["miou"],
             "base_lit_fraction": shadow["lit_fraction"],
             "base_shadow_fraction": shadow["shadow_fraction"],
@@ -153,12 +148,9 @@ def run(out_dir: Path, quick: bool = False, data_root: Path | None = None,
         # Its own folders: regenerated (overwrite) only when the dataset code or scene changed.
         root = out_dir / "data" if data_root is None else Path(data_root)
         data = _dataset(root / f"seg_val_{scene}", scene)
-        for masks in mask_sources:
-            ov = dict(overrides or {})
-            if masks == "chromaticity":  # see SegmentationConfig.min_label_fraction
-                ov["min_label_fraction"] = 0.005
+        for masks in mask_sources:  # chromaticity: see runner.segmentation_config
             r = evaluate(scene, data, (models or {}).get(scene), masks, out_dir,
-                         overrides=ov or None)
+                         overrides=overrides)
             print(r, flush=True)
             rows.append(r)
     md = markdown(rows, command)

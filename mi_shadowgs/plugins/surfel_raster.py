@@ -1,24 +1,95 @@
-"""``surfel_raster``: a Mitsuba integrator that rasterizes a 2D Gaussian surfel model (PLY).
+"""## `surfel_raster` (integrator)
 
-Properties (see docs/plugins.md for the table):
+Rasterizes a 2D Gaussian surfel model (`mi_shadowgs.core.raster.rasterize`) through a
+standard Mitsuba `perspective` or `orthographic` sensor with an `hdrfilm`. Source:
+`mi_shadowgs/plugins/surfel_raster.py`.
 
-- ``filename`` (string, required): the PLY model (2DGS layout, ``mi_shadowgs.io.ply``),
-  resolved with Mitsuba's file resolver (relative to the scene file).
-- ``aovs`` (string, default ""): comma-separated extra film channels: ``alpha``, ``depth``
-  (z-depth), ``median_depth``, ``normal`` (world space, facing the camera), ``distortion``,
-  ``count``, or any per-surfel channel of the model (``albedo``, ``feature``, ...).
-- ``color_channel`` (string, default "sh"): the channel that gives RGB; "sh" is evaluated
-  from the sensor position.
-- ``background`` (rgb, default none): composited under the colour (RGB only; the film's
-  alpha stays coverage). Without it colour is premultiplied over black.
-- ``alpha_min``, ``alpha_max``, ``transmittance_min``, ``cutoff_sigma``, ``lowpass_inv_var``,
-  ``near`` (float): rasterizer settings (``mi_shadowgs.core.raster.RasterConfig``).
+- `filename` | string | (required) | | PLY model in the 2DGS layout (`mi_shadowgs.io.ply`);
+  resolved like any Mitsuba file (relative to the scene file).
+- `aovs` | string | `""` | | Comma-separated extra film channels, in order: `alpha`,
+  `depth` (z-depth, 0 on background), `median_depth`, `normal` (world space, facing the
+  camera, weighted by coverage), `distortion` (2DGS depth distortion), `count`
+  (contributing splats), or the name of any per-surfel channel (`albedo`, `roughness`,
+  `feature`, ...), composited like colour.
+- `color_channel` | string | `"sh"` | | Channel giving RGB: `sh` is evaluated from the
+  sensor position (for an orthographic sensor, along its axis); any other channel with 1 or
+  3 columns is used as is.
+- `background` | rgb | none | | Composited under the colour:
+  `rgb + background * (1 - alpha)`. Without it the colour is premultiplied over black. The
+  film's `A` channel stays coverage.
+- `alpha_min`, `alpha_max`, `transmittance_min`, `cutoff_sigma`, `lowpass_inv_var`, `near` |
+  float | `RasterConfig` defaults (1/255, 0.99, 1e-4, 3, 12, 0.2) | | Rasterizer settings
+  (`mi_shadowgs.core.raster.RasterConfig`); each must be positive, `alpha_max` below 1.
+- `position` | Point3f [N] | from file | differentiable | Surfel centres (world space).
+- `log_scale` | Point2f [N] | from file | differentiable | Log of the two tangent standard
+  deviations.
+- `rotation` | Vector4f [N] | from file | differentiable | Quaternion (w, x, y, z),
+  unnormalised.
+- `opacity_logit` | Float [N] | from file | differentiable | Logit of the opacity.
+- `channels.<name>` | TensorXf [N, C] | from file | differentiable | Each per-surfel channel
+  of the model (`channels.sh` [N, 3(d+1)^2] coefficient-major, `channels.albedo`, ...).
 
-``mi.traverse`` exposes the differentiable surfel parameters ``position``, ``log_scale``,
-``rotation``, ``opacity_logit`` and ``channels.<name>``; ``mi.render(scene, params)``
-differentiates through the rasterizer. Sensors: ``perspective`` or ``orthographic`` with an
-``hdrfilm`` (any pixel format); samples per pixel and seeds are ignored (the render is
-deterministic).
+The last five rows are not XML properties: they are the parameters that `mi.traverse`
+exposes (prefixed by the integrator's `id`, e.g. `surf.position`, when traversing the
+scene), and `mi.render(scene, params)` differentiates through them (`render_forward` and
+`render_backward` re-run the differentiable rasterizer). After changing their number
+(`N`), set all of them before `params.update()`.
+
+**Film channels.** `mi.render` returns `[H, W, C]`: the film's base channels (`R, G, B` and
+`A` with `pixel_format="rgba"`, or `Y`/`Y, A` for luminance formats), then the AOVs named
+as Mitsuba's `aov` integrator does: `depth.T`, `median_depth.T`, `distortion.T`,
+`count.T`, `alpha.T`, `normal.X/Y/Z`, a 3-column channel `albedo.R/G/B`, a 1-column one
+`roughness.T`, wider ones `feature.0..15`. `film.bitmap()` carries the same names.
+
+**Not used:** the sampler, samples per pixel and seeds (the render is deterministic), and
+the film's reconstruction filter (each pixel is evaluated at its centre). Sensors with a
+principal-point offset or a crop window are refused with an error.
+
+### Example
+
+```xml
+<scene version="3.0.0">
+    <integrator type="surfel_raster" id="surf">
+        <string name="filename" value="model.ply"/>
+        <string name="aovs" value="depth,normal"/>
+        <rgb name="background" value="1, 1, 1"/>
+    </integrator>
+    <sensor type="perspective">
+        <float name="fov" value="40"/>
+        <transform name="to_world">
+            <lookat origin="0, 1, 4" target="0, 0.5, 0" up="0, 1, 0"/>
+        </transform>
+        <film type="hdrfilm">
+            <integer name="width" value="256"/>
+            <integer name="height" value="256"/>
+            <string name="pixel_format" value="rgba"/>
+        </film>
+    </sensor>
+</scene>
+```
+
+```python
+import drjit as dr
+import mitsuba as mi
+import mi_shadowgs  # registers surfel_raster
+
+scene = mi.load_file("scene.xml")
+img = mi.render(scene)                        # [256, 256, 4 + 1 + 3]
+params = mi.traverse(scene)
+opt = mi.ad.Adam(lr=0.01)
+opt["surf.channels.sh"] = params["surf.channels.sh"]
+params.update(opt)
+for it in range(100):
+    img = mi.render(scene, params, seed=it)
+    loss = dr.mean(dr.square(img - target), axis=None)
+    dr.backward(loss)
+    opt.step()
+    params.update(opt)
+```
+
+Command line: `mi-shadowgs render MODEL.ply --cameras transforms.json --out DIR
+[--aov NAME ...] [--background R,G,B] [--color-channel NAME]` renders the same images from
+dataset cameras (`NAME.exr` linear RGBA, `NAME.png`, `NAME_<aov>.exr/.png`).
 """
 
 from __future__ import annotations

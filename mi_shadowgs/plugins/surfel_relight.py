@@ -1,23 +1,46 @@
-"""``surfel_relight``: a Mitsuba integrator that relights a decomposed surfel model (PLY).
+"""## `surfel_relight` (integrator)
 
-Properties (see docs/plugins.md for the table):
+Relights a decomposed surfel model (stage 4's PLY: `albedo`, `roughness`, `metallic`
+channels, optional `indirect_sh`) under the emitters of the Mitsuba scene it is loaded in,
+with shadows recomputed from shadow maps of the surfels
+(`mi_shadowgs.stages.relight.render`). Source: `mi_shadowgs/plugins/surfel_relight.py`.
 
-- ``filename`` (string, required): PLY model with ``albedo``, ``roughness`` and
-  ``metallic`` channels (stage 4's output; ``indirect_sh`` is optional), resolved with
-  Mitsuba's file resolver.
-- ``specular`` (boolean, default true): model the GGX lobe (false: diffuse only).
-- ``visibility`` (boolean, default true): shadows from shadow maps of the surfels (false:
-  V = 1, the "w/o visibility" ablation).
-- ``indirect`` (string, default "none"): "none" or "keep" (add the model's fitted
-  ``indirect_sh`` unchanged); the training light is not known here, so no scaling.
-- ``shadow_resolution`` (integer, default 512): shadow-map width = height in texels.
-- ``env_samples`` (integer, default 64): env-map samples per grid direction.
+- `filename` | string | (required) | | PLY model in the 2DGS layout with the material
+  channels; resolved like any Mitsuba file. A model without `albedo`/`roughness`/`metallic`
+  is refused with an error naming the missing channels.
+- `specular` | boolean | `true` | | Model the Cook-Torrance GGX lobe (`false`: diffuse
+  `(1 - m) a / pi` only, no GGX work).
+- `visibility` | boolean | `true` | | Shadows from shadow maps (`false`: V = 1, the paper's
+  "w/o visibility" ablation).
+- `indirect` | string | `"none"` | | `"none"` or `"keep"` (add the fitted `indirect_sh`
+  unchanged). The training light is not known to the plugin, so the library's default
+  `"scaled"` mode is not offered.
+- `shadow_resolution` | integer | `512` | | Shadow-map width = height (texels); the map
+  covers the surfels' bounding sphere.
+- `env_samples` | integer | `64` | | Samples per grid direction when integrating an
+  infinite emitter over the 128-direction grid.
 
-Lights are the scene's emitters: every ``directional`` emitter (its direction and
-irradiance) and every infinite emitter (``envmap``, ``constant``), integrated over the
-128-direction grid (``mi_shadowgs.stages.relight.render.envmap_grid_radiance``). Other
-emitters raise an error. Rendering is deterministic (no sampler, spp ignored) and not
-differentiable.
+**Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`) and
+every infinite emitter (`envmap`, `constant`: mean radiance over each of the 128 equal-area
+grid cells of the upper hemisphere, times `2 pi / 128`). Any other emitter type is an error,
+as is a scene without emitters. One shadow map per light direction is rendered per call.
+
+**Not used:** sampler, spp and seeds (deterministic); not differentiable (`render_forward`
+and `render_backward` are not implemented). The film gets `R, G, B` (and `A` = coverage).
+
+```xml
+<scene version="3.0.0">
+    <integrator type="surfel_relight">
+        <string name="filename" value="material.ply"/>
+        <boolean name="specular" value="false"/>
+    </integrator>
+    <emitter type="directional">
+        <vector name="direction" value="-0.5, -0.8, 0.3"/>
+        <rgb name="irradiance" value="3"/>
+    </emitter>
+    <sensor type="perspective"> ... <film type="hdrfilm"/> </sensor>
+</scene>
+```
 """
 
 from __future__ import annotations

@@ -73,7 +73,7 @@ def geometry_line(metrics: dict) -> str:
 def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
                  resume: bool = False, overwrite: bool = False, reuse: bool = False,
                  evaluate: bool = True, progress: bool = True, train=None,
-                 test=None) -> StageRun:
+                 test=None, on_test_view=None) -> StageRun:
     """Stage 1 on dataset ``data`` into ``folder`` (a run's ``geometry/``).
 
     Writes ``model.ply``, ``checkpoint/checkpoint.npz``, ``log.csv``, ``previews/``,
@@ -82,6 +82,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     is when finished or else continued (``reuse``, as ``run`` does), or refused; it is
     continued or reused only when its dataset fingerprint and settings match.
     ``train`` / ``test``: the splits, when the caller has loaded them already.
+    ``on_test_view(view, render)``: called on each test view the evaluation renders.
     """
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.checkpoint import has_checkpoint, load_checkpoint
@@ -123,7 +124,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
         save_ply(folder / "model.ply", surfels)
         line = ""
         if evaluate:
-            m = evaluate_geometry(surfels, test, config.raster)
+            m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view)
             m["surfels"] = surfels.count
             write_json(folder / "metrics.json", m)
             line = geometry_line(m)

@@ -599,12 +599,160 @@ def refine_directions(views: list[TrainView], channels: dict, dirs: np.ndarray,
     return refinement.dirs, refinement.irradiance
 
 
+@dataclasses.dataclass
+class MaterialFit:
+    """What a fit holds fixed (the surfels, the prepared views, the segments) and the shadow
+    maps of its current lights; made by ``setup_fit``."""
+
+    surfels: Surfels
+    views: list[TrainView]
+    seg: mi.UInt32  # [N] segment id per surfel
+    n_seg: int
+    config: MaterialConfig
+    vis_config: VisibilityConfig
+    bounds: SceneBounds
+    maps: object  # the current lights' shadow maps (None without visibility)
+
+    def shadow_maps(self, directions, resolution=None):
+        """Shadow maps of ``directions`` (at ``resolution``, default the visibility's)."""
+        if not self.config.use_visibility:
+            return None
+        cfg = self.vis_config if resolution is None else \
+            dataclasses.replace(self.vis_config, resolution=resolution)
+        return render_shadow_maps(self.surfels, directions, self.bounds, cfg)
+
+
+def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
+              masks: list[np.ndarray], config: MaterialConfig, bounds: SceneBounds,
+              vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
+              raster: RasterConfig = DEFAULT_RASTER, progress: bool = True,
+              state: MaterialState | None = None) -> tuple[MaterialFit, MaterialState]:
+    """Set-up: the training views' fixed lookups, the state at step 0 (or ``state``, from a
+    checkpoint) and the shadow maps of its lights."""
+    from tqdm import tqdm
+
+    if not (len(cameras) == len(images) == len(masks)) or not cameras:
+        raise ValueError("fit_material: need as many images and masks as cameras (>= 1)")
+    t0 = time.perf_counter()
+    seg = segment_ids(surfels)
+    n_seg = int(np.max(seg.numpy())) + 1 if surfels.count else 1
+    views = [prepare_view(surfels, c, im, m, config, raster)
+             for c, im, m in zip(tqdm(cameras, desc="stage 4: views", disable=not progress),
+                                 images, masks, strict=True)]
+    if state is None:
+        state = _initial_state(surfels, images, views, seg, n_seg, config)
+    state.timings["prepare_s"] = state.timings.get("prepare_s", 0.0) + \
+        time.perf_counter() - t0
+    fit = MaterialFit(surfels, views, seg, n_seg, config, vis_config, bounds, None)
+    # Per-view point/normal lookups are fixed: visibility of all active directions per view
+    # is re-evaluated on the fly (cheap gathers) rather than stored (V x H x W x L floats).
+    # The warm-up's maps up to its end (unless the checkpoint is inside the refinement that
+    # follows it), the full-resolution ones after.
+    warmup_res = min(config.warmup_map_resolution, vis_config.resolution)
+    fit.maps = fit.shadow_maps(state.directions, warmup_res if state.step < config.warmup or (
+        state.step == config.warmup and state.refine is None) else None)
+    return fit, state
+
+
+def refine_lights(fit: MaterialFit, state: MaterialState, on_unit=None) -> None:
+    """The light-direction refinement (or the rest of ``state.refine``), then the refined
+    lights' maps; nothing without refinement passes or visibility."""
+    if fit.config.refine_passes and fit.maps is not None:
+        state.directions = _refine(fit.views, state, fit.maps, fit.shadow_maps, fit.config,
+                                   on_unit)
+        fit.maps = fit.shadow_maps(state.directions)
+
+
+def end_warmup(fit: MaterialFit, state: MaterialState, on_unit=None) -> None:
+    """At step ``warmup``: prune the dark lights, the survivors' maps at full resolution
+    (both skipped when resuming inside the refinement that follows), refine the lights,
+    then add the indirect light and decide on the specular lobe (``auto``)."""
+    if state.refine is None:
+        # One host read at the phase boundary.
+        if fit.config.prune:
+            state.directions, fit.maps = _prune(state.opt, state.directions, fit.maps,
+                                                fit.config, fit.shadow_maps)
+        fit.maps = fit.shadow_maps(state.directions)
+    refine_lights(fit, state, on_unit)
+    _end_warmup(state, fit.config)
+
+
+def prune_due(config: MaterialConfig, step: int) -> bool:
+    """Whether the main phase prunes the lights before ``step``."""
+    return config.prune and step > config.warmup and config.prune_every > 0 and \
+        (step - config.warmup) % config.prune_every == 0
+
+
+def refine_step(config: MaterialConfig) -> int:
+    """The main phase's second refinement: half way (-1: none)."""
+    return (config.warmup + config.iterations) // 2 \
+        if config.iterations > config.warmup + 1 else -1
+
+
+def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
+    """One optimisation step: loss over ``views_per_step`` random views, Adam, projection.
+    Returns the mean loss since the last history entry on a ``log_every`` step, else None."""
+    config, opt, ch = fit.config, state.opt, state.channels
+    w_light = dr.exp(opt["log_light"]) * solid_angle(config.n_directions)
+    lights = shading.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
+    cur = dict(ch)
+    for k in opt.keys():
+        if k not in _LIGHT_KEYS:
+            cur[k] = opt[k]
+    total = mi.Float(0.0)
+    for _ in range(config.views_per_step):
+        v = fit.views[int(state.rng.integers(len(fit.views)))]
+        vis = None if fit.maps is None else \
+            fit.maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+        total += view_loss(v, cur, lights, vis, config, state.specular)
+    total = total / config.views_per_step
+    dr.backward(total)
+    opt.step()
+    for k in opt.keys():
+        if k not in _LIGHT_KEYS:
+            ch[k] = opt[k]
+    _clamp_channels(ch, fit.seg, fit.n_seg, config, state.specular)
+    for k in opt.keys():
+        if k not in _LIGHT_KEYS:
+            opt[k] = ch[k]  # keeps Adam's state (same shape)
+    state.loss_sum += dr.detach(total)
+    state.step += 1
+    if state.step % config.log_every != 0:
+        return None
+    # A host read every log_every steps.
+    mean = float(state.loss_sum.numpy()[0]) / config.log_every
+    state.history.append((state.step, mean))
+    state.loss_sum = mi.Float(0.0)
+    return mean
+
+
+def fit_result(fit: MaterialFit, state: MaterialState) -> MaterialResult:
+    """The fitted model: the input geometry with the material channels, and the light map
+    over the grid (each light at its nearest grid direction, as the dataset builds the
+    ground-truth map from its directional lights)."""
+    config, surfels, ch = fit.config, fit.surfels, state.channels
+    light = np.exp(state.opt["log_light"].numpy().astype(np.float64))
+    active = nearest_grid_index(state.directions, light_grid(config.n_directions))
+    radiance = np.zeros(config.n_directions)
+    np.add.at(radiance, active, light)
+    out = Surfels(surfels.position, surfels.log_scale, surfels.rotation, surfels.opacity_logit,
+                  dict(surfels.channels))
+    for k in ("albedo", "roughness", "metallic", shading.INDIRECT_CHANNEL):
+        out.channels[k] = mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
+    return MaterialResult(out, LightModel(radiance, active, state.directions,
+                                          light * solid_angle(config.n_directions)),
+                          state.specular, config.use_visibility, state.history,
+                          dict(state.timings))
+
+
 def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
                  masks: list[np.ndarray], config: MaterialConfig, bounds: SceneBounds,
                  vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = True,
                  state: MaterialState | None = None, on_checkpoint=None) -> MaterialResult:
-    """Fit materials, light map and indirect light to the training views (the loop).
+    """Fit materials, light map and indirect light to the training views (the loop over
+    ``setup_fit``, ``end_warmup``, ``prune_due``/``refine_lights``, ``fit_step`` and
+    ``fit_result``).
 
     ``state`` (``MaterialState.from_checkpoint``) continues an interrupted fit;
     ``on_checkpoint(state)`` is called every ``checkpoint_every`` steps, every
@@ -614,42 +762,13 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
 
     from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
 
-    if not (len(cameras) == len(images) == len(masks)) or not cameras:
-        raise ValueError("fit_material: need as many images and masks as cameras (>= 1)")
     clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
-    t0 = time.perf_counter()
-    seg = segment_ids(surfels)
-    n_seg = int(np.max(seg.numpy())) + 1 if surfels.count else 1
-    views = [prepare_view(surfels, c, im, m, config, raster)
-             for c, im, m in zip(tqdm(cameras, desc="stage 4: views", disable=not progress),
-                                 images, masks, strict=True)]
-    grid = light_grid(config.n_directions)
-    dw = solid_angle(config.n_directions)
-    warmup_res = min(config.warmup_map_resolution, vis_config.resolution)
-
-    def shadow_maps(directions, resolution=None):
-        if not config.use_visibility:
-            return None
-        cfg = vis_config if resolution is None else \
-            dataclasses.replace(vis_config, resolution=resolution)
-        return render_shadow_maps(surfels, directions, bounds, cfg)
-
-    if state is None:
-        state = _initial_state(surfels, images, views, seg, n_seg, config)
-    state.timings["prepare_s"] = state.timings.get("prepare_s", 0.0) + \
-        time.perf_counter() - t0
-    # Per-view point/normal lookups are fixed: visibility of all active directions per view
-    # is re-evaluated on the fly (cheap gathers) rather than stored (V x H x W x L floats).
-    # The warm-up's maps up to its end (unless the checkpoint is inside the refinement that
-    # follows it), the full-resolution ones after.
-    maps = shadow_maps(state.directions, warmup_res if state.step < config.warmup or (
-        state.step == config.warmup and state.refine is None) else None)
-    opt, ch = state.opt, state.channels
+    fit, state = setup_fit(surfels, cameras, images, masks, config, bounds, vis_config,
+                           raster, progress, state)
     bar = tqdm(total=config.iterations, initial=state.step, desc="stage 4: fit",
                disable=not progress)
     t_phase = time.perf_counter() - state.timings.pop("phase_s", 0.0)
-    refine_again = (config.warmup + config.iterations) // 2 \
-        if config.iterations > config.warmup + 1 else -1
+    refine_again = refine_step(config)
 
     def save() -> None:
         state.timings["phase_s"] = time.perf_counter() - t_phase
@@ -667,60 +786,23 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
     with bar, clock.running():
         while state.step < config.iterations:
             it = state.step
-            if state.refine is None:  # else this step resumes inside its refinement
-                if config.prune and it > config.warmup and config.prune_every > 0 and \
-                        (it - config.warmup) % config.prune_every == 0:
-                    # A host read every prune_every steps (not per step): drop dark lights.
-                    state.directions, maps = _prune(opt, state.directions, maps, config,
-                                                    shadow_maps)
-                if it == config.warmup:
+            if it == config.warmup:
+                if state.refine is None:  # else this step resumes inside its refinement
                     dr.sync_thread()
                     state.timings["warmup_total_s"] = time.perf_counter() - t_phase
-                    # One host read at the phase boundary: prune, the survivors' maps at
-                    # full resolution.
-                    if config.prune:
-                        state.directions, maps = _prune(opt, state.directions, maps, config,
-                                                        shadow_maps)
-                    maps = shadow_maps(state.directions)
-            if it in (config.warmup, refine_again) and config.refine_passes and \
-                    maps is not None:
-                state.directions = _refine(views, state, maps, shadow_maps, config,
-                                           refined_one)
-                maps = shadow_maps(state.directions)
-            if it == config.warmup:
-                _end_warmup(state, config)
+                end_warmup(fit, state, refined_one)
                 t_phase = time.perf_counter()
-            w_light = dr.exp(opt["log_light"]) * dw
-            lights = shading.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
-            cur = dict(ch)
-            for k in opt.keys():
-                if k not in _LIGHT_KEYS:
-                    cur[k] = opt[k]
-            total = mi.Float(0.0)
-            for _ in range(config.views_per_step):
-                v = views[int(state.rng.integers(len(views)))]
-                vis = None if maps is None else \
-                    maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-                total += view_loss(v, cur, lights, vis, config, state.specular)
-            total = total / config.views_per_step
-            dr.backward(total)
-            opt.step()
-            for k in opt.keys():
-                if k not in _LIGHT_KEYS:
-                    ch[k] = opt[k]
-            _clamp_channels(ch, seg, n_seg, config, state.specular)
-            for k in opt.keys():
-                if k not in _LIGHT_KEYS:
-                    opt[k] = ch[k]  # keeps Adam's state (same shape)
-            state.loss_sum += dr.detach(total)
-            state.step = it + 1
-            if state.step % config.log_every == 0:
-                # A host read every log_every steps.
-                mean = float(state.loss_sum.numpy()[0]) / config.log_every
-                state.history.append((state.step, mean))
+            else:
+                if state.refine is None and prune_due(config, it):
+                    # A host read every prune_every steps (not per step): drop dark lights.
+                    state.directions, fit.maps = _prune(state.opt, state.directions,
+                                                        fit.maps, config, fit.shadow_maps)
+                if it == refine_again:
+                    refine_lights(fit, state, refined_one)
+            mean = fit_step(fit, state)
+            if mean is not None:
                 bar.set_postfix(loss=f"{mean:.4f}", dirs=len(state.directions),
                                 spec=int(state.specular))
-                state.loss_sum = mi.Float(0.0)
             bar.update(1)
             if on_checkpoint and (clock.due(state.step) or state.step == config.iterations):
                 save()
@@ -729,19 +811,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
     dr.sync_thread()
     phase = "main_s" if config.iterations > config.warmup else "warmup_total_s"
     state.timings[phase] = time.perf_counter() - t_phase
-    # The light map over the grid: each light at its nearest grid direction (as the
-    # dataset builds the ground-truth map from its directional lights).
-    light = np.exp(opt["log_light"].numpy().astype(np.float64))
-    active = nearest_grid_index(state.directions, grid)
-    radiance = np.zeros(config.n_directions)
-    np.add.at(radiance, active, light)
-    out = Surfels(surfels.position, surfels.log_scale, surfels.rotation, surfels.opacity_logit,
-                  dict(surfels.channels))
-    for k in ("albedo", "roughness", "metallic", shading.INDIRECT_CHANNEL):
-        out.channels[k] = mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
-    return MaterialResult(out, LightModel(radiance, active, state.directions, light * dw),
-                          state.specular, config.use_visibility, state.history,
-                          dict(state.timings))
+    return fit_result(fit, state)
 
 
 def _initial_state(surfels: Surfels, images: list[np.ndarray], views: list[TrainView], seg,
