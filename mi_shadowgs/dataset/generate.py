@@ -18,6 +18,7 @@ import numpy as np
 from mi_shadowgs.config import get_preset
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.core.envmap import load_envmap
 from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X
 from mi_shadowgs.dataset.scene import Light, SceneSetup
 
@@ -251,5 +252,5 @@ def lit_scene(setup: SceneSetup, lights: list[Light] | None = None,
         desc[lt.name] = {"type": "directional", "direction": [-x for x in lt.direction],
                          "irradiance": {"type": "rgb", "value": list(lt.irradiance)}}
     if envmap is not None:
-        desc["envmap"] = {"type": "envmap", "filename": str(envmap), "scale": envmap_scale}
+        desc["envmap"] = load_envmap(envmap, envmap_scale)
     return mi.load_dict(desc, optimize=False)

@@ -214,10 +214,9 @@ def envmap_file(entry: dict, root: Path) -> Path:
 def load_envmap(entry: dict, root: Path):
     """The Mitsuba ``envmap`` emitter of a ``lights.json`` relighting (Y-up lat-long,
     identity to_world, as the generator rendered it)."""
-    import mitsuba as mi
+    from mi_shadowgs.core.envmap import load_envmap
 
-    return mi.load_dict({"type": "envmap", "filename": str(envmap_file(entry, root)),
-                         "scale": float(entry.get("scale", 1.0))})
+    return load_envmap(envmap_file(entry, root), float(entry.get("scale", 1.0)))
 
 
 def light_json(result: fit.MaterialResult) -> dict:
