@@ -206,9 +206,9 @@ def test_generate_deterministic_and_recognised(tmp_path, capsys):
                 capsys)[0] == 0
     assert _run(["default", "--out", str(b), "--seed", "7", *TINY], capsys)[0] == 0
     la, lb = _listing(a), _listing(b)
-    # 2 + 1 views x 10 files, 3 relit test images, 2 transforms, lights.json, dataset.json,
-    # the manifest
-    assert len(la) == 3 * 10 + 3 + 5
+    # 2 + 1 views x 10 files, 4 relit test images (3 directional, the procedural sky), 2
+    # transforms, lights.json, dataset.json, the sky's env map, the manifest
+    assert len(la) == 3 * 10 + 4 + 6
     assert json.loads(la[MANIFEST_NAME])["files"] == sorted(set(la) - {MANIFEST_NAME})
     assert la.keys() == lb.keys()
     differ = [k for k in la if la[k] != lb[k]]
@@ -299,7 +299,8 @@ def test_killed_generate_resumes_from_its_views(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(generate.ViewRenderer, "render", lambda self, *a, **kw:
                         (calls.append(1), render(self, *a, **kw))[1])
     assert _run([*argv, "--out", str(out)], capsys)[0] == 0
-    assert len(calls) == 1 + 2  # the test view and 2 of its 3 relit images: nothing else
+    # The test view and 3 of its 4 relit images (3 directional, the sky): nothing else.
+    assert len(calls) == 1 + 3
     assert _listing(out) == _listing(ref)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "ref"]
 
