@@ -47,7 +47,7 @@ def test_round_trip(generated):
     np.testing.assert_array_equal(train.stack("visibility"), gt["visibility"])
     # image alpha (coverage > 0.5) agrees with the traced mask except at silhouette pixels
     assert np.mean(train.stack("mask") == gt["mask"]) > 0.97
-    assert set(test.views[0].relit) == {"sun_high", "sun_low", "pair_cross"}
+    assert set(test.views[0].relit) == {"sun_high", "sun_low", "pair_cross", "env_sky_envmap"}
     assert train.lights["training"]["lights"][0]["name"] == "light0"
     assert train.info["seed"] == 3
     np.testing.assert_allclose(train.views[0].image, read_exr(out / "train/r_000.exr")[..., :3])
