@@ -1,4 +1,4 @@
-"""``mi-shadowgs train DATA --out RUN --stage geometry [--preset P] [--resume]``.
+"""``mi-shadowgs train DATA --out RUN [--preset P] [--resume]``: stage 1, the 2DGS geometry.
 
 Writes ``RUN/geometry/``: ``model.ply`` (2DGS layout), ``checkpoint/checkpoint.npz``
 (atomic; ``--resume`` continues from it), ``log.csv`` (iteration, loss terms, PSNR, surfel
@@ -13,13 +13,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-STAGES = ("geometry",)
+GEOMETRY_FOLDER = "geometry"  # the stage's subfolder of the run, as `mi-shadowgs run` has it
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("data", help="dataset folder (transforms_train.json, ...)")
     parser.add_argument("--out", required=True, help="run folder; the stage writes a subfolder")
-    parser.add_argument("--stage", choices=STAGES, default="geometry")
     parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
     parser.add_argument("--iterations", type=int, default=None, help="override the preset")
     parser.add_argument("--resume", action="store_true",
@@ -39,7 +38,7 @@ def run(args) -> int:
     config = get_config(args.preset)
     if args.iterations is not None:
         config = with_overrides(config, {"iterations": args.iterations}, "geometry")
-    result = run_geometry(args.data, Path(args.out) / args.stage, config, preset=args.preset,
+    result = run_geometry(args.data, Path(args.out) / GEOMETRY_FOLDER, config, preset=args.preset,
                           resume=args.resume, overwrite=args.overwrite,
                           evaluate=not args.no_eval, progress=not args.no_progress)
     if result.summary:
