@@ -196,7 +196,15 @@ def test_tiny_decomposition_recovers_albedo_and_light():
         {"iterations": 250, "warmup": 80, "specular": "off", "log_every": 50},
         "material",
     )
-    res = material_fit.fit_material(s, cams, imgs, masks, cfg, bounds, vcfg, progress=False)
+    # One thread: with more, float atomics add in a varying order, and this unconverged fit
+    # amplifies that (a fresh clone once measured ratio[0] 1.54 where this one gives 2.4).
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        res = material_fit.fit_material(s, cams, imgs, masks, cfg, bounds, vcfg,
+                                        progress=False)
+    finally:
+        dr.set_thread_count(threads)
     # Light: the true direction dominates the fitted map.
     gt_map = np.zeros(128)
     gt_map[k_true] = e_true / solid_angle(128)
@@ -214,8 +222,8 @@ def test_tiny_decomposition_recovers_albedo_and_light():
     a0, a1 = a[seg == 0].mean(0), a[seg == 1].mean(0)
     assert np.ptp(a[seg == 0], axis=0).max() < 1e-6  # the hard constraint holds exactly
     ratio, ratio_true = a0 / a1, np.array([0.6, 0.5, 0.3]) / np.array([0.2, 0.4, 0.7])
-    # 250 steps of a 4-view 32 px fit are not converged (L1 ~0.02, measured ratio
-    # [2.4, 1.05, 0.63] vs [3, 1.25, 0.43]): the colours must separate the right way
+    # 250 steps of a 4-view 32 px fit are not converged (L1 ~0.02, measured ratio on one
+    # thread [2.73, 1.22, 0.49] vs [3, 1.25, 0.43]): the colours must separate the right way
     # (with the indirect light fitted from step 0 they did not: ratio [1, 1, 1]).
     assert ratio[0] > 2.0 and 0.85 < ratio[1] < 1.5 and ratio[2] < 0.8, (ratio, ratio_true)
     assert res.history[-1][1] < 0.5 * res.history[0][1]  # the loss went down
