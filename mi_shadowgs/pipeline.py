@@ -360,7 +360,7 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
         summary["grid"] = grid
         figures = []
         if (run / "report" / "light_map.png").is_file():
-            figures.append({"title": "light map, 22x12 blocks (paper Fig. 5): estimate | "
+            figures.append({"title": "light map, 22x12 blocks: estimate | "
                                      "ground truth; rings: true lights, crosses: fitted",
                             "path": "report/light_map.png", "wide": True})
         else:
