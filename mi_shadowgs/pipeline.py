@@ -414,14 +414,16 @@ def _per_view_tables(metrics: dict) -> list[dict]:
 def _speed_table(metrics: dict, dataset: dict) -> dict | None:
     """Render time of the test views per relighting and extrapolated to the paper's 200."""
     rows = []
+    relit = metrics.get("relighting") or {}
     views = len(metrics.get("test_views") or (metrics.get("albedo_per_view") or {})
-                .get("psnr") or [])
+                .get("psnr") or []) or max([r.get("views") or 0 for r in relit.values()],
+                                           default=0)
     if metrics.get("decomposition_render_s") is not None and views:
         t = metrics["decomposition_render_s"]
         rows.append(["decomposition (albedo, irradiance)", "fitted",
                      metrics.get("active_directions"), views, t, t / views,
                      PAPER_VIEWS * t / views])
-    for name, r in (metrics.get("relighting") or {}).items():
+    for name, r in relit.items():
         if r.get("render_s") is None or not r.get("views"):
             continue
         t, n = r["render_s"], r["views"]
@@ -460,6 +462,8 @@ def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
            {"name": "Python", "value": platform.python_version()},
            {"name": "variant", "value": variant},
            {"name": "device", "value": device_name(variant)},
+           *([{"name": "Dr.Jit threads", "value": dr.thread_count()}]
+             if variant.startswith("llvm") else []),
            {"name": "preset", "value": config.preset}]
     links = [run / "geometry" / "config.json"]
     links += [run / part / MANIFEST_NAME for part in ("", "geometry", "segmentation")]
