@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.io.atomic import atomic_dir, write_json
+from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
@@ -97,6 +97,8 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             out.claim(*(f"figures/{p.name}" for p in sorted(tmp.iterdir())))
         write_json(out.path("grid.json"), grid)
         write_json(out.path("metrics.json"), metrics)
+        write_text(out.path("history.csv"), "step,loss\n" + "".join(
+            f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
         out.finish()
     return metrics, fit_s
 
@@ -171,6 +173,9 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
                                                   overwrite, progress)
             if fit_s is not None:
                 stages.append((f"material ({name})", fit_s))
+        with atomic_dir(run / "report", overwrite=True) as tmp:
+            write_report_figures(tmp, run, data)
+            top.claim(*(f"report/{p.name}" for p in sorted(tmp.iterdir())))
         summary = build_summary(run, data, config, results, stages,
                                 time.perf_counter() - t_start)
         write_json(top.path("summary.json"), summary)
@@ -178,6 +183,110 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         write_report(run)
         top.finish()
     return summary
+
+
+def _csv_columns(path: Path) -> dict[str, list[float]]:
+    """Numeric columns of a CSV file (empty or non-numeric cells: NaN); {} if absent."""
+    import csv
+
+    if not path.is_file():
+        return {}
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+
+    def num(v) -> float:
+        try:
+            return float(v)
+        except (TypeError, ValueError):
+            return float("nan")
+
+    return {k: [num(r.get(k)) for r in rows] for k in (rows[0] if rows else {})}
+
+
+def _angles(direction) -> tuple[float, float]:
+    """(azimuth, elevation) in degrees of a unit direction, as ``core.directions`` has them."""
+    import numpy as np
+
+    x, y, z = (float(c) for c in np.asarray(direction, np.float64).reshape(3))
+    return float(np.degrees(np.arctan2(-z, x)) % 360.0), \
+        float(np.degrees(np.arcsin(np.clip(y, -1.0, 1.0))))
+
+
+def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
+    """The labelled 22x12 light map of a variant's ``light.json`` beside the dataset's
+    ground truth (``lights.json``); False when the fit has no light.json."""
+    import numpy as np
+
+    from mi_shadowgs.core.directions import map_to_blocks
+    from mi_shadowgs.io.plots import light_map_png
+
+    fit = _json_or_empty(variant / "light.json")
+    if not fit.get("radiance"):
+        return False
+
+    def blocks(radiance) -> np.ndarray:
+        r = np.asarray(radiance, np.float64)
+        return map_to_blocks(r.mean(-1) if r.ndim == 2 else r)
+
+    truth = _json_or_empty(data / "lights.json").get("training", {})
+    gt_map = truth.get("light_map", {}).get("radiance")
+    errors = _json_or_empty(variant / "metrics.json").get("angular_error_deg") or []
+    gt_lights = []
+    for k, lt in enumerate(truth.get("lights", [])):
+        if "azimuth_deg" in lt and "elevation_deg" in lt:
+            az, el = float(lt["azimuth_deg"]), float(lt["elevation_deg"])
+        elif "direction" in lt:
+            az, el = _angles(lt["direction"])
+        else:
+            continue
+        err = errors[k] if k < len(errors) and errors[k] is not None else None
+        err_text = f", error {err:.1f}\u00b0" if err is not None and err == err else ""
+        gt_lights.append({"azimuth": az % 360.0, "elevation": el, "label":
+                          f"{lt.get('name', f'light {k}')} (az {az:.0f}\u00b0, "
+                          f"el {el:.0f}\u00b0){err_text}"})
+    fitted = []
+    dirs = np.asarray(fit.get("directions") or np.zeros((0, 3)), np.float64).reshape(-1, 3)
+    w = np.asarray(fit.get("irradiance") if fit.get("irradiance") is not None
+                   else np.ones(len(dirs)), np.float64)
+    if w.ndim == 2 and w.shape[0] != len(dirs):
+        w = w.T  # [3, K] -> [K, 3]
+    w = w.mean(-1) if w.ndim == 2 else w
+    for d, weight in zip(dirs, w.reshape(-1) if w.size == len(dirs) else np.ones(len(dirs)),
+                         strict=True):
+        az, el = _angles(d)
+        fitted.append({"azimuth": az, "elevation": el, "weight": float(weight)})
+    light_map_png(path, blocks(fit["radiance"]), blocks(gt_map) if gt_map else None,
+                  gt_lights, fitted)
+    return True
+
+
+def write_report_figures(folder: Path, run: Path, data: Path) -> None:
+    """The report's plots into ``folder`` from the run's files, each only when its data is
+    there: stage-1 training curves (``geometry/log.csv``), stage-4 loss
+    (``material/*/history.csv``), the labelled light map of the full fit and the colour bar
+    of the error maps."""
+    from mi_shadowgs.io.plots import colorbar_png, curves_png
+
+    log = _csv_columns(run / "geometry" / "log.csv")
+    if log.get("iteration"):
+        it = log["iteration"]
+        panels = [{"ylabel": label, "log": key == "loss",
+                   "lines": [{"x": it, "y": log[key]}]}
+                  for key, label in (("loss", "training loss"), ("psnr", "training PSNR (dB)"),
+                                     ("surfels", "surfels")) if key in log]
+        curves_png(folder / "geometry_curves.png", panels, title="Stage 1: geometry")
+    lines = []
+    for hist in sorted((run / "material").glob("*/history.csv")):
+        h = _csv_columns(hist)
+        if h.get("step"):
+            lines.append({"x": h["step"], "y": h["loss"], "label": hist.parent.name})
+    if lines:
+        curves_png(folder / "material_loss.png",
+                   [{"ylabel": "loss (mean since last entry)", "log": True, "lines": lines}],
+                   xlabel="step", title="Stage 4: material and light")
+    _light_map_figure(folder / "light_map.png", run / "material" / "full", data)
+    if (run / "material" / "full" / "grid.json").is_file():
+        colorbar_png(folder / "error_scale.png")
 
 
 def _json_or_empty(path: Path) -> dict:
@@ -226,6 +335,16 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
             "name": "Stage 2: material segmentation", "seconds": secs.get("segmentation"),
             "metrics": m, "figures": [{"title": p.stem, "path": str(p.relative_to(run))}
                                       for p in segs]})
+    if (run / "report" / "geometry_curves.png").is_file() and summary["stages"] and \
+            summary["stages"][0]["name"].startswith("Stage 1"):
+        summary["stages"][0]["figures"].insert(0, {
+            "title": "training curves (geometry/log.csv)", "path": "report/geometry_curves.png",
+            "wide": True})
+    summary["tables"] += _per_view_tables(results.get("full", {}))
+    speed = _speed_table(results.get("full", {}), info)
+    if speed:
+        summary["tables"].append(speed)
+    summary["provenance"] = _provenance(run, config, mi.variant())
     full = run / "material" / "full"
     if (full / "grid.json").is_file():
         grid = json.loads((full / "grid.json").read_text())
@@ -233,15 +352,127 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
                          "cells": [f"material/full/figures/{c}" for c in r["cells"]]}
                         for r in grid["rows"]]
         grid["title"] = "Input, albedo, irradiance and relighting (cf. paper Fig. 3)"
+        if any(c.endswith(" error") for c in grid["columns"]):
+            grid["note"] = ("error: |estimate - ground truth| as displayed (sRGB, mean over "
+                            "RGB); estimates aligned to ground truth as in the table above")
+            if (run / "report" / "error_scale.png").is_file():
+                grid["legend"] = "report/error_scale.png"
         summary["grid"] = grid
+        figures = []
+        if (run / "report" / "light_map.png").is_file():
+            figures.append({"title": "light map, 22x12 blocks: estimate | "
+                                     "ground truth; rings: true lights, crosses: fitted",
+                            "path": "report/light_map.png", "wide": True})
+        else:
+            figures.append({"title": "light map 22x12: estimate | ground truth",
+                            "path": "material/full/figures/light_map.png"})
+        if (run / "report" / "material_loss.png").is_file():
+            figures.append({"title": "stage-4 loss (material/*/history.csv)",
+                            "path": "report/material_loss.png", "wide": True})
         summary["stages"].append({
             "name": "Stages 3-5: visibility, decomposition, relighting",
             "seconds": secs.get("material (full)"),
             "metrics": {k: v for k, v in results.get("full", {}).items()
                         if not isinstance(v, (dict, list))},
-            "figures": [{"title": "light map 22x12: estimate | ground truth",
-                         "path": "material/full/figures/light_map.png"}]})
+            "figures": figures})
+    plots = sorted((run / "speed_error").glob("*.png"))
+    summary["stages"].append({
+        "name": "Speed against error",
+        "figures": [{"title": p.stem, "path": str(p.relative_to(run)), "wide": True}
+                    for p in plots],
+        "note": None if plots else "No speed-against-error plots for this run "
+                                   "(`python -m validation.speed_error` writes them into "
+                                   "RUN/speed_error/)."})
     return summary
+
+
+PAPER_RENDER_S = 100.0  # paper Sec. V-A4: "Rendering the 200 test views takes ~100 seconds"
+PAPER_VIEWS = 200
+
+
+def _per_view_tables(metrics: dict) -> list[dict]:
+    """PSNR/SSIM/LPIPS of each test view: albedo and every relighting (full fit)."""
+    per = {"albedo": metrics.get("albedo_per_view")}
+    per.update({name: r.get("per_view") for name, r in (metrics.get("relighting") or {}).items()})
+    per = {k: v for k, v in per.items() if isinstance(v, dict) and v.get("psnr")}
+    if not per:
+        return []
+    n = max(len(v["psnr"]) for v in per.values())
+    names = metrics.get("test_views") or [f"view {i}" for i in range(n)]
+    cols, rows = ["view"], [[names[i] if i < len(names) else f"view {i}"] for i in range(n)]
+    for kind, v in per.items():
+        for m in ("psnr", "ssim", "lpips"):
+            cols.append(f"{kind} {m.upper()}")
+            vals = v.get(m) or []
+            for i, row in enumerate(rows):
+                row.append(vals[i] if i < len(vals) else None)
+    return [{"title": "Per test view (full fit)", "columns": cols, "rows": rows,
+             "note": "relit views: albedo scaled by one global per-channel factor; n/a: not "
+                     "computed (see the table above)"}]
+
+
+def _speed_table(metrics: dict, dataset: dict) -> dict | None:
+    """Render time of the test views per relighting and extrapolated to the paper's 200."""
+    rows = []
+    relit = metrics.get("relighting") or {}
+    views = len(metrics.get("test_views") or (metrics.get("albedo_per_view") or {})
+                .get("psnr") or []) or max([r.get("views") or 0 for r in relit.values()],
+                                           default=0)
+    if metrics.get("decomposition_render_s") is not None and views:
+        t = metrics["decomposition_render_s"]
+        rows.append(["decomposition (albedo, irradiance)", "fitted",
+                     metrics.get("active_directions"), views, t, t / views,
+                     PAPER_VIEWS * t / views])
+    for name, r in relit.items():
+        if r.get("render_s") is None or not r.get("views"):
+            continue
+        t, n = r["render_s"], r["views"]
+        rows.append([name, r.get("type"), r.get("light_directions"), n, t, t / n,
+                     PAPER_VIEWS * t / n])
+    if not rows:
+        return None
+    rows.append(["paper (one RTX A6000)", "", 128, PAPER_VIEWS, PAPER_RENDER_S,
+                 PAPER_RENDER_S / PAPER_VIEWS, PAPER_RENDER_S])
+    cfg = dataset.get("config") or {}
+    size = f" of {cfg['width']}x{cfg['height']} px" if "width" in cfg and "height" in cfg else ""
+    return {"title": f"Render speed for {PAPER_VIEWS} test views (paper Sec. V-A4)",
+            "columns": ["render", "lights", "light directions", "views rendered", "time (s)",
+                        "per view (s)", f"{PAPER_VIEWS} views (s)"],
+            "rows": rows,
+            "note": f"Measured on the run's test views{size}; the {PAPER_VIEWS}-view time is "
+                    "extrapolated linearly from the measured time per view, not measured. "
+                    "Shadow maps are rendered once per light and reused for every view, so "
+                    "the extrapolation overestimates. The paper's row is its own figure "
+                    "(its resolution and GPU), not measured here."}
+
+
+def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
+    """Commit, versions, variant, device and settings of the run, with links to the
+    stages' resolved settings (manifests, config files)."""
+    import platform
+
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_shadowgs.io.provenance import MANIFEST_NAME, device_name, git_commit
+
+    out = [{"name": "commit", "value": git_commit()},
+           {"name": "Mitsuba", "value": mi.__version__},
+           {"name": "Dr.Jit", "value": dr.__version__},
+           {"name": "Python", "value": platform.python_version()},
+           {"name": "variant", "value": variant},
+           {"name": "device", "value": device_name(variant)},
+           *([{"name": "Dr.Jit threads", "value": dr.thread_count()}]
+             if variant.startswith("llvm") else []),
+           {"name": "preset", "value": config.preset}]
+    links = [run / "geometry" / "config.json"]
+    links += [run / part / MANIFEST_NAME for part in ("", "geometry", "segmentation")]
+    links += sorted((run / "material").glob(f"*/{MANIFEST_NAME}"))
+    for path in links:
+        if path.is_file():
+            rel = path.relative_to(run).as_posix()
+            out.append({"name": "settings", "value": rel, "href": rel})
+    return out
 
 
 def _previews(run: Path) -> list[dict]:

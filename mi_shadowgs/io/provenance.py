@@ -362,3 +362,48 @@ class Output:
         # Parts keep their own manifests (a stage written before the failure stays usable).
         clear(self.folder, {**self._manifest, "parts": []})
         _prune_empty(self.folder, self._existing_root)
+
+
+def git_commit(path: str | os.PathLike | None = None) -> str:
+    """The commit of the git checkout holding ``path`` (default: this package), with
+    ``+changes`` when its tracked files differ from it; "unknown" outside a checkout or
+    without git."""
+    import subprocess
+
+    where = Path(path) if path is not None else Path(__file__).resolve().parents[1]
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(where), *args], capture_output=True,
+                              text=True, timeout=20, check=True).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return commit + (" +changes" if dirty else "") if commit else "unknown"
+
+
+def device_name(variant: str) -> str:
+    """The device a variant runs on: the GPU's name on ``cuda_*`` (``nvidia-smi``), else the
+    CPU model (``/proc/cpuinfo``) and its core count; "unknown" when neither can be read."""
+    import subprocess
+
+    if variant.startswith("cuda"):
+        try:
+            names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"],
+                                   capture_output=True, text=True, timeout=20,
+                                   check=True).stdout.split("\n")
+            return names[0].strip() or "unknown GPU"
+        except (OSError, subprocess.SubprocessError):
+            return "unknown GPU"
+    model = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith(("model name", "hardware", "processor\t: ")) and \
+                    ":" in line and not line.split(":", 1)[1].strip().isdigit():
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model} ({os.cpu_count()} cores)"

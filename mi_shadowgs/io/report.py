@@ -6,7 +6,13 @@ The pipeline records what each stage produced in ``RUN/summary.json``::
      "stages": [{"name": ..., "seconds": ..., "metrics": {...},
                  "figures": [{"title": ..., "path": "relative/to/RUN.png"}]}],
      "tables": [{"title": ..., "columns": [...], "rows": [[...], ...], "note": ...}],
-     "grid": {"columns": [...], "rows": [{"label": ..., "cells": ["path", ...]}]}}
+     "grid": {"columns": [...], "rows": [{"label": ..., "cells": ["path", ...]}],
+              "note": ..., "legend": "path.png"},
+     "provenance": [{"name": ..., "value": ..., "href": "optional/link"}]}
+
+A figure with ``"wide": true`` is a plot shown at its own size (up to the page's width);
+others are pixel images shown enlarged. The page fits a 1400-px window: the grid's images
+scale with its columns and wide tables scroll.
 
 and this module turns it into ``RUN/report.html``. It knows nothing about the stages, so a
 stage adds figures or metrics without touching the report.
@@ -22,15 +28,26 @@ from pathlib import Path
 from mi_shadowgs.io.atomic import write_text
 
 _CSS = """
-body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1200px; color: #222; }
+* { box-sizing: border-box; }
+body { font-family: system-ui, sans-serif; margin: 1.5em auto; padding: 0 1em;
+       max-width: 1360px; color: #222; }
+img { max-width: 100%; height: auto; }
 h1 { font-size: 1.6em; } h2 { margin-top: 1.6em; border-bottom: 1px solid #ccc; }
-table { border-collapse: collapse; margin: 0.6em 0; }
+table { border-collapse: collapse; margin: 0.6em 0; max-width: 100%; }
 td, th { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
 th { background: #f3f3f3; } td:first-child, th:first-child { text-align: left; }
-figure { display: inline-block; margin: 0.3em; text-align: center; }
+.scroll { overflow-x: auto; max-width: 100%; }
+figure { display: inline-block; margin: 0.3em; text-align: center; vertical-align: top; }
 figure img { image-rendering: pixelated; width: 192px; border: 1px solid #ddd; }
+figure.plot { display: block; }
+figure.plot img { image-rendering: auto; width: auto; max-width: 100%; border: none; }
 figcaption { font-size: 0.8em; }
-.grid img { width: 128px; image-rendering: pixelated; }
+table.grid { table-layout: fixed; width: 100%; }
+table.grid td, table.grid th { padding: 1px; font-size: 0.7em; text-align: center;
+                               overflow-wrap: anywhere; }
+table.grid th:first-child { width: 4.5em; }
+.grid img { width: 100%; max-width: 160px; image-rendering: pixelated; display: block;
+            margin: auto; }
 .note { color: #666; font-size: 0.9em; }
 """
 
@@ -63,13 +80,23 @@ def render_html(summary: dict, run: Path) -> str:
     if info:
         out.append("<table>" + "".join(f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>"
                                        for k, v in info.items()) + "</table>")
+    prov = summary.get("provenance") or []
+    if prov:
+        out.append("<h2>Provenance</h2><table>")
+        for item in prov:
+            value = _fmt(item.get("value"))
+            if item.get("href"):
+                value = f"<a href='{html.escape(item['href'])}'>{value}</a>"
+            out.append(f"<tr><th>{html.escape(str(item.get('name', '')))}</th>"
+                       f"<td>{value}</td></tr>")
+        out.append("</table>")
     for table in summary.get("tables", []):
-        out.append(f"<h2>{html.escape(table['title'])}</h2><table><tr>")
+        out.append(f"<h2>{html.escape(table['title'])}</h2><div class='scroll'><table><tr>")
         out.extend(f"<th>{html.escape(str(c))}</th>" for c in table["columns"])
         out.append("</tr>")
         for row in table["rows"]:
             out.append("<tr>" + "".join(f"<td>{_fmt(v)}</td>" for v in row) + "</tr>")
-        out.append("</table>")
+        out.append("</table></div>")
         if table.get("note"):
             out.append(f"<p class='note'>{html.escape(table['note'])}</p>")
     grid = summary.get("grid")
@@ -83,6 +110,11 @@ def render_html(summary: dict, run: Path) -> str:
                             for p, c in zip(row["cells"], grid["columns"], strict=True))
             out.append(f"<tr><th>{html.escape(row['label'])}</th>{cells}</tr>")
         out.append("</table>")
+        if grid.get("legend"):
+            out.append(f"<figure class='plot'>{_img(run, grid['legend'], 'error scale')}"
+                       "</figure>")
+        if grid.get("note"):
+            out.append(f"<p class='note'>{html.escape(grid['note'])}</p>")
     for stage in summary.get("stages", []):
         secs = stage.get("seconds")
         head = html.escape(stage["name"]) + (f" <small>({secs:.1f} s)</small>" if secs else "")
@@ -93,7 +125,8 @@ def render_html(summary: dict, run: Path) -> str:
                 f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>"
                 for k, v in metrics.items()) + "</table>")
         for fig in stage.get("figures", []):
-            out.append(f"<figure>{_img(run, fig['path'], fig['title'])}"
+            kind = " class='plot'" if fig.get("wide") else ""
+            out.append(f"<figure{kind}>{_img(run, fig['path'], fig['title'])}"
                        f"<figcaption>{html.escape(fig['title'])}</figcaption></figure>")
         if stage.get("note"):
             out.append(f"<p class='note'>{html.escape(stage['note'])}</p>")

@@ -92,6 +92,7 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
         metrics["relight_lpips"] = None if None in lp else float(np.mean(lp))
         metrics["relight_render_s"] = float(np.median([r["render_s"] for r in relit.values()]))
     metrics["relighting"] = relit
+    metrics["test_views"] = [Path(v.name).name for v in test.views]  # order of per_view
     if "lpips_skipped" in alb:
         metrics["lpips_skipped"] = alb["lpips_skipped"]
     return metrics, images
@@ -107,6 +108,14 @@ def _display(img: np.ndarray, scale: float | None = None) -> np.ndarray:
     return np.clip(a, 0.0, 1.0)
 
 
+def _error(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Colour-mapped |est - gt| of two linear images, compared as displayed (sRGB)."""
+    from mi_shadowgs.io.images import linear_to_srgb
+    from mi_shadowgs.io.plots import error_colors
+
+    return error_colors(linear_to_srgb(_display(est)), linear_to_srgb(_display(gt)))
+
+
 def light_map_image(radiance: np.ndarray, block: int = 8) -> np.ndarray:
     """The paper's 22 x 12 block view of a grid light map, normalised, upscaled [H, W, 3]."""
     blocks = map_to_blocks(np.asarray(radiance, np.float64))  # [12, 22]
@@ -118,15 +127,18 @@ def light_map_image(radiance: np.ndarray, block: int = 8) -> np.ndarray:
 
 def write_figures(folder: Path, test, images: dict, count: int) -> dict:
     """PNG figures of the first ``count`` test views (spread over the split); returns the
-    report grid (rows of relative paths)."""
+    report grid (rows of relative paths). Beside albedo and each relighting, its error map:
+    |estimate - ground truth| as displayed (sRGB), colour-mapped by ``io.plots.error_colors``
+    (0 to ``io.plots.ERROR_MAX``)."""
     from mi_shadowgs.io.images import write_png
 
     n = len(test.views)
     picks = sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
     relits = sorted(k[len("relit/"):] for k in images if k.startswith("relit/"))
-    columns = ["input", "albedo", "albedo (GT)", "irradiance", "irradiance (GT)"]
+    columns = ["input", "albedo", "albedo (GT)", "albedo error", "irradiance",
+               "irradiance (GT)"]
     for name in relits:
-        columns += [f"relit {name}", f"relit {name} (GT)"]
+        columns += [f"relit {name}", f"relit {name} (GT)", f"relit {name} error"]
     # One exposure for estimate and ground truth of a kind, so that they compare.
     irr_scale = float(np.percentile(images["irradiance"], 99)) or 1.0
     gt_irr_scale = float(np.percentile(images["gt/irradiance"], 99)) or 1.0
@@ -135,15 +147,18 @@ def write_figures(folder: Path, test, images: dict, count: int) -> dict:
         stem = Path(test.views[i].name).name
         cells = {"input": test.views[i].image, "albedo": images["albedo"][i],
                  "albedo (GT)": images["gt/albedo"][i],
+                 "albedo error": _error(images["albedo"][i], images["gt/albedo"][i]),
                  "irradiance": _display(images["irradiance"][i], irr_scale),
                  "irradiance (GT)": _display(images["gt/irradiance"][i], gt_irr_scale)}
         for name in relits:
             cells[f"relit {name}"] = images[f"relit/{name}"][i]
             cells[f"relit {name} (GT)"] = images[f"gt/relit/{name}"][i]
+            cells[f"relit {name} error"] = _error(images[f"relit/{name}"][i],
+                                                  images[f"gt/relit/{name}"][i])
         paths = []
         for col in columns:
             fname = f"{stem}_{col.replace(' ', '_').replace('(', '').replace(')', '')}.png"
-            srgb = not col.startswith("irradiance")
+            srgb = not (col.startswith("irradiance") or col.endswith(" error"))
             write_png(folder / fname, _display(cells[col]), srgb=srgb)
             paths.append(fname)
         rows.append({"label": stem, "cells": paths})

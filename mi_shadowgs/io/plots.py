@@ -1,0 +1,130 @@
+"""The report's plots (matplotlib, Agg backend), written as deterministic PNGs.
+
+Every figure is byte-identical across runs given the same data: the PNG carries no
+'Software' or date text, the size and DPI are fixed, and no figure state is shared (each
+plot builds its own ``Figure``, not pyplot's global one). Run outputs are compared byte for
+byte (``tests/test_kill.py``).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+
+import numpy as np
+
+from mi_shadowgs.io.atomic import write_bytes
+
+DPI = 100
+ERROR_MAX = 0.25  # error maps: |estimate - ground truth| in sRGB [0, 1], colour-mapped 0..this
+ERROR_CMAP = "inferno"
+
+
+def _figure(width_in: float, height_in: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width_in, height_in), dpi=DPI, layout="constrained")
+
+
+def _save(fig, path: str | os.PathLike) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    write_bytes(path, buf.getvalue())
+
+
+def curves_png(path: str | os.PathLike, panels: list[dict], xlabel: str = "iteration",
+               title: str | None = None) -> None:
+    """Side-by-side line plots. Each panel is ``{"ylabel": str, "log": bool, "lines":
+    [{"x": [N], "y": [N], "label": str | None}]}``; NaNs are gaps."""
+    n = max(len(panels), 1)
+    fig = _figure(3.4 * n, 2.8)
+    axes = fig.subplots(1, n, squeeze=False)[0]
+    for ax, p in zip(axes, panels, strict=False):
+        labelled = False
+        for k, line in enumerate(p["lines"]):
+            ax.plot(np.asarray(line["x"], np.float64), np.asarray(line["y"], np.float64),
+                    lw=1.4, color=f"C{k}", label=line.get("label"))
+            labelled |= bool(line.get("label"))
+        ys = np.concatenate([np.asarray(ln["y"], np.float64).ravel() for ln in p["lines"]]
+                            or [np.zeros(0)])
+        if p.get("log") and np.any(ys > 0):
+            ax.set_yscale("log")
+        if labelled:
+            ax.legend(fontsize=7.5)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(p["ylabel"])
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    _save(fig, path)
+
+
+def light_map_png(path: str | os.PathLike, est_blocks: np.ndarray, gt_blocks: np.ndarray | None,
+                  gt_lights: list[dict], fitted: list[dict]) -> None:
+    """The paper's 22 x 12 light map, estimate and ground truth side by side.
+
+    ``est_blocks``/``gt_blocks`` [12, 22]: rows from the zenith down to the horizon, columns
+    over azimuth [0, 360) (``core.directions.map_to_blocks``), each normalised to its peak.
+    ``gt_lights``: ``{"azimuth", "elevation", "label"}`` (degrees) marked as rings on both;
+    ``fitted``: ``{"azimuth", "elevation", "weight"}`` marked as crosses (size by weight) on
+    the estimate.
+    """
+    maps = [("estimate", est_blocks)] + ([("ground truth", gt_blocks)]
+                                         if gt_blocks is not None else [])
+    fig = _figure(5.2 * len(maps) + 0.6, 2.9)
+    axes = fig.subplots(1, len(maps), squeeze=False)[0]
+    im = None
+    for ax, (name, blocks) in zip(axes, maps, strict=True):
+        b = np.asarray(blocks, np.float64)
+        peak = b.max() if b.size else 0.0
+        im = ax.imshow(b / peak if peak > 0 else b, extent=(0, 360, 0, 90), origin="upper",
+                       cmap="magma", vmin=0.0, vmax=1.0, aspect="auto",
+                       interpolation="nearest")
+        ax.set_title(name, fontsize=10)
+        ax.set_xlabel("azimuth (deg)")
+        ax.set_ylabel("elevation (deg)")
+        ax.set_xticks(range(0, 361, 60))
+        ax.set_yticks(range(0, 91, 30))
+        for lt in gt_lights:
+            ax.plot(lt["azimuth"], lt["elevation"], "o", ms=11, mfc="none", mec="#19d3ff",
+                    mew=1.8, label=lt["label"])
+        if name == "estimate" and fitted:
+            w = np.asarray([f["weight"] for f in fitted], np.float64)
+            w = w / w.max() if w.max() > 0 else np.ones_like(w)
+            ax.scatter([f["azimuth"] for f in fitted], [f["elevation"] for f in fitted],
+                       s=10 + 70 * w, marker="x", c="#7CFC00", linewidths=1.2,
+                       label="fitted lights")
+        ax.set_xlim(0, 360)
+        ax.set_ylim(0, 90)
+    if gt_lights or fitted:
+        axes[0].legend(loc="upper center", bbox_to_anchor=(0.5, -0.28), fontsize=7.5,
+                       ncol=2, frameon=False)
+    fig.colorbar(im, ax=list(axes), label="radiance / peak", shrink=0.9)
+    _save(fig, path)
+
+
+def error_colors(est: np.ndarray, gt: np.ndarray, vmax: float = ERROR_MAX) -> np.ndarray:
+    """Colour-mapped |est - gt| (mean over channels) [H, W, 3] in [0, 1], for display images
+    ([H, W] or [H, W, 3], same space) mapped 0..``vmax`` through ``ERROR_CMAP``."""
+    from matplotlib import colormaps
+
+    e = np.abs(np.asarray(est, np.float64) - np.asarray(gt, np.float64))
+    if e.ndim == 3:
+        e = e.mean(-1)
+    return colormaps[ERROR_CMAP](np.clip(e / vmax, 0.0, 1.0))[..., :3]
+
+
+def colorbar_png(path: str | os.PathLike, vmax: float = ERROR_MAX,
+                 label: str = "|estimate - ground truth| (sRGB)") -> None:
+    """A horizontal colour bar for ``error_colors``."""
+    import matplotlib as mpl
+
+    fig = _figure(3.6, 0.75)
+    ax = fig.add_subplot()
+    fig.colorbar(mpl.cm.ScalarMappable(mpl.colors.Normalize(0.0, vmax), ERROR_CMAP), cax=ax,
+                 orientation="horizontal", label=label)
+    _save(fig, path)
+
