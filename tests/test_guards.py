@@ -158,7 +158,7 @@ CAM = Camera.look_at([0.3, 0.4, 3.0], [0, 0, 0], width=40, height=30, fov_x=0.8)
 
 def _bands(s: Surfels, config: RasterConfig, grad=False):
     g = raster._project(s, CAM, config).detach()
-    return raster._plan_bands(g, CAM.width, CAM.height, config, grad)
+    return raster._plan_bands(g, CAM.width, CAM.height, config, grad)[0]
 
 
 def test_bands_render_like_the_whole_image():

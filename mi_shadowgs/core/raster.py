@@ -253,9 +253,11 @@ def _budget_text(config: RasterConfig, budget: int, resident: int) -> str:
 
 
 def _plan_bands(g: _Proj, width: int, height: int, config: RasterConfig,
-                grad: bool) -> list[tuple[int, int]]:
-    """Bands of rows [r0, r1) whose pair lists fit the memory budget and ``max_pairs``: the
-    whole image when it fits, else consecutive bands (no ``grad``), else RasterMemoryError."""
+                grad: bool) -> tuple[list[tuple[int, int]], int]:
+    """(bands, total): bands of rows [r0, r1) whose pair lists fit the memory budget and
+    ``max_pairs`` (the whole image when it fits, else consecutive bands when no ``grad``,
+    else RasterMemoryError), and the whole image's pair count, which a single band reuses
+    (one host read per render)."""
     _, y0, bw, bh, count = _boxes(g, width, height, config)
     total = _total(count)
     per_pair = config.bytes_per_pair_grad if grad else config.bytes_per_pair
@@ -263,7 +265,7 @@ def _plan_bands(g: _Proj, width: int, height: int, config: RasterConfig,
     mem = _memory(config, need) if total else None
     over = mem is not None and mem[1] + need > mem[0]
     if not over and total <= config.max_pairs:
-        return [(0, height)]
+        return [(0, height)], total
     hint = "(surfels too large for the image?)"
     why = (f"{_budget_text(config, *mem)}" if over else
            f"RasterConfig.max_pairs is {config.max_pairs}")
@@ -293,7 +295,7 @@ def _plan_bands(g: _Proj, width: int, height: int, config: RasterConfig,
             start, acc = r, 0.0
         acc += c
     bands.append((start, height))
-    return bands
+    return bands, total
 
 
 def _pair_eval(q: dict, px: mi.Float, py: mi.Float, config: RasterConfig):
@@ -330,16 +332,17 @@ def _depth_key(z: mi.Float) -> mi.UInt32:
 
 
 def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
-                 rows: tuple[int, int] | None = None):
+                 rows: tuple[int, int] | None = None, total: int | None = None):
     """Sorted (surfel id, pixel id) of the pairs that contribute; detached. None if none.
 
     ``rows`` = (r0, r1) restricts the pairs to those image rows; pixel ids then count from
-    row r0 (pixel (x, y) is (y - r0) * width + x)."""
+    row r0 (pixel (x, y) is (y - r0) * width + x). ``total``: their pixel-box pair count
+    when the caller already read it (``_plan_bands``)."""
     n = dr.width(g.xc)
     r0, r1 = (0, height) if rows is None else rows
     x0, y0, bw, _, count = _boxes(g, width, height, config,
                                   (dr.opaque(mi.Int32, r0), dr.opaque(mi.Int32, r1)))
-    total = _total(count)
+    total = _total(count) if total is None else total
     if total > config.max_pairs:
         raise RasterMemoryError(f"rasterize: {total} pixel-splat pairs exceed "
                                 f"RasterConfig.max_pairs={config.max_pairs} (surfels too "
@@ -436,9 +439,10 @@ def splat_pairs(surfels: Surfels, camera: Camera, config: RasterConfig = RasterC
         g = _project(surfels, camera, config).detach()
         dr.eval(*(getattr(g, f.name) for f in dataclasses.fields(g)))
         w, h = camera.width, camera.height
-        bands = _plan_bands(g, w, h, config, grad=False) if surfels.count else []
+        bands, total = _plan_bands(g, w, h, config, grad=False) if surfels.count else ([], 0)
         for r0, r1 in bands:
-            pairs = _build_pairs(g, w, h, config, (r0, r1))
+            pairs = _build_pairs(g, w, h, config, (r0, r1),
+                                 total if len(bands) == 1 else None)
             if pairs is None:
                 continue
             sid, pix = pairs
@@ -526,10 +530,11 @@ def rasterize(surfels: Surfels, camera: Camera,
     gd = g.detach()
     grad = any(dr.grad_enabled(getattr(g, f.name)) for f in dataclasses.fields(g)) or \
         any(dr.grad_enabled(t) for t in chans.values())
-    bands = _plan_bands(gd, W, H, config, grad) if surfels.count else [(0, H)]
+    bands, total = _plan_bands(gd, W, H, config, grad) if surfels.count else ([(0, H)], 0)
     parts = []
     for r0, r1 in bands:
-        part = _render_rows(g, gd, r0, r1, W, H, chans, aovs, bg, config)
+        part = _render_rows(g, gd, r0, r1, W, H, chans, aovs, bg, config,
+                            total if len(bands) == 1 else None)
         if len(bands) > 1:  # free this band's pairs before the next one is built
             dr.eval(*part.values())
             dr.flush_malloc_cache()
@@ -542,11 +547,13 @@ def rasterize(surfels: Surfels, camera: Camera,
 
 
 def _render_rows(g: _Proj, gd: _Proj, r0: int, r1: int, W: int, H: int, chans: dict,
-                 aovs: Sequence[str], bg: dict, config: RasterConfig) -> dict[str, mi.Float]:
+                 aovs: Sequence[str], bg: dict, config: RasterConfig,
+                 total: int | None = None) -> dict[str, mi.Float]:
     """Rows [r0, r1) of every output of ``rasterize``, flat ([(r1 - r0) * W * C] each);
-    ``g`` the projected surfels with AD, ``gd`` detached."""
+    ``g`` the projected surfels with AD, ``gd`` detached, ``total`` their pair count if
+    known."""
     npix = (r1 - r0) * W
-    pairs = _build_pairs(gd, W, H, config, (r0, r1)) if dr.width(gd.xc) else None
+    pairs = _build_pairs(gd, W, H, config, (r0, r1), total) if dr.width(gd.xc) else None
     if pairs is None:
         out = {name: dr.zeros(mi.Float, npix * t.shape[1]) for name, t in chans.items()}
         for name, vals in bg.items():
