@@ -204,16 +204,17 @@ def envmap_relight_name(envmap: Path) -> str:
     return f"env_{Path(envmap).stem}"
 
 
-def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None) -> dict:
+def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None,
+                envmap_ref: str | None = None) -> dict:
+    """``lights.json``; ``envmap_ref`` is how it names the env map (default: its path)."""
     train = [lt.to_json() for lt in setup.lights]
     light_map = directional_lights_to_map(np.array([lt.direction for lt in setup.lights]),
                                           np.array([lt.irradiance for lt in setup.lights]))
     relit = [{"name": name, "type": "directional", "lights": [lt.to_json() for lt in lts]}
              for name, lts in relight_lights(config)]
     if envmap is not None:
-        # The generated sky is named relative to the dataset (the partial folder is renamed).
-        path = envmap.name if envmap.name == layout.SKY_ENVMAP else str(envmap)
-        relit.append({"name": envmap_relight_name(envmap), "type": "envmap", "path": path,
+        relit.append({"name": envmap_relight_name(envmap), "type": "envmap",
+                      "path": envmap_ref or str(envmap),
                       "scale": config.envmap_scale,
                       "convention": "Mitsuba lat-long envmap, Y-up, identity to_world"})
     return {
@@ -265,10 +266,12 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                                  max_elevation_deg=config.test_elevation_deg[1], **kw)}
     relights = [(name, lit_scene(setup, lights=lts)) for name, lts in relight_lights(config)]
     partial = _prepare_partial(out, fp)
+    envmap_ref = None if envmap is None else str(envmap)
     if envmap is None and config.sky is not None:
-        # The procedural sky lives in the dataset, so that the evaluation reads the same file.
+        # The procedural sky lives in the dataset, so that the evaluation reads the same file;
+        # named relative to it, since the partial folder is renamed.
         write_exr(partial / layout.SKY_ENVMAP, sky_envmap_image(config.sky))
-        envmap = partial / layout.SKY_ENVMAP
+        envmap, envmap_ref = partial / layout.SKY_ENVMAP, layout.SKY_ENVMAP
     if envmap is not None:
         relights.append((envmap_relight_name(envmap), lit_scene(
             setup, envmap=str(envmap), envmap_scale=config.envmap_scale)))
@@ -305,7 +308,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
             write_json(partial / layout.transforms_name(split),
                        {"camera_angle_x": config.camera_angle_x, "w": config.width,
                         "h": config.height, "frames": frames})
-    write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmap))
+    write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmap, envmap_ref))
     import mitsuba as mi
 
     write_json(partial / layout.DATASET_JSON, {
@@ -315,8 +318,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
         "preset": preset,
         "config": dataclasses.asdict(config),
         "seed": seed,
-        "envmap": (envmap.name if envmap.name == layout.SKY_ENVMAP else str(envmap))
-        if envmap else None,
+        "envmap": envmap_ref,
         "fingerprint": fp,
         "materials": setup.materials_json(),
         "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,
