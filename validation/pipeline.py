@@ -90,6 +90,8 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     from mi_shadowgs.pipeline import RunConfig, run_pipeline
 
     folder = out / f"{name}-{lights}"
+    if (folder / "row.json").is_file():  # finished: its row stands as recorded
+        return json.loads((folder / "row.json").read_text())
     t0 = time.perf_counter()
     data = make_dataset(name, mesh, folder, lights)
     t_gen = time.perf_counter() - t0
