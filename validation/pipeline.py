@@ -101,9 +101,10 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     run = folder / "run"
     geo = json.loads((run / "geometry" / "metrics.json").read_text())
     seg = json.loads((run / "segmentation" / "segmentation.json").read_text())
-    names = ("full", "no_visibility", "no_segmentation") if ablations else ("full",)
+    # every finished variant (an ablation may have finished before a run without them)
     variants = {v: json.loads((run / "material" / v / "metrics.json").read_text())
-                for v in names}
+                for v in ("full", "no_visibility", "no_segmentation")
+                if v == "full" or (run / "material" / v / "metrics.json").is_file()}
     row = {"scene": name, "lights": lights, "light_pair": LIGHT_PAIRS[lights],
            "generate_s": t_gen, "wall_s": time.perf_counter() - t0,
            "stage_s": {st["name"]: st.get("seconds") for st in summary.get("stages", [])},
