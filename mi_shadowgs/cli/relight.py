@@ -60,8 +60,9 @@ def run(args) -> int:
 
     if not args.light and args.envmap is None and args.scene is None:
         raise CLIError("no light: give --light AZ,EL,IRRADIANCE, --envmap FILE or --scene XML")
-    for text in args.light:  # bad arguments fail before anything is loaded
-        runner.parse_light(text)
+    # Bad light arguments fail before anything is loaded.
+    runner.check_light_args(args.light, args.envmap, args.rotate, args.envmap_scale,
+                            args.scene)
     if args.fps <= 0 or not np.isfinite(args.fps):
         raise CLIError(f"--fps must be > 0, got {args.fps:g}")
     run_dir = Path(args.run)

@@ -57,6 +57,25 @@ def parse_light(text: str, option: str = "--light") -> tuple[float, float, np.nd
     return az, el, rgb
 
 
+def check_light_args(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
+                     envmap_scale: float = 1.0, scene: str | None = None) -> None:
+    """The light arguments checked before anything is loaded (errors name the option and
+    field): ``parse_light`` on each light, the env map's and scene's files and numbers."""
+    for text in lights:
+        parse_light(text)
+    for name, v in (("--rotate", rotate_deg), ("--envmap-scale", envmap_scale)):
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v!r}")
+    if envmap_scale <= 0:
+        raise ValueError(f"--envmap-scale must be > 0, got {envmap_scale:g}")
+    if envmap is None and (rotate_deg or envmap_scale != 1.0):
+        raise ValueError("--rotate and --envmap-scale change an env map: give --envmap too")
+    if envmap is not None and not Path(envmap).is_file():
+        raise FileNotFoundError(f"--envmap {envmap}: file not found")
+    if scene is not None and not Path(scene).is_file():
+        raise FileNotFoundError(f"--scene {scene}: file not found")
+
+
 def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0):
     """Mitsuba's ``envmap`` of a lat-long image (Y-up), turned by ``rotate_deg`` about +Y
     (positive: from +X toward -Z, the way azimuth turns); errors name the option."""
@@ -118,8 +137,6 @@ def build_lights(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
         if ls.count == 0:
             raise ValueError(f"--envmap {envmap}: the env map is black above the horizon")
         sets.append(ls)
-    elif rotate_deg:
-        raise ValueError("--rotate turns an env map: give --envmap too")
     if scene is not None:
         sets.append(relight.emitter_light_set(scene_emitters(scene), config, cache,
                                               where=f"--scene {scene}"))
