@@ -208,7 +208,7 @@ def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tmp_path)
     d = direction_from_angles(30.0, 45.0)
     xml = tmp_path / "lights.xml"
     xml.write_text(f"""<scene version="3.0.0"><emitter type="directional">
-        <vector name="direction" value="{-d[0]!r}, {-d[1]!r}, {-d[2]!r}"/>
+        <vector name="direction" value="{-d[0]:.17g}, {-d[1]:.17g}, {-d[2]:.17g}"/>
         <rgb name="irradiance" value="3"/></emitter></scene>""")
     assert cli.main(["relight", str(run), "--out", str(tmp_path / "a"), "--scene", str(xml),
                      "--no-progress"]) == 0
