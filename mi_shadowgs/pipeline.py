@@ -91,8 +91,9 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
                 "visibility": dataclasses.asdict(shadow_maps.get_config(config.preset)),
                 "relight": dataclasses.asdict(relight.get_config(config.preset)),
                 "bounds_quantile": config.bounds_quantile, "figure_views": config.figure_views}
-    if name == "full":  # the report's relit previews are made with the full fit
-        settings["preview_envmaps"] = [str(p) for _, p, _ in _preview_envmaps(config, train)]
+    if name == "full" and config.preview_envmaps:  # the previews of the full fit use them
+        # (only when given: a run made before they existed keeps its settings and is reused)
+        settings["preview_envmaps"] = list(config.preview_envmaps)
     provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(seg_model)},
                             settings=settings)
     top.add_part(f"material/{name}")

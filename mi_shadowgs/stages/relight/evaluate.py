@@ -103,12 +103,12 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     est_light = result.light.light_set()
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
                                  est_light)
-    dr_sync = time.perf_counter()
+    t0 = time.perf_counter()
     maps = relight.shadow_maps_for(model, est_light, bounds, vcfg)
     factor = relight.indirect_factor(model, est_light, rcfg)
     views = [relight.relight_view(model, cam, est_light, maps, factor, buffers=True)
              for cam in test.cameras]
-    decomp_s = time.perf_counter() - dr_sync  # relight_view reads back to numpy: synced
+    decomp_s = time.perf_counter() - t0  # relight_view reads back to numpy: synced
     mask = test.stack("mask")
     est_alb = np.stack([v["albedo"] for v in views])
     est_irr = np.stack([v["direct_irradiance"] for v in views])
