@@ -117,7 +117,9 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             write_text(out.path("history.csv"), "step,loss\n" + "".join(
                 f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
             write_json(out.path("fit.json"), {"fit_s": fit_s, "timings": res.timings})
-        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset)
+        cache = relight.RelightCache()  # shadow maps shared by evaluation and previews
+        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset,
+                                                 cache=cache)
         metrics["fit_s"] = fit_s
         segments = _segment_maps(top.folder / "segmentation" / "segments", test)
         with atomic_dir(folder / "figures", overwrite=True) as tmp:
@@ -125,7 +127,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             if name == "full":  # relit previews under standard lights (no ground truth)
                 grid["previews"] = write_previews(
                     tmp, res, [test.cameras[i] for i in _figure_picks(len(test), 1)], bounds,
-                    config.preset, _preview_envmaps(config, train))
+                    config.preset, _preview_envmaps(config, train), cache)
             out.claim(*(f"figures/{p.name}" for p in sorted(tmp.iterdir())))
         write_json(out.path("grid.json"), grid)
         write_json(out.path("metrics.json"), metrics)

@@ -84,7 +84,8 @@ def skipped_metrics(available: dict[str, str | None]) -> list[dict]:
 
 
 def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
-                           preset: str, figure_lights: int = 3) -> tuple[dict, dict]:
+                           preset: str, figure_lights: int = 3,
+                           cache: relight.RelightCache | None = None) -> tuple[dict, dict]:
     """Paper Sec. V-A3 metrics on the test views, each computed only when the dataset has
     the ground truth it needs (``METRIC_NEEDS``; ``metrics["skipped"]`` lists the others
     with the reason), and the images behind them.
@@ -93,7 +94,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     ground truth when there is one), "irradiance", "roughness", "metallic", "normal",
     "visibility" (the ``figure_lights`` strongest fitted lights, with "visibility_lights"
     their (azimuth, elevation)), "relit/<setup>", their ground truth under "gt/...", and the
-    light maps.
+    light maps. ``cache`` (``render.RelightCache``) keeps the shadow maps for the caller,
+    e.g. for ``write_previews`` of the same fit.
     """
     vcfg = shadow_maps.get_config(preset)
     rcfg = relight.get_config(preset)
@@ -104,7 +106,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
                                  est_light)
     t0 = time.perf_counter()
-    maps = relight.shadow_maps_for(model, est_light, bounds, vcfg)
+    maps = relight.shadow_maps_for(model, est_light, bounds, vcfg) if cache is None else \
+        cache.shadow_maps(model, est_light, bounds, vcfg)
     factor = relight.indirect_factor(model, est_light, rcfg)
     views = [relight.relight_view(model, cam, est_light, maps, factor, buffers=True)
              for cam in test.cameras]
@@ -169,7 +172,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
                 lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
             else:
                 lights = relight.lights_from_json(entry)
-            rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg)
+            rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg,
+                                             cache=cache)
             est = np.stack([v["rgb"] for v in rv])
             gt = np.stack([v.relit[name] for v in test.views])
             relit[name] = {**evaluation.image_metrics(est, gt, mask), "render_s": secs,
@@ -410,14 +414,15 @@ TURNTABLE_ELEVATION = 45.0
 
 
 def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds, preset: str,
-                   envmaps=()) -> dict:
+                   envmaps=(), cache: relight.RelightCache | None = None) -> dict:
     """Relit previews of a fit under standard lights, for data with or without ground truth:
     a turntable of ``TURNTABLE_LIGHTS`` directional lights at ``TURNTABLE_ELEVATION``
     degrees and every env map of ``envmaps`` ((name, file, scale)), for each of ``cameras``.
 
     Exposure: each preview light gives an upward-facing surface the irradiance the fitted
     light gives it (albedo and light are known only up to a common factor, so the fitted
-    light is the only scale there is). Writes ``preview_<view>_<light>.png`` and one strip
+    light is the only scale there is). ``cache``: shadow maps already rendered (e.g. by the
+    evaluation's env-map relightings). Writes ``preview_<view>_<light>.png`` and one strip
     per view; returns {"strips": [{"title", "file"}], "lights": [...]} for the report.
     """
     from mi_shadowgs.core.envmap import load_envmap as load_emitter
@@ -433,7 +438,7 @@ def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds, pr
     for name, ls in relight.standard_turntable(TURNTABLE_LIGHTS, TURNTABLE_ELEVATION):
         up = relight.upward_irradiance(ls)
         setups.append(("turntable", name, relight.scale_light_set(ls, e_up / up)))
-    cache = relight.RelightCache()  # the env maps share the grid's shadow maps
+    cache = cache or relight.RelightCache()  # the env maps share the grid's shadow maps
     for name, path, scale in envmaps:
         ls = relight.grid_light_set(cache.envmap_radiance(load_emitter(path, scale), rcfg),
                                     rcfg.n_directions)

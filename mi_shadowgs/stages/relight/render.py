@@ -238,15 +238,16 @@ def _img(c: mi.Color3f, h: int, w: int) -> np.ndarray:
 def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shading.LightSet,
                   bounds: SceneBounds, config: RelightConfig = DEFAULT_RELIGHT,
                   vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
-                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = False
-                  ) -> tuple[list[dict], float]:
+                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = False,
+                  cache: RelightCache | None = None) -> tuple[list[dict], float]:
     """Relight every camera's view; returns the per-view dicts and the wall time (s),
-    shadow maps included."""
+    shadow maps included (taken from ``cache`` when given)."""
     from tqdm import tqdm
 
     dr.sync_thread()
     t0 = time.perf_counter()
-    maps = shadow_maps_for(model, lights, bounds, vis_config)
+    maps = shadow_maps_for(model, lights, bounds, vis_config) if cache is None else \
+        cache.shadow_maps(model, lights, bounds, vis_config)
     factor = indirect_factor(model, lights, config)
     out = [relight_view(model, cam, lights, maps, factor, raster)
            for cam in tqdm(cameras, desc="relight", disable=not progress)]
@@ -319,6 +320,9 @@ def emitter_light_set(emitters, config: RelightConfig = DEFAULT_RELIGHT,
     return combine_light_sets(sets)
 
 
+GEOMETRY_FIELDS = ("position", "log_scale", "rotation", "opacity_logit")
+
+
 class RelightCache:
     """Shadow maps and env-map grid radiance kept between renders of one model.
 
@@ -335,7 +339,7 @@ class RelightCache:
         self.max_maps, self.max_envmaps, self.max_sets = max_maps, max_envmaps, max_sets
         self._maps: dict[tuple, tuple] = {}  # (model, bounds, config, direction) -> map
         self._sets: dict[tuple, object] = {}  # all keys of a light set -> its ShadowMaps
-        self._models: dict[int, Surfels] = {}
+        self._models: dict[tuple, tuple] = {}
         self._env: dict[str, np.ndarray] = {}
         self.rendered = 0  # shadow maps rendered (not reused), for tests and benchmarks
 
@@ -350,8 +354,11 @@ class RelightCache:
 
         if not model.use_visibility or lights.count == 0:
             return None
-        base = (id(model.surfels), bounds, vis_config)
-        self._models[id(model.surfels)] = model.surfels  # held: its id stays unique
+        # Shadow maps see only the geometry: a model with other material channels (e.g.
+        # the evaluation's rescaled albedo) shares the maps of its geometry.
+        geometry = tuple(getattr(model.surfels, k) for k in GEOMETRY_FIELDS)
+        base = (tuple(id(g) for g in geometry), bounds, vis_config)
+        self._models[base[0]] = geometry  # held: the ids stay unique
         dirs = np.asarray(lights.directions, np.float64).reshape(-1, 3)
         keys = tuple((*base, self._direction_key(d)) for d in dirs)
         if keys in self._sets:  # the same lights again: the assembled maps as they are
