@@ -5,6 +5,7 @@ reusing its maps, and the command's views, files and video on a tiny run."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import mitsuba as mi
@@ -222,3 +223,36 @@ def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tmp_path)
     bad.write_bytes(b"not an exr")
     with pytest.raises(ValueError, match="--envmap .*bad.exr: not a readable env map"):
         runner.build_lights(envmap=str(bad))
+
+
+def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkeypatch):
+    from mi_shadowgs.stages.material import fit as material_fit
+    from mi_shadowgs.stages.relight.evaluate import write_previews
+    from mi_shadowgs.stages.visibility.shadow_maps import get_config as vis_get_config
+
+    for table, config in tiny_cli.presets():  # 64^2 shadow maps
+        monkeypatch.setitem(table, TINY, config)
+    model = _plane_model()
+    grid = light_grid(128)
+    light = material_fit.LightModel(np.zeros(128), np.array([5]), grid[[5]], np.array([2.0]))
+    result = material_fit.MaterialResult(model.surfels, light, False, True, [], {})
+    cam = Camera.look_at([1.5, 1.5, 1.5], [0, 0.1, 0], fov_x=0.8, width=16, height=16)
+    bounds = SceneBounds.from_points(model.surfels.to_numpy()["position"], [cam])
+    sky = _sky_file(tmp_path)
+    cache = relight.RelightCache()
+    rcfg = relight.get_config(TINY)
+    # What the evaluation's sky relighting leaves in the cache (another model object with
+    # the same geometry, as the evaluation's rescaled albedo is).
+    sky_lights = relight.grid_light_set(
+        cache.envmap_radiance(runner.envmap_emitter(sky), rcfg), rcfg.n_directions)
+    other = relight.RelightModel(dataclasses.replace(model.surfels, channels={}), False, True)
+    cache.shadow_maps(other, sky_lights, bounds, vis_get_config(TINY))
+    before = cache.rendered
+    out = write_previews(tmp_path, result, [cam], bounds, TINY, [("sky", sky, 1.0)], cache)
+    assert cache.rendered == before + 8  # only the turntable's 8 directions are new
+    assert [s["file"] for s in out["strips"]] == ["preview_0_turntable.png",
+                                                  "preview_0_envmap.png"]
+    frames = sorted(tmp_path.glob("preview_0_turntable_az*_el45.png"))
+    assert [f.name[len("preview_0_turntable_"):-4] for f in frames] == \
+        [f"az{a:03d}_el45" for a in range(0, 360, 45)]
+    assert (tmp_path / "preview_0_envmap_sky.png").is_file()
