@@ -444,16 +444,16 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
                          "cells": [f"material/full/figures/{c}" for c in r["cells"]]}
                         for r in grid["rows"]]
         previews = grid.pop("previews", None)
-        grid["title"] = ("Decomposition of test views: input, albedo, roughness/metallic, "
-                         "normals, irradiance, per-light visibility, segments"
-                         + (" and relighting (cf. paper Fig. 3)" if any(
-                             c.startswith("relit ") for c in grid["columns"]) else ""))
-        if any(c.endswith(" error") for c in grid["columns"]):
-            grid["note"] = ("error: |estimate - ground truth| as displayed (sRGB, mean over "
-                            "RGB); estimates aligned to ground truth as in the table above")
+        grids = _split_grid(grid)
+        if any(c.endswith(" error") for c in grids[0]["columns"]):
+            grids[0]["note"] = ("error: |estimate - ground truth| as displayed (sRGB, mean "
+                                "over RGB); estimates aligned to ground truth as in the table "
+                                "above")
             if (run / "report" / "error_scale.png").is_file():
-                grid["legend"] = "report/error_scale.png"
-        summary["grid"] = grid
+                grids[0]["legend"] = "report/error_scale.png"
+        summary["grid"] = grids[0]
+        if len(grids) > 1:
+            summary["grids"] = grids[1:]
         figures = []
         has_truth = bool(_json_or_empty(data / "lights.json").get("training", {})
                          .get("light_map"))
@@ -488,6 +488,37 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
                                    "(`python -m validation.speed_error` writes them into "
                                    "RUN/speed_error/)."})
     return summary
+
+
+# Columns of the decomposition (no ground truth needed) and of the comparison with ground
+# truth; "input" leads both.
+_DECOMPOSITION = ("albedo", "roughness", "metallic", "normal", "irradiance", "visibility",
+                  "segments")
+
+
+def _split_grid(grid: dict) -> list[dict]:
+    """The figures grid as [comparison with ground truth, decomposition] when the dataset
+    has ground truth (the comparison keeps the paper's Fig. 3 layout), else
+    [decomposition]."""
+    cols = grid["columns"]
+
+    def pick(keep, title) -> dict:
+        idx = [i for i, c in enumerate(cols) if c == "input" or keep(c)]
+        return {"title": title, "columns": [cols[i] for i in idx],
+                "rows": [{"label": r["label"], "cells": [r["cells"][i] for i in idx]}
+                         for r in grid["rows"]]}
+
+    decomposition = pick(lambda c: c.startswith(_DECOMPOSITION) and "(GT)" not in c and
+                         not c.endswith(" error"),
+                         "Decomposition of test views: albedo, roughness/metallic, normals, "
+                         "irradiance, visibility of the strongest fitted lights, segments")
+    truth = [c for c in cols if "(GT)" in c]
+    if not truth:
+        return [decomposition]
+    compare = pick(lambda c: c.startswith(("albedo", "irradiance", "relit ")),
+                   "Input, albedo, irradiance and relighting against ground truth "
+                   "(cf. paper Fig. 3)")
+    return [compare, decomposition]
 
 
 def _fitted_lights_table(path: Path) -> dict | None:
