@@ -22,8 +22,10 @@ from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.relight.evaluate import (
     check_evaluation_inputs,
     evaluate_decomposition,
+    fit_from_files,
     light_json,
     write_figures,
+    write_previews,
 )
 from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -33,6 +35,14 @@ VARIANTS = {
     "no_segmentation": {"segment_average": False},  # "w/o segmentation"
 }
 MASK_SOURCES = ("auto", "material", "chromaticity")
+# The ground truth of the stage-1 and stage-2 metrics (stage 5's: relight.METRIC_NEEDS); a
+# metric whose ground truth the dataset lacks is not computed, and the summary says so.
+STAGE_METRIC_NEEDS = {
+    "geometry normal error": ("test normals",),
+    "geometry depth error": ("test depth",),
+    "segmentation ARI/mIoU": ("test material ids",),
+    "segmentation lit/shadowed base check": ("test material ids", "test visibility"),
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +55,9 @@ class RunConfig:
     bounds_quantile: float = 0.98  # shadow-map bound: this quantile of surfel distances
     figure_views: int = 4  # test views shown in the report's figure grid
     material_iterations: int | None = None  # override of the stage-4 preset
+    # Env maps (files, or folders of .exr) of the report's relit previews, beside the
+    # dataset's own; e.g. ../shared/data/envmaps. Missing entries are left out.
+    preview_envmaps: tuple[str, ...] = ()
 
     def __post_init__(self):
         if self.masks not in MASK_SOURCES:
@@ -78,6 +91,9 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
                 "visibility": dataclasses.asdict(shadow_maps.get_config(config.preset)),
                 "relight": dataclasses.asdict(relight.get_config(config.preset)),
                 "bounds_quantile": config.bounds_quantile, "figure_views": config.figure_views}
+    if name == "full" and config.preview_envmaps:  # the previews of the full fit use them
+        # (only when given: a run made before they existed keeps its settings and is reused)
+        settings["preview_envmaps"] = list(config.preview_envmaps)
     provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(seg_model)},
                             settings=settings)
     top.add_part(f"material/{name}")
@@ -85,22 +101,70 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
                      inputs=[data, seg_model]) as out:
         if out.complete:
             return json.loads((folder / "metrics.json").read_text()), None
-        checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
-        res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds, overrides,
-                                              progress, **checkpoints))
-        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset)
+        # The fitted model is saved before any evaluation: a run that fails in evaluation
+        # keeps it, and a rerun evaluates it again instead of fitting again (fit.json, the
+        # last file of the fit, marks it finished).
+        fit_files = [folder / n for n in ("model.ply", "light.json", "history.csv", "fit.json")]
+        if out.reused and all(f.is_file() for f in fit_files):
+            res = fit_from_files(*fit_files[:3], use_visibility=cfg.use_visibility)
+            fit_s = json.loads(fit_files[3].read_text())["fit_s"]
+        else:
+            checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
+            res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds,
+                                                  overrides, progress, **checkpoints))
+            save_ply(out.path("model.ply"), res.surfels)
+            write_json(out.path("light.json"), light_json(res))
+            write_text(out.path("history.csv"), "step,loss\n" + "".join(
+                f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
+            write_json(out.path("fit.json"), {"fit_s": fit_s, "timings": res.timings})
+        cache = relight.RelightCache()  # shadow maps shared by evaluation and previews
+        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset,
+                                                 cache=cache)
         metrics["fit_s"] = fit_s
-        save_ply(out.path("model.ply"), res.surfels)
-        write_json(out.path("light.json"), light_json(res))
+        segments = _segment_maps(top.folder / "segmentation" / "segments", test)
         with atomic_dir(folder / "figures", overwrite=True) as tmp:
-            grid = write_figures(tmp, test, images, config.figure_views)
+            grid = write_figures(tmp, test, images, config.figure_views, segments)
+            if name == "full":  # relit previews under standard lights (no ground truth)
+                grid["previews"] = write_previews(
+                    tmp, res, [test.cameras[i] for i in _figure_picks(len(test), 1)], bounds,
+                    config.preset, _preview_envmaps(config, train), cache)
             out.claim(*(f"figures/{p.name}" for p in sorted(tmp.iterdir())))
         write_json(out.path("grid.json"), grid)
         write_json(out.path("metrics.json"), metrics)
-        write_text(out.path("history.csv"), "step,loss\n" + "".join(
-            f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
         out.finish()
     return metrics, fit_s
+
+
+def _figure_picks(n: int, count: int) -> list[int]:
+    return sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
+
+
+def _segment_maps(folder: Path, test) -> dict:
+    """Stage 2's segment maps of the test views (view stem -> sRGB uint8 [H, W, 3])."""
+    from mi_shadowgs.io.images import read_png
+
+    out = {}
+    for v in test.views:
+        stem = Path(v.name).name
+        if (folder / f"{stem}.png").is_file():
+            out[stem] = read_png(folder / f"{stem}.png")
+    return out
+
+
+def _preview_envmaps(config: RunConfig, train) -> list[tuple[str, Path, float]]:
+    """(name, file, scale) of the env maps the report's previews relight with: the
+    dataset's env-map relightings, then ``config.preview_envmaps`` (files, or folders of
+    .exr files) where they exist."""
+    from mi_shadowgs.stages.relight.evaluate import envmap_file
+
+    out = [(e["name"], envmap_file(e, train.root), float(e.get("scale", 1.0)))
+           for e in (train.lights or {}).get("relightings", []) if e.get("type") == "envmap"]
+    for entry in config.preview_envmaps:
+        path = Path(entry)
+        files = sorted(path.glob("*.exr")) if path.is_dir() else [path] if path.is_file() \
+            else []
+        out += [(f.stem, f, 1.0) for f in files]
+    return out
 
 
 def _timed(fn):
@@ -130,7 +194,7 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     t_start = time.perf_counter()
     train = load_training_views(data)
     test = load_dataset(data, "test")
-    check_evaluation_inputs(train, test)
+    available = check_evaluation_inputs(train, test)
     masks = config.masks
     if masks == "auto":
         masks = "material" if all(v.material is not None for v in train.views) else \
@@ -177,7 +241,7 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
             write_report_figures(tmp, run, data)
             top.claim(*(f"report/{p.name}" for p in sorted(tmp.iterdir())))
         summary = build_summary(run, data, config, results, stages,
-                                time.perf_counter() - t_start)
+                                time.perf_counter() - t_start, available)
         write_json(top.path("summary.json"), summary)
         top.claim("report.html")
         write_report(run)
@@ -293,9 +357,29 @@ def _json_or_empty(path: Path) -> dict:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
+def skipped_table(results: dict, available: dict | None) -> dict | None:
+    """The metrics not computed for want of ground truth: what each needs and why."""
+    rows = []
+    if available is not None:
+        for metric, needs in STAGE_METRIC_NEEDS.items():
+            why = [available[n] for n in needs if available.get(n)]
+            if why:
+                rows.append([metric, ", ".join(needs), "; ".join(why)])
+    for item in (results.get("full") or {}).get("skipped") or []:
+        rows.append([item["metric"], ", ".join(item["needs"]), item["why"]])
+    if not rows:
+        return None
+    return {"title": "Metrics not computed (the dataset lacks their ground truth)",
+            "columns": ["metric", "needs", "why not"], "rows": rows,
+            "note": "n/a in the tables above: not computed. The decomposition and the relit "
+                    "previews below need no ground truth."}
+
+
 def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stages: list,
-                  seconds: float) -> dict:
-    """The report's ``summary.json`` (see ``mi_shadowgs.io.report``) from the run's files."""
+                  seconds: float, available: dict | None = None) -> dict:
+    """The report's ``summary.json`` (see ``mi_shadowgs.io.report``) from the run's files;
+    ``available``: the dataset's ground truth (``relight.evaluate.ground_truth``), for the
+    table of skipped metrics."""
     import mitsuba as mi
 
     geo = _json_or_empty(run / "geometry" / "metrics.json")
@@ -340,6 +424,14 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
         summary["stages"][0]["figures"].insert(0, {
             "title": "training curves (geometry/log.csv)", "path": "report/geometry_curves.png",
             "wide": True})
+    skipped_tab = skipped_table(results, available)
+    if skipped_tab:
+        summary["tables"].insert(1, skipped_tab)
+        summary["skipped_metrics"] = [{"metric": r[0], "needs": r[1], "why": r[2]}
+                                      for r in skipped_tab["rows"]]
+    lights_tab = _fitted_lights_table(run / "material" / "full" / "light.json")
+    if lights_tab:
+        summary["tables"].append(lights_tab)
     summary["tables"] += _per_view_tables(results.get("full", {}))
     speed = _speed_table(results.get("full", {}), info)
     if speed:
@@ -351,21 +443,33 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
         grid["rows"] = [{"label": r["label"],
                          "cells": [f"material/full/figures/{c}" for c in r["cells"]]}
                         for r in grid["rows"]]
-        grid["title"] = "Input, albedo, irradiance and relighting (cf. paper Fig. 3)"
-        if any(c.endswith(" error") for c in grid["columns"]):
-            grid["note"] = ("error: |estimate - ground truth| as displayed (sRGB, mean over "
-                            "RGB); estimates aligned to ground truth as in the table above")
+        previews = grid.pop("previews", None)
+        grids = _split_grid(grid)
+        if any(c.endswith(" error") for c in grids[0]["columns"]):
+            grids[0]["note"] = ("error: |estimate - ground truth| as displayed (sRGB, mean "
+                                "over RGB); estimates aligned to ground truth as in the table "
+                                "above")
             if (run / "report" / "error_scale.png").is_file():
-                grid["legend"] = "report/error_scale.png"
-        summary["grid"] = grid
+                grids[0]["legend"] = "report/error_scale.png"
+        summary["grid"] = grids[0]
+        if len(grids) > 1:
+            summary["grids"] = grids[1:]
         figures = []
+        has_truth = bool(_json_or_empty(data / "lights.json").get("training", {})
+                         .get("light_map"))
         if (run / "report" / "light_map.png").is_file():
-            figures.append({"title": "light map, 22x12 blocks: estimate | "
-                                     "ground truth; rings: true lights, crosses: fitted",
+            figures.append({"title": "light map, 22x12 blocks: estimate | ground truth; "
+                                     "rings: true lights, crosses: fitted" if has_truth else
+                                     "light map, 22x12 blocks over azimuth/elevation: "
+                                     "estimate (no ground truth); crosses: fitted lights",
                             "path": "report/light_map.png", "wide": True})
         else:
             figures.append({"title": "light map 22x12: estimate | ground truth",
                             "path": "material/full/figures/light_map.png"})
+        for strip in (previews or {}).get("strips", []):
+            figures.append({"title": "relit preview, " + strip["title"] + "; exposure: the "
+                            "fitted light's irradiance on an upward surface",
+                            "path": f"material/full/figures/{strip['file']}", "wide": True})
         if (run / "report" / "material_loss.png").is_file():
             figures.append({"title": "stage-4 loss (material/*/history.csv)",
                             "path": "report/material_loss.png", "wide": True})
@@ -384,6 +488,62 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
                                    "(`python -m validation.speed_error` writes them into "
                                    "RUN/speed_error/)."})
     return summary
+
+
+# Columns of the decomposition (no ground truth needed) and of the comparison with ground
+# truth; "input" leads both.
+_DECOMPOSITION = ("albedo", "roughness", "metallic", "normal", "irradiance", "visibility",
+                  "segments")
+
+
+def _split_grid(grid: dict) -> list[dict]:
+    """The figures grid as [comparison with ground truth, decomposition] when the dataset
+    has ground truth (the comparison keeps the paper's Fig. 3 layout), else
+    [decomposition]."""
+    cols = grid["columns"]
+
+    def pick(keep, title) -> dict:
+        idx = [i for i, c in enumerate(cols) if c == "input" or keep(c)]
+        return {"title": title, "columns": [cols[i] for i in idx],
+                "rows": [{"label": r["label"], "cells": [r["cells"][i] for i in idx]}
+                         for r in grid["rows"]]}
+
+    decomposition = pick(lambda c: c.startswith(_DECOMPOSITION) and "(GT)" not in c and
+                         not c.endswith(" error"),
+                         "Decomposition of test views: albedo, roughness/metallic, normals, "
+                         "irradiance, visibility of the strongest fitted lights, segments")
+    truth = [c for c in cols if "(GT)" in c]
+    if not truth:
+        return [decomposition]
+    compare = pick(lambda c: c.startswith(("albedo", "irradiance", "relit ")),
+                   "Input, albedo, irradiance and relighting against ground truth "
+                   "(cf. paper Fig. 3)")
+    return [compare, decomposition]
+
+
+def _fitted_lights_table(path: Path) -> dict | None:
+    """The full fit's lights (``light.json``): azimuth, elevation, irradiance, strongest
+    first."""
+    import numpy as np
+
+    fit = _json_or_empty(path)
+    dirs = np.asarray(fit.get("directions") or np.zeros((0, 3)), np.float64).reshape(-1, 3)
+    if not len(dirs):
+        return None
+    w = np.asarray(fit.get("irradiance") if fit.get("irradiance") is not None
+                   else np.full(len(dirs), np.nan), np.float64).reshape(len(dirs), -1).mean(-1)
+    total = np.nansum(w)
+    rows = []
+    for k in np.argsort(-np.nan_to_num(w)):
+        az, el = _angles(dirs[k])
+        rows.append([int(len(rows) + 1), az, el, float(w[k]),
+                     float(w[k] / total) if total > 0 else None])
+    return {"title": "Fitted lights (material/full/light.json)",
+            "columns": ["light", "azimuth (deg)", "elevation (deg)", "irradiance",
+                        "share of irradiance"], "rows": rows,
+            "note": "Azimuth about +Y from +X toward -Z, elevation above the base "
+                    "(docs/conventions.md); irradiance in the fit's own scale (albedo and "
+                    "light are known only up to a common factor)."}
 
 
 PAPER_RENDER_S = 100.0  # paper Sec. V-A4: "Rendering the 200 test views takes ~100 seconds"

@@ -300,10 +300,15 @@ def test_a_corrupt_test_image_stops_the_command_before_training(data, tmp_path, 
 
 
 def test_run_checks_the_ground_truth_it_evaluates_against_first(data, tmp_path, capsys):
+    # Absent ground truth only skips its metrics (tests/test_no_ground_truth.py); present
+    # but malformed ground truth stops the run before stage 1.
     bad = _broken_copy(data[0], tmp_path)
-    (bad / "lights.json").unlink()
+    lights = json.loads((bad / "lights.json").read_text())
+    lights["training"]["lights"][0]["direction"] = "up"
+    (bad / "lights.json").write_text(json.dumps(lights))
     assert cli.main(["run", str(bad), "--out", str(tmp_path / "run"), "--no-progress"]) == 2
-    assert "lights.json: file not found" in capsys.readouterr().err
+    assert "lights.json: missing or malformed field 'training.lights'" in \
+        capsys.readouterr().err
     assert not (tmp_path / "run").exists()
 
 

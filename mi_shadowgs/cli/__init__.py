@@ -21,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("mi_shadowgs.cli.train", "optimise a stage of the method on a dataset (geometry)"),
     "run": ("mi_shadowgs.cli.run", "the whole method on a dataset (stages 1-5) and its report"),
     "report": ("mi_shadowgs.cli.report", "write the HTML report of a run"),
+    "relight": ("mi_shadowgs.cli.relight",
+                "render a finished run's model under new lights (directional, env map, scene)"),
 }
 
 

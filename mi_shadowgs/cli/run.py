@@ -10,6 +10,8 @@ each stage is reused only when it was made from the same dataset, input model an
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +27,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also fit the w/o visibility and w/o segmentation variants")
     parser.add_argument("--material-iterations", type=int, default=None,
                         help="override the stage-4 iteration count")
+    parser.add_argument("--preview-envmap", action="append", default=None, metavar="PATH",
+                        help="env map (.exr, or a folder of them) for the report's relit "
+                             "previews, beside the dataset's own (repeatable; default: "
+                             "$MI_SHADOWGS_ENVMAPS, os.pathsep-separated)")
     parser.add_argument("--no-progress", action="store_true", help="hide progress bars")
 
 
@@ -40,6 +46,14 @@ def run(args) -> int:
         overrides["ablations"] = True
     if args.material_iterations is not None:
         overrides["material_iterations"] = args.material_iterations
+    envmaps = args.preview_envmap
+    if envmaps is None and os.environ.get("MI_SHADOWGS_ENVMAPS"):
+        envmaps = [e for e in os.environ["MI_SHADOWGS_ENVMAPS"].split(os.pathsep) if e]
+    for e in envmaps or []:
+        if not os.path.exists(e):
+            raise FileNotFoundError(f"--preview-envmap: {e}: not found")
+    if envmaps:
+        overrides["preview_envmaps"] = tuple(str(Path(e).resolve()) for e in envmaps)
     config = with_overrides(config, overrides, "run")
     summary = run_pipeline(args.data, args.out, config, progress=not args.no_progress,
                            overwrite=args.overwrite)
@@ -48,5 +62,7 @@ def run(args) -> int:
         print("  ".join(f"{c}={v:.4g}" if isinstance(v, float) else
                         f"{c}={'n/a' if v is None else v}"
                         for c, v in zip(table["columns"], row, strict=True)))
+    for item in summary.get("skipped_metrics", []):
+        print(f"not computed: {item['metric']} (needs {item['needs']}: {item['why']})")
     print(f"report: {args.out}/report.html ({summary['total_seconds']:.0f} s)")
     return 0

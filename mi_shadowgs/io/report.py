@@ -8,6 +8,7 @@ The pipeline records what each stage produced in ``RUN/summary.json``::
      "tables": [{"title": ..., "columns": [...], "rows": [[...], ...], "note": ...}],
      "grid": {"columns": [...], "rows": [{"label": ..., "cells": ["path", ...]}],
               "note": ..., "legend": "path.png"},
+     "grids": [...more grids like "grid", shown after it...],
      "provenance": [{"name": ..., "value": ..., "href": "optional/link"}]}
 
 A figure with ``"wide": true`` is a plot shown at its own size (up to the page's width);
@@ -70,6 +71,23 @@ def _img(run: Path, rel: str, alt: str) -> str:
     return f"<img src='{html.escape(rel)}' alt='{html.escape(alt)}'>"
 
 
+def _grid_html(grid: dict, run: Path) -> list[str]:
+    out = [f"<h2>{html.escape(grid.get('title', 'Decomposition and relighting'))}</h2>",
+           "<table class='grid'><tr><th></th>"]
+    out.extend(f"<th>{html.escape(c)}</th>" for c in grid["columns"])
+    out.append("</tr>")
+    for row in grid["rows"]:
+        cells = "".join(f"<td>{_img(run, p, c) if p else ''}</td>"
+                        for p, c in zip(row["cells"], grid["columns"], strict=True))
+        out.append(f"<tr><th>{html.escape(row['label'])}</th>{cells}</tr>")
+    out.append("</table>")
+    if grid.get("legend"):
+        out.append(f"<figure class='plot'>{_img(run, grid['legend'], 'error scale')}</figure>")
+    if grid.get("note"):
+        out.append(f"<p class='note'>{html.escape(grid['note'])}</p>")
+    return out
+
+
 def render_html(summary: dict, run: Path) -> str:
     """The report page for ``summary`` (see module docstring); image paths relative to run."""
     title = summary.get("title", "mi_shadowgs run")
@@ -99,22 +117,9 @@ def render_html(summary: dict, run: Path) -> str:
         out.append("</table></div>")
         if table.get("note"):
             out.append(f"<p class='note'>{html.escape(table['note'])}</p>")
-    grid = summary.get("grid")
-    if grid and grid.get("rows"):
-        out.append(f"<h2>{html.escape(grid.get('title', 'Decomposition and relighting'))}</h2>")
-        out.append("<table class='grid'><tr><th></th>")
-        out.extend(f"<th>{html.escape(c)}</th>" for c in grid["columns"])
-        out.append("</tr>")
-        for row in grid["rows"]:
-            cells = "".join(f"<td>{_img(run, p, c) if p else ''}</td>"
-                            for p, c in zip(row["cells"], grid["columns"], strict=True))
-            out.append(f"<tr><th>{html.escape(row['label'])}</th>{cells}</tr>")
-        out.append("</table>")
-        if grid.get("legend"):
-            out.append(f"<figure class='plot'>{_img(run, grid['legend'], 'error scale')}"
-                       "</figure>")
-        if grid.get("note"):
-            out.append(f"<p class='note'>{html.escape(grid['note'])}</p>")
+    for grid in [summary.get("grid")] + list(summary.get("grids") or []):
+        if grid and grid.get("rows"):
+            out.extend(_grid_html(grid, run))
     for stage in summary.get("stages", []):
         secs = stage.get("seconds")
         head = html.escape(stage["name"]) + (f" <small>({secs:.1f} s)</small>" if secs else "")

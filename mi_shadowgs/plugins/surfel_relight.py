@@ -23,7 +23,10 @@ with shadows recomputed from shadow maps of the surfels
 **Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`) and
 every infinite emitter (`envmap`, `constant`: mean radiance over each of the 128 equal-area
 grid cells of the upper hemisphere, times `2 pi / 128`). Any other emitter type is an error,
-as is a scene without emitters. One shadow map per light direction is rendered per call.
+as is a scene without emitters. One shadow map per light direction is rendered the first
+time the direction is seen and kept with the integrator: a later `mi.render` of the same
+emitters (any sensor at the same distance) reuses the maps and the env map's grid radiance
+(re-integrated only when the env map's parameters change).
 
 **Not used:** sampler, spp and seeds (deterministic); not differentiable (`render_forward`
 and `render_backward` are not implemented). The film gets `R, G, B` (and `A` = coverage).
@@ -83,29 +86,12 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
             raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
         self.vis_config = VisibilityConfig(resolution=res)
         self.relight_config = relight.RelightConfig(indirect=self.indirect, env_samples=env)
+        # Shadow maps per light direction and env-map grid radiance, kept between renders.
+        self.cache = relight.RelightCache()
 
     def light_set(self, scene) -> shading.LightSet:
-        dirs, weights = [], []
-        for e in scene.emitters():
-            name = e.class_name()
-            if "Directional" in name:
-                p = mi.traverse(e)
-                to_world = mi.ScalarTransform4f(np.asarray(p["to_world"].matrix, np.float64)
-                                                .reshape(4, 4))
-                prop = np.asarray(to_world @ mi.ScalarVector3f(0, 0, 1), np.float64)
-                dirs.append(-prop / np.linalg.norm(prop))
-                weights.append(np.asarray(p["irradiance.value"], np.float64).reshape(-1)[:3])
-            elif mi.has_flag(e.flags(), mi.EmitterFlags.Infinite):
-                rad = relight.envmap_grid_radiance(e, self.relight_config)
-                ls = relight.grid_light_set(rad)
-                dirs += list(ls.directions)
-                weights += list(np.stack([np.asarray(ls.weights[k]) for k in range(3)], -1))
-            else:
-                raise ValueError(f"surfel_relight: emitter {e.id()!r} ({name}) is not supported; "
-                                 "use directional or infinite (envmap, constant) emitters")
-        if not dirs:
-            raise ValueError("surfel_relight: the scene has no emitter to relight with")
-        return relight.directional_light_set(np.array(dirs), np.array(weights))
+        return relight.emitter_light_set(scene.emitters(), self.relight_config, self.cache,
+                                         where="surfel_relight")
 
     def _image(self, scene, sensor) -> mi.TensorXf:
         if isinstance(sensor, int):
@@ -115,7 +101,7 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
         bounds = SceneBounds.from_points(pos, [camera])
         model = relight.RelightModel(self.surfels, self.specular, self.visibility)
-        maps = relight.shadow_maps_for(model, lights, bounds, self.vis_config)
+        maps = self.cache.shadow_maps(model, lights, bounds, self.vis_config)
         factor = relight.indirect_factor(model, lights, self.relight_config)
         out = relight.relight_view(model, camera, lights, maps, factor)
         film = sensor.film()

@@ -64,9 +64,10 @@ class GeometryWriter:
 
 
 def geometry_line(metrics: dict) -> str:
+    normal = metrics.get("normal_error_median_deg")  # absent: no ground-truth normals
+    normal = f"{normal:.2f} deg" if normal is not None else "n/a (no ground-truth normals)"
     return (f"geometry: {metrics['surfels']} surfels; test PSNR {metrics['psnr']:.2f} dB, SSIM "
-            f"{metrics['ssim']:.4f}, median normal error "
-            f"{metrics.get('normal_error_median_deg', float('nan')):.2f} deg, mask IoU "
+            f"{metrics['ssim']:.4f}, median normal error {normal}, mask IoU "
             f"{metrics['mask_iou']:.4f}")
 
 

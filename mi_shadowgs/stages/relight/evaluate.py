@@ -6,6 +6,7 @@ light JSON). ``check_evaluation_inputs`` checks what it reads before stage 1 sta
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
@@ -27,64 +28,159 @@ def _scaled_albedo_model(model: relight.RelightModel, scale: np.ndarray) -> reli
     return dataclasses.replace(model, surfels=surf)
 
 
-def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
-                           preset: str) -> tuple[dict, dict]:
-    """Paper Sec. V-A3 metrics on the test views, and the images behind them.
+# What each metric needs from the dataset (names as ``ground_truth`` reports them), so
+# that a dataset without some ground truth (NeRF-synthetic, TensoIR, captures) still runs
+# and the summary says which metrics were skipped and why.
+METRIC_NEEDS = {
+    "albedo PSNR/SSIM/LPIPS": ("test albedo", "test material ids"),
+    "light cosine and angular errors": ("training lights",),
+    "light-map cosine": ("training light map",),
+    "shadow IoU": ("test irradiance",),
+    "relighting PSNR/SSIM/LPIPS": ("relightings", "test relit images", "test albedo"),
+}
 
-    Returns (metrics, images): images hold [V, H, W, ...] stacks "albedo", "irradiance" and
-    "relit/<setup>" with their ground truth under "gt/...", and the light maps.
+
+def ground_truth(train, test) -> dict[str, str | None]:
+    """Which ground truth the dataset has: name -> None when present, else why not."""
+    lights = train.lights or {}
+    path = train.root / "lights.json"
+
+    def per_view(field: str, what: str) -> str | None:
+        missing = [v.name for v in test.views if getattr(v, field) is None]
+        if not missing:
+            return None
+        return (f"no test view has {what}" if len(missing) == len(test.views) else
+                f"test view {missing[0]!r} has no {what}")
+
+    relit = [e.get("name") for e in lights.get("relightings", []) or []]
+    miss_relit = [(n, v.name) for n in relit for v in test.views if n not in v.relit]
+    return {
+        "test albedo": per_view("albedo", "albedo"),
+        "test material ids": per_view("material", "material ids"),
+        "test irradiance": per_view("irradiance", "irradiance"),
+        "test normals": per_view("normal", "normals"),
+        "test depth": per_view("depth", "depth"),
+        "test visibility": per_view("visibility", "visibility"),
+        "training lights": None if lights.get("training", {}).get("lights") else
+        f"{path.name} with training.lights is absent",
+        "training light map": None if lights.get("training", {}).get("light_map") else
+        f"{path.name} with training.light_map is absent",
+        "relightings": None if relit else f"{path.name} lists no relightings",
+        "test relit images": None if relit and not miss_relit else
+        (f"test view {miss_relit[0][1]!r} has no relit image {miss_relit[0][0]!r}"
+         if miss_relit else "no relighting to compare with"),
+    }
+
+
+def skipped_metrics(available: dict[str, str | None]) -> list[dict]:
+    """The metrics of ``METRIC_NEEDS`` whose ground truth is missing, each with what it
+    needs and why it was not computed."""
+    out = []
+    for metric, needs in METRIC_NEEDS.items():
+        why = [available[n] for n in needs if available.get(n)]
+        if why:
+            out.append({"metric": metric, "needs": list(needs), "why": "; ".join(why)})
+    return out
+
+
+def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
+                           preset: str, figure_lights: int = 3,
+                           cache: relight.RelightCache | None = None) -> tuple[dict, dict]:
+    """Paper Sec. V-A3 metrics on the test views, each computed only when the dataset has
+    the ground truth it needs (``METRIC_NEEDS``; ``metrics["skipped"]`` lists the others
+    with the reason), and the images behind them.
+
+    Returns (metrics, images): images hold [V, H, W, ...] stacks "albedo" (aligned to the
+    ground truth when there is one), "irradiance", "roughness", "metallic", "normal",
+    "visibility" (the ``figure_lights`` strongest fitted lights, with "visibility_lights"
+    their (azimuth, elevation)), "relit/<setup>", their ground truth under "gt/...", and the
+    light maps. ``cache`` (``render.RelightCache``) keeps the shadow maps for the caller,
+    e.g. for ``write_previews`` of the same fit.
     """
     vcfg = shadow_maps.get_config(preset)
     rcfg = relight.get_config(preset)
+    avail = ground_truth(train, test)
+    skipped = skipped_metrics(avail)
+    gone = {s["metric"] for s in skipped}
+    est_light = result.light.light_set()
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
-                           result.light.light_set())
-    views, decomp_s = relight.relight_views(model, test.cameras, result.light.light_set(), bounds,
-                                      rcfg, vcfg)
+                                 est_light)
+    t0 = time.perf_counter()
+    maps = relight.shadow_maps_for(model, est_light, bounds, vcfg) if cache is None else \
+        cache.shadow_maps(model, est_light, bounds, vcfg)
+    factor = relight.indirect_factor(model, est_light, rcfg)
+    views = [relight.relight_view(model, cam, est_light, maps, factor, buffers=True)
+             for cam in test.cameras]
+    decomp_s = time.perf_counter() - t0  # relight_view reads back to numpy: synced
     mask = test.stack("mask")
     est_alb = np.stack([v["albedo"] for v in views])
-    gt_alb = test.stack("albedo")
-    alb = evaluation.albedo_metrics(est_alb, gt_alb, test.stack("material"), mask)
     est_irr = np.stack([v["direct_irradiance"] for v in views])
-    gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
-    gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
-    est_light = result.light.light_set()
     est_light_w = np.asarray(est_light.weights, np.float64).T  # [K, 3]
-    gt_lights = train.lights["training"]["lights"]
-    gt_dirs = np.array([lt["direction"] for lt in gt_lights], np.float64)  # [G, 3]
-    gt_irr_w = np.array([lt["irradiance"] for lt in gt_lights], np.float64)  # [G, 3]
-    metrics = {
-        "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"], "albedo_lpips": alb["lpips"],
-        "albedo_per_view": alb["per_view"],
-        "light_cosine": evaluation.light_cosine(est_light.directions, est_light_w,
-                                                gt_dirs, gt_irr_w),
-        "light_map_cosine": evaluation.light_map_cosine(result.light.radiance, gt_map),
-        **evaluation.light_angular_errors(est_light.directions, est_light_w, gt_dirs),
-        "shadow_iou": evaluation.shadow_iou(est_irr, gt_irr, mask),
-        "specular": result.specular, "active_directions": int(len(result.light.active)),
-        "decomposition_render_s": decomp_s,
-    }
-    regions = test.stack("material")
-    scales = evaluation.albedo_scales(est_alb, gt_alb, regions, mask)
-    images = {"albedo": evaluation.align_albedo(est_alb, regions, scales),
-              "gt/albedo": gt_alb, "irradiance": est_irr, "gt/irradiance": gt_irr,
-              "light_map": result.light.radiance, "gt/light_map": gt_map.mean(-1)}
-    # Relighting: the albedo is aligned to ground truth by one global per-channel factor.
-    smodel = _scaled_albedo_model(model, evaluation.global_albedo_scale(est_alb, gt_alb, mask))
+    order = np.argsort(-est_light_w.mean(-1))[:figure_lights]  # strongest lights first
+    metrics = {"specular": result.specular, "active_directions": int(len(result.light.active)),
+               "decomposition_render_s": decomp_s, "skipped": skipped}
+    images = {"albedo": est_alb, "irradiance": est_irr, "light_map": result.light.radiance,
+              "roughness": np.stack([v["roughness"] for v in views]),
+              "metallic": np.stack([v["metallic"] for v in views]),
+              "normal": np.stack([v["normal"] for v in views]),
+              "visibility": np.stack([v["visibility"][..., order] for v in views]),
+              "visibility_lights": [_angles(est_light.directions[k]) for k in order]}
+    for metric in METRIC_NEEDS:  # a skipped metric is there as None, named in "skipped"
+        if metric in gone:
+            keys = {"albedo PSNR/SSIM/LPIPS": ("albedo_psnr", "albedo_ssim", "albedo_lpips"),
+                    "light cosine and angular errors": ("light_cosine",),
+                    "light-map cosine": ("light_map_cosine",), "shadow IoU": ("shadow_iou",),
+                    "relighting PSNR/SSIM/LPIPS": ("relight_psnr", "relight_ssim",
+                                                   "relight_lpips")}[metric]
+            metrics.update(dict.fromkeys(keys))
+    if "albedo PSNR/SSIM/LPIPS" not in gone:
+        gt_alb = test.stack("albedo")
+        regions = test.stack("material")
+        alb = evaluation.albedo_metrics(est_alb, gt_alb, regions, mask)
+        metrics.update({"albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
+                        "albedo_lpips": alb["lpips"], "albedo_per_view": alb["per_view"]})
+        if "lpips_skipped" in alb:
+            metrics["lpips_skipped"] = alb["lpips_skipped"]
+        scales = evaluation.albedo_scales(est_alb, gt_alb, regions, mask)
+        images["albedo"] = evaluation.align_albedo(est_alb, regions, scales)
+        images["gt/albedo"] = gt_alb
+    if "light cosine and angular errors" not in gone:
+        gt_lights = train.lights["training"]["lights"]
+        gt_dirs = np.array([lt["direction"] for lt in gt_lights], np.float64)  # [G, 3]
+        gt_irr_w = np.array([lt["irradiance"] for lt in gt_lights], np.float64)  # [G, 3]
+        metrics["light_cosine"] = evaluation.light_cosine(est_light.directions, est_light_w,
+                                                          gt_dirs, gt_irr_w)
+        metrics.update(evaluation.light_angular_errors(est_light.directions, est_light_w,
+                                                       gt_dirs))
+    if "light-map cosine" not in gone:
+        gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
+        metrics["light_map_cosine"] = evaluation.light_map_cosine(result.light.radiance,
+                                                                  gt_map)
+        images["gt/light_map"] = gt_map.mean(-1) if gt_map.ndim == 2 else gt_map
+    if "shadow IoU" not in gone:
+        gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
+        metrics["shadow_iou"] = evaluation.shadow_iou(est_irr, gt_irr, mask)
+        images["gt/irradiance"] = gt_irr
     relit = {}
-    for entry in train.lights.get("relightings", []):
-        name = entry["name"]
-        if entry.get("type") == "envmap":  # its 128-direction light set, shadows included
-            lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
-        else:
-            lights = relight.lights_from_json(entry)
-        rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg)
-        est = np.stack([v["rgb"] for v in rv])
-        gt = np.stack([v.relit[name] for v in test.views])
-        relit[name] = {**evaluation.image_metrics(est, gt, mask), "render_s": secs,
-                       "views": len(rv), "type": entry.get("type", "directional"),
-                       "light_directions": lights.count}
-        images[f"relit/{name}"] = est
-        images[f"gt/relit/{name}"] = gt
+    if "relighting PSNR/SSIM/LPIPS" not in gone:
+        # The albedo is aligned to ground truth by one global per-channel factor.
+        smodel = _scaled_albedo_model(model, evaluation.global_albedo_scale(
+            est_alb, test.stack("albedo"), mask))
+        for entry in train.lights.get("relightings", []):
+            name = entry["name"]
+            if entry.get("type") == "envmap":  # its 128-direction light set, shadows included
+                lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
+            else:
+                lights = relight.lights_from_json(entry)
+            rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg,
+                                             cache=cache)
+            est = np.stack([v["rgb"] for v in rv])
+            gt = np.stack([v.relit[name] for v in test.views])
+            relit[name] = {**evaluation.image_metrics(est, gt, mask), "render_s": secs,
+                           "views": len(rv), "type": entry.get("type", "directional"),
+                           "light_directions": lights.count}
+            images[f"relit/{name}"] = est
+            images[f"gt/relit/{name}"] = gt
     if relit:
         metrics["relight_psnr"] = float(np.mean([r["psnr"] for r in relit.values()]))
         metrics["relight_ssim"] = float(np.mean([r["ssim"] for r in relit.values()]))
@@ -93,9 +189,14 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
         metrics["relight_render_s"] = float(np.median([r["render_s"] for r in relit.values()]))
     metrics["relighting"] = relit
     metrics["test_views"] = [Path(v.name).name for v in test.views]  # order of per_view
-    if "lpips_skipped" in alb:
-        metrics["lpips_skipped"] = alb["lpips_skipped"]
     return metrics, images
+
+
+def _angles(direction) -> tuple[float, float]:
+    """(azimuth, elevation) in degrees of a unit direction (``core.directions``'s angles)."""
+    x, y, z = (float(c) for c in np.asarray(direction, np.float64).reshape(3))
+    return float(np.degrees(np.arctan2(-z, x)) % 360.0), \
+        float(np.degrees(np.arcsin(np.clip(y, -1.0, 1.0))))
 
 
 def _display(img: np.ndarray, scale: float | None = None) -> np.ndarray:
@@ -125,31 +226,56 @@ def light_map_image(radiance: np.ndarray, block: int = 8) -> np.ndarray:
     return np.repeat(img[..., None], 3, axis=-1)
 
 
-def write_figures(folder: Path, test, images: dict, count: int) -> dict:
+def write_figures(folder: Path, test, images: dict, count: int,
+                  segments: dict[str, np.ndarray] | None = None) -> dict:
     """PNG figures of the first ``count`` test views (spread over the split); returns the
-    report grid (rows of relative paths). Beside albedo and each relighting, its error map:
-    |estimate - ground truth| as displayed (sRGB), colour-mapped by ``io.plots.error_colors``
-    (0 to ``io.plots.ERROR_MAX``)."""
+    report grid (rows of relative paths). The decomposition: input, albedo, roughness,
+    metallic, normals, irradiance, the visibility of the strongest fitted lights and the
+    segments (``segments``: view stem -> sRGB uint8 [H, W, 3], e.g. stage 2's maps); each
+    ground truth the dataset has beside its estimate, with its error map: |estimate -
+    ground truth| as displayed (sRGB), colour-mapped by ``io.plots.error_colors`` (0 to
+    ``io.plots.ERROR_MAX``)."""
     from mi_shadowgs.io.images import write_png
 
     n = len(test.views)
     picks = sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
     relits = sorted(k[len("relit/"):] for k in images if k.startswith("relit/"))
-    columns = ["input", "albedo", "albedo (GT)", "albedo error", "irradiance",
-               "irradiance (GT)"]
+    has_alb, has_irr = "gt/albedo" in images, "gt/irradiance" in images
+    vis_names = [f"visibility az {az:.0f} el {el:.0f}"
+                 for az, el in images.get("visibility_lights", [])]
+    columns = ["input", "albedo"] + (["albedo (GT)", "albedo error"] if has_alb else [])
+    columns += ["roughness", "metallic", "normal", "irradiance"]
+    columns += ["irradiance (GT)"] if has_irr else []
+    columns += vis_names
+    segments = segments or {}
+    if any(Path(test.views[i].name).name in segments for i in picks):
+        columns.append("segments")
     for name in relits:
         columns += [f"relit {name}", f"relit {name} (GT)", f"relit {name} error"]
     # One exposure for estimate and ground truth of a kind, so that they compare.
     irr_scale = float(np.percentile(images["irradiance"], 99)) or 1.0
-    gt_irr_scale = float(np.percentile(images["gt/irradiance"], 99)) or 1.0
+    gt_irr_scale = float(np.percentile(images["gt/irradiance"], 99)) or 1.0 if has_irr \
+        else 1.0
+    linear_cols = ("irradiance", "roughness", "metallic", "normal", "visibility", "segments")
     rows = []
     for i in picks:
         stem = Path(test.views[i].name).name
         cells = {"input": test.views[i].image, "albedo": images["albedo"][i],
-                 "albedo (GT)": images["gt/albedo"][i],
-                 "albedo error": _error(images["albedo"][i], images["gt/albedo"][i]),
-                 "irradiance": _display(images["irradiance"][i], irr_scale),
-                 "irradiance (GT)": _display(images["gt/irradiance"][i], gt_irr_scale)}
+                 "roughness": images["roughness"][i], "metallic": images["metallic"][i],
+                 "normal": np.where(np.any(images["normal"][i] != 0, -1, keepdims=True),
+                                    images["normal"][i] * 0.5 + 0.5, 0.0),
+                 "irradiance": _display(images["irradiance"][i], irr_scale)}
+        if has_alb:
+            cells["albedo (GT)"] = images["gt/albedo"][i]
+            cells["albedo error"] = _error(images["albedo"][i], images["gt/albedo"][i])
+        if has_irr:
+            cells["irradiance (GT)"] = _display(images["gt/irradiance"][i], gt_irr_scale)
+        for k, col in enumerate(vis_names):
+            cells[col] = images["visibility"][i][..., k]
+        if "segments" in columns:
+            seg = segments.get(stem)
+            cells["segments"] = np.zeros(test.views[i].image.shape) if seg is None else \
+                np.asarray(seg, np.float64)[..., :3] / 255.0
         for name in relits:
             cells[f"relit {name}"] = images[f"relit/{name}"][i]
             cells[f"relit {name} (GT)"] = images[f"gt/relit/{name}"][i]
@@ -158,53 +284,50 @@ def write_figures(folder: Path, test, images: dict, count: int) -> dict:
         paths = []
         for col in columns:
             fname = f"{stem}_{col.replace(' ', '_').replace('(', '').replace(')', '')}.png"
-            srgb = not (col.startswith("irradiance") or col.endswith(" error"))
+            srgb = not (col.startswith(linear_cols) or col.endswith(" error"))
             write_png(folder / fname, _display(cells[col]), srgb=srgb)
             paths.append(fname)
         rows.append({"label": stem, "cells": paths})
-    est, gt = light_map_image(images["light_map"]), light_map_image(images["gt/light_map"])
-    gap = np.ones((est.shape[0], 4, 3))
-    write_png(folder / "light_map.png", np.concatenate([est, gap, gt], axis=1), srgb=False)
+    est = light_map_image(images["light_map"])
+    if "gt/light_map" in images:
+        gap = np.ones((est.shape[0], 4, 3))
+        est = np.concatenate([est, gap, light_map_image(images["gt/light_map"])], axis=1)
+    write_png(folder / "light_map.png", est, srgb=False)
     return {"columns": columns, "rows": rows}
 
 
-def check_evaluation_inputs(train, test) -> None:
-    """What ``evaluate_decomposition`` reads, checked before stage 1 starts (DatasetError
-    naming the file or field): the training light map and the test views' ground truth."""
+def check_evaluation_inputs(train, test) -> dict[str, str | None]:
+    """What ``evaluate_decomposition`` reads, checked before stage 1 starts: ground truth
+    that is present but malformed is a DatasetError naming the file or field; ground truth
+    that is absent only skips the metrics that need it. Returns ``ground_truth``."""
     from mi_shadowgs.dataset.loader import DatasetError
 
     path = train.root / "lights.json"
-    if train.lights is None:
-        raise DatasetError(f"{path}: file not found (the evaluation compares the estimated "
-                           "light map with its training.light_map)")
+    lights = train.lights or {}
+    training = lights.get("training", {})
+    if not isinstance(training, dict):
+        raise DatasetError(f"{path}: field 'training' must be an object")
+    if "light_map" in training:
+        try:
+            np.asarray(training["light_map"]["radiance"], np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise DatasetError(f"{path}: missing or malformed field "
+                               "'training.light_map.radiance'") from None
     try:
-        np.asarray(train.lights["training"]["light_map"]["radiance"], np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise DatasetError(f"{path}: missing or malformed field "
-                           "'training.light_map.radiance'") from None
-    for field in ("albedo", "irradiance", "material"):
-        missing = [v.name for v in test.views if getattr(v, field) is None]
-        if missing:
-            raise DatasetError(f"{test.root}: test view {missing[0]!r} has no {field} ground "
-                               "truth, which the evaluation needs")
-    try:
-        for lt in train.lights["training"]["lights"]:
+        for lt in training.get("lights", []):
             np.asarray(lt["direction"], np.float64).reshape(3)
             np.asarray(lt["irradiance"], np.float64).reshape(3)
     except (KeyError, TypeError, ValueError):
         raise DatasetError(f"{path}: missing or malformed field 'training.lights' (each with "
                            "a direction and an RGB irradiance)") from None
-    for entry in train.lights.get("relightings", []):
+    for entry in lights.get("relightings", []):
         kind = entry.get("type")
         if kind not in RELIGHT_TYPES:
             raise DatasetError(f"{path}: relighting {entry.get('name')!r} has type {kind!r}; "
                                f"known: {', '.join(RELIGHT_TYPES)}")
         if kind == "envmap":
             envmap_file(entry, train.root)
-        missing = [v.name for v in test.views if entry.get("name") not in v.relit]
-        if missing:
-            raise DatasetError(f"{test.root}: test view {missing[0]!r} has no relit image "
-                               f"for relighting {entry.get('name')!r} of {path.name}")
+    return ground_truth(train, test)
 
 
 RELIGHT_TYPES = ("directional", "envmap")
@@ -236,9 +359,114 @@ def load_envmap(entry: dict, root: Path):
 
 def light_json(result: fit.MaterialResult) -> dict:
     """The fitted light of stage 4 as ``light.json`` holds it: the grid radiance, the active
-    directions, their unit vectors and irradiance, and the specular flag."""
+    directions, their unit vectors and irradiance, their azimuth/elevation (degrees), and
+    the specular and visibility flags."""
     light = result.light
+    dirs = np.asarray(light.light_set().directions)
     return {"radiance": light.radiance.tolist(), "active": light.active.tolist(),
-            "directions": np.asarray(light.light_set().directions).tolist(),
+            "directions": dirs.tolist(),
             "irradiance": light.weights.tolist() if light.weights is not None else None,
-            "specular": result.specular}
+            "angles_deg": [list(_angles(d)) for d in dirs],
+            "specular": result.specular, "use_visibility": result.use_visibility}
+
+
+def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None = None,
+                   use_visibility: bool = True) -> fit.MaterialResult:
+    """A stage-4 result back from its files (``model.ply``, ``light.json``, optionally
+    ``history.csv``): what a rerun evaluates instead of fitting again, and what ``relight``
+    renders. Errors name the file and field."""
+    import json
+
+    from mi_shadowgs.io.ply import load_ply
+
+    model = load_ply(model_path)
+    missing = [c for c in ("albedo", "roughness", "metallic") if c not in model.channels]
+    if missing:
+        raise ValueError(f"{model_path}: the model lacks channel(s) {missing} (not a stage-4 "
+                         "model)")
+    try:
+        data = json.loads(Path(light_path).read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{light_path}: file not found (the fitted light)") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{light_path}: malformed JSON: {exc}") from None
+    try:
+        radiance = np.asarray(data["radiance"], np.float64).reshape(-1)
+        active = np.asarray(data["active"], np.int64).reshape(-1)
+        dirs = np.asarray(data["directions"], np.float64).reshape(-1, 3)
+        weights = None if data.get("irradiance") is None else \
+            np.asarray(data["irradiance"], np.float64).reshape(len(dirs))
+        specular = bool(data["specular"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{light_path}: missing or malformed field ({exc})") from None
+    history = []
+    if history_path is not None and Path(history_path).is_file():
+        for line in Path(history_path).read_text().splitlines()[1:]:
+            step, loss = line.split(",")
+            history.append((int(step), float(loss)))
+    light = fit.LightModel(radiance, active, dirs, weights)
+    return fit.MaterialResult(model, light, specular,
+                              bool(data.get("use_visibility", use_visibility)), history, {})
+
+
+TURNTABLE_LIGHTS = 8  # azimuths of the previews' light turntable
+TURNTABLE_ELEVATION = 45.0
+
+
+def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds, preset: str,
+                   envmaps=(), cache: relight.RelightCache | None = None) -> dict:
+    """Relit previews of a fit under standard lights, for data with or without ground truth:
+    a turntable of ``TURNTABLE_LIGHTS`` directional lights at ``TURNTABLE_ELEVATION``
+    degrees and every env map of ``envmaps`` ((name, file, scale)), for each of ``cameras``.
+
+    Exposure: each preview light gives an upward-facing surface the irradiance the fitted
+    light gives it (albedo and light are known only up to a common factor, so the fitted
+    light is the only scale there is). ``cache``: shadow maps already rendered (e.g. by the
+    evaluation's env-map relightings). Writes ``preview_<view>_<light>.png`` and one strip
+    per view; returns {"strips": [{"title", "file"}], "lights": [...]} for the report.
+    """
+    from mi_shadowgs.core.envmap import load_envmap as load_emitter
+    from mi_shadowgs.io.images import write_png
+
+    vcfg = shadow_maps.get_config(preset)
+    rcfg = relight.get_config(preset)
+    fitted = result.light.light_set()
+    model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
+                                 fitted)
+    e_up = relight.upward_irradiance(fitted)
+    setups = []
+    for name, ls in relight.standard_turntable(TURNTABLE_LIGHTS, TURNTABLE_ELEVATION):
+        up = relight.upward_irradiance(ls)
+        setups.append(("turntable", name, relight.scale_light_set(ls, e_up / up)))
+    cache = cache or relight.RelightCache()  # the env maps share the grid's shadow maps
+    for name, path, scale in envmaps:
+        ls = relight.grid_light_set(cache.envmap_radiance(load_emitter(path, scale), rcfg),
+                                    rcfg.n_directions)
+        up = relight.upward_irradiance(ls)
+        if ls.count and up > 0:
+            setups.append(("envmap", name, relight.scale_light_set(ls, e_up / up)))
+    strips, lights = [], []
+    for cam_i, cam in enumerate(cameras):
+        for kind in ("turntable", "envmap"):
+            frames = []
+            for k, name, ls in (x for x in setups if x[0] == kind):
+                maps = cache.shadow_maps(model, ls, bounds, vcfg)
+                img = relight.relight_view(model, cam, ls, maps,
+                                           relight.indirect_factor(model, ls, rcfg),
+                                           only_rgb=True)["rgb"]
+                fname = f"preview_{cam_i}_{kind}_{name}.png"
+                write_png(folder / fname, _display(img))
+                frames.append(_display(img))
+                if cam_i == 0:
+                    lights.append({"kind": k, "name": name, "directions": ls.count})
+            if frames:
+                gap = np.ones((frames[0].shape[0], 2, 3))
+                strip = np.concatenate(sum(([f, gap] for f in frames), [])[:-1], axis=1)
+                fname = f"preview_{cam_i}_{kind}.png"
+                write_png(folder / fname, strip)
+                names = [n for k, n, _ in setups if k == kind]
+                title = (f"light turntable: {TURNTABLE_LIGHTS} azimuths at "
+                         f"{TURNTABLE_ELEVATION:.0f} deg elevation ({', '.join(names)})"
+                         if kind == "turntable" else f"env maps: {', '.join(names)}")
+                strips.append({"title": title, "file": fname})
+    return {"strips": strips, "lights": lights}

@@ -197,10 +197,14 @@ def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: Scene
 
 
 def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, maps,
-                 factor: float, raster: RasterConfig = DEFAULT_RASTER) -> dict:
+                 factor: float, raster: RasterConfig = DEFAULT_RASTER,
+                 buffers: bool = False, only_rgb: bool = False) -> dict:
     """Relit image and buffers of one view: "rgb" [H, W, 3], "albedo" [H, W, 3] (diffuse,
     (1 - m) a), "direct_irradiance" [H, W] (white sum_k E_k (n . l_k)^+ V_k, mean RGB),
-    "alpha" [H, W] as numpy."""
+    "alpha" [H, W] as numpy. With ``buffers`` also "roughness" [H, W], "metallic" [H, W],
+    "normal" [H, W, 3] (world, 0 on background) and "visibility" [H, W, K] (1 where light k
+    is unoccluded; all 1 without shadow maps). ``only_rgb``: "rgb" and "alpha" alone (the
+    relight command's frames: no irradiance pass)."""
     h, w = camera.height, camera.width
     geom, albedo, rough, metal, ind = render_buffers(model, camera, raster)
     with dr.suspend_grad():
@@ -208,13 +212,23 @@ def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, 
             maps.evaluate(geom.points, geom.normal, geom.footprint)
         indirect = ind * factor if ind is not None and factor > 0 else None
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
+        out = {"rgb": _img(rgb, h, w), "alpha": geom.alpha.numpy().reshape(h, w)}
+        if only_rgb:
+            return out
         ones = mi.Color3f(1.0)
         irr = shading.direct(geom, ones * dr.pi, dr.zeros(mi.Float, dr.width(geom.alpha)),
                        dr.zeros(mi.Float, dr.width(geom.alpha)), lights, vis, False)
         diff_albedo = albedo * (1.0 - metal)
-    return {"rgb": _img(rgb, h, w), "albedo": _img(diff_albedo, h, w),
-            "direct_irradiance": _img(irr, h, w).mean(-1),
-            "alpha": geom.alpha.numpy().reshape(h, w)}
+    out.update({"albedo": _img(diff_albedo, h, w), "direct_irradiance": _img(irr, h, w).mean(-1)})
+    if buffers:
+        covered = out["alpha"][..., None] > 0
+        out["roughness"] = rough.numpy().reshape(h, w)
+        out["metallic"] = metal.numpy().reshape(h, w)
+        out["normal"] = np.where(covered, _img(mi.Color3f(geom.normal), h, w), 0.0)
+        k = lights.count
+        out["visibility"] = np.ones((h, w, k), np.float32) if vis is None else \
+            np.asarray(vis.numpy(), np.float32).reshape(h, w, k)  # pixel-major [P * K]
+    return out
 
 
 def _img(c: mi.Color3f, h: int, w: int) -> np.ndarray:
@@ -224,17 +238,166 @@ def _img(c: mi.Color3f, h: int, w: int) -> np.ndarray:
 def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shading.LightSet,
                   bounds: SceneBounds, config: RelightConfig = DEFAULT_RELIGHT,
                   vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
-                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = False
-                  ) -> tuple[list[dict], float]:
+                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = False,
+                  cache: RelightCache | None = None) -> tuple[list[dict], float]:
     """Relight every camera's view; returns the per-view dicts and the wall time (s),
-    shadow maps included."""
+    shadow maps included (taken from ``cache`` when given)."""
     from tqdm import tqdm
 
     dr.sync_thread()
     t0 = time.perf_counter()
-    maps = shadow_maps_for(model, lights, bounds, vis_config)
+    maps = shadow_maps_for(model, lights, bounds, vis_config) if cache is None else \
+        cache.shadow_maps(model, lights, bounds, vis_config)
     factor = indirect_factor(model, lights, config)
     out = [relight_view(model, cam, lights, maps, factor, raster)
            for cam in tqdm(cameras, desc="relight", disable=not progress)]
     dr.sync_thread()
     return out, time.perf_counter() - t0
+
+
+# -- light sources of the relight command and the plugin ---------------------------------
+def standard_turntable(count: int = 8, elevation_deg: float = 45.0,
+                       irradiance: float = 1.0) -> list[tuple[str, shading.LightSet]]:
+    """One directional light per azimuth 0, 360/count, ... at ``elevation_deg``: the light
+    turntable of the report's previews and of ``relight --turntable``."""
+    from mi_shadowgs.core.directions import direction_from_angles
+
+    out = []
+    for i in range(count):
+        az = 360.0 * i / count
+        d = np.asarray(direction_from_angles(az, elevation_deg), np.float64).reshape(1, 3)
+        out.append((f"az{az:03.0f}_el{elevation_deg:02.0f}",
+                    directional_light_set(d, [irradiance])))
+    return out
+
+
+def combine_light_sets(sets: Sequence[shading.LightSet]) -> shading.LightSet:
+    """One LightSet holding every light of ``sets`` (e.g. a sun and a sky)."""
+    dirs = np.concatenate([np.asarray(s.directions, np.float64).reshape(-1, 3) for s in sets])
+    w = np.concatenate([light_weights(s) for s in sets])
+    return directional_light_set(dirs, w)
+
+
+def light_weights(lights: shading.LightSet) -> np.ndarray:
+    """The RGB irradiance of each light as numpy [K, 3]."""
+    return np.stack([np.asarray(lights.weights[k], np.float64) for k in range(3)], -1) \
+        .reshape(-1, 3)
+
+
+def scale_light_set(lights: shading.LightSet, factor: float) -> shading.LightSet:
+    return directional_light_set(lights.directions, light_weights(lights) * factor)
+
+
+def emitter_light_set(emitters, config: RelightConfig = DEFAULT_RELIGHT,
+                      cache: RelightCache | None = None, where: str = "scene"
+                      ) -> shading.LightSet:
+    """The lights of Mitsuba emitters: each ``directional`` emitter as it is, each infinite
+    one (``envmap``, ``constant``) over the grid (``envmap_grid_radiance``, cached by its
+    contents in ``cache``). Any other emitter type, or none at all, is a ValueError naming
+    ``where``."""
+    sets = []
+    for e in emitters:
+        name = e.class_name()
+        if "Directional" in name:
+            p = mi.traverse(e)
+            to_world = mi.ScalarTransform4f(np.asarray(p["to_world"].matrix, np.float64)
+                                            .reshape(4, 4))
+            prop = np.asarray(to_world @ mi.ScalarVector3f(0, 0, 1), np.float64)
+            sets.append(directional_light_set(
+                -prop / np.linalg.norm(prop),
+                np.asarray(p["irradiance.value"], np.float64).reshape(-1)[:3]))
+        elif mi.has_flag(e.flags(), mi.EmitterFlags.Infinite):
+            rad = cache.envmap_radiance(e, config) if cache is not None else \
+                envmap_grid_radiance(e, config)
+            ls = grid_light_set(rad, config.n_directions)
+            if ls.count:
+                sets.append(ls)
+        else:
+            raise ValueError(f"{where}: emitter {e.id()!r} ({name}) is not supported; use "
+                             "directional or infinite (envmap, constant) emitters")
+    if not sets:
+        raise ValueError(f"{where}: no emitter to relight with")
+    return combine_light_sets(sets)
+
+
+GEOMETRY_FIELDS = ("position", "log_scale", "rotation", "opacity_logit")
+
+
+class RelightCache:
+    """Shadow maps and env-map grid radiance kept between renders of one model.
+
+    A shadow map depends on the surfels, its light direction, the scene bounds and the
+    visibility settings, never on the view: ``shadow_maps`` renders only the directions it
+    has not seen (each map is rendered on its own, so a map gathered from the cache equals a
+    fresh one) and reuses the rest. ``envmap_radiance`` keys an infinite emitter's grid
+    radiance on a digest of its parameters (image, scale, to_world), so an edited env map is
+    integrated again. It holds at most ``max_maps`` maps, ``max_sets`` assembled sets and
+    ``max_envmaps`` emitters (oldest dropped first).
+    """
+
+    def __init__(self, max_maps: int = 1024, max_envmaps: int = 8, max_sets: int = 16):
+        self.max_maps, self.max_envmaps, self.max_sets = max_maps, max_envmaps, max_sets
+        self._maps: dict[tuple, tuple] = {}  # (model, bounds, config, direction) -> map
+        self._sets: dict[tuple, object] = {}  # all keys of a light set -> its ShadowMaps
+        self._models: dict[tuple, tuple] = {}
+        self._env: dict[str, np.ndarray] = {}
+        self.rendered = 0  # shadow maps rendered (not reused), for tests and benchmarks
+
+    @staticmethod
+    def _direction_key(d) -> bytes:
+        return np.asarray(d, np.float64).round(12).tobytes()
+
+    def shadow_maps(self, model: RelightModel, lights: shading.LightSet, bounds: SceneBounds,
+                    vis_config: VisibilityConfig = DEFAULT_VISIBILITY):
+        """``shadow_maps_for``, reusing every map of a direction seen before."""
+        from mi_shadowgs.stages.visibility.shadow_maps import ShadowMaps
+
+        if not model.use_visibility or lights.count == 0:
+            return None
+        # Shadow maps see only the geometry: a model with other material channels (e.g.
+        # the evaluation's rescaled albedo) shares the maps of its geometry.
+        geometry = tuple(getattr(model.surfels, k) for k in GEOMETRY_FIELDS)
+        base = (tuple(id(g) for g in geometry), bounds, vis_config)
+        self._models[base[0]] = geometry  # held: the ids stay unique
+        dirs = np.asarray(lights.directions, np.float64).reshape(-1, 3)
+        keys = tuple((*base, self._direction_key(d)) for d in dirs)
+        if keys in self._sets:  # the same lights again: the assembled maps as they are
+            return self._sets[keys]
+        todo = [i for i, k in enumerate(keys) if k not in self._maps]
+        if todo:
+            new = render_shadow_maps(model.surfels, dirs[todo], bounds, vis_config)
+            r2 = new.resolution * new.resolution
+            for j, i in enumerate(todo):
+                part = new.depth if len(todo) == 1 else \
+                    dr.gather(mi.Float, new.depth, dr.arange(mi.UInt32, j * r2, (j + 1) * r2))
+                dr.eval(part)
+                self._maps[keys[i]] = (new.cameras[j], part, new.resolution, new.texel)
+            self.rendered += len(todo)
+        parts = [self._maps[k] for k in keys]
+        depth = parts[0][1] if len(parts) == 1 else dr.concat([p[1] for p in parts])
+        dr.eval(depth)
+        maps = ShadowMaps(dirs, [p[0] for p in parts], depth, parts[0][2], vis_config,
+                          parts[0][3])
+        self._sets[keys] = maps
+        while len(self._sets) > self.max_sets:  # oldest first
+            self._sets.pop(next(iter(self._sets)))
+        while len(self._maps) > self.max_maps:
+            self._maps.pop(next(iter(self._maps)))
+        return maps
+
+    def envmap_radiance(self, emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np.ndarray:
+        import hashlib
+
+        h = hashlib.blake2b(digest_size=16)
+        h.update(repr((emitter.class_name(), config)).encode())
+        params = mi.traverse(emitter)
+        for key in sorted(params.keys()):
+            v = params[key]
+            h.update(key.encode())
+            h.update(np.asarray(v.matrix if hasattr(v, "matrix") else v).tobytes())
+        key = h.hexdigest()
+        if key not in self._env:
+            self._env[key] = envmap_grid_radiance(emitter, config)
+            while len(self._env) > self.max_envmaps:
+                self._env.pop(next(iter(self._env)))
+        return self._env[key]

@@ -1,0 +1,281 @@
+"""Stage 5's relight runner (``mi-shadowgs relight RUN --out DIR``): a finished run's fitted
+model rendered under new lights, from new views, with shadows recomputed from the surfels.
+
+Light sources: directional lights given as azimuth, elevation and irradiance
+(``parse_light``), an env map (optionally turned about +Y), the emitters of a Mitsuba scene.
+Views: a ``transforms.json``, an orbit of N cameras around the object, or the run's test
+views. Every shadow map is rendered once per light direction and reused by every frame
+(``render.RelightCache``); the env map's grid radiance is integrated once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.stages.relight import render as relight
+from mi_shadowgs.stages.relight.evaluate import fit_from_files
+from mi_shadowgs.stages.visibility import shadow_maps
+
+DEFAULT_QUANTILE = 0.98  # the run's bounds_quantile when its manifest does not say
+
+
+def parse_light(text: str, option: str = "--light") -> tuple[float, float, np.ndarray]:
+    """``AZ,EL,E`` or ``AZ,EL,R,G,B`` (degrees, W/m^2) -> (azimuth, elevation, RGB [3]);
+    ValueError naming the option and the field at fault."""
+    parts = [p.strip() for p in str(text).split(",")]
+    if len(parts) not in (3, 5):
+        raise ValueError(f"{option} {text!r}: expected AZ,EL,IRRADIANCE or AZ,EL,R,G,B "
+                         f"(degrees, W/m^2), got {len(parts)} field(s)")
+    names = ["azimuth", "elevation"] + (["irradiance"] if len(parts) == 3 else
+                                        ["irradiance R", "irradiance G", "irradiance B"])
+    values = []
+    for name, p in zip(names, parts, strict=True):
+        try:
+            v = float(p)
+        except ValueError:
+            raise ValueError(f"{option} {text!r}: field {name} must be a number, got "
+                             f"{p!r}") from None
+        if not math.isfinite(v):
+            raise ValueError(f"{option} {text!r}: field {name} must be finite, got {p!r}")
+        values.append(v)
+    az, el, *irr = values
+    if not -90.0 <= el <= 90.0:
+        raise ValueError(f"{option} {text!r}: field elevation must be in [-90, 90] degrees, "
+                         f"got {el:g}")
+    if any(e < 0 for e in irr):
+        raise ValueError(f"{option} {text!r}: field irradiance must be >= 0, got "
+                         f"{','.join(f'{e:g}' for e in irr)}")
+    rgb = np.asarray(irr * 3 if len(irr) == 1 else irr, np.float64)
+    return az, el, rgb
+
+
+def check_light_args(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
+                     envmap_scale: float = 1.0, scene: str | None = None) -> None:
+    """The light arguments checked before anything is loaded (errors name the option and
+    field): ``parse_light`` on each light, the env map's and scene's files and numbers."""
+    for text in lights:
+        parse_light(text)
+    for name, v in (("--rotate", rotate_deg), ("--envmap-scale", envmap_scale)):
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v!r}")
+    if envmap_scale <= 0:
+        raise ValueError(f"--envmap-scale must be > 0, got {envmap_scale:g}")
+    if envmap is None and (rotate_deg or envmap_scale != 1.0):
+        raise ValueError("--rotate and --envmap-scale change an env map: give --envmap too")
+    if envmap is not None and not Path(envmap).is_file():
+        raise FileNotFoundError(f"--envmap {envmap}: file not found")
+    if scene is not None and not Path(scene).is_file():
+        raise FileNotFoundError(f"--scene {scene}: file not found")
+
+
+def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0):
+    """Mitsuba's ``envmap`` of a lat-long image (Y-up), turned by ``rotate_deg`` about +Y
+    (positive: from +X toward -Z, the way azimuth turns); errors name the option."""
+    import mitsuba as mi
+
+    from mi_shadowgs.core.envmap import load_envmap
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--envmap {path}: file not found")
+    for name, v in (("--rotate", rotate_deg), ("--envmap-scale", scale)):
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v!r}")
+    if scale <= 0:
+        raise ValueError(f"--envmap-scale must be > 0, got {scale:g}")
+    try:
+        emitter = load_envmap(str(path), scale)
+    except RuntimeError as exc:  # Mitsuba's message names the file; keep its first line
+        raise ValueError(f"--envmap {path}: not a readable env map: "
+                         f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
+    if rotate_deg:
+        params = mi.traverse(emitter)
+        params["to_world"] = mi.Transform4f().rotate([0, 1, 0], float(rotate_deg))
+        params.update()
+    return emitter
+
+
+def scene_emitters(path: str | Path):
+    """The emitters of a Mitsuba scene file (its shapes, sensors and integrator unused)."""
+    import mitsuba as mi
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--scene {path}: file not found")
+    try:
+        scene = mi.load_file(str(path))
+    except RuntimeError as exc:
+        raise ValueError(f"--scene {path}: Mitsuba could not load it: "
+                         f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
+    return scene.emitters()
+
+
+def build_lights(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
+                 envmap_scale: float = 1.0, scene: str | None = None,
+                 config: relight.RelightConfig = relight.DEFAULT_RELIGHT,
+                 cache: relight.RelightCache | None = None):
+    """One LightSet from every source given: ``lights`` (``parse_light`` strings), an env
+    map, a scene's emitters. ValueError when there is none."""
+    sets = []
+    for text in lights:
+        az, el, rgb = parse_light(text)
+        sets.append(relight.directional_light_set(direction_from_angles(az, el)[None],
+                                                  rgb[None]))
+    if envmap is not None:
+        rad = cache.envmap_radiance(envmap_emitter(envmap, rotate_deg, envmap_scale), config) \
+            if cache is not None else relight.envmap_grid_radiance(
+                envmap_emitter(envmap, rotate_deg, envmap_scale), config)
+        ls = relight.grid_light_set(rad, config.n_directions)
+        if ls.count == 0:
+            raise ValueError(f"--envmap {envmap}: the env map is black above the horizon")
+        sets.append(ls)
+    if scene is not None:
+        sets.append(relight.emitter_light_set(scene_emitters(scene), config, cache,
+                                              where=f"--scene {scene}"))
+    if not sets:
+        raise ValueError("no light: give --light AZ,EL,IRRADIANCE, --envmap FILE or --scene "
+                         "XML")
+    return relight.combine_light_sets(sets)
+
+
+@dataclasses.dataclass
+class RunFit:
+    """What relighting takes from a finished run."""
+
+    result: object  # fit.MaterialResult
+    model: relight.RelightModel
+    bounds: shadow_maps.SceneBounds
+    dataset: Path | None  # the run's dataset, where it still is
+    preset: str
+
+
+def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> RunFit:
+    """The fitted model of ``RUN/material/<variant>``, with the shadow-map bounds the run
+    used (its training cameras and ``bounds_quantile``; ``fallback_cameras`` where the
+    dataset is no longer there)."""
+    from mi_shadowgs.io.provenance import read_manifest
+    from mi_shadowgs.stages.material.runner import occluder_bounds
+
+    run = Path(run)
+    folder = run / "material" / variant
+    if not (folder / "model.ply").is_file():
+        raise FileNotFoundError(f"{folder / 'model.ply'}: no stage-4 model (is {run} a "
+                                "finished `mi-shadowgs run`?)")
+    manifest = read_manifest(folder) or {}
+    settings = manifest.get("settings") or {}
+    preset = (read_manifest(run) or {}).get("settings", {}).get("preset", "cpu-small")
+    result = fit_from_files(folder / "model.ply", folder / "light.json",
+                            folder / "history.csv",
+                            use_visibility=settings.get("material", {})
+                            .get("use_visibility", True))
+    data = (manifest.get("dataset") or {}).get("path")
+    data = Path(data) if data and Path(data).is_dir() else None
+    cams = dataset_cameras(data, "train") if data is not None else []
+    pos = result.surfels.to_numpy()["position"]
+    if cams:
+        bounds = occluder_bounds(result.surfels, cams,
+                                 settings.get("bounds_quantile", DEFAULT_QUANTILE))
+    elif fallback_cameras:  # the dataset moved: the views to render stand in for its cameras
+        bounds = shadow_maps.SceneBounds.from_points(
+            pos, fallback_cameras, settings.get("bounds_quantile", DEFAULT_QUANTILE))
+    else:
+        gone = (manifest.get("dataset") or {}).get("path")
+        raise FileNotFoundError(f"{run}: the run's dataset ({gone}) is gone; give the views "
+                                "with --cameras or --orbit")
+    model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
+                                 result.light.light_set())
+    return RunFit(result, model, bounds, data, preset)
+
+
+def dataset_cameras(root: Path, split: str) -> list[Camera]:
+    """The cameras of a dataset's split (our layout, NeRF-synthetic or TensoIR)."""
+    from mi_shadowgs.dataset.loader import load_cameras, load_dataset
+
+    t = root / f"transforms_{split}.json"
+    if t.is_file():
+        return [c for _, c in load_cameras(t)]
+    if any(root.glob(f"{split}_*/metadata.json")):
+        return load_dataset(root, split, require_mask=False).cameras
+    return []
+
+
+def orbit_cameras(n: int, template: Camera, center, elevation_deg: float | None = None
+                  ) -> list[Camera]:
+    """``n`` cameras on a circle about +Y through ``center``, at the template camera's
+    distance, field of view and size (and its elevation unless given)."""
+    if n < 1:
+        raise ValueError(f"--orbit must be >= 1, got {n}")
+    c = np.asarray(center, np.float64)
+    off = template.origin - c
+    dist = float(np.linalg.norm(off))
+    el = math.degrees(math.asin(np.clip(off[1] / dist, -1, 1))) if elevation_deg is None \
+        else elevation_deg
+    az0 = math.degrees(math.atan2(-off[2], off[0]))
+    return [Camera.look_at(c + dist * direction_from_angles(az0 + 360.0 * i / n, el), c,
+                           width=template.width, height=template.height,
+                           fov_x=template.fov_x)
+            for i in range(n)]
+
+
+def relight_frames(fit: RunFit, cameras, lights, cache: relight.RelightCache,
+                   config: relight.RelightConfig | None = None,
+                   vis_config: shadow_maps.VisibilityConfig | None = None, progress=False):
+    """Yield (index, {"rgb", "alpha"}, seconds) per camera; the shadow maps of ``lights``
+    come from ``cache`` (rendered once, inside the first frame's time)."""
+    import drjit as dr
+    from tqdm import tqdm
+
+    config = config or relight.get_config(fit.preset)
+    vis_config = vis_config or shadow_maps.get_config(fit.preset)
+    factor = relight.indirect_factor(fit.model, lights, config)
+    for i, cam in enumerate(tqdm(cameras, desc="relight", unit="frame", disable=not progress)):
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        maps = cache.shadow_maps(fit.model, lights, fit.bounds, vis_config)
+        out = relight.relight_view(fit.model, cam, lights, maps, factor, only_rgb=True)
+        yield i, out, time.perf_counter() - t0  # numpy read-back: synced
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: float) -> tuple[Path, str | None]:
+    """An MP4 (H.264) of sRGB uint8 frames through imageio's ffmpeg plugin, or a GIF where
+    that plugin (the ``imageio-ffmpeg`` package) or its encoder is missing; returns (file
+    written, why not MP4 or None)."""
+    import importlib.util
+
+    import imageio.v3 as iio
+
+    from mi_shadowgs.io.atomic import atomic_path
+
+    why = "MP4 (H.264) unavailable: the imageio-ffmpeg package is not installed"
+    if importlib.util.find_spec("imageio_ffmpeg") is not None:
+        try:
+            with atomic_path(path.with_suffix(".mp4")) as tmp:
+                iio.imwrite(tmp, np.stack(frames), extension=".mp4", plugin="FFMPEG", fps=fps,
+                            codec="libx264", macro_block_size=1)
+            return path.with_suffix(".mp4"), None
+        except Exception as exc:  # noqa: BLE001 -- a missing encoder falls back to a GIF
+            why = f"MP4 (H.264) unavailable: {type(exc).__name__}: " + \
+                (str(exc).splitlines()[0] if str(exc) else "")
+    with atomic_path(path.with_suffix(".gif")) as tmp:
+        iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
+    return path.with_suffix(".gif"), why + "; wrote a GIF instead"
+
+
+def frame_stats(seconds: list[float]) -> dict:
+    """First frame (shadow maps included) and the median of the others."""
+    return {"frames": len(seconds), "first_s": seconds[0] if seconds else None,
+            "later_median_s": float(np.median(seconds[1:])) if len(seconds) > 1 else None}
+
+
+def summary_json(path: Path, info: dict) -> None:
+    from mi_shadowgs.io.atomic import write_json
+
+    write_json(path, json.loads(json.dumps(info, default=float)))

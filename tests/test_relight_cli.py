@@ -1,0 +1,258 @@
+"""`mi-shadowgs relight` and the shadow-map cache (issue 17, part 4): light arguments checked
+with the field named, shadow maps rendered once per direction and reused (the cached maps
+equal fresh ones), the env map integrated once per content, the plugin's second render
+reusing its maps, and the command's views, files and video on a tiny run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import mitsuba as mi
+import numpy as np
+import pytest
+import tiny_cli
+
+from mi_shadowgs import cli
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.directions import direction_from_angles, light_grid
+from mi_shadowgs.core.sampling import surfels_on_surface
+from mi_shadowgs.dataset.generate import SkyConfig, sky_envmap_image
+from mi_shadowgs.io.images import read_exr, write_exr
+from mi_shadowgs.scenes import scene_path
+from mi_shadowgs.stages.relight import render as relight
+from mi_shadowgs.stages.relight import runner
+from mi_shadowgs.stages.visibility.shadow_maps import (
+    SceneBounds,
+    VisibilityConfig,
+    render_shadow_maps,
+)
+
+TINY = tiny_cli.TINY
+
+
+@pytest.mark.parametrize("text, field", [
+    ("a,45,3", "field azimuth must be a number"),
+    ("30,95,3", "field elevation must be in [-90, 90]"),
+    ("30,45,-1", "field irradiance must be >= 0"),
+    ("30,45,nan", "field irradiance must be finite"),
+    ("30,45", "expected AZ,EL,IRRADIANCE"),
+    ("30,45,1,x,1", "field irradiance G must be a number"),
+])
+def test_bad_light_exits_2_naming_the_field(tmp_path, capsys, text, field):
+    # Checked before the run is read: the run folder need not exist.
+    assert cli.main(["relight", str(tmp_path / "none"), "--out", str(tmp_path / "o"),
+                     f"--light={text}"]) == 2
+    err = capsys.readouterr().err
+    assert "--light" in err and field in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--envmap", "missing.exr"], "--envmap missing.exr: file not found"),
+    (["--light", "0,45,1", "--rotate", "30"], "give --envmap too"),
+    (["--envmap", "ENV", "--envmap-scale", "0"], "--envmap-scale must be > 0"),
+    (["--envmap", "ENV", "--rotate", "inf"], "--rotate must be finite"),
+    (["--scene", "missing.xml"], "--scene missing.xml: file not found"),
+    ([], "no light"),
+])
+def test_bad_envmap_or_scene_arguments_exit_2(tmp_path, capsys, argv, message):
+    env = tmp_path / "sky.exr"
+    write_exr(env, np.ones((8, 16, 3), np.float32))
+    argv = [str(env) if a == "ENV" else a for a in argv]
+    assert cli.main(["relight", str(tmp_path / "none"), "--out", str(tmp_path / "o"),
+                     *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_parse_light_values():
+    az, el, rgb = runner.parse_light("30, 45, 3")
+    assert (az, el) == (30.0, 45.0) and rgb.tolist() == [3.0, 3.0, 3.0]
+    assert runner.parse_light("0,90,1,2,3")[2].tolist() == [1.0, 2.0, 3.0]
+
+
+def _plane_model(n=1500):
+    t = mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale([1.0, 1.0, 1])
+    box = mi.ScalarTransform4f().translate([0, 0.25, 0]).scale(0.25)
+    shapes = [mi.load_dict({"type": "rectangle", "to_world": t}),
+              mi.load_dict({"type": "cube", "to_world": box})]
+    surf = surfels_on_surface(shapes, n, sigma_factor=0.7)
+    k = surf.count
+    surf.channels["roughness"] = mi.TensorXf(np.full((k, 1), 0.5, np.float32))
+    surf.channels["metallic"] = mi.TensorXf(np.zeros((k, 1), np.float32))
+    return relight.RelightModel(surf, False, True)
+
+
+def test_cache_renders_each_direction_once_and_equals_fresh_maps():
+    model = _plane_model()
+    pos = model.surfels.to_numpy()["position"]
+    cam = Camera.look_at([1.5, 1.5, 1.5], [0, 0.1, 0], fov_x=0.8, width=24, height=24)
+    bounds = SceneBounds.from_points(pos, [cam])
+    cfg = VisibilityConfig(resolution=64)
+    a, b, c = (direction_from_angles(az, 40.0) for az in (10.0, 130.0, 250.0))
+    cache = relight.RelightCache()
+    ab = relight.directional_light_set(np.stack([a, b]), [1.0, 1.0])
+    bc = relight.directional_light_set(np.stack([b, c]), [1.0, 1.0])
+    m1 = cache.shadow_maps(model, ab, bounds, cfg)
+    assert cache.rendered == 2
+    assert cache.shadow_maps(model, ab, bounds, cfg) is m1 and cache.rendered == 2
+    m2 = cache.shadow_maps(model, bc, bounds, cfg)
+    assert cache.rendered == 3  # only c is new
+    fresh = render_shadow_maps(model.surfels, np.stack([b, c]), bounds, cfg)
+    # Each map is rendered on its own: the cached map of b is bit-identical to a fresh one.
+    np.testing.assert_array_equal(np.asarray(m2.depth), np.asarray(fresh.depth))
+    assert m2.texel == fresh.texel
+    # Other bounds or settings are other maps.
+    cache.shadow_maps(model, ab, bounds, VisibilityConfig(resolution=32))
+    assert cache.rendered == 5
+
+
+def _sky_file(tmp_path, **kw):
+    path = tmp_path / "sky.exr"
+    write_exr(path, sky_envmap_image(SkyConfig(**kw)))
+    return path
+
+
+def test_envmap_radiance_is_cached_by_content_and_rotates_with_azimuth(tmp_path, monkeypatch):
+    path = _sky_file(tmp_path, sun_azimuth_deg=30.0, sun_elevation_deg=40.0)
+    calls = []
+    real = relight.envmap_grid_radiance
+    monkeypatch.setattr(relight, "envmap_grid_radiance",
+                        lambda e, c=relight.DEFAULT_RELIGHT: calls.append(1) or real(e, c))
+    cache = relight.RelightCache()
+    cfg = relight.RelightConfig(env_samples=64)
+    em = runner.envmap_emitter(path)
+    r1 = cache.envmap_radiance(em, cfg)
+    assert np.array_equal(cache.envmap_radiance(runner.envmap_emitter(path), cfg), r1)
+    assert len(calls) == 1
+    r2 = cache.envmap_radiance(runner.envmap_emitter(path, scale=2.0), cfg)
+    assert len(calls) == 2
+    np.testing.assert_allclose(r2, 2 * r1, rtol=1e-5)
+    # --rotate 90 moves the sun 90 degrees in azimuth (from +X toward -Z, as azimuth turns).
+    grid = light_grid(128)
+    rot = cache.envmap_radiance(runner.envmap_emitter(path, rotate_deg=90.0), cfg)
+    assert np.argmax(rot.mean(1)) == np.argmax(grid @ direction_from_angles(120.0, 40.0))
+    assert np.argmax(r1.mean(1)) == np.argmax(grid @ direction_from_angles(30.0, 40.0))
+
+
+def test_plugin_second_render_reuses_its_maps(tmp_path):
+    from mi_shadowgs.io.ply import save_ply
+
+    model = _plane_model()
+    path = tmp_path / "model.ply"
+    save_ply(path, model.surfels)
+    cam = Camera.look_at([1.5, 1.5, 1.5], [0, 0.1, 0], fov_x=0.8, width=16, height=16)
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "surfel_relight", "filename": str(path),
+                       "shadow_resolution": 64, "env_samples": 16},
+        "sky": {"type": "envmap", "filename": str(_sky_file(tmp_path))},
+        "sensor": cam.to_mitsuba_dict(spp=1)})
+    first = np.asarray(mi.render(scene))
+    integ = scene.integrator()
+    rendered = integ.cache.rendered
+    assert rendered > 10  # the sky's grid directions
+    second = np.asarray(mi.render(scene))
+    assert integ.cache.rendered == rendered
+    np.testing.assert_array_equal(first, second)
+    # A changed env map is integrated again (its parameters are part of the key).
+    params = mi.traverse(scene.emitters()[0])
+    params["scale"] = 2.0
+    params.update()
+    third = np.asarray(mi.render(scene))
+    lit = first[..., :3] > 1e-3
+    np.testing.assert_allclose(third[..., :3][lit], 2 * first[..., :3][lit], rtol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    with pytest.MonkeyPatch.context() as mp:
+        for table, config in tiny_cli.presets():
+            mp.setitem(table, TINY, config)
+        base = tmp_path_factory.mktemp("relight")
+        assert cli.main(["generate", str(scene_path("default")), "--out", str(base / "data"),
+                         "--preset", TINY, "--no-progress"]) == 0
+        assert cli.main(["run", str(base / "data"), "--out", str(base / "run"), "--preset",
+                         TINY, "--no-progress"]) == 0
+        yield base
+
+
+def test_relight_command_orbit_video_and_test_views(tiny_run, tmp_path, capsys):
+    run = tiny_run / "run"
+    out = tmp_path / "orbit"
+    assert cli.main(["relight", str(run), "--out", str(out), "--light", "30,45,3",
+                     "--light", "200,30,1", "--orbit", "4", "--video", "--no-progress"]) == 0
+    info = json.loads((out / "relight.json").read_text())
+    assert info["views"] == [f"orbit_{i:03d}" for i in range(4)]
+    assert info["light_directions"] == 2 and info["shadow_maps_rendered"] == 2
+    for i in range(4):
+        rgba = read_exr(out / f"orbit_{i:03d}.exr")
+        assert rgba.shape == (24, 24, 4) and rgba[..., :3].max() > 0
+        assert (out / f"orbit_{i:03d}.png").is_file()
+    video = out / info["video"]
+    assert video.is_file() and video.stat().st_size > 0
+    text = capsys.readouterr().out
+    assert "shadow maps included" in text
+    if video.suffix == ".gif":
+        assert "wrote a GIF instead" in text and info["video_note"]
+    # Default views: the run's test views.
+    assert cli.main(["relight", str(run), "--out", str(tmp_path / "test"), "--light",
+                     "30,45,3", "--no-progress"]) == 0
+    info = json.loads((tmp_path / "test" / "relight.json").read_text())
+    assert info["views"] == ["test_000", "test_001"]
+    # A second relight into the same folder needs --overwrite.
+    assert cli.main(["relight", str(run), "--out", str(out), "--light", "30,45,3"]) == 2
+
+
+def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tmp_path):
+    run = tiny_run / "run"
+    d = direction_from_angles(30.0, 45.0)
+    xml = tmp_path / "lights.xml"
+    xml.write_text(f"""<scene version="3.0.0"><emitter type="directional">
+        <vector name="direction" value="{-d[0]:.17g}, {-d[1]:.17g}, {-d[2]:.17g}"/>
+        <rgb name="irradiance" value="3"/></emitter></scene>""")
+    assert cli.main(["relight", str(run), "--out", str(tmp_path / "a"), "--scene", str(xml),
+                     "--no-progress"]) == 0
+    assert cli.main(["relight", str(run), "--out", str(tmp_path / "b"), "--light", "30,45,3",
+                     "--no-progress"]) == 0
+    a = read_exr(tmp_path / "a" / "test_000.exr")
+    b = read_exr(tmp_path / "b" / "test_000.exr")
+    # The XML's float32 direction differs from the float64 one in the last bits.
+    np.testing.assert_allclose(a, b, atol=1e-4)
+    bad = tmp_path / "bad.exr"
+    bad.write_bytes(b"not an exr")
+    with pytest.raises(ValueError, match="--envmap .*bad.exr: not a readable env map"):
+        runner.build_lights(envmap=str(bad))
+
+
+def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkeypatch):
+    from mi_shadowgs.stages.material import fit as material_fit
+    from mi_shadowgs.stages.relight.evaluate import write_previews
+    from mi_shadowgs.stages.visibility.shadow_maps import get_config as vis_get_config
+
+    for table, config in tiny_cli.presets():  # 64^2 shadow maps
+        monkeypatch.setitem(table, TINY, config)
+    model = _plane_model()
+    grid = light_grid(128)
+    light = material_fit.LightModel(np.zeros(128), np.array([5]), grid[[5]], np.array([2.0]))
+    result = material_fit.MaterialResult(model.surfels, light, False, True, [], {})
+    cam = Camera.look_at([1.5, 1.5, 1.5], [0, 0.1, 0], fov_x=0.8, width=16, height=16)
+    bounds = SceneBounds.from_points(model.surfels.to_numpy()["position"], [cam])
+    sky = _sky_file(tmp_path)
+    cache = relight.RelightCache()
+    rcfg = relight.get_config(TINY)
+    # What the evaluation's sky relighting leaves in the cache (another model object with
+    # the same geometry, as the evaluation's rescaled albedo is).
+    sky_lights = relight.grid_light_set(
+        cache.envmap_radiance(runner.envmap_emitter(sky), rcfg), rcfg.n_directions)
+    other = relight.RelightModel(dataclasses.replace(model.surfels, channels={}), False, True)
+    cache.shadow_maps(other, sky_lights, bounds, vis_get_config(TINY))
+    before = cache.rendered
+    out = write_previews(tmp_path, result, [cam], bounds, TINY, [("sky", sky, 1.0)], cache)
+    assert cache.rendered == before + 8  # only the turntable's 8 directions are new
+    assert [s["file"] for s in out["strips"]] == ["preview_0_turntable.png",
+                                                  "preview_0_envmap.png"]
+    frames = sorted(tmp_path.glob("preview_0_turntable_az*_el45.png"))
+    assert [f.name[len("preview_0_turntable_"):-4] for f in frames] == \
+        [f"az{a:03d}_el45" for a in range(0, 360, 45)]
+    assert (tmp_path / "preview_0_envmap_sky.png").is_file()
