@@ -93,3 +93,26 @@ def test_sweep_runs_each_point_once_and_tabulates_it(sweep):
     assert any(t["pareto"] != "-" for t in table)
     for p in (out / "speed_error_default.png", root / "figures" / "speed_error_default.png"):
         assert read_png(p).shape[1] > 1000
+
+
+def test_attached_plots_show_in_the_report(sweep):
+    """--attach puts the plots into a run's speed_error/, lists them in its manifest, and its
+    report shows them; `mi-shadowgs report` picks up plots added after the run."""
+    from mi_shadowgs.cli import main as cli_main
+
+    root = sweep[0]
+    run = root / "table" / "default-tuned" / "run"
+    page = run / "report.html"
+    assert "src='speed_error/" not in page.read_text()  # none yet: the section's note says how
+    assert "validation.speed_error --attach RUN" in page.read_text()
+    se.attach(run, [root / "out" / "speed_error_default.png"])
+    html = page.read_text()
+    assert "src='speed_error/speed_error_default.png'" in html
+    assert (run / "speed_error" / "speed_error_default.png").is_file()
+    manifest = json.loads((run / ".mi_shadowgs_manifest.json").read_text())
+    assert "speed_error/speed_error_default.png" in manifest["files"]
+    # a plot dropped in by hand: the report command refreshes the section
+    (run / "speed_error" / "extra.png").write_bytes(
+        (run / "speed_error" / "speed_error_default.png").read_bytes())
+    assert cli_main(["report", str(run)]) == 0
+    assert "src='speed_error/extra.png'" in page.read_text()

@@ -3,7 +3,7 @@ relight PSNR against training wall time, over a small sweep around ``cpu-small``
 
     python -m validation.speed_error --out OUT [--base TABLE] [--scene default --scene bunny]
                                      [--point res64 ...] [--threads 1] [--figures docs/figures]
-                                     [--wait] [--plots-only]
+                                     [--wait] [--plots-only] [--attach RUN ...]
 
 Each point changes one setting of ``cpu-small`` (``POINTS``): the dataset's resolution (64,
 192; 128 is cpu-small), stage 1's steps (its whole schedule scaled) or stage 4's steps. The
@@ -17,7 +17,8 @@ Wall time is the method's training time: stage 1 + stage 2 + stages 3-4 (the fit
 runs' own stage timers; scoring the test views (stage 5) is not counted. Every point lives in
 ``OUT/<scene>/<point>/`` and is skipped once its ``point.json`` exists; a killed sweep resumes
 (the stages continue from their checkpoints). ``OUT/speed_error.csv`` and one PNG per scene
-(``speed_error_<scene>.png``) are rewritten from every finished point after each one.
+(``speed_error_<scene>.png``) are rewritten from every finished point after each one;
+``--attach RUN`` puts the plots into a run's ``speed_error/``, where its report shows them.
 """
 
 from __future__ import annotations
@@ -388,6 +389,31 @@ def sweep(out: Path, base: Path | None, scenes: list[str], points: list[str],
     return write_outputs(out, base, scenes, figures, command)
 
 
+def attach(run: Path, plots: list[Path]) -> Path:
+    """Copy ``plots`` into ``RUN/speed_error/`` of a ``mi-shadowgs run`` folder, list them in
+    its manifest (so ``--overwrite`` removes them and they are not foreign files), and
+    rewrite its report with them. Returns the report's path."""
+    from mi_shadowgs.io.atomic import write_json
+    from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
+    from mi_shadowgs.io.report import write_report
+    from mi_shadowgs.pipeline import refresh_speed_error
+
+    run = Path(run)
+    manifest = read_manifest(run)
+    if manifest is None or manifest.get("command") != "run" or \
+            "report.html" not in manifest["files"]:
+        raise SystemExit(f"--attach {run}: not a run folder of `mi-shadowgs run` (no "
+                         f"{MANIFEST_NAME} listing report.html)")
+    names = [f"speed_error/{p.name}" for p in plots]
+    manifest["files"] += [n for n in names if n not in manifest["files"]]
+    write_json(run / MANIFEST_NAME, manifest)  # listed before written, as Output does
+    (run / "speed_error").mkdir(exist_ok=True)
+    for p, name in zip(plots, names, strict=True):
+        shutil.copyfile(p, run / name)
+    refresh_speed_error(run)
+    return write_report(run)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True, help="sweep folder (points, CSV, plots)")
@@ -401,6 +427,9 @@ def main(argv=None) -> int:
     ap.add_argument("--figures", default=None, help="also copy the PNGs into this folder")
     ap.add_argument("--wait", action="store_true",
                     help="wait for --base runs that are not finished yet")
+    ap.add_argument("--attach", action="append", default=[], metavar="RUN",
+                    help="also put the plots into this run folder's speed_error/ and rewrite "
+                         "its report (repeatable)")
     ap.add_argument("--plots-only", action="store_true",
                     help="only rewrite the CSV and plots from the finished points")
     args = ap.parse_args(argv)
@@ -420,6 +449,10 @@ def main(argv=None) -> int:
     else:
         rows = sweep(out, base, scenes, args.point or list(DEFAULT_POINTS), figures, command,
                      args.wait)
+    plots = [out / f"speed_error_{s}.png" for s in scenes
+             if (out / f"speed_error_{s}.png").is_file()]
+    for run in args.attach:
+        print(f"attached to {attach(Path(run), plots)}")
     print(markdown(rows, command))
     return 0
 
