@@ -339,8 +339,11 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def write_outputs(out: Path, base: Path, scenes: list[str], figures: Path | None,
                   command: str) -> list[dict]:
+    """The CSV, the table and the plots of every scene with finished points (not only
+    ``scenes``: a call for one scene keeps the other's rows)."""
     from mi_shadowgs.io.atomic import write_text
 
+    scenes = [s for s in SCENES if s in scenes or (out / s).is_dir()]
     rows = gather(out, base, scenes)
     write_csv(out / "speed_error.csv", rows)
     write_text(out / "speed_error.md", markdown(rows, command))
