@@ -143,8 +143,28 @@ def _base_metrics(row: dict) -> dict:
                                      "light_cosine")}
 
 
-def _stage_seconds(stage_s: dict) -> dict:
-    return {k: stage_s.get(v) for k, v in STAGE_KEYS.items()}
+def _stage_seconds(stage_s: dict, run: Path | None = None) -> dict:
+    """Stage 1, 2 and 4 seconds from a summary's stage timers; those it lacks (a stage
+    reused by a later call, e.g. a resumed table run) from the run's own files: the last
+    ``time`` of ``geometry/log.csv``, ``seconds_stage`` of ``segmentation.json``, ``fit_s``
+    of ``material/full/metrics.json``."""
+    out = {k: stage_s.get(v) for k, v in STAGE_KEYS.items()}
+    if run is None or all(v is not None for v in out.values()):
+        return out
+    found = {}
+    log = run / "geometry" / "log.csv"
+    if log.is_file():
+        with open(log, newline="") as f:
+            rows = list(csv.DictReader(f))
+        if rows and rows[-1].get("time"):
+            found["stage1_s"] = float(rows[-1]["time"])
+    seg = run / "segmentation" / "segmentation.json"
+    if seg.is_file():
+        found["stage2_s"] = json.loads(seg.read_text()).get("seconds_stage")
+    met = run / "material" / "full" / "metrics.json"
+    if met.is_file():
+        found["stage4_s"] = json.loads(met.read_text()).get("fit_s")
+    return {k: v if v is not None else found.get(k) for k, v in out.items()}
 
 
 # -- one point -------------------------------------------------------------------------------------
@@ -204,15 +224,18 @@ def run_point(scene: str, point: str, out: Path, base: Path, base_row: dict | No
         for part in ("geometry", "segmentation"):  # same dataset and settings: reused as is
             if not (run / part).exists():
                 shutil.copytree(src / part, run / part)
-        reused = {k: v for k, v in _stage_seconds(base_row.get("stage_s", {})).items()
+        reused = {k: v for k, v in _stage_seconds(base_row.get("stage_s", {}), src).items()
                   if k in ("stage1_s", "stage2_s")}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     summary = run_pipeline(data, run, config, progress=True)
     secs = _stage_seconds({s["name"]: s.get("seconds") for s in summary.get("stages", [])})
     secs.update(reused)
     metrics = json.loads((run / "material" / "full" / "metrics.json").read_text())
     row = {"scene": scene, "point": point, "changed": spec, "dataset": str(data),
            "run": str(run), **secs, "run_s": time.perf_counter() - t0,
+           # CPU seconds of the process (stages run here and scoring): less load-dependent
+           # than wall time on a shared machine, but not comparable with the base's wall
+           "run_cpu_s": time.process_time() - c0,
            "metrics": {k: metrics.get(k) for k in ("albedo_psnr", "shadow_iou",
                                                    "relight_psnr", "light_cosine")},
            "source": ("stages 1-2 reused from " + str(base_folder(base, scene) / "run"))
@@ -239,7 +262,8 @@ def gather(out: Path, base: Path, scenes: list[str]) -> list[dict]:
         base_row = ensure_base(base, scene, make=False)
         if base_row is not None:
             found.append({"point": CPU_SMALL, "changed": {}, **_stage_seconds(
-                base_row.get("stage_s", {})), "metrics": _base_metrics(base_row),
+                base_row.get("stage_s", {}), base_folder(base, scene) / "run"),
+                "metrics": _base_metrics(base_row),
                 "source": f"reused: {base_folder(base, scene) / 'row.json'}",
                 "load": base_row.get("load_end")})
         for p in sorted((out / scene).glob("*/point.json")):
