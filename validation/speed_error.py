@@ -325,7 +325,8 @@ def plot_scene(path: Path, scene: str, rows: list[dict]) -> None:
                        key=lambda r: r["wall_s"])
         if front:
             ax.step([r["wall_s"] / 60 for r in front], [r[key] for r in front], where="post",
-                    color="C1", lw=1.2, label="Pareto front")
+                    color="C1", lw=1.2, marker="o", ms=12, mfc="none",
+                    label="Pareto front")
         for r in ok:
             base = r["point"] == CPU_SMALL
             ax.plot(r["wall_s"] / 60, r[key], marker="*" if base else "o",
