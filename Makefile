@@ -27,8 +27,13 @@ test: install
 bench: install
 	$(PY) -m benchmarks.run_all --out BENCHMARKS-latest
 
+# The whole table (6 scenes x 2 light pairs, hours on 2 cores; resumed after a kill), Table 2,
+# the filter drift and the report pages in headless Chromium. A subset:
+#   make validate VALIDATE_ARGS="--scene bunny --lights low --only pipeline"
+VALIDATE_ARGS ?=
 validate: install
-	$(PY) -m validation.run_all --out validation-out
+	@bash scripts/setup.sh --chromium
+	$(PY) -m validation.run_all --out validation-out $(VALIDATE_ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check .

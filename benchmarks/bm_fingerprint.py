@@ -44,7 +44,7 @@ def _measure(out: Path, data: Path, log) -> dict:
     from mi_shadowgs.scenes import scene_path
 
     write_dataset(scene_path("default"), data, dataclasses.replace(get_config("cpu-small"),
-                                                                  spp=SPP),
+                                                                  spp=SPP, envmaps="sky"),
                   "cpu-small", seed=0, progress=False)
     files = provenance._dataset_files(data.resolve())
     megabytes = sum(st.st_size for _, st in files) / 1e6

@@ -479,14 +479,7 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
             "metrics": {k: v for k, v in results.get("full", {}).items()
                         if not isinstance(v, (dict, list))},
             "figures": figures})
-    plots = sorted((run / "speed_error").glob("*.png"))
-    summary["stages"].append({
-        "name": "Speed against error",
-        "figures": [{"title": p.stem, "path": str(p.relative_to(run)), "wide": True}
-                    for p in plots],
-        "note": None if plots else "No speed-against-error plots for this run "
-                                   "(`python -m validation.speed_error` writes them into "
-                                   "RUN/speed_error/)."})
+    summary["stages"].append(speed_error_stage(run))
     return summary
 
 
@@ -544,6 +537,43 @@ def _fitted_lights_table(path: Path) -> dict | None:
             "note": "Azimuth about +Y from +X toward -Z, elevation above the base "
                     "(docs/conventions.md); irradiance in the fit's own scale (albedo and "
                     "light are known only up to a common factor)."}
+
+
+SPEED_ERROR_STAGE = "Speed against error"
+
+
+def speed_error_stage(run: Path) -> dict:
+    """The report's speed-against-error section: the PNGs in ``RUN/speed_error/`` (which
+    ``python -m validation.speed_error --attach RUN`` puts there), or a note saying how to
+    make them."""
+    plots = sorted((run / "speed_error").glob("*.png"))
+    return {"name": SPEED_ERROR_STAGE,
+            "figures": [{"title": p.stem, "path": p.relative_to(run).as_posix(), "wide": True}
+                        for p in plots],
+            "note": None if plots else "No speed-against-error plots for this run "
+                                       "(`python -m validation.speed_error --attach RUN` puts "
+                                       "them into RUN/speed_error/)."}
+
+
+def refresh_speed_error(run: Path) -> bool:
+    """Bring ``RUN/summary.json``'s speed-against-error section up to date with the files
+    in ``RUN/speed_error/`` (plots added after the run); True when it changed."""
+    path = Path(run) / "summary.json"
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False  # write_report names the missing or malformed file
+    stages = summary.setdefault("stages", [])
+    new = speed_error_stage(Path(run))
+    old = [i for i, st in enumerate(stages) if st.get("name") == SPEED_ERROR_STAGE]
+    if old and stages[old[0]] == new:
+        return False
+    if old:
+        stages[old[0]] = new
+    else:
+        stages.append(new)
+    write_json(path, summary)
+    return True
 
 
 PAPER_RENDER_S = 100.0  # paper Sec. V-A4: "Rendering the 200 test views takes ~100 seconds"

@@ -7,8 +7,10 @@
 # once drjit is installed, runs a Dr.Jit kernel on it. Dr.Jit 1.5 refuses LLVM 14 and aborts
 # on 15, whatever the file is called. With no usable one we install Debian's libllvm19 when
 # root, else print what to install and fail.
-#   scripts/setup.sh          set up everything (make install)
-#   scripts/setup.sh --llvm   only make sure a usable libLLVM is installed
+#   scripts/setup.sh             set up everything (make install)
+#   scripts/setup.sh --llvm      only make sure a usable libLLVM is installed
+#   scripts/setup.sh --chromium  make validate: install chromium for the report-page check
+#                                (root with apt-get), else say why that check will fail
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
@@ -34,6 +36,28 @@ ensure_llvm() {  # $1: a Python with drjit, or empty before the venv exists
   exit 1
 }
 
+ensure_chromium() {  # headless Chromium screenshots the reports in make validate
+  if command -v chromium >/dev/null || command -v chromium-browser >/dev/null ||
+      command -v google-chrome >/dev/null; then
+    return 0
+  fi
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "setup: installing chromium (make validate checks the report pages in it)"
+    if apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
+        >/dev/null; then
+      return 0
+    fi
+    echo "setup: could not install chromium; make validate's report_pages check will fail" >&2
+  else
+    echo "setup: no chromium on PATH and not root: install it (apt-get install -y chromium);" \
+         "make validate's report_pages check fails without it" >&2
+  fi
+}
+
+if [ "${1:-}" = "--chromium" ]; then
+  ensure_chromium
+  exit 0
+fi
 ensure_llvm ""
 if [ "${1:-}" = "--llvm" ]; then
   [ -x .venv/bin/python ] && ensure_llvm "$PWD/.venv/bin/python"

@@ -15,7 +15,7 @@ def tiny_dataset(root):
     from mi_shadowgs.scenes import scene_path
 
     config = dataclasses.replace(get_config("cpu-small"), width=SIZE, height=SIZE, n_train=8,
-                                 n_test=3, spp=16, relight=())
+                                 n_test=3, spp=16, relight=(), envmaps="sky")
     write_dataset(scene_path("default"), root, config, "test-tiny", seed=1, progress=False)
     return root
 

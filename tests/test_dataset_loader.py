@@ -24,7 +24,7 @@ def generated(tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "tiny"
     cfg = get_config("cpu-small")
     cfg = type(cfg)(**{**cfg.__dict__, "width": 40, "height": 32, "n_train": 3, "n_test": 2,
-                       "spp": 4})
+                       "spp": 4, "envmaps": "sky"})
     write_dataset(scene_path("default"), out, cfg, "cpu-small", seed=3, progress=False)
     return out, cfg
 

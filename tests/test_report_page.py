@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import subprocess
 from html import unescape
 from pathlib import Path
 
@@ -18,12 +17,10 @@ import mi_shadowgs.api as msg
 from mi_shadowgs.io.images import read_png
 from mi_shadowgs.io.report import render_html
 from mi_shadowgs.pipeline import write_report_figures
+from validation import report_page
 
-PAGE_WIDTH = 1400
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or \
-    shutil.which("google-chrome")
-NO_CHROMIUM = "no chromium on PATH (Debian: apt-get install -y chromium); the page's layout " \
-              "is checked only where it is installed"
+CHROMIUM = report_page.find_chromium()
+NO_CHROMIUM = report_page.NO_CHROMIUM + "; the page's layout is checked only where it is installed"
 
 
 @pytest.fixture(scope="module")
@@ -88,45 +85,24 @@ def test_report_plots_are_byte_identical_and_tolerate_missing_files(run, tmp_pat
     assert "missing: report/geometry_curves.png" in page  # named, not dropped
 
 
-def _chromium(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
-                           "--hide-scrollbars", f"--window-size={PAGE_WIDTH},3000", *args],
-                          capture_output=True, text=True, timeout=120)
-
-
-PROBE = """<script>window.addEventListener('load', () => {
-  const bad = [...document.images].filter(i => !(i.complete && i.naturalWidth > 0));
-  document.body.setAttribute('data-probe', JSON.stringify({
-    width: document.documentElement.scrollWidth, images: document.images.length,
-    bad: bad.map(i => i.getAttribute('src'))}));
-});</script></body>"""
-
-
 @pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
 def test_report_in_headless_chromium(run, tmp_path):
+    """The check ``make validate`` runs on every table run (validation.report_page)."""
     shot = tmp_path / "report.png"
-    proc = _chromium(f"--screenshot={shot}", (run / "report.html").as_uri())
-    assert shot.is_file(), proc.stderr[-2000:]
+    result = report_page.check_report(run / "report.html", shot)
     img = read_png(shot)
-    assert img.shape[1] == PAGE_WIDTH
+    assert img.shape[1] == report_page.PAGE_WIDTH
     assert img.std() > 10  # something was drawn, not a blank page
-    # The page's images all load and nothing is wider than the window: a copy of the page
-    # (its relative paths resolved against the run by <base>) reports both after loading.
-    probe = tmp_path / "probe.html"
-    page = (run / "report.html").read_text()
-    probe.write_text(page.replace("<head>", f"<head><base href='{run.as_uri()}/'>", 1)
-                     .replace("</body>", PROBE))
-    result = _probe(probe)
+    # The page's images all load and nothing is wider than the window.
     assert result["bad"] == [] and result["images"] >= 8
-    assert result["width"] <= PAGE_WIDTH
-    # A page that is too wide is caught: the probe is not a check that cannot fail.
+    assert result["width"] <= report_page.PAGE_WIDTH and result["ok"]
+    # A page that is too wide, or with an image that does not load, is caught: the probe is
+    # not a check that cannot fail.
     wide = tmp_path / "wide.html"
-    wide.write_text("<html><body><div style='width:2000px'>x</div>" + PROBE + "</html>")
-    assert _probe(wide)["width"] > PAGE_WIDTH
-
-
-def _probe(page: Path) -> dict:
-    dom = _chromium("--virtual-time-budget=10000", "--dump-dom", page.as_uri()).stdout
-    found = re.search(r"data-probe=\"([^\"]+)\"", dom)
-    assert found, dom[-2000:]
-    return json.loads(unescape(found.group(1)))
+    wide.write_text("<html><head></head><body><div style='width:2000px'>x</div>"
+                    "<img src='gone.png'></body></html>")
+    bad = report_page.check_report(wide, tmp_path / "wide.png")
+    assert bad["width"] > report_page.PAGE_WIDTH and bad["bad"] == ["gone.png"]
+    assert not bad["ok"]
+    with pytest.raises(AssertionError, match="wide.html"):
+        report_page.run(tmp_path / "shots", [wide])

@@ -70,7 +70,8 @@ def tiny_presets():
 
 def _dataset(root, seed):
     cfg = dataclasses.replace(
-        gen_config("cpu-small"), width=32, height=32, n_train=8, n_test=2, spp=4
+        gen_config("cpu-small"), width=32, height=32, n_train=8, n_test=2, spp=4,
+        envmaps="sky",
     )
     write_dataset(scene_path("default"), root, cfg, "cpu-small", seed=seed, progress=False)
     return root

@@ -32,7 +32,8 @@ TINY = dataclasses.replace(
 def _write(tmp_path_factory, name, **over):
     out = tmp_path_factory.mktemp("ds") / name
     cfg = gen_config("cpu-small")
-    cfg = dataclasses.replace(cfg, width=32, height=32, n_train=16, n_test=4, spp=8, **over)
+    cfg = dataclasses.replace(cfg, width=32, height=32, n_train=16, n_test=4, spp=8,
+                              envmaps="sky", **over)
     write_dataset(scene_path("default"), out, cfg, "cpu-small", seed=1, progress=False)
     return out
 

@@ -31,7 +31,7 @@ def presets() -> list[tuple[dict, object]]:
     return [
         (generate.PRESETS, dataclasses.replace(
             generate.get_config("cpu-small"), width=24, height=24, n_train=8, n_test=2, spp=4,
-            relight=generate.DEFAULT_RELIGHT[:1])),
+            relight=generate.DEFAULT_RELIGHT[:1], envmaps="sky")),
         (geometry_train.PRESETS, dataclasses.replace(
             geometry_train.get_config("cpu-small"), iterations=80, sh_degree=0, init_points=600,
             hull_resolution=16, normal_from=40, dist_from=60, lambda_dist=100.0, log_every=10,

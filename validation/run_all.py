@@ -1,10 +1,18 @@
 """Run every registered validation and gather their reports in one folder (``make validate``).
 
-A validation is a function ``fn(out_dir: Path, quick: bool) -> dict`` that writes its files
-into ``out_dir`` and returns a summary with a ``markdown`` entry. To add one, import it here
-and give it a name in ``VALIDATIONS``::
+A validation is a function ``fn(out_dir: Path, quick: bool, opts: dict) -> dict`` that
+writes its files into ``out_dir`` and returns a summary with a ``markdown`` entry. To add
+one, import it here and give it a name in ``VALIDATIONS``::
 
     python -m validation.run_all --out validation-out [--quick] [--only visibility]
+                                 [--scene NAME ...] [--lights PAIR ...] [--threads N]
+
+The pipeline table (every scene under both light pairs, ``validation.pipeline``) takes hours,
+so each validation writes into ``OUT/<name>/`` in place and the table resumes per scene and
+pair: the same command again after a kill redoes only the unfinished runs. ``--scene`` and
+``--lights`` choose a subset of the table (the tables gather every finished row under
+``OUT/pipeline``). ``report_pages`` then checks each table run's ``report.html`` in headless
+Chromium (``validation.report_page``). ``README.md`` and ``run.json`` are written last.
 """
 
 from __future__ import annotations
@@ -18,10 +26,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.io.atomic import write_json, write_text
 
 
-def _visibility(out_dir: Path, quick: bool) -> dict:
+def _visibility(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     """Table 2 on ground-truth surfels, plus its stage-1 rows for the models the pipeline
     validation (run before it) trained, when there are any."""
     from . import visibility
@@ -31,60 +39,101 @@ def _visibility(out_dir: Path, quick: bool) -> dict:
     return visibility.run(out_dir, quick=quick, model=models, data=datas)
 
 
-def _pipeline(out_dir: Path, quick: bool) -> dict:
+def _pipeline(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     from . import pipeline
 
-    return pipeline.run(out_dir, quick=quick)
+    opts = opts or {}
+    return pipeline.run(out_dir, quick=quick, scenes=opts.get("scenes"),
+                        lights=opts.get("lights"),
+                        command=opts.get("command", "python -m validation.pipeline"))
 
 
-def _lowpass_drift(out_dir: Path, quick: bool) -> dict:
+def _lowpass_drift(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     from . import lowpass_drift
 
     return lowpass_drift.run(out_dir, quick=quick)
 
 
-# name -> fn(out_dir, quick) -> {"markdown": ...}; each writes under out_dir/<name>/.
-VALIDATIONS: dict[str, Callable[[Path, bool], dict]] = {
-    "pipeline": _pipeline,  # stages 1-5 per scene: issues 4, 6, 7 and Tables 1 and 3
+def _report_pages(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
+    """Every table run's report in headless Chromium: images load, the page fits 1400 px."""
+    from . import report_page
+
+    reports = sorted((out_dir.parent / "pipeline").glob("*/run/report.html"))
+    return report_page.run(out_dir, reports)
+
+
+# name -> fn(out_dir, quick, opts) -> {"markdown": ...}; each writes under out_dir/<name>/.
+VALIDATIONS: dict[str, Callable[[Path, bool, dict], dict]] = {
+    "pipeline": _pipeline,  # stages 1-5 per scene and light pair: Tables 1 and 3
     "visibility": _visibility,  # after the pipeline: its stage-1 models get Table 2 rows
     "lowpass_drift": _lowpass_drift,  # does stage 1 keep a correct surface in place?
+    "report_pages": _report_pages,  # after the pipeline: its reports in headless Chromium
 }
+RUN_JSON = "run.json"
+
+
+def _check_out(out: Path) -> None:
+    """OUT is new, empty, or an earlier run_all output (its run.json or one of its
+    validation folders): never someone else's folder."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise SystemExit(f"--out {out}: exists and is not a folder")
+    entries = {p.name for p in out.iterdir()}
+    ours = set(VALIDATIONS) | {RUN_JSON, "README.md"}
+    if entries and not entries & ours:
+        raise SystemExit(f"--out {out}: holds files that validation.run_all did not write "
+                         f"(e.g. {sorted(entries)[0]}); choose a new folder")
 
 
 def main(argv=None) -> int:
+    from . import pipeline
+
     ap = argparse.ArgumentParser(description="Run the mi_shadowgs validations.")
-    ap.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    ap.add_argument("--out", required=True, help="output folder (resumed when it is ours)")
     ap.add_argument("--quick", action="store_true", help="small smoke runs")
     ap.add_argument("--only", action="append", choices=sorted(VALIDATIONS),
                     help="run only this validation (repeatable)")
+    ap.add_argument("--scene", action="append", choices=sorted(pipeline.SCENES),
+                    help="pipeline table: only this scene (repeatable)")
+    ap.add_argument("--lights", action="append", choices=sorted(pipeline.LIGHT_PAIRS),
+                    help="pipeline table: only this light pair (repeatable)")
+    ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
     args = ap.parse_args(argv)
+    if args.threads:
+        import drjit as dr
+
+        dr.set_thread_count(args.threads)
     chosen = args.only or list(VALIDATIONS)
+    out = Path(args.out)
+    _check_out(out)
+    command = " ".join(["python", "-m", "validation.run_all", *(argv or sys.argv[1:])])
+    opts = {"scenes": args.scene, "lights": args.lights, "command": command}
     t0 = time.perf_counter()
     load0 = os.getloadavg()
     sections, failed = [], []
-    with atomic_dir(args.out, overwrite=True) as tmp:
-        for name in chosen:
-            print(f"validation: {name}", flush=True)
-            t = time.perf_counter()
-            try:
-                summary = VALIDATIONS[name](tmp / name, args.quick)
-                sections.append(summary.get("markdown", f"## {name}\n(no summary)"))
-            except Exception as exc:  # one broken stage must not hide the others' reports
-                failed.append(name)
-                sections.append(f"## {name}\nFAILED: {type(exc).__name__}: {exc}")
-                print(f"validation {name} FAILED: {exc!r}", file=sys.stderr, flush=True)
-            print(f"validation: {name} took {time.perf_counter() - t:.0f} s", flush=True)
-        info = {"date_utc": datetime.datetime.now(datetime.timezone.utc)
-                .strftime("%Y-%m-%d %H:%M UTC"), "cpu_count": os.cpu_count(),
-                "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg()),
-                "wall_s": time.perf_counter() - t0, "quick": args.quick,
-                "command": " ".join(["python", "-m", "validation.run_all", *sys.argv[1:]]),
-                "failed": failed}
-        write_json(tmp / "run.json", info)
-        header = ["# Validation (latest run)", "", f"- Command: `{info['command']}`",
-                  f"- Date: {info['date_utc']}; {info['wall_s'] / 60:.1f} min; "
-                  f"{info['cpu_count']} cores, load {load0[0]:.2f} at start", ""]
-        write_text(tmp / "README.md", "\n".join(header + sections) + "\n")
+    out.mkdir(parents=True, exist_ok=True)
+    for name in chosen:
+        print(f"validation: {name}", flush=True)
+        t = time.perf_counter()
+        try:
+            summary = VALIDATIONS[name](out / name, args.quick, opts)
+            sections.append(summary.get("markdown", f"## {name}\n(no summary)"))
+        except Exception as exc:  # one broken stage must not hide the others' reports
+            failed.append(name)
+            sections.append(f"## {name}\nFAILED: {type(exc).__name__}: {exc}")
+            print(f"validation {name} FAILED: {exc!r}", file=sys.stderr, flush=True)
+        print(f"validation: {name} took {time.perf_counter() - t:.0f} s", flush=True)
+    info = {"date_utc": datetime.datetime.now(datetime.timezone.utc)
+            .strftime("%Y-%m-%d %H:%M UTC"), "cpu_count": os.cpu_count(),
+            "loadavg_start": list(load0), "loadavg_end": list(os.getloadavg()),
+            "wall_s": time.perf_counter() - t0, "quick": args.quick,
+            "command": command, "failed": failed}
+    write_json(out / RUN_JSON, info)
+    header = ["# Validation (latest run)", "", f"- Command: `{info['command']}`",
+              f"- Date: {info['date_utc']}; {info['wall_s'] / 60:.1f} min; "
+              f"{info['cpu_count']} cores, load {load0[0]:.2f} at start", ""]
+    write_text(out / "README.md", "\n".join(header + sections) + "\n")
     print("\n\n".join(sections))
     return 1 if failed else 0
 

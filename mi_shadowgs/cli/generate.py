@@ -22,8 +22,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-train", type=int, default=None, help="training views (preset)")
     parser.add_argument("--n-test", type=int, default=None, help="test views (preset)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--envmap", default=None,
-                        help="an environment map (EXR/HDR) for one more relit test set")
+    parser.add_argument("--envmap", action="append", default=None, metavar="PATH|sky|auto",
+                        help="an env map (EXR/HDR) of one env-map relit test set; repeatable. "
+                             "'sky': the procedural sky; 'auto' (the preset's default): the "
+                             "shipped maps in ../shared/data/envmaps (or "
+                             "$MI_SHADOWGS_SHARED_DATA/envmaps) when present, else the sky; "
+                             "'none': no env-map relighting")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a dataset that generate wrote before (refused when "
                              "the folder holds files not in its manifest.json)")
@@ -55,6 +59,7 @@ def _resolve_scene(name: str):
 
 def run(args: argparse.Namespace) -> int:
     import time
+    from pathlib import Path
 
     from mi_shadowgs.config import with_overrides
     from mi_shadowgs.dataset.generate import get_config
@@ -67,11 +72,17 @@ def run(args: argparse.Namespace) -> int:
     for k, v in over.items():
         if v < 1:
             raise ValueError(f"--{k.replace('_', '-')} must be >= 1, got {v}")
+    if args.envmap:
+        from mi_shadowgs.dataset.writer import ENVMAP_KEYWORDS
+
+        # absolute paths: the dataset records them, and its fingerprint covers their content
+        over["envmaps"] = tuple(e if e in ENVMAP_KEYWORDS else str(Path(e).resolve())
+                                for e in args.envmap)
     config = with_overrides(config, over, "dataset generation")
     t0 = time.perf_counter()
     out, written = write_dataset(_resolve_scene(args.scene), args.out, config, args.preset,
                                  seed=args.seed, overrides=_parse_defines(args.defines),
-                                 envmap=args.envmap, overwrite=args.overwrite,
+                                 overwrite=args.overwrite,
                                  progress=not args.no_progress)
     if written:
         print(f"wrote {out} in {time.perf_counter() - t0:.1f} s")

@@ -1,4 +1,5 @@
-"""``mi-shadowgs report RUN``: (re)write ``RUN/report.html`` from ``RUN/summary.json``.
+"""``mi-shadowgs report RUN``: (re)write ``RUN/report.html`` from ``RUN/summary.json`` (its
+speed-against-error section first brought up to date with ``RUN/speed_error/``).
 
 Only into a folder that ``mi-shadowgs run`` wrote (its manifest lists ``report.html``).
 """
@@ -22,6 +23,11 @@ def run(args) -> int:
         raise ProvenanceError(f"{args.run}: not a run folder of `mi-shadowgs run` (no "
                               f"{MANIFEST_NAME} listing report.html); the report is written "
                               "only there")
+    from pathlib import Path
+
+    from mi_shadowgs.pipeline import refresh_speed_error
+
+    refresh_speed_error(Path(args.run))  # plots that validation.speed_error added since
     page = write_report(args.run)
     print(f"wrote {page}")
     return 0

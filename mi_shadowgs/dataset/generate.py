@@ -89,8 +89,12 @@ class GenerateConfig:
     train_elevation_deg: tuple = (5.0, 85.0)  # upper hemisphere, not grazing the base
     test_elevation_deg: tuple = (15.0, 60.0)  # spiral bounds
     relight: tuple = DEFAULT_RELIGHT  # (name, ((az, el, irradiance), ...)) setups
-    # A procedural sky for one more, env-map, relit test set when no --envmap is given (None:
-    # none).
+    # Env maps of the env-map relit test sets (TensoIR's relighting protocol): "auto" (the
+    # shipped maps of ``assets.shipped_envmaps()`` when present, else the procedural sky),
+    # "sky", "none", or a tuple of entries, each "sky", "auto" or an env-map path. Each map
+    # adds n_test path-traced views and its scoring in ``run``.
+    envmaps: str | tuple = "auto"
+    # The procedural sky that "sky" (and "auto" without shipped maps) renders (None: none).
     sky: SkyConfig | None = SkyConfig()
     envmap_scale: float = 1.0
     gt_chunk_rays: int = 1 << 22  # rays per ground-truth kernel launch (memory bound)

@@ -10,6 +10,7 @@ SPLITS = ("train", "test")
 DATASET_JSON = "dataset.json"
 LIGHTS_JSON = "lights.json"
 SKY_ENVMAP = "sky_envmap.exr"  # the procedural sky of the env-map relit test views
+ENVMAP_DIR = "envmaps"  # copies of the other env maps the relit test views were rendered with
 FORMAT_VERSION = 1
 # The angle NeRF-synthetic uses (0.6911 rad, ~39.6 degrees).
 NERF_CAMERA_ANGLE_X = 0.6911112070083618

@@ -26,6 +26,7 @@ import numpy as np
 
 from mi_shadowgs.core.directions import N_LIGHT_DIRECTIONS, directional_lights_to_map
 from mi_shadowgs.dataset import layout
+from mi_shadowgs.dataset.assets import ENVMAP_SUFFIXES, shipped_envmaps
 from mi_shadowgs.dataset.cameras import test_cameras, train_cameras
 from mi_shadowgs.dataset.generate import (
     GenerateConfig,
@@ -36,7 +37,7 @@ from mi_shadowgs.dataset.generate import (
     trace_ground_truth,
 )
 from mi_shadowgs.dataset.scene import SceneSetup, load_scene
-from mi_shadowgs.io.atomic import remove_stale, write_json
+from mi_shadowgs.io.atomic import remove_stale, write_bytes, write_json
 from mi_shadowgs.io.images import write_exr, write_png
 from mi_shadowgs.io.provenance import (
     MANIFEST_NAME,
@@ -62,7 +63,7 @@ def _file_digest(path: Path) -> str:
 
 
 def fingerprint(setup: SceneSetup, config: GenerateConfig, seed: int,
-                envmap: Path | None) -> str:
+                envmaps: list[EnvMap]) -> str:
     """sha256 of everything that determines the dataset's content."""
     import mitsuba as mi
 
@@ -70,8 +71,9 @@ def fingerprint(setup: SceneSetup, config: GenerateConfig, seed: int,
     for key in ("mesh",):
         if setup.params.get(key):
             files[key] = _file_digest(Path(setup.params[key]))
-    if envmap is not None:
-        files["envmap"] = _file_digest(envmap)
+    # the env maps as resolved ("auto" depends on which shared files exist), by content
+    files["envmaps"] = [[e.name, None if e.source is None else _file_digest(e.source)]
+                        for e in envmaps]
     blob = json.dumps({"format": layout.FORMAT_VERSION, "files": files,
                        "params": setup.params, "config": dataclasses.asdict(config),
                        "seed": seed, "mitsuba": mi.__version__}, sort_keys=True)
@@ -204,17 +206,74 @@ def envmap_relight_name(envmap: Path) -> str:
     return f"env_{Path(envmap).stem}"
 
 
-def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None,
-                envmap_ref: str | None = None) -> dict:
-    """``lights.json``; ``envmap_ref`` is how it names the env map (default: its path)."""
+@dataclasses.dataclass(frozen=True)
+class EnvMap:
+    """One env-map relit test set: its relighting name, the file it is copied from (None:
+    the procedural sky, written from ``GenerateConfig.sky``) and its path in the dataset."""
+
+    name: str
+    source: Path | None
+    ref: str  # relative to the dataset folder (lights.json's "path")
+
+
+ENVMAP_KEYWORDS = ("auto", "sky", "none")
+
+
+def resolve_envmaps(config: GenerateConfig) -> list[EnvMap]:
+    """The env maps of ``config.envmaps`` (see ``GenerateConfig``), in order, checked:
+    FileNotFoundError naming a missing file, ValueError for an unknown keyword or two maps
+    of the same relighting name."""
+    entries = (config.envmaps,) if isinstance(config.envmaps, str) else \
+        tuple(config.envmaps)
+    sources: list[Path | None] = []
+    for entry in entries:
+        entry = str(entry)
+        if entry == "none":
+            continue
+        if entry == "auto":
+            sources += shipped_envmaps() or [None]
+        elif entry == "sky":
+            sources.append(None)
+        elif Path(entry).suffix.lower() in ENVMAP_SUFFIXES or Path(entry).exists() or \
+                "/" in entry:
+            path = Path(entry).resolve()
+            if not path.is_file():
+                raise FileNotFoundError(f"environment map not found: {path} (--envmap)")
+            sources.append(path)
+        else:
+            raise ValueError(f"envmaps entry {entry!r}: expected an env-map file "
+                             f"({', '.join(ENVMAP_SUFFIXES)}) or one of {ENVMAP_KEYWORDS}")
+    out: dict[str, EnvMap] = {}
+    for src in sources:
+        if src is None:
+            if config.sky is None:
+                continue  # no procedural sky configured: "sky" renders nothing
+            env = EnvMap(envmap_relight_name(Path(layout.SKY_ENVMAP)), None, layout.SKY_ENVMAP)
+        else:
+            env = EnvMap(envmap_relight_name(src), src,
+                         f"{layout.ENVMAP_DIR}/{src.stem}{src.suffix.lower()}")
+        if env.name in out:
+            if out[env.name] == env:
+                continue  # the same map named twice ("auto" and its path)
+            what = [str(e.source or "the procedural sky") for e in (out[env.name], env)]
+            raise ValueError(f"env maps {what[0]} and {what[1]} would both be relighting "
+                             f"{env.name!r}: rename one (--envmap)")
+        out[env.name] = env
+    return list(out.values())
+
+
+def lights_json(setup: SceneSetup, config: GenerateConfig, envmaps: list[EnvMap]) -> dict:
+    """``lights.json``: the training lights and light map, and every relighting (env maps
+    named by their path inside the dataset)."""
     train = [lt.to_json() for lt in setup.lights]
     light_map = directional_lights_to_map(np.array([lt.direction for lt in setup.lights]),
                                           np.array([lt.irradiance for lt in setup.lights]))
     relit = [{"name": name, "type": "directional", "lights": [lt.to_json() for lt in lts]}
              for name, lts in relight_lights(config)]
-    if envmap is not None:
-        relit.append({"name": envmap_relight_name(envmap), "type": "envmap",
-                      "path": envmap_ref or str(envmap),
+    for env in envmaps:
+        relit.append({"name": env.name, "type": "envmap", "path": env.ref,
+                      "source": "procedural sky (GenerateConfig.sky)" if env.source is None
+                      else str(env.source),
                       "scale": config.envmap_scale,
                       "convention": "Mitsuba lat-long envmap, Y-up, identity to_world"})
     return {
@@ -230,25 +289,25 @@ def lights_json(setup: SceneSetup, config: GenerateConfig, envmap: Path | None,
 
 def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfig,
                   preset: str, seed: int = 0, overrides: dict[str, str] | None = None,
-                  envmap: str | Path | None = None, overwrite: bool = False,
-                  progress: bool = True) -> tuple[Path, bool]:
+                  overwrite: bool = False, progress: bool = True) -> tuple[Path, bool]:
     """Generate the dataset into ``out``. Returns (out, written); ``written`` is False when
-    ``out`` already held this exact dataset."""
+    ``out`` already held this exact dataset. The env maps (``config.envmaps``) are copied
+    into it, so that the evaluation reads what was rendered and the dataset's fingerprint
+    covers them."""
     from tqdm import tqdm
 
     out = Path(out)
-    envmap = Path(envmap).resolve() if envmap is not None else None
-    if envmap is not None and not envmap.is_file():
-        raise FileNotFoundError(f"environment map not found: {envmap} (--envmap)")
+    envmaps = resolve_envmaps(config)
     setup = load_scene(scene_path, overrides)
     if not setup.lights:
         raise ValueError(f"{scene_path}: no directional light (emitters light0, light1, ...)")
-    fp = fingerprint(setup, config, seed, envmap)
+    fp = fingerprint(setup, config, seed, envmaps)
     inputs = {"scene": input_ref(setup.path)}
     if setup.params.get("mesh"):
         inputs["mesh"] = input_ref(setup.params["mesh"])
-    if envmap is not None:
-        inputs["envmap"] = input_ref(envmap)
+    for env in envmaps:
+        if env.source is not None:
+            inputs[f"envmap {env.name}"] = input_ref(env.source)
     check_output_location(out, [i["path"] for i in inputs.values()], writes_dataset=True)
     _finish_swap(out)
     if _check_output(out, fp, overwrite):
@@ -266,15 +325,16 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                                  max_elevation_deg=config.test_elevation_deg[1], **kw)}
     relights = [(name, lit_scene(setup, lights=lts)) for name, lts in relight_lights(config)]
     partial = _prepare_partial(out, fp)
-    envmap_ref = None if envmap is None else str(envmap)
-    if envmap is None and config.sky is not None:
-        # The procedural sky lives in the dataset, so that the evaluation reads the same file;
+    for env in envmaps:
+        # Every env map lives in the dataset, so that the evaluation reads the same file;
         # named relative to it, since the partial folder is renamed.
-        write_exr(partial / layout.SKY_ENVMAP, sky_envmap_image(config.sky))
-        envmap, envmap_ref = partial / layout.SKY_ENVMAP, layout.SKY_ENVMAP
-    if envmap is not None:
-        relights.append((envmap_relight_name(envmap), lit_scene(
-            setup, envmap=str(envmap), envmap_scale=config.envmap_scale)))
+        if env.source is None:
+            write_exr(partial / env.ref, sky_envmap_image(config.sky))
+        else:
+            (partial / env.ref).parent.mkdir(parents=True, exist_ok=True)
+            write_bytes(partial / env.ref, env.source.read_bytes())
+        relights.append((env.name, lit_scene(setup, envmap=str(partial / env.ref),
+                                             envmap_scale=config.envmap_scale)))
     renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth)
     total = config.n_train + config.n_test * (1 + len(relights))
     # Ground truth for this many views at a time: what a kill loses beside one render.
@@ -308,7 +368,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
             write_json(partial / layout.transforms_name(split),
                        {"camera_angle_x": config.camera_angle_x, "w": config.width,
                         "h": config.height, "frames": frames})
-    write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmap, envmap_ref))
+    write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmaps))
     import mitsuba as mi
 
     write_json(partial / layout.DATASET_JSON, {
@@ -318,7 +378,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
         "preset": preset,
         "config": dataclasses.asdict(config),
         "seed": seed,
-        "envmap": envmap_ref,
+        "envmaps": [env.ref for env in envmaps],
         "fingerprint": fp,
         "materials": setup.materials_json(),
         "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,

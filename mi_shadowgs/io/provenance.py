@@ -33,7 +33,7 @@ MANIFEST_NAME = ".mi_shadowgs_manifest.json"
 FORMAT_VERSION = 1
 # What the dataset fingerprint covers: every file the loader may read (images, transforms,
 # dataset.json, lights.json, TensoIR metadata), not other files such as a writer's manifest.
-IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg")
+IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg", ".hdr")  # .hdr: env maps
 DATASET_JSON = re.compile(r"transforms_.*\.json|dataset\.json|lights\.json|metadata\.json")
 _CHUNK = 1 << 20
 _MAX_LISTED = 8  # differing settings named in one message

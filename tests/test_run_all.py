@@ -1,0 +1,82 @@
+"""``make validate`` (validation.run_all): the table's --scene/--lights subset reaches the
+pipeline validation and runs alone, a second call resumes in place instead of starting over,
+and a folder that is not ours is refused. The runs themselves are stood in for (hours)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from validation import pipeline as vpipe
+from validation import run_all
+
+
+def _fake_row(name: str, lights: str) -> dict:
+    full = {k: 0.5 for k in vpipe.TABLE_KEYS}
+    return {"scene": name, "lights": lights, "wall_s": 60.0, "segments": 3,
+            "geometry": {"psnr": 30.0, "normal_error_median_deg": 2.0, "mask_iou": 0.99},
+            "segmentation": {"ari": 0.9, "miou": 0.8}, "variants": {"full": full}}
+
+
+@pytest.fixture
+def fake_runs(monkeypatch):
+    calls = []
+
+    def run_scene(name, mesh, out, lights="tuned"):
+        calls.append((name, lights))
+        folder = Path(out) / f"{name}-{lights}"
+        folder.mkdir(parents=True, exist_ok=True)
+        row = _fake_row(name, lights)
+        (folder / "row.json").write_text(json.dumps(row))
+        return row
+
+    monkeypatch.setattr(vpipe, "run_scene", run_scene)
+    monkeypatch.setattr(vpipe, "available_scenes",
+                        lambda: {"default": None, "bunny": Path("bunny.ply")})
+    return calls
+
+
+def test_a_scene_and_light_subset_runs_alone(fake_runs, tmp_path):
+    out = tmp_path / "validate"
+    assert run_all.main(["--out", str(out), "--only", "pipeline", "--scene", "bunny",
+                         "--lights", "low"]) == 0
+    assert fake_runs == [("bunny", "low")]
+    md = (out / "pipeline" / "pipeline.md").read_text()
+    assert "| bunny | low |" in md and "| default |" not in md
+    info = json.loads((out / "run.json").read_text())
+    assert info["failed"] == [] and "--scene bunny --lights low" in info["command"]
+    # Without a subset, every scene under both pairs: the pairs reach the pipeline.
+    fake_runs.clear()
+    assert run_all.main(["--out", str(out), "--only", "pipeline"]) == 0
+    assert sorted(fake_runs) == sorted((s, p) for s in ("default", "bunny")
+                                       for p in vpipe.LIGHT_PAIRS)
+
+
+def test_a_second_call_resumes_in_place(fake_runs, tmp_path):
+    out = tmp_path / "validate"
+    assert run_all.main(["--out", str(out), "--only", "pipeline", "--scene", "default",
+                         "--lights", "tuned"]) == 0
+    marker = out / "pipeline" / "default-tuned" / "row.json"
+    before = marker.stat().st_mtime_ns
+    # a second subset adds its rows beside the first; the first folder is kept, not redone
+    assert run_all.main(["--out", str(out), "--only", "pipeline", "--scene", "bunny",
+                         "--lights", "tuned"]) == 0
+    assert marker.stat().st_mtime_ns == before
+    md = (out / "pipeline" / "pipeline.md").read_text()
+    assert "| default | tuned |" in md and "| bunny | tuned |" in md
+
+
+def test_a_folder_that_is_not_ours_is_refused(fake_runs, tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    with pytest.raises(SystemExit, match="notes.txt"):
+        run_all.main(["--out", str(out), "--only", "pipeline"])
+    assert fake_runs == [] and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_report_pages_follow_the_pipeline():
+    names = list(run_all.VALIDATIONS)
+    assert names.index("pipeline") < names.index("report_pages")
