@@ -148,3 +148,98 @@ def _reference_flat(cam):
     y = -(ys - CY) / fx * 3.0 - 0.05
     inside = (np.abs(x) < 0.3) & (np.abs(y) < 0.2)
     return np.where(inside, 3.0, 0.0), inside
+
+
+# -- nerfstudio transforms: intrinsics and k1 distortion through the loader ----------------
+K1 = -0.9  # strong barrel: the raw photo's edges sit 0.8 px off the pinhole's (0.13 undistorted)
+
+
+def _distorted_photo(ss=4):
+    """RGBA [H, W, 4] uint8 of the plane seen through the distorted lens, alpha = coverage
+    from ``ss`` x ``ss`` samples per pixel: each sample's ray is found by inverting the
+    radial model by fixed-point iteration (the project's code only distorts forward)."""
+    ys, xs = (np.mgrid[0:H * ss, 0:W * ss] + 0.5) / ss
+    xd, yd = (xs - CX) / FX, (ys - CY) / FY
+    x, y = xd.copy(), yd.copy()
+    for _ in range(50):
+        d = 1.0 + K1 * (x * x + y * y)
+        x, y = xd / d, yd / d
+    origin = np.array([0.1, -0.05, 3.0])
+    ray = np.stack([x, -y, -np.ones_like(x)], -1)
+    t = -(origin @ PLANE_N) / (ray @ PLANE_N)
+    hit = origin + t[..., None] * ray
+    t_u, t_v = _tangents()
+    inside = (np.abs(hit @ t_u) < HALF[0]) & (np.abs(hit @ t_v) < HALF[1])
+    img = np.zeros((H, W, 4), np.uint8)
+    img[..., :3] = 200
+    img[..., 3] = np.round(255 * inside.reshape(H, ss, W, ss).mean(axis=(1, 3)))
+    return img
+
+
+def _pinhole_coverage(ss=4):
+    """[H, W] bool: pixels more than half covered by the plane in the pinhole view."""
+    ys, xs = (np.mgrid[0:H * ss, 0:W * ss] + 0.5) / ss
+    origin = np.array([0.1, -0.05, 3.0])
+    ray = np.stack([(xs - CX) / FX, -(ys - CY) / FY, -np.ones_like(xs)], -1)
+    hit = origin + (-(origin @ PLANE_N) / (ray @ PLANE_N))[..., None] * ray
+    t_u, t_v = _tangents()
+    inside = (np.abs(hit @ t_u) < HALF[0]) & (np.abs(hit @ t_v) < HALF[1])
+    return inside.reshape(H, ss, W, ss).mean(axis=(1, 3)) > 0.5
+
+
+def _edge_error(mask, ref):
+    """Mean boundary displacement in pixels: symmetric difference area over perimeter."""
+    perimeter = np.count_nonzero(ref ^ np.roll(ref, 1, 0)) + np.count_nonzero(
+        ref ^ np.roll(ref, 1, 1))
+    return np.count_nonzero(mask ^ ref) / perimeter
+
+
+def _nerfstudio_folder(root, **extra):
+    from mi_shadowgs.io.images import write_png
+
+    (root / "train").mkdir(parents=True, exist_ok=True)
+    write_png(root / "train" / "r_0.png", _distorted_photo())
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0.1, -0.05, 3.0]
+    meta = {"w": W, "h": H, "fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY, "k1": K1,
+            "camera_model": "OPENCV", "world_up": "+y",
+            "frames": [{"file_path": "train/r_0.png", "transform_matrix": c2w.tolist()}]}
+    meta.update(extra)
+    import json
+
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+
+
+def test_nerfstudio_intrinsics_and_k1_render_the_plane_in_place(tmp_path):
+    from mi_shadowgs.dataset.loader import load_dataset
+
+    _nerfstudio_folder(tmp_path)
+    view = load_dataset(tmp_path, "train").views[0]
+    cam = view.camera
+    assert cam.focal_xy == pytest.approx((FX, FY)) and cam.principal_point == \
+        pytest.approx((CX, CY))
+    ref = _pinhole_coverage()  # the pinhole view of the plane
+    # The undistorted photo's mask sits where the pinhole says ...
+    assert _edge_error(view.mask, ref) < 0.5
+    # ... and the raw photo did not (the check can fail).
+    assert _edge_error(_distorted_photo()[..., 3] > 127, ref) > 0.5
+    # The rasterized plane, seen by the loaded camera, lands on the undistorted mask.
+    alpha = np.array(rasterize(_plane_surfels(), cam, None, aovs=("alpha",))["alpha"],
+                     np.float64)[..., 0]
+    assert _edge_error(alpha > 0.5, view.mask) < 0.5
+    assert _edge_error(alpha > 0.5, ref) < 0.5
+
+
+@pytest.mark.parametrize("extra, field", [
+    ({"cx": 70.0}, "'cx'"),
+    ({"fl_y": -3.0}, "'fl_y'"),
+    ({"camera_model": "OPENCV_FISHEYE"}, "'camera_model'"),
+    ({"world_up": "up"}, "'world_up'"),
+    ({"k2": "big"}, "'k2'"),
+])
+def test_nerfstudio_bad_intrinsics_name_the_field(tmp_path, extra, field):
+    from mi_shadowgs.dataset.loader import DatasetError, load_dataset
+
+    _nerfstudio_folder(tmp_path, **extra)
+    with pytest.raises(DatasetError, match=field):
+        load_dataset(tmp_path, "train")

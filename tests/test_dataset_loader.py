@@ -12,7 +12,7 @@ import pytest
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.generate import get_config, trace_ground_truth
-from mi_shadowgs.dataset.loader import DatasetError, load_cameras, load_dataset
+from mi_shadowgs.dataset.loader import BLENDER_TO_YUP, DatasetError, load_cameras, load_dataset
 from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.io.images import read_exr, write_png
@@ -72,7 +72,10 @@ def test_nerf_layout_size_from_image(tmp_path):
     cam = _nerf_folder(tmp_path)
     (name, got), = load_cameras(tmp_path / "transforms_train.json")
     assert name == "./train/r_0" and (got.width, got.height) == (8, 6)
-    np.testing.assert_allclose(got.c2w, cam.c2w)
+    # NeRF-synthetic's world is Blender's (Z-up): turned to ours, the camera's height (z)
+    # becomes y, and the Blender camera's "up" (its local +Y) turns with the world.
+    np.testing.assert_allclose(got.c2w, BLENDER_TO_YUP @ cam.c2w)
+    np.testing.assert_allclose(got.origin, [0.0, 4.0, -1.0])
     ds = load_dataset(tmp_path, "train")
     assert ds.views[0].image.shape == (6, 8, 3)
     # sRGB 128 decodes to linear 0.2158

@@ -307,7 +307,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                       for i, cam in enumerate(views)]
             write_json(partial / layout.transforms_name(split),
                        {"camera_angle_x": config.camera_angle_x, "w": config.width,
-                        "h": config.height, "frames": frames})
+                        "h": config.height, "world_up": "+y", "frames": frames})
     write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmap, envmap_ref))
     import mitsuba as mi
 
