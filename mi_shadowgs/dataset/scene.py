@@ -326,12 +326,61 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
         scene = mi.load_dict(desc, optimize=False)  # keep one shape per part
     else:
         scene = _load(params)
+    texture = params.get("base_texture", "plain").strip().lower()
+    if texture not in ("plain", "mat"):
+        raise SceneError(f"{path}: scene parameter 'base_texture' must be 'plain' or 'mat', "
+                         f"got {texture!r}")
+    if texture == "mat":
+        scene = _with_mat_base(scene)
     lo_w, hi_w = (m[:3, :3] @ np.stack([lo, hi]).T).T + m[:3, 3]
     centre = 0.5 * (lo_w + hi_w)
     radius = 0.5 * float(np.linalg.norm(hi_w - lo_w))
     return SceneSetup(path=path, params=params, scene=scene, parts=parts,
                       base_id=len(parts) + 1, lights=lights, object_to_world=m,
                       object_center=centre, object_radius=radius)
+
+
+# -- the textured base ("mat") -------------------------------------------------------------
+MAT_SIZE = 1024  # texels per side: ~3 texels per pixel of a 512^2 view of the 3.2-unit base
+MAT_SEED = 7  # one fixed mat: datasets differ by their scene parameters, not by chance
+
+
+def mat_texture(size: int = MAT_SIZE, seed: int = MAT_SEED) -> np.ndarray:
+    """A mottled cutting-mat texture [size, size, 3] (linear albedo in [0.08, 0.8]): blobs
+    of several sizes and hues, as photogrammetry mats print, so that SIFT finds many
+    distinct features on the base (a plain base gives SfM nothing to match)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    tex = np.zeros((size, size, 3))
+    for sigma, weight in ((40.0, 1.0), (14.0, 0.8), (5.0, 0.5)):  # coarse to fine octaves
+        noise = ndimage.gaussian_filter(rng.normal(size=(size, size, 3)), (sigma, sigma, 0),
+                                        mode="wrap")
+        tex += weight * noise / noise.std()
+    grey = tex.mean(axis=-1, keepdims=True)
+    tex = 0.6 * grey + 0.4 * tex  # keep hues muted, luminance contrast strong
+    tex = (tex - tex.min()) / (tex.max() - tex.min())
+    return (0.08 + 0.72 * tex).astype(np.float32)
+
+
+def _with_mat_base(scene):
+    """``scene`` with its base's reflectance replaced by the ``mat_texture`` (same shape)."""
+    import mitsuba as mi
+
+    desc = {"type": "scene"}
+    for sh in scene.shapes():
+        if sh.id() != "base":
+            desc[sh.id()] = sh
+            continue
+        to_world = mi.traverse(sh)["to_world"]
+        desc["base"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(
+            np.array(to_world.matrix, dtype=np.float64).reshape(4, 4)),
+            "bsdf": {"type": "diffuse", "reflectance": {
+                "type": "bitmap", "bitmap": mi.Bitmap(mat_texture()), "raw": True,
+                "filter_type": "bilinear"}}}
+    for em in scene.emitters():
+        desc[em.id()] = em
+    return mi.load_dict(desc, optimize=False)
 
 
 def _bbox_of(shapes) -> tuple[np.ndarray, np.ndarray]:
