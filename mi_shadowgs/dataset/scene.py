@@ -346,21 +346,41 @@ MAT_SEED = 7  # one fixed mat: datasets differ by their scene parameters, not by
 
 
 def mat_texture(size: int = MAT_SIZE, seed: int = MAT_SEED) -> np.ndarray:
-    """A mottled cutting-mat texture [size, size, 3] (linear albedo in [0.08, 0.8]): blobs
-    of several sizes and hues, as photogrammetry mats print, so that SIFT finds many
-    distinct features on the base (a plain base gives SfM nothing to match)."""
+    """A mottled mat texture [size, size, 3] (linear albedo in [0.04, 0.8]): patches of a
+    few hues with sharp edges at several sizes, and scattered dots, as photogrammetry mats
+    print, so that SIFT finds many distinct, repeatable corners and blobs on the base (a
+    plain base gives SfM nothing to match; smooth noise gives it nothing stable)."""
     from scipy import ndimage
 
     rng = np.random.default_rng(seed)
-    tex = np.zeros((size, size, 3))
-    for sigma, weight in ((40.0, 1.0), (14.0, 0.8), (5.0, 0.5)):  # coarse to fine octaves
-        noise = ndimage.gaussian_filter(rng.normal(size=(size, size, 3)), (sigma, sigma, 0),
-                                        mode="wrap")
-        tex += weight * noise / noise.std()
-    grey = tex.mean(axis=-1, keepdims=True)
-    tex = 0.6 * grey + 0.4 * tex  # keep hues muted, luminance contrast strong
-    tex = (tex - tex.min()) / (tex.max() - tex.min())
-    return (0.08 + 0.72 * tex).astype(np.float32)
+    palette = np.array([[0.75, 0.72, 0.62], [0.08, 0.10, 0.14], [0.60, 0.18, 0.10],
+                        [0.12, 0.35, 0.55], [0.70, 0.60, 0.15], [0.20, 0.45, 0.20],
+                        [0.45, 0.45, 0.45]])
+
+    def field(sigma):
+        f = ndimage.gaussian_filter(rng.normal(size=(size, size)), sigma, mode="wrap")
+        return (f - f.mean()) / f.std()
+
+    # patches: the palette index follows two coarse fields, with sharp boundaries
+    idx = (np.floor(1.6 * field(40.0)) + 3 * np.floor(1.2 * field(22.0))) % len(palette)
+    tex = palette[idx.astype(int)]
+    # dots of a few radii in random palette colours
+    yy, xx = np.mgrid[0:size, 0:size]
+    for radius, count in ((18, 90), (11, 220), (7, 400)):
+        cy, cx = rng.uniform(0, size, (2, count))
+        col = palette[rng.integers(0, len(palette), count)]
+        near = np.full((size, size), -1)
+        dist = np.full((size, size), np.inf)
+        for k in range(count):
+            y0, y1 = int(max(cy[k] - radius, 0)), int(min(cy[k] + radius + 1, size))
+            x0, x1 = int(max(cx[k] - radius, 0)), int(min(cx[k] + radius + 1, size))
+            d = np.hypot(yy[y0:y1, x0:x1] - cy[k], xx[y0:y1, x0:x1] - cx[k])
+            hit = (d < radius) & (d < dist[y0:y1, x0:x1])
+            dist[y0:y1, x0:x1][hit] = d[hit]
+            near[y0:y1, x0:x1][hit] = k
+        tex = np.where(near[..., None] >= 0, col[np.maximum(near, 0)], tex)
+    tex = ndimage.gaussian_filter(tex, (0.7, 0.7, 0))  # anti-alias the edges a little
+    return np.clip(tex, 0.04, 0.8).astype(np.float32)
 
 
 def _with_mat_base(scene):
