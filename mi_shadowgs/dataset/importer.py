@@ -337,7 +337,9 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
         steps.update(1)
         registered = sorted(im.name for im in rec.images.values() if im.has_pose)
         rejected = sorted(set(names) - set(registered))
-        if len(registered) < config.min_registered * len(names) or len(registered) < 3:
+        # A user's own COLMAP model is taken as it is; our SfM must register enough.
+        few = mode == "photos" and len(registered) < config.min_registered * len(names)
+        if few or len(registered) < 3:
             raise CaptureError(
                 f"{source}: SfM registered {len(registered)} of {len(names)} photos (below "
                 f"{config.min_registered:.0%}); dropped: {', '.join(rejected[:12])}"
@@ -370,8 +372,9 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
             if name in mask_files:
                 with Image.open(mask_files[name]) as m:
                     arr = np.asarray(m)
-                arr = arr[..., -1] if arr.ndim == 3 and arr.shape[-1] in (2, 4) else \
-                    (arr[..., 0] if arr.ndim == 3 else arr)
+                if arr.ndim == 3:  # RGBA: the alpha, unless opaque (then the grey value)
+                    has_alpha = arr.shape[-1] in (2, 4) and arr[..., -1].min() < 255
+                    arr = arr[..., -1] if has_alpha else arr[..., 0]
                 v["mask"] = _undistort_mask(arr / 255.0 if arr.dtype == np.uint8 else arr,
                                             src_cams[name], cam)
             views.append(v)
