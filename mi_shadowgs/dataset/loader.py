@@ -158,6 +158,7 @@ class Frame:
     file_path: str
     camera: Camera  # pinhole, in our Y-up world
     distortion: Distortion | None = None  # lens distortion of the stored image, if any
+    to_ours: np.ndarray | None = None  # [3, 3] rotation of world vectors (normals) to Y-up
 
 
 def _intrinsics(path: Path, meta: dict, fr: dict, i: int, width: int, height: int):
@@ -235,13 +236,14 @@ def load_frames(path: str | Path) -> list[Frame]:
         width, height = _image_size(first)
     if width < 1 or height < 1:
         raise DatasetError(f"{path}: image size must be positive, got {width}x{height}")
-    to_ours = BLENDER_TO_YUP if world_frame(path, meta) == "+z" else np.eye(4)
+    blender = world_frame(path, meta) == "+z"
+    to_ours = BLENDER_TO_YUP if blender else np.eye(4)
     out = []
     for i, fr in enumerate(frames):
         c2w = _matrix(path, f"frames[{i}].transform_matrix", fr["transform_matrix"])
         fx, fy, cx, cy, dist = _intrinsics(path, meta, fr, i, width, height)
         cam = Camera.from_intrinsics(to_ours @ c2w, width, height, fx, fy, cx, cy)
-        out.append(Frame(fr["file_path"], cam, dist))
+        out.append(Frame(fr["file_path"], cam, dist, BLENDER_TO_YUP[:3, :3] if blender else None))
     return out
 
 
@@ -277,7 +279,8 @@ def _optional(root: Path, stem: str, suffix: str) -> Path | None:
 
 def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
                     relit_names: list[str], tpath: Path, index: int,
-                    require_mask: bool, distortion: Distortion | None = None) -> View:
+                    require_mask: bool, distortion: Distortion | None = None,
+                    to_ours: np.ndarray | None = None) -> View:
     img_path = _image_file(root, file_path)
     if img_path is None:
         raise DatasetError(f"{tpath}: the image of frame {index} ({file_path!r}) is missing "
@@ -312,6 +315,8 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
         view.albedo = _check_size(p, read_exr(p), cam)[..., :3]
     if (p := _optional(root, stem, layout.NORMAL)) is not None:
         view.normal = _check_size(p, read_exr(p), cam)[..., :3]
+        if to_ours is not None:  # world-space normals of a Blender-frame dataset
+            view.normal = (view.normal @ to_ours.T).astype(np.float32)
     if (p := _optional(root, stem, layout.DEPTH)) is not None:
         view.depth = _check_size(p, read_exr(p), cam)[..., 0]
     if (p := _optional(root, stem, layout.MATERIAL)) is not None:
@@ -360,7 +365,8 @@ def load_dataset(root: str | Path, split: str = "train", require_mask: bool = Tr
     n_lights = len(lights.get("training", {}).get("lights", [])) if lights else 0
     relit_names = [r.get("name") for r in lights.get("relightings", [])] if lights else []
     views = [_load_nerf_view(root, f.file_path, f.camera, n_lights,
-                             [n for n in relit_names if n], tpath, i, require_mask, f.distortion)
+                             [n for n in relit_names if n], tpath, i, require_mask, f.distortion,
+                             f.to_ours)
              for i, f in enumerate(load_frames(tpath))]
     return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf")
 
