@@ -159,7 +159,7 @@ def test_nerf_synthetic_copy_in_blender_frame_loads_as_the_original(generated, t
     raw = np.array(meta["frames"][0]["transform_matrix"])
     assert raw[2, 3] > 0.5  # in the copy the cameras stand above the z = 0 plane
     a, b = load_dataset(out, "train"), load_dataset(tmp_path / "blender", "train")
-    for va, vb in zip(a.views, b.views):
+    for va, vb in zip(a.views, b.views, strict=True):
         np.testing.assert_allclose(vb.camera.c2w, va.camera.c2w, atol=1e-12)
         np.testing.assert_allclose(vb.normal, va.normal, atol=1e-6)
         np.testing.assert_array_equal(vb.image, va.image)

@@ -55,7 +55,7 @@ def _cameras_by_photo(data):
     for split in ("train", "test"):
         meta = json.loads((data / f"transforms_{split}.json").read_text())
         for (_, cam), fr in zip(load_cameras(data / f"transforms_{split}.json"),
-                                meta["frames"]):
+                                meta["frames"], strict=True):
             cams[fr["source_image"]] = cam
     return cams
 

@@ -34,7 +34,7 @@ def _cameras_by_photo(data: Path) -> dict:
     for split in ("train", "test"):
         meta = json.loads((data / f"transforms_{split}.json").read_text())
         for (_, cam), fr in zip(load_cameras(data / f"transforms_{split}.json"),
-                                meta["frames"]):
+                                meta["frames"], strict=True):
             cams[fr.get("source_image", f"{split}_{len(cams):03d}.jpg")] = cam
     return cams
 
