@@ -229,3 +229,38 @@ def test_bad_colmap_and_masks_exit_2(photos, tmp_path, capsys):
     code, err = _cli(capsys, photos / "photos", "--out", out, "--masks", masks)
     assert code == 2 and "no mask for" in err and "test_000.jpg" in err
     assert not out.exists()
+
+
+# -- stage 1 without masks ----------------------------------------------------------------------
+def test_stage1_without_masks_starts_from_the_sfm_points(imported, capsys):
+    import dataclasses
+
+    from mi_shadowgs.io.ply import read_ply_vertices
+    from mi_shadowgs.stages.geometry.train import (
+        evaluate,
+        get_config,
+        initial_state,
+        train_geometry,
+    )
+
+    data, rec = imported
+    train = load_dataset(data, "train")
+    assert not train.has_masks and train.points == data / "points3d.ply"
+    cfg = dataclasses.replace(get_config("cpu-small"), iterations=4, init_points=500)
+    state = initial_state(train, cfg)
+    pos = state.opt.params["position"].numpy()
+    v = read_ply_vertices(data / "points3d.ply")
+    sfm = np.stack([v["x"], v["y"], v["z"]], -1)
+    from scipy.spatial import cKDTree
+
+    # every initial surfel sits on an SfM point (up to the 1e-3-radius jitter)
+    d, _ = cKDTree(sfm).query(pos)
+    assert len(pos) == 500 and np.max(d) < 0.05
+    logged = []
+    from mi_shadowgs.stages.geometry.train import Callbacks
+
+    surfels = train_geometry(train, cfg, callbacks=Callbacks(on_log=logged.append),
+                             progress=False)
+    assert logged and all("mask" not in r for r in logged)  # no mask loss
+    m = evaluate(surfels, load_dataset(data, "test"))
+    assert m["mask_iou"] is None and "mask IoU" in m["skipped"]

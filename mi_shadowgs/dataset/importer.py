@@ -271,19 +271,18 @@ def write_views(tmp: Path, views: list[dict], config: ImportConfig) -> dict:
                            "transform_matrix": small.c2w.tolist()})
         w, h = _train_size(vs[0]["camera"].width, vs[0]["camera"].height, config.max_size)
         meta = {"camera_model": "PINHOLE", "w": w, "h": h, "world_up": "+y",
-                "frames": frames}
+                "masks": any(v.get("mask") is not None for v in vs), "frames": frames}
         (tmp / layout.transforms_name(split)).write_text(json.dumps(meta, indent=1))
     return {k: [v["name"] for v in vs] for k, vs in splits.items()}
 
 
 def _write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    head = ("ply\nformat binary_little_endian 1.0\n"
-            f"element vertex {len(xyz)}\nproperty float x\nproperty float y\n"
-            "property float z\nproperty uchar red\nproperty uchar green\n"
-            "property uchar blue\nend_header\n")
-    rec = np.zeros(len(xyz), dtype=[("p", "<f4", 3), ("c", "u1", 3)])
-    rec["p"], rec["c"] = xyz, rgb
-    path.write_bytes(head.encode() + rec.tobytes())
+    """SfM points [M, 3] in our frame with their colours [M, 3] in [0, 1] (float PLY)."""
+    from mi_shadowgs.io.ply import write_ply_vertices
+
+    c = rgb.astype(np.float32) / 255.0
+    write_ply_vertices(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                              "red": c[:, 0], "green": c[:, 1], "blue": c[:, 2]})
 
 
 def import_capture(source: str | Path, out: str | Path, config: ImportConfig,

@@ -55,6 +55,7 @@ class View:
     visibility: np.ndarray | None = None  # [H, W, L] per training light, 1 = unoccluded
     irradiance: np.ndarray | None = None  # [H, W, L, 3] direct diffuse irradiance per light
     relit: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # name -> [H, W, 3]
+    has_mask: bool = True  # False: no alpha and no mask file; ``mask`` is then all True
 
 
 @dataclasses.dataclass
@@ -65,6 +66,12 @@ class Dataset:
     lights: dict | None = None  # lights.json
     info: dict | None = None  # dataset.json
     layout: str = "nerf"  # "nerf" (ours and NeRF-synthetic) or "tensoir"
+    points: Path | None = None  # SfM points in our frame (``points3d.ply`` of an import)
+
+    @property
+    def has_masks(self) -> bool:
+        """Every view has a real mask (alpha); else stage 1 works without masks."""
+        return all(v.has_mask for v in self.views)
 
     def __len__(self) -> int:
         return len(self.views)
@@ -280,7 +287,7 @@ def _optional(root: Path, stem: str, suffix: str) -> Path | None:
 def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
                     relit_names: list[str], tpath: Path, index: int,
                     require_mask: bool, distortion: Distortion | None = None,
-                    to_ours: np.ndarray | None = None) -> View:
+                    to_ours: np.ndarray | None = None, no_masks: bool = False) -> View:
     img_path = _image_file(root, file_path)
     if img_path is None:
         raise DatasetError(f"{tpath}: the image of frame {index} ({file_path!r}) is missing "
@@ -289,6 +296,7 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
         (".png", ".exr") else file_path
     stem = stem[2:] if stem.startswith("./") else stem
     rgba = _check_size(img_path, _read_image(img_path), cam)
+    has_mask = rgba.shape[-1] == 4 and not no_masks
     if rgba.shape[-1] != 4:
         rgba = np.concatenate([rgba[..., :3], np.ones_like(rgba[..., :1])], axis=-1)
     if distortion is not None:
@@ -305,7 +313,7 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
     mask = alpha > 0.5
     if require_mask and not mask.any():
         raise DatasetError(f"{img_path}: the mask (alpha) is empty: the view sees nothing")
-    view = View(name=stem, camera=cam, image=image, mask=mask)
+    view = View(name=stem, camera=cam, image=image, mask=mask, has_mask=has_mask)
     if (p := _optional(root, stem, layout.MASK)) is not None:
         m = _check_size(p, read_png(p), cam)[..., :1].astype(np.float32)
         if distortion is not None:
@@ -364,11 +372,15 @@ def load_dataset(root: str | Path, split: str = "train", require_mask: bool = Tr
         else None
     n_lights = len(lights.get("training", {}).get("lights", [])) if lights else 0
     relit_names = [r.get("name") for r in lights.get("relightings", [])] if lights else []
+    # An import without masks says so ("masks": false): its opaque PNGs carry no mask.
+    no_masks = _read_json(tpath).get("masks", True) is False
     views = [_load_nerf_view(root, f.file_path, f.camera, n_lights,
                              [n for n in relit_names if n], tpath, i, require_mask, f.distortion,
-                             f.to_ours)
+                             f.to_ours, no_masks)
              for i, f in enumerate(load_frames(tpath))]
-    return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf")
+    points = root / "points3d.ply"
+    return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf",
+                   points=points if points.is_file() else None)
 
 
 # -- TensoIR ------------------------------------------------------------------------------
