@@ -264,3 +264,47 @@ def test_stage1_without_masks_starts_from_the_sfm_points(imported, capsys):
     assert logged and all("mask" not in r for r in logged)  # no mask loss
     m = evaluate(surfels, load_dataset(data, "test"))
     assert m["mask_iou"] is None and "mask IoU" in m["skipped"]
+
+
+def test_nerfstudio_transforms_import_places_the_world(photos, tmp_path, capsys):
+    """A nerfstudio transforms.json in an arbitrary world (our truth moved by a similarity)
+    comes back to our frame up to a turn about +Y: up from the cameras, no point cloud."""
+    from mi_shadowgs.dataset.world_frame import Similarity
+
+    truth = _truth(photos)
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    moved = Similarity(3.0, q, np.array([1.0, 2.0, -0.5]))
+    c0 = next(iter(truth.values()))
+    fx, fy = c0.focal_xy
+    meta = {"w": c0.width, "h": c0.height, "fl_x": fx, "fl_y": fy, "cx": c0.principal_point[0],
+            "cy": c0.principal_point[1], "camera_model": "OPENCV",
+            "frames": [{"file_path": f"photos/{n}", "transform_matrix": moved.c2w(c.c2w).tolist()}
+                       for n, c in sorted(truth.items())]}
+    tf = photos / "transforms.json"  # beside photos/, as nerfstudio lays it out
+    tf.write_text(json.dumps(meta))
+    try:
+        out = tmp_path / "ns"
+        code = main(["import", str(tf), "--out", str(out), "--test-every", "6",
+                     "--no-progress"])
+        assert code == 0, capsys.readouterr().err
+        cams = _cameras_by_photo(out)
+        names = sorted(cams)
+        assert names == sorted(truth)
+        err = camera_errors(np.stack([cams[n].c2w for n in names]),
+                            np.stack([truth[n].c2w for n in names]))
+        assert err["centre_rms_pct"] < 1e-6 and err["rotation_max_deg"] < 1e-5, err
+        sim = umeyama(np.stack([cams[n].origin for n in names]),
+                      np.stack([truth[n].origin for n in names]))
+        tilt = np.degrees(np.arccos(np.clip(sim.rotation[1, 1], -1, 1)))
+        # up is the mean of 24 cameras' up vectors: a few degrees off the truth
+        assert tilt < 10.0, tilt
+        assert json.loads((out / "import.json").read_text())["mode"] == "nerfstudio"
+        # intrinsics contradicting the images: exit 2 naming the fields
+        tf.write_text(json.dumps({**meta, "w": c0.width + 2}))
+        code = main(["import", str(tf), "--out", str(tmp_path / "bad"), "--no-progress"])
+        assert code == 2 and "'w'/'h'" in capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()
+    finally:
+        tf.unlink()

@@ -10,7 +10,8 @@ from mi_shadowgs.config import PRESET_NAMES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("source", help="folder of photos (JPEG/PNG, one camera, one size)")
+    parser.add_argument("source", help="folder of photos (JPEG/PNG, one camera, one size), or "
+                        "a nerfstudio transforms.json")
     parser.add_argument("--out", required=True, help="new dataset folder")
     parser.add_argument("--colmap", default=None, metavar="SPARSE",
                         help="an existing COLMAP model of these photos (e.g. sparse/0): no SfM")
@@ -43,7 +44,9 @@ def run(args: argparse.Namespace) -> int:
     rec = import_capture(args.source, args.out, config, colmap=args.colmap, masks=args.masks,
                          progress=not args.no_progress)
     n = len(rec["registered"]) + len(rec["rejected"])
-    print(f"wrote {args.out}: {len(rec['registered'])}/{n} photos registered, "
-          f"{rec['points']} points, {rec['mean_reprojection_error_px']:.2f} px reprojection "
-          f"error, {rec['timings']['total_s']:.1f} s")
+    err = rec["mean_reprojection_error_px"]
+    print(f"wrote {args.out}: {len(rec['registered'])}/{n} views registered, "
+          f"{rec['points']} points"
+          + ("" if err is None else f", {err:.2f} px reprojection error")
+          + f", {rec['timings']['total_s']:.1f} s")
     return 0

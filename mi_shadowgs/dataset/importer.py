@@ -299,6 +299,11 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
 
     t_start = time.perf_counter()
     source, out = Path(source), Path(out)
+    if source.suffix.lower() == ".json":
+        if colmap is not None or masks is not None:
+            raise CaptureError(f"{source}: --colmap and --masks are for photo folders; a "
+                               "transforms file names its own images (and mask_path)")
+        return import_transforms(source, out, config)
     photos = list_photos(source)
     size, turned = check_photos(photos)
     mask_files = check_masks(Path(masks), photos, size) if masks is not None else {}
@@ -403,4 +408,83 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
         manifest.finish()
         steps.update(1)
     steps.close()
+    return record
+
+
+# -- nerfstudio transforms.json --------------------------------------------------------------------
+def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
+    """A nerfstudio ``transforms.json`` (intrinsics, distortion, per-frame ``mask_path``, an
+    optional ``ply_file_path`` point cloud) into our layout and world frame: images
+    undistorted, the frame placed from the points (else from the cameras)."""
+    from PIL import Image
+
+    from mi_shadowgs.dataset.distortion import undistort
+    from mi_shadowgs.dataset.loader import _read_json, load_frames
+    from mi_shadowgs.io.atomic import atomic_dir
+    from mi_shadowgs.io.ply import read_ply_vertices
+    from mi_shadowgs.io.provenance import Output, Provenance, check_output_location
+
+    t_start = time.perf_counter()
+    meta = _read_json(path)
+    frames = load_frames(path, as_stored=True)
+    raw_frames = meta["frames"]
+    for i, f in enumerate(frames):
+        img_path = path.parent / f.file_path
+        if not img_path.is_file():
+            raise CaptureError(f"{path}: the image of frame {i} ({f.file_path!r}) is missing")
+        im, _ = _read_photo(img_path)
+        if im.size != (f.camera.width, f.camera.height):
+            raise CaptureError(f"{path}: fields 'w'/'h' say {f.camera.width}x"
+                               f"{f.camera.height}, but {img_path.name} is {im.size[0]}x"
+                               f"{im.size[1]}")
+        mp = raw_frames[i].get("mask_path")
+        if mp is not None and not (path.parent / mp).is_file():
+            raise CaptureError(f"{path}: the mask of frame {i} ({mp!r}, field 'mask_path') is "
+                               "missing")
+    points = np.zeros((0, 3))
+    if meta.get("ply_file_path"):
+        v = read_ply_vertices(path.parent / meta["ply_file_path"])
+        points = np.stack([v["x"], v["y"], v["z"]], axis=-1)
+    if out.exists():
+        raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
+    check_output_location(out, [path.parent])
+    sim, frame_report = world_frame(points, np.stack([f.camera.c2w for f in frames]),
+                                    config.frame)
+    with tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s, \
+            atomic_dir(out) as tmp:
+        work = Path(work_s)
+        views = []
+        for i, f in enumerate(frames):
+            name = Path(f.file_path).name
+            im, _ = _read_photo(path.parent / f.file_path)
+            rgb = np.asarray(im.convert("RGB"), np.float32)
+            mask = None
+            if raw_frames[i].get("mask_path"):
+                m, _ = _read_photo(path.parent / raw_frames[i]["mask_path"])
+                mask = np.asarray(m.convert("L"), np.float32)[..., None] / 255.0
+            if f.distortion is not None:
+                rgb, _ = undistort(rgb, f.camera, f.distortion)
+                if mask is not None:
+                    mask, _ = undistort(mask, f.camera, f.distortion)
+            undist = work / f"{i:05d}_{Path(name).stem}.png"
+            Image.fromarray(np.clip(np.round(rgb), 0, 255).astype(np.uint8)).save(undist)
+            cam = dataclasses.replace(f.camera, c2w=sim.c2w(f.camera.c2w))
+            views.append({"name": name, "camera": cam, "image": undist,
+                          "mask": None if mask is None else mask[..., 0]})
+        split = write_views(tmp, views, config)
+        if len(points):
+            _write_points_ply(tmp / "points3d.ply", sim.points(points),
+                              np.full((len(points), 3), 128, np.uint8))
+        record = {"format_version": 1, "source": str(path.resolve()), "mode": "nerfstudio",
+                  "similarity": sim.to_json(), "world_frame": frame_report,
+                  "registered": [v["name"] for v in views], "rejected": [], "splits": split,
+                  "points": int(len(points)), "mean_reprojection_error_px": None,
+                  "timings": {"total_s": time.perf_counter() - t_start},
+                  "settings": dataclasses.asdict(config)}
+        (tmp / IMPORT_JSON).write_text(json.dumps(record, indent=1))
+        manifest = Output(tmp, "import", Provenance(inputs={"transforms": {
+            "path": str(path.resolve())}}, settings=dataclasses.asdict(config)), None)
+        manifest.claim(*sorted(p.relative_to(tmp).as_posix() for p in tmp.rglob("*")
+                               if p.is_file()))
+        manifest.finish()
     return record

@@ -208,7 +208,7 @@ def _intrinsics(path: Path, meta: dict, fr: dict, i: int, width: int, height: in
     return fx, fy, cx, cy, (None if dist.is_identity else dist)
 
 
-def load_frames(path: str | Path) -> list[Frame]:
+def load_frames(path: str | Path, as_stored: bool = False) -> list[Frame]:
     """Every frame of a NeRF-synthetic or nerfstudio-style ``transforms_*.json``.
 
     The image size comes from ``w``/``h`` when present, else from the first frame's image.
@@ -243,7 +243,8 @@ def load_frames(path: str | Path) -> list[Frame]:
         width, height = _image_size(first)
     if width < 1 or height < 1:
         raise DatasetError(f"{path}: image size must be positive, got {width}x{height}")
-    blender = world_frame(path, meta) == "+z"
+    # as_stored: the file's own world, whatever it is (the importer places it itself)
+    blender = not as_stored and world_frame(path, meta) == "+z"
     to_ours = BLENDER_TO_YUP if blender else np.eye(4)
     out = []
     for i, fr in enumerate(frames):

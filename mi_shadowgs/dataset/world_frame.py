@@ -123,10 +123,10 @@ def world_frame(points: np.ndarray, c2w: np.ndarray,
     the lowest object points) goes to y = 0, the object's robust bounding box is centred on
     the Y axis and its bounding sphere scaled to radius 1.
     """
-    points = np.asarray(points, np.float64)
+    points = np.asarray(points, np.float64).reshape(-1, 3)
     c2w = np.asarray(c2w, np.float64)
     if len(points) < 10:
-        raise WorldFrameError(f"only {len(points)} SfM points: too few to place the world")
+        return _frame_from_cameras(c2w, config, len(points))
     rng = np.random.default_rng(config.seed)
     median = np.median(points, axis=0)
     extent = float(np.median(np.linalg.norm(points - median, axis=1)))
@@ -179,6 +179,27 @@ def world_frame(points: np.ndarray, c2w: np.ndarray,
     sim = Similarity(scale=scale, rotation=rot, translation=t)
     report["object_points"] = len(obj)
     return sim, report
+
+
+def _frame_from_cameras(c2w: np.ndarray, config: FrameConfig,
+                        n_points: int) -> tuple[Similarity, dict]:
+    """No points (a transforms file without a point cloud): up from the cameras' up
+    vectors, the object at the point they look at, its radius from their distance
+    (``camera_distance_radii``), standing on y = 0."""
+    n = camera_up(c2w)
+    x = c2w[0, :3, 0] - (c2w[0, :3, 0] @ n) * n
+    x /= np.linalg.norm(x)
+    rot = np.stack([x, n, np.cross(x, n)])
+    look = look_at_point(c2w) @ rot.T
+    dist = float(np.median(np.linalg.norm(c2w[:, :3, 3] @ rot.T - look, axis=1)))
+    scale = config.camera_distance_radii / dist
+    # the bounding sphere's centre is at the look-at point; the object stands on y = 0
+    bottom = look[1] - dist / config.camera_distance_radii
+    t = -scale * np.array([look[0], bottom, look[2]])
+    report = {"points": n_points, "up_from": "camera up vectors (no points)",
+              "centre_from": f"cameras' look-at point; size: cameras "
+                             f"{config.camera_distance_radii} radii away"}
+    return Similarity(scale=scale, rotation=rot, translation=t), report
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> Similarity:
