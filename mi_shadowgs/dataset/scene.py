@@ -10,6 +10,8 @@ Overriding a computed parameter is an error naming the parameters to set instead
 
 ``mesh.xml`` takes ``-D mesh=PATH``; with ``parts=auto`` and a ``<stem>_parts.json`` beside
 the mesh, the object is loaded as one shape per part with the part's material.
+Every scene takes ``-D base_texture=mat``: the base's reflectance becomes a procedural
+mottled mat (``mat_texture``), so that SfM finds features on photo sets (``--photos``).
 """
 
 from __future__ import annotations
@@ -225,6 +227,13 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
 
     path = Path(path)
     root = _parse_xml(path)
+    # base_texture is Python's, for every scene: kept out of the XML (and of params unless
+    # set), so that plain datasets keep their fingerprints.
+    overrides = dict(overrides or {})
+    texture = str(overrides.pop("base_texture", "plain")).strip().lower()
+    if texture not in ("plain", "mat"):
+        raise SceneError(f"{path}: scene parameter 'base_texture' must be 'plain' or 'mat', "
+                         f"got {texture!r}")
     defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
     params = dict(defaults)
     computed = _computed_params(root, defaults)
@@ -326,12 +335,9 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
         scene = mi.load_dict(desc, optimize=False)  # keep one shape per part
     else:
         scene = _load(params)
-    texture = params.get("base_texture", "plain").strip().lower()
-    if texture not in ("plain", "mat"):
-        raise SceneError(f"{path}: scene parameter 'base_texture' must be 'plain' or 'mat', "
-                         f"got {texture!r}")
     if texture == "mat":
         scene = _with_mat_base(scene)
+        params["base_texture"] = texture
     lo_w, hi_w = (m[:3, :3] @ np.stack([lo, hi]).T).T + m[:3, 3]
     centre = 0.5 * (lo_w + hi_w)
     radius = 0.5 * float(np.linalg.norm(hi_w - lo_w))
