@@ -144,7 +144,8 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
     """pycolmap SfM on the CPU; the reconstruction with the most registered images."""
     import pycolmap
 
-    pycolmap.logging.minloglevel = 2  # errors only: its per-step log would drown ours
+    # fatal only: its per-step log (and its own "failed" lines) would drown our one line
+    pycolmap.logging.minloglevel = 3
     db = work / "database.db"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = config.camera_model
@@ -181,9 +182,11 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
     recs = pycolmap.incremental_mapping(db, image_dir, work / "sparse", options=options)
     timings["map_s"] = time.perf_counter() - t
     if not recs:
-        raise CaptureError(f"{image_dir}: SfM registered no images: the photos share too few "
-                           "features; photograph the object on a textured background (a "
-                           "printed mat, newspaper) with more overlap between photos")
+        raise CaptureError(f"{image_dir}: SfM registered 0 of {len(names)} photos; dropped: "
+                           f"{', '.join(names[:12])}{' ...' if len(names) > 12 else ''}. The "
+                           "photos share too few features: photograph the object on a textured "
+                           "background (a printed mat, newspaper) with more overlap between "
+                           "photos")
     return max(recs.values(), key=lambda r: r.num_reg_images())
 
 
