@@ -308,3 +308,28 @@ def test_nerfstudio_transforms_import_places_the_world(photos, tmp_path, capsys)
         assert not (tmp_path / "bad").exists()
     finally:
         tf.unlink()
+
+
+def test_mat_base_is_textured_and_plain_scenes_keep_their_parameters():
+    import mitsuba as mi
+
+    from mi_shadowgs.dataset.scene import SceneError, load_scene, mat_texture
+
+    plain = load_scene(scene_path("default"))
+    assert "base_texture" not in plain.params  # plain datasets keep their fingerprints
+    mat = load_scene(scene_path("default"), {"base_texture": "mat"})
+    assert mat.params["base_texture"] == "mat"
+    tex = mat_texture(256)
+    np.testing.assert_array_equal(tex, mat_texture(256))  # one fixed mat
+    assert tex.min() >= 0.04 and tex.max() <= 0.8 and tex.std() > 0.1
+    # The base's reflectance varies across it (sampled at 64 points of its top face).
+    base = next(s for s in mat.scene.shapes() if s.id() == "base")
+    rng = np.random.default_rng(0)
+    xs, zs = rng.uniform(-1.5, 1.5, (2, 64))
+    ray = mi.Ray3f(mi.Point3f(xs, np.full(64, 2.0), zs), mi.Vector3f(0, -1, 0))
+    si = mat.scene.ray_intersect(ray)
+    alb = np.array(base.bsdf().eval_diffuse_reflectance(si))
+    alb = alb if alb.shape[0] == 64 else alb.T  # [64, 3]
+    assert np.array(si.is_valid()).all() and alb.std(axis=0).max() > 0.05
+    with pytest.raises(SceneError, match="base_texture"):
+        load_scene(scene_path("default"), {"base_texture": "wood"})
