@@ -333,3 +333,18 @@ def test_mat_base_is_textured_and_plain_scenes_keep_their_parameters():
     assert np.array(si.is_valid()).all() and alb.std(axis=0).max() > 0.05
     with pytest.raises(SceneError, match="base_texture"):
         load_scene(scene_path("default"), {"base_texture": "wood"})
+
+
+def test_exif_orientation_is_honoured(tmp_path):
+    from mi_shadowgs.dataset.importer import check_photos, list_photos
+
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        im = Image.fromarray(rng.integers(0, 255, (48, 64, 3), np.uint8))
+        exif = Image.Exif()
+        if i == 1:
+            exif[0x0112] = 6  # stored landscape, to be shown turned 90 degrees
+            im = im.transpose(Image.Transpose.ROTATE_90)  # so upright it is 64 x 48 again
+        im.save(tmp_path / f"p{i}.jpg", exif=exif)
+    size, turned = check_photos(list_photos(tmp_path))
+    assert size == (64, 48) and [p.name for p in turned] == ["p1.jpg"]
