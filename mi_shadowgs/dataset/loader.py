@@ -181,6 +181,7 @@ def _intrinsics(path: Path, meta: dict, fr: dict, i: int, width: int, height: in
         raise DatasetError(f"{path}: field 'camera_model' {model!r} is not supported "
                            f"(only {', '.join(_PINHOLE_MODELS)}); undistort the images first")
     fx, fy = get("fl_x"), get("fl_y")
+    fov_x = None
     if fx is None:
         if fy is not None:
             raise DatasetError(f"{path}: field 'fl_y' without 'fl_x'")
@@ -205,7 +206,9 @@ def _intrinsics(path: Path, meta: dict, fr: dict, i: int, width: int, height: in
                                f"the {width}x{height} image")
     values = {k: get(k) for k in FIELDS}
     dist = Distortion(**{k: (v or 0.0) for k, v in values.items()})
-    return fx, fy, cx, cy, (None if dist.is_identity else dist)
+    # NeRF-synthetic's angle kept as given (no round trip through fx): same bits as before
+    centred = fy == fx and cx == 0.5 * width and cy == 0.5 * height
+    return fx, fy, cx, cy, (None if dist.is_identity else dist), (fov_x if centred else None)
 
 
 def load_frames(path: str | Path, as_stored: bool = False) -> list[Frame]:
@@ -249,8 +252,10 @@ def load_frames(path: str | Path, as_stored: bool = False) -> list[Frame]:
     out = []
     for i, fr in enumerate(frames):
         c2w = _matrix(path, f"frames[{i}].transform_matrix", fr["transform_matrix"])
-        fx, fy, cx, cy, dist = _intrinsics(path, meta, fr, i, width, height)
-        cam = Camera.from_intrinsics(to_ours @ c2w, width, height, fx, fy, cx, cy)
+        fx, fy, cx, cy, dist, fov_x = _intrinsics(path, meta, fr, i, width, height)
+        cam = Camera(c2w=to_ours @ c2w, width=width, height=height, fov_x=fov_x) \
+            if fov_x is not None else \
+            Camera.from_intrinsics(to_ours @ c2w, width, height, fx, fy, cx, cy)
         out.append(Frame(fr["file_path"], cam, dist, BLENDER_TO_YUP[:3, :3] if blender else None))
     return out
 
