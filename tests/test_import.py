@@ -172,12 +172,12 @@ def test_masks_go_through_the_undistortion(photos, imported, tmp_path):
     view = load_dataset(out, "train").views[0]
     src = json.loads((out / "transforms_train.json").read_text())["frames"][0]["source_image"]
     split, idx = src[:-8], int(src[-7:-4])
-    truth = np.asarray(Image.open(photos / split / f"r_{idx:03d}_mask.png"))[..., 0] > 127
-    # The camera model is nearly distortion-free here: the undistorted mask is the truth
-    # up to resampling at its rim.
-    if view.mask.shape == truth.shape:
-        assert np.mean(view.mask != truth) < 0.01
-    assert 0.5 < view.mask.sum() / truth.sum() < 2.0
+    truth = np.asarray(Image.open(photos / split / f"r_{idx:03d}_mask.png"))
+    truth = (truth if truth.ndim == 2 else truth[..., 0]) > 127
+    # The fitted lens is nearly distortion-free here, but undistortion may crop the image
+    # by a pixel or two (256 -> 254): the mask keeps the object's area to a few percent.
+    assert view.has_mask and load_dataset(out, "train").has_masks
+    assert 0.9 < view.mask.sum() / truth.sum() < 1.1, (view.mask.sum(), truth.sum())
 
 
 # -- bad input: exit 2, name it, write nothing ----------------------------------------------------
