@@ -144,8 +144,6 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
     """pycolmap SfM on the CPU; the reconstruction with the most registered images."""
     import pycolmap
 
-    # fatal only: its per-step log (and its own "failed" lines) would drown our one line
-    pycolmap.logging.minloglevel = 3
     db = work / "database.db"
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = config.camera_model
@@ -301,6 +299,8 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
     from mi_shadowgs.io.provenance import Output, Provenance, check_output_location
 
     t_start, cpu_start = time.perf_counter(), time.process_time()
+    # fatal only: its per-step log (and its own "failed" lines) would drown our one line
+    pycolmap.logging.minloglevel = 3
     source, out = Path(source), Path(out)
     if source.suffix.lower() == ".json":
         if colmap is not None or masks is not None:
