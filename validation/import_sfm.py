@@ -4,7 +4,8 @@ A photo set (``generate ... --photos -D base_texture=mat``) is imported ``--repe
 each import's cameras are compared with the ground truth by photo name: registered
 fraction, camera-centre RMS after a similarity alignment as % of the camera distance,
 rotation error, the world frame (tilt and scale of that similarity) and the import's
-timings. Without ``--data`` a photo set is generated first (``--mesh`` on the mat).
+timings. The first import's COLMAP model is then imported again with ``--colmap`` and its
+cameras compared with the first import's. Without ``--data`` a photo set is generated first (``--mesh`` on the mat).
 
     python -m validation.import_sfm --out OUT [--data DATA] [--repeats 3] [--size 512]
         [--views 64] [--mesh PATH]
@@ -104,7 +105,22 @@ def main(argv=None) -> None:
                "timings": rec["timings"], "wall_s": wall, **score(target, gt)}
         runs.append(row)
         print(json.dumps(row))
+    # The COLMAP model the first import wrote, imported again with --colmap: same cameras?
+    again = out / "import_colmap"
+    shutil.rmtree(again, ignore_errors=True)
+    rec = import_capture(data / "photos", again, get_config(args.preset),
+                         colmap=out / "import_0" / "colmap" / "sparse" / "0")
+    a, b = _cameras_by_photo(out / "import_0"), _cameras_by_photo(again)
+    colmap_check = {
+        "same_views": sorted(a) == sorted(b),
+        "max_c2w_diff": max(float(np.abs(a[n].c2w - b[n].c2w).max()) for n in a),
+        "max_intrinsics_diff_px": max(float(np.abs(np.subtract(
+            a[n].focal_xy + a[n].principal_point, b[n].focal_xy + b[n].principal_point)).max())
+            for n in a),
+        "timings": rec["timings"]}
+    print(json.dumps(colmap_check))
     summary = {"data": str(data.resolve()), "preset": args.preset, "runs": runs,
+               "colmap_again": colmap_check,
                "loadavg": Path("/proc/loadavg").read_text().split()[:3]}
     write_json(out / "import_sfm.json", summary)
     lines = ["| run | registered | points | reproj px | centre RMS % | rot mean / max deg | "
