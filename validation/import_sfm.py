@@ -5,7 +5,8 @@ each import's cameras are compared with the ground truth by photo name: register
 fraction, camera-centre RMS after a similarity alignment as % of the camera distance,
 rotation error, the world frame (tilt and scale of that similarity) and the import's
 timings. The first import's COLMAP model is then imported again with ``--colmap`` and its
-cameras compared with the first import's. Without ``--data`` a photo set is generated first (``--mesh`` on the mat).
+cameras compared with the first import's. Without ``--data`` a photo set is generated
+first (``--mesh`` on the mat).
 
     python -m validation.import_sfm --out OUT [--data DATA] [--repeats 3] [--size 512]
         [--views 64] [--mesh PATH]
