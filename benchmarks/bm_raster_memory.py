@@ -101,7 +101,7 @@ def budget_case(n: int, res: int, budget: str, folder: Path) -> dict:
                          channels={"sh": m["colors"].astype(np.float32)})
     ply.write_ply_model(folder / "big.ply", model)
     cam = _camera(res)
-    meta = {"camera_angle_x": cam.fov_x, "w": res, "h": res,
+    meta = {"camera_angle_x": cam.fov_x, "w": res, "h": res, "world_up": "+y",
             "frames": [cam.to_frame_json("./test/r_0")]}
     (folder / "t.json").write_text(json.dumps(meta))
     code = ("import resource, subprocess, sys; "

@@ -12,7 +12,7 @@ import pytest
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.generate import get_config, trace_ground_truth
-from mi_shadowgs.dataset.loader import DatasetError, load_cameras, load_dataset
+from mi_shadowgs.dataset.loader import BLENDER_TO_YUP, DatasetError, load_cameras, load_dataset
 from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.io.images import read_exr, write_png
@@ -72,7 +72,10 @@ def test_nerf_layout_size_from_image(tmp_path):
     cam = _nerf_folder(tmp_path)
     (name, got), = load_cameras(tmp_path / "transforms_train.json")
     assert name == "./train/r_0" and (got.width, got.height) == (8, 6)
-    np.testing.assert_allclose(got.c2w, cam.c2w)
+    # NeRF-synthetic's world is Blender's (Z-up): turned to ours, the camera's height (z)
+    # becomes y, and the Blender camera's "up" (its local +Y) turns with the world.
+    np.testing.assert_allclose(got.c2w, BLENDER_TO_YUP @ cam.c2w)
+    np.testing.assert_allclose(got.origin, [0.0, 4.0, -1.0])
     ds = load_dataset(tmp_path, "train")
     assert ds.views[0].image.shape == (6, 8, 3)
     # sRGB 128 decodes to linear 0.2158
@@ -143,3 +146,20 @@ def test_tensoir_layout_turns_z_up_into_y_up(tmp_path):
     np.testing.assert_allclose(ds.views[0].normal[0, 0], [0, 1, 0], atol=0.01)
     assert set(ds.views[0].relit) == {"city"}
     assert math.isclose(float(ds.views[0].image.max()), 1.0)
+
+
+def test_nerf_synthetic_copy_in_blender_frame_loads_as_the_original(generated, tmp_path):
+    """Our dataset turned into Blender's Z-up world (no dataset.json, no world_up) loads back
+    to the same Y-up cameras and normals: the loader recognises NeRF-synthetic's frame."""
+    from validation.nerf_synthetic_copy import blender_copy
+
+    out, _ = generated
+    blender_copy(out, tmp_path / "blender")
+    meta = json.loads((tmp_path / "blender" / "transforms_train.json").read_text())
+    raw = np.array(meta["frames"][0]["transform_matrix"])
+    assert raw[2, 3] > 0.5  # in the copy the cameras stand above the z = 0 plane
+    a, b = load_dataset(out, "train"), load_dataset(tmp_path / "blender", "train")
+    for va, vb in zip(a.views, b.views, strict=True):
+        np.testing.assert_allclose(vb.camera.c2w, va.camera.c2w, atol=1e-12)
+        np.testing.assert_allclose(vb.normal, va.normal, atol=1e-6)
+        np.testing.assert_array_equal(vb.image, va.image)

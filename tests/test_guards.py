@@ -100,7 +100,7 @@ def test_ply_refuses_an_empty_model(tmp_path):
 
 def _cameras_json(path: Path, res: int) -> Path:
     cam = Camera.look_at((0.3, 0.4, 2.5), (0.0, 0.0, 0.0), width=res, height=res, fov_x=0.8)
-    path.write_text(json.dumps({"camera_angle_x": 0.8, "w": res, "h": res,
+    path.write_text(json.dumps({"camera_angle_x": 0.8, "w": res, "h": res, "world_up": "+y",
                                 "frames": [cam.to_frame_json("./test/r_0")]}))
     return path
 

@@ -33,7 +33,7 @@ def setup(tmp_path_factory):
     ply.write_ply_model(root / "model.ply", model)
     cams = [Camera.look_at(o, (0, 0, 0), width=W, height=H, fov_x=0.8)
             for o in ((0.3, 0.4, 2.5), (-2.0, 0.5, 1.0))]
-    meta = {"camera_angle_x": 0.8, "w": W, "h": H,
+    meta = {"camera_angle_x": 0.8, "w": W, "h": H, "world_up": "+y",
             "frames": [c.to_frame_json(f"./test/r_{i}") for i, c in enumerate(cams)]}
     # The cameras sit in a dataset folder of their own: no output may go into one.
     (root / "data").mkdir()
@@ -138,7 +138,7 @@ def test_renders_never_mix_and_overwrite_removes_only_renders(setup, tmp_path, c
     assert (out / "r_1_depth.exr").stat().st_mode & 0o777 == 0o666 & ~_umask()
     (out / "notes.txt").write_text("mine")
     one = tmp_path / "one.json"  # another camera set: one view under another name
-    one.write_text(json.dumps({"camera_angle_x": 0.8, "w": W, "h": H,
+    one.write_text(json.dumps({"camera_angle_x": 0.8, "w": W, "h": H, "world_up": "+y",
                                "frames": [cams[0].to_frame_json("./test/other")]}))
     assert _render(root, out, cameras=one) == 2
     assert "already holds an output of `mi-shadowgs render`: pass --overwrite" in \

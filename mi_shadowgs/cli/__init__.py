@@ -15,6 +15,8 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("mi_shadowgs.cli.generate",
                  "render a shadowed synthetic dataset from a scene XML"),
+    "import": ("mi_shadowgs.cli.import_",
+               "your own photos (SfM) or a COLMAP model as a dataset, in one world frame"),
     "render": ("mi_shadowgs.cli.render", "render a surfel model (PLY) from dataset cameras"),
     "segment": ("mi_shadowgs.cli.segment",
                 "material segments: contrastive surfel features + K-means (stage 2)"),

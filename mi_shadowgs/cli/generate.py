@@ -33,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the folder holds files not in its manifest.json)")
     parser.add_argument("-D", dest="defines", action="append", default=[],
                         metavar="NAME=VALUE", help="set a scene <default> parameter")
+    parser.add_argument("--photos", action="store_true",
+                        help="also write every view as a user's photo (sRGB JPEG, no camera, "
+                             "no mask) under DIR/photos/, for `mi-shadowgs import`; pair it "
+                             "with -D base_texture=mat so that SfM finds features")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
@@ -83,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     out, written = write_dataset(_resolve_scene(args.scene), args.out, config, args.preset,
                                  seed=args.seed, overrides=_parse_defines(args.defines),
                                  overwrite=args.overwrite,
-                                 progress=not args.no_progress)
+                                 progress=not args.no_progress, photos=args.photos)
     if written:
         print(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
     else:

@@ -28,6 +28,9 @@ class Camera:
 
     Perspective when ``fov_x`` (full horizontal field of view, radians) is set; orthographic
     when ``ortho_width`` (image-plane width in scene units) is set instead.
+    Real cameras (nerfstudio ``fl_y``, ``cx``, ``cy``; COLMAP pinholes) add ``focal_y``
+    (vertical focal length in pixels, perspective only; default: square pixels) and the
+    principal point ``cx``, ``cy`` in pixels (default: the image centre).
     """
 
     c2w: np.ndarray  # [4, 4] float64, OpenGL convention
@@ -37,6 +40,9 @@ class Camera:
     ortho_width: float | None = None
     near: float = 0.01
     far: float = 1.0e4
+    focal_y: float | None = None
+    cx: float | None = None
+    cy: float | None = None
 
     def __post_init__(self):
         c2w = np.asarray(self.c2w, dtype=np.float64)
@@ -53,6 +59,27 @@ class Camera:
             raise ValueError(f"camera ortho_width must be > 0, got {self.ortho_width}")
         if self.width < 1 or self.height < 1:
             raise ValueError(f"camera image size must be positive, got {self.width}x{self.height}")
+        if self.focal_y is not None:
+            if self.is_ortho:
+                raise ValueError("camera focal_y is for perspective cameras only")
+            if not (math.isfinite(self.focal_y) and self.focal_y > 0):
+                raise ValueError(f"camera focal_y must be > 0 pixels, got {self.focal_y}")
+        for key in ("cx", "cy"):
+            v = getattr(self, key)
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"camera {key} must be a finite pixel coordinate, got {v}")
+
+    @staticmethod
+    def from_intrinsics(c2w, width: int, height: int, fx: float, fy: float, cx: float,
+                        cy: float, **kwargs) -> Camera:
+        """A pinhole from focal lengths and principal point in pixels (nerfstudio, COLMAP)."""
+        if not (math.isfinite(fx) and fx > 0):
+            raise ValueError(f"camera focal length fx must be > 0 pixels, got {fx}")
+        fov_x = 2.0 * math.atan(0.5 * width / fx)
+        return Camera(c2w=c2w, width=width, height=height, fov_x=fov_x,
+                      focal_y=None if fy == fx else float(fy),
+                      cx=None if cx == 0.5 * width else float(cx),
+                      cy=None if cy == 0.5 * height else float(cy), **kwargs)
 
     # -- projection -------------------------------------------------------------------
     @property
@@ -67,8 +94,21 @@ class Camera:
         return 0.5 * self.width / math.tan(0.5 * self.fov_x)
 
     @property
+    def focal_xy(self) -> tuple[float, float]:
+        """(fx, fy): focal lengths in pixels (perspective) or pixels per unit (orthographic)."""
+        f = self.focal
+        return f, (f if self.focal_y is None else self.focal_y)
+
+    @property
     def principal_point(self) -> tuple[float, float]:
-        return 0.5 * self.width, 0.5 * self.height
+        return (0.5 * self.width if self.cx is None else self.cx,
+                0.5 * self.height if self.cy is None else self.cy)
+
+    @property
+    def is_centred(self) -> bool:
+        """Square pixels and the principal point at the image centre (what Mitsuba's
+        ``perspective`` sensor without offsets renders)."""
+        return self.focal_y is None and self.cx is None and self.cy is None
 
     @property
     def origin(self) -> np.ndarray:
@@ -90,12 +130,13 @@ class Camera:
         w2c = self.world_to_cv()
         pc = p @ w2c[:3, :3].T + w2c[:3, 3]
         cx, cy = self.principal_point
-        f = self.focal
+        fx, fy = self.focal_xy
         if self.is_ortho:
-            uv = np.stack([f * pc[:, 0] + cx, f * pc[:, 1] + cy], axis=-1)
+            uv = np.stack([fx * pc[:, 0] + cx, fy * pc[:, 1] + cy], axis=-1)
         else:
             with np.errstate(divide="ignore", invalid="ignore"):
-                uv = np.stack([f * pc[:, 0] / pc[:, 2] + cx, f * pc[:, 1] / pc[:, 2] + cy], -1)
+                uv = np.stack([fx * pc[:, 0] / pc[:, 2] + cx, fy * pc[:, 1] / pc[:, 2] + cy],
+                              -1)
         return uv, pc[:, 2]
 
     def unproject(self, pixels: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -103,11 +144,11 @@ class Camera:
         uv = np.asarray(pixels, dtype=np.float64)
         z = np.asarray(depth, dtype=np.float64)
         cx, cy = self.principal_point
-        f = self.focal
+        fx, fy = self.focal_xy
         if self.is_ortho:
-            pc = np.stack([(uv[:, 0] - cx) / f, (uv[:, 1] - cy) / f, z], axis=-1)
+            pc = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, z], axis=-1)
         else:
-            pc = np.stack([(uv[:, 0] - cx) / f * z, (uv[:, 1] - cy) / f * z, z], axis=-1)
+            pc = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=-1)
         c2w_cv = np.linalg.inv(self.world_to_cv())
         return pc @ c2w_cv[:3, :3].T + c2w_cv[:3, 3]
 
@@ -136,7 +177,14 @@ class Camera:
         return Camera(c2w=c2w, **kwargs)
 
     def with_size(self, width: int, height: int) -> Camera:
-        return dataclasses.replace(self, width=width, height=height)
+        """The same camera on a film of another size (intrinsics scaled with it)."""
+        if self.is_centred:
+            return dataclasses.replace(self, width=width, height=height)
+        sx, sy = width / self.width, height / self.height
+        fx, fy = self.focal_xy
+        cx, cy = self.principal_point
+        return Camera.from_intrinsics(self.c2w, width, height, fx * sx, fy * sy, cx * sx,
+                                      cy * sy, near=self.near, far=self.far)
 
     # -- Mitsuba ----------------------------------------------------------------------
     def mitsuba_to_world(self) -> np.ndarray:
@@ -148,6 +196,9 @@ class Camera:
         """A ``mi.load_dict`` description of the equivalent Mitsuba sensor."""
         import mitsuba as mi
 
+        if self.focal_y is not None:
+            raise ValueError("Mitsuba's perspective sensor has square pixels; this camera's "
+                             f"focal_y ({self.focal_y}) differs from fx ({self.focal})")
         to_world = self.mitsuba_to_world()
         film_dict = {"type": "hdrfilm", "width": self.width, "height": self.height,
                      "rfilter": {"type": "box"}, "pixel_format": "rgba"}
@@ -166,6 +217,12 @@ class Camera:
         else:
             d.update(type="perspective", fov=math.degrees(self.fov_x), fov_axis="x",
                      to_world=mi.ScalarTransform4f(to_world))
+            if self.cx is not None or self.cy is not None:
+                # Mitsuba's offsets are fractions of the film size and move the image content
+                # the other way (measured against project() in tests/test_camera_intrinsics).
+                cx, cy = self.principal_point
+                d.update(principal_point_offset_x=(0.5 * self.width - cx) / self.width,
+                         principal_point_offset_y=(0.5 * self.height - cy) / self.height)
         return d
 
     @staticmethod

@@ -26,11 +26,11 @@ def unproject_depth(depth: mi.TensorXf, camera: Camera) -> mi.Point3f:
     py = mi.Float(idx // w) + 0.5
     z = depth.array
     cx, cy = camera.principal_point
-    f = camera.focal
+    fx, fy = camera.focal_xy
     if camera.is_ortho:
-        xc, yc = (px - cx) / f, (py - cy) / f
+        xc, yc = (px - cx) / fx, (py - cy) / fy
     else:
-        xc, yc = (px - cx) / f * z, (py - cy) / f * z
+        xc, yc = (px - cx) / fx * z, (py - cy) / fy * z
     c2w = np.linalg.inv(camera.world_to_cv())
     m = [[float(c2w[i, j]) for j in range(4)] for i in range(3)]
     return mi.Point3f(*(m[i][0] * xc + m[i][1] * yc + m[i][2] * z + m[i][3] for i in range(3)))

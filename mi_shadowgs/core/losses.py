@@ -122,15 +122,15 @@ def depth_normals(depth: mi.TensorXf, camera) -> tuple[mi.Vector3f, mi.Bool]:
         raise ValueError(f"depth_normals: depth must be [H, W, 1], got {tuple(depth.shape)}")
     if camera.is_ortho:
         raise ValueError("depth_normals: perspective cameras only")
-    f = dr.opaque(mi.Float, camera.focal)
+    fx, fy = (dr.opaque(mi.Float, v) for v in camera.focal_xy)
     cx, cy = (dr.opaque(mi.Float, v) for v in camera.principal_point)
     z = depth.array
     idx = dr.arange(mi.UInt32, h * w)
     yi = idx // w
     xi = idx - yi * w
     # [H*W] camera-frame points
-    px = (mi.Float(xi) + 0.5 - cx) / f * z
-    py = (mi.Float(yi) + 0.5 - cy) / f * z
+    px = (mi.Float(xi) + 0.5 - cx) / fx * z
+    py = (mi.Float(yi) + 0.5 - cy) / fy * z
     pts = mi.Vector3f(px, py, z)
     inner = (xi > 0) & (xi < w - 1) & (yi > 0) & (yi < h - 1)
 

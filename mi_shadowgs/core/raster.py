@@ -141,13 +141,15 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
     tu, tv = to_cam_vec(t_u), to_cam_vec(t_v)
     s = surfels.scale()
     su, sv = s.x, s.y
-    f = _opaque(camera.focal)
+    # The one place the rasterizer maps camera space to pixels: focal lengths (fx, fy) and
+    # principal point (cx, cy) of the camera, so real pinholes project where they should.
+    fx, fy = (_opaque(v) for v in camera.focal_xy)
     cx, cy = (_opaque(c) for c in camera.principal_point)
     z0, z1, z2 = su * tu[2], sv * tv[2], pc[2]
     if camera.is_ortho:
-        xc, yc = f * pc[0] + cx, f * pc[1] + cy
-        a0, a1 = f * su * tu[0], f * sv * tv[0]
-        b0, b1 = f * su * tu[1], f * sv * tv[1]
+        xc, yc = fx * pc[0] + cx, fy * pc[1] + cy
+        a0, a1 = fx * su * tu[0], fx * sv * tv[0]
+        b0, b1 = fy * su * tu[1], fy * sv * tv[1]
         zero = dr.zeros(mi.Float, dr.width(p))
         t20, t21, t22 = zero, zero, zero + 1.0
         view = mi.Vector3f(*(_opaque(v) for v in camera.forward))
@@ -155,9 +157,9 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
         # Guarded 1/z: culled surfels (z < near) must not put inf into the gradient.
         zs = dr.select(pc[2] > config.near, pc[2], 1.0)
         mx, my = pc[0] / zs, pc[1] / zs
-        xc, yc = f * mx + cx, f * my + cy
-        a0, a1 = f * su * (tu[0] - mx * tu[2]), f * sv * (tv[0] - mx * tv[2])
-        b0, b1 = f * su * (tu[1] - my * tu[2]), f * sv * (tv[1] - my * tv[2])
+        xc, yc = fx * mx + cx, fy * my + cy
+        a0, a1 = fx * su * (tu[0] - mx * tu[2]), fx * sv * (tv[0] - mx * tv[2])
+        b0, b1 = fy * su * (tu[1] - my * tu[2]), fy * sv * (tv[1] - my * tv[2])
         t20, t21, t22 = z0, z1, zs
         o = camera.origin
         view = mi.Vector3f(p - mi.Point3f(*(_opaque(v) for v in o)))

@@ -12,6 +12,14 @@ LIGHTS_JSON = "lights.json"
 SKY_ENVMAP = "sky_envmap.exr"  # the procedural sky of the env-map relit test views
 ENVMAP_DIR = "envmaps"  # copies of the other env maps the relit test views were rendered with
 FORMAT_VERSION = 1
+# generate --photos: every view as a user's photo (sRGB JPEG, no cameras, no masks), named
+# "<split>_<index>.jpg" so that scoring finds the view's ground truth.
+PHOTOS = "photos"
+
+
+def photo_name(split: str, index: int) -> str:
+    return f"{split}_{index:03d}.jpg"
+
 # The angle NeRF-synthetic uses (0.6911 rad, ~39.6 degrees).
 NERF_CAMERA_ANGLE_X = 0.6911112070083618
 

@@ -4,8 +4,12 @@
 - ``load_dataset(dir, split)``: every view of a split as numpy arrays (see ``View``), plus
   ``lights.json`` and ``dataset.json`` when present.
 
-Worlds are Y-up (docs/conventions.md). TensoIR's folders come from Blender (Z-up); their
-cameras and normals are turned into our Y-up world (``x, y, z = x_b, z_b, -y_b``).
+Worlds are Y-up (docs/conventions.md). NeRF-synthetic's and TensoIR's folders come from
+Blender (Z-up); their cameras (and TensoIR's normals) are turned into our Y-up world
+(``x, y, z = x_b, z_b, -y_b``). A transforms file says which frame it is in by its
+``world_up`` field; without one, ours is recognised by ``dataset.json`` beside it.
+nerfstudio intrinsics (``fl_x``, ``fl_y``, ``cx``, ``cy``, ``k1..k4``, ``p1``, ``p2``) are
+honoured: images are undistorted to the pinhole the cameras describe.
 Errors name the file and the field at fault.
 """
 
@@ -21,6 +25,7 @@ import numpy as np
 
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
+from mi_shadowgs.dataset.distortion import FIELDS, Distortion, undistort
 from mi_shadowgs.io.images import read_exr, read_png, srgb_to_linear
 
 # Blender Z-up world -> our Y-up world (a rotation of -90 degrees about +X).
@@ -50,6 +55,7 @@ class View:
     visibility: np.ndarray | None = None  # [H, W, L] per training light, 1 = unoccluded
     irradiance: np.ndarray | None = None  # [H, W, L, 3] direct diffuse irradiance per light
     relit: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # name -> [H, W, 3]
+    has_mask: bool = True  # False: no alpha and no mask file; ``mask`` is then all True
 
 
 @dataclasses.dataclass
@@ -60,6 +66,12 @@ class Dataset:
     lights: dict | None = None  # lights.json
     info: dict | None = None  # dataset.json
     layout: str = "nerf"  # "nerf" (ours and NeRF-synthetic) or "tensoir"
+    points: Path | None = None  # SfM points in our frame (``points3d.ply`` of an import)
+
+    @property
+    def has_masks(self) -> bool:
+        """Every view has a real mask (alpha); else stage 1 works without masks."""
+        return all(v.has_mask for v in self.views)
 
     def __len__(self) -> int:
         return len(self.views)
@@ -131,20 +143,84 @@ def _image_size(path: Path) -> tuple[int, int]:
 
 
 # -- cameras ------------------------------------------------------------------------------
-def load_cameras(path: str | Path) -> list[tuple[str, Camera]]:
-    """(file_path, Camera) per frame of a NeRF-synthetic ``transforms_*.json``.
+WORLD_UP_FIELD = "world_up"  # "+y": our frame as it is; "+z": Blender's, turned to Y-up
+# nerfstudio camera models we honour (distortion undone by dataset.distortion)
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL")
+
+
+def world_frame(path: Path, meta: dict) -> str:
+    """The world's up axis of a transforms file: its ``world_up`` field; else ours ("+y")
+    when our ``dataset.json`` lies beside it; else NeRF-synthetic's Blender frame ("+z")."""
+    if WORLD_UP_FIELD in meta:
+        up = meta[WORLD_UP_FIELD]
+        if up not in ("+y", "+z"):
+            raise DatasetError(f"{path}: field {WORLD_UP_FIELD!r} must be \"+y\" or \"+z\", "
+                               f"got {up!r}")
+        return up
+    return "+y" if (path.parent / layout.DATASET_JSON).is_file() else "+z"
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    file_path: str
+    camera: Camera  # pinhole, in our Y-up world
+    distortion: Distortion | None = None  # lens distortion of the stored image, if any
+    to_ours: np.ndarray | None = None  # [3, 3] rotation of world vectors (normals) to Y-up
+
+
+def _intrinsics(path: Path, meta: dict, fr: dict, i: int, width: int, height: int):
+    """(fx, fy, cx, cy, Distortion | None) of frame ``i``: per-frame fields win over the
+    file's (nerfstudio); else ``camera_angle_x`` (NeRF-synthetic) with a centred pinhole."""
+    def get(key):
+        if key in fr:
+            return _number(path, f"frames[{i}].{key}", fr[key])
+        return _number(path, key, meta[key]) if key in meta else None
+
+    model = fr.get("camera_model", meta.get("camera_model"))
+    if model is not None and model not in _PINHOLE_MODELS:
+        raise DatasetError(f"{path}: field 'camera_model' {model!r} is not supported "
+                           f"(only {', '.join(_PINHOLE_MODELS)}); undistort the images first")
+    fx, fy = get("fl_x"), get("fl_y")
+    fov_x = None
+    if fx is None:
+        if fy is not None:
+            raise DatasetError(f"{path}: field 'fl_y' without 'fl_x'")
+        if "camera_angle_x" not in meta:
+            raise DatasetError(f"{path}: missing field 'camera_angle_x' (or 'fl_x')")
+        fov_x = _number(path, "camera_angle_x", meta["camera_angle_x"])
+        if not 0.0 < fov_x < math.pi:
+            raise DatasetError(f"{path}: field 'camera_angle_x' must be in (0, pi) radians, "
+                               f"got {fov_x}")
+        fx = 0.5 * width / math.tan(0.5 * fov_x)
+    fy = fx if fy is None else fy
+    cx, cy = get("cx"), get("cy")
+    cx = 0.5 * width if cx is None else cx
+    cy = 0.5 * height if cy is None else cy
+    where = "frames[{i}]." if any(k in fr for k in ("fl_x", "fl_y", "cx", "cy")) else ""
+    for key, v in (("fl_x", fx), ("fl_y", fy)):
+        if v <= 0:
+            raise DatasetError(f"{path}: field '{where.format(i=i)}{key}' must be > 0, got {v}")
+    for key, v, size in (("cx", cx, width), ("cy", cy, height)):
+        if not 0.0 < v < size:  # a principal point outside the image contradicts its size
+            raise DatasetError(f"{path}: field '{where.format(i=i)}{key}' = {v} lies outside "
+                               f"the {width}x{height} image")
+    values = {k: get(k) for k in FIELDS}
+    dist = Distortion(**{k: (v or 0.0) for k, v in values.items()})
+    # NeRF-synthetic's angle kept as given (no round trip through fx): same bits as before
+    centred = fy == fx and cx == 0.5 * width and cy == 0.5 * height
+    return fx, fy, cx, cy, (None if dist.is_identity else dist), (fov_x if centred else None)
+
+
+def load_frames(path: str | Path, as_stored: bool = False) -> list[Frame]:
+    """Every frame of a NeRF-synthetic or nerfstudio-style ``transforms_*.json``.
 
     The image size comes from ``w``/``h`` when present, else from the first frame's image.
-    Matrices are OpenGL camera-to-world (docs/conventions.md), used as they are.
+    Matrices are OpenGL camera-to-world (docs/conventions.md); a Blender Z-up world (see
+    ``world_frame``) is turned to Y-up. Intrinsics: ``fl_x``, ``fl_y``, ``cx``, ``cy`` and
+    distortion ``k1..k4``, ``p1``, ``p2`` (top level or per frame), else ``camera_angle_x``.
     """
     path = Path(path)
     meta = _read_json(path)
-    if "camera_angle_x" not in meta:
-        raise DatasetError(f"{path}: missing field 'camera_angle_x'")
-    fov_x = _number(path, "camera_angle_x", meta["camera_angle_x"])
-    if not 0.0 < fov_x < math.pi:
-        raise DatasetError(f"{path}: field 'camera_angle_x' must be in (0, pi) radians, "
-                           f"got {fov_x}")
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise DatasetError(f"{path}: field 'frames' must be a non-empty list")
@@ -170,11 +246,24 @@ def load_cameras(path: str | Path) -> list[tuple[str, Camera]]:
         width, height = _image_size(first)
     if width < 1 or height < 1:
         raise DatasetError(f"{path}: image size must be positive, got {width}x{height}")
-    cams = []
+    # as_stored: the file's own world, whatever it is (the importer places it itself)
+    blender = not as_stored and world_frame(path, meta) == "+z"
+    to_ours = BLENDER_TO_YUP if blender else np.eye(4)
+    out = []
     for i, fr in enumerate(frames):
         c2w = _matrix(path, f"frames[{i}].transform_matrix", fr["transform_matrix"])
-        cams.append((fr["file_path"], Camera(c2w=c2w, width=width, height=height, fov_x=fov_x)))
-    return cams
+        fx, fy, cx, cy, dist, fov_x = _intrinsics(path, meta, fr, i, width, height)
+        cam = Camera(c2w=to_ours @ c2w, width=width, height=height, fov_x=fov_x) \
+            if fov_x is not None else \
+            Camera.from_intrinsics(to_ours @ c2w, width, height, fx, fy, cx, cy)
+        out.append(Frame(fr["file_path"], cam, dist, BLENDER_TO_YUP[:3, :3] if blender else None))
+    return out
+
+
+def load_cameras(path: str | Path) -> list[tuple[str, Camera]]:
+    """(file_path, Camera) per frame of a ``transforms_*.json`` (see ``load_frames``); the
+    cameras are the pinholes of the undistorted images."""
+    return [(f.file_path, f.camera) for f in load_frames(path)]
 
 
 # -- our layout / NeRF-synthetic ----------------------------------------------------------
@@ -203,7 +292,8 @@ def _optional(root: Path, stem: str, suffix: str) -> Path | None:
 
 def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
                     relit_names: list[str], tpath: Path, index: int,
-                    require_mask: bool) -> View:
+                    require_mask: bool, distortion: Distortion | None = None,
+                    to_ours: np.ndarray | None = None, no_masks: bool = False) -> View:
     img_path = _image_file(root, file_path)
     if img_path is None:
         raise DatasetError(f"{tpath}: the image of frame {index} ({file_path!r}) is missing "
@@ -212,18 +302,35 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
         (".png", ".exr") else file_path
     stem = stem[2:] if stem.startswith("./") else stem
     rgba = _check_size(img_path, _read_image(img_path), cam)
+    has_mask = rgba.shape[-1] == 4 and not no_masks
+    if rgba.shape[-1] != 4:
+        rgba = np.concatenate([rgba[..., :3], np.ones_like(rgba[..., :1])], axis=-1)
+    if distortion is not None:
+        # Pixels that map outside the photo get alpha 0: nothing was seen there.
+        rgba, _ = undistort(rgba, cam, distortion)
+        extra = [s for s in (layout.ALBEDO, layout.NORMAL, layout.DEPTH, layout.MATERIAL,
+                             layout.VISIBILITY) if _optional(root, stem, s) is not None]
+        if extra:
+            raise DatasetError(f"{tpath}: frame {index} has lens distortion (k1..k4, p1, p2) "
+                               f"and ground-truth buffers ({', '.join(extra)}) that cannot be "
+                               "undistorted with it")
     image = rgba[..., :3]
-    alpha = rgba[..., 3] if rgba.shape[-1] == 4 else np.ones(rgba.shape[:2], np.float32)
+    alpha = rgba[..., 3]
     mask = alpha > 0.5
     if require_mask and not mask.any():
         raise DatasetError(f"{img_path}: the mask (alpha) is empty: the view sees nothing")
-    view = View(name=stem, camera=cam, image=image, mask=mask)
+    view = View(name=stem, camera=cam, image=image, mask=mask, has_mask=has_mask)
     if (p := _optional(root, stem, layout.MASK)) is not None:
-        view.object_mask = _check_size(p, read_png(p), cam)[..., 0] > 127
+        m = _check_size(p, read_png(p), cam)[..., :1].astype(np.float32)
+        if distortion is not None:
+            m, _ = undistort(m, cam, distortion)
+        view.object_mask = m[..., 0] > 127
     if (p := _optional(root, stem, layout.ALBEDO)) is not None:
         view.albedo = _check_size(p, read_exr(p), cam)[..., :3]
     if (p := _optional(root, stem, layout.NORMAL)) is not None:
         view.normal = _check_size(p, read_exr(p), cam)[..., :3]
+        if to_ours is not None:  # world-space normals of a Blender-frame dataset
+            view.normal = (view.normal @ to_ours.T).astype(np.float32)
     if (p := _optional(root, stem, layout.DEPTH)) is not None:
         view.depth = _check_size(p, read_exr(p), cam)[..., 0]
     if (p := _optional(root, stem, layout.MATERIAL)) is not None:
@@ -271,10 +378,15 @@ def load_dataset(root: str | Path, split: str = "train", require_mask: bool = Tr
         else None
     n_lights = len(lights.get("training", {}).get("lights", [])) if lights else 0
     relit_names = [r.get("name") for r in lights.get("relightings", [])] if lights else []
-    views = [_load_nerf_view(root, fp, cam, n_lights, [n for n in relit_names if n], tpath, i,
-                             require_mask)
-             for i, (fp, cam) in enumerate(load_cameras(tpath))]
-    return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf")
+    # An import without masks says so ("masks": false): its opaque PNGs carry no mask.
+    no_masks = _read_json(tpath).get("masks", True) is False
+    views = [_load_nerf_view(root, f.file_path, f.camera, n_lights,
+                             [n for n in relit_names if n], tpath, i, require_mask, f.distortion,
+                             f.to_ours, no_masks)
+             for i, f in enumerate(load_frames(tpath))]
+    points = root / "points3d.ply"
+    return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf",
+                   points=points if points.is_file() else None)
 
 
 # -- TensoIR ------------------------------------------------------------------------------

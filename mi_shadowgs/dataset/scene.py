@@ -10,6 +10,8 @@ Overriding a computed parameter is an error naming the parameters to set instead
 
 ``mesh.xml`` takes ``-D mesh=PATH``; with ``parts=auto`` and a ``<stem>_parts.json`` beside
 the mesh, the object is loaded as one shape per part with the part's material.
+Every scene takes ``-D base_texture=mat``: the base's reflectance becomes a procedural
+mottled mat (``mat_texture``), so that SfM finds features on photo sets (``--photos``).
 """
 
 from __future__ import annotations
@@ -225,6 +227,13 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
 
     path = Path(path)
     root = _parse_xml(path)
+    # base_texture is Python's, for every scene: kept out of the XML (and of params unless
+    # set), so that plain datasets keep their fingerprints.
+    overrides = dict(overrides or {})
+    texture = str(overrides.pop("base_texture", "plain")).strip().lower()
+    if texture not in ("plain", "mat"):
+        raise SceneError(f"{path}: scene parameter 'base_texture' must be 'plain' or 'mat', "
+                         f"got {texture!r}")
     defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
     params = dict(defaults)
     computed = _computed_params(root, defaults)
@@ -326,12 +335,78 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
         scene = mi.load_dict(desc, optimize=False)  # keep one shape per part
     else:
         scene = _load(params)
+    if texture == "mat":
+        scene = _with_mat_base(scene)
+        params["base_texture"] = texture
     lo_w, hi_w = (m[:3, :3] @ np.stack([lo, hi]).T).T + m[:3, 3]
     centre = 0.5 * (lo_w + hi_w)
     radius = 0.5 * float(np.linalg.norm(hi_w - lo_w))
     return SceneSetup(path=path, params=params, scene=scene, parts=parts,
                       base_id=len(parts) + 1, lights=lights, object_to_world=m,
                       object_center=centre, object_radius=radius)
+
+
+# -- the textured base ("mat") -------------------------------------------------------------
+MAT_SIZE = 1024  # texels per side: ~3 texels per pixel of a 512^2 view of the 3.2-unit base
+MAT_SEED = 7  # one fixed mat: datasets differ by their scene parameters, not by chance
+
+
+def mat_texture(size: int = MAT_SIZE, seed: int = MAT_SEED) -> np.ndarray:
+    """A mottled mat texture [size, size, 3] (linear albedo in [0.04, 0.8]): patches of a
+    few hues with sharp edges at several sizes, and scattered dots, as photogrammetry mats
+    print, so that SIFT finds many distinct, repeatable corners and blobs on the base (a
+    plain base gives SfM nothing to match; smooth noise gives it nothing stable)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    palette = np.array([[0.75, 0.72, 0.62], [0.08, 0.10, 0.14], [0.60, 0.18, 0.10],
+                        [0.12, 0.35, 0.55], [0.70, 0.60, 0.15], [0.20, 0.45, 0.20],
+                        [0.45, 0.45, 0.45]])
+
+    def field(sigma):
+        f = ndimage.gaussian_filter(rng.normal(size=(size, size)), sigma, mode="wrap")
+        return (f - f.mean()) / f.std()
+
+    # patches: the palette index follows two coarse fields, with sharp boundaries
+    idx = (np.floor(1.6 * field(40.0)) + 3 * np.floor(1.2 * field(22.0))) % len(palette)
+    tex = palette[idx.astype(int)]
+    # dots of a few radii in random palette colours
+    yy, xx = np.mgrid[0:size, 0:size]
+    for radius, count in ((18, 90), (11, 220), (7, 400)):
+        cy, cx = rng.uniform(0, size, (2, count))
+        col = palette[rng.integers(0, len(palette), count)]
+        near = np.full((size, size), -1)
+        dist = np.full((size, size), np.inf)
+        for k in range(count):
+            y0, y1 = int(max(cy[k] - radius, 0)), int(min(cy[k] + radius + 1, size))
+            x0, x1 = int(max(cx[k] - radius, 0)), int(min(cx[k] + radius + 1, size))
+            d = np.hypot(yy[y0:y1, x0:x1] - cy[k], xx[y0:y1, x0:x1] - cx[k])
+            hit = (d < radius) & (d < dist[y0:y1, x0:x1])
+            dist[y0:y1, x0:x1][hit] = d[hit]
+            near[y0:y1, x0:x1][hit] = k
+        tex = np.where(near[..., None] >= 0, col[np.maximum(near, 0)], tex)
+    tex = ndimage.gaussian_filter(tex, (0.7, 0.7, 0))  # anti-alias the edges a little
+    return np.clip(tex, 0.04, 0.8).astype(np.float32)
+
+
+def _with_mat_base(scene):
+    """``scene`` with its base's reflectance replaced by the ``mat_texture`` (same shape)."""
+    import mitsuba as mi
+
+    desc = {"type": "scene"}
+    for sh in scene.shapes():
+        if sh.id() != "base":
+            desc[sh.id()] = sh
+            continue
+        to_world = mi.traverse(sh)["to_world"]
+        desc["base"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(
+            np.array(to_world.matrix, dtype=np.float64).reshape(4, 4)),
+            "bsdf": {"type": "diffuse", "reflectance": {
+                "type": "bitmap", "bitmap": mi.Bitmap(mat_texture()), "raw": True,
+                "filter_type": "bilinear"}}}
+    for em in scene.emitters():
+        desc[em.id()] = em
+    return mi.load_dict(desc, optimize=False)
 
 
 def _bbox_of(shapes) -> tuple[np.ndarray, np.ndarray]:

@@ -63,7 +63,7 @@ def _file_digest(path: Path) -> str:
 
 
 def fingerprint(setup: SceneSetup, config: GenerateConfig, seed: int,
-                envmaps: list[EnvMap]) -> str:
+                envmaps: list[EnvMap], photos: bool = False) -> str:
     """sha256 of everything that determines the dataset's content."""
     import mitsuba as mi
 
@@ -74,9 +74,11 @@ def fingerprint(setup: SceneSetup, config: GenerateConfig, seed: int,
     # the env maps as resolved ("auto" depends on which shared files exist), by content
     files["envmaps"] = [[e.name, None if e.source is None else _file_digest(e.source)]
                         for e in envmaps]
-    blob = json.dumps({"format": layout.FORMAT_VERSION, "files": files,
-                       "params": setup.params, "config": dataclasses.asdict(config),
-                       "seed": seed, "mitsuba": mi.__version__}, sort_keys=True)
+    content = {"format": layout.FORMAT_VERSION, "files": files, "params": setup.params,
+               "config": dataclasses.asdict(config), "seed": seed, "mitsuba": mi.__version__}
+    if photos:  # only when asked: datasets without photos keep their fingerprints
+        content["photos"] = True
+    blob = json.dumps(content, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
@@ -287,13 +289,30 @@ def lights_json(setup: SceneSetup, config: GenerateConfig, envmaps: list[EnvMap]
     }
 
 
+def _write_photos(folder: Path) -> None:
+    """Every view of ``folder`` as a photo: sRGB JPEG of the rendered image (background
+    black, as the render leaves it), no alpha, no camera."""
+    from mi_shadowgs.io.images import read_exr, write_jpeg
+
+    (folder / layout.PHOTOS).mkdir(exist_ok=True)
+    for split in layout.SPLITS:
+        meta = json.loads((folder / layout.transforms_name(split)).read_text())
+        for i in range(len(meta["frames"])):
+            path = folder / layout.PHOTOS / layout.photo_name(split, i)
+            if not path.is_file():  # a kill may have come after some of them
+                rgba = read_exr(folder / (layout.view_stem(split, i) + layout.IMAGE_EXR))
+                write_jpeg(path, rgba[..., :3])
+
+
 def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfig,
                   preset: str, seed: int = 0, overrides: dict[str, str] | None = None,
-                  overwrite: bool = False, progress: bool = True) -> tuple[Path, bool]:
+                  overwrite: bool = False, progress: bool = True,
+                  photos: bool = False) -> tuple[Path, bool]:
     """Generate the dataset into ``out``. Returns (out, written); ``written`` is False when
     ``out`` already held this exact dataset. The env maps (``config.envmaps``) are copied
     into it, so that the evaluation reads what was rendered and the dataset's fingerprint
-    covers them."""
+    covers them. ``photos`` also writes every view as a user's photo under ``photos/`` (see
+    ``layout.PHOTOS``), the input of ``mi-shadowgs import``."""
     from tqdm import tqdm
 
     out = Path(out)
@@ -301,7 +320,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     setup = load_scene(scene_path, overrides)
     if not setup.lights:
         raise ValueError(f"{scene_path}: no directional light (emitters light0, light1, ...)")
-    fp = fingerprint(setup, config, seed, envmaps)
+    fp = fingerprint(setup, config, seed, envmaps, photos)
     inputs = {"scene": input_ref(setup.path)}
     if setup.params.get("mesh"):
         inputs["mesh"] = input_ref(setup.params["mesh"])
@@ -367,7 +386,9 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                       for i, cam in enumerate(views)]
             write_json(partial / layout.transforms_name(split),
                        {"camera_angle_x": config.camera_angle_x, "w": config.width,
-                        "h": config.height, "frames": frames})
+                        "h": config.height, "world_up": "+y", "frames": frames})
+    if photos:
+        _write_photos(partial)
     write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmaps))
     import mitsuba as mi
 

@@ -134,6 +134,18 @@ def write_png(path: str | os.PathLike, image: np.ndarray, srgb: bool = True) -> 
         iio.imwrite(tmp, img, extension=".png")
 
 
+def write_jpeg(path: str | os.PathLike, image: np.ndarray, quality: int = 95) -> None:
+    """Write [H, W, 3] as an 8-bit sRGB JPEG (a photo as a camera saves it); float input is
+    taken as linear."""
+    import imageio.v3 as iio
+
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        img = to_uint8(img, srgb=True)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, img[..., :3], extension=".jpg", quality=quality)
+
+
 def read_png(path: str | os.PathLike) -> np.ndarray:
     """Read a PNG as uint8 [H, W, C]."""
     import imageio.v3 as iio

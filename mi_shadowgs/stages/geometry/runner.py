@@ -68,7 +68,8 @@ def geometry_line(metrics: dict) -> str:
     normal = f"{normal:.2f} deg" if normal is not None else "n/a (no ground-truth normals)"
     return (f"geometry: {metrics['surfels']} surfels; test PSNR {metrics['psnr']:.2f} dB, SSIM "
             f"{metrics['ssim']:.4f}, median normal error {normal}, mask IoU "
-            f"{metrics['mask_iou']:.4f}")
+            + ("n/a (no masks)" if metrics.get("mask_iou") is None
+               else f"{metrics['mask_iou']:.4f}"))
 
 
 def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
@@ -100,6 +101,11 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     train = train if train is not None else load_training_views(data)
     if evaluate and test is None:
         test = load_dataset(data, "test")
+    if not getattr(train, "has_masks", True):
+        warn(f"{data}: no masks: stage 1 initialises from "
+             + ("the SfM points" if getattr(train, "points", None) else "random points in "
+                "the cameras' bounds")
+             + ", and skips the mask loss and the mask IoU")
     cfg_dict = settings_dict(config)
     provenance = Provenance(dataset=dataset_ref(data), settings=cfg_dict)
     with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,

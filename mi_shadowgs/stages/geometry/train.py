@@ -206,9 +206,11 @@ def mean_colour(views, pts: np.ndarray) -> np.ndarray:
     return np.where(n[:, None] > 0, acc / np.maximum(n, 1)[:, None], 0.5)
 
 
-def init_params(views, config: GeometryConfig) -> dict[str, np.ndarray]:
+def init_params(views, config: GeometryConfig,
+                points: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Initial raw parameters [N, C] from training views (cameras and masks only for the
-    geometry; the colour is the mean of the images the points project to)."""
+    geometry; the colour is the mean of the images the points project to). ``init`` may
+    also be "points": ``points`` [N, 3] given (SfM points; datasets without masks)."""
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(config.seed)
@@ -216,6 +218,9 @@ def init_params(views, config: GeometryConfig) -> dict[str, np.ndarray]:
     if config.init == "hull":
         pts = visual_hull_points(views, centre, radius, config.init_points,
                                  config.hull_resolution, rng, config.init_consistent_fraction)
+    elif config.init == "points" and points is not None:
+        # duplicates of a point would get a zero nearest-neighbour scale: jitter them apart
+        pts = points + rng.normal(scale=1e-3 * radius, size=points.shape)
     elif config.init == "random":
         pts = centre + (rng.random((config.init_points, 3)) * 2.0 - 1.0) * radius
     else:
@@ -269,12 +274,14 @@ class ViewData:
     camera: object
     image: mi.TensorXf  # [H, W, 3]
     mask: mi.TensorXf  # [H, W, 1]
+    has_mask: bool = True  # False: no mask (the mask loss is skipped)
 
 
 def _view_data(view) -> ViewData:
     h, w = view.mask.shape
     return ViewData(view.camera, mi.TensorXf(np.ascontiguousarray(view.image, np.float32)),
-                    mi.TensorXf(view.mask.astype(np.float32).reshape(h, w, 1)))
+                    mi.TensorXf(view.mask.astype(np.float32).reshape(h, w, 1)),
+                    getattr(view, "has_mask", True))
 
 
 def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int):
@@ -287,7 +294,7 @@ def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step
     dssim = losses.d_ssim(img, view.image)
     total = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * dssim
     terms = {"l1": l1, "dssim": dssim}
-    if config.lambda_mask > 0:
+    if config.lambda_mask > 0 and view.has_mask:
         lo = losses.mask_bce(out["alpha"], view.mask)
         total = total + config.lambda_mask * lo
         terms["mask"] = lo
@@ -350,8 +357,31 @@ def _learning_rates(config: GeometryConfig, step: int, extent: float) -> dict[st
             "sh": config.lr_sh_dc}
 
 
+def points_init(dataset, count: int, rng: np.random.Generator) -> np.ndarray | None:
+    """``count`` points [count, 3] drawn from the dataset's SfM points (an import's
+    ``points3d.ply``), as 3DGS/2DGS initialise from COLMAP; None when it has none."""
+    from mi_shadowgs.io.ply import read_ply_vertices
+
+    if getattr(dataset, "points", None) is None:
+        return None
+    v = read_ply_vertices(dataset.points)
+    pts = np.stack([v["x"], v["y"], v["z"]], axis=-1).astype(np.float64)
+    if len(pts) == 0:
+        return None
+    return pts[rng.choice(len(pts), count, replace=len(pts) < count)] if len(pts) != count \
+        else pts
+
+
 def initial_state(dataset, config: GeometryConfig) -> TrainState:
-    return state_from_params(init_params(dataset.views, config), dataset.cameras, config)
+    if config.init == "hull" and not getattr(dataset, "has_masks", True):
+        # No masks, no visual hull: the SfM points (else random points in the bounds).
+        pts = points_init(dataset, config.init_points, np.random.default_rng(config.seed))
+        config_init = "points" if pts is not None else "random"
+        params = init_params(dataset.views, dataclasses.replace(config, init=config_init),
+                             points=pts)
+    else:
+        params = init_params(dataset.views, config)
+    return state_from_params(params, dataset.cameras, config)
 
 
 def state_from_params(params: dict[str, np.ndarray], cameras, config: GeometryConfig,
@@ -512,7 +542,8 @@ def evaluate(surfels: Surfels, dataset, config: RasterConfig | None = None,
         gt = np.clip(view.image, 0.0, 1.0)
         psnrs.append(metrics.psnr(rgb, gt))
         ssims.append(metrics.ssim(rgb, gt))
-        ious.append(metrics.mask_iou(r["alpha"] > 0.5, view.mask))
+        if getattr(view, "has_mask", True):
+            ious.append(metrics.mask_iou(r["alpha"] > 0.5, view.mask))
         if view.normal is not None:
             m = view.mask & (np.linalg.norm(view.normal, axis=-1) > 0.5)
             angles.append(metrics.normal_angles_deg(r["normal"], view.normal, m))
@@ -524,8 +555,11 @@ def evaluate(surfels: Surfels, dataset, config: RasterConfig | None = None,
         if on_view:
             on_view(view, r)
     out = {"views": len(dataset.views), "psnr": float(np.mean(psnrs)),
-           "ssim": float(np.mean(ssims)), "mask_iou": float(np.mean(ious)),
+           "ssim": float(np.mean(ssims)),
+           "mask_iou": float(np.mean(ious)) if ious else None,
            "psnr_per_view": [float(x) for x in psnrs]}
+    if not ious:
+        out["skipped"] = "mask IoU: the test views have no masks"
     if angles:
         a = np.concatenate(angles)
         out.update(normal_error_median_deg=float(np.median(a)),

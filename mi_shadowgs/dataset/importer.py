@@ -1,0 +1,495 @@
+"""Your own captures in: photos (SfM with pycolmap on the CPU) or an existing COLMAP model,
+written as this project's dataset layout in one world frame.
+
+``import_capture(source, out, config)``:
+1. photos: a folder of JPEG/PNG (EXIF orientation honoured); every bad input is refused
+   before anything is written (``ImportError_`` names the file or images);
+2. SfM (``--colmap`` skips it): SIFT features, exhaustive matching (sequential for large
+   sets), incremental mapping, all with ``pycolmap.Device.cpu``;
+3. undistortion to pinhole (``pycolmap.undistort_images``; masks by the same camera maps);
+4. the world frame (``world_frame``): Y-up, support plane at y = 0, object centred, radius 1;
+5. the layout: ``transforms_{train,test}.json`` (nerfstudio intrinsics, ``world_up: +y``),
+   ``<split>/r_<i>.png`` (sRGB, alpha = mask or opaque) at ``max_size``, the SfM points in
+   our frame (``points3d.ply``), the full-resolution undistorted photos and both COLMAP
+   models under ``colmap/``, and ``import.json`` (similarity, registered/rejected images,
+   points, reprojection error, timings, settings).
+
+The dataset is built in a hidden sibling folder and moved into place at the end
+(``mi_shadowgs.io.atomic.atomic_dir``): a failure or a kill leaves no half dataset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.dataset import layout
+from mi_shadowgs.dataset.world_frame import FrameConfig, world_frame
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+IMPORT_JSON = "import.json"
+COLMAP_DIR = "colmap"  # sparse/0 (SfM as found), undistorted/{images,sparse}
+_GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+class CaptureError(ValueError):
+    """A capture cannot be imported as given; the message names the file or images."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ImportConfig:
+    """Import settings (``mi-shadowgs import``); presets via ``get_config``."""
+
+    test_every: int = 8  # every K-th registered view (by name) is held out for testing
+    max_size: int = 800  # training images' longest side in pixels (full size kept beside)
+    min_registered: float = 0.9  # fewer registered photos than this fraction: refuse
+    exhaustive_max: int = 150  # exhaustive matching up to this many photos, else sequential
+    sequential_overlap: int = 20
+    max_features: int = 8192  # SIFT features per photo
+    camera_model: str = "SIMPLE_RADIAL"  # one camera shared by all photos
+    focal_px: float | None = None  # known focal length (pixels of the photos), else EXIF
+    frame: FrameConfig = FrameConfig()
+    threads: int = -1  # pycolmap threads (-1: all cores)
+
+
+PRESETS = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512)}
+
+
+def get_config(name: str) -> ImportConfig:
+    return get_preset(PRESETS, name, "import")
+
+
+# -- inputs -------------------------------------------------------------------------------------
+def _read_photo(path: Path):
+    """The photo as PIL RGB(A), turned upright by its EXIF orientation."""
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            im.load()
+            return ImageOps.exif_transpose(im), im.getexif().get(0x0112, 1) not in (None, 1)
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise CaptureError(f"{path}: unreadable image ({exc})") from None
+
+
+def list_photos(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: photo folder not found")
+    photos = sorted(p for p in folder.iterdir()
+                    if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(photos) < 3:
+        raise CaptureError(f"{folder}: {len(photos)} photos (JPEG/PNG); SfM needs at least 3")
+    return photos
+
+
+def check_photos(photos: list[Path]) -> tuple[tuple[int, int], list[Path]]:
+    """Every photo readable and of one size: ((width, height), photos turned by EXIF)."""
+    sizes, turned = {}, []
+    for p in photos:
+        im, rotated = _read_photo(p)
+        sizes.setdefault(im.size, []).append(p.name)
+        if rotated:
+            turned.append(p)
+    if len(sizes) > 1:
+        common = max(sizes, key=lambda s: len(sizes[s]))
+        odd = [f"{n} ({w}x{h})" for (w, h), names in sizes.items() if (w, h) != common
+               for n in names]
+        raise CaptureError(f"{photos[0].parent}: photos of mixed sizes: most are "
+                           f"{common[0]}x{common[1]}, but {', '.join(odd[:8])}"
+                           f"{' ...' if len(odd) > 8 else ''}; resize or remove them")
+    return next(iter(sizes)), turned
+
+
+def check_masks(masks: Path, photos: list[Path], size: tuple[int, int]) -> dict[str, Path]:
+    """The mask of each photo (same stem, PNG/JPEG) in ``masks``, of the photo's size."""
+    if not masks.is_dir():
+        raise FileNotFoundError(f"{masks}: mask folder not found (--masks)")
+    found, missing = {}, []
+    for p in photos:
+        cands = [masks / (p.stem + s) for s in (".png", ".jpg", ".jpeg")] + [masks / p.name]
+        m = next((c for c in cands if c.is_file()), None)
+        if m is None:
+            missing.append(p.name)
+            continue
+        im, _ = _read_photo(m)
+        if im.size != size:
+            raise CaptureError(f"{m}: mask is {im.size[0]}x{im.size[1]}, its photo "
+                               f"{p.name} is {size[0]}x{size[1]}")
+        found[p.name] = m
+    if missing:
+        raise CaptureError(f"{masks}: no mask for {', '.join(missing[:8])}"
+                           f"{' ...' if len(missing) > 8 else ''} (--masks)")
+    return found
+
+
+def check_colmap(model: Path) -> None:
+    if not model.is_dir():
+        raise FileNotFoundError(f"{model}: COLMAP model folder not found (--colmap)")
+    for name in ("cameras", "images", "points3D"):
+        if not any((model / f"{name}{ext}").is_file() for ext in (".bin", ".txt")):
+            raise CaptureError(f"{model}: the COLMAP model has no {name}.bin or {name}.txt")
+
+
+# -- SfM ----------------------------------------------------------------------------------------
+def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
+            size: tuple[int, int], timings: dict):
+    """pycolmap SfM on the CPU; the reconstruction with the most registered images."""
+    import pycolmap
+
+    db = work / "database.db"
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = config.camera_model
+    if config.focal_px is not None:
+        w, h = size
+        extra = ",0" if config.camera_model in ("SIMPLE_RADIAL", "RADIAL") else ""
+        reader.camera_params = f"{config.focal_px},{w / 2},{h / 2}{extra}"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = config.threads
+    extraction.sift.max_num_features = config.max_features
+    t = time.perf_counter()
+    pycolmap.extract_features(db, image_dir, image_names=names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    timings["extract_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = config.threads
+    if len(names) <= config.exhaustive_max:
+        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+        timings["matcher"] = "exhaustive"
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = config.sequential_overlap
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  device=pycolmap.Device.cpu)
+        timings["matcher"] = f"sequential (overlap {config.sequential_overlap})"
+    timings["match_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = config.threads
+    options.random_seed = config.frame.seed
+    (work / "sparse").mkdir()
+    recs = pycolmap.incremental_mapping(db, image_dir, work / "sparse", options=options)
+    timings["map_s"] = time.perf_counter() - t
+    if not recs:
+        raise CaptureError(f"{image_dir}: SfM registered 0 of {len(names)} photos; dropped: "
+                           f"{', '.join(names[:12])}{' ...' if len(names) > 12 else ''}. The "
+                           "photos share too few features: photograph the object on a textured "
+                           "background (a printed mat, newspaper) with more overlap between "
+                           "photos")
+    return max(recs.values(), key=lambda r: r.num_reg_images())
+
+
+# -- from a reconstruction to our cameras ----------------------------------------------------------
+def _pinhole(camera, c2w_src: np.ndarray) -> Camera:
+    fx, fy = float(camera.focal_length_x), float(camera.focal_length_y)
+    cx, cy = float(camera.principal_point_x), float(camera.principal_point_y)
+    return Camera.from_intrinsics(c2w_src, int(camera.width), int(camera.height), fx, fy, cx,
+                                  cy)
+
+
+def reconstruction_views(rec) -> list[tuple[str, np.ndarray, object]]:
+    """(name, OpenGL c2w [4, 4] in the source frame, pycolmap camera) per registered image,
+    by name."""
+    out = []
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        w2c = np.eye(4)
+        w2c[:3, :4] = image.cam_from_world().matrix()  # OpenCV world -> camera
+        out.append((image.name, np.linalg.inv(w2c) @ _GL_FROM_CV, rec.cameras[image.camera_id]))
+    return sorted(out, key=lambda v: v[0])
+
+
+def _undistort_mask(mask: np.ndarray, src_cam, dst_cam) -> np.ndarray:
+    """A mask [h, w] of the distorted photo -> [H, W] of the undistorted pinhole view (the
+    same maps pycolmap's undistortion uses: through normalised camera coordinates)."""
+    from scipy import ndimage
+
+    w, h = int(dst_cam.width), int(dst_cam.height)
+    ys, xs = np.mgrid[0:h, 0:w] + 0.5
+    cam = dst_cam.cam_from_img(np.stack([xs.ravel(), ys.ravel()], -1).astype(np.float64))
+    src = src_cam.img_from_cam(np.column_stack([cam, np.ones(len(cam))]),
+                               check_cheirality=False)
+    coords = np.stack([src[:, 1] - 0.5, src[:, 0] - 0.5])
+    out = ndimage.map_coordinates(mask.astype(np.float32), coords, order=1, mode="constant",
+                                  cval=0.0)
+    return out.reshape(h, w)
+
+
+# -- the dataset ----------------------------------------------------------------------------------
+def _resize(img, size: tuple[int, int]):
+    from PIL import Image
+
+    return img if img.size == size else img.resize(size, Image.Resampling.LANCZOS)
+
+
+def _train_size(w: int, h: int, max_size: int) -> tuple[int, int]:
+    s = min(1.0, max_size / max(w, h))
+    return max(1, round(w * s)), max(1, round(h * s))
+
+
+def write_views(tmp: Path, views: list[dict], config: ImportConfig) -> dict:
+    """``transforms_*.json`` and ``<split>/r_<i>.png`` from the undistorted views."""
+    from PIL import Image
+
+    splits = {"train": [], "test": []}
+    for i, v in enumerate(views):
+        split = "test" if config.test_every > 0 and i % config.test_every == 0 else "train"
+        splits[split].append(v)
+    if not splits["train"] or not splits["test"]:
+        raise CaptureError(f"--test-every {config.test_every} leaves an empty split for "
+                           f"{len(views)} registered views")
+    for split, vs in splits.items():
+        (tmp / split).mkdir()
+        frames = []
+        for i, v in enumerate(vs):
+            cam: Camera = v["camera"]
+            size = _train_size(cam.width, cam.height, config.max_size)
+            small = cam.with_size(*size)
+            with Image.open(v["image"]) as im:
+                rgb = _resize(im.convert("RGB"), size)
+            alpha = v.get("mask")
+            rgba = np.concatenate([np.asarray(rgb), np.full((*size[::-1], 1), 255, np.uint8)],
+                                  axis=-1)
+            if alpha is not None:
+                a = Image.fromarray(np.round(np.clip(alpha, 0, 1) * 255).astype(np.uint8))
+                rgba[..., 3] = np.asarray(_resize(a, size))
+            stem = layout.view_stem(split, i)
+            Image.fromarray(rgba).save(tmp / (stem + ".png"))
+            fx, fy = small.focal_xy
+            cx, cy = small.principal_point
+            frames.append({"file_path": f"./{stem}.png", "source_image": v["name"],
+                           "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy,
+                           "transform_matrix": small.c2w.tolist()})
+        w, h = _train_size(vs[0]["camera"].width, vs[0]["camera"].height, config.max_size)
+        meta = {"camera_model": "PINHOLE", "w": w, "h": h, "world_up": "+y",
+                "masks": any(v.get("mask") is not None for v in vs), "frames": frames}
+        (tmp / layout.transforms_name(split)).write_text(json.dumps(meta, indent=1))
+    return {k: [v["name"] for v in vs] for k, vs in splits.items()}
+
+
+def _write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
+    """SfM points [M, 3] in our frame with their colours [M, 3] in [0, 1] (float PLY)."""
+    from mi_shadowgs.io.ply import write_ply_vertices
+
+    c = rgb.astype(np.float32) / 255.0
+    write_ply_vertices(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                              "red": c[:, 0], "green": c[:, 1], "blue": c[:, 2]})
+
+
+def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
+                   colmap: str | Path | None = None, masks: str | Path | None = None,
+                   progress: bool = True) -> dict:
+    """Import photos (SfM) or a COLMAP model of them into the dataset ``out``; returns the
+    ``import.json`` record. Every input is checked before anything is written."""
+    import pycolmap
+    from PIL import Image
+    from tqdm import tqdm
+
+    from mi_shadowgs.io.atomic import atomic_dir
+    from mi_shadowgs.io.provenance import Output, Provenance, check_output_location
+
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    # fatal only: its per-step log (and its own "failed" lines) would drown our one line
+    pycolmap.logging.minloglevel = 3
+    source, out = Path(source), Path(out)
+    if source.suffix.lower() == ".json":
+        if colmap is not None or masks is not None:
+            raise CaptureError(f"{source}: --colmap and --masks are for photo folders; a "
+                               "transforms file names its own images (and mask_path)")
+        return import_transforms(source, out, config)
+    photos = list_photos(source)
+    size, turned = check_photos(photos)
+    mask_files = check_masks(Path(masks), photos, size) if masks is not None else {}
+    if colmap is not None:
+        check_colmap(Path(colmap))
+    if config.test_every < 2:
+        raise CaptureError(f"--test-every must be >= 2, got {config.test_every}")
+    if out.exists():
+        raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
+    check_output_location(out, [source] + ([Path(colmap)] if colmap else []))
+    timings = {}
+    steps = tqdm(total=5, desc=f"import {out.name}", unit="step", disable=not progress)
+    with tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s, \
+            atomic_dir(out) as tmp:
+        work = Path(work_s)
+        image_dir = source
+        names = [p.name for p in photos]
+        if turned:  # SfM reads pixels as stored: give it upright copies
+            image_dir = work / "upright"
+            image_dir.mkdir()
+            for p in photos:
+                im, _ = _read_photo(p)
+                im.save(image_dir / p.name, quality=98) if p in turned else \
+                    shutil.copy2(p, image_dir / p.name)
+        if colmap is None:
+            rec = run_sfm(image_dir, names, work, config, size, timings)
+            mode = "photos"
+        else:
+            rec = pycolmap.Reconstruction(str(colmap))
+            mode = "colmap"
+            unknown = [im.name for im in rec.images.values() if im.name not in names]
+            if unknown:
+                raise CaptureError(f"{colmap}: the model's images {', '.join(unknown[:8])} are "
+                                   f"not in {source}")
+        steps.update(1)
+        registered = sorted(im.name for im in rec.images.values() if im.has_pose)
+        rejected = sorted(set(names) - set(registered))
+        # A user's own COLMAP model is taken as it is; our SfM must register enough.
+        few = mode == "photos" and len(registered) < config.min_registered * len(names)
+        if few or len(registered) < 3:
+            raise CaptureError(
+                f"{source}: SfM registered {len(registered)} of {len(names)} photos (below "
+                f"{config.min_registered:.0%}); dropped: {', '.join(rejected[:12])}"
+                f"{' ...' if len(rejected) > 12 else ''}. Photograph the object on a textured "
+                "background (a printed mat, newspaper) with more overlap between photos")
+        sparse = tmp / COLMAP_DIR / "sparse" / "0"
+        sparse.mkdir(parents=True)
+        rec.write(str(sparse))
+        t = time.perf_counter()
+        undist = tmp / COLMAP_DIR / "undistorted"
+        pycolmap.undistort_images(str(undist), str(sparse), str(image_dir),
+                                  image_names=registered)
+        urec = pycolmap.Reconstruction(str(undist / "sparse"))
+        timings["undistort_s"] = time.perf_counter() - t
+        steps.update(1)
+        t = time.perf_counter()
+        views_src = reconstruction_views(urec)
+        xyz = np.array([p.xyz for p in urec.points3D.values()], np.float64).reshape(-1, 3)
+        rgb = np.array([p.color for p in urec.points3D.values()], np.uint8).reshape(-1, 3)
+        sim, frame_report = world_frame(xyz, np.stack([c for _, c, _ in views_src]),
+                                        config.frame)
+        timings["world_frame_s"] = time.perf_counter() - t
+        steps.update(1)
+        t = time.perf_counter()
+        src_cams = {im.name: rec.cameras[im.camera_id] for im in rec.images.values()}
+        views = []
+        for name, c2w, cam in views_src:
+            v = {"name": name, "camera": _pinhole(cam, sim.c2w(c2w)),
+                 "image": undist / "images" / name}
+            if name in mask_files:
+                with Image.open(mask_files[name]) as m:
+                    arr = np.asarray(m)
+                if arr.ndim == 3:  # RGBA: the alpha, unless opaque (then the grey value)
+                    has_alpha = arr.shape[-1] in (2, 4) and arr[..., -1].min() < 255
+                    arr = arr[..., -1] if has_alpha else arr[..., 0]
+                v["mask"] = _undistort_mask(arr / 255.0 if arr.dtype == np.uint8 else arr,
+                                            src_cams[name], cam)
+            views.append(v)
+        split = write_views(tmp, views, config)
+        _write_points_ply(tmp / "points3d.ply", sim.points(xyz), rgb)
+        timings["write_s"] = time.perf_counter() - t
+        steps.update(1)
+        timings["total_s"] = time.perf_counter() - t_start
+        # CPU seconds of all threads: what the import costs whatever else runs beside it
+        timings["cpu_s"] = time.process_time() - cpu_start
+        record = {
+            "format_version": 1, "source": str(source.resolve()), "mode": mode,
+            "colmap": str(Path(colmap).resolve()) if colmap else None,
+            "masks": str(Path(masks).resolve()) if masks else None,
+            "similarity": sim.to_json(), "world_frame": frame_report,
+            "registered": registered, "rejected": rejected, "splits": split,
+            "points": int(len(xyz)),
+            "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+            "timings": timings, "settings": dataclasses.asdict(config),
+            "pycolmap_version": pycolmap.__version__,
+        }
+        (tmp / IMPORT_JSON).write_text(json.dumps(record, indent=1))
+        prov = Provenance(inputs={"photos": {"path": str(source.resolve()),
+                                             "files": names}},
+                          settings=dataclasses.asdict(config))
+        manifest = Output(tmp, "import", prov, None)
+        manifest.claim(*sorted(p.relative_to(tmp).as_posix() for p in tmp.rglob("*")
+                               if p.is_file()))
+        manifest.finish()
+        steps.update(1)
+    steps.close()
+    return record
+
+
+# -- nerfstudio transforms.json --------------------------------------------------------------------
+def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
+    """A nerfstudio ``transforms.json`` (intrinsics, distortion, per-frame ``mask_path``, an
+    optional ``ply_file_path`` point cloud) into our layout and world frame: images
+    undistorted, the frame placed from the points (else from the cameras)."""
+    from PIL import Image
+
+    from mi_shadowgs.dataset.distortion import undistort
+    from mi_shadowgs.dataset.loader import _read_json, load_frames
+    from mi_shadowgs.io.atomic import atomic_dir
+    from mi_shadowgs.io.ply import read_ply_vertices
+    from mi_shadowgs.io.provenance import Output, Provenance, check_output_location
+
+    t_start = time.perf_counter()
+    meta = _read_json(path)
+    frames = load_frames(path, as_stored=True)
+    raw_frames = meta["frames"]
+    for i, f in enumerate(frames):
+        img_path = path.parent / f.file_path
+        if not img_path.is_file():
+            raise CaptureError(f"{path}: the image of frame {i} ({f.file_path!r}) is missing")
+        im, _ = _read_photo(img_path)
+        if im.size != (f.camera.width, f.camera.height):
+            raise CaptureError(f"{path}: fields 'w'/'h' say {f.camera.width}x"
+                               f"{f.camera.height}, but {img_path.name} is {im.size[0]}x"
+                               f"{im.size[1]}")
+        mp = raw_frames[i].get("mask_path")
+        if mp is not None and not (path.parent / mp).is_file():
+            raise CaptureError(f"{path}: the mask of frame {i} ({mp!r}, field 'mask_path') is "
+                               "missing")
+    points = np.zeros((0, 3))
+    if meta.get("ply_file_path"):
+        v = read_ply_vertices(path.parent / meta["ply_file_path"])
+        points = np.stack([v["x"], v["y"], v["z"]], axis=-1)
+    if out.exists():
+        raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
+    check_output_location(out, [path.parent])
+    sim, frame_report = world_frame(points, np.stack([f.camera.c2w for f in frames]),
+                                    config.frame)
+    with tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s, \
+            atomic_dir(out) as tmp:
+        work = Path(work_s)
+        views = []
+        for i, f in enumerate(frames):
+            name = Path(f.file_path).name
+            im, _ = _read_photo(path.parent / f.file_path)
+            rgb = np.asarray(im.convert("RGB"), np.float32)
+            mask = None
+            if raw_frames[i].get("mask_path"):
+                m, _ = _read_photo(path.parent / raw_frames[i]["mask_path"])
+                mask = np.asarray(m.convert("L"), np.float32)[..., None] / 255.0
+            if f.distortion is not None:
+                rgb, _ = undistort(rgb, f.camera, f.distortion)
+                if mask is not None:
+                    mask, _ = undistort(mask, f.camera, f.distortion)
+            undist = work / f"{i:05d}_{Path(name).stem}.png"
+            Image.fromarray(np.clip(np.round(rgb), 0, 255).astype(np.uint8)).save(undist)
+            cam = dataclasses.replace(f.camera, c2w=sim.c2w(f.camera.c2w))
+            views.append({"name": name, "camera": cam, "image": undist,
+                          "mask": None if mask is None else mask[..., 0]})
+        split = write_views(tmp, views, config)
+        if len(points):
+            _write_points_ply(tmp / "points3d.ply", sim.points(points),
+                              np.full((len(points), 3), 128, np.uint8))
+        record = {"format_version": 1, "source": str(path.resolve()), "mode": "nerfstudio",
+                  "similarity": sim.to_json(), "world_frame": frame_report,
+                  "registered": [v["name"] for v in views], "rejected": [], "splits": split,
+                  "points": int(len(points)), "mean_reprojection_error_px": None,
+                  "timings": {"total_s": time.perf_counter() - t_start},
+                  "settings": dataclasses.asdict(config)}
+        (tmp / IMPORT_JSON).write_text(json.dumps(record, indent=1))
+        manifest = Output(tmp, "import", Provenance(inputs={"transforms": {
+            "path": str(path.resolve())}}, settings=dataclasses.asdict(config)), None)
+        manifest.claim(*sorted(p.relative_to(tmp).as_posix() for p in tmp.rglob("*")
+                               if p.is_file()))
+        manifest.finish()
+    return record
