@@ -1,0 +1,130 @@
+"""Re-run stages 3-5 (visibility, material/light fit, evaluation) of a finished run with
+today's stage-4 code, into a folder of one's own, and set the light metrics beside the run's:
+how a change to the light fit moves a scene without redoing stages 1-2.
+
+    python -m validation.refit_lights --run RUN --data DATA --out DIR [--set KEY=VALUE ...]
+    python -m validation.refit_lights --table DIR ...   (gather the refit.json under DIRs)
+
+``--set`` overrides a stage-4 setting (e.g. ``refine_global=0 drop_share=0`` for the fit
+before issue 15). Writes (atomically) ``refit.json`` (before/after metrics), ``light.json``
+and ``metrics.json`` into ``--out``; reads the run, never writes there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import time
+from pathlib import Path
+
+import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+
+KEYS = ("fitted_lights", "angular_error_deg", "spurious_irradiance_fraction", "light_cosine",
+        "shadow_iou", "albedo_psnr", "relight_psnr")
+
+
+def _value(text: str):
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def refit(run: Path, data: Path, overrides: dict, progress: bool = True) -> dict:
+    from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.io.provenance import read_manifest
+    from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
+    from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, light_json
+
+    before_path = run / "material" / "full" / "metrics.json"
+    if not before_path.is_file():
+        raise FileNotFoundError(f"{before_path}: not found (is the run finished?)")
+    before = json.loads(before_path.read_text())
+    settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
+    summary = json.loads((run / "summary.json").read_text())
+    preset = summary.get("preset") or "cpu-small"
+    train = load_training_views(data)
+    test = load_dataset(data, "test")
+    surfels = load_ply(run / "segmentation" / "model.ply")
+    bounds = occluder_bounds(surfels, train.cameras, float(settings.get("bounds_quantile", 0.98)))
+    t0 = time.perf_counter()
+    res = decompose(surfels, train, preset, bounds, overrides, progress)
+    fit_s = time.perf_counter() - t0
+    metrics, _ = evaluate_decomposition(res, train, test, bounds, preset)
+    metrics["fit_s"] = fit_s
+    name = run.parent.name if run.name == "run" else run.name
+    return {"name": name, "run": str(run), "data": str(data), "overrides": overrides,
+            "before": {k: before.get(k) for k in KEYS},
+            "after": {k: metrics.get(k) for k in KEYS}, "fit_s": fit_s,
+            "loadavg": list(os.getloadavg()), "metrics": metrics, "light": light_json(res)}
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, list):
+        return ", ".join(f"{x:.1f}" for x in v)
+    if isinstance(v, float):
+        return f"{v:.3f}"
+    return str(v)
+
+
+def markdown(rows: list[dict]) -> str:
+    cols = ("fitted_lights", "angular_error_deg", "spurious_irradiance_fraction",
+            "light_cosine", "shadow_iou", "albedo_psnr", "relight_psnr")
+    head = "| run | overrides | " + " | ".join(f"{c} (before -> after)" for c in cols) + \
+        " | fit s |"
+    lines = [head, "|---|---|" + "---|" * len(cols) + "---|"]
+    for r in rows:
+        ov = " ".join(f"{k}={v}" for k, v in r["overrides"].items()) or "defaults"
+        cells = [f"{_fmt(r['before'].get(c))} -> {_fmt(r['after'].get(c))}" for c in cols]
+        lines.append(f"| {r['name']} | {ov} | " + " | ".join(cells) + f" | {r['fit_s']:.0f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+
+    ap = argparse.ArgumentParser(description="Re-run stages 3-5 of a finished run with "
+                                             "today's light fit into a folder of one's own.")
+    ap.add_argument("--run", type=Path)
+    ap.add_argument("--data", type=Path)
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="stage-4 setting overrides")
+    ap.add_argument("--table", type=Path, nargs="*", default=None)
+    ap.add_argument("--quiet", action="store_true")
+    args = ap.parse_args(argv)
+    if args.table is not None:
+        rows = [json.loads(p.read_text()) for d in args.table
+                for p in sorted(Path(d).rglob("refit.json"))]
+        if not rows:
+            raise SystemExit(f"no refit.json under {args.table}")
+        print(markdown(rows))
+        return 0
+    if args.run is None or args.data is None or args.out is None:
+        ap.error("--run, --data and --out are required (or --table)")
+    if args.out.exists() and not (args.out / "refit.json").is_file():
+        raise SystemExit(f"{args.out}: exists and holds no refit.json; not replacing it")
+    overrides = {}
+    for item in args.set:
+        if "=" not in item:
+            raise SystemExit(f"--set {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        overrides[k] = _value(v)
+    res = refit(args.run, args.data, overrides, not args.quiet)
+    with atomic_dir(args.out, overwrite=True) as tmp:
+        write_json(tmp / "refit.json", {k: v for k, v in res.items() if k != "metrics"})
+        write_json(tmp / "metrics.json", res["metrics"])
+        write_json(tmp / "light.json", res["light"])
+        write_text(tmp / "refit.md", markdown([res]) + "\n")
+    print(markdown([res]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
