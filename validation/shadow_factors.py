@@ -19,7 +19,8 @@ averaged over the 3! orders of swapping), so the three shares add up to IoU(all 
 - IoU(run). What remains below 1 with everything swapped is the metric's own floor
 (anti-aliased ground-truth irradiance vs pixel-centre rays). **Threshold/bias**: the shadow
 maps' depth bias tau and normal offset are swept with the run's own lights and receivers,
-and the best setting's gain is reported beside the factors.
+and the best setting's gain is reported beside the factors, as are the gains of swapping
+only the receivers' points or only their normals.
 
     python -m validation.shadow_factors --run RUN --data DATA --out DIR [--variant full]
                                         [--views N] [--quiet]
@@ -265,6 +266,16 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         bias.append({"tau": tau, "normal_offset": off,
                      "shadow_iou": evaluation.shadow_iou(est, inp.gt_irr, inp.mask)})
     best_bias = max(bias, key=lambda r: r["shadow_iou"])
+    # The receivers split: ground-truth points with the surfels' normals and the reverse
+    # (the run's lights and shadow maps).
+    split = {}
+    for part, mixed in (("points", Receivers(recs[True].points, recs[False].normals,
+                                             recs[True].footprints, recs[False].normals_np)),
+                        ("normals", Receivers(recs[False].points, recs[True].normals,
+                                              recs[False].footprints, recs[True].normals_np))):
+        vis = map_visibility(inp.model, mixed, inp.fit_dirs, inp.bounds, inp.vis_config)
+        est = irradiance(mixed, vis, inp.fit_dirs, inp.fit_irr, (h, w))
+        split[part] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask) - base
     errs = evaluation.light_angular_errors(inp.fit_dirs, inp.fit_irr, inp.true_dirs)
     ranked = sorted(FACTORS, key=lambda f: -shares[f])
     return {
@@ -274,7 +285,7 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         "all_ground_truth_iou": full, "loss": 1.0 - base,
         "scores": {"".join("LRO"[i] if k[i] else "-" for i in range(3)): s
                    for k, s in scores.items()},
-        "shapley": shares, "single_swap_gain": single,
+        "shapley": shares, "single_swap_gain": single, "receiver_split_gain": split,
         "metric_floor": 1.0 - full,
         "bias_sweep": bias, "bias_gain": best_bias["shadow_iou"] - base,
         "best_bias": {"tau": best_bias["tau"], "normal_offset": best_bias["normal_offset"]},
@@ -286,8 +297,9 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     }
 
 
-HEADER = ("| run | IoU (run / here) | all GT | lights | receivers | occluders | bias (best) | "
-          "biggest | fitted lights, angular err deg |\n|---|---|---|---|---|---|---|---|---|")
+HEADER = ("| run | IoU (run / here) | all GT | lights | receivers (points / normals alone) | "
+          "occluders | bias (best) | biggest | fitted lights, angular err deg |\n"
+          "|---|---|---|---|---|---|---|---|---|")
 
 
 def row_markdown(r: dict) -> str:
@@ -296,7 +308,9 @@ def row_markdown(r: dict) -> str:
     rec = r["recorded_shadow_iou"]
     b = r["best_bias"]
     return (f"| {r['name']} | {rec if rec is None else f'{rec:.3f}'} / {r['shadow_iou']:.3f} | "
-            f"{r['all_ground_truth_iou']:.3f} | {sh['lights']:+.3f} | {sh['receivers']:+.3f} | "
+            f"{r['all_ground_truth_iou']:.3f} | {sh['lights']:+.3f} | {sh['receivers']:+.3f} "
+            f"({r['receiver_split_gain']['points']:+.3f} / "
+            f"{r['receiver_split_gain']['normals']:+.3f}) | "
             f"{sh['occluders']:+.3f} | {r['bias_gain']:+.3f} (tau {b['tau']:g}, off "
             f"{b['normal_offset']:g}) | {r['biggest']} | {r['lights']['fitted']}: {err} |")
 

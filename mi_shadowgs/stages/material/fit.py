@@ -398,9 +398,10 @@ def subset_maps(maps, keep: np.ndarray):
     r2 = maps.resolution * maps.resolution
     tex = (idx[:, None] * r2 + np.arange(r2)[None]).reshape(-1).astype(np.uint32)
     depth = dr.gather(mi.Float, maps.depth, mi.UInt32(tex))
-    dr.eval(depth)
+    alpha = None if maps.alpha is None else dr.gather(mi.Float, maps.alpha, mi.UInt32(tex))
+    dr.eval(depth, alpha)
     return dc.replace(maps, directions=maps.directions[idx],
-                      cameras=[maps.cameras[i] for i in idx], depth=depth)
+                      cameras=[maps.cameras[i] for i in idx], depth=depth, alpha=alpha)
 
 
 def _clamp_channels(ch: dict, seg, n_seg: int, config: MaterialConfig, with_specular: bool):
