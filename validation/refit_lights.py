@@ -45,8 +45,10 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True) -> dict
         raise FileNotFoundError(f"{before_path}: not found (is the run finished?)")
     before = json.loads(before_path.read_text())
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
-    summary = json.loads((run / "summary.json").read_text())
-    preset = summary.get("preset") or "cpu-small"
+    # The run's summary comes after its ablations; stage 4's own output is enough.
+    summary = run / "summary.json"
+    preset = (json.loads(summary.read_text()).get("preset") if summary.is_file() else None) \
+        or "cpu-small"
     train = load_training_views(data)
     test = load_dataset(data, "test")
     surfels = load_ply(run / "segmentation" / "model.ply")

@@ -20,7 +20,8 @@ averaged over the 3! orders of swapping), so the three shares add up to IoU(all 
 (anti-aliased ground-truth irradiance vs pixel-centre rays). **Threshold/bias**: the shadow
 maps' depth bias tau and normal offset are swept with the run's own lights and receivers,
 and the best setting's gain is reported beside the factors, as are the gains of swapping
-only the receivers' points or only their normals.
+only the receivers' points or only their normals, and of fractional (opacity) shadow maps
+(``VisibilityConfig.fractional``) instead of the binary depth test.
 
     python -m validation.shadow_factors --run RUN --data DATA --out DIR [--variant full]
                                         [--views N] [--quiet]
@@ -97,8 +98,10 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     light = _read_json(folder / "light.json")
     metrics = _read_json(folder / "metrics.json")
     settings = (read_manifest(folder) or {}).get("settings", {})
-    summary = _read_json(run / "summary.json")
-    preset = summary.get("preset") or "cpu-small"
+    # The run's summary comes after its ablations; stage 4's own output is enough.
+    summary = run / "summary.json"
+    preset = (json.loads(summary.read_text()).get("preset") if summary.is_file() else None) \
+        or "cpu-small"
     if light.get("directions") is None or light.get("irradiance") is None:
         raise ValueError(f"{folder / 'light.json'}: no 'directions'/'irradiance' (an older run)")
     test = load_dataset(data, "test")
@@ -266,6 +269,11 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         bias.append({"tau": tau, "normal_offset": off,
                      "shadow_iou": evaluation.shadow_iou(est, inp.gt_irr, inp.mask)})
     best_bias = max(bias, key=lambda r: r["shadow_iou"])
+    # Fractional (opacity) maps instead of the binary test, all else the run's.
+    vc = dataclasses.replace(inp.vis_config, fractional=True)
+    vis = map_visibility(inp.model, rec, inp.fit_dirs, inp.bounds, vc)
+    est = irradiance(rec, vis, inp.fit_dirs, inp.fit_irr, (h, w))
+    fractional_gain = evaluation.shadow_iou(est, inp.gt_irr, inp.mask) - base
     # The receivers split: ground-truth points with the surfels' normals and the reverse
     # (the run's lights and shadow maps).
     split = {}
@@ -288,6 +296,7 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         "shapley": shares, "single_swap_gain": single, "receiver_split_gain": split,
         "metric_floor": 1.0 - full,
         "bias_sweep": bias, "bias_gain": best_bias["shadow_iou"] - base,
+        "fractional_gain": fractional_gain,
         "best_bias": {"tau": best_bias["tau"], "normal_offset": best_bias["normal_offset"]},
         "biggest": ranked[0],
         "lights": {"fitted": len(inp.fit_dirs), "true": len(inp.true_dirs),
@@ -298,8 +307,8 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
 
 
 HEADER = ("| run | IoU (run / here) | all GT | lights | receivers (points / normals alone) | "
-          "occluders | bias (best) | biggest | fitted lights, angular err deg |\n"
-          "|---|---|---|---|---|---|---|---|---|")
+          "occluders | bias (best) | fractional maps | biggest | fitted lights, angular err "
+          "deg |\n|---|---|---|---|---|---|---|---|---|---|")
 
 
 def row_markdown(r: dict) -> str:
@@ -312,7 +321,8 @@ def row_markdown(r: dict) -> str:
             f"({r['receiver_split_gain']['points']:+.3f} / "
             f"{r['receiver_split_gain']['normals']:+.3f}) | "
             f"{sh['occluders']:+.3f} | {r['bias_gain']:+.3f} (tau {b['tau']:g}, off "
-            f"{b['normal_offset']:g}) | {r['biggest']} | {r['lights']['fitted']}: {err} |")
+            f"{b['normal_offset']:g}) | {r.get('fractional_gain', math.nan):+.3f} | "
+            f"{r['biggest']} | {r['lights']['fitted']}: {err} |")
 
 
 def markdown(rows: list[dict]) -> str:
