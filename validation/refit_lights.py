@@ -32,7 +32,8 @@ def _value(text: str):
         return text
 
 
-def refit(run: Path, data: Path, overrides: dict, progress: bool = True) -> dict:
+def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
+          before: bool = True) -> dict:
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.io.provenance import read_manifest
@@ -43,7 +44,9 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True) -> dict
     before_path = run / "material" / "full" / "metrics.json"
     if not before_path.is_file():
         raise FileNotFoundError(f"{before_path}: not found (is the run finished?)")
-    before = json.loads(before_path.read_text())
+    # Another dataset than the run's (the same scene and cameras under other lights: a
+    # stress test of the light fit on the run's geometry): no "before" from the run.
+    before = json.loads(before_path.read_text()) if before else {}
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
     # The run's summary comes after its ablations; stage 4's own output is enough.
     summary = run / "summary.json"
@@ -59,6 +62,8 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True) -> dict
     metrics, _ = evaluate_decomposition(res, train, test, bounds, preset)
     metrics["fit_s"] = fit_s
     name = run.parent.name if run.name == "run" else run.name
+    if not before:
+        name = f"{name} model on {data.parent.name if data.name == 'data' else data.name}"
     return {"name": name, "run": str(run), "data": str(data), "overrides": overrides,
             "before": {k: before.get(k) for k in KEYS},
             "after": {k: metrics.get(k) for k in KEYS}, "fit_s": fit_s,
@@ -98,6 +103,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path)
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="stage-4 setting overrides")
+    ap.add_argument("--other-data", action="store_true",
+                    help="DATA is not the run's dataset (same scene and cameras, other "
+                         "lights): the run's stages 1-2 model, no 'before' column")
     ap.add_argument("--table", type=Path, nargs="*", default=None)
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
@@ -118,7 +126,7 @@ def main(argv=None) -> int:
             raise SystemExit(f"--set {item!r}: expected KEY=VALUE")
         k, v = item.split("=", 1)
         overrides[k] = _value(v)
-    res = refit(args.run, args.data, overrides, not args.quiet)
+    res = refit(args.run, args.data, overrides, not args.quiet, not args.other_data)
     with atomic_dir(args.out, overwrite=True) as tmp:
         write_json(tmp / "refit.json", {k: v for k, v in res.items() if k != "metrics"})
         write_json(tmp / "metrics.json", res["metrics"])
