@@ -42,11 +42,6 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, light_json
 
     before_path = run / "material" / "full" / "metrics.json"
-    if not before_path.is_file():
-        raise FileNotFoundError(f"{before_path}: not found (is the run finished?)")
-    # Another dataset than the run's (the same scene and cameras under other lights: a
-    # stress test of the light fit on the run's geometry): no "before" from the run.
-    before = json.loads(before_path.read_text()) if before else {}
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
     # The run's summary comes after its ablations; stage 4's own output is enough.
     summary = run / "summary.json"
@@ -61,6 +56,12 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     fit_s = time.perf_counter() - t0
     metrics, _ = evaluate_decomposition(res, train, test, bounds, preset)
     metrics["fit_s"] = fit_s
+    # Read at the end: the run's own stage 4 may still be running when this starts. With
+    # another dataset than the run's (the same scene and cameras under other lights: a
+    # stress test of the light fit on the run's geometry) there is no "before".
+    if before and not before_path.is_file():
+        raise FileNotFoundError(f"{before_path}: not found (is the run finished?)")
+    before = json.loads(before_path.read_text()) if before else {}
     name = run.parent.name if run.name == "run" else run.name
     if not before:
         name = f"{name} model on {data.parent.name if data.name == 'data' else data.name}"
