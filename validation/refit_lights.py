@@ -4,6 +4,7 @@ how a change to the light fit moves a scene without redoing stages 1-2.
 
     python -m validation.refit_lights --run RUN --data DATA --out DIR [--set KEY=VALUE ...]
     python -m validation.refit_lights --table DIR ...   (gather the refit.json under DIRs)
+    python -m validation.refit_lights --run RUN --data DATA --settle-only
 
 ``--set`` overrides a stage-4 setting (e.g. ``refine_global=0 drop_share=0`` for the fit
 before issue 15). Writes (atomically) ``refit.json`` (before/after metrics), ``light.json``
@@ -71,6 +72,51 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
             "loadavg": list(os.getloadavg()), "metrics": metrics, "light": light_json(res)}
 
 
+def settle_only(run: Path, data: Path) -> dict:
+    """``settle_lights`` (merge, then drop by joint NNLS) on the lights of a finished run's
+    stage-4 fit, its materials held fixed, scored on the refinement's training views: which
+    lights the data needs (seconds; no refit)."""
+    import dataclasses
+
+    import numpy as np
+
+    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.material import fit as mf
+    from mi_shadowgs.stages.material.runner import occluder_bounds
+    from mi_shadowgs.stages.relight import evaluation
+    from mi_shadowgs.stages.visibility import shadow_maps
+
+    folder = run / "material" / "full"
+    light = json.loads((folder / "light.json").read_text())
+    model = load_ply(folder / "model.ply")
+    train = load_training_views(data)
+    cfg, vcfg = mf.get_config("cpu-small"), shadow_maps.get_config("cpu-small")
+    bounds = occluder_bounds(load_ply(run / "segmentation" / "model.ply"), train.cameras, 0.98)
+    pick = np.unique(np.linspace(0, len(train.views) - 1, cfg.refine_views).round()
+                     .astype(int))
+    views = [mf.prepare_view(model, train.views[i].camera, train.views[i].image,
+                             train.views[i].mask, cfg) for i in pick]
+    ch = {k: model.channels[k] for k in ("albedo", "roughness", "metallic", "indirect_sh")}
+
+    def render(d, resolution=None):
+        vc = vcfg if resolution is None else dataclasses.replace(vcfg, resolution=resolution)
+        return shadow_maps.render_shadow_maps(model, d, bounds, vc)
+
+    gt = train.lights["training"]["lights"]
+    gt_dirs = np.array([g["direction"] for g in gt])
+    gt_w = np.array([np.mean(g["irradiance"]) for g in gt])
+    dirs, irr = np.asarray(light["directions"]), np.asarray(light["irradiance"], float)
+    d2, e2, _ = mf.settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
+                                 light["specular"])
+    out = {}
+    for key, (d, e) in (("run", (dirs, irr)), ("settled", (d2, e2))):
+        out[key] = {**evaluation.light_angular_errors(d, e, gt_dirs),
+                    "light_cosine": evaluation.light_cosine(d, e, gt_dirs, gt_w),
+                    "irradiance": np.asarray(e).tolist()}
+    return out
+
+
 def _fmt(v) -> str:
     if v is None:
         return "-"
@@ -107,9 +153,16 @@ def main(argv=None) -> int:
     ap.add_argument("--other-data", action="store_true",
                     help="DATA is not the run's dataset (same scene and cameras, other "
                          "lights): the run's stages 1-2 model, no 'before' column")
+    ap.add_argument("--settle-only", action="store_true",
+                    help="only settle_lights on the run's fitted lights (no refit); prints")
     ap.add_argument("--table", type=Path, nargs="*", default=None)
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
+    if args.settle_only:
+        if args.run is None or args.data is None:
+            ap.error("--settle-only needs --run and --data")
+        print(json.dumps(settle_only(args.run, args.data), indent=1))
+        return 0
     if args.table is not None:
         rows = [json.loads(p.read_text()) for d in args.table
                 for p in sorted(Path(d).rglob("refit.json"))]
