@@ -209,7 +209,9 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
     seen = []
     straight = fit(on_checkpoint=lambda state: seen.append(_where(state)))
     assert straight.specular == (specular == "on")  # "auto" drops the lobe: a diffuse scene
-    stops = [(20, None), (20, 3), (21, None), (31, None), (40, 5), (60, None)]
+    # The first refinement: per light the global pass then the two local ones (6 units;
+    # (20, 4) resumes after light 2's global pass); the second: local passes only (4 units).
+    stops = [(20, None), (20, 4), (21, None), (31, None), (40, 3), (60, None)]
     assert all(stop in seen for stop in stops)
     for stop in stops if specular == "auto" else stops[1:5:3]:
 

@@ -62,6 +62,14 @@ class VisibilityConfig:
     # float32 normals of a flat surface carry ~1e-7 tilts that would make a light exactly
     # at the horizon flicker between lit and unlit.
     horizon_cos: float = 1e-4
+    # Fractional visibility for thin and semi-transparent occluders (not in the paper; an
+    # opacity shadow map with one layer): each texel keeps its accumulated alpha a beside its
+    # depth, every texel with a >= fractional_min_alpha holds an occluder, and a receiver
+    # behind it gets V = 1 - a instead of 0. At 128^2 a leaf a few pixels wide covers a
+    # texel partly: the binary test (empty below empty_alpha, else solid) casts a solid blob
+    # where the truth is dappled. False: the paper's binary test.
+    fractional: bool = False
+    fractional_min_alpha: float = 0.05
 
     def __post_init__(self):
         if self.projection not in PROJECTIONS:
@@ -70,7 +78,8 @@ class VisibilityConfig:
         if self.depth not in DEPTH_KINDS:
             raise ValueError(f"visibility depth must be one of {DEPTH_KINDS}, got {self.depth!r}")
         if self.resolution < 1 or self.distance_factor <= 1.0 or self.tau < 0 or self.pcf < 0 \
-                or self.normal_offset < 0 or self.receiver_offset < 0:
+                or self.normal_offset < 0 or self.receiver_offset < 0 or \
+                not 0.0 < self.fractional_min_alpha <= 1.0:
             raise ValueError(f"invalid visibility settings: {self}")
 
 
@@ -134,6 +143,7 @@ class ShadowMaps:
     resolution: int
     config: VisibilityConfig
     texel: float  # size of one map texel at the scene centre, scene units
+    alpha: mi.Float | None = None  # [L * R * R] accumulated alpha (config.fractional only)
 
     @property
     def count(self) -> int:
@@ -182,14 +192,20 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
     cams = [shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance, config)
             for d in directions]
     key = "median_depth" if config.depth == "median" else "depth"
-    maps = []
+    maps, alphas = [], []
+    min_alpha = config.fractional_min_alpha if config.fractional else config.empty_alpha
     with dr.suspend_grad():
         for cam in cams:
             out = rasterize(surfels, cam, None, aovs=("alpha", key))
             depth = out[key].array
-            empty = out["alpha"].array < config.empty_alpha
+            empty = out["alpha"].array < min_alpha
             maps.append(dr.select(empty | (depth <= 0), dr.inf, depth))
+            alphas.append(dr.clip(out["alpha"].array, 0.0, 1.0))
     depth = dr.concat(maps) if len(maps) > 1 else maps[0]  # [L * R * R]
+    alpha = None
+    if config.fractional:
+        alpha = dr.concat(alphas) if len(alphas) > 1 else alphas[0]  # [L * R * R]
+        dr.eval(depth, alpha)
     dr.eval(depth)
     cam = cams[0]
     if cam.is_ortho:
@@ -197,7 +213,7 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
     else:
         dist = float(np.linalg.norm(cam.origin - np.asarray(center, dtype=np.float64)))
         texel = 2.0 * math.tan(0.5 * cam.fov_x) * dist / config.resolution
-    return ShadowMaps(directions, cams, depth, config.resolution, config, texel)
+    return ShadowMaps(directions, cams, depth, config.resolution, config, texel, alpha)
 
 
 def _camera_rows(cameras: Sequence[Camera]) -> tuple[list[mi.Float], mi.Float, mi.Float]:
@@ -269,7 +285,11 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
             d_g = dr.gather(mi.Float, maps.depth, tex, inside)
             d_g = dr.select(inside, d_g, dr.inf)
             delta = (z - d_g) / (z + cfg.eps)  # Eq. 7; inf map depth => -inf => visible
-            acc += dr.select(delta <= cfg.tau, 1.0, 0.0)
+            if maps.alpha is not None:  # fractional: the occluder lets 1 - alpha through
+                a_g = dr.gather(mi.Float, maps.alpha, tex, inside)
+                acc += dr.select(delta <= cfg.tau, 1.0, 1.0 - a_g)
+            else:
+                acc += dr.select(delta <= cfg.tau, 1.0, 0.0)
     vis = acc / float((2 * radius + 1) ** 2)
     return dr.select(facing, vis, 0.0)
 
