@@ -21,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("mi_shadowgs.cli.train", "optimise a stage of the method on a dataset (geometry)"),
     "run": ("mi_shadowgs.cli.run", "the whole method on a dataset (stages 1-5) and its report"),
     "report": ("mi_shadowgs.cli.report", "write the HTML report of a run"),
+    "export": ("mi_shadowgs.cli.export",
+               "a run's model as a 3DGS/2DGS PLY or a mesh with materials and a Mitsuba scene"),
 }
 
 
