@@ -86,7 +86,8 @@ def ring_cameras(n: int = 16, size: int = 64, distance: float = 4.0) -> list[Cam
 
 def write_cameras(path: Path, cameras: list[Camera], stem: str) -> None:
     frames = [c.to_frame_json(f"./{stem}/r_{i:03d}") for i, c in enumerate(cameras)]
-    path.write_text(json.dumps({"camera_angle_x": cameras[0].fov_x, "frames": frames}))
+    path.write_text(json.dumps({"camera_angle_x": cameras[0].fov_x, "w": cameras[0].width,
+                                "h": cameras[0].height, "frames": frames}))
 
 
 def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,

@@ -132,15 +132,16 @@ def sphere_mesh():
 
 
 def test_mesh_of_a_known_surface(sphere_mesh):
-    """The object is the sphere: within a quarter voxel on average (TSDF + marching cubes on
-    a 0.8-spacing surfel sphere; measured 0.20 voxel), outward normals, its albedo; the base
-    is the plane."""
+    """The object is the sphere: within half a voxel on average (TSDF + marching cubes of the
+    rendered depth of a surfel sphere; measured 0.35 voxel = 0.5 % of the radius), outward
+    normals, its albedo; the base is the plane."""
     obj, base, info = sphere_mesh
     voxel = info["voxel"]
     v = obj.vertices.astype(np.float64)
     r = np.linalg.norm(v - syn.CENTER, axis=1)
-    assert np.abs(r - syn.RADIUS).mean() < 0.25 * voxel
-    assert np.abs(r - syn.RADIUS).max() < 2.0 * voxel  # no inner walls, no floaters
+    assert np.abs(r - syn.RADIUS).mean() < 0.5 * voxel
+    # No floaters; the worst vertices sit where the sphere nears the plane (measured 2.2 voxels).
+    assert np.abs(r - syn.RADIUS).max() < 3.0 * voxel
     # Every vertex of a closed sphere (but the band near the plane, seen at grazing angles).
     outward = np.einsum("ij,ij->i", obj.normals, (v - syn.CENTER) / r[:, None])
     assert (outward > 0.5).mean() > 0.99
@@ -149,7 +150,7 @@ def test_mesh_of_a_known_surface(sphere_mesh):
     top, bottom = v[:, 1] > syn.CENTER[1] + 0.1, v[:, 1] < syn.CENTER[1] - 0.1
     np.testing.assert_allclose(obj.albedo[top].mean(0), syn.TOP_ALBEDO, atol=0.01)
     np.testing.assert_allclose(obj.albedo[bottom].mean(0), syn.BOTTOM_ALBEDO, atol=0.01)
-    assert base is not None and np.abs(base.vertices[:, 1]).max() < 2.0 * voxel
+    assert base is not None and np.abs(base.vertices[:, 1]).max() < 2.0 * info["base_voxel"]
     # Facing up (the plane's open border and the sphere's contact shadow are rougher).
     assert np.median(base.normals[:, 1]) > 0.95 and (base.normals[:, 1] > 0.9).mean() > 0.85
     np.testing.assert_allclose(base.albedo.mean(0), syn.PLANE_ALBEDO, atol=0.01)

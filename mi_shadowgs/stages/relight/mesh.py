@@ -2,11 +2,13 @@
 extracts meshes: the surfels' rendered depth over the training views fused into a TSDF
 (``mi_shadowgs.core.tsdf``), marching cubes (scikit-image), then clean-up.
 
-Clean-up: with a known base (the plane y = 0 of our scenes, docs/conventions.md), triangles
-below ``base_cut`` voxels above it are the base and the rest the object; the object keeps
-its connected components of at least ``min_component`` times the largest one's area (the
-default scene's object has two separate parts, so "largest only" would drop one), the base
-its largest component. Without a known base, the whole mesh is the object.
+Clean-up: with a known base (the plane y = 0 of our scenes, docs/conventions.md), the
+object is fused on a grid over the surfels above the base, the base on a coarser grid over
+everything; triangles below ``base_cut`` voxels above y = 0 belong to the base, the rest to
+the object. The object keeps its connected components of at least ``min_component`` times
+the largest one's area (the default scene's object has two separate parts, so "largest
+only" would drop one), the base its largest component. Without a known base, the whole
+mesh (one grid) is the object.
 
 Materials: each vertex takes the mean albedo, roughness and metallic of its ``neighbours``
 nearest surfels, each weighted by its opacity and its Gaussian at the vertex, in the
@@ -29,7 +31,11 @@ DEPTH_KINDS = ("depth", "median_depth")
 
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
-    resolution: int = 320  # voxels along the grid's longest side
+    resolution: int = 256  # voxels along the longest side of the object's grid
+    # The base (when known) is fused on its own grid of this many object voxels per voxel:
+    # it is flat and large, and at the object's resolution it took most of the time.
+    base_voxel_factor: float = 4.0
+    base_margin: float = 0.02  # surfels this far above y = 0 (x the scene box) are object
     trunc_voxels: float = 4.0  # TSDF truncation, in voxels (Open3D/2DGS use 4-5)
     depth: str = "depth"  # rendered depth fused: expected ("depth") or 2DGS's median
     alpha_min: float = 0.5  # pixels of lower rendered alpha count as background
@@ -105,17 +111,34 @@ def surfel_arrays(surfels) -> dict[str, np.ndarray]:
     return out
 
 
-def grid_for(surfels, config: MeshConfig) -> VoxelGrid:
-    """The voxel grid over the opaque surfels' (quantile) bounding box."""
+def _box(pos: np.ndarray, config: MeshConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    q = config.bounds_quantile
+    lo, hi = np.quantile(pos, 1 - q, axis=0), np.quantile(pos, q, axis=0)
+    return lo, hi, config.bounds_pad * float(np.linalg.norm(hi - lo))
+
+
+def grids_for(surfels, config: MeshConfig, base_known: bool
+              ) -> tuple[VoxelGrid, VoxelGrid | None]:
+    """(object grid, base grid or None) over the opaque surfels' (quantile) bounding boxes:
+    with a known base, the object's box holds the surfels above ``base_margin`` (down to the
+    base), the base's box everything at ``base_voxel_factor`` times the voxel."""
     s = surfel_arrays(surfels)
     pos = s["position"][s["opacity"] > 0.5]
     if len(pos) == 0:
         pos = s["position"]
-    q = config.bounds_quantile
-    lo, hi = np.quantile(pos, 1 - q, axis=0), np.quantile(pos, q, axis=0)
-    pad = config.bounds_pad * float(np.linalg.norm(hi - lo))
-    voxel = float(np.max(hi - lo + 2 * pad)) / config.resolution
-    return VoxelGrid.around(lo, hi, voxel, pad)
+    lo, hi, pad = _box(pos, config)
+    if not base_known:
+        voxel = float(np.max(hi - lo + 2 * pad)) / config.resolution
+        return VoxelGrid.around(lo, hi, voxel, pad), None
+    above = pos[pos[:, 1] > config.base_margin * float(np.linalg.norm(hi - lo))]
+    if len(above) == 0:
+        raise ValueError("mesh extraction: no surfel above the base (the object is missing)")
+    olo, ohi, opad = _box(above, config)
+    olo[1] = min(olo[1], 0.0)  # down to the base: the object's foot
+    voxel = float(np.max(ohi - olo + 2 * opad)) / config.resolution
+    base_voxel = voxel * config.base_voxel_factor
+    return (VoxelGrid.around(olo, ohi, voxel, opad),
+            VoxelGrid.around(lo, hi, base_voxel, max(pad, 2 * base_voxel)))
 
 
 def drop_depth_edges(depth: np.ndarray, threshold: float) -> np.ndarray:
@@ -130,10 +153,9 @@ def drop_depth_edges(depth: np.ndarray, threshold: float) -> np.ndarray:
     return np.where(jump, 0.0, d).astype(np.float32)
 
 
-def render_depths(surfels, cameras: list[Camera], config: MeshConfig, voxel: float,
+def render_depths(surfels, cameras: list[Camera], config: MeshConfig,
                   progress: bool = False) -> list[np.ndarray]:
-    """Rendered z-depth [H, W] of each camera, 0 where the alpha is below ``alpha_min`` and
-    at depth edges (``edge_voxels``)."""
+    """Rendered z-depth [H, W] of each camera, 0 where the alpha is below ``alpha_min``."""
     import drjit as dr
     from tqdm import tqdm
 
@@ -145,9 +167,7 @@ def render_depths(surfels, cameras: list[Camera], config: MeshConfig, voxel: flo
             r = rasterize(surfels, cam, {}, aovs=("alpha", config.depth))
             d = r[config.depth].numpy().reshape(cam.height, cam.width)
             a = r["alpha"].numpy().reshape(cam.height, cam.width)
-            d = np.where(a >= config.alpha_min, d, 0.0)
-            out.append(drop_depth_edges(d, config.edge_voxels * voxel) if
-                       config.edge_voxels > 0 else d.astype(np.float32))
+            out.append(np.where(a >= config.alpha_min, d, 0.0).astype(np.float32))
     return out
 
 
@@ -179,10 +199,10 @@ def _components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    f = len(faces)
-    rows = np.repeat(np.arange(f), 3)
-    graph = coo_matrix((np.ones(3 * f), (rows, faces.ravel())), shape=(f, n_vertices)).tocsr()
-    _, vert_label = connected_components(graph.T @ graph, directed=False)
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()  # the triangle's edges
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n_vertices, n_vertices))
+    _, vert_label = connected_components(graph, directed=False)
     return vert_label[faces[:, 0]]
 
 
@@ -205,28 +225,29 @@ def _part(v: np.ndarray, faces: np.ndarray) -> MeshPart:
     return MeshPart(vv.astype(np.float32), f, n.astype(np.float32))
 
 
+def keep_components(verts: np.ndarray, faces: np.ndarray, share: float) -> MeshPart | None:
+    """The connected components of at least ``share`` times the largest one's area
+    (``share`` 1: the largest alone), or None without faces."""
+    if len(faces) == 0:
+        return None
+    label = _components(faces, len(verts))
+    area = np.bincount(label, weights=_face_areas(verts, faces))
+    keep = area >= share * area.max() if share < 1 else area == area.max()
+    return _part(verts, faces[keep[label]])
+
+
 def clean_up(verts: np.ndarray, faces: np.ndarray, voxel: float, config: MeshConfig,
              base_known: bool) -> tuple[MeshPart, MeshPart | None]:
-    """(object, base or None): see the module docstring."""
+    """(object, base or None) of one mesh: see the module docstring."""
     if len(faces) == 0:
         raise ValueError("mesh extraction: marching cubes found no triangles")
     is_base = np.zeros(len(faces), bool)
     if base_known:
         is_base = verts[faces].mean(axis=1)[:, 1] < config.base_cut * voxel
-    parts = []
-    for sel, keep_all_big in ((~is_base, True), (is_base, False)):
-        f = faces[sel]
-        if len(f) == 0:
-            parts.append(None)
-            continue
-        label = _components(f, len(verts))
-        area = np.bincount(label, weights=_face_areas(verts, f))
-        keep = area >= config.min_component * area.max() if keep_all_big else \
-            area == area.max()
-        parts.append(_part(verts, f[keep[label]]))
-    if parts[0] is None:
+    obj = keep_components(verts, faces[~is_base], config.min_component)
+    if obj is None:
         raise ValueError("mesh extraction: nothing above the base (the object is missing)")
-    return parts[0], parts[1]
+    return obj, keep_components(verts, faces[is_base], 1.0)
 
 
 def project_materials(part: MeshPart, surfels: dict, voxel: float, neighbours: int) -> None:
@@ -255,30 +276,42 @@ def project_materials(part: MeshPart, surfels: dict, voxel: float, neighbours: i
         setattr(part, name, vals if name == "albedo" else vals[:, 0])
 
 
+def _fuse(grid: VoxelGrid, depths, cameras, config: MeshConfig, progress: bool):
+    """Marching-cubes mesh (vertices, faces) of the depths fused on ``grid``."""
+    if config.edge_voxels > 0:
+        depths = [drop_depth_edges(d, config.edge_voxels * grid.voxel) for d in depths]
+    tsdf, weight = fuse_tsdf(grid, depths, cameras, config.trunc_voxels * grid.voxel,
+                             carve=config.carve, progress=progress)
+    return marching_cubes(tsdf, weight, grid)
+
+
 def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known: bool,
                  progress: bool = False) -> tuple[MeshPart, MeshPart | None, dict]:
     """(object, base or None, info) of a decomposed surfel model seen by ``cameras``; info
-    holds the grid and the seconds of each step."""
+    holds the grids and the seconds of each step."""
     import time
 
     t = [time.perf_counter()]
-    grid = grid_for(surfels, config)
-    depths = render_depths(surfels, cameras, config, grid.voxel, progress)
+    grid, base_grid = grids_for(surfels, config, base_known)
+    depths = render_depths(surfels, cameras, config, progress)
     t.append(time.perf_counter())
-    tsdf, weight = fuse_tsdf(grid, depths, cameras, config.trunc_voxels * grid.voxel,
-                             carve=config.carve, progress=progress)
-    t.append(time.perf_counter())
-    verts, faces = marching_cubes(tsdf, weight, grid)
-    t.append(time.perf_counter())
+    verts, faces = _fuse(grid, depths, cameras, config, progress)
     obj, base = clean_up(verts, faces, grid.voxel, config, base_known)
+    if base_grid is not None:
+        bverts, bfaces = _fuse(base_grid, depths, cameras, config, progress)
+        low = bverts[bfaces].mean(axis=1)[:, 1] < config.base_cut * base_grid.voxel
+        base = keep_components(bverts, bfaces[low], 1.0)
+    t.append(time.perf_counter())
     arrays = surfel_arrays(surfels)
     for part in (obj, base):
         if part is not None:
             project_materials(part, arrays, grid.voxel, config.neighbours)
     t.append(time.perf_counter())
     info = {"voxel": grid.voxel, "grid": list(grid.shape), "origin": list(grid.origin),
+            "base_voxel": None if base_grid is None else base_grid.voxel,
+            "base_grid": None if base_grid is None else list(base_grid.shape),
             "seconds": {k: t[i + 1] - t[i] for i, k in enumerate(
-                ("depth", "tsdf", "marching_cubes", "clean_up_materials"))},
+                ("depth", "tsdf_marching_cubes", "materials"))},
             "object_vertices": len(obj.vertices), "object_faces": len(obj.faces),
             "base_faces": 0 if base is None else len(base.faces)}
     return obj, base, info
