@@ -207,7 +207,8 @@ def _run_digests(run):
                                   "moved-dataset", "not-a-run"])
 def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
     run, data = syn.fake_run(tmp_path / "r", stage4=case != "no-stage-4")
-    before = _run_digests(run)
+    original = run
+    before = _run_digests(original)
     out = tmp_path / "out"
     fmt, extra = "mesh", []
     if case == "unknown-format":
@@ -237,8 +238,7 @@ def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
               "no-run": "run folder not found", "moved-dataset": "--data",
               "not-a-run": "not a run folder"}[case]
     assert expect in err
-    if case != "no-run":
-        assert _run_digests(run) == before  # nothing in the run changed
+    assert _run_digests(original) == before  # nothing in the run changed
     if case == "foreign-folder":
         assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     elif case not in ("out-is-run", "out-in-stage"):
