@@ -329,6 +329,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     from mi_shadowgs.stages.common import StageRun, settings_dict
 
     t0 = time.perf_counter()
+    cpu0 = time.process_time()  # all threads: the load-independent cost on a busy machine
     if fmt not in FORMATS:
         raise ExportError(f"unknown export format {fmt!r}: choose from {', '.join(FORMATS)}")
     if color not in COLORS:
@@ -362,13 +363,14 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
             summary = f"wrote {out / 'point_cloud.ply'} (2DGS layout, {model.count} surfels)"
         else:
             summary = _export_mesh(output, model, light_path, data_path, config, progress,
-                                   atomic_path, write_text, write_json, t0)
+                                   atomic_path, write_text, write_json, t0, cpu0)
         output.finish()
     return StageRun(out, True, time.perf_counter() - t0, summary)
 
 
 def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConfig,
-                 progress: bool, atomic_path, write_text, write_json, t0: float) -> str:
+                 progress: bool, atomic_path, write_text, write_json, t0: float,
+                 cpu0: float) -> str:
     from mi_shadowgs.dataset.loader import load_cameras
 
     missing = [c for c in ("albedo", "roughness", "metallic") if c not in model.channels]
@@ -393,6 +395,7 @@ def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConf
         str(light_path.parent)))
     info.update({"base_known": with_base, "lights": len(lights), "sensors": len(test),
                  "seconds_total": time.perf_counter() - t0,
+                 "cpu_seconds_total": time.process_time() - cpu0,
                  "object_area": obj.area})
     write_json(output.path("export.json"), info)
     return (f"wrote {output.folder / 'scene.xml'}: object {len(obj.faces)} triangles"
