@@ -31,7 +31,7 @@ DEPTH_KINDS = ("depth", "median_depth")
 
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
-    resolution: int = 256  # voxels along the longest side of the object's grid
+    resolution: int = 160  # voxels along the longest side of the object's grid (0.4 % of its size)
     # The base (when known) is fused on its own grid of this many object voxels per voxel:
     # it is flat and large, and at the object's resolution it took most of the time.
     base_voxel_factor: float = 4.0
@@ -63,7 +63,7 @@ class MeshConfig:
             raise ValueError(f"MeshConfig: bad settings {self}")
 
 
-PRESETS = {"cpu-small": MeshConfig(), "paper": MeshConfig(resolution=512)}
+PRESETS = {"cpu-small": MeshConfig(), "paper": MeshConfig(resolution=320)}
 
 
 def get_config(name: str) -> MeshConfig:
