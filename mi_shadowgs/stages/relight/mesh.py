@@ -31,7 +31,7 @@ DEPTH_KINDS = ("depth", "median_depth")
 
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
-    resolution: int = 160  # voxels along the longest side of the object's grid (0.4 % of its size)
+    resolution: int = 160  # voxels along the object grid's longest side (~0.4 % of it)
     # The base (when known) is fused on its own grid of this many object voxels per voxel:
     # it is flat and large, and at the object's resolution it took most of the time.
     base_voxel_factor: float = 4.0
