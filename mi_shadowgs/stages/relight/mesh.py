@@ -34,7 +34,7 @@ class MeshConfig:
     resolution: int = 160  # voxels along the object grid's longest side (~0.4 % of it)
     # The base (when known) is fused on its own grid of this many object voxels per voxel:
     # it is flat and large, and at the object's resolution it took most of the time.
-    base_voxel_factor: float = 4.0
+    base_voxel_factor: float = 2.0
     base_margin: float = 0.02  # surfels this far above y = 0 (x the scene box) are object
     trunc_voxels: float = 4.0  # TSDF truncation, in voxels (Open3D/2DGS use 4-5)
     depth: str = "depth"  # rendered depth fused: expected ("depth") or 2DGS's median
@@ -51,6 +51,7 @@ class MeshConfig:
     bounds_pad: float = 0.03  # ... grown by this fraction of its diagonal each side
     base_cut: float = 2.0  # voxels above y = 0 below which triangles belong to the base
     min_component: float = 0.02  # object components below this share of the largest go
+    flatten_base: bool = True  # a known base is put on y = 0 exactly (extract_mesh)
     neighbours: int = 8  # surfels averaged into each vertex's material
 
     def __post_init__(self):
@@ -301,6 +302,14 @@ def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known:
         bverts, bfaces = _fuse(base_grid, depths, cameras, config, progress)
         low = bverts[bfaces].mean(axis=1)[:, 1] < config.base_cut * base_grid.voxel
         base = keep_components(bverts, bfaces[low], 1.0)
+        if base is not None and config.flatten_base:
+            # The base is known to be the plane y = 0: its fused bumps (depth noise) would
+            # shadow themselves under a low sun. The object's cut edge goes down onto it, so
+            # that no light leaks under the object through the cut.
+            base.vertices[:, 1] = 0.0
+            base.normals[:] = (0.0, 1.0, 0.0)
+            foot = obj.vertices[:, 1] < config.base_cut * grid.voxel
+            obj.vertices[foot, 1] = 0.0
     t.append(time.perf_counter())
     arrays = surfel_arrays(surfels)
     for part in (obj, base):
