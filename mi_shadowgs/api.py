@@ -68,6 +68,15 @@ def export_ply(path: str | Path, surfels) -> None:
     save_ply(path, surfels)
 
 
+def export_asset(run_folder: str | Path, out: str | Path, fmt: str = "mesh",
+                 color: str = "sh", preset: str = "cpu-small", overwrite: bool = False):
+    """A finished run's stage-4 model as ``fmt`` ("3dgs-ply", "2dgs-ply" or "mesh": a mesh
+    with per-vertex materials and a Mitsuba ``scene.xml``) in the folder ``out``."""
+    from mi_shadowgs.stages.relight.export import export_run
+
+    return export_run(run_folder, out, fmt, color=color, preset=preset, overwrite=overwrite)
+
+
 def render(surfels, camera: Camera, aovs=(), background=None) -> dict:
     """Rasterize a surfel model from ``camera``: {"rgb", "alpha", AOV...} as [H, W, C]
     Mitsuba tensors (the ``surfel_raster`` plugin renders the same)."""
@@ -86,7 +95,7 @@ def relight(surfels, cameras, lights, bounds, specular: bool = True, preset: str
 
 
 __all__ = [
-    "Camera", "Dataset", "RunConfig", "directional_light_set", "export_ply",
+    "Camera", "Dataset", "RunConfig", "directional_light_set", "export_asset", "export_ply",
     "generate_dataset", "get_config", "lights_from_json", "load_dataset", "load_model",
     "relight", "render", "run", "run_geometry", "run_pipeline", "run_segmentation",
     "scene_path", "set_variant", "stages",

@@ -1,0 +1,404 @@
+"""Relightable assets out of a finished run (``mi-shadowgs export``): the stage-4 model
+(``RUN/material/full/model.ply``, ``light.json``) as a file other tools load.
+
+Formats (``--out`` is a folder; it gets a provenance manifest like every output):
+- ``3dgs-ply`` -> ``point_cloud.ply``: the 3DGS layout that 3DGS's ``load_ply`` and splat
+  viewers (SuperSplat, splat-transform, three.js viewers) read: ``x y z nx ny nz f_dc_0..2
+  f_rest_0..44 opacity scale_0..2 rot_0..3``. SH padded with zeros to degree 3 (3DGS and
+  2DGS load at ``max_sh_degree`` 3 and assert 45 ``f_rest``); ``scale_2`` is the log of
+  ``thickness`` times the smaller tangent scale, so each surfel is a flat 3D Gaussian with
+  its thin axis along its normal (the quaternion's third column).
+- ``2dgs-ply`` -> ``point_cloud.ply``: 2DGS's layout (two scales), SH padded to degree 3,
+  then our extra channels (albedo_0..2, roughness, metallic, segment, ...; linear).
+- ``mesh`` -> ``object.ply``/``object.obj`` (+ ``base.ply``/``base.obj`` when the base is
+  known), ``scene.xml``, ``export.json``: see ``mi_shadowgs.stages.relight.mesh``. The PLYs
+  carry per-vertex ``albedo_r/g/b``, ``roughness_0``, ``metallic_0`` (linear; Mitsuba loads
+  them as ``vertex_albedo_color``, ``vertex_roughness``, ``vertex_metallic``), the OBJs sRGB
+  vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba: each mesh with
+  a ``principled`` BSDF whose base colour, roughness and metallic are ``mesh_attribute``
+  textures, the fitted lights as ``directional`` emitters, one ``perspective`` sensor per
+  test camera (``$resx``, ``$resy``, ``$spp``, ``$max_depth`` can be overridden at load).
+
+Colours in the splat PLYs are what splat viewers display: sRGB values (3DGS trains on sRGB
+images). ``--color sh`` converts the model's linear SH: the DC term exactly (its view-mean
+colour through the sRGB curve), the higher bands to first order (scaled by the curve's
+slope at the DC colour). ``--color albedo`` writes the shadow-free albedo, in sRGB, as the
+DC term with the higher bands zero, so a viewer shows the relightable albedo.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mi_shadowgs.config import get_preset
+from mi_shadowgs.stages.relight import mesh as mesh_mod
+
+FORMATS = ("3dgs-ply", "2dgs-ply", "mesh")
+COLORS = ("sh", "albedo")
+SH_C0 = 0.28209479177387814  # Y_0^0: 3DGS's colour = C0 f_dc + 0.5 for the DC band
+PLY_SH_DEGREE = 3  # what 3DGS/2DGS's load_ply expect (max_sh_degree default)
+MATERIAL_FOLDER = "material/full"
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportConfig:
+    mesh: mesh_mod.MeshConfig = mesh_mod.MeshConfig()
+    # 3dgs-ply scale_2: thickness x the smaller tangent scale. Thin enough that a surfel
+    # seen edge-on stays a line (as in 2DGS), thick enough that viewers' covariance
+    # inversions stay well-conditioned in float32.
+    thickness: float = 0.05
+    spp: int = 64  # scene.xml's default samples per pixel
+    max_depth: int = 8  # scene.xml's default path length (enough for inter-reflections)
+
+    def __post_init__(self):
+        if not (0 < self.thickness <= 1 and self.spp >= 1 and self.max_depth >= 1):
+            raise ValueError(f"ExportConfig: bad settings {self}")
+
+
+PRESETS = {"cpu-small": ExportConfig(), "paper": ExportConfig(mesh=mesh_mod.get_config("paper"))}
+
+
+def get_config(name: str) -> ExportConfig:
+    return get_preset(PRESETS, name, "export")
+
+
+class ExportError(ValueError):
+    """The run cannot be exported as asked; the message names the file or setting."""
+
+
+# -- splat PLYs --------------------------------------------------------------------------
+def _srgb_sh(sh: np.ndarray) -> np.ndarray:
+    """Linear SH [N, K*3] (coefficient-major, colour = SH + 0.5) -> display SH (docstring)."""
+    from mi_shadowgs.io.images import linear_to_srgb
+
+    n, kc = sh.shape
+    c = sh.reshape(n, kc // 3, 3).astype(np.float64)
+    lin = np.clip(SH_C0 * c[:, 0] + 0.5, 0.0, 1.0)  # [N, 3] view-mean colour
+    srgb = linear_to_srgb(lin)
+    # Slope of the sRGB curve at lin (finite at 0: the linear segment's 12.92).
+    slope = np.where(lin <= 0.0031308, 12.92,
+                     1.055 / 2.4 * np.power(np.maximum(lin, 0.0031308), 1.0 / 2.4 - 1.0))
+    out = c * slope[:, None, :]
+    out[:, 0] = (srgb - 0.5) / SH_C0
+    return out.reshape(n, kc).astype(np.float32)
+
+
+def _albedo_sh(albedo: np.ndarray, k: int) -> np.ndarray:
+    """SH [N, K*3] whose colour is sRGB(albedo) from every direction."""
+    from mi_shadowgs.io.images import linear_to_srgb
+
+    sh = np.zeros((len(albedo), k, 3), np.float32)
+    sh[:, 0] = (linear_to_srgb(np.clip(albedo.astype(np.float64), 0.0, 1.0)) - 0.5) / SH_C0
+    return sh.reshape(len(albedo), 3 * k)
+
+
+def _pad_sh(sh: np.ndarray, degree: int = PLY_SH_DEGREE) -> np.ndarray:
+    k = (degree + 1) ** 2
+    out = np.zeros((sh.shape[0], 3 * k), np.float32)
+    out[:, : sh.shape[1]] = sh
+    return out
+
+
+def display_sh(model, color: str) -> np.ndarray:
+    """The splat PLYs' SH [N, 48] (degree 3, coefficient-major) of a PlyModel."""
+    if color == "albedo":
+        if "albedo" not in model.channels:
+            raise ExportError("--color albedo: the model has no 'albedo' channel (run stage 4)")
+        return _albedo_sh(model.channels["albedo"], (PLY_SH_DEGREE + 1) ** 2)
+    if "sh" not in model.channels:
+        raise ExportError("--color sh: the model has no 'sh' channel; use --color albedo")
+    return _srgb_sh(_pad_sh(model.channels["sh"]))
+
+
+def gs3d_columns(model, color: str, config: ExportConfig) -> dict[str, np.ndarray]:
+    """Vertex properties of the 3DGS PLY, in 3DGS's order (name -> [N] float32)."""
+    from mi_shadowgs.io.ply import sh_to_dc_rest
+
+    f_dc, f_rest = sh_to_dc_rest(display_sh(model, color))
+    cols = {a: model.position[:, i] for i, a in enumerate("xyz")}
+    cols.update({a: model.normals()[:, i] for i, a in enumerate(("nx", "ny", "nz"))})
+    cols.update({f"f_dc_{i}": f_dc[:, i] for i in range(3)})
+    cols.update({f"f_rest_{i}": f_rest[:, i] for i in range(f_rest.shape[1])})
+    cols["opacity"] = model.opacity_logit
+    cols["scale_0"], cols["scale_1"] = model.log_scale[:, 0], model.log_scale[:, 1]
+    cols["scale_2"] = np.min(model.log_scale, axis=1) + np.float32(np.log(config.thickness))
+    cols.update({f"rot_{i}": model.rotation[:, i] for i in range(4)})
+    return {k: np.asarray(v, np.float32) for k, v in cols.items()}
+
+
+def gs2d_model(model, color: str):
+    """The PlyModel of the 2DGS PLY: display SH of degree 3, every other channel kept."""
+    channels = dict(model.channels)
+    channels["sh"] = display_sh(model, color)
+    return dataclasses.replace(model, channels=channels)
+
+
+# -- mesh and scene ------------------------------------------------------------------------
+def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
+    import trimesh
+
+    m = trimesh.Trimesh(part.vertices, part.faces, vertex_normals=part.normals, process=False)
+    for c, name in enumerate("rgb"):
+        m.vertex_attributes[f"albedo_{name}"] = part.albedo[:, c].astype(np.float32)
+    m.vertex_attributes["roughness_0"] = part.roughness.astype(np.float32)
+    m.vertex_attributes["metallic_0"] = part.metallic.astype(np.float32)
+    return trimesh.exchange.ply.export_ply(m, encoding="binary", vertex_normal=True,
+                                           include_attributes=True)
+
+
+def _mesh_obj_text(part: mesh_mod.MeshPart) -> str:
+    """Wavefront OBJ with normals and "v x y z r g b" vertex colours (the common extension
+    MeshLab, Blender and trimesh read): the albedo in sRGB. One %-format over whole arrays:
+    trimesh's writer took tens of seconds on a busy machine for a 300k-triangle mesh."""
+    from mi_shadowgs.io.images import linear_to_srgb
+
+    rgb = linear_to_srgb(part.albedo.astype(np.float64))
+    nv, nf = len(part.vertices), len(part.faces)
+    v = np.concatenate([part.vertices.astype(np.float64), rgb], axis=1)
+    f = np.repeat(part.faces.astype(np.int64) + 1, 2, axis=1)  # OBJ counts from 1: f a//a ...
+    return ("# mi-shadowgs export: vertex colours = albedo (sRGB)\n"
+            + "v %.6f %.6f %.6f %.4f %.4f %.4f\n" * nv % tuple(v.ravel())
+            + "vn %.5f %.5f %.5f\n" * nv % tuple(part.normals.astype(np.float64).ravel())
+            + "f %d//%d %d//%d %d//%d\n" * nf % tuple(f.ravel()))
+
+
+def _fmt(values) -> str:
+    return ", ".join(f"{float(v):.9g}" for v in np.ravel(values))
+
+
+def fitted_lights(light: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(unit direction toward the light [3], RGB irradiance [3]) of each fitted light of a
+    stage-4 ``light.json``."""
+    from mi_shadowgs.core.directions import light_grid, solid_angle
+
+    dirs = np.asarray(light.get("directions") or [], np.float64).reshape(-1, 3)
+    irr = light.get("irradiance")
+    if irr is None:  # radiance over the active grid cells times their solid angle
+        rad = np.asarray(light["radiance"], np.float64)
+        n = len(rad)
+        active = np.asarray(light["active"], int)
+        irr = rad[active] * solid_angle(n)
+        if len(dirs) == 0:
+            dirs = light_grid(n)[active]
+    irr = np.asarray(irr, np.float64)
+    irr = np.repeat(irr.reshape(-1, 1), 3, 1) if irr.ndim == 1 else irr.reshape(-1, 3)
+    if len(irr) != len(dirs):
+        raise ExportError(f"light.json: {len(dirs)} directions but {len(irr)} irradiances")
+    return [(d / np.linalg.norm(d), e) for d, e in zip(dirs, irr, strict=True)
+            if np.any(e > 0)]
+
+
+def scene_xml(parts: dict[str, str], lights, cameras, config: ExportConfig,
+              source: str) -> str:
+    """Mitsuba 3 scene text: ``parts`` maps shape id -> PLY file name (beside the XML)."""
+    import xml.etree.ElementTree as ET
+
+    cam0 = cameras[0][1] if cameras else None
+    root = ET.Element("scene", version="3.0.0")
+    root.append(ET.Comment(f" written by mi-shadowgs export from {source}; linear RGB, "
+                           "Y-up, fitted lights (irradiance on the albedo's scale) "))
+    for name, value in (("spp", config.spp), ("max_depth", config.max_depth),
+                        ("resx", cam0.width if cam0 else 128),
+                        ("resy", cam0.height if cam0 else 128)):
+        ET.SubElement(root, "default", name=name, value=str(value))
+    integ = ET.SubElement(root, "integrator", type="path")
+    ET.SubElement(integ, "integer", name="max_depth", value="$max_depth")
+    for shape_id, filename in parts.items():
+        shape = ET.SubElement(root, "shape", type="ply", id=shape_id)
+        ET.SubElement(shape, "string", name="filename", value=filename)
+        bsdf = ET.SubElement(shape, "bsdf", type="principled")
+        for param, attr in (("base_color", "vertex_albedo_color"),
+                            ("roughness", "vertex_roughness"), ("metallic", "vertex_metallic")):
+            tex = ET.SubElement(bsdf, "texture", type="mesh_attribute", name=param)
+            ET.SubElement(tex, "string", name="name", value=attr)
+    for k, (d, e) in enumerate(lights):
+        em = ET.SubElement(root, "emitter", type="directional", id=f"light_{k}")
+        ET.SubElement(em, "vector", name="direction", value=_fmt(-d))  # propagation = -l
+        ET.SubElement(em, "rgb", name="irradiance", value=_fmt(e))
+    for name, cam in cameras:
+        if cam.is_ortho:
+            raise ExportError(f"camera {name!r} is orthographic; scene.xml takes perspective "
+                              "test cameras")
+        sensor = ET.SubElement(root, "sensor", type="perspective", id=name)
+        ET.SubElement(sensor, "float", name="fov", value=f"{np.degrees(cam.fov_x):.9g}")
+        ET.SubElement(sensor, "string", name="fov_axis", value="x")
+        ET.SubElement(sensor, "float", name="near_clip", value=f"{cam.near:.9g}")
+        ET.SubElement(sensor, "float", name="far_clip", value=f"{cam.far:.9g}")
+        tr = ET.SubElement(sensor, "transform", name="to_world")
+        ET.SubElement(tr, "matrix", value=" ".join(f"{v:.9g}" for v in
+                                                   cam.mitsuba_to_world().ravel()))
+        samp = ET.SubElement(sensor, "sampler", type="independent")
+        ET.SubElement(samp, "integer", name="sample_count", value="$spp")
+        film = ET.SubElement(sensor, "film", type="hdrfilm")
+        ET.SubElement(film, "integer", name="width", value="$resx")
+        ET.SubElement(film, "integer", name="height", value="$resy")
+        ET.SubElement(film, "string", name="pixel_format", value="rgba")
+        ET.SubElement(film, "rfilter", type="box")
+    ET.indent(root)
+    return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, "unicode") + "\n"
+
+
+# -- the runner -----------------------------------------------------------------------------
+def stage4_inputs(run: Path) -> tuple[Path, Path]:
+    """(model.ply, light.json) of the run's finished stage 4, or ExportError naming what is
+    missing."""
+    from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
+
+    if not run.is_dir():
+        raise FileNotFoundError(f"run folder not found: {run}")
+    top = read_manifest(run)
+    if top is None or top.get("command") != "run":
+        raise ExportError(f"{run}: not a run folder of `mi-shadowgs run` (no {MANIFEST_NAME} "
+                          "of a run)")
+    folder = run / MATERIAL_FOLDER
+    model, light = folder / "model.ply", folder / "light.json"
+    for path in (model, light):
+        if not path.is_file():
+            raise ExportError(f"{run}: has no stage 4 ({path.relative_to(run)} is missing): "
+                              "finish the run (`mi-shadowgs run`) first")
+    stage = read_manifest(folder)
+    if stage is None or not stage.get("complete"):
+        raise ExportError(f"{run}: stage 4 ({MATERIAL_FOLDER}) is unfinished (its manifest "
+                          "is not complete): finish the run (`mi-shadowgs run`) first")
+    return model, light
+
+
+def _check_out(out: Path, run: Path) -> None:
+    """``out`` may be a new folder inside the run, never one of the run's own files/parts."""
+    from mi_shadowgs.io.provenance import read_manifest
+
+    out, run = out.resolve(), run.resolve()
+    if out == run:
+        raise ExportError(f"{out}: is the run folder; export writes into a folder of its own")
+    if run in out.parents:
+        first = out.relative_to(run).parts[0]
+        manifest = read_manifest(run) or {}
+        owned = {Path(n).parts[0] for n in manifest.get("files", []) + manifest.get("parts", [])}
+        if first in owned:
+            raise ExportError(f"{out}: is inside {run / first}, which `mi-shadowgs run` wrote; "
+                              "choose another folder")
+    if out.suffix.lower() in (".ply", ".obj", ".xml"):
+        raise ExportError(f"--out {out}: is a folder (the files get standard names inside); "
+                          "give a folder name")
+
+
+def _dataset_of(run: Path, data: str | Path | None) -> Path:
+    """The run's dataset (``data`` or the manifest's), checked against its fingerprint."""
+    from mi_shadowgs.io.provenance import ProvenanceError, dataset_fingerprint, read_manifest
+
+    ref = (read_manifest(run) or {}).get("dataset") or {}
+    path = Path(data) if data is not None else Path(ref.get("path") or "")
+    if data is None and not ref.get("path"):
+        raise ExportError(f"{run}: its manifest names no dataset; pass --data")
+    if not (path / "transforms_train.json").is_file():
+        raise FileNotFoundError(f"dataset of {run} not found: {path / 'transforms_train.json'}"
+                                " is missing (pass --data)")
+    if ref.get("fingerprint") and dataset_fingerprint(path) != ref["fingerprint"]:
+        raise ProvenanceError(f"{path}: is not the dataset {run} was made from (fingerprint "
+                              f"{dataset_fingerprint(path)[:12]}, the run's "
+                              f"{str(ref['fingerprint'])[:12]})")
+    return path
+
+
+def base_known(data: Path) -> bool:
+    """Whether the dataset's scene has our base (the plane y = 0): its ``dataset.json``
+    names a material "base"."""
+    info = data / "dataset.json"
+    if not info.is_file():
+        return False
+    try:
+        mats = json.loads(info.read_text()).get("materials") or []
+    except json.JSONDecodeError:
+        return False
+    return any(isinstance(m, dict) and m.get("name") == "base" for m in mats)
+
+
+def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
+               data: str | Path | None = None, config: ExportConfig | None = None,
+               preset: str = "cpu-small", overwrite: bool = False, progress: bool = False):
+    """Export the run's stage-4 model as ``fmt`` into the folder ``out``; returns a
+    ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs)."""
+    from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
+    from mi_shadowgs.io.ply import read_ply_model, write_ply_model, write_ply_vertices
+    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
+    from mi_shadowgs.stages.common import StageRun, settings_dict
+
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()  # all threads: the load-independent cost on a busy machine
+    if fmt not in FORMATS:
+        raise ExportError(f"unknown export format {fmt!r}: choose from {', '.join(FORMATS)}")
+    if color not in COLORS:
+        raise ExportError(f"unknown --color {color!r}: choose from {', '.join(COLORS)}")
+    if fmt == "mesh" and color != "sh":
+        raise ExportError("--color applies to the splat PLYs; a mesh always carries the "
+                          "albedo, roughness and metallic")
+    config = get_config(preset) if config is None else config
+    run, out = Path(run), Path(out)
+    model_path, light_path = stage4_inputs(run)
+    _check_out(out, run)
+    data_path = _dataset_of(run, data) if fmt == "mesh" else None
+    inputs = {"model": input_ref(model_path)}
+    if fmt == "mesh":
+        inputs["light"] = input_ref(light_path)
+    settings = {"format": fmt, "color": color, "preset": preset, **settings_dict(config)}
+    provenance = Provenance(dataset=dataset_ref(data_path) if data_path else None,
+                            inputs=inputs, settings=settings)
+    guard = [model_path, light_path] + ([data_path] if data_path else [])
+    with Output.open(out, "export", provenance, overwrite=overwrite, reuse=True,
+                     inputs=guard) as output:
+        if output.complete:
+            return StageRun(out, False, 0.0, f"{out}: already holds this export (reused)")
+        model = read_ply_model(model_path)
+        if fmt == "3dgs-ply":
+            write_ply_vertices(output.path("point_cloud.ply"), gs3d_columns(model, color,
+                                                                            config))
+            summary = f"wrote {out / 'point_cloud.ply'} (3DGS layout, {model.count} splats)"
+        elif fmt == "2dgs-ply":
+            write_ply_model(output.path("point_cloud.ply"), gs2d_model(model, color))
+            summary = f"wrote {out / 'point_cloud.ply'} (2DGS layout, {model.count} surfels)"
+        else:
+            summary = _export_mesh(output, model, light_path, data_path, config, progress,
+                                   atomic_path, write_text, write_json, t0, cpu0)
+        output.finish()
+    return StageRun(out, True, time.perf_counter() - t0, summary)
+
+
+def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConfig,
+                 progress: bool, atomic_path, write_text, write_json, t0: float,
+                 cpu0: float) -> str:
+    from mi_shadowgs.dataset.loader import load_cameras
+
+    missing = [c for c in ("albedo", "roughness", "metallic") if c not in model.channels]
+    if missing:
+        raise ExportError(f"{output.folder}: the model lacks channel(s) {missing} (run stage 4)")
+    train = [cam for _, cam in load_cameras(data / "transforms_train.json")]
+    test = []
+    if (data / "transforms_test.json").is_file():
+        test = [(f"test_{i:03d}", cam) for i, (_, cam) in
+                enumerate(load_cameras(data / "transforms_test.json"))]
+    with_base = base_known(data)
+    obj, base, info = mesh_mod.extract_mesh(model.to_surfels(), train, config.mesh, with_base,
+                                            progress)
+    parts = {"object": obj} if base is None else {"object": obj, "base": base}
+    for name, part in parts.items():
+        with atomic_path(output.path(f"{name}.ply")) as tmp:
+            tmp.write_bytes(_mesh_ply_bytes(part))
+        write_text(output.path(f"{name}.obj"), _mesh_obj_text(part))
+    lights = fitted_lights(json.loads(light_path.read_text()))
+    write_text(output.path("scene.xml"), scene_xml(
+        {name: f"{name}.ply" for name in parts}, lights, test, config,
+        str(light_path.parent)))
+    info.update({"base_known": with_base, "lights": len(lights), "sensors": len(test),
+                 "seconds_total": time.perf_counter() - t0,
+                 "cpu_seconds_total": time.process_time() - cpu0,
+                 "object_area": obj.area})
+    write_json(output.path("export.json"), info)
+    return (f"wrote {output.folder / 'scene.xml'}: object {len(obj.faces)} triangles"
+            + (f", base {len(base.faces)}" if base is not None else "")
+            + f", {len(lights)} light(s), {len(test)} camera(s), "
+              f"{time.perf_counter() - t0:.1f} s")

@@ -1,0 +1,245 @@
+"""`mi-shadowgs export` (issue 19): the splat PLYs under the loading rules of 3DGS/2DGS and
+of splat viewers, the mesh + Mitsuba scene rendered by plain Mitsuba in a subprocess, and
+bad input refused (exit 2, one line naming what is wrong) without writing anything."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mi_shadowgs import cli
+from mi_shadowgs.io.ply import read_ply_model
+from mi_shadowgs.io.provenance import MANIFEST_NAME, file_digest
+from mi_shadowgs.stages.relight.export import SH_C0
+from tests import synthetic_asset as syn
+
+# What splat viewers demand (SuperSplat/PlayCanvas splat-transform and three.js viewers
+# read these without checking; 3DGS's load_ply reads them too).
+VIEWER_REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0",
+                   "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+def srgb(x):
+    x = np.clip(np.asarray(x, np.float64), 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
+def gs_load_ply(path, max_sh_degree=3, scales=3):
+    """The loading rules of 3DGS's / 2DGS's ``GaussianModel.load_ply`` (the public code),
+    restated with plyfile: the first element's properties by name; ``f_rest_*`` sorted by
+    their number and asserted to be 3 * (degree + 1)^2 - 3, then read channel-major;
+    ``scale_*`` and ``rot*`` gathered by prefix, sorted."""
+    from plyfile import PlyData
+
+    el = PlyData.read(str(path)).elements[0]
+    names = [p.name for p in el.properties]
+    xyz = np.stack([el["x"], el["y"], el["z"]], 1)
+    opacity = np.asarray(el["opacity"])
+    dc = np.stack([el[f"f_dc_{i}"] for i in range(3)], 1)
+    extra = sorted([n for n in names if n.startswith("f_rest_")],
+                   key=lambda n: int(n.split("_")[-1]))
+    assert len(extra) == 3 * (max_sh_degree + 1) ** 2 - 3
+    rest = np.stack([el[n] for n in extra], 1).reshape(len(xyz), 3, -1)  # [N, 3, 15]
+    scale_names = sorted([n for n in names if n.startswith("scale_")],
+                         key=lambda n: int(n.split("_")[-1]))
+    assert len(scale_names) == scales
+    rot_names = sorted([n for n in names if n.startswith("rot")],
+                       key=lambda n: int(n.split("_")[-1]))
+    assert len(rot_names) == 4
+    return {"xyz": xyz, "opacity": opacity, "dc": dc, "rest": rest,
+            "scale": np.stack([el[n] for n in scale_names], 1),
+            "rot": np.stack([el[n] for n in rot_names], 1), "names": names}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def small_mesh_grid():
+    """A coarser object grid (96 voxels) for speed: the tests here check files, scenes and
+    refusals; tests/test_tsdf.py measures the mesh's accuracy."""
+    import dataclasses
+
+    from mi_shadowgs.stages.relight import export as ex
+
+    cfg = ex.get_config("cpu-small")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(ex.PRESETS, "cpu-small", dataclasses.replace(
+            cfg, mesh=dataclasses.replace(cfg.mesh, resolution=96)))
+        yield
+
+
+@pytest.fixture(scope="module")
+def run_data(tmp_path_factory):
+    return syn.fake_run(tmp_path_factory.mktemp("export"))
+
+
+def export(*args) -> int:
+    return cli.main(["export", *map(str, args), "--no-progress"])
+
+
+def test_3dgs_ply_loads_by_3dgs_rules_and_in_viewers(run_data, tmp_path):
+    run, _ = run_data
+    model = read_ply_model(run / "material" / "full" / "model.ply")
+    assert export(run, "--format", "3dgs-ply", "--out", tmp_path / "sh") == 0
+    g = gs_load_ply(tmp_path / "sh" / "point_cloud.ply")
+    assert all(n in g["names"] for n in VIEWER_REQUIRED)
+    np.testing.assert_array_equal(g["xyz"], model.position)
+    np.testing.assert_array_equal(g["opacity"], model.opacity_logit)
+    np.testing.assert_array_equal(g["rot"], model.rotation)
+    np.testing.assert_array_equal(g["scale"][:, :2], model.log_scale)
+    assert (g["scale"][:, 2] < g["scale"][:, :2].min(1) - 2.0).all()  # thin along the normal
+    # Colour: the 3DGS DC colour is the sRGB of the model's view-mean linear colour; the
+    # degree-1 bands scaled, bands 2-3 zero-padded.
+    sh = model.channels["sh"].reshape(model.count, 4, 3)
+    np.testing.assert_allclose(SH_C0 * g["dc"] + 0.5, srgb(SH_C0 * sh[:, 0] + 0.5), atol=2e-6)
+    assert np.all(g["rest"][:, :, 3:] == 0) and np.any(g["rest"][:, :, :3] != 0)
+    assert np.all(np.sign(g["rest"][:, :, :3]) == np.sign(sh[:, 1:].transpose(0, 2, 1)))
+
+    assert export(run, "--format", "3dgs-ply", "--out", tmp_path / "alb", "--color",
+                  "albedo") == 0
+    a = gs_load_ply(tmp_path / "alb" / "point_cloud.ply")
+    np.testing.assert_allclose(SH_C0 * a["dc"] + 0.5, srgb(model.channels["albedo"]), atol=2e-6)
+    assert np.all(a["rest"] == 0)
+
+
+def test_2dgs_ply_keeps_our_channels(run_data, tmp_path):
+    run, _ = run_data
+    model = read_ply_model(run / "material" / "full" / "model.ply")
+    assert export(run, "--format", "2dgs-ply", "--out", tmp_path) == 0
+    g = gs_load_ply(tmp_path / "point_cloud.ply", scales=2)
+    np.testing.assert_array_equal(g["scale"], model.log_scale)
+    back = read_ply_model(tmp_path / "point_cloud.ply")
+    assert back.channels["sh"].shape == (model.count, 48)
+    for name in ("albedo", "roughness", "metallic", "segment"):
+        np.testing.assert_array_equal(back.channels[name], model.channels[name])
+
+
+def _render_plain_mitsuba(scene: str, out_npy: str, size: int = 32) -> None:
+    """Render sensor 0 of ``scene`` in a fresh Python that imports only mitsuba."""
+    code = (
+        "import sys, numpy as np, mitsuba as mi\n"
+        "mi.set_variant('llvm_ad_rgb')\n"
+        f"s = mi.load_file(sys.argv[1], resx={size}, resy={size}, spp=16)\n"
+        "img = np.asarray(mi.render(s, sensor=0, seed=1))\n"
+        "assert not any(m.startswith('mi_shadowgs') for m in sys.modules)\n"
+        "np.save(sys.argv[2], img)\n"
+        "print(len(s.sensors()), len(s.emitters()), sorted(sh.id() for sh in s.shapes()))\n")
+    # The LLVM library that `import mi_shadowgs` found for this process (README: Set-up);
+    # a user's plain Mitsuba needs a working one too.
+    env = dict(os.environ)
+    res = subprocess.run([sys.executable, "-c", code, scene, out_npy], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    return res.stdout
+
+
+def test_mesh_scene_renders_with_plain_mitsuba(run_data, tmp_path):
+    run, data = run_data
+    out = tmp_path / "asset"
+    assert export(run, "--format", "mesh", "--out", out) == 0
+    files = json.loads((out / MANIFEST_NAME).read_text())["files"]
+    assert sorted(files) == sorted(["object.ply", "object.obj", "base.ply", "base.obj",
+                                    "scene.xml", "export.json"])
+    stdout = _render_plain_mitsuba(str(out / "scene.xml"), str(tmp_path / "img.npy"))
+    assert stdout.split()[:2] == ["3", "2"]  # 3 test cameras, the 2 fitted lights
+    img = np.load(tmp_path / "img.npy")
+    assert img.shape == (32, 32, 4) and np.isfinite(img).all()
+    # The same view from the ground truth's point of view: the sphere covers the centre,
+    # the base fills most of the rest; coverage matches the analytic silhouette.
+    from mi_shadowgs.dataset.loader import load_cameras
+
+    cam = load_cameras(data / "transforms_test.json")[0][1]
+    uv = cam.pixel_grid()
+    o = cam.origin
+    dirs = cam.unproject(uv, np.ones(len(uv))) - o
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    oc = o - syn.CENTER
+    b = np.einsum("ij,j->i", dirs, oc)
+    hit_sphere = (b * b - (oc @ oc - syn.RADIUS ** 2)) > 0
+    t = -o[1] / dirs[:, 1]
+    x, z = o[0] + t * dirs[:, 0], o[2] + t * dirs[:, 2]
+    hit_plane = (t > 0) & (np.abs(x) < 1.2) & (np.abs(z) < 1.2)
+    alpha = img[..., 3].ravel()
+    assert hit_sphere.mean() > 0.05
+    # Pixel coverage of the analytic sphere + square: box filter at 32^2, the mesh's edges
+    # within a voxel or two of the surfels' (measured: 0.5 % of the pixels differ).
+    assert abs(alpha.mean() - (hit_sphere | hit_plane).mean()) < 0.03
+    assert (alpha[hit_sphere] > 0.99).mean() > 0.8  # all but silhouette pixels
+    sphere_px = img[..., :3].reshape(-1, 3)[hit_sphere & (uv[:, 1] < 14)]  # upper half
+    # Upper hemisphere: albedo (0.8, 0.2, 0.1), lit from above: clearly red.
+    assert (sphere_px[:, 0] > 2 * sphere_px[:, 2]).mean() > 0.8
+    # Round trip of the materials through Mitsuba's PLY loader.
+    import mitsuba as mi
+
+    shape = mi.load_dict({"type": "ply", "filename": str(out / "object.ply")})
+    for attr in ("vertex_albedo_color", "vertex_roughness", "vertex_metallic"):
+        assert shape.has_attribute(attr)
+    params = mi.traverse(shape)
+    alb = np.asarray(params["vertex_albedo_color"]).reshape(-1, 3)
+    assert np.all((alb >= 0) & (alb <= 1)) and alb[:, 0].max() > 0.7
+    np.testing.assert_allclose(np.asarray(params["vertex_roughness"]), 0.4, atol=0.02)
+
+
+def test_rerun_reuses_and_other_settings_are_refused(run_data, tmp_path, capsys):
+    run, _ = run_data
+    out = tmp_path / "p"
+    assert export(run, "--format", "3dgs-ply", "--out", out) == 0
+    stamp = (out / "point_cloud.ply").stat().st_mtime_ns
+    assert export(run, "--format", "3dgs-ply", "--out", out) == 0
+    assert "reused" in capsys.readouterr().out
+    assert (out / "point_cloud.ply").stat().st_mtime_ns == stamp
+    assert export(run, "--format", "3dgs-ply", "--out", out, "--color", "albedo") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "color" in err
+    assert export(run, "--format", "3dgs-ply", "--out", out, "--color", "albedo",
+                  "--overwrite") == 0
+
+
+def _run_digests(run):
+    return {p: file_digest(p) for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("case", ["no-stage-4", "unknown-format", "unknown-color",
+                                  "out-is-run", "out-in-stage", "foreign-folder", "no-run",
+                                  "moved-dataset", "not-a-run"])
+def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
+    run, data = syn.fake_run(tmp_path / "r", stage4=case != "no-stage-4")
+    original = run
+    before = _run_digests(original)
+    out = tmp_path / "out"
+    fmt, extra = "mesh", []
+    if case == "unknown-format":
+        fmt = "gltf"
+    elif case == "unknown-color":
+        fmt, extra = "3dgs-ply", ["--color", "rainbow"]
+    elif case == "out-is-run":
+        out = run
+    elif case == "out-in-stage":
+        out = run / "material" / "full" / "export"
+    elif case == "foreign-folder":
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+    elif case == "no-run":
+        run = tmp_path / "nothing"
+    elif case == "moved-dataset":
+        data.rename(tmp_path / "elsewhere")
+    elif case == "not-a-run":
+        run = data
+    code = export(run, "--format", fmt, "--out", out, *extra)
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert len(err.splitlines()) == 1
+    expect = {"no-stage-4": "material/full/model.ply", "unknown-format": "'gltf'",
+              "unknown-color": "'rainbow'", "out-is-run": "is the run folder",
+              "out-in-stage": "material", "foreign-folder": "notes.txt",
+              "no-run": "run folder not found", "moved-dataset": "--data",
+              "not-a-run": "not a run folder"}[case]
+    assert expect in err
+    assert _run_digests(original) == before  # nothing in the run changed
+    if case == "foreign-folder":
+        assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    elif case not in ("out-is-run", "out-in-stage"):
+        assert not out.exists()
