@@ -116,6 +116,14 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     return row
 
 
+def _wall(row: dict) -> str:
+    """The row's wall time in minutes; n/a for a row gathered from a run finished by an
+    earlier call (its own call only read the results)."""
+    if not any((row.get("stage_s") or {}).values()):
+        return "n/a (resumed)"
+    return f"{row['wall_s'] / 60:.1f}"
+
+
 def markdown(rows: list[dict], command: str) -> str:
     lines = ["## Whole pipeline (paper Tables 1 and 3)", "",
              f"`{command}`; {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
@@ -129,7 +137,7 @@ def markdown(rows: list[dict], command: str) -> str:
         lines.append(f"| {r['scene']} | {r.get('lights', 'tuned')} | {g['psnr']:.2f} | "
                      f"{g.get('normal_error_median_deg', float('nan')):.2f} | "
                      f"{g['mask_iou']:.4f} | {r['segments']} | {s.get('ari', float('nan')):.3f} "
-                     f"| {s.get('miou', float('nan')):.3f} | {r.get('wall_s', 0) / 60:.1f} |")
+                     f"| {s.get('miou', float('nan')):.3f} | {_wall(r)} |")
     lines += ["", "Decomposition and relighting per variant (Table 1: full; Table 3: "
               "ablations, tuned pair); angle err: each true light's angular error to the "
               "fitted light set; fitted: lights kept; mean rows per light pair and over all:",
