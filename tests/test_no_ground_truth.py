@@ -59,7 +59,7 @@ def test_exports_hold_images_and_cameras_only(data):
         copy = load_dataset(data[kind], "test")
         assert copy.layout == kind and copy.lights is None and copy.info is None
         for a, b in zip(full.views, copy.views, strict=True):
-            # TensoIR's cameras go through Blender's Z-up frame and back.
+            # Both copies' cameras go through Blender's Z-up frame and back.
             np.testing.assert_allclose(b.camera.c2w, a.camera.c2w, atol=1e-9)
             assert np.array_equal(b.mask, a.mask)
             # 8-bit sRGB: at most half a step (1/510) in sRGB, ~0.2% of a linear value.

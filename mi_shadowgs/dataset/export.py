@@ -2,8 +2,9 @@
 a NeRF-synthetic or TensoIR download gives a user (issue 17). ``run`` must finish on them,
 scoring only what needs no ground truth.
 
-- ``"nerf"``: ``transforms_{train,test}.json`` (OpenGL camera-to-world, ``camera_angle_x``,
-  no ``w``/``h``) and ``<split>/r_<i>.png`` 8-bit sRGB RGBA, as NeRF-synthetic ships them.
+- ``"nerf"``: ``transforms_{train,test}.json`` (OpenGL camera-to-world in Blender's Z-up
+  world, ``camera_angle_x``, no ``w``/``h``, no ``world_up``) and ``<split>/r_<i>.png``
+  8-bit sRGB RGBA, as NeRF-synthetic ships them.
 - ``"tensoir"``: ``<split>_<i>/metadata.json`` (Blender Z-up ``cam_transform_mat`` as a
   comma-separated string, ``cam_angle_x``, ``imw``, ``imh``) and ``rgba.png``.
 
@@ -43,8 +44,10 @@ def export_without_ground_truth(src: str | Path, dst: str | Path, kind: str) -> 
                 if kind == "nerf":
                     stem = f"{split}/r_{i}"
                     write_png(tmp / f"{stem}.png", rgba)
+                    # NeRF-synthetic is Blender's Z-up world; the loader turns it back
+                    c2w_blender = BLENDER_TO_YUP.T @ np.asarray(v.camera.c2w, np.float64)
                     frames.append({"file_path": f"./{stem}",
-                                   "transform_matrix": v.camera.c2w.tolist()})
+                                   "transform_matrix": c2w_blender.tolist()})
                 else:
                     folder = tmp / f"{split}_{i:03d}"
                     write_png(folder / "rgba.png", rgba)
