@@ -83,7 +83,8 @@ def _views(s, cams, bounds, dirs, irradiance):
 def _fit_lights(s, bounds, views, ch, start_dirs, start_irr, global_pass=True, **over):
     """What stage 4 does at the end of its warm-up with the lights it merged: refine (global
     then local passes), then merge the lights that met and drop those that explain little."""
-    cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_views=len(views),
+    cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=128,
+                              refine_views=len(views),
                               **over)
 
     def render(dirs, resolution=None):
