@@ -535,6 +535,17 @@ def candidate_directions(direction: np.ndarray, radius_deg: float, step_deg: flo
     return out[keep]
 
 
+def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dirs,
+                 with_specular: bool):
+    """A view's materials (albedo, roughness, metallic, indirect or None) and its direct
+    shading per light of ``dirs`` [P * K] pixel-major, visibility from ``maps`` if given."""
+    albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree, v.geom.normal)
+    vis = None if maps is None else \
+        maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+    per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)
+    return albedo, rough, metal, ind, per
+
+
 def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.LightSet, maps,
                       k: int, cand_maps, config: MaterialConfig, with_specular: bool
                       ) -> tuple[np.ndarray, np.ndarray]:
@@ -546,12 +557,8 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
     s_rr = mi.Float64(0.0)
     with dr.suspend_grad():
         for v in views:
-            albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree,
-                                                  v.geom.normal)
-            vis = None if maps is None else \
-                maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-            per = shading.direct_per_light(v.geom, albedo, rough, metal, lights.directions, vis,
-                                     with_specular)  # [P * K]
+            albedo, rough, metal, ind, per = _view_direct(v, channels, config, maps,
+                                                          lights.directions, with_specular)
             npix = dr.width(v.geom.alpha)
             kk = lights.count
             li = dr.arange(mi.UInt32, npix * kk) % kk
@@ -595,12 +602,8 @@ def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndar
     gram, h, rr = np.zeros((k, k)), np.zeros(k), 0.0
     with dr.suspend_grad():
         for v in views:
-            albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree,
-                                                  v.geom.normal)
-            vis = None if maps is None else \
-                maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-            per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis,
-                                           with_specular)  # [P * K] pixel-major
+            albedo, rough, metal, ind, per = _view_direct(v, channels, config, maps, dirs,
+                                                          with_specular)  # per: [P * K]
             resid = v.target - (1.0 - metal) * albedo * ind if ind is not None else v.target
             wgt = np.asarray(v.weight.numpy(), np.float64)  # [P]
             b = np.stack([np.asarray(per[c], np.float64).reshape(-1, k) for c in range(3)])
