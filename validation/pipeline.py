@@ -50,6 +50,10 @@ LIGHT_PAIRS = {
     "low": {"light0_azimuth": "150", "light0_elevation": "20", "light0_irradiance": "3.0",
             "light1_azimuth": "330", "light1_elevation": "60", "light1_irradiance": "1.5"},
 }
+# The table's env-map relit views: the procedural sky alone. The shipped maps (GenerateConfig
+# "auto") add three path-traced test sets per row; they are scored apart (BENCHMARKS.md,
+# "Shipped env maps"). One choice for every row keeps the rows comparable.
+ENVMAPS = "sky"
 TABLE_KEYS = ("albedo_psnr", "albedo_ssim", "albedo_lpips", "light_cosine", "shadow_iou",
               "relight_psnr", "relight_ssim", "relight_lpips", "relight_render_s")
 
@@ -64,9 +68,14 @@ def available_scenes() -> dict[str, Path | None]:
     return out
 
 
-def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tuned") -> Path:
-    """The scene's cpu-small dataset under a light pair (kept when it is already complete
-    and the same)."""
+def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tuned",
+                 envmaps: str = ENVMAPS, resolution: int | None = None,
+                 preset: str = "cpu-small") -> Path:
+    """The scene's ``preset`` dataset under a light pair with ``envmaps`` (GenerateConfig's
+    choice) for its env-map relit views, at ``resolution`` pixels square (None: the
+    preset's); kept when it is already complete."""
+    import dataclasses
+
     from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.writer import write_dataset
     from mi_shadowgs.scenes import scene_path
@@ -77,14 +86,17 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
     overrides = dict(LIGHT_PAIRS[lights])
     if mesh is not None:
         overrides["mesh"] = str(mesh)
+    config = dataclasses.replace(get_config(preset), envmaps=envmaps)
+    if resolution is not None:
+        config = dataclasses.replace(config, width=resolution, height=resolution)
     write_dataset(scene_path("default" if mesh is None else "mesh"), data,
-                  get_config("cpu-small"), "cpu-small", seed=0, progress=True,
+                  config, preset, seed=0, progress=True,
                   overrides=overrides)
     return data
 
 
 def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
-              ablations: bool = True) -> dict:
+              ablations: bool = True, envmaps: str = ENVMAPS) -> dict:
     """One scene under one light pair; its row is also written to ``row.json``."""
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.pipeline import RunConfig, run_pipeline
@@ -93,7 +105,7 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     if (folder / "row.json").is_file():  # finished: its row stands as recorded
         return json.loads((folder / "row.json").read_text())
     t0 = time.perf_counter()
-    data = make_dataset(name, mesh, folder, lights)
+    data = make_dataset(name, mesh, folder, lights, envmaps)
     t_gen = time.perf_counter() - t0
     # Table 3's ablations under the tuned pair only: the second pair measures the light fit
     ablations = ablations and lights == "tuned"
@@ -105,7 +117,10 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     variants = {v: json.loads((run / "material" / v / "metrics.json").read_text())
                 for v in ("full", "no_visibility", "no_segmentation")
                 if v == "full" or (run / "material" / v / "metrics.json").is_file()}
+    from mi_shadowgs.io.provenance import git_commit
+
     row = {"scene": name, "lights": lights, "light_pair": LIGHT_PAIRS[lights],
+           "commit": git_commit(), "envmaps": envmaps,
            "generate_s": t_gen, "wall_s": time.perf_counter() - t0,
            "stage_s": {st["name"]: st.get("seconds") for st in summary.get("stages", [])},
            "load_end": os.getloadavg()[0],
@@ -116,18 +131,70 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     return row
 
 
+STAGE_KEYS = {"stage1_s": "Stage 1: geometry", "stage2_s": "Stage 2: material segmentation",
+              "stage4_s": "Stages 3-5: visibility, decomposition, relighting"}
+
+
+def stage_seconds(stage_s: dict, run: Path | None = None) -> dict:
+    """Stage 1, 2 and 3-5 seconds ({"stage1_s", "stage2_s", "stage4_s"}) from a summary's
+    stage timers; those it lacks (a stage reused from an earlier call) from the run's own
+    files: the last ``time`` of ``geometry/log.csv``, ``seconds_stage`` of
+    ``segmentation.json``, ``fit_s`` of ``material/full/metrics.json`` (the fit alone)."""
+    import csv
+
+    out = {k: stage_s.get(v) for k, v in STAGE_KEYS.items()}
+    if run is None or all(v is not None for v in out.values()):
+        return out
+    found = {}
+    log = run / "geometry" / "log.csv"
+    if log.is_file():
+        with open(log, newline="") as f:
+            rows = list(csv.DictReader(f))
+        if rows and rows[-1].get("time"):
+            found["stage1_s"] = float(rows[-1]["time"])
+    seg = run / "segmentation" / "segmentation.json"
+    if seg.is_file():
+        found["stage2_s"] = json.loads(seg.read_text()).get("seconds_stage")
+    met = run / "material" / "full" / "metrics.json"
+    if met.is_file():
+        found["stage4_s"] = json.loads(met.read_text()).get("fit_s")
+    return {k: v if v is not None else found.get(k) for k, v in out.items()}
+
+
 def _wall(row: dict) -> str:
-    """The row's wall time in minutes; n/a for a row gathered from a run finished by an
-    earlier call (its own call only read the results)."""
-    if not any((row.get("stage_s") or {}).values()):
+    """The row's wall time in minutes. A row whose stages 1-2 were reused from an earlier
+    call shows "a + b" (a: those stages' seconds from the run's files; b: this call); a row
+    only gathered by its call (every stage reused) shows n/a."""
+    own = row.get("stage_s") or {}
+    if not any(own.values()):
         return "n/a (resumed)"
-    return f"{row['wall_s'] / 60:.1f}"
+    if all(own.get(STAGE_KEYS[k]) is not None for k in ("stage1_s", "stage2_s")):
+        return f"{row['wall_s'] / 60:.1f}"
+    run = Path(row["report"]).parent
+    secs = stage_seconds(own, run)
+    earlier = sum(secs[k] or 0.0 for k in ("stage1_s", "stage2_s")
+                  if own.get(STAGE_KEYS[k]) is None)
+    return f"{earlier / 60:.1f} + {row['wall_s'] / 60:.1f}"
+
+
+def _commits(rows: list[dict]) -> str:
+    """The commits that wrote the rows, each with its rows when they differ."""
+    by: dict[str, list[str]] = {}
+    for r in rows:
+        by.setdefault(str(r.get("commit", "unrecorded"))[:12],
+                      []).append(f"{r['scene']}-{r.get('lights', 'tuned')}")
+    if len(by) <= 1:
+        return next(iter(by), "n/a")
+    return "; ".join(f"{c} ({', '.join(names)})" for c, names in by.items())
 
 
 def markdown(rows: list[dict], command: str) -> str:
     lines = ["## Whole pipeline (paper Tables 1 and 3)", "",
              f"`{command}`; {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
-             f"load average {os.getloadavg()[0]:.1f} at the end; llvm_ad_rgb; cpu-small.", "",
+             f"load average {os.getloadavg()[0]:.1f} at the end; llvm_ad_rgb; cpu-small; "
+             f"rows made by commit {_commits(rows)}; env maps: "
+             f"{', '.join(sorted({str(r.get('envmaps', 'sky')) for r in rows})) or 'n/a'}.",
+             "",
              "Stage 1 and 2 (test views):", "",
              "| scene | lights | PSNR dB | median normal err deg | mask IoU | segments | ARI | "
              "mIoU | wall min |",
@@ -185,7 +252,7 @@ def gather_rows(out_dir: Path) -> list[dict]:
 
 def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
         command: str = "python -m validation.pipeline", lights: list[str] | None = None,
-        ablations: bool = True, order: str = "pair") -> dict:
+        ablations: bool = True, order: str = "pair", envmaps: str = ENVMAPS) -> dict:
     """validation.run_all entry."""
     from mi_shadowgs.io.atomic import write_json, write_text
 
@@ -200,7 +267,7 @@ def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
     jobs = [(s, p) for p in pairs for s in chosen] if order == "pair" else \
         [(s, p) for s in chosen for p in pairs]
     for s, pair in jobs:
-        run_scene(s, avail[s], out_dir, pair, ablations)
+        run_scene(s, avail[s], out_dir, pair, ablations, envmaps)
     rows = gather_rows(out_dir)
     md = markdown(rows, command)
     write_json(out_dir / "pipeline.json", rows)
@@ -226,6 +293,9 @@ def main(argv=None) -> int:
     ap.add_argument("--order", choices=("pair", "scene"), default="pair",
                     help="pair: every scene under one pair first; scene: both pairs of a "
                          "scene first")
+    ap.add_argument("--envmap", choices=("sky", "auto", "none"), default=ENVMAPS,
+                    help="env maps of the datasets' env-map relit views (default: the "
+                         "procedural sky; auto: the shipped maps when present)")
     ap.add_argument("--table-only", action="store_true",
                     help="only gather the finished rows under --out into the tables")
     args = ap.parse_args(argv)
@@ -242,7 +312,7 @@ def main(argv=None) -> int:
         print(md)
         return 0
     res = run(Path(args.out), args.quick, args.scene, command, args.lights,
-              not args.no_ablations, args.order)
+              not args.no_ablations, args.order, args.envmap)
     print(res["markdown"])
     return 0
 

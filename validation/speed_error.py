@@ -57,8 +57,7 @@ POINTS = {
 DEFAULT_POINTS = ("res64", "s4_300", "s1x0.5", "s4_1200", "res192")
 METRICS = (("albedo_psnr", "albedo PSNR (dB)"), ("shadow_iou", "shadow IoU"),
            ("relight_psnr", "relight PSNR (dB)"))
-STAGE_KEYS = {"stage1_s": "Stage 1: geometry", "stage2_s": "Stage 2: material segmentation",
-              "stage4_s": "Stages 3-5: visibility, decomposition, relighting"}
+STAGE_KEYS = vpipe.STAGE_KEYS
 CSV_COLUMNS = ("scene", "point", "changed", "resolution", "stage1_iterations",
                "stage4_iterations", "wall_s", "stage1_s", "stage2_s", "stage4_s",
                "albedo_psnr", "shadow_iou", "relight_psnr", "light_cosine", "pareto",
@@ -143,53 +142,7 @@ def _base_metrics(row: dict) -> dict:
                                      "light_cosine")}
 
 
-def _stage_seconds(stage_s: dict, run: Path | None = None) -> dict:
-    """Stage 1, 2 and 4 seconds from a summary's stage timers; those it lacks (a stage
-    reused by a later call, e.g. a resumed table run) from the run's own files: the last
-    ``time`` of ``geometry/log.csv``, ``seconds_stage`` of ``segmentation.json``, ``fit_s``
-    of ``material/full/metrics.json``."""
-    out = {k: stage_s.get(v) for k, v in STAGE_KEYS.items()}
-    if run is None or all(v is not None for v in out.values()):
-        return out
-    found = {}
-    log = run / "geometry" / "log.csv"
-    if log.is_file():
-        with open(log, newline="") as f:
-            rows = list(csv.DictReader(f))
-        if rows and rows[-1].get("time"):
-            found["stage1_s"] = float(rows[-1]["time"])
-    seg = run / "segmentation" / "segmentation.json"
-    if seg.is_file():
-        found["stage2_s"] = json.loads(seg.read_text()).get("seconds_stage")
-    met = run / "material" / "full" / "metrics.json"
-    if met.is_file():
-        found["stage4_s"] = json.loads(met.read_text()).get("fit_s")
-    return {k: v if v is not None else found.get(k) for k, v in out.items()}
-
-
 # -- one point -------------------------------------------------------------------------------------
-def make_dataset(scene: str, folder: Path, resolution: int) -> Path:
-    """The scene's cpu-small dataset at another resolution (tuned light pair, the
-    procedural sky only, as the base datasets); kept when already complete."""
-    from mi_shadowgs.dataset.generate import get_config
-    from mi_shadowgs.dataset.writer import write_dataset
-    from mi_shadowgs.scenes import scene_path
-
-    data = folder / "data"
-    if (data / "dataset.json").is_file():
-        return data
-    mesh = vpipe.available_scenes().get(scene)
-    overrides = dict(vpipe.LIGHT_PAIRS["tuned"])
-    if mesh is not None:
-        overrides["mesh"] = str(mesh)
-    config = dataclasses.replace(get_config(PRESET), width=resolution, height=resolution)
-    if "envmaps" in {f.name for f in dataclasses.fields(config)}:
-        config = dataclasses.replace(config, envmaps="sky")  # as the base runs were made
-    write_dataset(scene_path("default" if mesh is None else "mesh"), data, config, PRESET,
-                  seed=0, progress=True, overrides=overrides)
-    return data
-
-
 def ready(point: str, base: Path, scene: str, base_row: dict | None) -> bool:
     """Whether a point can start: the resolution points make their own dataset, the other
     stage-1 points need the base run's dataset, the stage-4 points its stages 1 and 2."""
@@ -213,7 +166,8 @@ def run_point(scene: str, point: str, out: Path, base: Path, base_row: dict | No
     config = get_config(PRESET)
     reused = {}
     if "resolution" in spec:
-        data = make_dataset(scene, folder, spec["resolution"])
+        data = vpipe.make_dataset(scene, vpipe.available_scenes().get(scene), folder, "tuned",
+                                  "sky", spec["resolution"], PRESET)
     else:
         data = base_folder(base, scene) / "data"  # read only
     if "stage1" in spec:
@@ -224,11 +178,11 @@ def run_point(scene: str, point: str, out: Path, base: Path, base_row: dict | No
         for part in ("geometry", "segmentation"):  # same dataset and settings: reused as is
             if not (run / part).exists():
                 shutil.copytree(src / part, run / part)
-        reused = {k: v for k, v in _stage_seconds(base_row.get("stage_s", {}), src).items()
+        reused = {k: v for k, v in vpipe.stage_seconds(base_row.get("stage_s", {}), src).items()
                   if k in ("stage1_s", "stage2_s")}
     t0, c0 = time.perf_counter(), time.process_time()
     summary = run_pipeline(data, run, config, progress=True)
-    secs = _stage_seconds({s["name"]: s.get("seconds") for s in summary.get("stages", [])})
+    secs = vpipe.stage_seconds({s["name"]: s.get("seconds") for s in summary.get("stages", [])})
     secs.update(reused)
     metrics = json.loads((run / "material" / "full" / "metrics.json").read_text())
     row = {"scene": scene, "point": point, "changed": spec, "dataset": str(data),
@@ -261,7 +215,7 @@ def gather(out: Path, base: Path, scenes: list[str]) -> list[dict]:
         found = []
         base_row = ensure_base(base, scene, make=False)
         if base_row is not None:
-            found.append({"point": CPU_SMALL, "changed": {}, **_stage_seconds(
+            found.append({"point": CPU_SMALL, "changed": {}, **vpipe.stage_seconds(
                 base_row.get("stage_s", {}), base_folder(base, scene) / "run"),
                 "metrics": _base_metrics(base_row),
                 "source": f"reused: {base_folder(base, scene) / 'row.json'}",

@@ -25,16 +25,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", default=None,
                         help="the run's dataset, when it moved (mesh: training cameras)")
     parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
+    parser.add_argument("--bsdf", default=None, choices=("model", "principled"),
+                        help="mesh: scene.xml's BSDF: model (the fitted Cook-Torrance out of "
+                             "Mitsuba's diffuse/roughconductor/blendbsdf; default) or "
+                             "principled (Disney; what other tools map)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an earlier export there (only the files it wrote)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
 
 
 def run(args) -> int:
-    from mi_shadowgs.stages.relight.export import export_run
+    import dataclasses
 
+    from mi_shadowgs.stages.relight.export import export_run, get_config
+
+    config = get_config(args.preset)
+    if args.bsdf is not None:
+        config = dataclasses.replace(config, bsdf=args.bsdf)
     result = export_run(args.run, args.out, args.fmt, color=args.color, data=args.data,
-                        preset=args.preset, overwrite=args.overwrite,
+                        config=config, preset=args.preset, overwrite=args.overwrite,
                         progress=not args.no_progress)
     print(result.summary)
     return 0

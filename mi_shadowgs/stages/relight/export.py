@@ -12,12 +12,27 @@ Formats (``--out`` is a folder; it gets a provenance manifest like every output)
   then our extra channels (albedo_0..2, roughness, metallic, segment, ...; linear).
 - ``mesh`` -> ``object.ply``/``object.obj`` (+ ``base.ply``/``base.obj`` when the base is
   known), ``scene.xml``, ``export.json``: see ``mi_shadowgs.stages.relight.mesh``. The PLYs
-  carry per-vertex ``albedo_r/g/b``, ``roughness_0``, ``metallic_0`` (linear; Mitsuba loads
-  them as ``vertex_albedo_color``, ``vertex_roughness``, ``vertex_metallic``), the OBJs sRGB
-  vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba: each mesh with
-  a ``principled`` BSDF whose base colour, roughness and metallic are ``mesh_attribute``
-  textures, the fitted lights as ``directional`` emitters, one ``perspective`` sensor per
-  test camera (``$resx``, ``$resy``, ``$spp``, ``$max_depth`` can be overridden at load).
+  carry per-vertex ``albedo_r/g/b``, ``roughness_0``, ``metallic_0`` and ``ggxalpha_0``
+  (roughness^2, clamped as in ``core.brdf``; linear; Mitsuba loads them as
+  ``vertex_albedo_color``, ``vertex_roughness``, ``vertex_metallic``, ``vertex_ggxalpha``),
+  the OBJs sRGB vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba:
+  each mesh with a BSDF driven by ``mesh_attribute`` textures (``ExportConfig.bsdf``, below),
+  the fitted lights as ``directional`` emitters, one ``perspective`` sensor per test camera
+  (``$resx``, ``$resy``, ``$spp``, ``$max_depth`` can be overridden at load).
+
+The BSDF (``ExportConfig.bsdf``):
+- ``"model"`` (default): our Cook-Torrance (``core.brdf``) out of Mitsuba's own plugins. It
+  is linear in the metallic m: f = (1 - m) [a / pi + spec(F0 = 0.04)] + m spec(F0 = a), so a
+  ``blendbsdf`` weighted by ``vertex_metallic`` mixes a dielectric and a metal. The
+  dielectric sums a Lambertian lobe and a GGX lobe; Mitsuba has no sum, so it is a 50/50
+  ``blendbsdf`` of ``diffuse`` (reflectance 2a) and ``roughconductor`` (reflectance 2, the
+  Fresnel of eta 1.5: F0 = 0.04). The metal is a ``roughconductor`` of reflectance a (its
+  Fresnel is 1: Schlick's rise toward grazing angles is left out). GGX alpha and the
+  separable Smith G are ours; the Fresnel of the dielectric is the exact one rather than
+  Schlick's (within 1 % of it below 70 deg).
+- ``"principled"``: Mitsuba's Disney ``principled`` (base colour, roughness, metallic), the
+  layout other tools map to. Its diffuse lobe is Disney's, not Lambert's: under grazing
+  views and lights it differs from the fitted model by up to ~2x (retro-reflection).
 
 Colours in the splat PLYs are what splat viewers display: sRGB values (3DGS trains on sRGB
 images). ``--color sh`` converts the model's linear SH: the DC term exactly (its view-mean
@@ -39,6 +54,7 @@ from mi_shadowgs.config import get_preset
 from mi_shadowgs.stages.relight import mesh as mesh_mod
 
 FORMATS = ("3dgs-ply", "2dgs-ply", "mesh")
+BSDFS = ("model", "principled")
 COLORS = ("sh", "albedo")
 SH_C0 = 0.28209479177387814  # Y_0^0: 3DGS's colour = C0 f_dc + 0.5 for the DC band
 PLY_SH_DEGREE = 3  # what 3DGS/2DGS's load_ply expect (max_sh_degree default)
@@ -54,10 +70,13 @@ class ExportConfig:
     thickness: float = 0.05
     spp: int = 64  # scene.xml's default samples per pixel
     max_depth: int = 8  # scene.xml's default path length (enough for inter-reflections)
+    bsdf: str = "model"  # "model" (our Cook-Torrance) or "principled" (Disney): see above
 
     def __post_init__(self):
         if not (0 < self.thickness <= 1 and self.spp >= 1 and self.max_depth >= 1):
             raise ValueError(f"ExportConfig: bad settings {self}")
+        if self.bsdf not in BSDFS:
+            raise ValueError(f"ExportConfig.bsdf must be one of {BSDFS}, got {self.bsdf!r}")
 
 
 PRESETS = {"cpu-small": ExportConfig(), "paper": ExportConfig(mesh=mesh_mod.get_config("paper"))}
@@ -139,6 +158,56 @@ def gs2d_model(model, color: str):
 
 
 # -- mesh and scene ------------------------------------------------------------------------
+def ggx_alpha(roughness: np.ndarray) -> np.ndarray:
+    """GGX alpha of ``core.brdf``: roughness^2 with the roughness clamped to its minimum."""
+    from mi_shadowgs.core.brdf import ROUGHNESS_MIN
+
+    return np.square(np.maximum(np.asarray(roughness, np.float64), ROUGHNESS_MIN))
+
+
+def _attribute(parent, name: str, attr: str, scale: float = 1.0):
+    import xml.etree.ElementTree as ET
+
+    tex = ET.SubElement(parent, "texture", type="mesh_attribute", name=name)
+    ET.SubElement(tex, "string", name="name", value=attr)
+    if scale != 1.0:
+        ET.SubElement(tex, "float", name="scale", value=f"{scale:g}")
+    return tex
+
+
+def bsdf_xml(parent, kind: str) -> None:
+    """The BSDF of an exported mesh (module docstring, "The BSDF") under ``parent``."""
+    import xml.etree.ElementTree as ET
+
+    from mi_shadowgs.core.brdf import F0_DIELECTRIC
+
+    if kind == "principled":
+        bsdf = ET.SubElement(parent, "bsdf", type="principled")
+        for param, attr in (("base_color", "vertex_albedo_color"),
+                            ("roughness", "vertex_roughness"), ("metallic", "vertex_metallic")):
+            _attribute(bsdf, param, attr)
+        return
+    # the dielectric's Fresnel: eta with ((eta - 1) / (eta + 1))^2 = F0_DIELECTRIC
+    eta = (1.0 + F0_DIELECTRIC ** 0.5) / (1.0 - F0_DIELECTRIC ** 0.5)
+    top = ET.SubElement(parent, "bsdf", type="blendbsdf")
+    _attribute(top, "weight", "vertex_metallic")
+    dielectric = ET.SubElement(top, "bsdf", type="blendbsdf")  # 0.5 (2 a/pi) + 0.5 (2 spec)
+    ET.SubElement(dielectric, "float", name="weight", value="0.5")
+    lambert = ET.SubElement(dielectric, "bsdf", type="diffuse")
+    _attribute(lambert, "reflectance", "vertex_albedo_color", 2.0)
+    coat = ET.SubElement(dielectric, "bsdf", type="roughconductor")
+    ET.SubElement(coat, "string", name="distribution", value="ggx")
+    _attribute(coat, "alpha", "vertex_ggxalpha")
+    ET.SubElement(coat, "float", name="eta", value=f"{eta:.9g}")
+    ET.SubElement(coat, "float", name="k", value="0")
+    ET.SubElement(coat, "float", name="specular_reflectance", value="2")
+    metal = ET.SubElement(top, "bsdf", type="roughconductor")
+    ET.SubElement(metal, "string", name="distribution", value="ggx")
+    ET.SubElement(metal, "string", name="material", value="none")
+    _attribute(metal, "alpha", "vertex_ggxalpha")
+    _attribute(metal, "specular_reflectance", "vertex_albedo_color")
+
+
 def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
     import trimesh
 
@@ -147,6 +216,7 @@ def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
         m.vertex_attributes[f"albedo_{name}"] = part.albedo[:, c].astype(np.float32)
     m.vertex_attributes["roughness_0"] = part.roughness.astype(np.float32)
     m.vertex_attributes["metallic_0"] = part.metallic.astype(np.float32)
+    m.vertex_attributes["ggxalpha_0"] = ggx_alpha(part.roughness).astype(np.float32)
     return trimesh.exchange.ply.export_ply(m, encoding="binary", vertex_normal=True,
                                            include_attributes=True)
 
@@ -211,11 +281,7 @@ def scene_xml(parts: dict[str, str], lights, cameras, config: ExportConfig,
     for shape_id, filename in parts.items():
         shape = ET.SubElement(root, "shape", type="ply", id=shape_id)
         ET.SubElement(shape, "string", name="filename", value=filename)
-        bsdf = ET.SubElement(shape, "bsdf", type="principled")
-        for param, attr in (("base_color", "vertex_albedo_color"),
-                            ("roughness", "vertex_roughness"), ("metallic", "vertex_metallic")):
-            tex = ET.SubElement(bsdf, "texture", type="mesh_attribute", name=param)
-            ET.SubElement(tex, "string", name="name", value=attr)
+        bsdf_xml(shape, config.bsdf)
     for k, (d, e) in enumerate(lights):
         em = ET.SubElement(root, "emitter", type="directional", id=f"light_{k}")
         ET.SubElement(em, "vector", name="direction", value=_fmt(-d))  # propagation = -l
