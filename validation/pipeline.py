@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from mi_shadowgs.io.provenance import git_commit
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MI_SHADOWGS_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -50,6 +51,9 @@ LIGHT_PAIRS = {
     "low": {"light0_azimuth": "150", "light0_elevation": "20", "light0_irradiance": "3.0",
             "light1_azimuth": "330", "light1_elevation": "60", "light1_irradiance": "1.5"},
 }
+# The code a row ran: the checkout's commit when this module was imported (a later commit
+# while a table runs does not change the code already loaded).
+CODE_COMMIT = git_commit()
 # The table's env-map relit views: the procedural sky alone. The shipped maps (GenerateConfig
 # "auto") add three path-traced test sets per row; they are scored apart (BENCHMARKS.md,
 # "Shipped env maps"). One choice for every row keeps the rows comparable.
@@ -117,10 +121,8 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     variants = {v: json.loads((run / "material" / v / "metrics.json").read_text())
                 for v in ("full", "no_visibility", "no_segmentation")
                 if v == "full" or (run / "material" / v / "metrics.json").is_file()}
-    from mi_shadowgs.io.provenance import git_commit
-
     row = {"scene": name, "lights": lights, "light_pair": LIGHT_PAIRS[lights],
-           "commit": git_commit(), "envmaps": envmaps,
+           "commit": CODE_COMMIT, "envmaps": envmaps,
            "generate_s": t_gen, "wall_s": time.perf_counter() - t0,
            "stage_s": {st["name"]: st.get("seconds") for st in summary.get("stages", [])},
            "load_end": os.getloadavg()[0],

@@ -53,9 +53,11 @@ from mi_shadowgs.stages.relight import evaluation
 
 FACTORS = ("lights", "receivers", "occluders")
 TRACE_LIFT = 1.5  # pixel footprints off a surfel receiver before tracing (see above)
-# (tau, normal_offset) settings of the bias sweep; the presets' are (8e-4, 1.5).
-BIAS_SWEEP = ((0.0, 1.5), (2e-4, 1.5), (8e-4, 0.0), (8e-4, 0.75), (8e-4, 3.0), (2e-3, 1.5),
-              (5e-3, 1.5))
+# (tau, normal_offset, bias_texels) settings of the bias sweep; the presets' are (8e-4, 1.5,
+# None). With bias_texels the threshold is absolute, in map texels, and tau is unused.
+BIAS_SWEEP = ((0.0, 1.5, None), (2e-4, 1.5, None), (8e-4, 0.0, None), (8e-4, 0.75, None),
+              (8e-4, 3.0, None), (2e-3, 1.5, None), (5e-3, 1.5, None), (8e-4, 1.5, 1.0),
+              (8e-4, 1.5, 2.0), (8e-4, 1.5, 3.0), (8e-4, 1.5, 5.0), (8e-4, 1.5, 8.0))
 
 
 @dataclasses.dataclass
@@ -262,11 +264,12 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     single = {f: scores[tuple(i == j for j in range(3))] - base for i, f in enumerate(FACTORS)}
     bias = []
     rec = recs[False]
-    for tau, off in tqdm(BIAS_SWEEP, desc=f"{inp.name}: bias", disable=not progress):
-        vc = dataclasses.replace(inp.vis_config, tau=tau, normal_offset=off)
+    for tau, off, texels in tqdm(BIAS_SWEEP, desc=f"{inp.name}: bias", disable=not progress):
+        vc = dataclasses.replace(inp.vis_config, tau=tau, normal_offset=off,
+                                 bias_texels=texels)
         vis = map_visibility(inp.model, rec, inp.fit_dirs, inp.bounds, vc)
         est = irradiance(rec, vis, inp.fit_dirs, inp.fit_irr, (h, w))
-        bias.append({"tau": tau, "normal_offset": off,
+        bias.append({"tau": tau, "normal_offset": off, "bias_texels": texels,
                      "shadow_iou": evaluation.shadow_iou(est, inp.gt_irr, inp.mask)})
     best_bias = max(bias, key=lambda r: r["shadow_iou"])
     # Fractional (opacity) maps instead of the binary test, all else the run's.
@@ -297,7 +300,8 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         "metric_floor": 1.0 - full,
         "bias_sweep": bias, "bias_gain": best_bias["shadow_iou"] - base,
         "fractional_gain": fractional_gain,
-        "best_bias": {"tau": best_bias["tau"], "normal_offset": best_bias["normal_offset"]},
+        "best_bias": {"tau": best_bias["tau"], "normal_offset": best_bias["normal_offset"],
+                      "bias_texels": best_bias["bias_texels"]},
         "biggest": ranked[0],
         "lights": {"fitted": len(inp.fit_dirs), "true": len(inp.true_dirs),
                    "angular_error_deg": errs["angular_error_deg"],
@@ -311,6 +315,13 @@ HEADER = ("| run | IoU (run / here) | all GT | lights | receivers (points / norm
           "deg |\n|---|---|---|---|---|---|---|---|---|---|")
 
 
+def _bias_label(b: dict) -> str:
+    """A sweep setting as text: the relative tau or the absolute threshold in texels."""
+    depth = f"tau {b['tau']:g}" if b.get("bias_texels") is None else \
+        f"{b['bias_texels']:g} texels"
+    return f"{depth}, off {b['normal_offset']:g}"
+
+
 def row_markdown(r: dict) -> str:
     sh = r["shapley"]
     err = ", ".join(f"{e:.1f}" for e in r["lights"]["angular_error_deg"] if not math.isnan(e))
@@ -320,8 +331,8 @@ def row_markdown(r: dict) -> str:
             f"{r['all_ground_truth_iou']:.3f} | {sh['lights']:+.3f} | {sh['receivers']:+.3f} "
             f"({r['receiver_split_gain']['points']:+.3f} / "
             f"{r['receiver_split_gain']['normals']:+.3f}) | "
-            f"{sh['occluders']:+.3f} | {r['bias_gain']:+.3f} (tau {b['tau']:g}, off "
-            f"{b['normal_offset']:g}) | {r.get('fractional_gain', math.nan):+.3f} | "
+            f"{sh['occluders']:+.3f} | {r['bias_gain']:+.3f} ({_bias_label(b)}) | "
+            f"{r.get('fractional_gain', math.nan):+.3f} | "
             f"{r['biggest']} | {r['lights']['fitted']}: {err} |")
 
 

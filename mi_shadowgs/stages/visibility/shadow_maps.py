@@ -36,6 +36,14 @@ class VisibilityConfig:
     projection: str = "perspective"  # "perspective" (paper) or "orthographic"
     distance_factor: float = 30.0  # virtual camera distance / mean training-camera distance
     tau: float = 0.0008  # relative depth threshold of Eq. 6
+    # Absolute depth threshold in map texels (not in the paper): V = [d_l - d_g <= bias_texels
+    # * texel] replaces Eq. 6-7's relative tau when set. tau is a fraction of the light
+    # camera's depth, and that camera stands at distance_factor x the cameras' distance:
+    # tau = 8e-4 lets an occluder ~0.1 scene units in front of its receiver through, which
+    # erases contact shadows (the hotdog's sausages on their plate). A few texels (~0.01
+    # units each at 512^2) cover what the threshold is for: the surfels' own depth spread
+    # between the view's and the light's rasterization.
+    bias_texels: float | None = None
     eps: float = 1e-6  # the epsilon of Eq. 7
     depth: str = "median"  # which rasterized depth the map holds: "median" or "expected"
     empty_alpha: float = 0.5  # map pixels with less accumulated alpha hold no occluder
@@ -78,6 +86,7 @@ class VisibilityConfig:
         if self.depth not in DEPTH_KINDS:
             raise ValueError(f"visibility depth must be one of {DEPTH_KINDS}, got {self.depth!r}")
         if self.resolution < 1 or self.distance_factor <= 1.0 or self.tau < 0 or self.pcf < 0 \
+                or (self.bias_texels is not None and self.bias_texels < 0) \
                 or self.normal_offset < 0 or self.receiver_offset < 0 or \
                 not 0.0 < self.fractional_min_alpha <= 1.0:
             raise ValueError(f"invalid visibility settings: {self}")
@@ -275,6 +284,8 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
         u, v = focal * x * inv_z + c, focal * y * inv_z + c
     base = li * (r * r)
     radius = cfg.pcf
+    absolute = cfg.bias_texels is not None
+    bias = cfg.bias_texels * maps.texel if absolute else cfg.tau
     acc = mi.Float(0.0)
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
@@ -284,12 +295,13 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
             tex = base + mi.UInt32(dr.clip(iy, 0, r - 1)) * r + mi.UInt32(dr.clip(ix, 0, r - 1))
             d_g = dr.gather(mi.Float, maps.depth, tex, inside)
             d_g = dr.select(inside, d_g, dr.inf)
-            delta = (z - d_g) / (z + cfg.eps)  # Eq. 7; inf map depth => -inf => visible
+            # Eq. 7 (or the absolute difference); inf map depth => -inf => visible
+            delta = (z - d_g) if absolute else (z - d_g) / (z + cfg.eps)
             if maps.alpha is not None:  # fractional: the occluder lets 1 - alpha through
                 a_g = dr.gather(mi.Float, maps.alpha, tex, inside)
-                acc += dr.select(delta <= cfg.tau, 1.0, 1.0 - a_g)
+                acc += dr.select(delta <= bias, 1.0, 1.0 - a_g)
             else:
-                acc += dr.select(delta <= cfg.tau, 1.0, 0.0)
+                acc += dr.select(delta <= bias, 1.0, 0.0)
     vis = acc / float((2 * radius + 1) ** 2)
     return dr.select(facing, vis, 0.0)
 
