@@ -437,19 +437,25 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
 def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConfig,
                  progress: bool, atomic_path, write_text, write_json, t0: float,
                  cpu0: float) -> str:
-    from mi_shadowgs.dataset.loader import load_cameras
+    from mi_shadowgs.dataset.loader import load_cameras, load_dataset
 
     missing = [c for c in ("albedo", "roughness", "metallic") if c not in model.channels]
     if missing:
         raise ExportError(f"{output.folder}: the model lacks channel(s) {missing} (run stage 4)")
     train = [cam for _, cam in load_cameras(data / "transforms_train.json")]
+    with_base = base_known(data)
+    masks = None
+    if with_base and config.mesh.outline:  # the base's outline from the training masks
+        views = load_dataset(data, "train")
+        if views.has_masks:
+            train = views.cameras
+            masks = [v.mask for v in views.views]
     test = []
     if (data / "transforms_test.json").is_file():
         test = [(f"test_{i:03d}", cam) for i, (_, cam) in
                 enumerate(load_cameras(data / "transforms_test.json"))]
-    with_base = base_known(data)
     obj, base, info = mesh_mod.extract_mesh(model.to_surfels(), train, config.mesh, with_base,
-                                            progress)
+                                            progress, masks)
     parts = {"object": obj} if base is None else {"object": obj, "base": base}
     for name, part in parts.items():
         with atomic_path(output.path(f"{name}.ply")) as tmp:

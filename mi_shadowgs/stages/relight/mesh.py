@@ -10,6 +10,14 @@ the largest one's area (the default scene's object has two separate parts, so "l
 only" would drop one), the base its largest component. Without a known base, the whole
 mesh (one grid) is the object.
 
+Base outline: fused on its coarse grid, the base's border is a staircase a voxel or two off
+the true edge, and in a relit image that edge is where a pixel is either lit base or black
+background (measured: the 2-pixel band inside the masks' outline held most of the
+path-traced relighting error). With masks, ``outline_base`` cuts the flattened base to
+the plane's visual hull (the points of y = 0 whose projection the training views' masks
+cover, by vote, on a grid of ``outline_cell`` base voxels) and puts its border vertices on that
+hull's contour (marching squares, scikit-image).
+
 Materials: each vertex takes the mean albedo, roughness and metallic of its ``neighbours``
 nearest surfels, each weighted by its opacity and its Gaussian at the vertex, in the
 surfel's tangent frame (the normal offset measured against one voxel, the mesh's own
@@ -53,6 +61,12 @@ class MeshConfig:
     min_component: float = 0.02  # object components below this share of the largest go
     flatten_base: bool = True  # a known base is put on y = 0 exactly (extract_mesh)
     neighbours: int = 8  # surfels averaged into each vertex's material
+    # Base outline from the training masks (module docstring): the hull's grid cell in base
+    # voxels, and how far (in base voxels) a border vertex may move onto the contour.
+    outline: bool = True
+    outline_cell: float = 0.5
+    outline_snap: float = 4.0
+    outline_vote: float = 0.5  # share of the views seeing a plane point that must mask it
 
     def __post_init__(self):
         if self.depth not in DEPTH_KINDS:
@@ -286,13 +300,99 @@ def _fuse(grid: VoxelGrid, depths, cameras, config: MeshConfig, progress: bool):
     return marching_cubes(tsdf, weight, grid)
 
 
+def plane_hull(views: list[tuple[Camera, np.ndarray]], lo: np.ndarray, hi: np.ndarray,
+               cell: float, vote: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Visual hull of the plane y = 0 over the box ``lo``..``hi`` ([2]: x, z) from ``views``
+    (camera, mask [H, W] bool): (occupancy [Nz, Nx] bool, (cell centres' x [Nx], z [Nz])).
+    A cell is in when at least ``vote`` of the views that see it have it inside their mask:
+    on a plane nothing hides a point from a view except the object, which the masks
+    include, so each view's mask differs from the truth only by its pixels' quantization,
+    and a vote, unlike the intersection (which keeps the most shrunken view, up to half a
+    pixel inside), is unbiased."""
+    xs = np.arange(lo[0] + 0.5 * cell, hi[0], cell)
+    zs = np.arange(lo[1] + 0.5 * cell, hi[1], cell)
+    gx, gz = np.meshgrid(xs, zs)  # [Nz, Nx]
+    pts = np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], -1)
+    votes = np.zeros(len(pts))
+    seen = np.zeros(len(pts))
+    for cam, mask in views:
+        uv, z = cam.project(pts)
+        uv = np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)
+        h, w = mask.shape
+        xi = np.floor(uv[:, 0]).astype(np.int64)
+        yi = np.floor(uv[:, 1]).astype(np.int64)
+        inside = (z > cam.near) & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+        hit = np.zeros(len(pts), bool)
+        hit[inside] = mask[yi[inside], xi[inside]]
+        votes += hit
+        seen += inside
+    occ = (seen > 0) & (votes >= vote * seen)
+    return occ.reshape(gx.shape), (xs, zs)
+
+
+def _boundary_vertices(faces: np.ndarray) -> np.ndarray:
+    """Indices of the vertices on edges that belong to one face only."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    uniq, count = np.unique(e, axis=0, return_counts=True)
+    return np.unique(uniq[count == 1].ravel())
+
+
+def outline_base(base: MeshPart, views: list[tuple[Camera, np.ndarray]], voxel: float,
+                 config: MeshConfig) -> tuple[MeshPart | None, dict]:
+    """The flattened base (on y = 0) cut to the plane's visual hull and its border put on
+    the hull's contour (module docstring). Returns (base or None when nothing is left,
+    info)."""
+    from scipy.spatial import cKDTree
+    from skimage.measure import find_contours
+
+    cell = config.outline_cell * voxel
+    pad = (config.outline_snap + 2.0) * voxel
+    v = base.vertices.astype(np.float64)
+    lo = v[:, [0, 2]].min(0) - pad
+    hi = v[:, [0, 2]].max(0) + pad
+    occ, (xs, zs) = plane_hull(views, lo, hi, cell, config.outline_vote)
+    # triangles whose centre lies outside the hull go
+    c = v[base.faces].mean(axis=1)
+    ix = np.clip(np.floor((c[:, 0] - lo[0]) / cell).astype(np.int64), 0, len(xs) - 1)
+    iz = np.clip(np.floor((c[:, 2] - lo[1]) / cell).astype(np.int64), 0, len(zs) - 1)
+    kept = base.faces[occ[iz, ix]]
+    if len(kept) == 0:
+        return None, {"outline_hull_cells": int(occ.sum())}
+    part = keep_components(v.astype(np.float32), kept, 1.0)
+    # the hull's contour, resampled every quarter cell, in world x, z
+    pts = []
+    for contour in find_contours(np.pad(occ, 1).astype(np.float32), 0.5):
+        rc = contour - 1.0  # undo the padding: (row = z index, col = x index)
+        seg = np.diff(rc, axis=0)
+        steps = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) * 4.0), 1).astype(int)
+        for a, d, n in zip(rc[:-1], seg, steps, strict=True):
+            t = np.arange(n)[:, None] / n
+            pts.append(a + t * d)
+    if not pts:
+        return part, {"outline_hull_cells": int(occ.sum()), "outline_moved": 0}
+    rc = np.concatenate(pts)
+    contour_xz = np.stack([lo[0] + (rc[:, 1] + 0.5) * cell, lo[1] + (rc[:, 0] + 0.5) * cell],
+                          -1)
+    border = _boundary_vertices(part.faces)
+    dist, idx = cKDTree(contour_xz).query(part.vertices[border][:, [0, 2]].astype(np.float64))
+    move = dist <= config.outline_snap * voxel
+    part.vertices[border[move], 0] = contour_xz[idx[move], 0]
+    part.vertices[border[move], 2] = contour_xz[idx[move], 1]
+    return part, {"outline_hull_cells": int(occ.sum()), "outline_moved": int(move.sum()),
+                  "outline_border_vertices": len(border),
+                  "outline_cut_faces": int(len(base.faces) - len(kept))}
+
+
 def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known: bool,
-                 progress: bool = False) -> tuple[MeshPart, MeshPart | None, dict]:
+                 progress: bool = False, masks: list[np.ndarray] | None = None
+                 ) -> tuple[MeshPart, MeshPart | None, dict]:
     """(object, base or None, info) of a decomposed surfel model seen by ``cameras``; info
-    holds the grids and the seconds of each step."""
+    holds the grids and the seconds of each step. ``masks`` [H, W] bool per camera (the
+    training views' object + base masks) give the base its outline (``outline_base``)."""
     import time
 
     t = [time.perf_counter()]
+    outline_info = {}
     grid, base_grid = grids_for(surfels, config, base_known)
     depths = render_depths(surfels, cameras, config, progress)
     t.append(time.perf_counter())
@@ -310,6 +410,9 @@ def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known:
             base.normals[:] = (0.0, 1.0, 0.0)
             foot = obj.vertices[:, 1] < config.base_cut * grid.voxel
             obj.vertices[foot, 1] = 0.0
+            if config.outline and masks is not None:
+                base, outline_info = outline_base(base, list(zip(cameras, masks, strict=True)),
+                                                  base_grid.voxel, config)
     t.append(time.perf_counter())
     arrays = surfel_arrays(surfels)
     for part in (obj, base):
@@ -322,5 +425,5 @@ def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known:
             "seconds": {k: t[i + 1] - t[i] for i, k in enumerate(
                 ("depth", "tsdf_marching_cubes", "materials"))},
             "object_vertices": len(obj.vertices), "object_faces": len(obj.faces),
-            "base_faces": 0 if base is None else len(base.faces)}
+            "base_faces": 0 if base is None else len(base.faces), **outline_info}
     return obj, base, info
