@@ -67,3 +67,5 @@ def test_outline_puts_the_border_on_the_masks_edge():
     assert np.median(d) < 0.01 and d.max() < 0.05, (np.median(d), d.max(), info)
     assert abs(out.area - (2 * HALF) ** 2) < 0.03 * (2 * HALF) ** 2, out.area
     assert info["outline_cut_faces"] > 0 and info["outline_moved"] > 0
+    # every vertex has the plane's normal (a zero normal was NaN in Mitsuba's shading)
+    np.testing.assert_allclose(out.normals, np.tile([0.0, 1.0, 0.0], (len(out.normals), 1)))

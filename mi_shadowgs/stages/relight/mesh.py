@@ -378,6 +378,10 @@ def outline_base(base: MeshPart, views: list[tuple[Camera, np.ndarray]], voxel: 
     move = dist <= config.outline_snap * voxel
     part.vertices[border[move], 0] = contour_xz[idx[move], 0]
     part.vertices[border[move], 2] = contour_xz[idx[move], 1]
+    # Border vertices snapped onto one contour point can leave zero-area triangles (never
+    # hit) whose area-weighted vertex normals are zero (NaN in shading): the plane's normal
+    # is known.
+    part.normals[:] = (0.0, 1.0, 0.0)
     return part, {"outline_hull_cells": int(occ.sum()), "outline_moved": int(move.sum()),
                   "outline_border_vertices": len(border),
                   "outline_cut_faces": int(len(base.faces) - len(kept))}
