@@ -337,6 +337,31 @@ def _boundary_vertices(faces: np.ndarray) -> np.ndarray:
     return np.unique(uniq[count == 1].ravel())
 
 
+def _weld(part: MeshPart, candidates: np.ndarray, radius: float) -> MeshPart:
+    """``part`` with the ``candidates`` vertices closer than ``radius`` merged (each group
+    onto one of them) and the triangles left with a repeated vertex or no area dropped."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(part.vertices[candidates].astype(np.float64)).query_pairs(radius,
+                                                                            output_type="ndarray")
+    target = np.arange(len(part.vertices))
+    if len(pairs):
+        n = len(candidates)
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        first = np.full(label.max() + 1, -1)
+        for k in range(n - 1, -1, -1):  # each group onto its first member
+            first[label[k]] = k
+        target[candidates] = candidates[first[label]]
+    f = target[part.faces]
+    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    f = f[ok]
+    area = _face_areas(part.vertices, f)
+    return _part(part.vertices, f[area > 1e-3 * radius * radius].astype(np.int32))
+
+
 def outline_base(base: MeshPart, views: list[tuple[Camera, np.ndarray]], voxel: float,
                  config: MeshConfig) -> tuple[MeshPart | None, dict]:
     """The flattened base (on y = 0) cut to the plane's visual hull and its border put on
@@ -378,10 +403,11 @@ def outline_base(base: MeshPart, views: list[tuple[Camera, np.ndarray]], voxel: 
     move = dist <= config.outline_snap * voxel
     part.vertices[border[move], 0] = contour_xz[idx[move], 0]
     part.vertices[border[move], 2] = contour_xz[idx[move], 1]
-    # Border vertices snapped onto one contour point can leave zero-area triangles (never
-    # hit) whose area-weighted vertex normals are zero (NaN in shading): the plane's normal
-    # is known.
-    part.normals[:] = (0.0, 1.0, 0.0)
+    # Border vertices that landed (almost) on one contour point leave slivers between them;
+    # a ray hitting a sliver gets NaN barycentrics in Mitsuba (measured: NaN pixels on the
+    # default scene). Weld such vertices and drop the triangles that collapse.
+    part = _weld(part, border[move], 0.25 * cell)
+    part.normals[:] = (0.0, 1.0, 0.0)  # the plane's normal (welded slivers had none)
     return part, {"outline_hull_cells": int(occ.sum()), "outline_moved": int(move.sum()),
                   "outline_border_vertices": len(border),
                   "outline_cut_faces": int(len(base.faces) - len(kept))}
