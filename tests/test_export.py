@@ -181,6 +181,18 @@ def test_mesh_scene_renders_with_plain_mitsuba(run_data, tmp_path):
     alb = np.asarray(params["vertex_albedo_color"]).reshape(-1, 3)
     assert np.all((alb >= 0) & (alb <= 1)) and alb[:, 0].max() > 0.7
     np.testing.assert_allclose(np.asarray(params["vertex_roughness"]), 0.4, atol=0.02)
+    # No slivers (a ray hitting one got NaN barycentrics in Mitsuba): in both meshes every
+    # triangle has three distinct corners and an area, every vertex a unit normal.
+    import trimesh
+
+    for part in ("object", "base"):
+        m = trimesh.load(out / f"{part}.ply", process=False)
+        f = np.asarray(m.faces)
+        assert np.all((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
+        assert m.area_faces.min() > 1e-10, part
+        pts = np.asarray(m.vertices)[f]
+        assert np.linalg.norm(pts[:, 0] - pts[:, 1], axis=1).min() > 1e-6, part
+        np.testing.assert_allclose(np.linalg.norm(m.vertex_normals, axis=1), 1.0, atol=1e-4)
 
 
 def test_rerun_reuses_and_other_settings_are_refused(run_data, tmp_path, capsys):

@@ -437,19 +437,26 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
 def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConfig,
                  progress: bool, atomic_path, write_text, write_json, t0: float,
                  cpu0: float) -> str:
-    from mi_shadowgs.dataset.loader import load_cameras, load_dataset
+    from mi_shadowgs.dataset.loader import DatasetError, load_cameras, load_dataset
 
     missing = [c for c in ("albedo", "roughness", "metallic") if c not in model.channels]
     if missing:
         raise ExportError(f"{output.folder}: the model lacks channel(s) {missing} (run stage 4)")
     train = [cam for _, cam in load_cameras(data / "transforms_train.json")]
     with_base = base_known(data)
-    masks = None
+    masks, outline = None, "off"
     if with_base and config.mesh.outline:  # the base's outline from the training masks
-        views = load_dataset(data, "train")
-        if views.has_masks:
-            train = views.cameras
-            masks = [v.mask for v in views.views]
+        try:
+            views = load_dataset(data, "train")
+        except DatasetError as e:  # cameras without their images: the fused outline stays
+            outline = f"skipped: {e}"
+        else:
+            if views.has_masks:
+                train = views.cameras
+                masks = [v.mask for v in views.views]
+                outline = "training masks"
+            else:
+                outline = "skipped: the training views have no masks"
     test = []
     if (data / "transforms_test.json").is_file():
         test = [(f"test_{i:03d}", cam) for i, (_, cam) in
@@ -465,7 +472,8 @@ def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConf
     write_text(output.path("scene.xml"), scene_xml(
         {name: f"{name}.ply" for name in parts}, lights, test, config,
         str(light_path.parent)))
-    info.update({"base_known": with_base, "lights": len(lights), "sensors": len(test),
+    info.update({"base_known": with_base, "base_outline": outline, "lights": len(lights),
+                 "sensors": len(test),
                  "seconds_total": time.perf_counter() - t0,
                  "cpu_seconds_total": time.process_time() - cpu0,
                  "object_area": obj.area})

@@ -67,6 +67,7 @@ class MeshConfig:
     outline_cell: float = 0.5
     outline_snap: float = 4.0
     outline_vote: float = 0.5  # share of the views seeing a plane point that must mask it
+    weld: float = 0.01  # vertices closer than this many voxels are merged (no slivers)
 
     def __post_init__(self):
         if self.depth not in DEPTH_KINDS:
@@ -443,6 +444,15 @@ def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known:
             if config.outline and masks is not None:
                 base, outline_info = outline_base(base, list(zip(cameras, masks, strict=True)),
                                                   base_grid.voxel, config)
+    # Marching cubes puts vertices on grid edges; where the surface passes through a grid
+    # vertex, two of them coincide and their triangle is a sliver, on which a ray gets NaN
+    # barycentrics in Mitsuba (NaN pixels in the default scene's path-traced relighting).
+    obj = _weld(obj, np.arange(len(obj.vertices)), config.weld * grid.voxel)
+    if base is not None:
+        flat = config.flatten_base and base_grid is not None
+        base = _weld(base, np.arange(len(base.vertices)), config.weld * grid.voxel)
+        if flat:
+            base.normals[:] = (0.0, 1.0, 0.0)
     t.append(time.perf_counter())
     arrays = surfel_arrays(surfels)
     for part in (obj, base):
