@@ -266,6 +266,29 @@ def test_stage1_without_masks_starts_from_the_sfm_points(imported, capsys):
     assert m["mask_iou"] is None and "mask IoU" in m["skipped"]
 
 
+def test_stage1_runner_trains_unmasked_views_without_the_geometry_terms(imported, tmp_path,
+                                                                       capsys):
+    """Without masks the runner swaps in the ``unmasked_*`` settings (no distortion or normal
+    term, no opacity reset: on the default scene cpu-small's lambda_d collapsed the fit to
+    11 dB without masks), records them in config.json and says so."""
+    import dataclasses
+    import json
+
+    from mi_shadowgs.stages.geometry.runner import run_geometry
+    from mi_shadowgs.stages.geometry.train import get_config
+
+    data, _ = imported
+    cfg = dataclasses.replace(get_config("cpu-small"), iterations=4, init_points=300)
+    assert cfg.lambda_dist > 0 and cfg.densify.opacity_reset_interval > 0
+    run_geometry(data, tmp_path / "geometry", cfg, preset="cpu-small", evaluate=False,
+                 progress=False)
+    used = json.loads((tmp_path / "geometry" / "config.json").read_text())["config"]
+    assert used["lambda_dist"] == cfg.unmasked_lambda_dist
+    assert used["lambda_normal"] == cfg.unmasked_lambda_normal
+    assert used["densify"]["opacity_reset_interval"] == 0
+    assert "lambda_dist 0" in capsys.readouterr().err
+
+
 def test_nerfstudio_transforms_import_places_the_world(photos, tmp_path, capsys):
     """A nerfstudio transforms.json in an arbitrary world (our truth moved by a similarity)
     comes back to our frame up to a turn about +Y: up from the cameras, no point cloud."""

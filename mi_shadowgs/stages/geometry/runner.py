@@ -102,10 +102,15 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     if evaluate and test is None:
         test = load_dataset(data, "test")
     if not getattr(train, "has_masks", True):
+        from mi_shadowgs.stages.geometry.train import unmasked
+
+        config = unmasked(config)
         warn(f"{data}: no masks: stage 1 initialises from "
              + ("the SfM points" if getattr(train, "points", None) else "random points in "
                 "the cameras' bounds")
-             + ", and skips the mask loss and the mask IoU")
+             + f", skips the mask loss and the mask IoU, and trains with lambda_dist "
+               f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g} and "
+             + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset")
     cfg_dict = settings_dict(config)
     provenance = Provenance(dataset=dataset_ref(data), settings=cfg_dict)
     with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,

@@ -68,6 +68,17 @@ class GeometryConfig:
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     seed: int = 0
+    # Training views without masks (``unmasked``): nothing then removes the black floaters
+    # of the random or SfM initialisation that sit in front of the black background, and
+    # the geometry terms act on them. On the default scene without masks, cpu-small's
+    # lambda_d = 3e4 drove the fit transparent (the distortion of the floater layers, 3e-3
+    # against 1e-7 with masks, 30x the photometric loss): test PSNR 11.0 dB against 35.7;
+    # with lambda_d = 1000 and no opacity reset it still fell from 29.6 to 21 dB (training
+    # views) once the regularisers began; without both regularisers and without the reset it
+    # reached the masked run's PSNR (BENCHMARKS.md, "Without masks").
+    unmasked_lambda_dist: float = 0.0
+    unmasked_lambda_normal: float = 0.0
+    unmasked_opacity_reset: bool = False
     # Reporting (the loop reads losses back only at these intervals).
     log_every: int = 100
     preview_every: int = 2000
@@ -107,6 +118,15 @@ PRESETS = {
 
 def get_config(name: str) -> GeometryConfig:
     return get_preset(PRESETS, name, "geometry")
+
+
+def unmasked(config: GeometryConfig) -> GeometryConfig:
+    """``config`` for training views without masks: its ``unmasked_*`` settings in place of
+    the distortion and normal weights and the opacity reset (see the fields' comment)."""
+    densify = config.densify if config.unmasked_opacity_reset else \
+        dataclasses.replace(config.densify, opacity_reset_interval=0)
+    return dataclasses.replace(config, lambda_dist=config.unmasked_lambda_dist,
+                               lambda_normal=config.unmasked_lambda_normal, densify=densify)
 
 
 # -- initialisation -----------------------------------------------------------------------
