@@ -266,17 +266,6 @@ def test_k_selection_settings():
         seg.segment_surfels(None, [], [], seg.SegmentationConfig(k_select="bic"))
 
 
-def test_coverage_warning_names_the_views_needed():
-    from mi_shadowgs.stages.common import MIN_TRAIN_VIEWS
-    from mi_shadowgs.stages.segmentation.runner import coverage_warning
-
-    cov = np.array([0.0, 0.2, 3.0, 5.0, 9.0])  # 3 of 5 surfels seen at min_coverage 0.5
-    msg = coverage_warning(cov, 0.5, 1)
-    assert msg is not None and "60%" in msg and f"at least {MIN_TRAIN_VIEWS}" in msg
-    assert coverage_warning(cov, 0.1, 1, least=0.8) is None  # 4 of 5 seen
-    assert coverage_warning(np.zeros(0), 0.5, 0) is not None
-
-
 def test_presets():
     assert seg.get_config("paper") == seg.SegmentationConfig()
     p = seg.get_config("paper")

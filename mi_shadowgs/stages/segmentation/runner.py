@@ -20,7 +20,6 @@ from mi_shadowgs.stages.common import (
     checkpoint_hooks,
     load_training_views,
     settings_dict,
-    warn,
 )
 
 
@@ -33,22 +32,6 @@ def segmentation_config(preset: str, masks: str, overrides: dict | None = None):
         overrides.setdefault("min_label_fraction", 0.005)
         overrides.setdefault("k_select", "silhouette")
     return with_overrides(get_config(preset), overrides, "segmentation")
-
-
-def coverage_warning(coverage, min_coverage: float, n_views: int,
-                     least: float = 0.9) -> str | None:
-    """A warning when fewer than ``least`` of the surfels (coverage [N]: summed splat weight
-    over the training views) are seen: their features were never trained, so their
-    segments are guesses. None when enough are seen."""
-    from mi_shadowgs.stages.common import MIN_TRAIN_VIEWS
-
-    seen = float(np.mean(np.asarray(coverage) >= min_coverage)) if len(coverage) else 0.0
-    if seen >= least:
-        return None
-    return (f"stage 2: the {n_views} training view(s) see only {seen:.0%} of the surfels; "
-            f"the others get the nearest segment of a random feature. Segmentation needs "
-            f"views all around the object (at least {MIN_TRAIN_VIEWS}; the default scene's "
-            "64 see ~all)")
 
 
 def overlay(image, seg_map, colors, alpha: float = 0.5):
@@ -105,9 +88,6 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
                                  progress=progress, names=[v.name for v in train.views],
                                  **checkpoint_hooks(out, seg.FeatureState.from_checkpoint))
     t_stage = time.perf_counter() - t0
-    warning = coverage_warning(result.train.coverage, config.min_coverage, len(train.views))
-    if warning:
-        warn(warning)
     stems = [Path(v.name).name for v in views.views]
     with out:
         out.claim("model.ply", *(f"segments/{s}{x}.png" for s in stems
@@ -125,9 +105,7 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
         report = {"model": str(model), "data": str(data), "masks": masks, "preset": preset,
                   "config": to_dict(config), "k": result.k, "surfels": surfels.count,
                   "seconds_masks": t_masks, "seconds_train": result.train.seconds,
-                  "seconds_stage": t_stage, "split": split, "views": len(maps),
-                  "seen_fraction": float(np.mean(result.train.coverage >= config.min_coverage)),
-                  "warnings": [warning] if warning else []}
+                  "seconds_stage": t_stage, "split": split, "views": len(maps)}
         if result.k_scores:
             report["k_silhouette"] = {str(k): v for k, v in result.k_scores.items()}
         if all(v.material is not None for v in views.views):
