@@ -58,6 +58,29 @@ def test_shadow_boundary_is_not_a_segment_boundary_synthetic():
     assert dmaj != major and (lab[disk] == dmaj).mean() > 0.9
 
 
+def test_merge_unlabels_leaky_regions_and_slivers():
+    # One 40x40 view: a grey base (region 1), a blue block (region 2), a region 3 that
+    # leaked across their edge (half grey, half blue, as Felzenszwalb does in dark, noisy
+    # shadows), and a 2-pixel red sliver (region 4, 0.1 % of the pixels).
+    rng = np.random.default_rng(3)
+    img = np.tile([0.3, 0.3, 0.3], (40, 40, 1)) * (1 + 0.02 * rng.normal(size=(40, 40, 3)))
+    reg = np.ones((40, 40), int)
+    reg[:, 20:] = 2
+    img[:, 20:] = [0.1, 0.2, 0.5]
+    reg[30:, 10:30] = 3
+    reg[0, :2] = 4
+    img[0, :2] = [0.8, 0.1, 0.1]
+    lab = masks.merge_regions([img], [reg])[0]
+    assert (lab[reg == 3] == 0).all()  # the leak is unlabelled, not a third material
+    assert (lab[reg == 4] == 0).all()  # so is the sliver
+    assert len(np.unique(lab[reg == 1])) == 1 and len(np.unique(lab[reg == 2])) == 1
+    assert lab[5, 5] != lab[5, 35] and min(lab[5, 5], lab[5, 35]) > 0
+    # With the checks off, both would be labels of their own.
+    cfg = masks.ChromaticityConfig(max_region_spread=1.0, min_label_fraction=0.0)
+    off = masks.merge_regions([img], [reg], cfg)[0]
+    assert (off[reg == 3] > 0).all() and (off[reg == 4] > 0).all()
+
+
 def test_shadow_boundary_on_ground_truth_images(tiny):
     ds = load_dataset(tiny, "train")
     info = json.loads((tiny / "dataset.json").read_text())

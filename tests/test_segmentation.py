@@ -215,6 +215,57 @@ def test_auto_k_counts_labels_with_enough_pixels():
     assert seg.auto_k(ls, seg.SegmentationConfig(min_label_fraction=0.1)) == 1
 
 
+def test_silhouette_matches_brute_force():
+    rng = np.random.default_rng(7)
+    x = rng.normal(size=(23, 3))
+    lab = rng.integers(0, 4, 23)
+    lab[:4] = [0, 1, 2, 3]
+    lab[22] = 9  # a cluster of one point: scores 0
+    ref = []
+    for i in range(len(x)):
+        d = np.linalg.norm(x - x[i], axis=1)
+        own = lab == lab[i]
+        if own.sum() == 1:
+            ref.append(0.0)
+            continue
+        a = d[own].sum() / (own.sum() - 1)
+        b = min(d[lab == c].mean() for c in np.unique(lab) if c != lab[i])
+        ref.append((b - a) / max(a, b))
+    # rel 1e-8: the distances come from the Gram form |x|^2 + |y|^2 - 2 x.y (cancellation).
+    assert seg.silhouette(x, lab) == pytest.approx(np.mean(ref), rel=1e-8)
+    with pytest.raises(ValueError, match="clusters"):
+        seg.silhouette(x, np.zeros(23, int))
+
+
+def test_choose_k_ignores_labels_the_features_do_not_separate():
+    # Five labels from images alone, but the trained features form three clusters (two
+    # pairs of labels, e.g. a surface in and out of shadow, got the same feature): K = 3.
+    rng = np.random.default_rng(8)
+    centres = np.eye(6)[:3]
+    f = np.concatenate([c + rng.normal(0, 0.05, (300, 6)) for c in centres])
+    cfg = seg.SegmentationConfig(k_select="silhouette", silhouette_samples=500)
+    k, scores = seg.choose_k(f, 5, config=cfg)
+    assert k == 3 and set(scores) == {2, 3, 4, 5}
+    # Six well-separated clusters: the cap (the label count) wins.
+    f6 = np.concatenate([c + rng.normal(0, 0.05, (100, 6)) for c in np.eye(6)])
+    assert seg.choose_k(f6, 6, config=cfg)[0] == 6
+    assert seg.choose_k(f6, 1, config=cfg) == (1, {})
+
+
+def test_k_selection_settings():
+    from mi_shadowgs.cli import build_parser
+    from mi_shadowgs.stages.segmentation import segmentation_config
+
+    # Images alone: K by silhouette; material ids: K = the label count, as before.
+    assert segmentation_config("cpu-small", "chromaticity").k_select == "silhouette"
+    assert segmentation_config("cpu-small", "material").k_select == "labels"
+    args = build_parser().parse_args(["segment", "m.ply", "--data", "d", "--out", "o",
+                                      "--segments", "4"])
+    assert args.k == 4
+    with pytest.raises(ValueError, match="k_select"):
+        seg.segment_surfels(None, [], [], seg.SegmentationConfig(k_select="bic"))
+
+
 def test_presets():
     assert seg.get_config("paper") == seg.SegmentationConfig()
     p = seg.get_config("paper")

@@ -33,8 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
     parser.add_argument("--masks", default="material", choices=("material", "chromaticity"),
                         help="label maps to train on (default: the dataset's material ids)")
-    parser.add_argument("--k", type=int, default=None,
-                        help="number of segments (default: the number of mask labels)")
+    parser.add_argument("--segments", "--k", dest="k", type=int, default=None,
+                        help="number of segments K (default: the number of mask labels; "
+                        "with --masks chromaticity, the K of best silhouette up to it)")
     parser.add_argument("--split", default="test",
                         help="views to render segment maps of (default: test)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -72,6 +73,8 @@ def _parse_sets(items: list[str]) -> dict:
         kind = str(kinds[key])
         if value.lower() == "none" and "None" in kind:
             out[key] = None
+        elif kind.startswith("str"):
+            out[key] = value
         elif kind.startswith("int"):
             out[key] = int(value)
         else:

@@ -59,7 +59,13 @@ class SegmentationConfig:
     lambda_mask: float = 0.5
     temperature: float = 0.3  # tau of L_inter
     margin: float = 0.5  # delta of Eq. 9 (not given in the paper): cos 0.5 = 60 degrees
-    n_segments: int | None = None  # K; None: the number of labels of the masks
+    n_segments: int | None = None  # K; None: chosen by ``k_select``
+    # How K is chosen when n_segments is None: "labels" counts the mask labels with enough
+    # pixels (right for material ids); "silhouette" picks the K in [2, that count] with the
+    # best silhouette of the trained surfel features (masks from images alone over-split:
+    # a label the surfels' features do not separate does not earn a segment).
+    k_select: str = "labels"
+    silhouette_samples: int = 2000  # seen surfels drawn for the silhouette ([n, n] distances)
     min_label_pixels: int = 20  # labels with fewer pixels (all views) do not count for K
     # ... nor labels below this share of the labelled pixels (0.005 suits the chromaticity
     # masks, whose edge and highlight slivers would otherwise each count; material ids of
@@ -252,6 +258,52 @@ def auto_k(labels: LabelSet, config: SegmentationConfig) -> int:
     least = max(config.min_label_pixels,
                 config.min_label_fraction * float(labels.pixel_counts.sum()))
     return max(1, int((labels.pixel_counts >= least).sum()))
+
+
+def silhouette(x: np.ndarray, labels: np.ndarray) -> float:
+    """Mean silhouette (Rousseeuw 1987) of points ``x`` [n, D] in clusters ``labels`` [n]
+    (Euclidean); points alone in their cluster score 0. Needs 2 <= clusters < n."""
+    x = np.asarray(x, dtype=np.float64)
+    lab = np.unique(np.asarray(labels), return_inverse=True)[1].reshape(-1)
+    k = int(lab.max(initial=-1)) + 1
+    if k < 2 or k >= len(x):
+        raise ValueError(f"silhouette: need 2 <= clusters < points, got {k} and {len(x)}")
+    sq = (x * x).sum(1)
+    d = np.sqrt(np.maximum(sq[:, None] + sq[None, :] - 2.0 * x @ x.T, 0.0))  # [n, n]
+    np.fill_diagonal(d, 0.0)  # the Gram form leaves ~1e-8 there
+    onehot = np.zeros((len(x), k))
+    onehot[np.arange(len(x)), lab] = 1.0
+    size = onehot.sum(0)  # [k]
+    mean_to = (d @ onehot) / np.maximum(size, 1.0)  # [n, k] mean distance to each cluster
+    own = size[lab]
+    a = mean_to[np.arange(len(x)), lab] * own / np.maximum(own - 1.0, 1.0)  # excludes self
+    other = np.where(onehot > 0, np.inf, mean_to)
+    b = other.min(1)
+    s = np.where(own > 1, (b - a) / np.maximum(np.maximum(a, b), 1e-12), 0.0)
+    return float(s.mean())
+
+
+def choose_k(features: np.ndarray, k_max: int, seen: np.ndarray | None = None,
+             config: SegmentationConfig = SegmentationConfig()) -> tuple[int, dict[int, float]]:
+    """(K, {K: silhouette}) for K in [2, k_max]: K-means (best of ``kmeans_restarts``
+    k-means++ seedings) on ``silhouette_samples`` unit features [N, D] of the ``seen``
+    surfels, K with the largest silhouette. k_max < 2: (max(k_max, 1), {})."""
+    f = np.asarray(features, dtype=np.float64)
+    u = f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
+    if seen is not None and np.any(seen):
+        u = u[np.asarray(seen, bool)]
+    rng = np.random.default_rng(config.seed)
+    if len(u) > config.silhouette_samples:
+        u = u[rng.choice(len(u), config.silhouette_samples, replace=False)]
+    k_max = int(min(k_max, len(u) - 1))
+    if k_max < 2:
+        return max(k_max, 1), {}
+    scores = {}
+    for k in range(2, k_max + 1):
+        lab, _ = kmeans_segments(u, k, seed=config.seed, restarts=config.kmeans_restarts,
+                                 iterations=config.kmeans_iterations)
+        scores[k] = silhouette(u, lab) if len(np.unique(lab)) >= 2 else -1.0
+    return max(scores, key=lambda k: (scores[k], -k)), scores
 
 
 # -- training -----------------------------------------------------------------------------
@@ -462,6 +514,7 @@ class SegmentationResult:
     segments: np.ndarray  # [N] int, 0..k-1
     k: int
     train: TrainResult
+    k_scores: dict | None = None  # {K: silhouette} when K was chosen by silhouette
 
 
 def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
@@ -471,18 +524,25 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                     on_checkpoint=None) -> SegmentationResult:
     """The whole stage: train features on ``label_maps`` (one per camera), then K-means.
     ``state`` and ``on_checkpoint``: see ``train_features``."""
+    if config.k_select not in ("labels", "silhouette"):
+        raise ValueError(f"SegmentationConfig.k_select must be 'labels' or 'silhouette', got "
+                         f"{config.k_select!r}")
     labels = prepare_labels(label_maps, cameras, names)
     k = auto_k(labels, config)
     tr = train_features(surfels, cameras, labels, config, raster, progress, state,
                         on_checkpoint)
-    seg, _ = kmeans_segments(tr.features, k, tr.coverage >= config.min_coverage, config.seed,
+    seen = tr.coverage >= config.min_coverage
+    scores = None
+    if config.n_segments is None and config.k_select == "silhouette":
+        k, scores = choose_k(tr.features, k, seen, config)
+    seg, _ = kmeans_segments(tr.features, k, seen, config.seed,
                              config.kmeans_restarts, config.kmeans_iterations,
                              prototype_seeds(tr.prototypes, labels, k))
     out = Surfels(surfels.position, surfels.log_scale, surfels.rotation,
                   surfels.opacity_logit, dict(surfels.channels))
     out.channels[FEATURE] = mi.TensorXf(tr.features)
     out.channels[SEGMENT] = mi.TensorXf(seg.astype(np.float32)[:, None])
-    return SegmentationResult(out, seg, k, tr)
+    return SegmentationResult(out, seg, k, tr, scores)
 
 
 # -- rendering segment maps ---------------------------------------------------------------

@@ -13,6 +13,14 @@ region. The contrastive trainer (``mi_shadowgs.stages.segmentation.features``) t
   graph segmentation on it inside the view's mask; then the regions of all views are
   merged by chromaticity (average-linkage clustering of their median chromaticities), so
   that labels agree across views and one material split by an occluder gets one label.
+  Two kinds of region are left unlabelled (0; the feature training skips them and the
+  surfels there take their features from the views where they are clear): a region whose
+  pixels spread far from its median chromaticity (Felzenszwalb leaks across a material
+  edge in dark, noisy shadows: on the default scene such regions mixed the shadowed block
+  and base), and a merged label with a tiny share of the labelled pixels (edge and
+  highlight slivers). Measured on the default scene's 64 training views: ARI of the label
+  maps against the ids 0.858 -> 0.954 on the labelled pixels, 7.6 % of them unlabelled,
+  and 5 labels above 0.5 % (the 5 materials) instead of 7 (issue 17).
   Limits: surfaces that differ only in brightness (a white and a grey one) share a
   chromaticity and merge; coloured indirect light or strong specular highlights shift it.
 """
@@ -41,6 +49,12 @@ class ChromaticityConfig:
     sigma: float = 0.5  # Felzenszwalb's own pre-smoothing of the chromaticity image
     min_size_fraction: float = 0.002  # Felzenszwalb's min region, as a fraction of H * W
     merge_distance: float = 0.04  # chromaticity distance (L2 of (r, g, b) ratios) to merge
+    # A region whose pixels lie at a median distance above this from its median chromaticity
+    # is a leak across a material edge: unlabelled. The default scene's regions: median
+    # 0.002, 75th percentile 0.024, 90th 0.10.
+    max_region_spread: float = 0.03
+    # Merged labels with less than this share of all labelled pixels become unlabelled.
+    min_label_fraction: float = 0.005
 
 
 PRESETS = {"paper": ChromaticityConfig(), "cpu-small": ChromaticityConfig()}
@@ -108,15 +122,20 @@ def merge_regions(images: Sequence[np.ndarray], regions: Sequence[np.ndarray],
     share one label, 1..L; 0 stays 0."""
     from scipy.cluster.hierarchy import fcluster, linkage
 
-    feats, where = [], []
+    feats, where, sizes = [], [], []
     for v, (img, reg) in enumerate(zip(images, regions, strict=True)):
         chroma = chromaticity(img, config.dark_eps)
+        reg = np.asarray(reg)
         for r in range(1, int(reg.max(initial=0)) + 1):
             sel = reg == r
             if sel.any():
                 # The median resists the few noisy dark or highlight pixels of a region.
-                feats.append(np.median(chroma[sel], axis=0))
-                where.append((v, r))
+                med = np.median(chroma[sel], axis=0)  # [3]
+                spread = np.median(np.linalg.norm(chroma[sel] - med, axis=-1))
+                if spread <= config.max_region_spread:
+                    feats.append(med)
+                    where.append((v, r))
+                    sizes.append(int(sel.sum()))
     out = [np.zeros_like(np.asarray(r), dtype=np.int32) for r in regions]
     if not feats:
         return out
@@ -125,8 +144,11 @@ def merge_regions(images: Sequence[np.ndarray], regions: Sequence[np.ndarray],
     else:
         tree = linkage(np.asarray(feats), method="average")
         ids = fcluster(tree, t=config.merge_distance, criterion="distance")
+    share = np.bincount(ids, weights=np.asarray(sizes, np.float64))  # [L + 1] pixels
+    keep = share >= config.min_label_fraction * share.sum()
+    new = np.cumsum(keep) * keep  # kept labels renumbered 1..L', the others 0
     for (v, r), i in zip(where, ids, strict=True):
-        out[v][np.asarray(regions[v]) == r] = int(i)
+        out[v][np.asarray(regions[v]) == r] = int(new[i])
     return out
 
 

@@ -28,8 +28,9 @@ def segmentation_config(preset: str, masks: str, overrides: dict | None = None):
     from mi_shadowgs.stages.segmentation.features import get_config
 
     overrides = dict(overrides or {})
-    if masks == "chromaticity":  # see SegmentationConfig.min_label_fraction
+    if masks == "chromaticity":  # see SegmentationConfig.min_label_fraction and k_select
         overrides.setdefault("min_label_fraction", 0.005)
+        overrides.setdefault("k_select", "silhouette")
     return with_overrides(get_config(preset), overrides, "segmentation")
 
 
@@ -105,6 +106,8 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
                   "config": to_dict(config), "k": result.k, "surfels": surfels.count,
                   "seconds_masks": t_masks, "seconds_train": result.train.seconds,
                   "seconds_stage": t_stage, "split": split, "views": len(maps)}
+        if result.k_scores:
+            report["k_silhouette"] = {str(k): v for k, v in result.k_scores.items()}
         if all(v.material is not None for v in views.views):
             report.update(_segmentation_metrics(maps, views))
         write_json(folder / "segmentation.json", report)
