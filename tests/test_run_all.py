@@ -24,7 +24,7 @@ def _fake_row(name: str, lights: str) -> dict:
 def fake_runs(monkeypatch):
     calls = []
 
-    def run_scene(name, mesh, out, lights="tuned", ablations=True):
+    def run_scene(name, mesh, out, lights="tuned", ablations=True, envmaps=vpipe.ENVMAPS):
         calls.append((name, lights))
         folder = Path(out) / f"{name}-{lights}"
         folder.mkdir(parents=True, exist_ok=True)
