@@ -321,3 +321,27 @@ def test_a_dataset_writer_may_rewrite_its_own_dataset_but_not_nest_one(tmp_path)
         provenance.Output.open(
             ds / "inner", "generate", provenance.Provenance(), writes_dataset=True
         )
+
+
+def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
+    """An output made before a setting existed is still the same output when the new value
+    does what the older code did (ADDED_SETTINGS), or when the setting only acts through
+    compared ones (RESULT_NEUTRAL_SETTINGS); otherwise the difference is named."""
+    old = {"settings": {"config": {"iterations": 300, "lambda_dist": 3e4}}}
+
+    def diff(**new_config):
+        new = provenance.Provenance(settings={"config": {"iterations": 300,
+                                                         "lambda_dist": 3e4, **new_config}})
+        return provenance.differences(old, new, ("settings",))
+
+    # stage 2 before k_select: K from the labels; silhouette_samples unused then
+    assert diff(k_select="labels", silhouette_samples=2000) == []
+    # stage 1 before the unmasked settings: they act through lambda_dist (compared)
+    assert diff(unmasked_lambda_dist=0.0, unmasked_lambda_normal=0.0,
+                unmasked_opacity_reset=False) == []
+    # a value the older code did not use is a difference, and so is one it did use
+    d = diff(k_select="silhouette", silhouette_samples=2000)
+    assert len(d) == 1 and "k_select" in d[0] and "silhouette_samples" in d[0]
+    assert "lambda_dist" in provenance.differences(
+        old, provenance.Provenance(settings={"config": {"iterations": 300,
+                                                        "lambda_dist": 0.0}}), ("settings",))[0]

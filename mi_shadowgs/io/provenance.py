@@ -123,7 +123,31 @@ def _flatten(d: dict, prefix: str = "") -> dict:
 
 # Settings that only say when to checkpoint: a resume is bit-identical whatever they are, so
 # an output made with other values is still the same output.
-RESULT_NEUTRAL_SETTINGS = ("checkpoint_every", "checkpoint_seconds")
+RESULT_NEUTRAL_SETTINGS = ("checkpoint_every", "checkpoint_seconds",
+                           # stage 1 applies these to views without masks through
+                           # lambda_dist, lambda_normal and the opacity reset, which are
+                           # compared: their effect is recorded there
+                           "unmasked_lambda_dist", "unmasked_lambda_normal",
+                           "unmasked_opacity_reset")
+# Settings added after outputs were made, with the value that does what the code did before
+# they existed: absent from an older manifest, they count as equal to that value, so an
+# older run is still reused (or resumed) when nothing it computed would change.
+ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material ids)
+                  "silhouette_samples": None}  # used only by k_select "silhouette"
+
+
+def _added_as_before(key: str, old: dict, new: dict) -> bool:
+    """``key`` is an ``ADDED_SETTINGS`` entry that the older manifest lacks and whose new
+    value does what the older code did (None there: any value, the setting being unused
+    then; e.g. ``silhouette_samples`` unless ``k_select`` is "silhouette")."""
+    name = key.rsplit(".", 1)[-1]
+    if key in old or name not in ADDED_SETTINGS:
+        return False
+    before = ADDED_SETTINGS[name]
+    if before is None:
+        sibling = key.rsplit(".", 1)[0] + ".k_select" if "." in key else "k_select"
+        return new.get(sibling, "labels") == ADDED_SETTINGS["k_select"]
+    return new.get(key) == before
 
 
 def differences(manifest: dict, provenance: Provenance,
@@ -153,7 +177,8 @@ def differences(manifest: dict, provenance: Provenance,
     if "settings" in compare:
         old_s, new_s = _flatten(manifest.get("settings") or {}), _flatten(new["settings"])
         keys = sorted(k for k in set(old_s) | set(new_s) if old_s.get(k) != new_s.get(k)
-                      and k.rsplit(".", 1)[-1] not in RESULT_NEUTRAL_SETTINGS)
+                      and k.rsplit(".", 1)[-1] not in RESULT_NEUTRAL_SETTINGS
+                      and not _added_as_before(k, old_s, new_s))
         phrases = [f"{k}: {json.dumps(old_s.get(k))} there, {json.dumps(new_s.get(k))} now"
                    for k in keys[:_MAX_LISTED]]
         if len(keys) > _MAX_LISTED:
