@@ -152,6 +152,17 @@ class Camera:
         c2w_cv = np.linalg.inv(self.world_to_cv())
         return pc @ c2w_cv[:3, :3].T + c2w_cv[:3, 3]
 
+    def pixel_of(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x index [M], y index [M], inside [M] bool) of the pixels holding world points
+        [M, 3]: inside when in front of the near plane and within the image."""
+        uv, z = self.project(points)
+        uv = np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)
+        xi = np.clip(np.floor(uv[:, 0]), -1, self.width).astype(np.int64)
+        yi = np.clip(np.floor(uv[:, 1]), -1, self.height).astype(np.int64)
+        inside = (z > self.near) & (xi >= 0) & (xi < self.width) & (yi >= 0) & \
+            (yi < self.height)
+        return xi, yi, inside
+
     def pixel_grid(self) -> np.ndarray:
         """Pixel-centre coordinates [H*W, 2] in row-major order."""
         ys, xs = np.mgrid[0 : self.height, 0 : self.width]

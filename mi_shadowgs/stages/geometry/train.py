@@ -167,7 +167,7 @@ def visual_hull_points(views, centre, radius: float, count: int, resolution: int
     pts = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], -1) * radius + centre  # [G^3, 3]
     keep = np.ones(len(pts), bool)
     for view in views:
-        xi, yi, inside = _pixel_of(view, pts)
+        xi, yi, inside = view.camera.pixel_of(pts)
         hit = np.zeros(len(pts), bool)
         hit[inside] = view.mask[yi[inside], xi[inside]]
         keep &= hit | ~inside
@@ -186,22 +186,11 @@ def visual_hull_points(views, centre, radius: float, count: int, resolution: int
     return cells[pick] + (rng.random((len(pick), 3)) - 0.5) * cell
 
 
-def _pixel_of(view, pts: np.ndarray):
-    """(x index, y index, inside) of ``pts`` [M, 3] in ``view``'s image."""
-    uv, z = view.camera.project(pts)
-    h, w = view.mask.shape
-    uv = np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)
-    xi = np.clip(np.floor(uv[:, 0]), -1, w).astype(np.int64)
-    yi = np.clip(np.floor(uv[:, 1]), -1, h).astype(np.int64)
-    inside = (z > view.camera.near) & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-    return xi, yi, inside
-
-
 def _photo_inconsistency(views, pts: np.ndarray) -> np.ndarray:
     """[M] median over views of |colour - median colour| (inf where < 3 views see it)."""
     cols = np.full((len(views), len(pts), 3), np.nan, np.float32)
     for k, view in enumerate(views):
-        xi, yi, ok = _pixel_of(view, pts)
+        xi, yi, ok = view.camera.pixel_of(pts)
         ok[ok] = view.mask[yi[ok], xi[ok]]
         cols[k, ok] = view.image[yi[ok], xi[ok]]
     n = np.sum(~np.isnan(cols[..., 0]), axis=0)
@@ -219,7 +208,7 @@ def mean_colour(views, pts: np.ndarray) -> np.ndarray:
     acc = np.zeros((len(pts), 3))
     n = np.zeros(len(pts))
     for view in views:
-        xi, yi, ok = _pixel_of(view, pts)
+        xi, yi, ok = view.camera.pixel_of(pts)
         ok[ok] = view.mask[yi[ok], xi[ok]]
         acc[ok] += view.image[yi[ok], xi[ok]]
         n[ok] += 1

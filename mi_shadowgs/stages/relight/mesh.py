@@ -210,15 +210,18 @@ def marching_cubes(tsdf: np.ndarray, weight: np.ndarray, grid: VoxelGrid
     return (verts + np.asarray(grid.origin)).astype(np.float32), faces.astype(np.int32)
 
 
-def _components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Connected-component label of each face (faces sharing a vertex are connected)."""
+def _linked(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """Connected-component label [n] of n nodes linked by the pairs (a[i], b[i])."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    a = faces.ravel()
-    b = faces[:, [1, 2, 0]].ravel()  # the triangle's edges
-    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n_vertices, n_vertices))
-    _, vert_label = connected_components(graph, directed=False)
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def _components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Connected-component label of each face (faces sharing a vertex are connected)."""
+    vert_label = _linked(faces.ravel(), faces[:, [1, 2, 0]].ravel(), n_vertices)  # edges
     return vert_label[faces[:, 0]]
 
 
@@ -317,12 +320,7 @@ def plane_hull(views: list[tuple[Camera, np.ndarray]], lo: np.ndarray, hi: np.nd
     votes = np.zeros(len(pts))
     seen = np.zeros(len(pts))
     for cam, mask in views:
-        uv, z = cam.project(pts)
-        uv = np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)
-        h, w = mask.shape
-        xi = np.floor(uv[:, 0]).astype(np.int64)
-        yi = np.floor(uv[:, 1]).astype(np.int64)
-        inside = (z > cam.near) & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+        xi, yi, inside = cam.pixel_of(pts)
         hit = np.zeros(len(pts), bool)
         hit[inside] = mask[yi[inside], xi[inside]]
         votes += hit
@@ -341,8 +339,6 @@ def _boundary_vertices(faces: np.ndarray) -> np.ndarray:
 def _weld(part: MeshPart, candidates: np.ndarray, radius: float) -> MeshPart:
     """``part`` with the ``candidates`` vertices closer than ``radius`` merged (each group
     onto one of them) and the triangles left with a repeated vertex or no area dropped."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(part.vertices[candidates].astype(np.float64)).query_pairs(radius,
@@ -350,8 +346,7 @@ def _weld(part: MeshPart, candidates: np.ndarray, radius: float) -> MeshPart:
     target = np.arange(len(part.vertices))
     if len(pairs):
         n = len(candidates)
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        _, label = connected_components(graph, directed=False)
+        label = _linked(pairs[:, 0], pairs[:, 1], n)
         first = np.full(label.max() + 1, -1)
         for k in range(n - 1, -1, -1):  # each group onto its first member
             first[label[k]] = k
