@@ -55,6 +55,7 @@ class RunConfig:
     bounds_quantile: float = 0.98  # shadow-map bound: this quantile of surfel distances
     figure_views: int = 4  # test views shown in the report's figure grid
     material_iterations: int | None = None  # override of the stage-4 preset
+    segments: int | None = None  # stage 2's K; None: the segmentation settings choose it
     # Env maps (files, or folders of .exr) of the report's relit previews, beside the
     # dataset's own; e.g. ../shared/data/envmaps. Missing entries are left out.
     preview_envmaps: tuple[str, ...] = ()
@@ -62,6 +63,8 @@ class RunConfig:
     def __post_init__(self):
         if self.masks not in MASK_SOURCES:
             raise ValueError(f"RunConfig.masks must be one of {MASK_SOURCES}, got {self.masks!r}")
+        if self.segments is not None and self.segments < 1:
+            raise ValueError(f"RunConfig.segments must be >= 1 (or None), got {self.segments}")
 
 
 PRESETS = {
@@ -219,7 +222,10 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         top.add_part("segmentation")
         seg = segmentation.run_segmentation(
             run / "geometry" / "model.ply", data, run / "segmentation",
-            segmentation.segmentation_config(config.preset, masks), masks=masks,
+            segmentation.segmentation_config(
+                config.preset, masks,
+                None if config.segments is None else {"n_segments": config.segments}),
+            masks=masks,
             preset=config.preset, overwrite=overwrite, reuse=True, progress=progress,
             train=train, views=test)
         done("segmentation", seg)

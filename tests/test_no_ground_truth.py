@@ -39,8 +39,9 @@ def data(tmp_path_factory, tiny_presets):
             "tensoir": export_without_ground_truth(full, base / "tensoir", "tensoir")}
 
 
-def _run(data, out) -> int:
-    return cli.main(["run", str(data), "--out", str(out), "--preset", TINY, "--no-progress"])
+def _run(data, out, *extra: str) -> int:
+    return cli.main(["run", str(data), "--out", str(out), "--preset", TINY, "--no-progress",
+                     *extra])
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +49,9 @@ def runs(data, tmp_path_factory):
     base = tmp_path_factory.mktemp("nogt_runs")
     out = {}
     for kind in ("nerf", "tensoir"):
-        assert _run(data[kind], base / kind) == 0
+        # the TensoIR copy's K is forced (`run --segments`); the NeRF copy's is chosen
+        assert _run(data[kind], base / kind, *(["--segments", "3"] if kind == "tensoir"
+                                               else [])) == 0
         out[kind] = base / kind
     return out
 
@@ -107,6 +110,9 @@ def test_run_without_ground_truth_writes_models_decomposition_and_skips(runs, ki
     assert lights["columns"][1:3] == ["azimuth (deg)", "elevation (deg)"] and lights["rows"]
     page = (run / "report.html").read_text()
     assert "Metrics not computed" in page and "missing:" not in page
+    seg = json.loads((run / "segmentation" / "segmentation.json").read_text())
+    if kind == "tensoir":
+        assert seg["k"] == 3
 
 
 def test_labelled_dataset_skips_nothing_of_stage_5(data, tmp_path):

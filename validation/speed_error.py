@@ -133,7 +133,9 @@ def ensure_base(base: Path, scene: str, make: bool) -> dict | None:
     if scene not in avail:
         raise FileNotFoundError(f"scene {scene!r} needs its mesh under "
                                 f"{vpipe.SHARED_DATA / 'meshes'}")
-    return vpipe.run_scene(scene, avail[scene], base, "tuned")
+    # the sweep reads only the full model's figures: Table 3's ablations would cost two more
+    # stage-4 fits (not in the time axis, but in the sweep's wall time)
+    return vpipe.run_scene(scene, avail[scene], base, "tuned", ablations=False)
 
 
 def _base_metrics(row: dict) -> dict:

@@ -23,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
     parser.add_argument("--masks", default=None, choices=("auto", "material", "chromaticity"),
                         help="segmentation labels (default: material ids when present)")
+    parser.add_argument("--segments", type=int, default=None, metavar="K",
+                        help="number of material segments (default: the number of material "
+                             "ids, or without ids the K of best silhouette)")
     parser.add_argument("--ablations", action="store_true", default=None,
                         help="also fit the w/o visibility and w/o segmentation variants")
     parser.add_argument("--material-iterations", type=int, default=None,
@@ -42,6 +45,8 @@ def run(args) -> int:
     overrides = {}
     if args.masks is not None:
         overrides["masks"] = args.masks
+    if args.segments is not None:
+        overrides["segments"] = args.segments
     if args.ablations:
         overrides["ablations"] = True
     if args.material_iterations is not None:
