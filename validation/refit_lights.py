@@ -157,7 +157,12 @@ def main(argv=None) -> int:
                     help="only settle_lights on the run's fitted lights (no refit); prints")
     ap.add_argument("--table", type=Path, nargs="*", default=None)
     ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
     args = ap.parse_args(argv)
+    if args.threads:
+        import drjit as dr
+
+        dr.set_thread_count(args.threads)
     if args.settle_only:
         if args.run is None or args.data is None:
             ap.error("--settle-only needs --run and --data")

@@ -64,6 +64,9 @@ DEFAULT_RASTER = RasterConfig()
 DEFAULT_VISIBILITY = VisibilityConfig()
 
 
+REFINE_SCORES = ("segment", "irradiance")
+
+
 @dataclasses.dataclass(frozen=True)
 class MaterialConfig:
     """Stage-4 hyperparameters; defaults are the paper's (Sec. V-A1) where it gives them."""
@@ -127,6 +130,24 @@ class MaterialConfig:
     # Views scored in the global pass (every other of the refinement's): it scores 129
     # candidates, the cost of ~3 local passes, and only has to land within a grid cell.
     refine_global_views: int = 8
+    # How a candidate direction is scored (``_candidate_scores``). "irradiance": the views'
+    # squared error with the candidate's irradiance re-fitted and everything else fixed.
+    # But the albedo was fitted under the current light, so that score favours the current
+    # direction: on the default scene under the low pair, the 20 degree light sat at 27
+    # degrees, where the albedo had settled, and the score along its azimuth was lowest at
+    # 24-26. "segment": per material segment s, what the light has to explain (the target
+    # minus the other lights and the indirect term) is fitted as b_s B (B the candidate's
+    # shading, b_s >= 0 free per segment), so a segment's albedo scale drops out of the
+    # light's part and what is left is the pattern of its shading and shadows; the same
+    # model and views put its minimum at 20.0 (BENCHMARKS.md, "Light directions scored per
+    # segment"). The other lights keep their scale: freeing it too let a light near the
+    # truth explain everything, and a light split over two grid cells never merged. The
+    # moved light's irradiance is still the global least-squares fit.
+    refine_score: str = "segment"
+    # Pixels whose largest segment carries less than this share of their blending weight
+    # (silhouettes between segments) are left out of the "segment" score: no one segment's
+    # scale describes them.
+    refine_segment_purity: float = 0.9
     # Model only what the scene needs (not in the paper): after each refinement, a light
     # carrying less than ``drop_share`` of the fitted irradiance is dropped when the training
     # views' squared error (the other lights' irradiance re-fitted by non-negative least
@@ -170,6 +191,12 @@ class MaterialConfig:
                              f"drop_gain >= 0: {self.refine_global}, "
                              f"{self.refine_global_map_resolution}, {self.drop_share}, "
                              f"{self.drop_gain}")
+        if not 0.0 <= self.refine_segment_purity <= 1.0:
+            raise ValueError(f"MaterialConfig.refine_segment_purity must be in [0, 1], got "
+                             f"{self.refine_segment_purity}")
+        if self.refine_score not in REFINE_SCORES:
+            raise ValueError(f"MaterialConfig.refine_score must be one of {REFINE_SCORES}, got "
+                             f"{self.refine_score!r}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")
@@ -337,6 +364,10 @@ class TrainView:
     weight: mi.Float  # [H * W] 1 on supervised pixels
     target: mi.Color3f  # [H * W]
     inv_count: mi.Float  # 1 / supervised pixels, opaque: a literal would recompile per view
+    # [H * W] the segment holding at least refine_segment_purity of each pixel's blending
+    # weight; n_segments where none does (mixed pixels, and pixels nothing covers)
+    segment: mi.UInt32
+    n_segments: int
 
 
 def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.ndarray,
@@ -350,7 +381,27 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
     weight = mi.Float(sup.astype(np.float32))
     target = mi.Color3f(*(img[:, c] for c in range(3)))
     inv = dr.opaque(mi.Float, 1.0 / float(max(sup.sum(), 1)))
-    return TrainView(camera, pairs, geom, weight, target, inv)
+    seg, n_seg = pixel_segments(surfels, pairs, config.refine_segment_purity)
+    return TrainView(camera, pairs, geom, weight, target, inv, seg, n_seg)
+
+
+def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
+                   ) -> tuple[mi.UInt32, int]:
+    """(segment [H * W], segment count S): per pixel, the segment that carries at least
+    ``purity`` of its blending weight, else S (mixed, or empty); all 0 (S = 1) without a
+    "segment" channel."""
+    npix = pairs.height * pairs.width
+    if "segment" not in surfels.channels:
+        return dr.zeros(mi.UInt32, npix), 1
+    seg = segment_ids(surfels)
+    n_seg = int(dr.max(seg)[0]) + 1 if dr.width(seg) else 1
+    weight = dr.zeros(mi.Float, npix * n_seg)  # [H * W * S]
+    dr.scatter_reduce(dr.ReduceOp.Add, weight, pairs.weight,
+                      pairs.pix * n_seg + dr.gather(mi.UInt32, seg, pairs.sid))
+    w = weight.numpy().reshape(npix, n_seg)
+    top = w.argmax(1)
+    pure = w[np.arange(npix), top] >= purity * np.maximum(w.sum(1), 1e-30)
+    return mi.UInt32(np.where(pure, top, n_seg).astype(np.uint32)), n_seg
 
 
 def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf], sh_degree: int,
@@ -550,11 +601,16 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
                       k: int, cand_maps, config: MaterialConfig, with_specular: bool
                       ) -> tuple[np.ndarray, np.ndarray]:
     """(squared error [C], fitted irradiance [C]) of the views when light ``k`` moves to
-    each candidate direction of ``cand_maps``, its irradiance re-fitted by least squares."""
+    each candidate direction of ``cand_maps``, its irradiance re-fitted by least squares.
+    The error is that of ``config.refine_score``: with the irradiance alone re-fitted
+    ("irradiance"), or per segment with the segment's scale free too ("segment")."""
     n_cand = cand_maps.count
     s_rb = dr.zeros(mi.Float64, n_cand)  # summed in Dr.Jit, read once at the end
     s_bb = dr.zeros(mi.Float64, n_cand)
     s_rr = mi.Float64(0.0)
+    per_segment = config.refine_score == "segment"
+    n_seg = max(v.n_segments for v in views) if views else 1
+    seg_sums = _SegmentSums(n_cand, n_seg) if per_segment else None
     with dr.suspend_grad():
         for v in views:
             albedo, rough, metal, ind, per = _view_direct(v, channels, config, maps,
@@ -584,12 +640,58 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
             s_rb += mi.Float64(dr.block_reduce(dr.ReduceOp.Add, rb, npix))
             s_bb += mi.Float64(dr.block_reduce(dr.ReduceOp.Add, bb, npix))
             s_rr += mi.Float64(dr.sum(dr.squared_norm(resid)))
+            if per_segment:
+                seg_sums.add(v, resid, rb, bb)
             dr.eval(s_rb, s_bb, s_rr)  # one kernel per view, not one growing graph
     s_rb, s_bb = s_rb.numpy(), s_bb.numpy()
     s_rr = float(s_rr.numpy()[0])
     irr = np.where(s_bb > 0, np.maximum(s_rb, 0.0) / np.maximum(s_bb, 1e-30), 0.0)
     err = s_rr - 2.0 * irr * s_rb + irr * irr * s_bb
+    if per_segment:
+        err = segment_errors(*seg_sums.read())
     return err, irr
+
+
+class _SegmentSums:
+    """The per-(candidate, segment) sums of ``segment_errors``, accumulated over views."""
+
+    def __init__(self, n_cand: int, n_seg: int):
+        # one bin more than the segments: the mixed pixels (TrainView.segment), dropped
+        self.n_cand, self.n_seg = n_cand, n_seg + 1
+        self.rr = dr.zeros(mi.Float64, self.n_seg)  # [S + 1] r.r
+        # [C * (S + 1)] (candidate-major): r.B, B.B
+        self.rb = dr.zeros(mi.Float64, n_cand * self.n_seg)
+        self.bb = dr.zeros(mi.Float64, n_cand * self.n_seg)
+
+    def add(self, v: TrainView, resid: mi.Color3f, rb: mi.Float, bb: mi.Float) -> None:
+        """One view: the residual ``resid`` [P] that the light has to explain, and r.B_c and
+        B_c.B_c [C * P] candidate-major (pixel weights applied)."""
+        npix = dr.width(v.weight)
+        seg = dr.select(v.segment >= v.n_segments, self.n_seg - 1, v.segment)  # [P]
+        dr.scatter_reduce(dr.ReduceOp.Add, self.rr, mi.Float64(dr.squared_norm(resid)), seg)
+        cm = dr.arange(mi.UInt32, npix * self.n_cand)  # candidate-major: c * P + p
+        idx = (cm // npix) * self.n_seg + dr.gather(mi.UInt32, seg, cm % npix)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.rb, mi.Float64(rb), idx)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.bb, mi.Float64(bb), idx)
+        dr.eval(self.rr, self.rb, self.bb)
+
+    def read(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        shape = (self.n_cand, self.n_seg)
+        return (self.rr.numpy()[:-1], self.rb.numpy().reshape(shape)[:, :-1],
+                self.bb.numpy().reshape(shape)[:, :-1])
+
+
+def segment_errors(rr: np.ndarray, rb: np.ndarray, bb: np.ndarray) -> np.ndarray:
+    """Squared error [C] of the views when, in each segment s, the residual r = t - R that
+    the moved light has to explain is fitted by least squares as b_s B_c, b_s >= 0
+    (``MaterialConfig.refine_score`` "segment").
+
+    Sums over the segment's supervised pixels and colour channels: ``rr`` [S] of r.r;
+    ``rb``, ``bb`` [C, S] of r.B_c and B_c.B_c. A segment where B_c is zero (all in shadow)
+    keeps its whole residual.
+    """
+    gain = np.where(bb > 0, np.maximum(rb, 0.0) ** 2 / np.where(bb > 0, bb, 1.0), 0.0)
+    return (rr[None] - gain).sum(1)
 
 
 def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndarray, maps,
