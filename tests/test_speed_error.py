@@ -22,6 +22,10 @@ def test_pareto_front_is_the_set_no_point_beats():
             {"point": "d", "wall_s": 20.0, "m": 2.0},  # ties b: neither beats the other
             {"point": "e", "wall_s": float("nan"), "m": 9.0}]  # unknown time: not on it
     assert se.pareto(rows, "m") == {"a", "b", "d"}
+    # jointly over two metrics: c is worse than b on m but better on n, so it stays
+    for r, n in zip(rows, (0.0, 1.0, 2.0, 0.5, 0.0), strict=True):
+        r["n"] = n
+    assert se.pareto(rows, ("m", "n")) == {"a", "b", "c"}  # d: as slow as b, worse on n
 
 
 def test_stage1_schedule_scales_with_its_steps():

@@ -16,8 +16,10 @@ they cost one stage-4 fit; their stage 1 and 2 times are the base run's, said in
 Wall time is the method's training time: stage 1 + stage 2 + stages 3-4 (the fit), from the
 runs' own stage timers; scoring the test views (stage 5) is not counted. Every point lives in
 ``OUT/<scene>/<point>/`` and is skipped once its ``point.json`` exists; a killed sweep resumes
-(the stages continue from their checkpoints). ``OUT/speed_error.csv`` and one PNG per scene
-(``speed_error_<scene>.png``) are rewritten from every finished point after each one;
+(the stages continue from their checkpoints). ``OUT/speed_error.csv`` (with each point's
+single-metric Pareto fronts, and whether it is on the joint front of time and all three
+metrics) and one PNG per scene (``speed_error_<scene>.png``) are rewritten from every
+finished point after each one;
 ``--attach RUN`` puts the plots into a run's ``speed_error/``, where its report shows them.
 """
 
@@ -61,7 +63,7 @@ STAGE_KEYS = vpipe.STAGE_KEYS
 CSV_COLUMNS = ("scene", "point", "changed", "resolution", "stage1_iterations",
                "stage4_iterations", "wall_s", "stage1_s", "stage2_s", "stage4_s",
                "albedo_psnr", "shadow_iou", "relight_psnr", "light_cosine", "pareto",
-               "source", "load")
+               "pareto_joint", "source", "load")
 
 
 # -- settings ---------------------------------------------------------------------------------
@@ -238,18 +240,28 @@ def gather(out: Path, base: Path, scenes: list[str]) -> list[dict]:
     for scene in scenes:
         mine = [r for r in rows if r["scene"] == scene]
         fronts = {m: pareto(mine, m) for m, _ in METRICS}
+        joint = pareto(mine, tuple(m for m, _ in METRICS))
         for r in mine:
             r["pareto"] = "/".join(m for m, _ in METRICS if r["point"] in fronts[m]) or "-"
+            r["pareto_joint"] = r["point"] in joint
     return rows
 
 
-def pareto(rows: list[dict], metric: str) -> set[str]:
-    """Points no other point beats on both wall time (lower) and ``metric`` (higher)."""
-    ok = [r for r in rows if np.isfinite(r["wall_s"]) and r.get(metric) is not None]
+def pareto(rows: list[dict], metric: str | tuple[str, ...]) -> set[str]:
+    """Points that no other point dominates: as fast or faster (wall time) and as good or
+    better on ``metric`` (higher; a tuple: on every one of them), better on one."""
+    metrics = (metric,) if isinstance(metric, str) else tuple(metric)
+    ok = [r for r in rows if np.isfinite(r["wall_s"]) and
+          all(r.get(m) is not None for m in metrics)]
+
+    def key(r):
+        return (-r["wall_s"], *(r[m] for m in metrics))
+
     front = set()
     for r in ok:
-        if not any((o["wall_s"] <= r["wall_s"] and o[metric] >= r[metric]) and
-                   (o["wall_s"] < r["wall_s"] or o[metric] > r[metric]) for o in ok):
+        kr = key(r)
+        if not any(all(a >= b for a, b in zip(key(o), kr, strict=True)) and key(o) != kr
+                   for o in ok):
             front.add(r["point"])
     return front
 
@@ -295,7 +307,9 @@ def plot_scene(path: Path, scene: str, rows: list[dict]) -> None:
         ax.grid(alpha=0.3)
         if ok:
             ax.legend(fontsize=7.5, loc="lower right")
-    fig.suptitle(f"Speed against error: {scene} (one setting changed from cpu-small)")
+    joint = sorted(pareto(rows, tuple(m for m, _ in METRICS)))
+    fig.suptitle(f"Speed against error: {scene} (one setting changed from cpu-small); on the "
+                 f"joint front of time and all three metrics: {', '.join(joint) or 'none'}")
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100, metadata={"Software": None})
@@ -304,7 +318,8 @@ def plot_scene(path: Path, scene: str, rows: list[dict]) -> None:
 
 def markdown(rows: list[dict], command: str) -> str:
     lines = ["| scene | point | changed | wall min | albedo PSNR | shadow IoU | relight PSNR "
-             "| Pareto on | source |", "|---|---|---|---|---|---|---|---|---|"]
+             "| Pareto on (one metric) | on the joint front | source |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
 
     def f(v, fmt):
         return "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else \
@@ -314,7 +329,8 @@ def markdown(rows: list[dict], command: str) -> str:
         lines.append(f"| {r['scene']} | {r['point']} | {r['changed']} | "
                      f"{f(r['wall_s'] / 60, '.1f')} | {f(r.get('albedo_psnr'), '.2f')} | "
                      f"{f(r.get('shadow_iou'), '.3f')} | {f(r.get('relight_psnr'), '.2f')} | "
-                     f"{r['pareto']} | {r['source']} |")
+                     f"{r['pareto']} | {'yes' if r.get('pareto_joint') else 'no'} | "
+                     f"{r['source']} |")
     return f"`{command}`\n\n" + "\n".join(lines) + "\n"
 
 
