@@ -71,6 +71,28 @@ class RasterConfig:
     bytes_per_pair: int = 64  # forward only
     bytes_per_pair_grad: int = 112  # with gradients
     reserve_bytes: int = 48 << 20
+    # "pairs": the pixel-splat pair list above (the reference; memory grows with the pairs).
+    # "tiles": the tiled renderer (``raster_tiles``): surfels binned to tile_size^2 pixel
+    # tiles, one compositing loop per pixel, a hand-written backward; memory O(pixels +
+    # surfel-tile pairs). Its guard counts bytes per surfel-tile pair (key, sort, sorted
+    # fields) and per pixel lane (saved state, images, gradient images), plus per channel
+    # 4 bytes per pair and 8 per lane.
+    method: str = "pairs"
+    tile_size: int = 16
+    bytes_per_tile_pair: int = 160
+    bytes_per_pixel: int = 96  # forward only
+    bytes_per_pixel_grad: int = 256  # with gradients
+
+    def __post_init__(self):
+        if self.method not in RASTER_METHODS:
+            raise ValueError(f"RasterConfig.method must be one of {RASTER_METHODS}, got "
+                             f"{self.method!r}")
+        if not 1 <= self.tile_size <= 256:
+            raise ValueError(f"RasterConfig.tile_size must be in [1, 256], got "
+                             f"{self.tile_size}")
+
+
+RASTER_METHODS = ("pairs", "tiles")
 
 
 class RasterMemoryError(MemoryError, ValueError):
@@ -333,6 +355,18 @@ def _depth_key(z: mi.Float) -> mi.UInt32:
     return dr.select(b >= 0x80000000, ~b, b | 0x80000000)
 
 
+def _expand(count: mi.UInt32, total: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """(item id, index within its item) [total] of ``count`` [N] items laid end to end
+    (``total`` = sum of ``count`` <= max_pairs < 2^32, so UInt32 offsets are safe)."""
+    offsets = dr.prefix_sum(count)
+    # Mark each non-empty item's first entry with its index and carry it forward with a
+    # max-scan (ids increase along the list).
+    sid = dr.zeros(mi.UInt32, total)
+    dr.scatter(sid, dr.arange(mi.UInt32, dr.width(count)), offsets, active=count > 0)
+    sid = dr.prefix_reduce(dr.ReduceOp.Max, sid, exclusive=False)
+    return sid, dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, sid)
+
+
 def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
                  rows: tuple[int, int] | None = None, total: int | None = None):
     """Sorted (surfel id, pixel id) of the pairs that contribute; detached. None if none.
@@ -340,7 +374,6 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
     ``rows`` = (r0, r1) restricts the pairs to those image rows; pixel ids then count from
     row r0 (pixel (x, y) is (y - r0) * width + x). ``total``: their pixel-box pair count
     when the caller already read it (``_plan_bands``)."""
-    n = dr.width(g.xc)
     r0, r1 = (0, height) if rows is None else rows
     x0, y0, bw, _, count = _boxes(g, width, height, config,
                                   (dr.opaque(mi.Int32, r0), dr.opaque(mi.Int32, r1)))
@@ -351,14 +384,7 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
                                 f"large for the image?)")
     if total == 0:
         return None
-    offsets = dr.prefix_sum(count)  # UInt32 is safe: total <= max_pairs < 2^32
-    # Surfel id of each pair: mark each non-empty box's first pair with its surfel index and
-    # carry it forward with a max-scan (ids increase along the list).
-    sid = dr.zeros(mi.UInt32, total)
-    ids = dr.arange(mi.UInt32, n)
-    dr.scatter(sid, ids, offsets, active=count > 0)
-    sid = dr.prefix_reduce(dr.ReduceOp.Max, sid, exclusive=False)
-    local = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, sid)
+    sid, local = _expand(count, total)
     # max(., 1): masked-off tail lanes of a gather read 0, and x86 integer division by 0
     # traps (SIGFPE) even in lanes that are discarded.
     w = dr.maximum(dr.gather(mi.UInt32, bw, sid), 1)
@@ -532,6 +558,13 @@ def rasterize(surfels: Surfels, camera: Camera,
     gd = g.detach()
     grad = any(dr.grad_enabled(getattr(g, f.name)) for f in dataclasses.fields(g)) or \
         any(dr.grad_enabled(t) for t in chans.values())
+    widths = {name: t.shape[1] for name, t in chans.items()} | \
+        {a: AOV_CHANNELS[a] for a in aovs}
+    if config.method == "tiles":
+        from mi_shadowgs.core.raster_tiles import render_tiles
+
+        flat = render_tiles(g, gd, W, H, chans, aovs, bg, config, grad)
+        return {name: mi.TensorXf(flat[name], shape=(H, W, c)) for name, c in widths.items()}
     bands, total = _plan_bands(gd, W, H, config, grad) if surfels.count else ([(0, H)], 0)
     parts = []
     for r0, r1 in bands:
@@ -541,8 +574,6 @@ def rasterize(surfels: Surfels, camera: Camera,
             dr.eval(*part.values())
             dr.flush_malloc_cache()
         parts.append(part)
-    widths = {name: t.shape[1] for name, t in chans.items()} | \
-        {a: AOV_CHANNELS[a] for a in aovs}
     return {name: mi.TensorXf(parts[0][name] if len(parts) == 1 else
                               dr.concat([p[name] for p in parts]), shape=(H, W, c))
             for name, c in widths.items()}
