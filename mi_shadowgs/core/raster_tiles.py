@@ -149,6 +149,32 @@ def _lanes(bins: _Bins, width: int, height: int):
     return tile, px, py, inside
 
 
+def _lane_of_pixel(bins: _Bins, width: int, height: int) -> mi.UInt32:
+    """[H * W] the lane (``_lanes``) of each pixel, row-major."""
+    pix = dr.arange(mi.UInt32, width * height)
+    py = pix // width
+    px = pix - py * width
+    ty, tx = py // bins.size, px // bins.size
+    local = (py - ty * bins.size) * bins.size + (px - tx * bins.size)
+    return (ty * bins.ntx + tx) * (bins.size * bins.size) + local
+
+
+def _to_image(vals: list, bins: _Bins, width: int, height: int) -> mi.Float:
+    """Lane values (C arrays [lanes]) -> a flat image [H * W * C]."""
+    c = len(vals)
+    lane = _lane_of_pixel(bins, width, height)
+    if c == 1:
+        return dr.gather(mi.Float, vals[0], lane)
+    idx = dr.arange(mi.UInt32, width * height * c)
+    pix = idx // c
+    k = idx - pix * c
+    lane = dr.gather(mi.UInt32, lane, pix)
+    out = dr.gather(mi.Float, vals[0], lane)
+    for i in range(1, c):
+        out = dr.select(k == i, dr.gather(mi.Float, vals[i], lane), out)
+    return out
+
+
 def _in_box(bins: _Bins, j: mi.UInt32, px: mi.UInt32, py: mi.UInt32) -> mi.Bool:
     """Whether pixel (px, py) lies in the box of sorted pair j's surfel (the pair list
     holds exactly the box's pixels)."""
@@ -283,14 +309,6 @@ class _TiledOp(dr.CustomOp):
             lane_out["distortion"] = [mi.Float(s["dist"])]
         if want_count:
             lane_out["count"] = [s["count"]]
-        npix = ctx.width * ctx.height
-        images = {}
-        for name, vals in lane_out.items():
-            c = len(vals)
-            img = dr.zeros(mi.Float, npix * c)
-            for k, v in enumerate(vals):
-                dr.scatter(img, v, pix * c + k, active=inside)
-            images[name] = img
         # What the backward pass needs, per lane: O(pixels).
         self.lanes = (tile, px, py, inside, pix)
         self.t_final, self.stop = t_final, s["j"]
@@ -298,10 +316,12 @@ class _TiledOp(dr.CustomOp):
         self.depth_img = lane_out["depth"][0] if want_depth else None
         self.med_j = s["med_j"] if want_med else None
         self.m_sums = (s["m1"], s["m2"]) if want_dist else None
-        dr.eval(self.t_final, self.stop, *images.values(),
-                *([self.med_j] if want_med else []), *(self.m_sums or ()),
-                *([self.depth_img] if want_depth else []))
-        return images
+        # Everything the loop yields in one kernel (a later evaluation of any loop output
+        # would run the loop again), then the images by a gather from the lanes.
+        dr.eval(self.t_final, self.stop, *(v for vals in lane_out.values() for v in vals),
+                *([self.med_j] if want_med else []), *(self.m_sums or ()))
+        return {name: _to_image(vals, bins, ctx.width, ctx.height)
+                for name, vals in lane_out.items()}
 
     def backward(self):
         _tiled_backward(self)
