@@ -56,6 +56,8 @@ _NORMAL_FIELDS = ("nx", "ny", "nz")
 # dr.ReduceMode of the backward's per-surfel scatter-adds: every lane of a packet reads the
 # same sorted entry, so a local pre-reduction turns up to 16 atomics into one.
 _GRAD_REDUCE = dr.ReduceMode.Local
+# Pixel boxes are packed as two 16-bit coordinates per UInt32 (``_Bins.box``).
+_BOX_MAX = 0xFFFF
 
 
 @dataclasses.dataclass
@@ -253,6 +255,8 @@ class _TiledOp(dr.CustomOp):
             t_after = t_before * (1.0 - a64)
             stop = keep & (t_after < config.transmittance_min)
             comp = keep & ~stop
+            # A dropped pair's depth may be inf (an edge-on plane): 0 * inf would be NaN.
+            depth = dr.select(comp, depth, config.near)
             w64 = t_before * a64
             w = dr.select(comp, mi.Float(w64), 0.0)
             out = dict(s)
@@ -458,7 +462,9 @@ def _tiled_backward(op: _TiledOp) -> None:
         alpha, rho, depth = _pair_eval(q, pxf, pyf, config)
         # Every kept pair before the stop index was composited (T only decreases).
         comp = (i < own_stop) & _keep(alpha, rho, depth, config) & _in_box(bins, i, px, py)
-        a64 = mi.Float64(alpha)
+        # Pairs that are not composited pass through with alpha 0 and a finite depth.
+        depth = dr.select(comp, depth, config.near)
+        a64 = mi.Float64(dr.select(comp, alpha, 0.0))
         one_minus = 1.0 - a64
         t_before = s["T"] / one_minus
         w64 = t_before * a64
@@ -517,6 +523,9 @@ def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequenc
                  bg: dict, config: RasterConfig, grad: bool) -> dict[str, mi.Float]:
     """Every output of ``rasterize``, flat ([H * W * C] each), by the tiled renderer; ``g``
     the projected surfels with AD, ``gd`` detached."""
+    if max(W, H) > _BOX_MAX:
+        raise ValueError(f"rasterize (tiles): images up to {_BOX_MAX} pixels a side, got "
+                         f"{W} x {H}; use RasterConfig.method='pairs'")
     widths = {name: t.shape[1] for name, t in chans.items()}
     bins = _bin(gd, W, H, config, grad, sum(widths.values())) if dr.width(gd.xc) else None
     npix = W * H
@@ -526,9 +535,6 @@ def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequenc
             out[name] = dr.tile(mi.Float(vals), npix)
         for a in aovs:
             out[a] = dr.zeros(mi.Float, npix * AOV_CHANNELS[a])
-        if grad:  # keep the outputs attached (zero gradients) like the pair list's
-            for name, t in chans.items():
-                out[name] = out[name] + 0.0 * dr.sum(t.array)
         return out
     names = _PAIR_FIELDS + (_NORMAL_FIELDS if "normal" in aovs else ())
     fields = {k: getattr(g, k) for k in _PAIR_FIELDS}
