@@ -11,6 +11,11 @@ Pipeline (one ``rasterize`` call):
 4. per kept pair, with AD: alpha again, a Float64 prefix sum of log(1 - alpha) segmented
    per pixel gives the transmittance, and ``scatter_reduce`` accumulates the images.
 
+``RasterConfig(method="tiles")`` replaces steps 2-4 by the tiled renderer of
+``raster_tiles`` (surfels binned to screen tiles, a compositing loop per pixel, a
+hand-written backward): the same images and gradients in memory O(pixels + surfel-tile
+pairs). The pair list stays the default and the reference.
+
 The ray-splat intersection is the homogeneous one of 2DGS written relative to the
 projected centre: with T the 3x3 map (u, v, 1) -> homogeneous pixel, A = T0 - xc T2 and
 B = T1 - yc T2 are the projection's Jacobian applied to the scaled tangents, so pixel
