@@ -80,15 +80,17 @@ class RasterConfig:
     # "tiles": the tiled renderer (``raster_tiles``): surfels binned to tile_size^2 pixel
     # tiles, one compositing loop per pixel, a hand-written backward; memory O(pixels +
     # surfel-tile pairs). Its guard counts bytes per surfel-tile pair (key, sort, sorted
-    # fields) and per pixel lane (saved state, images, gradient images), plus per channel
-    # 4 bytes per pair and 8 per lane.
+    # fields; measured 94 B forward, 106 B forward+backward over every AOV and 3 channels:
+    # ``bm_raster_memory --method tiles``) and per pixel lane (saved state, images,
+    # gradient images: estimated from the arrays held), plus per channel 4 bytes per pair
+    # and 8 per lane.
     method: str = "pairs"
     # Tiles of 4x4 pixels: one AVX-512 packet (16 lanes) per tile, so a packet reads one
     # sorted entry per iteration and pays for few pixels outside each splat's box. fwd+bwd
     # CPU ms at 1 thread, bm_raster workload 128^2/20k: 45 (4), 73 (8), 225 (16); at
     # 256^2/20k: 109 (4), 114 (8); the pair list: 151 and 559.
     tile_size: int = 4
-    bytes_per_tile_pair: int = 160
+    bytes_per_tile_pair: int = 128
     bytes_per_pixel: int = 96  # forward only
     bytes_per_pixel_grad: int = 256  # with gradients
 
