@@ -46,6 +46,7 @@ from mi_shadowgs.core.raster import (
     _depth_key,
     _expand,
     _memory,
+    _opaque,
     _pair_eval,
     _Proj,
     _total,
@@ -297,7 +298,8 @@ class _TiledOp(dr.CustomOp):
             vals = accs
             if name in ctx.background:
                 tf = mi.Float(t_final)
-                vals = [v + b * tf for v, b in zip(accs, ctx.background[name], strict=True)]
+                vals = [v + _opaque(b) * tf
+                        for v, b in zip(accs, ctx.background[name], strict=True)]
             lane_out[name] = vals
         if "alpha" in aovs:
             lane_out["alpha"] = [alpha_img]
@@ -422,7 +424,7 @@ def _tiled_backward(op: _TiledOp) -> None:
     g_wsum = lane_grad("alpha", 1)[0] if "alpha" in aovs else dr.zeros(mi.Float, n)
     for name, bg in ctx.background.items():
         for g, b in zip(g_chans[name], bg, strict=True):
-            g_wsum = g_wsum - b * g
+            g_wsum = g_wsum - _opaque(b) * g
     alpha_img = op.alpha_img
     ok = alpha_img > 0
     if "depth" in aovs:
