@@ -57,6 +57,8 @@ _NORMAL_FIELDS = ("nx", "ny", "nz")
 # dr.ReduceMode of the backward's per-surfel scatter-adds: every lane of a packet reads the
 # same sorted entry, so a local pre-reduction turns up to 16 atomics into one.
 _GRAD_REDUCE = dr.ReduceMode.Local
+# Lanes that start the backward walk together (``_tiled_backward``): an AVX-512 packet.
+_BACKWARD_GROUP = 16
 # Pixel boxes are packed as two 16-bit coordinates per UInt32 (``_Bins.box``).
 _BOX_MAX = 0xFFFF
 
@@ -442,14 +444,18 @@ def _tiled_backward(op: _TiledOp) -> None:
     acc = {k: dr.zeros(mi.Float, nsurf) for k in q_names}
     acc_chans = {name: dr.zeros(mi.Float, nsurf * c) for name, c in ctx.widths.items()}
 
-    # Lanes of a tile walk down together from the tile's largest stop index, each active
-    # below its own: the packet reads one sorted entry per iteration (coherent gathers, one
-    # atomic per scatter after the local pre-reduction).
-    tile_stop = dr.zeros(mi.UInt32, bins.ntx * bins.nty)
-    dr.scatter_reduce(dr.ReduceOp.Max, tile_stop, op.stop, tile, active=inside)
+    # The lanes of a group (_BACKWARD_GROUP consecutive lanes: one SIMD packet, inside one
+    # tile when tile_size^2 is a multiple of it) walk down together from the group's
+    # largest stop index, each active below its own: the packet reads one sorted entry per
+    # iteration (coherent gathers, one atomic per scatter after the local pre-reduction).
+    # Any grouping is correct: a lane composites only entries in [its tile's start, its
+    # stop).
+    group = dr.arange(mi.UInt32, n) // _BACKWARD_GROUP
+    group_stop = dr.zeros(mi.UInt32, -(-n // _BACKWARD_GROUP))
+    dr.scatter_reduce(dr.ReduceOp.Max, group_stop, op.stop, group, active=inside)
     first = dr.gather(mi.UInt32, bins.start, tile)
     own_stop = op.stop
-    state = {"j": dr.select(inside, dr.gather(mi.UInt32, tile_stop, tile), first),
+    state = {"j": dr.select(inside, dr.gather(mi.UInt32, group_stop, group), first),
              # opaque: a literal zero that stays zero (median depth alone: every dL/dw is
              # 0) trips the loop's constant-state check.
              "T": op.t_final, "S": dr.opaque(mi.Float64, 0.0, n)}
