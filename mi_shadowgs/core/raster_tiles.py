@@ -116,13 +116,17 @@ def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
     _check_tile_budget(total, ntx * nty * ts * ts, config, grad, channels)
     if total == 0:
         return None
-    sid, local = _expand(ntiles, total)  # [TP]
+    # Surfels front to back (stable: equal depths keep surfel order, as in the pair list),
+    # their pairs laid out in that order, then a stable sort by tile: two 32-bit sorts
+    # (N and TP keys) instead of one of 64-bit (tile, depth) keys over TP.
+    by_depth = dr.argsort(_depth_key(gd.z2))  # [N]
+    pos, local = _expand(dr.gather(mi.UInt32, ntiles, by_depth), total)  # [TP]
+    sid = dr.gather(mi.UInt32, by_depth, pos)
     w = dr.maximum(dr.gather(mi.UInt32, tw, sid), 1)  # max: see _expand
     ly = local // w
     tile = (dr.gather(mi.UInt32, ty0, sid) + ly) * ntx + dr.gather(mi.UInt32, tx0, sid) + \
         (local - ly * w)
-    key = (mi.UInt64(tile) << 32) | mi.UInt64(_depth_key(dr.gather(mi.Float, gd.z2, sid)))
-    order = dr.argsort(key)  # stable: equal depths keep surfel order, as in the pair list
+    order = dr.argsort(tile)
     sid = dr.gather(mi.UInt32, sid, order)
     tile = dr.gather(mi.UInt32, tile, order)
     ar = dr.arange(mi.UInt32, total)
