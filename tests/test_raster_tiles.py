@@ -296,3 +296,22 @@ def test_memory_guard_names_the_setting():
         rasterize(s, cam, s.channels, config=small)
     with pytest.raises(RasterMemoryError, match="RasterConfig.max_pairs=10"):
         rasterize(s, cam, s.channels, config=dataclasses.replace(TILES, max_pairs=10))
+
+
+@pytest.mark.parametrize("which", ["channels", "geometry"])
+def test_gradients_of_part_of_the_inputs(which):
+    # Only the channels (fixed geometry, as the material stage) or only the geometry need
+    # gradients: the custom op gets inputs without AD on one side.
+    camera = cameras()["perspective"]
+    raw = random_scene(40, 2)
+    grads = {}
+    for config in (PAIRS, TILES):
+        s = to_surfels(raw)
+        leaf = s.channels["color"] if which == "channels" else s.position
+        dr.enable_grad(leaf)
+        out = rasterize(s, camera, s.channels, aovs=("alpha", "depth"), config=config)
+        dr.backward(dr.sum(out["color"].array * dr.arange(mi.Float, 20 * 24 * 3) / 1e3)
+                    + dr.sum(out["depth"].array))
+        grads[config.method] = np.array(dr.grad(leaf), np.float64)
+    assert np.abs(grads["pairs"]).max() > 0
+    assert_grads_equal({"g": grads["tiles"]}, {"g": grads["pairs"]})
