@@ -323,3 +323,13 @@ def test_gradients_of_part_of_the_inputs(which):
         grads[config.method] = np.array(dr.grad(leaf), np.float64)
     assert np.abs(grads["pairs"]).max() > 0
     assert_grads_equal({"g": grads["tiles"]}, {"g": grads["pairs"]})
+
+
+def test_forward_mode_is_refused_clearly():
+    camera = cameras()["perspective"]
+    s = to_surfels(random_scene(10, 1))
+    dr.enable_grad(s.position)
+    out = rasterize(s, camera, s.channels, config=TILES)
+    with pytest.raises(Exception, match="forward-mode derivatives"):
+        dr.forward_from(s.position)
+        dr.eval(dr.grad(out["color"].array))

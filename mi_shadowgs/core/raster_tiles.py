@@ -361,6 +361,11 @@ class _TiledOp(dr.CustomOp):
     def backward(self):
         _tiled_backward(self)
 
+    def forward(self):
+        raise NotImplementedError(
+            "rasterize: forward-mode derivatives (dr.forward*) are not implemented for "
+            "RasterConfig.method='tiles' (reverse mode is); use method='pairs'")
+
     def name(self):
         return "rasterize_tiles"
 
