@@ -87,8 +87,8 @@ class RasterConfig:
     method: str = "pairs"
     # Tiles of 4x4 pixels: one AVX-512 packet (16 lanes) per tile, so a packet reads one
     # sorted entry per iteration and pays for few pixels outside each splat's box. fwd+bwd
-    # CPU ms at 1 thread, bm_raster workload 128^2/20k: 45 (4), 73 (8), 225 (16); at
-    # 256^2/20k: 109 (4), 114 (8); the pair list: 151 and 559.
+    # CPU ms at 1 thread, bm_raster workload 128^2/20k: 51 (2), 35 (4), 45 (5), 52 (8),
+    # 158 (16); at 256^2/20k: 93 (4), 101 (8); the pair list: 123 and 503.
     tile_size: int = 4
     bytes_per_tile_pair: int = 128
     bytes_per_pixel: int = 96  # forward only
