@@ -8,6 +8,9 @@ One configuration runs per process, so that peak RSS belongs to it alone::
 
     python -m benchmarks.bm_raster --renderer ours --n 20000 --res 128 --json out.json
 
+``--method tiles`` (``--tile-size T``) times our tiled renderer (``RasterConfig.method``)
+instead of the pair list; ``--threads K`` caps Dr.Jit's worker threads.
+
 Timing of one training step (``_Runner.step``): nudge + render + loss, ``dr.eval`` +
 ``dr.sync_thread`` -> "forward"; then ``dr.backward`` and evaluating every gradient ->
 "forward+backward". The first step of a process is reported apart (JIT compilation: run_all
@@ -289,20 +292,22 @@ class MitsubaRunner(_Runner):
         return [self._dr.grad(self.params[k]) for k in self.keys]
 
 
-def make_runner(renderer: str, workload: Workload):
+def make_runner(renderer: str, workload: Workload, raster_config=None):
     if renderer == "ours":
-        return OursRunner(workload)
+        return OursRunner(workload, raster_config)
     if renderer == "mitsuba":
         return MitsubaRunner(workload)
     raise ValueError(f"unknown renderer {renderer!r}; choose one of {RENDERERS}")
 
 
 def run_case(renderer: str, n: int, res: int, warmup: int = 2, iters: int = 5,
-             image_path: str | Path | None = None, seed: int = 0) -> dict:
-    """Time one (renderer, n, res) configuration in this process; returns a result row."""
+             image_path: str | Path | None = None, seed: int = 0, raster_config=None
+             ) -> dict:
+    """Time one (renderer, n, res) configuration in this process; returns a result row.
+    ``raster_config``: ours's RasterConfig (default: ``RasterConfig()``)."""
     rss_start = current_rss_mb()
     workload = build_workload(WorkloadConfig(n=n, resolution=res, seed=seed))
-    runner = make_runner(renderer, workload)
+    runner = make_runner(renderer, workload, raster_config)
     t_setup = time.perf_counter()
     load = os.getloadavg()[0]
     _, first, _, loss0 = runner.step()
@@ -320,6 +325,8 @@ def run_case(renderer: str, n: int, res: int, warmup: int = 2, iters: int = 5,
     drift = max(abs(v - loss0) for v in losses) / max(abs(loss0), 1e-12) if losses else 0.0
     row = {
         "renderer": renderer, "n": n, "res": res, "n_sphere": workload.n_sphere,
+        "method": runner.config.method if renderer == "ours" else None,
+        "tile_size": runner.config.tile_size if renderer == "ours" else None,
         "n_plane": workload.n_plane, "iters": iters, "warmup": warmup,
         "first_ms": 1e3 * first,
         "fwd_ms": 1e3 * statistics.median(fwd) if fwd else float("nan"),
@@ -675,9 +682,26 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", help="write the result row here (atomically)")
     ap.add_argument("--image", help="save the final render here as .npy")
+    ap.add_argument("--method", default=None, help="ours: RasterConfig.method "
+                    "(pairs, tiles; default: RasterConfig's)")
+    ap.add_argument("--tile-size", type=int, default=None,
+                    help="ours, --method tiles: RasterConfig.tile_size")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="Dr.Jit worker threads (default: all cores)")
     args = ap.parse_args(argv)
+    if args.threads is not None:
+        import drjit as dr
+
+        dr.set_thread_count(args.threads)
+    raster_config = None
+    if args.method is not None or args.tile_size is not None:
+        from mi_shadowgs.core.raster import RasterConfig
+
+        over = {k: v for k, v in (("method", args.method), ("tile_size", args.tile_size))
+                if v is not None}
+        raster_config = RasterConfig(**over)
     row = run_case(args.renderer, args.n, args.res, args.warmup, args.iters, args.image,
-                   args.seed)
+                   args.seed, raster_config)
     if args.json:
         write_json(args.json, row)
     json.dump(row, sys.stdout)

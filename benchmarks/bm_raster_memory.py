@@ -8,7 +8,11 @@ peak RSS growth is recorded. A least-squares line over the cases gives bytes per
 render the same model through ``mi-shadowgs render --memory-budget`` and record peak RSS
 against the budget::
 
-    python -m benchmarks.bm_raster_memory [--quick]
+    python -m benchmarks.bm_raster_memory [--quick] [--method tiles]
+
+``--method tiles``: the tiled renderer (``RasterConfig.method``); its memory grows with the
+surfel-tile pairs (N * (RES / tile_size)^2 here), which the fit uses instead of the pixel
+pairs (sets ``RasterConfig.bytes_per_tile_pair``); no budget cases.
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ def _camera(res: int):
     return Camera.look_at((0.3, 0.4, 2.5), (0.0, 0.0, 0.0), width=res, height=res, fov_x=0.8)
 
 
-def run_case(n: int, res: int, mode: str) -> dict:
+def run_case(n: int, res: int, mode: str, method: str = "pairs") -> dict:
     """In this process: render once, return pairs and RSS figures (bytes)."""
     from mi_shadowgs import backend
     from mi_shadowgs.core import memory
@@ -54,7 +58,7 @@ def run_case(n: int, res: int, mode: str) -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from mi_shadowgs.core.raster import AOV_CHANNELS, rasterize
+    from mi_shadowgs.core.raster import AOV_CHANNELS, RasterConfig, rasterize
     from mi_shadowgs.core.surfels import Surfels
 
     m = _model(n)
@@ -68,7 +72,8 @@ def run_case(n: int, res: int, mode: str) -> dict:
         for v in params:
             dr.enable_grad(v)
     aovs = tuple(AOV_CHANNELS) if mode == "fwd+bwd" else ("alpha",)
-    out = rasterize(s, _camera(res), {"rgb": colors}, aovs=aovs)
+    config = RasterConfig(method=method)
+    out = rasterize(s, _camera(res), {"rgb": colors}, aovs=aovs, config=config)
     if mode == "fwd+bwd":
         dr.backward(sum((dr.sum(v.array) for k, v in out.items() if k != "count"),
                         mi.Float(0.0)))
@@ -77,13 +82,16 @@ def run_case(n: int, res: int, mode: str) -> dict:
         dr.eval(*(v.array for v in out.values()))
     dr.sync_thread()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    return {"n": n, "res": res, "mode": mode, "pairs": n * res * res, "base": base,
-            "peak": peak, "growth": peak - base, "seconds": time.perf_counter() - t0}
+    tiles = (-(-res // config.tile_size)) ** 2  # ceil(res / tile_size)^2
+    return {"n": n, "res": res, "mode": mode, "method": method, "pairs": n * res * res,
+            "tile_pairs": n * tiles, "base": base, "peak": peak, "growth": peak - base,
+            "seconds": time.perf_counter() - t0}
 
 
-def _subprocess_case(n: int, res: int, mode: str) -> dict:
+def _subprocess_case(n: int, res: int, mode: str, method: str = "pairs") -> dict:
     out = subprocess.run([sys.executable, "-m", "benchmarks.bm_raster_memory", "--case",
-                          str(n), str(res), mode], capture_output=True, text=True, check=True)
+                          str(n), str(res), mode, "--method", method], capture_output=True,
+                         text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -118,22 +126,23 @@ def budget_case(n: int, res: int, budget: str, folder: Path) -> dict:
             "seconds": time.perf_counter() - t0}
 
 
-def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
+def run_suite(out: Path, preset: str = "paper", log=print, method: str = "pairs") -> dict:
     sizes = QUICK_SIZES if preset == "cpu-small" else SIZES
     rows, fits = [], {}
+    per = "pairs" if method == "pairs" else "tile_pairs"  # what the memory grows with
     for mode in MODES:
         for n in sizes:
-            row = _subprocess_case(n, RES, mode)
+            row = _subprocess_case(n, RES, mode, method)
             rows.append(row)
-            log(f"[raster_memory] {mode:8s} n={n:5d} pairs={row['pairs']:9d} "
+            log(f"[raster_memory] {method} {mode:8s} n={n:5d} {per}={row[per]:9d} "
                 f"growth={row['growth'] / 2**20:7.1f} MiB ({row['seconds']:.1f} s)")
         sel = [r for r in rows if r["mode"] == mode]
-        slope, icpt = np.polyfit([r["pairs"] for r in sel], [r["growth"] for r in sel], 1)
+        slope, icpt = np.polyfit([r[per] for r in sel], [r["growth"] for r in sel], 1)
         fits[mode] = {"bytes_per_pair": float(slope), "fixed_bytes": float(icpt),
-                      "max_growth_per_pair": max(r["growth"] / r["pairs"] for r in sel)}
+                      "max_growth_per_pair": max(r["growth"] / r[per] for r in sel)}
     budgets = []
     with tempfile.TemporaryDirectory() as tmp:
-        for n, budget in BUDGET_CASES:
+        for n, budget in (BUDGET_CASES if method == "pairs" else ()):
             b = budget_case(n, RES, budget, Path(tmp))
             budgets.append(b)
             log(f"[raster_memory] render --memory-budget {budget}: rc {b['rc']}, peak "
@@ -142,7 +151,8 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     (out / "raster_memory.json").write_text(json.dumps({"cases": rows, "fits": fits,
                                                         "budget_cases": budgets}, indent=1))
-    md = ["## Rasterizer memory per pixel-splat pair", "",
+    md = [f"## Rasterizer memory per {'pixel-splat' if method == 'pairs' else 'surfel-tile'}"
+          f" pair (method {method})", "",
           f"Peak RSS growth of one {RES}x{RES} render of N surfels of scale 1e6 (N * {RES}^2 "
           "pairs, all kept), fresh process per case; line fit over the cases.", "",
           "| mode | bytes/pair (slope) | fixed (MiB) | max growth/pair |", "|---|---|---|---|"]
@@ -162,16 +172,18 @@ def main(argv=None) -> int:
     ap.add_argument("--case", nargs=3, metavar=("N", "RES", "MODE"),
                     help="run one case in this process and print its JSON")
     ap.add_argument("--quick", action="store_true", help="fewer sizes")
+    ap.add_argument("--method", default="pairs", help="RasterConfig.method (pairs, tiles)")
     args = ap.parse_args(argv)
     if args.case:
         n, res, mode = int(args.case[0]), int(args.case[1]), args.case[2]
-        print(json.dumps(run_case(n, res, mode)))
+        print(json.dumps(run_case(n, res, mode, args.method)))
         return 0
     with tempfile.TemporaryDirectory() as tmp:
-        summary = run_suite(Path(tmp), "cpu-small" if args.quick else "paper")
+        summary = run_suite(Path(tmp), "cpu-small" if args.quick else "paper",
+                            method=args.method)
     print(summary["markdown"])
     print(f"\n{os.cpu_count()} cores; command: python -m benchmarks.bm_raster_memory"
-          f"{' --quick' if args.quick else ''}")
+          f"{' --quick' if args.quick else ''} --method {args.method}")
     return 0
 
 

@@ -11,6 +11,11 @@ Pipeline (one ``rasterize`` call):
 4. per kept pair, with AD: alpha again, a Float64 prefix sum of log(1 - alpha) segmented
    per pixel gives the transmittance, and ``scatter_reduce`` accumulates the images.
 
+``RasterConfig(method="tiles")`` replaces steps 2-4 by the tiled renderer of
+``raster_tiles`` (surfels binned to screen tiles, a compositing loop per pixel, a
+hand-written backward): the same images and gradients in memory O(pixels + surfel-tile
+pairs). The pair list stays the default and the reference.
+
 The ray-splat intersection is the homogeneous one of 2DGS written relative to the
 projected centre: with T the 3x3 map (u, v, 1) -> homogeneous pixel, A = T0 - xc T2 and
 B = T1 - yc T2 are the projection's Jacobian applied to the scaled tangents, so pixel
@@ -71,6 +76,34 @@ class RasterConfig:
     bytes_per_pair: int = 64  # forward only
     bytes_per_pair_grad: int = 112  # with gradients
     reserve_bytes: int = 48 << 20
+    # "pairs": the pixel-splat pair list above (the reference; memory grows with the pairs).
+    # "tiles": the tiled renderer (``raster_tiles``): surfels binned to tile_size^2 pixel
+    # tiles, one compositing loop per pixel, a hand-written backward; memory O(pixels +
+    # surfel-tile pairs). Its guard counts bytes per surfel-tile pair (key, sort, sorted
+    # fields; measured 94 B forward, 106 B forward+backward over every AOV and 3 channels:
+    # ``bm_raster_memory --method tiles``) and per pixel lane (saved state, images,
+    # gradient images: estimated from the arrays held), plus per channel 4 bytes per pair
+    # and 8 per lane.
+    method: str = "pairs"
+    # Tiles of 4x4 pixels: one AVX-512 packet (16 lanes) per tile, so a packet reads one
+    # sorted entry per iteration and pays for few pixels outside each splat's box. fwd+bwd
+    # CPU ms at 1 thread, bm_raster workload 128^2/20k: 51 (2), 35 (4), 45 (5), 52 (8),
+    # 158 (16); at 256^2/20k: 93 (4), 101 (8); the pair list: 123 and 503.
+    tile_size: int = 4
+    bytes_per_tile_pair: int = 128
+    bytes_per_pixel: int = 96  # forward only
+    bytes_per_pixel_grad: int = 256  # with gradients
+
+    def __post_init__(self):
+        if self.method not in RASTER_METHODS:
+            raise ValueError(f"RasterConfig.method must be one of {RASTER_METHODS}, got "
+                             f"{self.method!r}")
+        if not 1 <= self.tile_size <= 256:
+            raise ValueError(f"RasterConfig.tile_size must be in [1, 256], got "
+                             f"{self.tile_size}")
+
+
+RASTER_METHODS = ("pairs", "tiles")
 
 
 class RasterMemoryError(MemoryError, ValueError):
@@ -333,6 +366,18 @@ def _depth_key(z: mi.Float) -> mi.UInt32:
     return dr.select(b >= 0x80000000, ~b, b | 0x80000000)
 
 
+def _expand(count: mi.UInt32, total: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """(item id, index within its item) [total] of ``count`` [N] items laid end to end
+    (``total`` = sum of ``count`` <= max_pairs < 2^32, so UInt32 offsets are safe)."""
+    offsets = dr.prefix_sum(count)
+    # Mark each non-empty item's first entry with its index and carry it forward with a
+    # max-scan (ids increase along the list).
+    sid = dr.zeros(mi.UInt32, total)
+    dr.scatter(sid, dr.arange(mi.UInt32, dr.width(count)), offsets, active=count > 0)
+    sid = dr.prefix_reduce(dr.ReduceOp.Max, sid, exclusive=False)
+    return sid, dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, sid)
+
+
 def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
                  rows: tuple[int, int] | None = None, total: int | None = None):
     """Sorted (surfel id, pixel id) of the pairs that contribute; detached. None if none.
@@ -340,7 +385,6 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
     ``rows`` = (r0, r1) restricts the pairs to those image rows; pixel ids then count from
     row r0 (pixel (x, y) is (y - r0) * width + x). ``total``: their pixel-box pair count
     when the caller already read it (``_plan_bands``)."""
-    n = dr.width(g.xc)
     r0, r1 = (0, height) if rows is None else rows
     x0, y0, bw, _, count = _boxes(g, width, height, config,
                                   (dr.opaque(mi.Int32, r0), dr.opaque(mi.Int32, r1)))
@@ -351,14 +395,7 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
                                 f"large for the image?)")
     if total == 0:
         return None
-    offsets = dr.prefix_sum(count)  # UInt32 is safe: total <= max_pairs < 2^32
-    # Surfel id of each pair: mark each non-empty box's first pair with its surfel index and
-    # carry it forward with a max-scan (ids increase along the list).
-    sid = dr.zeros(mi.UInt32, total)
-    ids = dr.arange(mi.UInt32, n)
-    dr.scatter(sid, ids, offsets, active=count > 0)
-    sid = dr.prefix_reduce(dr.ReduceOp.Max, sid, exclusive=False)
-    local = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, sid)
+    sid, local = _expand(count, total)
     # max(., 1): masked-off tail lanes of a gather read 0, and x86 integer division by 0
     # traps (SIGFPE) even in lanes that are discarded.
     w = dr.maximum(dr.gather(mi.UInt32, bw, sid), 1)
@@ -532,6 +569,13 @@ def rasterize(surfels: Surfels, camera: Camera,
     gd = g.detach()
     grad = any(dr.grad_enabled(getattr(g, f.name)) for f in dataclasses.fields(g)) or \
         any(dr.grad_enabled(t) for t in chans.values())
+    widths = {name: t.shape[1] for name, t in chans.items()} | \
+        {a: AOV_CHANNELS[a] for a in aovs}
+    if config.method == "tiles":
+        from mi_shadowgs.core.raster_tiles import render_tiles
+
+        flat = render_tiles(g, gd, W, H, chans, aovs, bg, config, grad)
+        return {name: mi.TensorXf(flat[name], shape=(H, W, c)) for name, c in widths.items()}
     bands, total = _plan_bands(gd, W, H, config, grad) if surfels.count else ([(0, H)], 0)
     parts = []
     for r0, r1 in bands:
@@ -541,8 +585,6 @@ def rasterize(surfels: Surfels, camera: Camera,
             dr.eval(*part.values())
             dr.flush_malloc_cache()
         parts.append(part)
-    widths = {name: t.shape[1] for name, t in chans.items()} | \
-        {a: AOV_CHANNELS[a] for a in aovs}
     return {name: mi.TensorXf(parts[0][name] if len(parts) == 1 else
                               dr.concat([p[name] for p in parts]), shape=(H, W, c))
             for name, c in widths.items()}

@@ -1,0 +1,335 @@
+"""The tiled rasterizer (RasterConfig.method="tiles") against the pair-list reference.
+
+Both renderers composite the same pairs in the same order with the same per-pair float32
+maths, so outputs agree to float32 summation order and gradients to float32 rounding of
+two different (hand-written vs Dr.Jit AD) backward passes. The finite-difference test of
+test_raster_grad.py runs on the tiled path too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+import test_raster_grad
+from raster_reference import random_scene, reference, to_surfels
+from test_raster_hard_cases import raw_surfels, render_checked, sphere_surfels
+
+from mi_shadowgs.core import raster_tiles
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
+
+AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
+PAIRS = RasterConfig()
+TILES = RasterConfig(method="tiles")
+BACKGROUND = {"color": [0.1, 0.2, 0.3]}
+
+
+def cameras(width=24, height=20):
+    persp = Camera.look_at([0.4, 0.9, 2.6], [0.0, 0.0, 0.0], width=width, height=height,
+                           fov_x=0.8)
+    ortho = Camera.look_at([-2.5, 1.2, 1.0], [0.0, 0.0, 0.0], width=width, height=height,
+                           ortho_width=1.9)
+    return {"perspective": persp, "orthographic": ortho}
+
+
+def render(surfels, camera, config, aovs=AOVS, background=None, grad_outputs=None):
+    """(outputs, raw-parameter gradients or None) as float64 numpy. ``grad_outputs``: the
+    outputs in a loss with fixed pseudo-random weights (None: no backward pass)."""
+    params = surfels.params()
+    if grad_outputs is not None:
+        for v in params.values():
+            dr.enable_grad(v)
+    out = rasterize(surfels, camera, surfels.channels, aovs=aovs, config=config,
+                    background=background)
+    res = {k: np.array(v, np.float64) for k, v in out.items()}
+    if grad_outputs is None:
+        return res, None
+    loss = mi.Float(0.0)
+    for k in grad_outputs:
+        img = out[k].array
+        # Weights of both signs; distortion values are ~1e-4: scaled to the others' size.
+        w = dr.sin(dr.arange(mi.Float, dr.width(img)) * 0.7 + 0.3)
+        loss += dr.sum(img * w) * (1e3 if k == "distortion" else 1.0)
+    # AllowNoGrad: a render where nothing is visible does not depend on the parameters.
+    dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+    return res, {k: np.array(dr.grad(v), np.float64) for k, v in params.items()}
+
+
+# float32 summation order: the pair list adds float32 weights with scatter-adds, the tiled
+# loop in compositing order and alpha = 1 - T in Float64; measured differences <= 2e-7 on
+# O(1) colours, 7e-7 on depths of ~3 (2.4e-7 relative), 7e-12 on distortions of 1e-4.
+# Distortion is w_i (m_i^2 W + M2 - 2 m_i M1) with O(1) terms, so both paths carry an
+# absolute error of ~1e-12 (seen 7e-12 where every m ~ 1: the far camera's ~1e-12 images):
+# as test_raster_forward, 1e-5 of max(peak, 1e-3).
+COLOUR_ATOL = 2e-6
+DEPTH_RTOL = 2e-6
+DISTORTION_RTOL = 1e-5
+DISTORTION_FLOOR = 1e-3
+
+
+def assert_outputs_equal(got, want):
+    assert set(got) == set(want)
+    for k, w in want.items():
+        g = got[k]
+        assert g.shape == w.shape, k
+        if k in ("depth", "median_depth"):
+            np.testing.assert_allclose(g, w, rtol=DEPTH_RTOL, atol=0, err_msg=k)
+        elif k == "count":
+            np.testing.assert_array_equal(g, w, err_msg=k)
+        elif k == "distortion":
+            atol = DISTORTION_RTOL * max(np.abs(w).max(), DISTORTION_FLOOR)
+            np.testing.assert_allclose(g, w, rtol=0, atol=atol, err_msg=k)
+        else:
+            np.testing.assert_allclose(g, w, rtol=0, atol=COLOUR_ATOL, err_msg=k)
+
+
+# Gradients: two float32 backward passes over the same pairs; measured differences <=
+# 4e-7 of the largest |gradient| of the loss (over every parameter group: a group whose
+# gradient is analytically 0, log-scales under the median depth, holds rounding noise of
+# ~1e-8 of it); a missing or wrong term is >= 1e-3 of its group.
+GRAD_RTOL = 1e-5
+
+
+def assert_grads_equal(got, want, outputs=None, rtol=GRAD_RTOL):
+    top = max(np.abs(w).max() for w in want.values())
+    assert top > 0  # the comparison must test something
+    for k, w in want.items():
+        if k == "channels.color" and outputs is not None and "color" not in outputs:
+            assert np.abs(got[k]).max() == 0.0, k
+            continue
+        np.testing.assert_allclose(got[k], w, rtol=0, atol=rtol * top,
+                                   err_msg=f"{k} ({outputs})")
+
+
+@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_forward_matches_pairs(kind, seed):
+    camera = cameras()[kind]
+    raw = random_scene(40, seed)
+    want, _ = render(to_surfels(raw), camera, PAIRS, background=BACKGROUND)
+    got, _ = render(to_surfels(raw), camera, TILES, background=BACKGROUND)
+    assert want["alpha"].max() > 0.9 and (want["count"] >= 3).sum() > 50  # non-trivial
+    assert_outputs_equal(got, want)
+
+
+@pytest.mark.parametrize("tile_size", [1, 3, 5, 16, 64])
+@pytest.mark.parametrize("threads", [1, 3])
+def test_tile_size_and_lane_order_do_not_change_the_image(tile_size, threads, monkeypatch):
+    # 24 x 20 pixels: partial tiles at 3 (rows), 5, 16 and a single tile larger than the
+    # image at 64; 1 puts every pixel in its own tile. The tile rows' order in the lanes
+    # follows the thread count (raster_tiles._row_order): 3 interleaves them.
+    monkeypatch.setattr(raster_tiles, "_row_order",
+                        lambda nty, order=raster_tiles._row_order: order(nty, threads))
+    camera = cameras()["perspective"]
+    raw = random_scene(40, 2)
+    aovs = tuple(a for a in AOVS if a != "count")
+    want, gw = render(to_surfels(raw), camera, PAIRS, aovs, BACKGROUND, ("color", "depth"))
+    got, gg = render(to_surfels(raw), camera, dataclasses.replace(TILES, tile_size=tile_size),
+                     aovs, BACKGROUND, ("color", "depth"))
+    assert_outputs_equal(got, want)
+    assert_grads_equal(gg, gw)
+
+
+def test_forward_matches_reference():
+    """The tiled path against the float64 NumPy reference directly (as test_raster_forward)."""
+    camera = cameras()["orthographic"]
+    raw = random_scene(40, 3)
+    got, _ = render(to_surfels(raw), camera, TILES)
+    ref = reference(camera, raw, PAIRS)
+    ok = ~ref["unsure"]
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(got["color"][ok], ref["color"][ok], atol=1e-4)
+    np.testing.assert_allclose(got["depth"][ok, 0], ref["depth"][ok], rtol=1e-4)
+    np.testing.assert_array_equal(got["count"][ok, 0], ref["count"][ok])
+
+
+GRAD_CASES = [("color",), ("alpha",), ("depth",), ("median_depth",), ("normal",),
+              ("distortion",), ("color", "alpha", "depth", "median_depth", "normal",
+                                "distortion")]
+
+
+@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+@pytest.mark.parametrize("outputs", GRAD_CASES, ids="+".join)
+def test_gradients_match_pairs(kind, outputs):
+    camera = cameras()[kind]
+    raw = random_scene(40, 1)
+    aovs = tuple(a for a in AOVS if a != "count")
+    _, want = render(to_surfels(raw), camera, PAIRS, aovs, BACKGROUND, outputs)
+    _, got = render(to_surfels(raw), camera, TILES, aovs, BACKGROUND, outputs)
+    assert_grads_equal(got, want, outputs)
+
+
+@pytest.mark.parametrize("kind,outputs", [
+    ("perspective", test_raster_grad.OUTPUTS), ("orthographic", test_raster_grad.OUTPUTS),
+    ("perspective", ("distortion",)), ("orthographic", ("depth", "median_depth", "normal"))])
+def test_gradients_match_finite_differences(kind, outputs, monkeypatch):
+    # test_raster_grad's float64 finite differences, with its renders on the tiled path
+    # (the reference reads only RasterConfig's numbers, which are the same).
+    monkeypatch.setattr(test_raster_grad, "CFG", TILES)
+    test_raster_grad.test_gradients_match_finite_differences(kind, outputs)
+
+
+# -- hard cases (tests/test_raster_hard_cases.py), tiles against pairs ----------------------
+def both(surfels_fn, camera, config=PAIRS, grad_rtol=GRAD_RTOL):
+    """render_checked (finite outputs and gradients) of both paths, compared."""
+    want, gw = render_checked(surfels_fn(), camera, config)
+    got, gg = render_checked(surfels_fn(), camera, dataclasses.replace(config, method="tiles"))
+    assert_outputs_equal(got, want)
+    assert_grads_equal(gg, gw, rtol=grad_rtol)
+    return got, gg
+
+
+def test_edge_on_surfels():
+    ortho = Camera.look_at([3.0, 0.0, 0.0], [0.0, 0.0, 0.0], width=9, height=9,
+                           ortho_width=0.9)
+    persp = Camera.look_at([3.0, 0.0, 0.0], [0.0, 0.0, 0.0], width=9, height=9, fov_x=0.3)
+
+    def one():
+        return raw_surfels([[0.0, 0.0, 0.0]], [[math.log(0.1)] * 2], [[1.0, 0.0, 0.0, 0.0]],
+                           [0.0])
+
+    for cam in (ortho, persp):
+        for k in (2.0, PAIRS.lowpass_inv_var):
+            got, _ = both(one, cam, dataclasses.replace(PAIRS, lowpass_inv_var=k))
+            assert got["alpha"][4, 4, 0] == pytest.approx(0.5, abs=1e-6)
+    # Random surfels turned almost edge-on to their view rays (as the hard-case test).
+    rng = np.random.default_rng(3)
+    n = 200
+    pos = rng.uniform(-0.3, 0.3, (n, 3))
+    view = pos - persp.origin
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    a = np.cross(view, rng.normal(size=(n, 3)))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    nrm = a + 1e-7 * rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    z = np.array([0.0, 0.0, 1.0])
+    q = np.concatenate([1.0 + nrm @ z[:, None], np.cross(z, nrm)], axis=1)
+    ls, logit = np.log(rng.uniform(0.02, 0.2, (n, 2))), rng.normal(size=n)
+    got, _ = both(lambda: raw_surfels(pos, ls, q, logit), persp.with_size(32, 32))
+    assert got["alpha"].max() > 0.5
+
+
+def test_degenerate_scales_and_near_opaque_stack():
+    cam = Camera.look_at([0.0, 0.0, 3.0], [0.0, 0.0, 0.0], width=12, height=10, fov_x=0.6)
+    bad = [[-np.inf, -np.inf], [-np.inf, math.log(0.1)], [-100.0, -100.0],
+           [-88.0, math.log(0.1)], [-120.0, -3.0]]
+    pos = [[0.05, 0.0, 0.0]] + [[0.0, 0.02 * i, 0.1] for i in range(len(bad))]
+    ls = [[math.log(0.1)] * 2] + bad
+    got, g = both(lambda: raw_surfels(pos, ls, [[1.0, 0.2, 0.1, 0.0]] * 6, [1.0] * 6), cam)
+    assert np.all(g["position"].reshape(3, 6)[:, 1:] == 0) and got["alpha"].max() > 0.5
+    # Saturated opacities (alpha clamped to alpha_max) stacked 8 deep: at the centre the
+    # third splat would take T to 5e-5 < transmittance_min (the stop, after 2), towards
+    # the edges all 8 are composited; the clamp and the stop are both exercised.
+    ortho = Camera.look_at([0.0, 0.0, 3.0], [0.0, 0.0, 0.0], width=9, height=9,
+                           ortho_width=0.9)
+    zs = np.linspace(0.0, -0.7, 8)
+    got, g = both(lambda: raw_surfels([[0.01 * i, 0.0, z] for i, z in enumerate(zs)],
+                                      [[math.log(0.3)] * 2] * 8, [[1.0, 0.0, 0.0, 0.0]] * 8,
+                                      [60.0, 0.0, 60.0, 3.0, 60.0, 60.0, 1.0, 60.0]), ortho)
+    assert got["count"][4, 4, 0] == 2 and got["count"].max() == 8
+    assert np.abs(g["position"]).max() > 0
+
+
+def test_1e5_surfels_stacked_on_one_pixel():
+    n = 100_000
+    cam = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], width=5, height=5,
+                         ortho_width=0.5)
+    rng = np.random.default_rng(0)
+    z = rng.permutation(np.linspace(-1.0, 1.0, n))
+    op = rng.uniform(0.0045, 0.006, n).astype(np.float32)
+    pos = np.stack([np.zeros(n), np.zeros(n), z], axis=1)
+    colors = rng.uniform(0.0, 1.0, (n, 3))
+    logit = np.log(op.astype(np.float64)) - np.log1p(-op.astype(np.float64))
+    got, _ = both(lambda: raw_surfels(pos, np.full((n, 2), math.log(1e-3)),
+                                      np.tile([1.0, 0, 0, 0], (n, 1)), logit, colors), cam)
+    assert got["count"][2, 2, 0] > 1000  # the stop happens deep into the stack
+
+
+def test_behind_camera_and_near_plane():
+    cam = Camera.look_at([0.0, 0.0, 1.0], [0.0, 0.0, 0.0], width=16, height=12, fov_x=1.2)
+    raw = random_scene(12, seed=5, extent=0.6, scale=(0.1, 0.4))
+    raw["position"][:3, 2] = [2.0, 1.5, 1.1]
+    raw["position"][3] = [0.0, 0.0, 0.85]
+    raw["position"][4] = [0.05, 0.0, 0.7]  # crosses the near plane: its box is the image
+    raw["log_scale"][4] = np.log([0.4, 0.4])
+    raw["rotation"][4] = [1.0, 0.6, 0.0, 0.0]
+    _, g = both(lambda: to_surfels(raw), cam)
+    g = g["position"].reshape(3, -1)
+    assert np.all(g[:, :4] == 0) and np.abs(g[:, 4]).max() > 0
+
+
+def test_far_virtual_camera():
+    raw = {k: v.astype(np.float32).astype(np.float64) for k, v in sphere_surfels(3000).items()}
+    d = np.array([0.3, 0.5, 0.81])
+    d /= np.linalg.norm(d)
+    fov = 2 * math.atan(math.tan(math.radians(20)) / 30.0)
+    cam = Camera.look_at(75.0 * d, [0, 0, 0], width=48, height=48, fov_x=fov)
+    # 75 units away the projected fields' gradients are large and cancel over the pixels
+    # of a splat: float32 scatter-adds in two different orders differ by up to 3.2e-5 of
+    # the largest position gradient (10 of 9000 entries above 1e-5): 1e-4 here.
+    got, _ = both(lambda: to_surfels(raw), cam, grad_rtol=1e-4)
+    assert (got["alpha"] > 0.5).sum() > 300
+
+
+# -- set-up, guards ---------------------------------------------------------------------
+def test_nothing_visible_renders_background_with_zero_gradients():
+    cam = cameras()["perspective"]
+    raw = random_scene(5, 1)
+    raw["position"][:, 2] = 5.0  # all behind the camera (it sits at z = 2.6)
+    for config in (PAIRS, TILES):
+        out, g = render(to_surfels(raw), cam, config, ("alpha", "depth"), BACKGROUND,
+                        ("color", "alpha"))
+        np.testing.assert_allclose(out["color"], np.broadcast_to(BACKGROUND["color"],
+                                                                 (20, 24, 3)), atol=1e-7)
+        assert out["alpha"].max() == 0 and all(np.abs(v).max() == 0 for v in g.values())
+
+
+def test_config_is_validated():
+    with pytest.raises(ValueError, match="RasterConfig.method"):
+        RasterConfig(method="tile")
+    with pytest.raises(ValueError, match="RasterConfig.tile_size"):
+        RasterConfig(method="tiles", tile_size=0)
+
+
+def test_memory_guard_names_the_setting():
+    cam = cameras()["perspective"]
+    s = to_surfels(random_scene(40, 1))
+    small = dataclasses.replace(TILES, memory_budget_bytes=1 << 20)  # below what we hold
+    with pytest.raises(RasterMemoryError, match="RasterConfig.memory_budget_bytes"):
+        rasterize(s, cam, s.channels, config=small)
+    with pytest.raises(RasterMemoryError, match="RasterConfig.max_pairs=10"):
+        rasterize(s, cam, s.channels, config=dataclasses.replace(TILES, max_pairs=10))
+
+
+@pytest.mark.parametrize("which", ["channels", "geometry"])
+def test_gradients_of_part_of_the_inputs(which):
+    # Only the channels (fixed geometry, as the material stage) or only the geometry need
+    # gradients: the custom op gets inputs without AD on one side.
+    camera = cameras()["perspective"]
+    raw = random_scene(40, 2)
+    grads = {}
+    for config in (PAIRS, TILES):
+        s = to_surfels(raw)
+        leaf = s.channels["color"] if which == "channels" else s.position
+        dr.enable_grad(leaf)
+        out = rasterize(s, camera, s.channels, aovs=("alpha", "depth"), config=config)
+        dr.backward(dr.sum(out["color"].array * dr.arange(mi.Float, 20 * 24 * 3) / 1e3)
+                    + dr.sum(out["depth"].array))
+        grads[config.method] = np.array(dr.grad(leaf), np.float64)
+    assert np.abs(grads["pairs"]).max() > 0
+    assert_grads_equal({"g": grads["tiles"]}, {"g": grads["pairs"]})
+
+
+def test_forward_mode_is_refused_clearly():
+    camera = cameras()["perspective"]
+    s = to_surfels(random_scene(10, 1))
+    dr.enable_grad(s.position)
+    out = rasterize(s, camera, s.channels, config=TILES)
+    with pytest.raises(Exception, match="forward-mode derivatives"):
+        dr.forward_from(s.position)
+        dr.eval(dr.grad(out["color"].array))
