@@ -34,6 +34,22 @@ def raw_surfels(pos, log_scale, rot, logit, colors=None):
                    channels={"color": mi.TensorXf(np.asarray(colors, np.float32))})
 
 
+def edge_on_surfels(origin, n: int = 200, seed: int = 3):
+    """(position, log scale, quaternion, opacity logit) of ``n`` random surfels turned
+    edge-on, within ~1e-7 rad, to their view rays from ``origin``."""
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(-0.3, 0.3, (n, 3))
+    view = pos - origin
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    a = np.cross(view, rng.normal(size=(n, 3)))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    nrm = a + 1e-7 * rng.normal(size=(n, 3))  # normal ~ perpendicular to the view ray
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    z = np.array([0.0, 0.0, 1.0])
+    q = np.concatenate([1.0 + nrm @ z[:, None], np.cross(z, nrm)], axis=1)
+    return pos, np.log(rng.uniform(0.02, 0.2, (n, 2))), q, rng.normal(size=n)
+
+
 def render_checked(surfels, camera, config=CFG):
     """Outputs (numpy) and raw-parameter gradients of a loss over every output; asserts that
     all of them are finite."""
@@ -74,19 +90,7 @@ def test_edge_on_surfels():
             assert res["alpha"][4, 5, 0] == pytest.approx(want, abs=1e-5)
         assert res["depth"][4, 4, 0] == pytest.approx(3.0, rel=1e-6)  # the centre's depth
         assert np.abs(grads["opacity_logit"]).max() > 0
-    # Random surfels turned almost edge-on to their view rays (within ~1e-7 rad).
-    rng = np.random.default_rng(3)
-    n = 200
-    pos = rng.uniform(-0.3, 0.3, (n, 3))
-    view = pos - persp.origin
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
-    a = np.cross(view, rng.normal(size=(n, 3)))
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    nrm = a + 1e-7 * rng.normal(size=(n, 3))  # normal ~ perpendicular to the view ray
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    z = np.array([0.0, 0.0, 1.0])
-    q = np.concatenate([1.0 + nrm @ z[:, None], np.cross(z, nrm)], axis=1)
-    s = raw_surfels(pos, np.log(rng.uniform(0.02, 0.2, (n, 2))), q, rng.normal(size=n))
+    s = raw_surfels(*edge_on_surfels(persp.origin))
     res, _ = render_checked(s, persp.with_size(32, 32))
     assert res["alpha"].max() > 0.5
 

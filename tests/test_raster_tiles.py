@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import test_raster_grad
 from raster_reference import random_scene, reference, to_surfels
-from test_raster_hard_cases import raw_surfels, render_checked, sphere_surfels
+from test_raster_hard_cases import edge_on_surfels, raw_surfels, render_checked, sphere_surfels
 
 from mi_shadowgs.core import raster_tiles
 from mi_shadowgs.core.camera import Camera
@@ -198,19 +198,8 @@ def test_edge_on_surfels():
             got, _ = both(one, cam, dataclasses.replace(PAIRS, lowpass_inv_var=k))
             assert got["alpha"][4, 4, 0] == pytest.approx(0.5, abs=1e-6)
     # Random surfels turned almost edge-on to their view rays (as the hard-case test).
-    rng = np.random.default_rng(3)
-    n = 200
-    pos = rng.uniform(-0.3, 0.3, (n, 3))
-    view = pos - persp.origin
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
-    a = np.cross(view, rng.normal(size=(n, 3)))
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    nrm = a + 1e-7 * rng.normal(size=(n, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    z = np.array([0.0, 0.0, 1.0])
-    q = np.concatenate([1.0 + nrm @ z[:, None], np.cross(z, nrm)], axis=1)
-    ls, logit = np.log(rng.uniform(0.02, 0.2, (n, 2))), rng.normal(size=n)
-    got, _ = both(lambda: raw_surfels(pos, ls, q, logit), persp.with_size(32, 32))
+    edge_on = edge_on_surfels(persp.origin)
+    got, _ = both(lambda: raw_surfels(*edge_on), persp.with_size(32, 32))
     assert got["alpha"].max() > 0.5
 
 
