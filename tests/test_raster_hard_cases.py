@@ -34,6 +34,21 @@ def raw_surfels(pos, log_scale, rot, logit, colors=None):
                    channels={"color": mi.TensorXf(np.asarray(colors, np.float32))})
 
 
+def one_pixel_stack(n: int):
+    """(camera, raw surfel arrays) of ``n`` tiny surfels stacked along the axis of a 5x5
+    orthographic camera at random depths, opacities just above alpha_min (1/255)."""
+    cam = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], width=5, height=5,
+                         ortho_width=0.5)
+    rng = np.random.default_rng(0)
+    z = rng.permutation(np.linspace(-1.0, 1.0, n))
+    op = rng.uniform(0.0045, 0.006, n).astype(np.float32)
+    pos = np.stack([np.zeros(n), np.zeros(n), z], axis=1)
+    colors = rng.uniform(0.0, 1.0, (n, 3))
+    logit = np.log(op.astype(np.float64)) - np.log1p(-op.astype(np.float64))
+    return cam, (pos, np.full((n, 2), math.log(1e-3)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                 logit, colors)
+
+
 def edge_on_surfels(origin, n: int = 200, seed: int = 3):
     """(position, log scale, quaternion, opacity logit) of ``n`` random surfels turned
     edge-on, within ~1e-7 rad, to their view rays from ``origin``."""
@@ -142,16 +157,9 @@ def test_1e5_surfels_stacked_on_one_pixel():
     # Orthographic camera down -Z; every centre projects onto pixel (2, 2)'s centre, so
     # alpha_i = opacity_i exactly there, and compositing must follow the float64 product.
     n = 100_000
-    cam = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], width=5, height=5,
-                         ortho_width=0.5)
-    rng = np.random.default_rng(0)
-    z = rng.permutation(np.linspace(-1.0, 1.0, n))
-    op = rng.uniform(0.0045, 0.006, n).astype(np.float32)  # above alpha_min = 1/255
-    pos = np.stack([np.zeros(n), np.zeros(n), z], axis=1)
-    colors = rng.uniform(0.0, 1.0, (n, 3))
-    logit = np.log(op.astype(np.float64)) - np.log1p(-op.astype(np.float64))
-    s = raw_surfels(pos, np.full((n, 2), math.log(1e-3)), np.tile([1.0, 0, 0, 0], (n, 1)),
-                    logit, colors)
+    cam, raw = one_pixel_stack(n)
+    colors, z = raw[4], raw[0][:, 2]
+    s = raw_surfels(*raw)
     res, _ = render_checked(s, cam)
     # Expected: front to back (largest z first, the camera is on +Z), float64.
     order = np.argsort(5.0 - z.astype(np.float32), kind="stable")

@@ -17,7 +17,13 @@ import numpy as np
 import pytest
 import test_raster_grad
 from raster_reference import random_scene, reference, to_surfels
-from test_raster_hard_cases import edge_on_surfels, raw_surfels, render_checked, sphere_surfels
+from test_raster_hard_cases import (
+    edge_on_surfels,
+    one_pixel_stack,
+    raw_surfels,
+    render_checked,
+    sphere_surfels,
+)
 
 from mi_shadowgs.core import raster_tiles
 from mi_shadowgs.core.camera import Camera
@@ -225,17 +231,8 @@ def test_degenerate_scales_and_near_opaque_stack():
 
 
 def test_1e5_surfels_stacked_on_one_pixel():
-    n = 100_000
-    cam = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], width=5, height=5,
-                         ortho_width=0.5)
-    rng = np.random.default_rng(0)
-    z = rng.permutation(np.linspace(-1.0, 1.0, n))
-    op = rng.uniform(0.0045, 0.006, n).astype(np.float32)
-    pos = np.stack([np.zeros(n), np.zeros(n), z], axis=1)
-    colors = rng.uniform(0.0, 1.0, (n, 3))
-    logit = np.log(op.astype(np.float64)) - np.log1p(-op.astype(np.float64))
-    got, _ = both(lambda: raw_surfels(pos, np.full((n, 2), math.log(1e-3)),
-                                      np.tile([1.0, 0, 0, 0], (n, 1)), logit, colors), cam)
+    cam, raw = one_pixel_stack(100_000)
+    got, _ = both(lambda: raw_surfels(*raw), cam)
     assert got["count"][2, 2, 0] > 1000  # the stop happens deep into the stack
 
 
