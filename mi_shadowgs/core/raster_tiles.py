@@ -6,8 +6,8 @@ per-pair maths (``_pair_eval``), so both composite the same pairs in the same or
 
 1. binning (detached): each surfel's pixel box covers a rectangle of screen tiles
    (``RasterConfig.tile_size``); surfel-tile pairs come from a prefix sum over the tile
-   counts (one host read), are sorted by (tile, centre depth) with one ``dr.argsort``, and
-   each tile gets its [start, end) range of the sorted list;
+   counts of the surfels in depth order (one host read), a stable ``dr.argsort`` by tile
+   orders them by (tile, centre depth), and each tile gets its [start, end) range;
 2. forward: one lane per pixel, tile-major so that a SIMD packet shares one tile and reads
    the same sorted entry in every iteration; a symbolic ``dr.while_loop`` walks the tile's
    list front to back, skips pairs outside the surfel's box or failing the alpha / cutoff /
@@ -23,8 +23,9 @@ per-pair maths (``_pair_eval``), so both composite the same pairs in the same or
 Why T is recovered by division rather than recomputed front to back: one pass instead of
 two (the back-to-front sum of w_j g_j over later pairs needs the output gradients, so a
 front-to-back replay would need a first pass for the total), and with alpha <= alpha_max =
-0.99 each division multiplies the relative error by at most (1 + 2^-52) * 100 / 100: the
-error grows linearly in the number of splats (~1e-16 each), 1e-11 after 1e5 splats.
+0.99 each division adds ~1e-16 relative error and the error grows linearly in the number
+of splats: the T recovered at the front of each pixel is 1 to 8.9e-16 after 1753 splats
+(test_raster_tiles's 1e5-surfel stack; 2.2e-16 after 10 splats of opacity 0.3-0.95).
 """
 
 from __future__ import annotations
