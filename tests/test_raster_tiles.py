@@ -119,12 +119,16 @@ def test_forward_matches_pairs(kind, seed):
 @pytest.mark.parametrize("tile_size", [1, 3, 5, 16, 64])
 def test_tile_size_does_not_change_the_image(tile_size):
     # 24 x 20 pixels: partial tiles at 3 (rows), 5, 16 and a single tile larger than the
-    # image at 64; 1 puts every pixel in its own tile.
+    # image at 64; 1 puts every pixel in its own tile; 5 has two backward walking groups
+    # per tile (25 lanes), 1 and 3 one group of fewer than 16 lanes.
     camera = cameras()["perspective"]
     raw = random_scene(40, 2)
-    want, _ = render(to_surfels(raw), camera, PAIRS)
-    got, _ = render(to_surfels(raw), camera, dataclasses.replace(TILES, tile_size=tile_size))
+    aovs = tuple(a for a in AOVS if a != "count")
+    want, gw = render(to_surfels(raw), camera, PAIRS, aovs, BACKGROUND, ("color", "depth"))
+    got, gg = render(to_surfels(raw), camera, dataclasses.replace(TILES, tile_size=tile_size),
+                     aovs, BACKGROUND, ("color", "depth"))
     assert_outputs_equal(got, want)
+    assert_grads_equal(gg, gw)
 
 
 def test_forward_matches_reference():
