@@ -329,3 +329,32 @@ def test_forward_mode_is_refused_clearly():
     with pytest.raises(Exception, match="forward-mode derivatives"):
         dr.forward_from(s.position)
         dr.eval(dr.grad(out["color"].array))
+
+
+def test_several_channel_tensors():
+    # Two channel tensors of widths 1 and 5 beside the AOVs, one with a background: the
+    # loop carries one accumulator per component and the backward one scatter each.
+    camera = cameras()["orthographic"]
+    raw = random_scene(40, 3)
+    extra = np.random.default_rng(4).uniform(-1.0, 1.0, (40, 5)).astype(np.float32)
+    grads, outs = {}, {}
+    for config in (PAIRS, TILES):
+        s = to_surfels(raw)
+        chans = {"grey": mi.TensorXf(np.ascontiguousarray(raw["colors"][:, :1], np.float32)),
+                 "feat": mi.TensorXf(extra)}
+        for t in chans.values():
+            dr.enable_grad(t)
+        dr.enable_grad(s.position)
+        out = rasterize(s, camera, chans, aovs=("alpha",), background={"feat": [0.5] * 5},
+                        config=config)
+        loss = dr.sum(out["grey"].array) + dr.sum(out["feat"].array *
+                                                  dr.arange(mi.Float, 20 * 24 * 5) / 1e3)
+        dr.backward(loss)
+        outs[config.method] = {k: np.array(v, np.float64) for k, v in out.items()}
+        grads[config.method] = {"grey": np.array(dr.grad(chans["grey"]), np.float64),
+                                "feat": np.array(dr.grad(chans["feat"]), np.float64),
+                                "position": np.array(dr.grad(s.position), np.float64)}
+    assert outs["tiles"]["feat"].shape == (20, 24, 5)
+    assert_outputs_equal(outs["tiles"], outs["pairs"])
+    assert_grads_equal(grads["tiles"], grads["pairs"])
+    assert all(np.abs(g).max() > 0 for g in grads["pairs"].values())
