@@ -25,7 +25,6 @@ from test_raster_hard_cases import (
     sphere_surfels,
 )
 
-from mi_shadowgs.core import raster_tiles
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
 
@@ -124,13 +123,10 @@ def test_forward_matches_pairs(kind, seed):
 
 
 @pytest.mark.parametrize("tile_size", [1, 3, 5, 16, 64])
-@pytest.mark.parametrize("threads", [1, 3])
-def test_tile_size_and_lane_order_do_not_change_the_image(tile_size, threads, monkeypatch):
+def test_tile_size_does_not_change_the_image(tile_size):
     # 24 x 20 pixels: partial tiles at 3 (rows), 5, 16 and a single tile larger than the
-    # image at 64; 1 puts every pixel in its own tile. The tile rows' order in the lanes
-    # follows the thread count (raster_tiles._row_order): 3 interleaves them.
-    monkeypatch.setattr(raster_tiles, "_row_order",
-                        lambda nty, order=raster_tiles._row_order: order(nty, threads))
+    # image at 64; 1 puts every pixel in its own tile; 5 has two backward walking groups
+    # per tile (25 lanes), 1 and 3 one group of fewer than 16 lanes.
     camera = cameras()["perspective"]
     raw = random_scene(40, 2)
     aovs = tuple(a for a in AOVS if a != "count")
@@ -319,3 +315,32 @@ def test_forward_mode_is_refused_clearly():
     with pytest.raises(Exception, match="forward-mode derivatives"):
         dr.forward_from(s.position)
         dr.eval(dr.grad(out["color"].array))
+
+
+def test_several_channel_tensors():
+    # Two channel tensors of widths 1 and 5 beside the AOVs, one with a background: the
+    # loop carries one accumulator per component and the backward one scatter each.
+    camera = cameras()["orthographic"]
+    raw = random_scene(40, 3)
+    extra = np.random.default_rng(4).uniform(-1.0, 1.0, (40, 5)).astype(np.float32)
+    grads, outs = {}, {}
+    for config in (PAIRS, TILES):
+        s = to_surfels(raw)
+        chans = {"grey": mi.TensorXf(np.ascontiguousarray(raw["colors"][:, :1], np.float32)),
+                 "feat": mi.TensorXf(extra)}
+        for t in chans.values():
+            dr.enable_grad(t)
+        dr.enable_grad(s.position)
+        out = rasterize(s, camera, chans, aovs=("alpha",), background={"feat": [0.5] * 5},
+                        config=config)
+        loss = dr.sum(out["grey"].array) + dr.sum(out["feat"].array *
+                                                  dr.arange(mi.Float, 20 * 24 * 5) / 1e3)
+        dr.backward(loss)
+        outs[config.method] = {k: np.array(v, np.float64) for k, v in out.items()}
+        grads[config.method] = {"grey": np.array(dr.grad(chans["grey"]), np.float64),
+                                "feat": np.array(dr.grad(chans["feat"]), np.float64),
+                                "position": np.array(dr.grad(s.position), np.float64)}
+    assert outs["tiles"]["feat"].shape == (20, 24, 5)
+    assert_outputs_equal(outs["tiles"], outs["pairs"])
+    assert_grads_equal(grads["tiles"], grads["pairs"])
+    assert all(np.abs(g).max() > 0 for g in grads["pairs"].values())

@@ -80,7 +80,7 @@ class RasterConfig:
     # "tiles": the tiled renderer (``raster_tiles``): surfels binned to tile_size^2 pixel
     # tiles, one compositing loop per pixel, a hand-written backward; memory O(pixels +
     # surfel-tile pairs). Its guard counts bytes per surfel-tile pair (key, sort, sorted
-    # fields; measured 94 B forward, 106 B forward+backward over every AOV and 3 channels:
+    # fields; measured 95 B forward, 108 B forward+backward over every AOV and 3 channels:
     # ``bm_raster_memory --method tiles``) and per pixel lane (saved state, images,
     # gradient images: estimated from the arrays held), plus per channel 4 bytes per pair
     # and 8 per lane.
@@ -542,7 +542,9 @@ def rasterize(surfels: Surfels, camera: Camera,
 
     A render whose pair list would exceed ``config.memory_budget_bytes`` is drawn in bands of
     rows when no input needs a gradient, and raises RasterMemoryError (a ValueError) when
-    one does.
+    one does. ``config.method="tiles"`` renders the same images with the tiled renderer
+    (``raster_tiles``; reverse-mode gradients only), whose memory does not grow with the
+    pixel-splat pairs; it raises RasterMemoryError when its surfel-tile pairs do not fit.
     """
     for a in aovs:
         if a not in AOV_CHANNELS:

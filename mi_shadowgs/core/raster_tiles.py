@@ -35,7 +35,6 @@ from collections.abc import Sequence
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from mi_shadowgs.core.raster import (
     _PAIR_FIELDS,
@@ -76,8 +75,6 @@ class _Bins:
     box: tuple  # ([TP] x0 | x1 << 16, [TP] y0 | y1 << 16): the surfel's pixel box
     start: mi.UInt32  # [tiles] first sorted pair of each tile
     end: mi.UInt32  # [tiles] one past its last
-    row_of_slot: mi.UInt32  # [nty] the tile row whose lanes come k-th (``_row_order``)
-    slot_of_row: mi.UInt32  # [nty] its inverse
 
     @property
     def lanes(self) -> int:
@@ -145,40 +142,21 @@ def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
     y1 = y0 + bh - 1
     box = (dr.gather(mi.UInt32, x0 | (x1 << 16), sid), dr.gather(mi.UInt32, y0 | (y1 << 16), sid))
     dr.eval(sid, start, end, *box)
-    return _Bins(ts, ntx, nty, sid, box, start, end, *_row_order(nty))
-
-
-def _row_order(nty: int, threads: int | None = None) -> tuple[mi.UInt32, mi.UInt32]:
-    """(row of each slot, slot of each row): the order of the tile rows in the lanes.
-
-    Dr.Jit splits a kernel of up to 2 * 16K lanes per worker thread into one contiguous
-    block per thread; with the rows in image order one thread would get the sky and the
-    other the ground. Rows r = k (mod threads) come together, so that each block holds rows
-    from the whole image; larger kernels are cut into many blocks and balanced by work
-    stealing anyway."""
-    threads = max(dr.thread_count() if threads is None else threads, 1)
-    rows = np.arange(nty)
-    order = np.lexsort((rows // threads, rows % threads))  # slot -> row
-    inverse = np.empty_like(order)
-    inverse[order] = rows
-    return mi.UInt32(order.astype(np.uint32)), mi.UInt32(inverse.astype(np.uint32))
+    return _Bins(ts, ntx, nty, sid, box, start, end)
 
 
 def _lanes(bins: _Bins, width: int, height: int):
-    """Per lane (tile-major, the tile rows in ``_row_order``, pixels row-major inside a
-    tile): (tile, pixel x, pixel y, inside)."""
+    """Per lane (tile-major, row-major inside a tile): (tile, pixel x, pixel y, inside)."""
     ts2 = bins.size * bins.size
     lane = dr.arange(mi.UInt32, bins.lanes)
-    slot = lane // ts2
-    local = lane - slot * ts2
-    slot_row = slot // bins.ntx
-    tx = slot - slot_row * bins.ntx
-    ty = dr.gather(mi.UInt32, bins.row_of_slot, slot_row)
+    tile = lane // ts2
+    local = lane - tile * ts2
+    ty = tile // bins.ntx
     ly = local // bins.size
-    px = tx * bins.size + (local - ly * bins.size)
+    px = (tile - ty * bins.ntx) * bins.size + (local - ly * bins.size)
     py = ty * bins.size + ly
     inside = (px < width) & (py < height)
-    return ty * bins.ntx + tx, px, py, inside
+    return tile, px, py, inside
 
 
 def _lane_of_pixel(bins: _Bins, width: int, height: int) -> mi.UInt32:
@@ -188,8 +166,7 @@ def _lane_of_pixel(bins: _Bins, width: int, height: int) -> mi.UInt32:
     px = pix - py * width
     ty, tx = py // bins.size, px // bins.size
     local = (py - ty * bins.size) * bins.size + (px - tx * bins.size)
-    slot = dr.gather(mi.UInt32, bins.slot_of_row, ty) * bins.ntx + tx
-    return slot * (bins.size * bins.size) + local
+    return (ty * bins.ntx + tx) * (bins.size * bins.size) + local
 
 
 def _to_image(vals: list, bins: _Bins, width: int, height: int) -> mi.Float:
