@@ -356,6 +356,19 @@ def _pair_eval(q: dict, px: mi.Float, py: mi.Float, config: RasterConfig):
     return alpha, rho, depth
 
 
+def _pair_kept(alpha, rho, depth, config: RasterConfig):
+    """Whether a pair contributes at all: alpha above alpha_min, inside the cutoff ellipse,
+    in front of the near plane (both renderers drop the others)."""
+    return (alpha >= config.alpha_min) & (rho <= config.cutoff_sigma ** 2) & \
+        (depth >= config.near)
+
+
+def _distortion_m(depth, config: RasterConfig):
+    """2DGS's NDC-like depth mapping m(z) of the distortion term (Float64)."""
+    near, far = config.distortion_near, config.distortion_far
+    return mi.Float64(far / (far - near)) * (1.0 - near / mi.Float64(depth))
+
+
 _PAIR_FIELDS = ("xc", "yc", "a0", "a1", "b0", "b1", "t20", "t21", "t22", "z0", "z1", "z2",
                 "opacity")
 
@@ -405,9 +418,7 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
     pyi = dr.gather(mi.UInt32, y0, sid) + ly
     q = g.gather(sid, _PAIR_FIELDS)
     alpha, rho, depth = _pair_eval(q, mi.Float(pxi) + 0.5, mi.Float(pyi) + 0.5, config)
-    keep = (alpha >= config.alpha_min) & (rho <= config.cutoff_sigma ** 2) & \
-        (depth >= config.near)
-    idx = dr.compress(keep)
+    idx = dr.compress(_pair_kept(alpha, rho, depth, config))
     if dr.width(idx) == 0:
         return None
     sid = dr.gather(mi.UInt32, sid, idx)
@@ -651,8 +662,7 @@ def _render_rows(g: _Proj, gd: _Proj, r0: int, r1: int, W: int, H: int, chans: d
         n = g.gather(sid, ("normal",))["normal"]
         out["normal"] = accumulate([w * n.x, w * n.y, w * n.z], 3)
     if "distortion" in aovs:
-        near, far = config.distortion_near, config.distortion_far
-        m = mi.Float64(far / (far - near)) * (1.0 - near / mi.Float64(depth))
+        m = _distortion_m(depth, config)
         wm = w64 * m
         m1 = _segment_exclusive(wm, pix, first, npix)
         m2 = _segment_exclusive(wm * m, pix, first, npix)

@@ -45,10 +45,12 @@ from mi_shadowgs.core.raster import (
     _boxes,
     _budget_text,
     _depth_key,
+    _distortion_m,
     _expand,
     _memory,
     _opaque,
     _pair_eval,
+    _pair_kept,
     _Proj,
     _total,
 )
@@ -194,18 +196,6 @@ def _in_box(bins: _Bins, j: mi.UInt32, px: mi.UInt32, py: mi.UInt32) -> mi.Bool:
         (py <= (by >> 16))
 
 
-def _distortion_m(depth, config: RasterConfig):
-    """2DGS's NDC-like depth mapping m(z) of the distortion term (Float64)."""
-    near, far = config.distortion_near, config.distortion_far
-    return mi.Float64(far / (far - near)) * (1.0 - near / mi.Float64(depth))
-
-
-def _keep(alpha, rho, depth, config: RasterConfig):
-    """The pair list's tests (``raster._build_pairs``): pairs failing them are dropped."""
-    return (alpha >= config.alpha_min) & (rho <= config.cutoff_sigma ** 2) & \
-        (depth >= config.near)
-
-
 class _TiledOp(dr.CustomOp):
     """Forward: every requested image (flat, [H * W * C]); backward: gradients of the
     projected fields and the channel values (``_TiledCtx`` holds the non-differentiable
@@ -257,7 +247,7 @@ class _TiledOp(dr.CustomOp):
             j = s["j"]
             q = {k: dr.gather(mi.Float, self.sorted[k], j) for k in q_names}
             alpha, rho, depth = _pair_eval(q, pxf, pyf, config)
-            keep = _keep(alpha, rho, depth, config) & _in_box(bins, j, px, py)
+            keep = _pair_kept(alpha, rho, depth, config) & _in_box(bins, j, px, py)
             a64 = mi.Float64(alpha)
             t_before = s["T"]
             t_after = t_before * (1.0 - a64)
@@ -483,7 +473,7 @@ def _tiled_backward(op: _TiledOp) -> None:
         q = {k: dr.gather(mi.Float, op.sorted[k], i) for k in q_names}
         alpha, rho, depth = _pair_eval(q, pxf, pyf, config)
         # Every kept pair before the stop index was composited (T only decreases).
-        comp = (i < own_stop) & _keep(alpha, rho, depth, config) & _in_box(bins, i, px, py)
+        comp = (i < own_stop) & _pair_kept(alpha, rho, depth, config) & _in_box(bins, i, px, py)
         # Pairs that are not composited pass through with alpha 0 and a finite depth.
         depth = dr.select(comp, depth, config.near)
         a64 = mi.Float64(dr.select(comp, alpha, 0.0))

@@ -602,8 +602,9 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
                       ) -> tuple[np.ndarray, np.ndarray]:
     """(squared error [C], fitted irradiance [C]) of the views when light ``k`` moves to
     each candidate direction of ``cand_maps``, its irradiance re-fitted by least squares.
-    The error is that of ``config.refine_score``: with the irradiance alone re-fitted
-    ("irradiance"), or per segment with the segment's scale free too ("segment")."""
+    The error is that of ``config.refine_score``: with that one irradiance re-fitted
+    ("irradiance"), or with the light's scale re-fitted per segment ("segment",
+    ``segment_errors``)."""
     n_cand = cand_maps.count
     s_rb = dr.zeros(mi.Float64, n_cand)  # summed in Dr.Jit, read once at the end
     s_bb = dr.zeros(mi.Float64, n_cand)
