@@ -307,7 +307,7 @@ def plot_scene(path: Path, scene: str, rows: list[dict]) -> None:
         ax.grid(alpha=0.3)
         if ok:
             ax.legend(fontsize=7.5, loc="lower right")
-    joint = sorted(pareto(rows, tuple(m for m, _ in METRICS)))
+    joint = sorted(r["point"] for r in rows if r.get("pareto_joint"))  # marked by gather
     fig.suptitle(f"Speed against error: {scene} (one setting changed from cpu-small); on the "
                  f"joint front of time and all three metrics: {', '.join(joint) or 'none'}")
     FigureCanvasAgg(fig)
