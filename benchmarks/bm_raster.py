@@ -301,10 +301,12 @@ def make_runner(renderer: str, workload: Workload, raster_config=None):
 
 
 def run_case(renderer: str, n: int, res: int, warmup: int = 2, iters: int = 5,
-             image_path: str | Path | None = None, seed: int = 0, raster_config=None
-             ) -> dict:
+             image_path: str | Path | None = None, seed: int = 0, raster_config=None,
+             stats: bool = True) -> dict:
     """Time one (renderer, n, res) configuration in this process; returns a result row.
-    ``raster_config``: ours's RasterConfig (default: ``RasterConfig()``)."""
+    ``raster_config``: ours's RasterConfig (default: ``RasterConfig()``); ``stats``: add
+    the renderer's pair counts (ours: a pass over the pixel-splat pair list, whose memory
+    can exceed the render's at 800^2)."""
     rss_start = current_rss_mb()
     workload = build_workload(WorkloadConfig(n=n, resolution=res, seed=seed))
     runner = make_runner(renderer, workload, raster_config)
@@ -343,7 +345,8 @@ def run_case(renderer: str, n: int, res: int, warmup: int = 2, iters: int = 5,
         "wall_s": time.perf_counter() - t_setup,
     }
     row["grad_l1"] = runner.grad_l1()
-    row.update(runner.stats())
+    if stats:
+        row.update(runner.stats())
     if image_path is not None:
         np.save(image_path, runner.image())
     return row
@@ -620,21 +623,26 @@ def write_report(out: Path, rows: list[dict], images: dict, cfg: BenchConfig,
                      f"{res_img}^2, {n_img} Gaussians, final step of the benchmark")
 
     goals = {}
-    speed = next((t for t in table if (t["n"], t["res"]) == (20_000, 128)), None)
-    if speed is not None:
-        goals["speedup_fwd_bwd_128_20k"] = speed["ratio_fwd_bwd"]
-        goals["speedup_goal_met"] = bool(speed["ratio_fwd_bwd"] >= 4.0)
+    # Issue 18's targets (issue 3 asked for 4x and 512 MB with the pair list).
+    for res, target in ((128, 10.0), (256, 8.0)):
+        speed = next((t for t in table if (t["n"], t["res"]) == (20_000, res)), None)
+        if speed is not None:
+            goals[f"speedup_fwd_bwd_{res}_20k"] = speed["ratio_fwd_bwd"]
+            goals[f"speedup_goal_{res}_met"] = bool(speed["ratio_fwd_bwd"] >= target)
     mem = next((t for t in table if (t["n"], t["res"]) == (20_000, 256)), None)
     if mem is not None:
         goals["ours_peak_rss_mb_256_20k"] = mem["ours_peak_rss_mb"]
-        goals["memory_goal_met"] = bool(mem["ours_peak_rss_mb"] <= 512.0)
+        goals["memory_goal_met"] = bool(mem["ours_peak_rss_mb"] <= 256.0)
     summary = {"preset": preset, "config": dataclasses.asdict(cfg), "table": table,
                "linearity": lin, "goals": goals, "rows": rows, "runs": runs}
     write_json(out / "raster.json", summary)
 
     starts = [r["rss_start_mb"] for r in rows if r.get("status") == "ok" and "rss_start_mb" in r]
     base_rss = statistics.median(starts) if starts else float("nan")
-    md = ["## Rasterizer vs Mitsuba's Gaussian renderer (issue 3)", "",
+    methods = sorted({f"{r.get('method')} (tile {r.get('tile_size')})" for r in rows
+                      if r.get("renderer") == "ours" and r.get("status") == "ok"})
+    md = ["## Rasterizer vs Mitsuba's Gaussian renderer (issues 3 and 18)", "",
+          f"Ours: `RasterConfig.method` {', '.join(methods) or 'n/a'}. "
           f"Preset `{preset}`; medians of {cfg.iters} steps after 1 + {cfg.warmup} warm-up "
           f"steps, best of {cfg.rounds} interleaved round(s) (all runs: raster_runs.csv); "
           "one process per (renderer, N, res) with an empty Dr.Jit kernel cache "
@@ -655,12 +663,13 @@ def write_report(out: Path, rows: list[dict], images: dict, cfg: BenchConfig,
                   if "fwd_bwd_cpu_ms" in lin else "")
                + " (`raster_linearity.png`). Pairs: those kept after the alpha/cutoff tests "
                "and composited with AD (`box_pairs`, `contributing` in raster.csv).", ""]
-    if "speedup_fwd_bwd_128_20k" in goals:
-        md.append(f"- Goal fwd+bwd >= 4x faster than Mitsuba at 128^2/20k: "
-                  f"{goals['speedup_fwd_bwd_128_20k']:.2f}x -> "
-                  f"{'met' if goals['speedup_goal_met'] else 'NOT met'}")
+    for res, target in ((128, 10.0), (256, 8.0)):
+        if f"speedup_fwd_bwd_{res}_20k" in goals:
+            md.append(f"- Goal fwd+bwd >= {target:.0f}x faster than Mitsuba at {res}^2/20k: "
+                      f"{goals[f'speedup_fwd_bwd_{res}_20k']:.2f}x -> "
+                      f"{'met' if goals[f'speedup_goal_{res}_met'] else 'NOT met'}")
     if "ours_peak_rss_mb_256_20k" in goals:
-        md.append(f"- Goal peak RSS <= 512 MB at 256^2/20k: "
+        md.append(f"- Goal peak RSS <= 256 MB at 256^2/20k: "
                   f"{goals['ours_peak_rss_mb_256_20k']:.0f} MB -> "
                   f"{'met' if goals['memory_goal_met'] else 'NOT met'}")
     bad = [r for r in rows if r.get("status") != "ok"]
@@ -682,6 +691,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", help="write the result row here (atomically)")
     ap.add_argument("--image", help="save the final render here as .npy")
+    ap.add_argument("--no-stats", action="store_true",
+                    help="skip the pair counts (their pass can take more memory than the "
+                         "render)")
     ap.add_argument("--method", default=None, help="ours: RasterConfig.method "
                     "(pairs, tiles; default: RasterConfig's)")
     ap.add_argument("--tile-size", type=int, default=None,
@@ -701,7 +713,7 @@ def main(argv=None) -> int:
                 if v is not None}
         raster_config = RasterConfig(**over)
     row = run_case(args.renderer, args.n, args.res, args.warmup, args.iters, args.image,
-                   args.seed, raster_config)
+                   args.seed, raster_config, stats=not args.no_stats)
     if args.json:
         write_json(args.json, row)
     json.dump(row, sys.stdout)

@@ -69,6 +69,7 @@ class RunConfig:
 
 PRESETS = {
     "cpu-small": RunConfig(),
+    "cpu-medium": RunConfig(preset="cpu-medium"),
     "paper": RunConfig(preset="paper", ablations=True),
 }
 

@@ -56,6 +56,30 @@ def test_presets():
             PRESETS["cpu-small"].n_test) == (128, 64, 32)
     assert (PRESETS["paper"].width, PRESETS["paper"].n_train, PRESETS["paper"].n_test) == \
         (800, 100, 200)
+    medium = PRESETS["cpu-medium"]
+    assert (medium.width, medium.height) == (256, 256) and 64 <= medium.n_train <= 100
+
+
+def test_every_stage_has_every_preset():
+    # A run with --preset P reads P from every stage; a missing one would fail mid-run.
+    import importlib
+
+    from mi_shadowgs.config import PRESET_NAMES
+
+    for name in ("mi_shadowgs.dataset.generate", "mi_shadowgs.dataset.importer",
+                 "mi_shadowgs.core.raster", "mi_shadowgs.stages.geometry.train",
+                 "mi_shadowgs.stages.segmentation.features",
+                 "mi_shadowgs.stages.segmentation.masks",
+                 "mi_shadowgs.stages.visibility.shadow_maps",
+                 "mi_shadowgs.stages.material.fit", "mi_shadowgs.stages.relight.render",
+                 "mi_shadowgs.stages.relight.mesh", "mi_shadowgs.stages.relight.export",
+                 "mi_shadowgs.pipeline"):
+        presets = importlib.import_module(name).PRESETS
+        assert set(PRESET_NAMES) <= set(presets), (name, sorted(presets))
+    from mi_shadowgs.stages.visibility import baselines
+
+    for presets in (baselines.GAUSSIAN_PRESETS, baselines.VOXEL_PRESETS):
+        assert set(PRESET_NAMES) <= set(presets)
 
 
 def test_default_scene_normalised(default_setup):

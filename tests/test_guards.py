@@ -195,7 +195,8 @@ def test_bands_render_like_the_whole_image():
 
 def test_gradient_render_over_budget_is_refused():
     s = _scene()
-    cfg = RasterConfig(memory_budget_bytes=1 << 20)  # 1 MiB: below any process
+    # The pair list's guard (the tiled path's: test_raster_tiles).
+    cfg = RasterConfig(method="pairs", memory_budget_bytes=1 << 20)  # below any process
     for v in s.params().values():
         dr.enable_grad(v)
     with pytest.raises(RasterMemoryError, match=r"memory_budget_bytes=1048576.*gradients"):

@@ -29,8 +29,9 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
-PAIRS = RasterConfig()
+PAIRS = RasterConfig(method="pairs")
 TILES = RasterConfig(method="tiles")
+assert RasterConfig().method == "tiles"  # the default: the hard-case and stage tests run it
 BACKGROUND = {"color": [0.1, 0.2, 0.3]}
 
 
@@ -166,6 +167,23 @@ def test_gradients_match_pairs(kind, outputs):
     assert_grads_equal(got, want, outputs)
 
 
+@pytest.mark.parametrize("expand_grad_bytes", [0, 1 << 30])
+def test_both_gradient_reduce_modes_match_pairs(expand_grad_bytes):
+    # 0: no room for per-thread copies, so atomics after a packet pre-reduction (Local);
+    # 1 GiB: per-thread copies (Expand). Both must give the pair list's gradients.
+    from mi_shadowgs.core.raster_tiles import _grad_reduce_mode
+    config = dataclasses.replace(TILES, expand_grad_bytes=expand_grad_bytes)
+    assert _grad_reduce_mode(40 * 19, config) == \
+        (dr.ReduceMode.Expand if expand_grad_bytes else dr.ReduceMode.Local)
+    camera = cameras()["perspective"]
+    raw = random_scene(40, 2)
+    aovs = ("alpha", "depth", "normal", "distortion")
+    outputs = ("color", "alpha", "depth", "normal", "distortion")
+    _, want = render(to_surfels(raw), camera, PAIRS, aovs, BACKGROUND, outputs)
+    _, got = render(to_surfels(raw), camera, config, aovs, BACKGROUND, outputs)
+    assert_grads_equal(got, want, outputs)
+
+
 @pytest.mark.parametrize("kind,outputs", [
     ("perspective", test_raster_grad.OUTPUTS), ("orthographic", test_raster_grad.OUTPUTS),
     ("perspective", ("distortion",)), ("orthographic", ("depth", "median_depth", "normal"))])
@@ -284,8 +302,31 @@ def test_memory_guard_names_the_setting():
     small = dataclasses.replace(TILES, memory_budget_bytes=1 << 20)  # below what we hold
     with pytest.raises(RasterMemoryError, match="RasterConfig.memory_budget_bytes"):
         rasterize(s, cam, s.channels, config=small)
+    few = dataclasses.replace(TILES, max_pairs=10)
+    for v in s.params().values():
+        dr.enable_grad(v)
     with pytest.raises(RasterMemoryError, match="RasterConfig.max_pairs=10"):
-        rasterize(s, cam, s.channels, config=dataclasses.replace(TILES, max_pairs=10))
+        rasterize(s, cam, s.channels, config=few)
+    # Without gradients, a render whose tiles do not fit falls back to the pair list in
+    # bands of rows, which refuses only when one row does not fit (here: 10 pairs).
+    with dr.suspend_grad(), pytest.raises(RasterMemoryError, match="one image row holds"):
+        rasterize(s, cam, s.channels, config=few)
+
+
+def test_tiles_grow_when_their_pairs_do_not_fit():
+    # Every surfel covers the whole 24 x 20 image: 4x4 tiles make 30 pairs per surfel, 8x8
+    # 12, 16x16 4, 32x32 1. A max_pairs of 2 surfels' worth at 16x16 forces 16x16 tiles
+    # (then the same image as the pair list); 1 pair per surfel (40) is below every size
+    # but the largest, which must still render.
+    cam = cameras()["perspective"]
+    raw = random_scene(40, 1)
+    raw["log_scale"][:] = math.log(50.0)
+    aovs = ("alpha", "depth")
+    want, _ = render(to_surfels(raw), cam, PAIRS, aovs)
+    for max_pairs in (40 * 4, 40):
+        got, _ = render(to_surfels(raw), cam, dataclasses.replace(TILES, max_pairs=max_pairs),
+                        aovs, grad_outputs=("color",))
+        assert_outputs_equal(got, want)
 
 
 @pytest.mark.parametrize("which", ["channels", "geometry"])

@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="splat PLY colour: sh (view-dependent, default) or albedo")
     parser.add_argument("--data", default=None,
                         help="the run's dataset, when it moved (mesh: training cameras)")
-    parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
+    parser.add_argument("--preset", default="cpu-small",
+                        help="cpu-small (default), cpu-medium or paper")
     parser.add_argument("--bsdf", default=None, choices=("model", "principled"),
                         help="mesh: scene.xml's BSDF: model (the fitted Cook-Torrance out of "
                              "Mitsuba's diffuse/roughconductor/blendbsdf; default) or "

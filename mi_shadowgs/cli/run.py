@@ -20,7 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="start over, removing the files of an earlier run there (only "
                              "those)")
-    parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
+    parser.add_argument("--preset", default="cpu-small",
+                        help="cpu-small (default), cpu-medium or paper")
     parser.add_argument("--masks", default=None, choices=("auto", "material", "chromaticity"),
                         help="segmentation labels (default: material ids when present)")
     parser.add_argument("--segments", type=int, default=None, metavar="K",

@@ -30,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace an earlier segment output there (only its files)")
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted segment output there from its checkpoint")
-    parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
+    parser.add_argument("--preset", default="cpu-small",
+                        help="cpu-small (default), cpu-medium or paper")
     parser.add_argument("--masks", default="material", choices=("material", "chromaticity"),
                         help="label maps to train on (default: the dataset's material ids)")
     parser.add_argument("--segments", "--k", dest="k", type=int, default=None,

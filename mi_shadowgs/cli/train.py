@@ -19,7 +19,8 @@ GEOMETRY_FOLDER = "geometry"  # the stage's subfolder of the run, as `mi-shadowg
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("data", help="dataset folder (transforms_train.json, ...)")
     parser.add_argument("--out", required=True, help="run folder; the stage writes a subfolder")
-    parser.add_argument("--preset", default="cpu-small", help="cpu-small (default) or paper")
+    parser.add_argument("--preset", default="cpu-small",
+                        help="cpu-small (default), cpu-medium or paper")
     parser.add_argument("--iterations", type=int, default=None, help="override the preset")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the stage's last checkpoint (from step 0 when "

@@ -11,10 +11,12 @@ Pipeline (one ``rasterize`` call):
 4. per kept pair, with AD: alpha again, a Float64 prefix sum of log(1 - alpha) segmented
    per pixel gives the transmittance, and ``scatter_reduce`` accumulates the images.
 
-``RasterConfig(method="tiles")`` replaces steps 2-4 by the tiled renderer of
+``RasterConfig(method="tiles")``, the default, replaces steps 2-4 by the tiled renderer of
 ``raster_tiles`` (surfels binned to screen tiles, a compositing loop per pixel, a
 hand-written backward): the same images and gradients in memory O(pixels + surfel-tile
-pairs). The pair list stays the default and the reference.
+pairs), 3-5x faster. The pair list (``method="pairs"``) stays the reference in the tests,
+the path of forward-mode derivatives, and the fallback of forward renders whose tiles do
+not fit the memory budget.
 
 The ray-splat intersection is the homogeneous one of 2DGS written relative to the
 projected centre: with T the 3x3 map (u, v, 1) -> homogeneous pixel, A = T0 - xc T2 and
@@ -77,14 +79,14 @@ class RasterConfig:
     bytes_per_pair_grad: int = 112  # with gradients
     reserve_bytes: int = 48 << 20
     # "pairs": the pixel-splat pair list above (the reference; memory grows with the pairs).
-    # "tiles": the tiled renderer (``raster_tiles``): surfels binned to tile_size^2 pixel
+    # "tiles" (default): the tiled renderer (``raster_tiles``): surfels binned to tile_size^2 pixel
     # tiles, one compositing loop per pixel, a hand-written backward; memory O(pixels +
     # surfel-tile pairs). Its guard counts bytes per surfel-tile pair (key, sort, sorted
     # fields; measured 95 B forward, 108 B forward+backward over every AOV and 3 channels:
     # ``bm_raster_memory --method tiles``) and per pixel lane (saved state, images,
     # gradient images: estimated from the arrays held), plus per channel 4 bytes per pair
     # and 8 per lane.
-    method: str = "pairs"
+    method: str = "tiles"
     # Tiles of 4x4 pixels: one AVX-512 packet (16 lanes) per tile, so a packet reads one
     # sorted entry per iteration and pays for few pixels outside each splat's box. fwd+bwd
     # CPU ms at 1 thread, bm_raster workload 128^2/20k: 51 (2), 35 (4), 45 (5), 52 (8),
@@ -93,6 +95,12 @@ class RasterConfig:
     bytes_per_tile_pair: int = 128
     bytes_per_pixel: int = 96  # forward only
     bytes_per_pixel_grad: int = 256  # with gradients
+    # The tiled backward's per-surfel gradient sums: a private copy per thread (Dr.Jit's
+    # ReduceMode.Expand, non-atomic) while the copies take at most this many bytes, atomics
+    # after a pre-reduction in the SIMD packet (Local) above. Stage-1 step on the default
+    # scene (27k surfels, 2 threads): backward loop 17.7 ms with Expand, 24.0 with Local,
+    # 59.4 with plain atomics (``dr.kernel_history``; BENCHMARKS.md, "Session 8").
+    expand_grad_bytes: int = 64 << 20
 
     def __post_init__(self):
         if self.method not in RASTER_METHODS:
@@ -111,7 +119,7 @@ class RasterMemoryError(MemoryError, ValueError):
     too, so that the CLI reports it in one line with exit status 2."""
 
 
-PRESETS = {"paper": RasterConfig(), "cpu-small": RasterConfig()}
+PRESETS = {"paper": RasterConfig(), "cpu-small": RasterConfig(), "cpu-medium": RasterConfig()}
 
 
 def get_config(name: str) -> RasterConfig:
@@ -587,8 +595,15 @@ def rasterize(surfels: Surfels, camera: Camera,
     if config.method == "tiles":
         from mi_shadowgs.core.raster_tiles import render_tiles
 
-        flat = render_tiles(g, gd, W, H, chans, aovs, bg, config, grad)
-        return {name: mi.TensorXf(flat[name], shape=(H, W, c)) for name, c in widths.items()}
+        try:
+            flat = render_tiles(g, gd, W, H, chans, aovs, bg, config, grad)
+            return {name: mi.TensorXf(flat[name], shape=(H, W, c))
+                    for name, c in widths.items()}
+        except RasterMemoryError:
+            if grad:
+                raise
+            # A forward render whose tiles do not fit even at the largest tile size: the
+            # pair list below, in bands of rows (the same image).
     bands, total = _plan_bands(gd, W, H, config, grad) if surfels.count else ([(0, H)], 0)
     parts = []
     for r0, r1 in bands:

@@ -57,11 +57,11 @@ from mi_shadowgs.core.raster import (
 
 # Projected per-surfel fields the compositing loops read: the pair maths plus the normal.
 _NORMAL_FIELDS = ("nx", "ny", "nz")
-# dr.ReduceMode of the backward's per-surfel scatter-adds: every lane of a packet reads the
-# same sorted entry, so a local pre-reduction turns up to 16 atomics into one.
-_GRAD_REDUCE = dr.ReduceMode.Local
 # Lanes that start the backward walk together (``_tiled_backward``): an AVX-512 packet.
 _BACKWARD_GROUP = 16
+# Largest tile edge that ``_bin`` grows to when the configured tiles' pairs do not fit the
+# memory budget (64: 4096 lanes, 256 SIMD packets per tile list; the tests cover it).
+MAX_TILE_SIZE = 64
 # Pixel boxes are packed as two 16-bit coordinates per UInt32 (``_Bins.box``).
 _BOX_MAX = 0xFFFF
 
@@ -84,9 +84,10 @@ class _Bins:
 
 
 def _check_tile_budget(tile_pairs: int, lanes: int, config: RasterConfig, grad: bool,
-                       channels: int) -> None:
+                       channels: int, surfels: int) -> None:
     """RasterMemoryError when the tiled render would not fit the memory budget or
-    ``max_pairs``: its memory is O(lanes + surfel-tile pairs), both known before binning."""
+    ``max_pairs``: its memory is O(lanes + surfel-tile pairs), both known before binning,
+    plus the backward's per-thread gradient copies (``_grad_copy_bytes``)."""
     if tile_pairs > config.max_pairs:
         raise RasterMemoryError(
             f"rasterize (tiles): {tile_pairs} surfel-tile pairs exceed "
@@ -94,29 +95,44 @@ def _check_tile_budget(tile_pairs: int, lanes: int, config: RasterConfig, grad: 
     per_lane = config.bytes_per_pixel_grad if grad else config.bytes_per_pixel
     need = config.reserve_bytes + lanes * (per_lane + 8 * channels) + \
         tile_pairs * (config.bytes_per_tile_pair + 4 * channels)
+    if grad:
+        need += _grad_copy_bytes(surfels * (len(_PAIR_FIELDS) + len(_NORMAL_FIELDS) + channels),
+                                 config)
     mem = _memory(config, need)
     if mem is not None and mem[1] + need > mem[0]:
         raise RasterMemoryError(
             f"rasterize (tiles): {tile_pairs} surfel-tile pairs and {lanes} pixels need "
             f"~{need / (1 << 30):.2f} GiB, but {_budget_text(config, *mem)}; a smaller "
-            f"RasterConfig.tile_size or image lowers it")
+            f"image lowers it")
 
 
 def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
          channels: int) -> _Bins | None:
     """Surfel-tile pairs of the detached projected surfels ``gd``; None when there are
     none."""
-    ts = config.tile_size
-    ntx, nty = -(-width // ts), -(-height // ts)
     x0, y0, bw, bh, count = _boxes(gd, width, height, config)
     live = count > 0
-    # bw, bh >= 1 on live surfels; max(., 1) keeps the dead ones' arithmetic in range.
-    tx0, ty0 = x0 // ts, y0 // ts
-    tw = dr.select(live, (x0 + dr.maximum(bw, 1) - 1) // ts - tx0 + 1, 0)
-    th = dr.select(live, (y0 + dr.maximum(bh, 1) - 1) // ts - ty0 + 1, 0)
-    ntiles = tw * th  # [N]
-    total = _total(ntiles)
-    _check_tile_budget(total, ntx * nty * ts * ts, config, grad, channels)
+    # Tiles of config.tile_size pixels; where their pairs would not fit the memory budget
+    # (surfels covering much of the image), tiles twice as large, up to MAX_TILE_SIZE:
+    # large splats make ~1/ts^2 as many pairs, at the cost of lanes testing pixels outside
+    # the smaller splats' boxes.
+    ts = config.tile_size
+    while True:
+        ntx, nty = -(-width // ts), -(-height // ts)
+        # bw, bh >= 1 on live surfels; max(., 1) keeps the dead ones' arithmetic in range.
+        tx0, ty0 = x0 // ts, y0 // ts
+        tw = dr.select(live, (x0 + dr.maximum(bw, 1) - 1) // ts - tx0 + 1, 0)
+        th = dr.select(live, (y0 + dr.maximum(bh, 1) - 1) // ts - ty0 + 1, 0)
+        ntiles = tw * th  # [N]
+        total = _total(ntiles)
+        try:
+            _check_tile_budget(total, ntx * nty * ts * ts, config, grad, channels,
+                               dr.width(gd.xc))
+            break
+        except RasterMemoryError:
+            if ts >= max(MAX_TILE_SIZE, config.tile_size) or ts >= max(width, height):
+                raise
+            ts = min(2 * ts, max(MAX_TILE_SIZE, config.tile_size))
     if total == 0:
         return None
     # Surfels front to back (stable: equal depths keep surfel order, as in the pair list),
@@ -406,6 +422,23 @@ def _pair_eval_grad(q: dict, px, py, g_alpha, g_depth, config: RasterConfig) -> 
     }
 
 
+def _grad_copy_bytes(entries: int, config: RasterConfig) -> int:
+    """Bytes of the per-thread copies of ``entries`` gradient floats under ReduceMode.Expand,
+    or 0 where they exceed ``config.expand_grad_bytes`` (then Local: ``_grad_reduce_mode``)."""
+    copies = entries * 4 * max(dr.thread_count(), 1)
+    return copies if copies <= config.expand_grad_bytes else 0
+
+
+def _grad_reduce_mode(entries: int, config: RasterConfig) -> dr.ReduceMode:
+    """dr.ReduceMode of the backward's per-surfel scatter-adds into ``entries`` floats.
+
+    Expand (LLVM: a private copy of the gradient arrays per thread, non-atomic updates,
+    summed at the end) where the copies fit ``config.expand_grad_bytes``; otherwise Local
+    (every lane of a packet reads the same sorted entry, so a pre-reduction in the packet
+    leaves one atomic per scatter). CUDA treats Expand as Auto."""
+    return dr.ReduceMode.Expand if _grad_copy_bytes(entries, config) else dr.ReduceMode.Local
+
+
 def _tiled_backward(op: _TiledOp) -> None:
     ctx = op.ctx
     bins, config = ctx.bins, ctx.config
@@ -443,6 +476,7 @@ def _tiled_backward(op: _TiledOp) -> None:
     nsurf = ctx.nsurfels
     acc = {k: dr.zeros(mi.Float, nsurf) for k in q_names}
     acc_chans = {name: dr.zeros(mi.Float, nsurf * c) for name, c in ctx.widths.items()}
+    reduce_mode = _grad_reduce_mode(nsurf * (len(q_names) + sum(ctx.widths.values())), config)
 
     # The lanes of a group (up to _BACKWARD_GROUP consecutive lanes of one tile: a SIMD
     # packet) walk down together from the group's largest stop index, each active below
@@ -492,7 +526,7 @@ def _tiled_backward(op: _TiledOp) -> None:
                 ck = dr.gather(mi.Float, op.sorted_chans[name][k], i)
                 g = g + gk * ck
                 dr.scatter_reduce(dr.ReduceOp.Add, acc_chans[name], w * gk, sid * c + k,
-                                  active=comp, mode=_GRAD_REDUCE)
+                                  active=comp, mode=reduce_mode)
         if "depth" in aovs:
             g = g + g_dacc * depth
             g_z = g_z + w * g_dacc
@@ -500,7 +534,7 @@ def _tiled_backward(op: _TiledOp) -> None:
             for k, gk in zip(_NORMAL_FIELDS, g_normal, strict=True):
                 g = g + gk * q[k]
                 dr.scatter_reduce(dr.ReduceOp.Add, acc[k], w * gk, sid, active=comp,
-                                  mode=_GRAD_REDUCE)
+                                  mode=reduce_mode)
         g64 = mi.Float64(g)
         if g_med is not None:
             g_z = g_z + dr.select(i == op.med_j, g_med, 0.0)
@@ -517,7 +551,7 @@ def _tiled_backward(op: _TiledOp) -> None:
         fg = _pair_eval_grad(q, pxf, pyf, g_alpha, g_z, config)
         for k in _PAIR_FIELDS:
             dr.scatter_reduce(dr.ReduceOp.Add, acc[k], fg[k], sid, active=comp,
-                              mode=_GRAD_REDUCE)
+                              mode=reduce_mode)
         out = dict(s)
         out["T"] = dr.select(comp, t_before, s["T"])
         out["S"] = dr.select(comp, s["S"] + w64 * g64, s["S"])

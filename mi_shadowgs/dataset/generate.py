@@ -106,6 +106,10 @@ PRESETS = {
     # any reconstruction's test PSNR near the 30 dB goal of stage 1).
     "cpu-small": GenerateConfig(width=128, height=128, n_train=64, n_test=32, spp=256,
                                 max_depth=4),
+    # Issue 18: 256^2 and 64-100 views, the resolution real captures need (SfM wants 384^2
+    # or more; `import` resizes to ImportConfig.max_size).
+    "cpu-medium": GenerateConfig(width=256, height=256, n_train=96, n_test=32, spp=256,
+                                 max_depth=4),
 }
 
 

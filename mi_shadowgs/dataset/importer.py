@@ -60,7 +60,8 @@ class ImportConfig:
     threads: int = -1  # pycolmap threads (-1: all cores)
 
 
-PRESETS = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512)}
+PRESETS = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512),
+           "cpu-medium": ImportConfig(max_size=512)}
 
 
 def get_config(name: str) -> ImportConfig:

@@ -164,7 +164,7 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
                 f"color_channel={self.color_channel!r}]")
 
     # -- rendering ------------------------------------------------------------------------
-    def _image(self, scene, sensor) -> mi.TensorXf:
+    def _image(self, scene, sensor, config=None) -> mi.TensorXf:
         """The developed film tensor [H, W, C]; attached when AD is enabled."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
@@ -175,7 +175,7 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
             aovs=tuple((n, tuple(c)) for n, c in core_render.aov_layout(self.aovs, self.surfels)))
         images = core_render.render_surfels(self.surfels, camera, color_channel=self.color_channel,
                                    aovs=self.aovs, background=self.background,
-                                   config=self.config)
+                                   config=config or self.config)
         return core_render.develop_film(film, layout, self.aov_names(), images, "surfel_raster")
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -188,8 +188,10 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
             return image
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        # Forward-mode AD runs on the pair list: the tiled renderer's hand-written
+        # derivative is reverse mode only (the same images either way).
         with dr.resume_grad():
-            image = self._image(scene, sensor)
+            image = self._image(scene, sensor, dataclasses.replace(self.config, method="pairs"))
             dr.forward_to(image)
             return dr.grad(image)
 

@@ -114,6 +114,10 @@ PRESETS = {
                               grad_threshold=0.0002, max_surfels=40000),
         log_every=25, preview_every=500, checkpoint_every=500),
 }
+# 256^2, 96 views: cpu-small's schedule; twice its surfel cap for the 4x pixels.
+PRESETS["cpu-medium"] = dataclasses.replace(
+    PRESETS["cpu-small"], densify=dataclasses.replace(PRESETS["cpu-small"].densify,
+                                                      max_surfels=80000))
 
 
 def get_config(name: str) -> GeometryConfig:
@@ -296,22 +300,28 @@ def _view_data(view) -> ViewData:
 def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int):
     """(total loss, dict of detached terms incl. "mse") for one view at 0-based ``step``."""
     rgb = sh_colors(surfels, view.camera.origin)
-    out = rasterize(surfels, view.camera, {"rgb": rgb},
-                    aovs=("alpha", "depth", "normal", "distortion"), config=config.raster)
+    use_mask = config.lambda_mask > 0 and view.has_mask
+    use_normal = config.lambda_normal > 0 and step >= config.normal_from
+    use_dist = config.lambda_dist > 0 and step >= config.dist_from
+    # Only the images this step's loss reads: before normal_from / dist_from the normal,
+    # depth and distortion images would cost their compositing and backward for nothing.
+    aovs = ("alpha",) * (use_mask or use_normal) + ("depth", "normal") * use_normal + \
+        ("distortion",) * use_dist
+    out = rasterize(surfels, view.camera, {"rgb": rgb}, aovs=aovs, config=config.raster)
     img = out["rgb"]
     l1 = losses.l1(img, view.image)
     dssim = losses.d_ssim(img, view.image)
     total = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * dssim
     terms = {"l1": l1, "dssim": dssim}
-    if config.lambda_mask > 0 and view.has_mask:
+    if use_mask:
         lo = losses.mask_bce(out["alpha"], view.mask)
         total = total + config.lambda_mask * lo
         terms["mask"] = lo
-    if config.lambda_normal > 0 and step >= config.normal_from:
+    if use_normal:
         ln = losses.normal_consistency(out["normal"], out["depth"], out["alpha"], view.camera)
         total = total + config.lambda_normal * ln
         terms["normal"] = ln
-    if config.lambda_dist > 0 and step >= config.dist_from:
+    if use_dist:
         ld = losses.distortion_loss(out["distortion"])
         total = total + config.lambda_dist * ld
         terms["dist"] = ld

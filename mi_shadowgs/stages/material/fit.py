@@ -211,6 +211,7 @@ PRESETS = {
     "cpu-small": MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_light=0.1,
                                 lambda_ind2=1.0, log_every=50),
 }
+PRESETS["cpu-medium"] = PRESETS["cpu-small"]
 
 
 def get_config(name: str) -> MaterialConfig:

@@ -79,7 +79,8 @@ class ExportConfig:
             raise ValueError(f"ExportConfig.bsdf must be one of {BSDFS}, got {self.bsdf!r}")
 
 
-PRESETS = {"cpu-small": ExportConfig(), "paper": ExportConfig(mesh=mesh_mod.get_config("paper"))}
+PRESETS = {"cpu-small": ExportConfig(), "cpu-medium": ExportConfig(),
+           "paper": ExportConfig(mesh=mesh_mod.get_config("paper"))}
 
 
 def get_config(name: str) -> ExportConfig:

@@ -79,7 +79,8 @@ class MeshConfig:
             raise ValueError(f"MeshConfig: bad settings {self}")
 
 
-PRESETS = {"cpu-small": MeshConfig(), "paper": MeshConfig(resolution=320)}
+PRESETS = {"cpu-small": MeshConfig(), "cpu-medium": MeshConfig(),
+           "paper": MeshConfig(resolution=320)}
 
 
 def get_config(name: str) -> MeshConfig:

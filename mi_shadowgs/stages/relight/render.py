@@ -58,7 +58,7 @@ class RelightConfig:
                              f"{self.indirect!r}")
 
 
-PRESETS = {"paper": RelightConfig(), "cpu-small": RelightConfig()}
+PRESETS = {"paper": RelightConfig(), "cpu-small": RelightConfig(), "cpu-medium": RelightConfig()}
 DEFAULT_RELIGHT = RelightConfig()
 
 

@@ -91,6 +91,7 @@ PRESETS = {
     # them, and 2k samples (the pairwise term is n^2 / 4).
     "cpu-small": SegmentationConfig(iterations=300, lr=0.02, n_samples=2048),
 }
+PRESETS["cpu-medium"] = PRESETS["cpu-small"]  # features of the surfels, not the pixels
 
 
 def get_config(name: str) -> SegmentationConfig:

@@ -57,7 +57,8 @@ class ChromaticityConfig:
     min_label_fraction: float = 0.005
 
 
-PRESETS = {"paper": ChromaticityConfig(), "cpu-small": ChromaticityConfig()}
+PRESETS = {"paper": ChromaticityConfig(), "cpu-small": ChromaticityConfig(),
+           "cpu-medium": ChromaticityConfig()}
 
 
 def get_config(name: str) -> ChromaticityConfig:

@@ -83,10 +83,12 @@ class VoxelConfig:
 GAUSSIAN_PRESETS = {
     "paper": GaussianTraceConfig(),
     "cpu-small": GaussianTraceConfig(max_hits=16),
+    "cpu-medium": GaussianTraceConfig(max_hits=16),
 }
 VOXEL_PRESETS = {
     "paper": VoxelConfig(),
     "cpu-small": VoxelConfig(resolution=48),
+    "cpu-medium": VoxelConfig(resolution=48),
 }
 
 
