@@ -232,6 +232,7 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
         np.testing.assert_array_equal(resumed.light.directions, straight.light.directions)
         np.testing.assert_array_equal(resumed.light.weights, straight.light.weights)
         assert resumed.history == straight.history
+        assert resumed.light_log == straight.light_log
 
 
 def _sigterm_on_call(monkeypatch, module, name: str, call: int) -> None:

@@ -216,6 +216,10 @@ def test_tiny_decomposition_recovers_albedo_and_light():
     assert int(np.argmax(est)) == k_true
     # Pruning dropped most of the 128 directions.
     assert len(res.light.active) < 40
+    # The light log: the warm-up's pruning first (at its step), the final lights last.
+    log = res.light.active, res.light_log
+    assert res.light_log[0]["event"] == "prune" and res.light_log[0]["step"] == 80, log
+    assert len(res.light_log[-1]["directions"]) == len(res.light.directions), log
     # Albedo: one segment-constant value each; their per-channel ratio is scale-free.
     a = res.surfels.channels["albedo"].numpy()
     seg = res.surfels.channels["segment"].numpy()[:, 0]

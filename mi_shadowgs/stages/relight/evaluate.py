@@ -359,15 +359,17 @@ def load_envmap(entry: dict, root: Path):
 
 def light_json(result: fit.MaterialResult) -> dict:
     """The fitted light of stage 4 as ``light.json`` holds it: the grid radiance, the active
-    directions, their unit vectors and irradiance, their azimuth/elevation (degrees), and
-    the specular and visibility flags."""
+    directions, their unit vectors and irradiance, their azimuth/elevation (degrees), the
+    specular and visibility flags, and the lights after each pruning, refinement and
+    settling (``MaterialState.light_log``; "log")."""
     light = result.light
     dirs = np.asarray(light.light_set().directions)
     return {"radiance": light.radiance.tolist(), "active": light.active.tolist(),
             "directions": dirs.tolist(),
             "irradiance": light.weights.tolist() if light.weights is not None else None,
             "angles_deg": [list(_angles(d)) for d in dirs],
-            "specular": result.specular, "use_visibility": result.use_visibility}
+            "specular": result.specular, "use_visibility": result.use_visibility,
+            "log": result.light_log}
 
 
 def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None = None,
@@ -406,7 +408,8 @@ def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None
             history.append((int(step), float(loss)))
     light = fit.LightModel(radiance, active, dirs, weights)
     return fit.MaterialResult(model, light, specular,
-                              bool(data.get("use_visibility", use_visibility)), history, {})
+                              bool(data.get("use_visibility", use_visibility)), history, {},
+                              list(data.get("log", [])))
 
 
 TURNTABLE_LIGHTS = 8  # azimuths of the previews' light turntable
