@@ -285,6 +285,7 @@ def test_stage1_runner_trains_unmasked_views_without_the_geometry_terms(imported
     used = json.loads((tmp_path / "geometry" / "config.json").read_text())["config"]
     assert used["lambda_dist"] == cfg.unmasked_lambda_dist
     assert used["lambda_normal"] == cfg.unmasked_lambda_normal
+    assert used["lambda_dark_alpha"] == cfg.unmasked_lambda_dark_alpha > 0
     assert used["densify"]["opacity_reset_interval"] == 0
     assert "lambda_dist 0" in capsys.readouterr().err
 

@@ -193,3 +193,38 @@ def test_no_nan_with_grazing_views(tmp_path_factory):
     for key, a in surfels.to_numpy().items():
         assert np.all(np.isfinite(a)), key
     assert logs[-1]["psnr"] > logs[0]["psnr"] + 3.0
+
+
+def _dark_alpha_grad(lam: float, has_mask: bool):
+    """(terms, d loss / d opacity logit) of one grey-black surfel over an all-black view."""
+    from types import SimpleNamespace
+
+    import drjit as dr
+
+    from mi_shadowgs.core.camera import Camera
+    from mi_shadowgs.core.surfels import SH_C0, Surfels
+
+    cam = Camera.look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), fov_x=0.7, width=16, height=16)
+    s = Surfels.from_numpy([[0.0, 0.0, 0.0]], [[0.3, 0.3]], [[1.0, 0.0, 0.0, 0.0]], [0.8],
+                           {"sh": [[-0.5 / SH_C0] * 3]})  # colour 0: black on black
+    dr.enable_grad(s.opacity_logit)
+    view = SimpleNamespace(camera=cam, image=np.zeros((16, 16, 3), np.float32),
+                           mask=np.ones((16, 16), bool), has_mask=has_mask)
+    cfg = dataclasses.replace(geometry_train.get_config("cpu-small"),
+                              lambda_dark_alpha=lam, lambda_mask=0.0)
+    total, terms = geometry_train.geometry_loss(
+        s, geometry_train._view_data(view, cfg.dark_max), cfg, 0)
+    dr.backward(total)
+    return terms, float(dr.grad(s.opacity_logit)[0])
+
+
+def test_unmasked_dark_alpha_term_pushes_floaters_over_black_to_transparency():
+    """A black surfel over a black background looks like empty space; without masks the
+    dark-alpha term (L1 of the alpha at dark training pixels) gives its opacity a push down,
+    the photometric loss alone does not. Views with masks get no such term."""
+    terms, g = _dark_alpha_grad(0.1, has_mask=False)
+    _, g0 = _dark_alpha_grad(0.0, has_mask=False)
+    assert 0.0 < float(terms["dark_alpha"][0]) < 0.8  # the mean alpha of the view
+    assert g - g0 > 1e-4
+    terms, gm = _dark_alpha_grad(0.1, has_mask=True)
+    assert "dark_alpha" not in terms and gm == pytest.approx(g0, abs=1e-7)

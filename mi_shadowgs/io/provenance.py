@@ -128,12 +128,14 @@ RESULT_NEUTRAL_SETTINGS = ("checkpoint_every", "checkpoint_seconds",
                            # lambda_dist, lambda_normal and the opacity reset, which are
                            # compared: their effect is recorded there
                            "unmasked_lambda_dist", "unmasked_lambda_normal",
-                           "unmasked_opacity_reset")
+                           "unmasked_opacity_reset", "unmasked_lambda_dark_alpha")
 # Settings added after outputs were made, with the value that does what the code did before
 # they existed: absent from an older manifest, they count as equal to that value, so an
 # older run is still reused (or resumed) when nothing it computed would change.
 ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material ids)
-                  "silhouette_samples": None}  # used only by k_select "silhouette"
+                  "silhouette_samples": None,  # used only by k_select "silhouette"
+                  "lambda_dark_alpha": 0.0,  # stage 1, views without masks
+                  "dark_max": 1.0 / 255.0}  # used only with lambda_dark_alpha > 0
 
 
 def _added_as_before(key: str, old: dict, new: dict) -> bool:

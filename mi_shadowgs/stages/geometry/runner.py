@@ -17,8 +17,8 @@ from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref
 from mi_shadowgs.stages.common import StageRun, load_training_views, settings_dict, warn
 
-LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "psnr", "surfels",
-              "time")
+LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
+              "surfels", "time")
 class GeometryWriter:
     """The geometry stage's files as the loop produces them: log, previews, checkpoints."""
 
@@ -109,7 +109,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
              + ("the SfM points" if getattr(train, "points", None) else "random points in "
                 "the cameras' bounds")
              + f", skips the mask loss and the mask IoU, and trains with lambda_dist "
-               f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g} and "
+               f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g}, "
+               f"lambda_dark_alpha {config.lambda_dark_alpha:g} and "
              + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset")
     cfg_dict = settings_dict(config)
     provenance = Provenance(dataset=dataset_ref(data), settings=cfg_dict)
