@@ -89,9 +89,10 @@ class GeometryConfig:
     # ... and only the photometric loss acts on them: a black opaque floater in front of a
     # black background renders as empty space does, and the test views' spiral sees some of
     # them in front of the object. ``unmasked`` sets lambda_dark_alpha to this. Default scene
-    # without masks, cpu-small (test PSNR / mask IoU): 0 -> 30.3 dB / 0.56 at the end of the
-    # run; 0.01 -> 32.0 / 0.82 at step 1056; 0.1 -> 33.2 / 0.995 at step 1276 (of 2500;
-    # BENCHMARKS.md, "Without masks").
+    # without masks, cpu-small (test PSNR / mask IoU / median normal error), full runs:
+    # 0 -> 30.3 dB / 0.56 / 10.6 deg; 0.1 -> 33.4 / 0.997 / 8.8 (masked: 35.7 / 0.998 / 1.5);
+    # 0.01 left a floater alpha of 0.1 on dark pixels at step 1000 (32.0 / 0.82 at 1056, 0.1:
+    # 33.2 / 0.995 at 1276). Trials: /work/nomask16/trials.md (issue 16).
     unmasked_lambda_dark_alpha: float = 0.1
     # Reporting (the loop reads losses back only at these intervals).
     log_every: int = 100
