@@ -96,8 +96,8 @@ def _check_tile_budget(tile_pairs: int, lanes: int, config: RasterConfig, grad: 
     need = config.reserve_bytes + lanes * (per_lane + 8 * channels) + \
         tile_pairs * (config.bytes_per_tile_pair + 4 * channels)
     if grad:
-        need += _grad_copy_bytes(surfels * (len(_PAIR_FIELDS) + len(_NORMAL_FIELDS) + channels),
-                                 config)
+        # The normal's fields counted whether or not it is rendered: an upper bound.
+        need += _grad_copy_bytes(_grad_entries(surfels, True, channels), config)
     mem = _memory(config, need)
     if mem is not None and mem[1] + need > mem[0]:
         raise RasterMemoryError(
@@ -422,6 +422,12 @@ def _pair_eval_grad(q: dict, px, py, g_alpha, g_depth, config: RasterConfig) -> 
     }
 
 
+def _grad_entries(surfels: int, normal: bool, channels: int) -> int:
+    """Floats of the backward's per-surfel gradient sums: the pair fields, the normal's
+    when it is rendered, and every channel."""
+    return surfels * (len(_PAIR_FIELDS) + len(_NORMAL_FIELDS) * normal + channels)
+
+
 def _grad_copy_bytes(entries: int, config: RasterConfig) -> int:
     """Bytes of the per-thread copies of ``entries`` gradient floats under ReduceMode.Expand,
     or 0 where they exceed ``config.expand_grad_bytes`` (then Local: ``_grad_reduce_mode``)."""
@@ -476,7 +482,8 @@ def _tiled_backward(op: _TiledOp) -> None:
     nsurf = ctx.nsurfels
     acc = {k: dr.zeros(mi.Float, nsurf) for k in q_names}
     acc_chans = {name: dr.zeros(mi.Float, nsurf * c) for name, c in ctx.widths.items()}
-    reduce_mode = _grad_reduce_mode(nsurf * (len(q_names) + sum(ctx.widths.values())), config)
+    reduce_mode = _grad_reduce_mode(
+        _grad_entries(nsurf, g_normal is not None, sum(ctx.widths.values())), config)
 
     # The lanes of a group (up to _BACKWARD_GROUP consecutive lanes of one tile: a SIMD
     # packet) walk down together from the group's largest stop index, each active below

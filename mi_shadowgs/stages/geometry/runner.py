@@ -19,6 +19,8 @@ from mi_shadowgs.stages.common import StageRun, load_training_views, settings_di
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
               "surfels", "time")
+
+
 class GeometryWriter:
     """The geometry stage's files as the loop produces them: log, previews, checkpoints."""
 

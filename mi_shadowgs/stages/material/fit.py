@@ -543,9 +543,9 @@ def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig
 def _prune(opt, dirs: np.ndarray, maps, config: MaterialConfig, render_maps):
     """``prune_lights`` on the optimiser's L_dir: the kept lights' maps are a subset of
     ``maps``, or rendered anew where lights merged. Returns (dirs, maps)."""
-    light = np.exp(opt["log_light"].numpy().astype(np.float64))
     if len(dirs) <= 1:
         return dirs, maps
+    light = np.exp(opt["log_light"].numpy().astype(np.float64))
     new_dirs, light, idx = prune_lights(dirs, light, config)
     if idx is None:
         maps = render_maps(new_dirs)
