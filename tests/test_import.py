@@ -266,11 +266,11 @@ def test_stage1_without_masks_starts_from_the_sfm_points(imported, capsys):
     assert m["mask_iou"] is None and "mask IoU" in m["skipped"]
 
 
-def test_stage1_runner_trains_unmasked_views_without_the_geometry_terms(imported, tmp_path,
-                                                                       capsys):
-    """Without masks the runner swaps in the ``unmasked_*`` settings (no distortion or normal
-    term, no opacity reset: on the default scene cpu-small's lambda_d collapsed the fit to
-    11 dB without masks), records them in config.json and says so."""
+def test_stage1_runner_trains_unmasked_views_with_the_dark_alpha_prior(imported, tmp_path,
+                                                                     capsys):
+    """Without masks the runner swaps in the ``unmasked_*`` settings (the dark-alpha prior,
+    no opacity reset; the distortion and normal weights the masked run's, as None says),
+    records them in config.json and says so."""
     import dataclasses
     import json
 
@@ -280,14 +280,45 @@ def test_stage1_runner_trains_unmasked_views_without_the_geometry_terms(imported
     data, _ = imported
     cfg = dataclasses.replace(get_config("cpu-small"), iterations=4, init_points=300)
     assert cfg.lambda_dist > 0 and cfg.densify.opacity_reset_interval > 0
+    assert cfg.unmasked_lambda_dist is None and cfg.unmasked_lambda_normal is None
     run_geometry(data, tmp_path / "geometry", cfg, preset="cpu-small", evaluate=False,
                  progress=False)
     used = json.loads((tmp_path / "geometry" / "config.json").read_text())["config"]
-    assert used["lambda_dist"] == cfg.unmasked_lambda_dist
-    assert used["lambda_normal"] == cfg.unmasked_lambda_normal
+    assert used["lambda_dist"] == cfg.lambda_dist
+    assert used["lambda_normal"] == cfg.lambda_normal
     assert used["lambda_dark_alpha"] == cfg.unmasked_lambda_dark_alpha > 0
     assert used["densify"]["opacity_reset_interval"] == 0
-    assert "lambda_dist 0" in capsys.readouterr().err
+    assert f"lambda_dist {cfg.lambda_dist:g}" in capsys.readouterr().err
+    # an explicit unmasked weight replaces the masked one
+    cfg2 = dataclasses.replace(cfg, unmasked_lambda_dist=0.0)
+    run_geometry(data, tmp_path / "geometry2", cfg2, preset="cpu-small", evaluate=False,
+                 progress=False)
+    used = json.loads((tmp_path / "geometry2" / "config.json").read_text())["config"]
+    assert used["lambda_dist"] == 0.0 and used["lambda_normal"] == cfg.lambda_normal
+
+
+def test_random_init_lies_where_training_views_see(imported):
+    """Random initial points (no masks, no SfM points) all lie inside some training view's
+    frustum: a surfel that no view sees gets no gradient and stays as initialised (it drew
+    faint sheets over the default scene's test views without masks). A uniform cube about
+    the cameras' centre puts some points outside every view, so the check can fail."""
+    import dataclasses
+
+    from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.geometry.train import get_config, init_params, scene_bounds
+
+    data, _ = imported
+    train = load_training_views(data)
+    cfg = dataclasses.replace(get_config("cpu-small"), init="random", init_points=2000)
+    pos = init_params(train.views, cfg)["position"]
+
+    def seen(pts):
+        return np.sum([v.camera.pixel_of(pts)[2] for v in train.views], axis=0)
+
+    assert len(pos) == 2000 and np.all(seen(pos) >= 1)
+    centre, radius = scene_bounds(train.cameras)
+    cube = centre + (np.random.default_rng(0).random((2000, 3)) * 2 - 1) * radius
+    assert np.any(seen(cube) == 0)  # what the rule removes exists here
 
 
 def test_nerfstudio_transforms_import_places_the_world(photos, tmp_path, capsys):

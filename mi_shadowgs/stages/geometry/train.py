@@ -75,16 +75,15 @@ class GeometryConfig:
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     seed: int = 0
-    # Training views without masks (``unmasked``): nothing then removes the black floaters
-    # of the random or SfM initialisation that sit in front of the black background, and
-    # the geometry terms act on them. On the default scene without masks, cpu-small's
-    # lambda_d = 3e4 drove the fit transparent (the distortion of the floater layers, 3e-3
-    # against 1e-7 with masks, 30x the photometric loss): test PSNR 11.0 dB against 35.7;
-    # with lambda_d = 1000 and no opacity reset it still fell from 29.6 to 21 dB (training
-    # views) once the regularisers began; without both regularisers and without the reset it
-    # reached 30.3 dB (37 on its training views; BENCHMARKS.md, "Without masks").
-    unmasked_lambda_dist: float = 0.0
-    unmasked_lambda_normal: float = 0.0
+    # Training views without masks (``unmasked``). None keeps the masked weight. Before the
+    # dark-alpha prior below and the frustum-bound random initialisation (``init_params``),
+    # black floaters in front of the black background took these terms over: at cpu-small's
+    # lambda_d = 3e4 the fit went transparent (11.0 dB), and 0 was the default. With both,
+    # the masked weights hold: default scene, cpu-small, test PSNR / median normal error
+    # 34.16 dB / 1.72 deg with them against 33.41 / 8.8 without (BENCHMARKS.md, "Without
+    # masks", session 9).
+    unmasked_lambda_dist: float | None = None
+    unmasked_lambda_normal: float | None = None
     unmasked_opacity_reset: bool = False
     # ... and only the photometric loss acts on them: a black opaque floater in front of a
     # black background renders as empty space does, and the test views' spiral sees some of
@@ -92,7 +91,7 @@ class GeometryConfig:
     # without masks, cpu-small (test PSNR / mask IoU / median normal error), full runs:
     # 0 -> 30.3 dB / 0.56 / 10.6 deg; 0.1 -> 33.4 / 0.997 / 8.8 (masked: 35.7 / 0.998 / 1.5);
     # 0.01 left a floater alpha of 0.1 on dark pixels at step 1000 (32.0 / 0.82 at 1056, 0.1:
-    # 33.2 / 0.995 at 1276). Trials: /work/nomask16/trials.md (issue 16).
+    # 33.2 / 0.995 at 1276). BENCHMARKS.md, "Without masks" (issue 16).
     unmasked_lambda_dark_alpha: float = 0.1
     # Reporting (the loop reads losses back only at these intervals).
     log_every: int = 100
@@ -142,11 +141,13 @@ def get_config(name: str) -> GeometryConfig:
 def unmasked(config: GeometryConfig) -> GeometryConfig:
     """``config`` for training views without masks: its ``unmasked_*`` settings in place of
     the distortion, normal and dark-alpha weights and the opacity reset (see the fields'
-    comment)."""
+    comment; a None weight keeps the masked one)."""
     densify = config.densify if config.unmasked_opacity_reset else \
         dataclasses.replace(config.densify, opacity_reset_interval=0)
-    return dataclasses.replace(config, lambda_dist=config.unmasked_lambda_dist,
-                               lambda_normal=config.unmasked_lambda_normal,
+    dist, normal = config.unmasked_lambda_dist, config.unmasked_lambda_normal
+    return dataclasses.replace(config,
+                               lambda_dist=config.lambda_dist if dist is None else dist,
+                               lambda_normal=config.lambda_normal if normal is None else normal,
                                lambda_dark_alpha=config.unmasked_lambda_dark_alpha,
                                densify=densify)
 
@@ -208,6 +209,32 @@ def visual_hull_points(views, centre, radius: float, count: int, resolution: int
     return cells[pick] + (rng.random((len(pick), 3)) - 0.5) * cell
 
 
+def points_in_views(views, centre, radius: float, count: int, rng: np.random.Generator
+                    ) -> np.ndarray:
+    """``count`` random points [count, 3] in the cube centre +- radius that at least one
+    training view sees (in front of it, inside its image).
+
+    No view constrains a point outside every view: a surfel there gets no gradient and keeps
+    its initial size, colour and opacity for good. On the default scene without masks,
+    6.5% of a uniform cube's surfels ended there and drew faint sheets across the test
+    views' corners; removing them raised the test PSNR from 34.16 to 35.54 dB (masked
+    35.70; BENCHMARKS.md, "Without masks", session 9).
+    """
+    found, drawn = [], 0
+    while sum(len(f) for f in found) < count:
+        if drawn > 1000 * count:
+            raise ValueError(f"random initialisation: under 0.1% of the cube of radius "
+                             f"{radius:.3g} about the cameras' centre is inside any training "
+                             "view (cameras facing away from each other?)")
+        pts = centre + (rng.random((4 * count, 3)) * 2.0 - 1.0) * radius
+        seen = np.zeros(len(pts), bool)
+        for view in views:
+            seen |= view.camera.pixel_of(pts)[2]
+        found.append(pts[seen])
+        drawn += len(pts)
+    return np.concatenate(found)[:count]
+
+
 def _photo_inconsistency(views, pts: np.ndarray) -> np.ndarray:
     """[M] median over views of |colour - median colour| (inf where < 3 views see it)."""
     cols = np.full((len(views), len(pts), 3), np.nan, np.float32)
@@ -253,7 +280,7 @@ def init_params(views, config: GeometryConfig,
         # duplicates of a point would get a zero nearest-neighbour scale: jitter them apart
         pts = points + rng.normal(scale=1e-3 * radius, size=points.shape)
     elif config.init == "random":
-        pts = centre + (rng.random((config.init_points, 3)) * 2.0 - 1.0) * radius
+        pts = points_in_views(views, centre, radius, config.init_points, rng)
     else:
         raise ValueError(f"GeometryConfig.init must be 'hull' or 'random', got {config.init!r}")
     n = len(pts)
