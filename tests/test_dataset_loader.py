@@ -163,3 +163,25 @@ def test_nerf_synthetic_copy_in_blender_frame_loads_as_the_original(generated, t
         np.testing.assert_allclose(vb.camera.c2w, va.camera.c2w, atol=1e-12)
         np.testing.assert_allclose(vb.normal, va.normal, atol=1e-6)
         np.testing.assert_array_equal(vb.image, va.image)
+
+
+def test_copy_without_masks_loads_without_masks(generated, tmp_path):
+    """``validation.without_masks``'s copy: the same training images and cameras with no
+    mask (no alpha, no object masks, ``"masks": false``), and the test split untouched, so
+    that both stage-1 runs are scored against the same ground truth."""
+    from validation.without_masks import unmasked_copy
+
+    out, _ = generated
+    unmasked_copy(out, tmp_path / "nomask")
+    a, b = load_dataset(out, "train"), load_dataset(tmp_path / "nomask", "train")
+    assert all(v.has_mask for v in a.views) and not any(v.has_mask for v in b.views)
+    assert all(v.object_mask is None for v in b.views)
+    for va, vb in zip(a.views, b.views, strict=True):
+        np.testing.assert_array_equal(vb.camera.c2w, va.camera.c2w)
+        np.testing.assert_array_equal(vb.image, va.image)
+    ta, tb = load_dataset(out, "test"), load_dataset(tmp_path / "nomask", "test")
+    for va, vb in zip(ta.views, tb.views, strict=True):
+        np.testing.assert_array_equal(vb.mask, va.mask)
+        assert vb.has_mask
+    with pytest.raises(FileExistsError):
+        unmasked_copy(out, tmp_path / "nomask")
