@@ -420,11 +420,11 @@ class ViewerSession:
         return runner.dataset_cameras(data, "train") if data is not None else []
 
     def _orbit_template(self, pos: np.ndarray) -> Camera:
-        """A camera at 3.5 bounding radii from the surfels, 25 degrees up, 40 degree fov:
+        """A camera at 2.8 bounding radii from the surfels, 25 degrees up, 40 degree fov:
         the view when the run's dataset is gone."""
         c = pos.mean(0)
         r = float(np.quantile(np.linalg.norm(pos - c, axis=1), 0.98)) if len(pos) else 1.0
-        eye = c + 3.5 * max(r, 1e-3) * np.asarray(direction_from_angles(-60.0, 25.0))
+        eye = c + 2.8 * max(r, 1e-3) * np.asarray(direction_from_angles(-60.0, 25.0))
         return Camera.look_at(eye, c, width=256, height=256, fov_x=math.radians(40.0))
 
     @staticmethod
