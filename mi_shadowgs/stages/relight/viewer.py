@@ -302,10 +302,12 @@ class ViewerSession:
         return self.gbuffers.get(camera, self._build_gbuffer)
 
     def render(self, camera: Camera, lights: LightState, mode: str = "relit",
-               shadows: bool = True, exposure: float = 1.0, visibility: bool = False) -> Frame:
+               shadows: bool = True, exposure: float = 1.0, visibility: bool = False,
+               shadow_resolution: int | None = None) -> Frame:
         """One frame of ``camera`` under ``lights`` in ``mode`` (``MODES``); ``shadows``
         False is the "w/o visibility" ablation (V = 1). ``visibility``: also return the
-        per-light visibility [H, W, K] (for checks)."""
+        per-light visibility [H, W, K] (for checks). ``shadow_resolution``: shadow maps of
+        this size instead of the run's (the viewer's previews while a slider moves)."""
         if mode not in MODES:
             raise ValueError(f"view mode must be one of {MODES}, got {mode!r}")
         if mode not in self.modes:
@@ -332,8 +334,9 @@ class ViewerSession:
                 ls = self.light_set(lights)
                 maps = None
                 if ls is not None and shadows and mode != "albedo":
-                    maps = self.maps.shadow_maps(self.fit.model, ls, self.bounds,
-                                                 self.vis_config)
+                    cfg = self.vis_config if shadow_resolution is None else \
+                        dataclasses.replace(self.vis_config, resolution=shadow_resolution)
+                    maps = self.maps.shadow_maps(self.fit.model, ls, self.bounds, cfg)
                 vis = None if maps is None else \
                     maps.evaluate(g.geom.points, g.geom.normal, g.geom.footprint)
                 if vis is not None:

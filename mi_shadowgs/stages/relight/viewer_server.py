@@ -5,8 +5,10 @@ the new lights are arrows. Each frame is rendered on the server by ``viewer.View
 (our relighting: surfels, shadow maps, Cook-Torrance) for the browser's camera and shown as
 the scene's background image, composited with the arrows by depth.
 
-Progressive: every change (camera, slider, toggle) renders a frame at the preview size at
-once; when nothing has changed for ``settle_s`` the full-size frame follows. One render
+Progressive: every change (camera, slider, toggle) renders a preview at once: half the
+frame size and half the run's shadow-map resolution (a 512^2 map of a 30k-surfel model
+takes most of a light change's time); when nothing has changed for ``settle_s`` the
+full frame follows, with the run's shadow maps. One render
 thread per browser tab; renders take turns (one lock: Dr.Jit and the caches are shared).
 """
 
@@ -59,6 +61,7 @@ class Shown:
     shadows: bool
     preview: bool
     frame: viewer.Frame
+    latency_s: float | None = None  # oldest change it shows -> sent (None: no change)
 
 
 class ViewerServer:
@@ -66,7 +69,7 @@ class ViewerServer:
 
     def __init__(self, session: viewer.ViewerSession, host: str = "127.0.0.1",
                  port: int = 8080, resolution: int = 256, preview_resolution: int | None = None,
-                 settle_s: float = 0.25, initial_lights: list[viewer.DirectionalLight] = ()):
+                 settle_s: float = 0.4, initial_lights: list[viewer.DirectionalLight] = ()):
         if resolution < 8:
             raise ValueError(f"--resolution must be >= 8, got {resolution}")
         self.session = session
@@ -133,6 +136,7 @@ class ViewerServer:
                 "az {:.0f} el {:.0f} E {:.2f}".format(*angles_from_direction(d), e)
                 for d, e in fitted))
         gui.add_markdown("  \n".join(lines))
+        self.status = gui.add_markdown("waiting for the browser's camera")
         modes = list(s.modes)
         self.mode = gui.add_dropdown("view", modes, initial_value=modes[0])
         self.shadows = gui.add_checkbox("shadows", True, hint="off: V = 1, the paper's "
@@ -173,7 +177,6 @@ class ViewerServer:
                                              disabled=not s.can_relight)
             self.env_scale = gui.add_slider("env intensity", 0.05, 4.0, 0.05, 1.0,
                                             disabled=not s.can_relight)
-        self.status = gui.add_markdown("waiting for the browser's camera")
         handles = [self.mode, self.shadows, self.exposure, self.envmap, self.env_rotate,
                    self.env_scale, *(h for group in self.lights for h in group)]
         for h in handles:
@@ -204,7 +207,7 @@ class ViewerServer:
                 continue
             d = np.asarray(dirs, np.float64).reshape(-1, 3)
             # From far along l toward the object: the way the light travels.
-            points = np.stack([c + 2.2 * r * d, c + 1.35 * r * d], 1)  # [K, 2, 3]
+            points = np.stack([c + 1.45 * r * d, c + 0.95 * r * d], 1)  # [K, 2, 3]
             self.server.scene.add_arrows(name, points, color, shaft_radius=0.012 * r,
                                          head_radius=0.04 * r, head_length=0.12 * r)
 
@@ -225,7 +228,7 @@ class ViewerServer:
         if w is not None:
             w.close()
 
-    def render_for(self, client, preview: bool) -> Shown:
+    def render_for(self, client, preview: bool, changed_at: float | None = None) -> Shown:
         """Render and send one frame for ``client``'s camera and the GUI's settings."""
         import viser  # noqa: F401  (the client handles come from it)
 
@@ -237,22 +240,26 @@ class ViewerServer:
         lights = self.light_state()
         mode = self.mode.value
         shadows = bool(self.shadows.value)
+        full_maps = self.session.vis_config.resolution
+        maps_res = max(64, full_maps // 2) if preview else full_maps
         with self._render_lock:
             frame = self.session.render(camera, lights, mode, shadows,
-                                        float(self.exposure.value))
+                                        float(self.exposure.value),
+                                        shadow_resolution=min(maps_res, full_maps))
         depth = np.where(frame.alpha > 0.5, frame.depth, BACKGROUND_DEPTH)
         client.scene.set_background_image(frame.image, format="jpeg", jpeg_quality=92,
                                           depth=depth)
         prev = self.shown.get(client.client_id)
+        latency = None if changed_at is None else time.monotonic() - changed_at
         shown = Shown((prev.count if prev else 0) + 1, camera, lights, mode, shadows, preview,
-                      frame)
+                      frame, latency)
         self.shown[client.client_id] = shown
         sec = frame.seconds
         self.status.content = (
             f"{'preview' if preview else 'frame'} {w}x{h}: {1000 * sec['total']:.0f} ms "
             f"(G-buffer {1000 * sec['gbuffer']:.0f}, lights and shadows "
             f"{1000 * sec['lights']:.0f}, shading {1000 * sec['shading']:.0f}); "
-            f"{frame.shadow_maps_rendered} new shadow map(s)")
+            f"{frame.shadow_maps_rendered} new shadow map(s) of {min(maps_res, full_maps)}^2")
         return shown
 
 
@@ -265,6 +272,7 @@ class _ClientWorker:
         self._cond = threading.Condition()
         self._version = 0  # changes seen
         self._last_change = 0.0
+        self._pending_since: float | None = None  # the oldest change not yet rendered
         self._camera_known = False
         self._closed = False
         self._thread = threading.Thread(target=self._loop, daemon=True,
@@ -277,6 +285,8 @@ class _ClientWorker:
         with self._cond:
             self._version += 1
             self._last_change = time.monotonic()
+            if self._pending_since is None:
+                self._pending_since = self._last_change
             self._camera_known = True  # the first request follows the browser's camera
             self._cond.notify()
 
@@ -301,10 +311,11 @@ class _ClientWorker:
                     return
                 version = self._version
                 quiet = time.monotonic() - self._last_change >= settle
-            # While changes come, previews (if smaller); once quiet, the full frame.
-            preview = not quiet and self.owner.preview_resolution < self.owner.resolution
+                changed_at, self._pending_since = self._pending_since, None
+            # While changes come, previews; once quiet, the full frame.
+            preview = not quiet
             try:
-                self.owner.render_for(self.client, preview)
+                self.owner.render_for(self.client, preview, changed_at)
             except Exception as exc:  # noqa: BLE001 -- a bad frame must not end the viewer
                 msg = f"render failed: {type(exc).__name__}: {exc}"
                 self.owner.errors.append(msg)
