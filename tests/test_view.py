@@ -181,3 +181,15 @@ def test_view_command_serves_the_page_until_interrupted(runs):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_view_benchmark_measures_a_run(runs, monkeypatch):
+    from benchmarks import bm_view
+
+    monkeypatch.setattr(bm_view, "FRAMES", 2)
+    monkeypatch.setattr(bm_view, "WARMUP", 1)
+    monkeypatch.setattr(bm_view, "TARGETS", {32: 10.0})
+    row = bm_view._measure(runs[0], 32, log=lambda _m: None)
+    assert row["surfels"] == 4000 and row["shadow_map_resolution"] == 128
+    assert row["new_maps_per_change"] == [1, 1]  # every change a new direction
+    assert len(row["frame_s"]) == 2 and 0 < row["median_s"] < 10.0 and row["met"]

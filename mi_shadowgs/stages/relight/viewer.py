@@ -157,8 +157,7 @@ def pose_of_camera(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
         q[1 + i] = 0.25 * s
         q[1 + j] = (r[j, i] + r[i, j]) / s
         q[1 + k] = (r[k, i] + r[i, k]) / s
-    fx, fy = camera.focal_xy
-    fov_y = 2.0 * math.atan(0.5 * camera.height / fy)
+    fov_y = 2.0 * math.atan(0.5 * camera.height / camera.focal_xy[1])
     return camera.origin, np.asarray(q, np.float64), fov_y
 
 
@@ -268,12 +267,9 @@ class ViewerSession:
         data = self._dataset()
         cams = (runner.dataset_cameras(data, "test") or runner.dataset_cameras(data, "train")) \
             if data is not None else []
-        if cams:
-            c = cams[0]
-            fov_y = pose_of_camera(c)[2]
-            return camera_from_pose(*pose_of_camera(c)[:2], fov_y, width, height)
-        t = self._orbit_template(self.surfels.to_numpy()["position"])
-        return camera_from_pose(*pose_of_camera(t)[:2], pose_of_camera(t)[2], width, height)
+        template = cams[0] if cams else \
+            self._orbit_template(self.surfels.to_numpy()["position"])
+        return camera_from_pose(*pose_of_camera(template), width, height)
 
     # -- rendering -----------------------------------------------------------------------
     def light_set(self, state: LightState) -> shading.LightSet | None:

@@ -241,7 +241,13 @@ class ViewerServer:
         mode = self.mode.value
         shadows = bool(self.shadows.value)
         full_maps = self.session.vis_config.resolution
-        maps_res = max(64, full_maps // 2) if preview else full_maps
+        # An env map's ~100 grid directions keep the run's maps even in previews: they are
+        # rendered once (seconds) and every later frame and rotation reuses them.
+        maps_res = max(64, full_maps // 2) if preview and lights.envmap is None else full_maps
+        prev = self.shown.get(client.client_id)
+        if lights.envmap is not None and (prev is None or prev.lights.envmap != lights.envmap):
+            self.status.content = ("integrating the env map and rendering a shadow map per "
+                                   "grid direction (once per env map; seconds)")
         with self._render_lock:
             frame = self.session.render(camera, lights, mode, shadows,
                                         float(self.exposure.value),
@@ -249,7 +255,6 @@ class ViewerServer:
         depth = np.where(frame.alpha > 0.5, frame.depth, BACKGROUND_DEPTH)
         client.scene.set_background_image(frame.image, format="jpeg", jpeg_quality=92,
                                           depth=depth)
-        prev = self.shown.get(client.client_id)
         latency = None if changed_at is None else time.monotonic() - changed_at
         shown = Shown((prev.count if prev else 0) + 1, camera, lights, mode, shadows, preview,
                       frame, latency)
