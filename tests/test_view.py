@@ -193,3 +193,35 @@ def test_view_benchmark_measures_a_run(runs, monkeypatch):
     assert row["surfels"] == 4000 and row["shadow_map_resolution"] == 128
     assert row["new_maps_per_change"] == [1, 1]  # every change a new direction
     assert len(row["frame_s"]) == 2 and 0 < row["median_s"] < 10.0 and row["met"]
+
+
+def test_previews_while_changes_come_then_one_full_frame():
+    import threading
+
+    from mi_shadowgs.stages.relight.viewer_server import _ClientWorker
+
+    calls, done = [], threading.Event()
+
+    class Owner:
+        settle_s = 0.3
+
+        def render_for(self, client, preview, changed_at=None):
+            calls.append((preview, changed_at is not None))
+            if not preview:
+                done.set()
+
+    class Client:
+        client_id = 7
+
+    worker = _ClientWorker(Owner(), Client())
+    worker.start()
+    try:
+        for _ in range(5):  # a drag: changes 50 ms apart
+            worker.request()
+            time.sleep(0.05)
+        assert done.wait(10)
+        time.sleep(0.5)  # nothing more comes once the full frame is out
+    finally:
+        worker.close()
+    assert calls[0] == (True, True) and calls[-1][0] is False
+    assert [p for p, _ in calls].count(False) == 1
