@@ -21,7 +21,9 @@ demo: install
 	$(CLI) run $(DEMO_DIR)/data --out $(DEMO_DIR)/run --preset $(PRESET)
 	$(CLI) report $(DEMO_DIR)/run
 
+# The viewer's browser test needs chromium and chromium-driver (installed here when root).
 test: install
+	@bash scripts/setup.sh --chromium
 	$(PY) -m pytest -q tests
 
 bench: install

@@ -9,8 +9,8 @@
 # root, else print what to install and fail.
 #   scripts/setup.sh             set up everything (make install)
 #   scripts/setup.sh --llvm      only make sure a usable libLLVM is installed
-#   scripts/setup.sh --chromium  make validate: install chromium for the report-page check
-#                                (root with apt-get), else say why that check will fail
+#   scripts/setup.sh --chromium  make test / make validate: install chromium and
+#                                chromium-driver (root with apt-get), else say what is missing
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
@@ -36,21 +36,26 @@ ensure_llvm() {  # $1: a Python with drjit, or empty before the venv exists
   exit 1
 }
 
-ensure_chromium() {  # headless Chromium screenshots the reports in make validate
-  if command -v chromium >/dev/null || command -v chromium-browser >/dev/null ||
-      command -v google-chrome >/dev/null; then
+ensure_chromium() {  # headless Chromium: make validate's report pages, make test's viewer page
+  # The viewer's browser test drives Chromium through chromium-driver (selenium); the report
+  # check needs only the browser. Debian's packages: nothing is downloaded at run time.
+  if command -v chromedriver >/dev/null && { command -v chromium >/dev/null ||
+      command -v chromium-browser >/dev/null || command -v google-chrome >/dev/null; }; then
     return 0
   fi
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "setup: installing chromium (make validate checks the report pages in it)"
+    echo "setup: installing chromium and chromium-driver (the report pages and the viewer's" \
+         "browser test run in them)"
     if apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
-        >/dev/null; then
+        chromium-driver >/dev/null; then
       return 0
     fi
-    echo "setup: could not install chromium; make validate's report_pages check will fail" >&2
+    echo "setup: could not install chromium/chromium-driver; make validate's report_pages" \
+         "check will fail and tests/test_view_browser.py will be skipped" >&2
   else
-    echo "setup: no chromium on PATH and not root: install it (apt-get install -y chromium);" \
-         "make validate's report_pages check fails without it" >&2
+    echo "setup: no chromium/chromedriver on PATH and not root: install them (apt-get install" \
+         "-y chromium chromium-driver); without them make validate's report_pages check fails" \
+         "and tests/test_view_browser.py is skipped" >&2
   fi
 }
 
@@ -71,4 +76,5 @@ fi
 .venv/bin/python -m pip install -q -e '.[dev,eval]'
 # Now that drjit is installed, the library must also run a Dr.Jit kernel.
 ensure_llvm "$PWD/.venv/bin/python"
+ensure_chromium  # never fatal: without it the browser tests are skipped, saying why
 touch .venv/.installed

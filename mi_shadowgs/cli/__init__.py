@@ -25,6 +25,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("mi_shadowgs.cli.report", "write the HTML report of a run"),
     "relight": ("mi_shadowgs.cli.relight",
                 "render a finished run's model under new lights (directional, env map, scene)"),
+    "view": ("mi_shadowgs.cli.view",
+             "a run in the browser: move the light, see the shadows move (local web viewer)"),
     "export": ("mi_shadowgs.cli.export",
                "a run's model as a 3DGS/2DGS PLY or a mesh with materials and a Mitsuba scene"),
 }

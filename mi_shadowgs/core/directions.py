@@ -44,6 +44,15 @@ def direction_from_angles(azimuth_deg: float, elevation_deg: float) -> np.ndarra
     return np.array([math.cos(el) * math.cos(az), math.sin(el), -math.cos(el) * math.sin(az)])
 
 
+def angles_from_direction(direction) -> tuple[float, float]:
+    """(azimuth in [0, 360), elevation) in degrees of a direction [3]: the inverse of
+    ``direction_from_angles``."""
+    d = np.asarray(direction, np.float64).reshape(3)
+    d = d / np.linalg.norm(d)
+    az = math.degrees(math.atan2(-d[2], d[0])) % 360.0
+    return az, math.degrees(math.asin(float(np.clip(d[1], -1.0, 1.0))))
+
+
 def nearest_grid_index(directions: np.ndarray, grid: np.ndarray | None = None) -> np.ndarray:
     """Index of the grid direction closest in angle to each of ``directions`` [M, 3] -> [M]."""
     grid = light_grid() if grid is None else grid

@@ -19,6 +19,7 @@ scene the way the old one did; it is documented as such.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Sequence
 
@@ -123,22 +124,33 @@ def envmap_grid_radiance(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np
     """
     n = config.n_directions
     rows = max(8, int(np.sqrt(n * config.env_samples / 4)))  # polar angle over 90 degrees
-    cols = 4 * rows  # azimuth over 360 degrees: square samples at the horizon
-    theta = (np.arange(rows) + 0.5) * (0.5 * np.pi / rows)
-    phi = (np.arange(cols) + 0.5) * (2 * np.pi / cols)
-    th, ph = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
-    d = np.stack([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)], -1)  # [m, 3]
-    weight = np.sin(th) * (0.5 * np.pi / rows) * (2 * np.pi / cols)  # [m] solid angle
+    d, weight, cell = _hemisphere_samples(rows, n)
     si = dr.zeros(mi.SurfaceInteraction3f, len(d))
     # Infinite emitters look up -wi: wi is the propagation direction (from the env inward).
     si.wi = mi.Vector3f(*(-d[:, k].astype(np.float32) for k in range(3)))
     with dr.suspend_grad():
         val = emitter.eval(si)
     rgb = np.stack([np.asarray(val[k], np.float64) for k in range(3)], -1)
-    cell = nearest_grid_index(d, light_grid(n))
     acc = np.zeros((n, 3))
     np.add.at(acc, cell, rgb * weight[:, None])
     return acc / solid_angle(n)
+
+
+@functools.lru_cache(maxsize=4)
+def _hemisphere_samples(rows: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The integration grid of ``envmap_grid_radiance``: sample directions [m, 3], their
+    solid angles [m] and their grid cells [m]. Kept: the nearest-cell search is most of an
+    integration's time, and a turned env map (the viewer's rotation slider) reuses it."""
+    cols = 4 * rows  # azimuth over 360 degrees: square samples at the horizon
+    theta = (np.arange(rows) + 0.5) * (0.5 * np.pi / rows)
+    phi = (np.arange(cols) + 0.5) * (2 * np.pi / cols)
+    th, ph = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
+    d = np.stack([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)], -1)  # [m, 3]
+    weight = np.sin(th) * (0.5 * np.pi / rows) * (2 * np.pi / cols)  # [m] solid angle
+    cell = nearest_grid_index(d, light_grid(n))
+    for a in (d, weight, cell):
+        a.setflags(write=False)  # shared between calls
+    return d, weight, cell
 
 
 def envmap_light_set(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> shading.LightSet:

@@ -1,0 +1,77 @@
+"""``mi-shadowgs view RUN``: a finished run in the browser, relit as you move the light.
+
+Starts a local web viewer (viser) on ``--host`` (default 127.0.0.1) and ``--port``: orbit
+the camera; move one or two directional lights (azimuth, elevation, intensity) or light with
+a shipped env map turned about +Y; switch shadows off (the "w/o visibility" ablation);
+show albedo, irradiance, relit or segments; the fitted lights are orange arrows. Frames are
+rendered by the relighting code on this machine: a preview at half ``--resolution`` while
+you drag, then the full frame (about N^2 pixels at the window's shape). A run without
+stage 4 shows geometry (normals) and segments, and the page says why relighting is off.
+Stop with Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", help="a run folder (mi-shadowgs run)")
+    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080)")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to bind (default 127.0.0.1: this machine only)")
+    parser.add_argument("--resolution", type=int, default=256, metavar="N",
+                        help="frames of about N x N pixels (default 256); previews at N/2")
+    parser.add_argument("--light", action="append", default=[], metavar="AZ,EL,IRRADIANCE",
+                        help="start with this directional light (degrees, W/m^2; up to two); "
+                             "default: the strongest fitted lights")
+    parser.add_argument("--fit", default="full", help="which fit of the run (material/NAME)")
+
+
+def run(args) -> int:
+    import time
+    from pathlib import Path
+
+    from mi_shadowgs.cli import CLIError
+    from mi_shadowgs.io.interrupt import Interrupted
+    from mi_shadowgs.stages.relight import runner, viewer, viewer_server
+
+    if not 0 <= args.port <= 65535:
+        raise CLIError(f"--port must be in [0, 65535], got {args.port}")
+    if not 16 <= args.resolution <= 2048:
+        raise CLIError(f"--resolution must be in [16, 2048], got {args.resolution}")
+    if len(args.light) > 2:
+        raise CLIError(f"--light: the viewer has two light sliders, got {len(args.light)}")
+    lights = []
+    for text in args.light:
+        az, el, rgb = runner.parse_light(text)
+        if not 0 < el <= 90:
+            raise CLIError(f"--light {text!r}: field elevation must be in (0, 90] degrees "
+                           f"for the viewer's slider, got {el:g}")
+        lights.append(viewer.DirectionalLight(az % 360.0, el, float(rgb.mean())))
+    run_dir = Path(args.run)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run folder not found: {run_dir}")
+    # A busy port fails before the (slow) model load.
+    try:
+        viewer_server.check_port(args.host, args.port)
+    except viewer_server.PortInUse as exc:
+        raise CLIError(str(exc)) from None
+    session = viewer.ViewerSession(run_dir, args.fit)
+    if session.relight_off:
+        print(f"mi-shadowgs view: {session.relight_off}")
+    server = viewer_server.ViewerServer(session, args.host, args.port, args.resolution,
+                                        initial_lights=lights)
+    try:
+        server.start()
+    except viewer_server.PortInUse as exc:
+        raise CLIError(str(exc)) from None
+    print(f"mi-shadowgs view: {run_dir} at {server.url} (Ctrl-C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except Interrupted:
+        print("mi-shadowgs view: stopped")
+    finally:
+        server.stop()
+    return 0
