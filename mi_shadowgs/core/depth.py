@@ -8,6 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 
 
@@ -25,12 +26,12 @@ def unproject_depth(depth: mi.TensorXf, camera: Camera) -> mi.Point3f:
     px = mi.Float(idx % w) + 0.5
     py = mi.Float(idx // w) + 0.5
     z = depth.array
-    cx, cy = camera.principal_point
-    fx, fy = camera.focal_xy
+    # Opaque: a new camera reuses the kernels (``core.jit``).
+    cx, cy = (jit.opaque(v) for v in camera.principal_point)
+    fx, fy = (jit.opaque(v) for v in camera.focal_xy)
     if camera.is_ortho:
         xc, yc = (px - cx) / fx, (py - cy) / fy
     else:
         xc, yc = (px - cx) / fx * z, (py - cy) / fy * z
-    c2w = np.linalg.inv(camera.world_to_cv())
-    m = [[float(c2w[i, j]) for j in range(4)] for i in range(3)]
+    m = jit.opaque_matrix(np.linalg.inv(camera.world_to_cv())[:3])
     return mi.Point3f(*(m[i][0] * xc + m[i][1] * yc + m[i][2] * z + m[i][3] for i in range(3)))

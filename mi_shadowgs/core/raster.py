@@ -35,7 +35,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.core import memory
+from mi_shadowgs.core import jit, memory
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.surfels import Surfels
 
@@ -659,7 +659,7 @@ def _render_rows(g: _Proj, gd: _Proj, r0: int, r1: int, W: int, H: int, chans: d
         vals = [w * dr.gather(mi.Float, t.array, base + k) for k in range(c)]
         img = accumulate(vals, c)
         if name in bg:
-            img = img + dr.tile(mi.Float(bg[name]), npix) * dr.repeat(1.0 - alpha_img, c)
+            img = img + dr.tile(jit.array(bg[name]), npix) * dr.repeat(1.0 - alpha_img, c)
         out[name] = img
     if "alpha" in aovs:
         out["alpha"] = alpha_img

@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.core import brdf
+from mi_shadowgs.core import brdf, jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels, sh_basis
@@ -118,7 +118,7 @@ def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
         pts = unproject_depth(out["depth"], camera)
         o = camera.origin
         alpha = out["alpha"].array
-        to_cam = mi.Vector3f(mi.Point3f(*(float(x) for x in o)) - pts)
+        to_cam = mi.Vector3f(mi.Point3f(*(jit.opaque(float(x)) for x in o)) - pts)
         d2 = dr.squared_norm(to_cam)
         # Empty pixels unproject onto the camera centre: no direction there (not NaN).
         ok = (alpha > 0) & (d2 > 0)
@@ -153,7 +153,7 @@ def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Floa
     idx = dr.arange(mi.UInt32, npix * k_count)
     pi, li = idx // k_count, idx % k_count
     d = np.asarray(directions, np.float32)
-    l_dir = mi.Vector3f(*(dr.gather(mi.Float, mi.Float(d[:, c]), li) for c in range(3)))
+    l_dir = mi.Vector3f(*(dr.gather(mi.Float, jit.array(d[:, c]), li) for c in range(3)))
     n = dr.gather(mi.Vector3f, geom.normal, pi)
     a = dr.gather(mi.Color3f, albedo, pi)
     m = dr.gather(mi.Float, metallic, pi)

@@ -49,7 +49,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.core import shading
+from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.brdf import ROUGHNESS_MIN
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
@@ -906,7 +906,7 @@ class Refinement:
             else:
                 cand = candidate_directions(self.dirs[k], radius, step)
                 cand_maps = render_maps(cand)
-            irr = mi.Float(self.irradiance.astype(np.float32))
+            irr = jit.array(self.irradiance.astype(np.float32))
             lights = shading.LightSet(self.dirs, mi.Color3f(irr, irr, irr))
             err, fit = _candidate_scores(scored, channels, lights, maps, k, cand_maps,
                                          config, with_specular)

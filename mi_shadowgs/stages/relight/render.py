@@ -28,7 +28,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.core import shading
+from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
 from mi_shadowgs.core.raster import RasterConfig, rasterize
@@ -87,7 +87,7 @@ def directional_light_set(directions, irradiance) -> shading.LightSet:
     if e.shape[1] != 3 or not np.all(np.isfinite(e)) or not np.all(np.isfinite(d)):
         raise ValueError(f"directional lights: bad directions {d.shape} or irradiance {e.shape}")
     e = e.astype(np.float32)
-    return shading.LightSet(d, mi.Color3f(e[:, 0], e[:, 1], e[:, 2]))
+    return shading.LightSet(d, mi.Color3f(*(jit.array(e[:, k]) for k in range(3))))
 
 
 def lights_from_json(entry: dict) -> shading.LightSet:
@@ -109,7 +109,8 @@ def grid_light_set(radiance: np.ndarray, n: int | None = None) -> shading.LightS
     n = len(rad) if n is None else n
     keep = np.flatnonzero(np.any(rad > 0, axis=1))
     w = (rad[keep] * solid_angle(n)).astype(np.float32)
-    return shading.LightSet(light_grid(n)[keep], mi.Color3f(w[:, 0], w[:, 1], w[:, 2]))
+    weights = mi.Color3f(*(jit.array(w[:, k]) for k in range(3)))
+    return shading.LightSet(light_grid(n)[keep], weights)
 
 
 def envmap_grid_radiance(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np.ndarray:

@@ -32,6 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.frames import quaternion_to_matrix
 from mi_shadowgs.stages.visibility.shadow_maps import lift_receivers
 
@@ -128,7 +129,7 @@ def _rays(points: mi.Point3f, normals: mi.Vector3f | None, directions: np.ndarra
     idx = dr.arange(mi.UInt32, dr.width(points) * n_lights)
     pi, li = idx // n_lights, idx % n_lights
     p = dr.gather(mi.Point3f, points, pi)
-    d = mi.Vector3f(*(dr.gather(mi.Float, mi.Float(directions[:, k]), li) for k in range(3)))
+    d = mi.Vector3f(*(dr.gather(mi.Float, jit.array(directions[:, k]), li) for k in range(3)))
     if normals is None:
         return p, d, None, mi.Bool(True)
     n = dr.gather(mi.Vector3f, normals, pi)

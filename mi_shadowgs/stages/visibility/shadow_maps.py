@@ -21,6 +21,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 
@@ -231,9 +232,9 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
 def _camera_rows(cameras: Sequence[Camera]) -> tuple[list[mi.Float], mi.Float, mi.Float]:
     """Per-light world->CV rows (12 arrays of length L), focal and principal point."""
     w2c = np.stack([c.world_to_cv()[:3, :4] for c in cameras])  # [L, 3, 4]
-    rows = [mi.Float(w2c[:, i, j]) for i in range(3) for j in range(4)]
-    focal = mi.Float(np.array([c.focal for c in cameras]))
-    cx = mi.Float(np.array([c.principal_point[0] for c in cameras]))
+    rows = [jit.array(w2c[:, i, j]) for i in range(3) for j in range(4)]
+    focal = jit.array(np.array([c.focal for c in cameras]))
+    cx = jit.array(np.array([c.principal_point[0] for c in cameras]))
     return rows, focal, cx
 
 
@@ -267,7 +268,7 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
     m = [dr.gather(mi.Float, row, li) for row in rows]
     focal = dr.gather(mi.Float, focal_l, li)
     c = dr.gather(mi.Float, cx_l, li)  # square maps: cx == cy
-    light = mi.Vector3f(*(dr.gather(mi.Float, mi.Float(maps.directions[:, k]), li)
+    light = mi.Vector3f(*(dr.gather(mi.Float, jit.array(maps.directions[:, k]), li)
                           for k in range(3)))
     facing = mi.Bool(True)
     if normals is not None:
