@@ -74,8 +74,14 @@ PRESETS = {
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far (Linux reports ru_maxrss in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """Peak resident set size of this process so far (``memory.peak_resident_bytes``; where
+    /proc is missing, ``ru_maxrss``, which may include the parent's)."""
+    from mi_shadowgs.core.memory import peak_resident_bytes
+
+    peak = peak_resident_bytes()
+    if peak is None:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return peak / (1024.0 * 1024.0)
 
 
 def current_rss_mb() -> float:

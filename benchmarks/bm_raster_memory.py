@@ -82,7 +82,8 @@ def run_case(n: int, res: int, mode: str, method: str = "pairs") -> dict:
     else:
         dr.eval(*(v.array for v in out.values()))
     dr.sync_thread()
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = memory.peak_resident_bytes() or \
+        resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # see peak_resident_bytes
     tiles = (-(-res // config.tile_size)) ** 2  # ceil(res / tile_size)^2
     return {"n": n, "res": res, "mode": mode, "method": method, "pairs": n * res * res,
             "tile_pairs": n * tiles, "base": base, "peak": peak, "growth": peak - base,

@@ -26,6 +26,21 @@ def resident_bytes() -> int | None:
         return None
 
 
+def peak_resident_bytes() -> int | None:
+    """This process's peak resident set size (``VmHWM``). Not ``ru_maxrss``: Linux carries
+    that over from the parent through fork and exec, so a benchmark process started by a
+    large parent reported the parent's size (496 MB for every case of a ``make bench``
+    whose parent had loaded a dataset)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def parse_bytes(text: str, what: str) -> int:
     """'2G', '512M', '64k' or a plain number of bytes (binary units) -> bytes > 0."""
     units = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
