@@ -171,6 +171,31 @@ def test_d_ssim_gradient(images):
     _fd_check(lambda x: losses.d_ssim(x, tb) + losses.l1(x, tb), a, [0, 40, 333, 600], **FD)
 
 
+def test_ssim_with_the_targets_statistics_computed_once(images):
+    """``ssim_target`` (the target's two blurs evaluated once per training view) gives the
+    plain call's SSIM map and D-SSIM gradient: the same float32 operations, only evaluated
+    earlier. The gradient check catches a target whose statistics were differentiated or
+    whose variance lost its mean term."""
+    a, b = images
+    tb = _t(b)
+    target = losses.ssim_target(tb)
+    np.testing.assert_allclose(losses.ssim_map(_t(a), target).numpy(),
+                               losses.ssim_map(_t(a), tb).numpy(), atol=1e-6)
+    np.testing.assert_allclose(losses.ssim_map(_t(a), target).numpy(),
+                               _ssim_ref(a.astype(np.float32).astype(np.float64),
+                                         b.astype(np.float32).astype(np.float64)), atol=1e-4)
+    grads = []
+    for other in (tb, target):
+        x = _t(a)
+        dr.enable_grad(x)
+        dr.backward(losses.d_ssim(x, other))
+        grads.append(dr.grad(x).numpy())
+    np.testing.assert_allclose(grads[1], grads[0], atol=1e-7)
+    _fd_check(lambda x: losses.d_ssim(x, target), a, [0, 40, 333, 600], **FD)
+    with pytest.raises(ValueError, match="window"):
+        losses.ssim_map(_t(a), target, window=7)
+
+
 def test_normal_consistency_gradient_wrt_depth_and_normal():
     cam = _cam(8, 7)
     rng = np.random.default_rng(4)

@@ -14,6 +14,7 @@ does not depend on the resolution's pixel count. Nothing here reads back to the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import drjit as dr
@@ -104,9 +105,41 @@ def _blur(x: mi.Float, h: int, w: int, c: int, taps: np.ndarray) -> mi.Float:
     return dr.custom(_BlurOp, x, h, w, c, taps)
 
 
-def ssim_map(a: mi.TensorXf, b: mi.TensorXf, window: int = SSIM_WINDOW,
+@dataclasses.dataclass(frozen=True)
+class SsimTarget:
+    """A fixed image's SSIM statistics (``ssim_target``): a training view's target is
+    compared with a new render at every step, and its two blurs need computing only once
+    (two of the five blurs of ``ssim_map``'s forward pass)."""
+
+    image: mi.TensorXf  # [H, W, C]
+    mean: mi.Float  # [H * W * C] the blurred image
+    variance: mi.Float  # [H * W * C] the blurred square minus the mean's square
+    window: int
+    sigma: float
+
+
+def ssim_target(b: mi.TensorXf, window: int = SSIM_WINDOW,
+                sigma: float = SSIM_SIGMA) -> SsimTarget:
+    """``b``'s SSIM statistics, evaluated now, for ``ssim_map(a, target)``."""
+    h, w, c = _check_image(b, "ssim target")
+    taps = gaussian_window(window, sigma)
+    y = dr.detach(b.array)
+    mean = _blur(y, h, w, c, taps)
+    variance = _blur(y * y, h, w, c, taps) - mean * mean
+    dr.eval(mean, variance)
+    return SsimTarget(b, mean, variance, window, sigma)
+
+
+def ssim_map(a: mi.TensorXf, b: mi.TensorXf | SsimTarget, window: int = SSIM_WINDOW,
              sigma: float = SSIM_SIGMA) -> mi.TensorXf:
-    """Per-pixel, per-channel SSIM [H, W, C] of two images (Gaussian window, zero padding)."""
+    """Per-pixel, per-channel SSIM [H, W, C] of two images (Gaussian window, zero padding).
+    ``b`` may be an ``SsimTarget`` (its statistics computed once; not differentiated)."""
+    target = b if isinstance(b, SsimTarget) else None
+    if target is not None:
+        if (target.window, target.sigma) != (window, sigma):
+            raise ValueError(f"ssim: the target's statistics are for window {target.window}, "
+                             f"sigma {target.sigma}, not {window}, {sigma}")
+        b = target.image
     shape = _check_image(a, "ssim a")
     if shape != _check_image(b, "ssim b"):
         raise ValueError(f"ssim: shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}")
@@ -114,21 +147,24 @@ def ssim_map(a: mi.TensorXf, b: mi.TensorXf, window: int = SSIM_WINDOW,
     taps = gaussian_window(window, sigma)
     x, y = a.array, b.array
     mu_x = _blur(x, h, w, c, taps)
-    mu_y = _blur(y, h, w, c, taps)
+    if target is not None:
+        mu_y, syy = target.mean, target.variance
+    else:
+        mu_y = _blur(y, h, w, c, taps)
+        syy = _blur(y * y, h, w, c, taps) - mu_y * mu_y
     sxx = _blur(x * x, h, w, c, taps) - mu_x * mu_x
-    syy = _blur(y * y, h, w, c, taps) - mu_y * mu_y
     sxy = _blur(x * y, h, w, c, taps) - mu_x * mu_y
     num = (2.0 * mu_x * mu_y + SSIM_C1) * (2.0 * sxy + SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sxx + syy + SSIM_C2)
     return mi.TensorXf(num / den, shape=shape)
 
 
-def ssim(a: mi.TensorXf, b: mi.TensorXf) -> mi.Float:
+def ssim(a: mi.TensorXf, b: mi.TensorXf | SsimTarget) -> mi.Float:
     """Mean SSIM of two [H, W, C] images."""
     return _mean(ssim_map(a, b))
 
 
-def d_ssim(a: mi.TensorXf, b: mi.TensorXf) -> mi.Float:
+def d_ssim(a: mi.TensorXf, b: mi.TensorXf | SsimTarget) -> mi.Float:
     """1 - SSIM (the D-SSIM term of 3DGS/2DGS's photometric loss)."""
     return 1.0 - ssim(a, b)
 

@@ -334,6 +334,7 @@ class ViewData:
     mask: mi.TensorXf  # [H, W, 1]
     has_mask: bool = True  # False: no mask (the mask loss is skipped)
     dark: mi.TensorXf | None = None  # [H, W, 1] 1 where the image is dark (unmasked views)
+    ssim_target: losses.SsimTarget | None = None  # the image's SSIM statistics
 
 
 def _view_data(view, dark_max: float | None = None) -> ViewData:
@@ -344,9 +345,9 @@ def _view_data(view, dark_max: float | None = None) -> ViewData:
     if dark_max is not None and not has_mask:
         d = np.all(np.asarray(view.image) <= dark_max, axis=-1)
         dark = mi.TensorXf(d.astype(np.float32).reshape(h, w, 1))
-    return ViewData(view.camera, mi.TensorXf(np.ascontiguousarray(view.image, np.float32)),
-                    mi.TensorXf(view.mask.astype(np.float32).reshape(h, w, 1)),
-                    has_mask, dark)
+    image = mi.TensorXf(np.ascontiguousarray(view.image, np.float32))
+    return ViewData(view.camera, image, mi.TensorXf(view.mask.astype(np.float32).reshape(h, w, 1)),
+                    has_mask, dark, losses.ssim_target(image))
 
 
 def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int):
@@ -363,7 +364,7 @@ def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step
     out = rasterize(surfels, view.camera, {"rgb": rgb}, aovs=aovs, config=config.raster)
     img = out["rgb"]
     l1 = losses.l1(img, view.image)
-    dssim = losses.d_ssim(img, view.image)
+    dssim = losses.d_ssim(img, view.ssim_target or view.image)
     total = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * dssim
     terms = {"l1": l1, "dssim": dssim}
     if use_mask:
