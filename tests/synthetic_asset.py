@@ -73,6 +73,25 @@ def sphere_on_plane(n_sphere: int = 6000, n_plane: int = 6400, half: float = 1.2
                     np.full(n, np.log(0.98 / 0.02), np.float32), channels)
 
 
+def box_on_plane_surfels(n: int, plane_half: float, box_half: float, roughness: float):
+    """Mitsuba-sampled surfels (``core.sampling``) on a square plane (y = 0, half-width
+    ``plane_half``) and a cube of half-width ``box_half`` standing on it, with roughness and
+    zero metallic; the relighting and viewer tests' scene of one cast shadow."""
+    import mitsuba as mi
+
+    from mi_shadowgs.core.sampling import surfels_on_surface
+
+    plane = mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale([plane_half, plane_half, 1])
+    box = mi.ScalarTransform4f().translate([0, box_half, 0]).scale(box_half)
+    shapes = [mi.load_dict({"type": "rectangle", "to_world": plane}),
+              mi.load_dict({"type": "cube", "to_world": box})]
+    surf = surfels_on_surface(shapes, n, sigma_factor=0.7)
+    k = surf.count
+    surf.channels["roughness"] = mi.TensorXf(np.full((k, 1), roughness, np.float32))
+    surf.channels["metallic"] = mi.TensorXf(np.zeros((k, 1), np.float32))
+    return surf
+
+
 def ring_cameras(n: int = 16, size: int = 64, distance: float = 4.0) -> list[Camera]:
     """Cameras around the Y axis at 20-70 degrees elevation, looking at (0, 0.4, 0)."""
     cams = []

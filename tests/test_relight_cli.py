@@ -11,12 +11,12 @@ import json
 import mitsuba as mi
 import numpy as np
 import pytest
+import synthetic_asset
 import tiny_cli
 
 from mi_shadowgs import cli
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, light_grid
-from mi_shadowgs.core.sampling import surfels_on_surface
 from mi_shadowgs.dataset.generate import SkyConfig, sky_envmap_image
 from mi_shadowgs.io.images import read_exr, write_exr
 from mi_shadowgs.scenes import scene_path
@@ -72,14 +72,7 @@ def test_parse_light_values():
 
 
 def _plane_model(n=1500):
-    t = mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale([1.0, 1.0, 1])
-    box = mi.ScalarTransform4f().translate([0, 0.25, 0]).scale(0.25)
-    shapes = [mi.load_dict({"type": "rectangle", "to_world": t}),
-              mi.load_dict({"type": "cube", "to_world": box})]
-    surf = surfels_on_surface(shapes, n, sigma_factor=0.7)
-    k = surf.count
-    surf.channels["roughness"] = mi.TensorXf(np.full((k, 1), 0.5, np.float32))
-    surf.channels["metallic"] = mi.TensorXf(np.zeros((k, 1), np.float32))
+    surf = synthetic_asset.box_on_plane_surfels(n, 1.0, 0.25, roughness=0.5)
     return relight.RelightModel(surf, False, True)
 
 

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
+import synthetic_asset
 
 from mi_shadowgs.core.directions import direction_from_angles
-from mi_shadowgs.core.sampling import surfels_on_surface
 from mi_shadowgs.io.ply import save_ply
 from mi_shadowgs.io.provenance import FORMAT_VERSION, MANIFEST_NAME
 
@@ -23,18 +23,11 @@ VISIBILITY = {"resolution": 128, "projection": "orthographic"}
 
 
 def _surfels(n: int):
-    plane = mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale([1.2, 1.2, 1])
-    box = mi.ScalarTransform4f().translate([0, 0.3, 0]).scale(0.3)
-    shapes = [mi.load_dict({"type": "rectangle", "to_world": plane}),
-              mi.load_dict({"type": "cube", "to_world": box})]
-    surf = surfels_on_surface(shapes, n, sigma_factor=0.7)
-    k = surf.count
+    surf = synthetic_asset.box_on_plane_surfels(n, 1.2, 0.3, roughness=0.6)
     pos = surf.to_numpy()["position"]
     on_box = pos[:, 1] > 0.01  # [N] the box (segment 1) or the plane (segment 0)
     albedo = np.where(on_box[:, None], [0.7, 0.3, 0.2], [0.6, 0.6, 0.6]).astype(np.float32)
     surf.channels["albedo"] = mi.TensorXf(albedo)
-    surf.channels["roughness"] = mi.TensorXf(np.full((k, 1), 0.6, np.float32))
-    surf.channels["metallic"] = mi.TensorXf(np.zeros((k, 1), np.float32))
     surf.channels["segment"] = mi.TensorXf(on_box.astype(np.float32)[:, None])
     return surf
 
