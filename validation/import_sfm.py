@@ -125,14 +125,15 @@ def main(argv=None) -> None:
                "colmap_again": colmap_check,
                "loadavg": Path("/proc/loadavg").read_text().split()[:3]}
     write_json(out / "import_sfm.json", summary)
-    lines = ["| run | registered | points | reproj px | centre RMS % | rot mean / max deg | "
+    lines = ["| run | registered | points | reproj px | centre RMS % | rot mean / RMS / max deg | "
              "tilt deg | scale | extract / match / map s | total s |", "|" + "---|" * 10]
     for r in runs:
         t = r["timings"]
         lines.append(
             f"| {r['run']} | {r['registered']}/{r['photos']} | {r['points']} | "
             f"{r['reprojection_px']:.2f} | {r['centre_rms_pct']:.3f} | "
-            f"{r['rotation_mean_deg']:.3f} / {r['rotation_max_deg']:.3f} | "
+            f"{r['rotation_mean_deg']:.3f} / {r['rotation_rms_deg']:.3f} / "
+            f"{r['rotation_max_deg']:.3f} | "
             f"{r['frame_tilt_deg']:.2f} | {r['frame_scale']:.3f} | {t['extract_s']:.0f} / "
             f"{t['match_s']:.0f} / {t['map_s']:.0f} | {t['total_s']:.0f} |")
     lines.append(f"\nmedian total: {statistics.median(r['timings']['total_s'] for r in runs):.0f}"

@@ -233,4 +233,6 @@ def camera_errors(est_c2w: np.ndarray, gt_c2w: np.ndarray) -> dict:
     return {"centre_rms_pct": float(100.0 * np.sqrt((err ** 2).mean()) / dist),
             "centre_max_pct": float(100.0 * err.max() / dist),
             "rotation_mean_deg": float(ang.mean()), "rotation_max_deg": float(ang.max()),
+            "rotation_rms_deg": float(np.sqrt((ang ** 2).mean())),
+            "rotation_median_deg": float(np.median(ang)),
             "views": len(est_c2w)}
