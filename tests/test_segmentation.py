@@ -252,13 +252,36 @@ def test_choose_k_ignores_labels_the_features_do_not_separate():
     assert seg.choose_k(f6, 1, config=cfg) == (1, {})
 
 
+def test_label_count_keeps_close_materials_apart_where_silhouette_merges_them():
+    """Why K is the label count: with a dominant surface (the base) and two materials whose
+    features lie close (the red sphere and the yellow pillar of the default scene), the
+    silhouette prefers fewer clusters and merges them, while K-means at the label count,
+    seeded by the label prototypes as stage 2 does, recovers every material."""
+    rng = np.random.default_rng(3)
+    centres = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1],
+                        [0, 0, 0.8, 0.6]], float)  # the last two 37 degrees apart
+    sizes = [3000, 200, 200, 150, 150]
+    f = np.concatenate([c + rng.normal(0, 0.08, (n, 4))
+                        for c, n in zip(centres, sizes, strict=True)])
+    truth = np.repeat(np.arange(5), sizes)
+    cfg = seg.SegmentationConfig(k_select="silhouette", silhouette_samples=1500)
+    k_sil, _ = seg.choose_k(f, 5, config=cfg)
+    assert k_sil < 5  # the silhouette merges the close pair
+    lab, _ = seg.kmeans_segments(f, 5, init=centres)
+    assert seg.adjusted_rand_index(lab, truth) > 0.99
+
+
 def test_k_selection_settings():
     from mi_shadowgs.cli import build_parser
     from mi_shadowgs.stages.segmentation import segmentation_config
 
-    # Images alone: K by silhouette; material ids: K = the label count, as before.
-    assert segmentation_config("cpu-small", "chromaticity").k_select == "silhouette"
+    # K = the label count for material ids and for masks from images alone (whose checks
+    # drop leaky regions and slivers: min_label_fraction); silhouette only when asked.
+    chroma = segmentation_config("cpu-small", "chromaticity")
+    assert chroma.k_select == "labels" and chroma.min_label_fraction == 0.005
     assert segmentation_config("cpu-small", "material").k_select == "labels"
+    assert segmentation_config("cpu-small", "chromaticity",
+                               {"k_select": "silhouette"}).k_select == "silhouette"
     args = build_parser().parse_args(["segment", "m.ply", "--data", "d", "--out", "o",
                                       "--segments", "4"])
     assert args.k == 4

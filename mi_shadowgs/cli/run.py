@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="segmentation labels (default: material ids when present)")
     parser.add_argument("--segments", type=int, default=None, metavar="K",
                         help="number of material segments (default: the number of material "
-                             "ids, or without ids the K of best silhouette)")
+                             "ids, or without ids the number of colour labels)")
     parser.add_argument("--ablations", action="store_true", default=None,
                         help="also fit the w/o visibility and w/o segmentation variants")
     parser.add_argument("--material-iterations", type=int, default=None,

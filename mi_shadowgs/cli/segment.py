@@ -35,8 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--masks", default="material", choices=("material", "chromaticity"),
                         help="label maps to train on (default: the dataset's material ids)")
     parser.add_argument("--segments", "--k", dest="k", type=int, default=None,
-                        help="number of segments K (default: the number of mask labels; "
-                        "with --masks chromaticity, the K of best silhouette up to it)")
+                        help="number of segments K (default: the number of mask labels with "
+                        "enough pixels; --set k_select=silhouette: the K of best silhouette "
+                        "up to it)")
     parser.add_argument("--split", default="test",
                         help="views to render segment maps of (default: test)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -30,7 +30,6 @@ def segmentation_config(preset: str, masks: str, overrides: dict | None = None):
     overrides = dict(overrides or {})
     if masks == "chromaticity":  # see SegmentationConfig.min_label_fraction and k_select
         overrides.setdefault("min_label_fraction", 0.005)
-        overrides.setdefault("k_select", "silhouette")
     return with_overrides(get_config(preset), overrides, "segmentation")
 
 
