@@ -99,10 +99,9 @@ def _measure(run: Path, res: int, log) -> dict:
         prev_cpu.append(c)
     # Camera moves under a light seen before: a new G-buffer, no new shadow map.
     moves = []
+    pos, wxyz, fov_y = viewer.pose_of_camera(cam)
     for i in range(4):
-        moved = viewer.camera_from_pose(*viewer.pose_of_camera(cam)[:2],
-                                        viewer.pose_of_camera(cam)[2] * (1.0 + 0.01 * (i + 1)),
-                                        res, res)
+        moved = viewer.camera_from_pose(pos, wxyz, fov_y * (1.0 + 0.01 * (i + 1)), res, res)
         moves.append(_timed(lambda m=moved: session.render(m, _light(az)))[0])
     out = {"resolution": res, "surfels": session.surfels.count,
            "shadow_map_resolution": session.vis_config.resolution,

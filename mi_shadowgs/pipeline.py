@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from mi_shadowgs.config import get_preset
+from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.material import fit as material_fit
@@ -274,15 +275,6 @@ def _csv_columns(path: Path) -> dict[str, list[float]]:
     return {k: [num(r.get(k)) for r in rows] for k in (rows[0] if rows else {})}
 
 
-def _angles(direction) -> tuple[float, float]:
-    """(azimuth, elevation) in degrees of a unit direction, as ``core.directions`` has them."""
-    import numpy as np
-
-    x, y, z = (float(c) for c in np.asarray(direction, np.float64).reshape(3))
-    return float(np.degrees(np.arctan2(-z, x)) % 360.0), \
-        float(np.degrees(np.arcsin(np.clip(y, -1.0, 1.0))))
-
-
 def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
     """The labelled 22x12 light map of a variant's ``light.json`` beside the dataset's
     ground truth (``lights.json``); False when the fit has no light.json."""
@@ -307,7 +299,7 @@ def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
         if "azimuth_deg" in lt and "elevation_deg" in lt:
             az, el = float(lt["azimuth_deg"]), float(lt["elevation_deg"])
         elif "direction" in lt:
-            az, el = _angles(lt["direction"])
+            az, el = angles_from_direction(lt["direction"])
         else:
             continue
         err = errors[k] if k < len(errors) and errors[k] is not None else None
@@ -324,7 +316,7 @@ def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
     w = w.mean(-1) if w.ndim == 2 else w
     for d, weight in zip(dirs, w.reshape(-1) if w.size == len(dirs) else np.ones(len(dirs)),
                          strict=True):
-        az, el = _angles(d)
+        az, el = angles_from_direction(d)
         fitted.append({"azimuth": az, "elevation": el, "weight": float(weight)})
     light_map_png(path, blocks(fit["radiance"]), blocks(gt_map) if gt_map else None,
                   gt_lights, fitted)
@@ -535,7 +527,7 @@ def _fitted_lights_table(path: Path) -> dict | None:
     total = np.nansum(w)
     rows = []
     for k in np.argsort(-np.nan_to_num(w)):
-        az, el = _angles(dirs[k])
+        az, el = angles_from_direction(dirs[k])
         rows.append([int(len(rows) + 1), az, el, float(w[k]),
                      float(w[k] / total) if total > 0 else None])
     return {"title": "Fitted lights (material/full/light.json)",

@@ -25,10 +25,10 @@ import mitsuba as mi
 import numpy as np
 
 
-def opaque(value: float, cls=None):
+def opaque(value, cls=None):
     """``value`` as an opaque scalar (a kernel parameter, not a literal); ``cls`` defaults
-    to ``mi.Float``."""
-    return dr.opaque(cls or mi.Float, value)
+    to ``mi.Float`` (``value`` then any real number, NumPy's included)."""
+    return dr.opaque(cls, value) if cls is not None else dr.opaque(mi.Float, float(value))
 
 
 def opaque_matrix(matrix: np.ndarray) -> list[list]:

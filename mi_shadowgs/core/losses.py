@@ -21,6 +21,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.core import jit
+
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
 SSIM_C1 = 0.01 ** 2  # (K1 * L)^2 with L = 1 (images in [0, 1])
@@ -171,8 +173,7 @@ def d_ssim(a: mi.TensorXf, b: mi.TensorXf | SsimTarget) -> mi.Float:
 
 def _camera_rotation(camera) -> list[list[mi.Float]]:
     """World -> CV camera rotation as opaque scalars (new cameras reuse the kernels)."""
-    w2c = camera.world_to_cv()
-    return [[dr.opaque(mi.Float, float(w2c[i, j])) for j in range(3)] for i in range(3)]
+    return jit.opaque_matrix(camera.world_to_cv()[:3, :3])
 
 
 def depth_normals(depth: mi.TensorXf, camera) -> tuple[mi.Vector3f, mi.Bool]:
@@ -187,8 +188,8 @@ def depth_normals(depth: mi.TensorXf, camera) -> tuple[mi.Vector3f, mi.Bool]:
         raise ValueError(f"depth_normals: depth must be [H, W, 1], got {tuple(depth.shape)}")
     if camera.is_ortho:
         raise ValueError("depth_normals: perspective cameras only")
-    fx, fy = (dr.opaque(mi.Float, v) for v in camera.focal_xy)
-    cx, cy = (dr.opaque(mi.Float, v) for v in camera.principal_point)
+    fx, fy = (jit.opaque(v) for v in camera.focal_xy)
+    cx, cy = (jit.opaque(v) for v in camera.principal_point)
     z = depth.array
     idx = dr.arange(mi.UInt32, h * w)
     yi = idx // w

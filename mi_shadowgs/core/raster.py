@@ -126,12 +126,6 @@ def get_config(name: str) -> RasterConfig:
     return get_preset(PRESETS, name, "raster")
 
 
-def _opaque(x) -> mi.Float:
-    """A per-call scalar (camera) as an opaque JIT value: literals would be baked into the
-    kernels and force a recompilation for every new camera."""
-    return dr.opaque(mi.Float, float(x))
-
-
 # A finite stand-in for rho3d when the ray misses the plane (edge-on): the filter wins.
 _RHO_NONE = 1e30
 
@@ -168,9 +162,9 @@ class _Proj:
 
 
 def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
-    w2c = camera.world_to_cv()
-    r = [[_opaque(w2c[i, j]) for j in range(3)] for i in range(3)]
-    t = [_opaque(w2c[i, 3]) for i in range(3)]
+    # Opaque: a new camera reuses the kernels (``core.jit``).
+    rows = jit.opaque_matrix(camera.world_to_cv()[:3])
+    r, t = [row[:3] for row in rows], [row[3] for row in rows]
 
     def to_cam_vec(v):
         return [r[i][0] * v.x + r[i][1] * v.y + r[i][2] * v.z for i in range(3)]
@@ -184,8 +178,8 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
     su, sv = s.x, s.y
     # The one place the rasterizer maps camera space to pixels: focal lengths (fx, fy) and
     # principal point (cx, cy) of the camera, so real pinholes project where they should.
-    fx, fy = (_opaque(v) for v in camera.focal_xy)
-    cx, cy = (_opaque(c) for c in camera.principal_point)
+    fx, fy = (jit.opaque(v) for v in camera.focal_xy)
+    cx, cy = (jit.opaque(c) for c in camera.principal_point)
     z0, z1, z2 = su * tu[2], sv * tv[2], pc[2]
     if camera.is_ortho:
         xc, yc = fx * pc[0] + cx, fy * pc[1] + cy
@@ -193,7 +187,7 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
         b0, b1 = fy * su * tu[1], fy * sv * tv[1]
         zero = dr.zeros(mi.Float, dr.width(p))
         t20, t21, t22 = zero, zero, zero + 1.0
-        view = mi.Vector3f(*(_opaque(v) for v in camera.forward))
+        view = mi.Vector3f(*(jit.opaque(v) for v in camera.forward))
     else:
         # Guarded 1/z: culled surfels (z < near) must not put inf into the gradient.
         zs = dr.select(pc[2] > config.near, pc[2], 1.0)
@@ -203,7 +197,7 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
         b0, b1 = fy * su * (tu[1] - my * tu[2]), fy * sv * (tv[1] - my * tv[2])
         t20, t21, t22 = z0, z1, zs
         o = camera.origin
-        view = mi.Vector3f(p - mi.Point3f(*(_opaque(v) for v in o)))
+        view = mi.Vector3f(p - mi.Point3f(*(jit.opaque(v) for v in o)))
     valid = (pc[2] >= config.near) & (su > config.scale_min) & (sv > config.scale_min)
     valid &= dr.isfinite(xc) & dr.isfinite(yc) & dr.isfinite(su) & dr.isfinite(sv)
     # 2DGS flips each normal to face the camera by the direction to the centre.

@@ -36,6 +36,7 @@ from collections.abc import Sequence
 import drjit as dr
 import mitsuba as mi
 
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.raster import (
     _PAIR_FIELDS,
     _RHO_NONE,
@@ -48,7 +49,6 @@ from mi_shadowgs.core.raster import (
     _distortion_m,
     _expand,
     _memory,
-    _opaque,
     _pair_eval,
     _pair_kept,
     _Proj,
@@ -311,7 +311,7 @@ class _TiledOp(dr.CustomOp):
             vals = accs
             if name in ctx.background:
                 tf = mi.Float(t_final)
-                vals = [v + _opaque(b) * tf
+                vals = [v + jit.opaque(b) * tf
                         for v, b in zip(accs, ctx.background[name], strict=True)]
             lane_out[name] = vals
         if "alpha" in aovs:
@@ -465,7 +465,7 @@ def _tiled_backward(op: _TiledOp) -> None:
     g_wsum = lane_grad("alpha", 1)[0] if "alpha" in aovs else dr.zeros(mi.Float, n)
     for name, bg in ctx.background.items():
         for g, b in zip(g_chans[name], bg, strict=True):
-            g_wsum = g_wsum - _opaque(b) * g
+            g_wsum = g_wsum - jit.opaque(b) * g
     alpha_img = op.alpha_img
     ok = alpha_img > 0
     if "depth" in aovs:

@@ -24,6 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.optim import SurfelAdam
 
 
@@ -82,12 +83,10 @@ class DensifyStrategy:
         """Accumulate after a backward pass: ``position`` [N, 3] holds dL/dp as its gradient."""
         if dr.width(self.grad_accum) != position.shape[0]:
             raise ValueError("DensifyStrategy.observe: statistics and model sizes differ")
-        w2c = camera.world_to_cv()
-        r = [[dr.opaque(mi.Float, float(w2c[i, j])) for j in range(3)] for i in range(3)]
-        t = [dr.opaque(mi.Float, float(w2c[i, 3])) for i in range(3)]
-        f = dr.opaque(mi.Float, camera.focal)
-        half_w = dr.opaque(mi.Float, 0.5 * camera.width)
-        half_h = dr.opaque(mi.Float, 0.5 * camera.height)
+        rows = jit.opaque_matrix(camera.world_to_cv()[:3])
+        r, t = [row[:3] for row in rows], [row[3] for row in rows]
+        f = jit.opaque(camera.focal)
+        half_w, half_h = jit.opaque(0.5 * camera.width), jit.opaque(0.5 * camera.height)
         p = dr.unravel(mi.Vector3f, dr.detach(position.array))
         g = dr.unravel(mi.Vector3f, dr.grad(position.array))
         z = r[2][0] * p.x + r[2][1] * p.y + r[2][2] * p.z + t[2]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.core.directions import map_to_blocks
+from mi_shadowgs.core.directions import angles_from_direction, map_to_blocks
 from mi_shadowgs.stages.material import fit
 from mi_shadowgs.stages.relight import evaluation
 from mi_shadowgs.stages.relight import render as relight
@@ -124,7 +124,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
               "metallic": np.stack([v["metallic"] for v in views]),
               "normal": np.stack([v["normal"] for v in views]),
               "visibility": np.stack([v["visibility"][..., order] for v in views]),
-              "visibility_lights": [_angles(est_light.directions[k]) for k in order]}
+              "visibility_lights": [angles_from_direction(est_light.directions[k])
+                                    for k in order]}
     for metric in METRIC_NEEDS:  # a skipped metric is there as None, named in "skipped"
         if metric in gone:
             keys = {"albedo PSNR/SSIM/LPIPS": ("albedo_psnr", "albedo_ssim", "albedo_lpips"),
@@ -190,13 +191,6 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     metrics["relighting"] = relit
     metrics["test_views"] = [Path(v.name).name for v in test.views]  # order of per_view
     return metrics, images
-
-
-def _angles(direction) -> tuple[float, float]:
-    """(azimuth, elevation) in degrees of a unit direction (``core.directions``'s angles)."""
-    x, y, z = (float(c) for c in np.asarray(direction, np.float64).reshape(3))
-    return float(np.degrees(np.arctan2(-z, x)) % 360.0), \
-        float(np.degrees(np.arcsin(np.clip(y, -1.0, 1.0))))
 
 
 def _display(img: np.ndarray, scale: float | None = None) -> np.ndarray:
@@ -367,7 +361,7 @@ def light_json(result: fit.MaterialResult) -> dict:
     return {"radiance": light.radiance.tolist(), "active": light.active.tolist(),
             "directions": dirs.tolist(),
             "irradiance": light.weights.tolist() if light.weights is not None else None,
-            "angles_deg": [list(_angles(d)) for d in dirs],
+            "angles_deg": [list(angles_from_direction(d)) for d in dirs],
             "specular": result.specular, "use_visibility": result.use_visibility,
             "log": result.light_log}
 

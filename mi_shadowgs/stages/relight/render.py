@@ -181,25 +181,55 @@ def _check_model(surfels: Surfels) -> None:
         raise ValueError(f"relight: the model lacks channel(s) {missing} (run stage 4)")
 
 
+@dataclasses.dataclass
+class ViewBuffers:
+    """One rasterization of a view: what no light changes (``view_buffers``)."""
+
+    geom: shading.PixelGeometry
+    albedo: mi.Color3f | None = None  # [P] the material channels (None: not asked for)
+    roughness: mi.Float | None = None
+    metallic: mi.Float | None = None
+    indirect: mi.Color3f | None = None  # [P] the fitted indirect irradiance (unscaled)
+    colors: dict = dataclasses.field(default_factory=dict)  # name -> Color3f [P] (extra)
+
+
+def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAULT_RASTER,
+                 material: bool = True, extra: dict | None = None) -> ViewBuffers:
+    """One rasterization of a view: geometry, with ``material`` the albedo, roughness,
+    metallic and indirect channels, and the ``extra`` per-surfel colour channels
+    (name -> TensorXf [N, 3])."""
+    chans = {}
+    if material:
+        _check_model(surfels)
+        chans = {k: surfels.channels[k] for k in shading.MATERIAL_CHANNELS}
+        if shading.INDIRECT_CHANNEL in surfels.channels:
+            chans[shading.INDIRECT_CHANNEL] = surfels.channels[shading.INDIRECT_CHANNEL]
+    chans.update(extra or {})
+
+    def color(name: str) -> mi.Color3f:
+        a = out[name].array
+        return mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
+
+    with dr.suspend_grad():
+        out = rasterize(surfels, camera, chans or None, aovs=("alpha", "depth", "normal"),
+                        config=raster)
+        buf = ViewBuffers(shading.geometry_from_aovs(out, camera),
+                          colors={name: color(name) for name in extra or {}})
+        if material:
+            buf.albedo = color("albedo")
+            buf.roughness, buf.metallic = out["roughness"].array, out["metallic"].array
+            if shading.INDIRECT_CHANNEL in out:
+                t = out[shading.INDIRECT_CHANNEL]
+                buf.indirect = shading.sh_irradiance(t.array, buf.geom.normal,
+                                                     sh_degree(t.shape[2] // 3))
+    return buf
+
+
 def render_buffers(model: RelightModel, camera: Camera,
                    raster: RasterConfig = DEFAULT_RASTER):
     """One rasterization of a view: geometry, albedo, roughness, metallic, indirect."""
-    surf = model.surfels
-    _check_model(surf)
-    chans = {k: surf.channels[k] for k in shading.MATERIAL_CHANNELS}
-    has_ind = shading.INDIRECT_CHANNEL in surf.channels
-    if has_ind:
-        chans[shading.INDIRECT_CHANNEL] = surf.channels[shading.INDIRECT_CHANNEL]
-    with dr.suspend_grad():
-        out = rasterize(surf, camera, chans, aovs=("alpha", "depth", "normal"), config=raster)
-        geom = shading.geometry_from_aovs(out, camera)
-        a = out["albedo"].array
-        albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
-        ind = None
-        if has_ind:
-            t = out[shading.INDIRECT_CHANNEL]
-            ind = shading.sh_irradiance(t.array, geom.normal, sh_degree(t.shape[2] // 3))
-    return geom, albedo, out["roughness"].array, out["metallic"].array, ind
+    b = view_buffers(model.surfels, camera, raster)
+    return b.geom, b.albedo, b.roughness, b.metallic, b.indirect
 
 
 def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: SceneBounds,
@@ -225,26 +255,28 @@ def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, 
             maps.evaluate(geom.points, geom.normal, geom.footprint)
         indirect = ind * factor if ind is not None and factor > 0 else None
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
-        out = {"rgb": _img(rgb, h, w), "alpha": geom.alpha.numpy().reshape(h, w)}
+        out = {"rgb": color_image(rgb, h, w), "alpha": geom.alpha.numpy().reshape(h, w)}
         if only_rgb:
             return out
         ones = mi.Color3f(1.0)
         irr = shading.direct(geom, ones * dr.pi, dr.zeros(mi.Float, dr.width(geom.alpha)),
                        dr.zeros(mi.Float, dr.width(geom.alpha)), lights, vis, False)
         diff_albedo = albedo * (1.0 - metal)
-    out.update({"albedo": _img(diff_albedo, h, w), "direct_irradiance": _img(irr, h, w).mean(-1)})
+    out.update({"albedo": color_image(diff_albedo, h, w),
+                "direct_irradiance": color_image(irr, h, w).mean(-1)})
     if buffers:
         covered = out["alpha"][..., None] > 0
         out["roughness"] = rough.numpy().reshape(h, w)
         out["metallic"] = metal.numpy().reshape(h, w)
-        out["normal"] = np.where(covered, _img(mi.Color3f(geom.normal), h, w), 0.0)
+        out["normal"] = np.where(covered, color_image(mi.Color3f(geom.normal), h, w), 0.0)
         k = lights.count
         out["visibility"] = np.ones((h, w, k), np.float32) if vis is None else \
             np.asarray(vis.numpy(), np.float32).reshape(h, w, k)  # pixel-major [P * K]
     return out
 
 
-def _img(c: mi.Color3f, h: int, w: int) -> np.ndarray:
+def color_image(c: mi.Color3f, h: int, w: int) -> np.ndarray:
+    """A Color3f [H * W] as a numpy image [H, W, 3]."""
     return np.stack([np.asarray(c[k], np.float32) for k in range(3)], -1).reshape(h, w, 3)
 
 

@@ -27,8 +27,8 @@ import numpy as np
 from mi_shadowgs.core import shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
-from mi_shadowgs.core.raster import RasterConfig, rasterize
-from mi_shadowgs.core.surfels import sh_degree
+from mi_shadowgs.core.raster import RasterConfig
+from mi_shadowgs.io.images import to_uint8
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -74,18 +74,6 @@ class Frame:
     seconds: dict  # "gbuffer", "lights", "shading", "total" (wall, Dr.Jit synced)
     shadow_maps_rendered: int  # new shadow maps this frame needed
     visibility: np.ndarray | None = None  # [H, W, K] with ``render(..., visibility=True)``
-
-
-@dataclasses.dataclass
-class GBuffer:
-    """What a camera sees that no light changes."""
-
-    geom: shading.PixelGeometry
-    albedo: mi.Color3f | None  # [P] stage-4 channels (None without stage 4)
-    roughness: mi.Float | None
-    metallic: mi.Float | None
-    indirect: mi.Color3f | None  # [P] the fitted indirect irradiance (unscaled)
-    segment_color: mi.Color3f | None  # [P] sRGB segment colours (None without segments)
 
 
 class GBufferCache:
@@ -159,16 +147,6 @@ def pose_of_camera(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
         q[1 + k] = (r[k, i] + r[i, k]) / s
     fov_y = 2.0 * math.atan(0.5 * camera.height / camera.focal_xy[1])
     return camera.origin, np.asarray(q, np.float64), fov_y
-
-
-def _srgb_uint8(linear: np.ndarray) -> np.ndarray:
-    from mi_shadowgs.io.images import linear_to_srgb
-
-    return np.round(linear_to_srgb(np.clip(linear, 0.0, 1.0)) * 255.0).astype(np.uint8)
-
-
-def _img(c, h: int, w: int) -> np.ndarray:  # Color3f [P] -> [H, W, 3]
-    return np.stack([np.asarray(c[k], np.float32) for k in range(3)], -1).reshape(h, w, 3)
 
 
 class ViewerSession:
@@ -294,7 +272,7 @@ class ViewerSession:
         self._light_sets[key] = out
         return out
 
-    def gbuffer(self, camera: Camera) -> GBuffer:
+    def gbuffer(self, camera: Camera) -> relight.ViewBuffers:
         return self.gbuffers.get(camera, self._build_gbuffer)
 
     def render(self, camera: Camera, lights: LightState, mode: str = "relit",
@@ -321,11 +299,11 @@ class ViewerSession:
             if mode in ("normals", "segments"):
                 t2 = t1
                 if mode == "normals":
-                    n = _img(g.geom.normal, h, w)
-                    image = np.round(np.clip(0.5 * (n + 1.0), 0, 1) * 255).astype(np.uint8)
+                    n = relight.color_image(g.geom.normal, h, w)
+                    image = to_uint8(0.5 * (n + 1.0), srgb=False)
                 else:
-                    image = np.round(np.clip(_img(g.segment_color, h, w), 0, 1) * 255) \
-                        .astype(np.uint8)
+                    image = to_uint8(relight.color_image(g.colors[SEGMENT_COLOR], h, w),
+                                     srgb=False)
             else:
                 ls = self.light_set(lights)
                 maps = None
@@ -351,10 +329,10 @@ class ViewerSession:
                       "total": t3 - t0}, self.maps.rendered - before, vis_np)
 
     # -- internals -----------------------------------------------------------------------
-    def _shade(self, g: GBuffer, ls, vis, mode: str, exposure: float, h: int, w: int
+    def _shade(self, g: relight.ViewBuffers, ls, vis, mode: str, exposure: float, h: int, w: int
                ) -> np.ndarray:
         if mode == "albedo":
-            return _srgb_uint8(_img(g.albedo * (1.0 - g.metallic), h, w))
+            return to_uint8(relight.color_image(g.albedo * (1.0 - g.metallic), h, w))
         if ls is None:  # no light: black, as a real scene would be
             return np.zeros((h, w, 3), np.uint8)
         if mode == "irradiance":
@@ -362,39 +340,19 @@ class ViewerSession:
             total = float(relight.light_weights(ls).mean(1).sum())
             irr = shading.direct(g.geom, mi.Color3f(dr.pi), dr.zeros(mi.Float, h * w),
                                  dr.zeros(mi.Float, h * w), ls, vis, False)
-            return _srgb_uint8(_img(irr, h, w) * (exposure / max(total, 1e-12)))
+            return to_uint8(relight.color_image(irr, h, w) * (exposure / max(total, 1e-12)))
         factor = relight.indirect_factor(self.fit.model, ls, self.relight_config)
         indirect = g.indirect * factor if g.indirect is not None and factor > 0 else None
         rgb = shading.shade(g.geom, g.albedo, g.roughness, g.metallic, ls, vis, indirect,
                             self.fit.model.specular)
-        return _srgb_uint8(_img(rgb, h, w) * exposure)
+        return to_uint8(relight.color_image(rgb, h, w) * exposure)
 
-    def _build_gbuffer(self, camera: Camera) -> GBuffer:
-        surf = self.surfels
-        chans = {}
-        if self.fit is not None:
-            chans.update({k: surf.channels[k] for k in shading.MATERIAL_CHANNELS})
-            if shading.INDIRECT_CHANNEL in surf.channels:
-                chans[shading.INDIRECT_CHANNEL] = surf.channels[shading.INDIRECT_CHANNEL]
-        if self._segment_colors is not None:
-            chans[SEGMENT_COLOR] = self._segment_colors
-        with dr.suspend_grad():
-            out = rasterize(surf, camera, chans or None, aovs=("alpha", "depth", "normal"),
-                            config=self.raster)
-            geom = shading.geometry_from_aovs(out, camera)
-            albedo = rough = metal = ind = seg = None
-            if self.fit is not None:
-                a = out["albedo"].array
-                albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
-                rough, metal = out["roughness"].array, out["metallic"].array
-                if shading.INDIRECT_CHANNEL in out:
-                    t = out[shading.INDIRECT_CHANNEL]
-                    ind = shading.sh_irradiance(t.array, geom.normal, sh_degree(t.shape[2] // 3))
-            if SEGMENT_COLOR in out:
-                s = out[SEGMENT_COLOR].array
-                seg = mi.Color3f(*(shading.channel(s, 3, c) for c in range(3)))
-            dr.eval(albedo, rough, metal, ind, seg)
-        return GBuffer(geom, albedo, rough, metal, ind, seg)
+    def _build_gbuffer(self, camera: Camera) -> relight.ViewBuffers:
+        extra = None if self._segment_colors is None else {SEGMENT_COLOR: self._segment_colors}
+        g = relight.view_buffers(self.surfels, camera, self.raster,
+                                 material=self.fit is not None, extra=extra)
+        dr.eval(g.albedo, g.roughness, g.metallic, g.indirect, *g.colors.values())
+        return g
 
     def _segment_color_channel(self) -> mi.TensorXf:
         from mi_shadowgs.stages.segmentation.features import segment_colors
