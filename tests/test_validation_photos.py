@@ -1,0 +1,157 @@
+"""The frame mapping of ``validation.photos`` (ground-truth cameras and lights into an
+import's frame) and the view subsets of ``validation.view_count``."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from mi_shadowgs.dataset.world_frame import Similarity
+from tests.synthetic_asset import box_on_plane_surfels, ring_cameras, write_cameras
+from validation.photos import fit_frame, mapped_lights, mapped_split
+from validation.view_count import spread_views, subset_copy
+
+# A similarity like an import's: scale, a turn mostly about the up axis, a shift.
+THETA = math.radians(130.0)
+TILT = math.radians(3.0)
+
+
+def _similarity() -> Similarity:
+    ry = np.array([[math.cos(THETA), 0, math.sin(THETA)], [0, 1, 0],
+                   [-math.sin(THETA), 0, math.cos(THETA)]])
+    rx = np.array([[1, 0, 0], [0, math.cos(TILT), -math.sin(TILT)],
+                   [0, math.sin(TILT), math.cos(TILT)]])
+    return Similarity(scale=0.37, rotation=rx @ ry, translation=np.array([0.4, -1.2, 2.0]))
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (w, x, y, z) quaternions [N, 4]."""
+    aw, ax, ay, az = a.T
+    bw, bx, by, bz = b.T
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw],
+                    -1)
+
+
+def _quat_of(rot: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) of a proper rotation matrix (its trace is > -1 here)."""
+    w = math.sqrt(max(0.0, 1.0 + np.trace(rot))) / 2.0
+    return np.array([w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
+                     (rot[1, 0] - rot[0, 1]) / (4 * w)])
+
+
+def test_the_fitted_frame_is_the_similarity_that_made_the_cameras():
+    sim = _similarity()
+    truth = {f"train_{i:03d}.jpg": c for i, c in enumerate(ring_cameras(12))}
+    imported = {n: type(c)(**{**c.__dict__, "c2w": sim.c2w(c.c2w)}) for n, c in truth.items()}
+    imported.pop("train_005.jpg")  # a photo SfM did not register is left out of the fit
+    fitted, residual = fit_frame(imported, truth)
+    assert residual["photos"] == 11
+    assert math.isclose(fitted.scale, sim.scale, rel_tol=1e-9)
+    assert np.allclose(fitted.rotation, sim.rotation, atol=1e-9)
+    assert np.allclose(fitted.translation, sim.translation, atol=1e-9)
+    assert residual["centre_rms_pct"] < 1e-7 and residual["rotation_max_deg"] < 1e-5
+
+
+def test_a_model_moved_by_the_frame_renders_the_same_under_the_mapped_cameras():
+    """What the photo run's evaluation relies on: its model lives in the import's frame, and
+    the mapped ground-truth camera sees there what the true camera sees of the true scene
+    (alpha equal, depth scaled by the similarity's scale)."""
+    from mi_shadowgs.core.raster import rasterize
+    from mi_shadowgs.core.surfels import Surfels
+    from mi_shadowgs.dataset.loader import Dataset, View
+
+    sim = _similarity()
+    surf = box_on_plane_surfels(600, 1.0, 0.3, 0.5)
+    raw = surf.to_numpy()
+    moved = Surfels.from_numpy(
+        sim.points(raw["position"]), raw["scale"] * sim.scale,
+        _quat_mul(np.repeat(_quat_of(sim.rotation)[None], surf.count, 0), raw["rotation"]),
+        raw["opacity"])
+    cams = ring_cameras(3, size=48)
+    views = [View(name=f"r_{i}", camera=c, image=np.zeros((48, 48, 3)),
+                  mask=np.ones((48, 48), bool)) for i, c in enumerate(cams)]
+    lights = {"training": {"lights": [{"direction": [0.0, 1.0, 0.0]}]}, "relightings": []}
+    mapped = mapped_split(Dataset(root=None, split="test", views=views), sim, lights)
+    for cam, view in zip(cams, mapped.views, strict=True):
+        a = rasterize(surf, cam, None, aovs=("alpha", "depth"))
+        b = rasterize(moved, view.camera, None, aovs=("alpha", "depth"))
+        alpha_a, alpha_b = np.asarray(a["alpha"]), np.asarray(b["alpha"])
+        assert alpha_a.max() > 0.9  # the view sees the box
+        # float32 positions moved and projected again: a few 1e-4 at the splats' edges
+        assert np.abs(alpha_a - alpha_b).max() < 2e-3
+        assert np.allclose(np.asarray(b["depth"]), sim.scale * np.asarray(a["depth"]),
+                           atol=2e-3 * sim.scale * 5.0)
+    assert mapped.lights is lights
+
+
+def test_mapped_lights_turn_every_directional_light_and_leave_env_maps_out():
+    sim = _similarity()
+    d0, d1 = np.array([0.6, 0.8, 0.0]), np.array([0.0, 0.6, -0.8])
+    lights = {"convention": "x", "training": {
+        "lights": [{"name": "light0", "direction": d0.tolist(), "irradiance": [3.0] * 3}],
+        "light_map": {"radiance": [[1.0] * 3]}},
+        "relightings": [{"name": "sun", "type": "directional",
+                         "lights": [{"direction": d1.tolist(), "irradiance": [1.0] * 3}]},
+                        {"name": "env", "type": "envmap", "path": "envmaps/x.exr"}]}
+    out = mapped_lights(lights, sim.rotation)
+    assert np.allclose(out["training"]["lights"][0]["direction"], sim.rotation @ d0)
+    assert out["training"]["lights"][0]["irradiance"] == [3.0] * 3
+    assert "light_map" not in out["training"]  # a grid map would need resampling
+    assert [e["name"] for e in out["relightings"]] == ["sun"]
+    assert np.allclose(out["relightings"][0]["lights"][0]["direction"], sim.rotation @ d1)
+    assert lights["training"]["lights"][0]["direction"] == d0.tolist()  # input untouched
+
+
+def test_spread_views_covers_the_sphere_before_repeating_a_side(tmp_path):
+    cams = ring_cameras(16)
+    centres = np.array([c.origin for c in cams])
+    picked = spread_views(centres, 4)
+    assert picked[0] == 0 and len(set(picked)) == 4
+    az = sorted(np.degrees(np.arctan2(centres[picked, 2], centres[picked, 0])) % 360)
+    gaps = np.diff(az + [az[0] + 360])
+    assert gaps.max() < 135  # four views spread around, not bunched on one side
+
+    src = tmp_path / "data"
+    (src / "train").mkdir(parents=True)
+    (src / "test").mkdir()
+    write_cameras(src / "transforms_train.json", cams, "train")
+    write_cameras(src / "transforms_test.json", cams[:2], "test")
+    for i in range(16):
+        for suffix in (".exr", "_albedo.exr", "_irradiance_0.exr"):
+            (src / "train" / f"r_{i:03d}{suffix}").write_text(str(i))
+    (src / "lights.json").write_text("{}")
+    dst = subset_copy(src, tmp_path / "sub", 4)
+    frames = json.loads((dst / "transforms_train.json").read_text())["frames"]
+    stems = sorted(f["file_path"].split("/")[-1] for f in frames)
+    assert stems == sorted(f"r_{i:03d}" for i in picked)
+    assert sorted(p.name for p in (dst / "train").iterdir()) == sorted(
+        f"{s}{suffix}" for s in stems for suffix in (".exr", "_albedo.exr", "_irradiance_0.exr"))
+    assert (dst / "lights.json").is_file() and (dst / "transforms_test.json").is_file()
+    assert len(json.loads((src / "transforms_train.json").read_text())["frames"]) == 16
+
+
+def test_the_light_sweep_spans_the_hemisphere_and_judges_lights_by_their_share():
+    from validation.light_sweep import MAX_ERROR_DEG, sweep_pairs, sweep_row
+
+    pairs = sweep_pairs()
+    assert len(pairs) >= 8
+    strong = {int(p["light0_azimuth"]) for p in pairs.values()}
+    assert strong == set(range(0, 360, 45))  # all azimuths
+    for p in pairs.values():
+        els = [float(p[f"light{k}_elevation"]) for k in range(2)]
+        assert all(15 <= e <= 75 for e in els)
+        assert (int(p["light1_azimuth"]) - int(p["light0_azimuth"])) % 360 == 180
+    assert {float(p["light0_elevation"]) for p in pairs.values()} >= {15.0, 75.0}
+
+    def row(errors):
+        return {"scene": "x", "lights": "s0", "light_pair": pairs["s0"], "variants": {"full": {
+            "angular_error_deg": errors, "fitted_lights": 2, "light_cosine": 1.0,
+            "spurious_irradiance_fraction": 0.0, "shadow_iou": 0.9}}}
+
+    assert sweep_row(row([0.5, MAX_ERROR_DEG - 0.1]))["within"]
+    # the weak light carries a third of the irradiance (>= 25 %): it must be found too
+    assert not sweep_row(row([0.5, MAX_ERROR_DEG + 0.1]))["within"]
+    assert not sweep_row(row([0.5, None]))["within"]  # a lost light

@@ -1,0 +1,263 @@
+"""The method from photos alone against the same scene from ground-truth cameras (issue 17).
+
+For one scene (``validation.pipeline.SCENES``) under one light pair, on the textured mat
+(``base_texture=mat``: SfM needs features):
+
+1. ``OUT/photoset``: the scene's training views as a user's photos (sRGB JPEG, no camera,
+   no mask) at ``--photo-size`` pixels, where SfM registers every view (BENCHMARKS.md, "Your
+   own captures in"). Only the training views' photos are imported (``OUT/photos``): the
+   test cameras stay unseen.
+2. ``OUT/import``: ``mi-shadowgs import`` of them (SfM, no cameras, no masks, no material
+   ids), resized to the preset's resolution; ``OUT/run-photos``: ``mi-shadowgs run`` on it
+   (its own test split has no ground truth; the run skips those metrics).
+3. ``OUT/gt-data``, ``OUT/run-gt``: the same scene, cameras (same seed) and lights at the
+   preset's resolution with full ground truth, run from ground-truth cameras and masks.
+4. Both fits are scored by stage 5's own evaluation on ``gt-data``'s test views. For the
+   photo run the ground-truth test cameras and lights are mapped into its frame by the
+   similarity fitted on the imported cameras (ground-truth centres -> imported centres; it
+   composes the unknown SfM frame with ``import.json``'s transform). Env-map relighting and
+   the light-map cosine are left out of both (the grid map would need resampling under the
+   rotation).
+
+    python -m validation.photos --scene NAME --out OUT [--lights tuned] [--preset cpu-small]
+        [--photo-size 512] [--threads N]
+
+Each step is reused when its output is complete. Writes ``OUT/photos.json`` and ``.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+
+# The figures compared; the acceptance bounds of issue 17 (photo run against GT-camera run).
+FIGURES = ("albedo_psnr", "albedo_ssim", "shadow_iou", "relight_psnr", "relight_ssim",
+           "light_cosine")
+ALBEDO_PSNR_TOLERANCE_DB = 1.5
+SHADOW_IOU_TOLERANCE = 0.05
+
+
+def _generate(scene: str, folder: Path, lights: str, preset: str, size: int | None,
+              photos: bool, n_test: int | None = None, spp: int | None = None) -> Path:
+    """The scene on the mat, ``preset``'s training cameras (seed 0), no env maps."""
+    from mi_shadowgs.dataset.generate import get_config
+    from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.scenes import scene_path
+    from validation.pipeline import LIGHT_PAIRS, available_scenes
+
+    scenes = available_scenes()
+    if scene not in scenes:
+        raise SystemExit(f"--scene {scene}: not available (meshes under ../shared/data); "
+                         f"available: {', '.join(scenes)}")
+    mesh = scenes[scene]
+    overrides = {**LIGHT_PAIRS[lights], "base_texture": "mat"}
+    if mesh is not None:
+        overrides["mesh"] = str(mesh)
+    config = dataclasses.replace(get_config(preset), envmaps="none")
+    if size is not None:
+        config = dataclasses.replace(config, width=size, height=size)
+    if n_test is not None:
+        config = dataclasses.replace(config, n_test=n_test)
+    if spp is not None:
+        config = dataclasses.replace(config, spp=spp)
+    write_dataset(scene_path("default" if mesh is None else "mesh"), folder, config, preset,
+                  seed=0, overrides=overrides, photos=photos)
+    return folder
+
+
+def training_photos(photoset: Path, dst: Path) -> Path:
+    """``dst``: the photo set's training photos only (the test cameras stay unseen)."""
+    from mi_shadowgs.dataset import layout
+    from mi_shadowgs.io.atomic import atomic_dir
+
+    if dst.is_dir():
+        return dst
+    with atomic_dir(dst) as tmp:
+        for f in sorted((photoset / layout.PHOTOS).glob("train_*")):
+            shutil.copy2(f, tmp / f.name)
+    return dst
+
+
+def imported_cameras(imported: Path) -> dict:
+    """Photo name -> camera of every registered view of an import (both splits)."""
+    from mi_shadowgs.dataset import layout
+    from mi_shadowgs.dataset.loader import load_cameras
+
+    cams = {}
+    for split in layout.SPLITS:
+        path = imported / layout.transforms_name(split)
+        meta = json.loads(path.read_text())
+        for (_, cam), fr in zip(load_cameras(path), meta["frames"], strict=True):
+            cams[fr["source_image"]] = cam
+    return cams
+
+
+def fit_frame(imported: dict, truth: dict):
+    """The similarity taking ground-truth camera centres onto the imported ones, fitted on
+    the photos both have; with the residual (camera_errors of the alignment)."""
+    from mi_shadowgs.dataset.world_frame import camera_errors, umeyama
+
+    names = sorted(set(imported) & set(truth))
+    if len(names) < 3:
+        raise ValueError(f"{len(names)} photos in common with the ground truth: a similarity "
+                         "needs 3")
+    est = np.stack([imported[n].c2w for n in names])  # [M, 4, 4]
+    ref = np.stack([truth[n].c2w for n in names])  # [M, 4, 4]
+    sim = umeyama(ref[:, :3, 3], est[:, :3, 3])
+    return sim, {"photos": len(names), **camera_errors(est, ref)}
+
+
+def mapped_lights(lights: dict, rotation: np.ndarray) -> dict:
+    """``lights.json`` with every directional light rotated into the other frame; env-map
+    relightings and the grid light map (which would need resampling) are left out."""
+    def turn(entry: dict) -> dict:
+        d = rotation @ np.asarray(entry["direction"], np.float64)
+        return {**entry, "direction": (d / np.linalg.norm(d)).tolist()}
+
+    training = {"lights": [turn(lt) for lt in lights["training"]["lights"]]}
+    relit = [{**e, "lights": [turn(lt) for lt in e["lights"]]}
+             for e in lights.get("relightings", []) if e.get("type") == "directional"]
+    return {**lights, "training": training, "relightings": relit}
+
+
+def mapped_split(dataset, sim, lights: dict):
+    """The dataset with its cameras moved by ``sim`` and ``lights`` in place of its own."""
+    views = [dataclasses.replace(v, camera=dataclasses.replace(v.camera,
+                                                               c2w=sim.c2w(v.camera.c2w)))
+             for v in dataset.views]
+    return dataclasses.replace(dataset, views=views, lights=lights)
+
+
+def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
+    """Stage 5's evaluation of ``run``'s stage-4 fit on ``test`` (cameras and lights in the
+    run's frame)."""
+    from mi_shadowgs.stages.material.runner import occluder_bounds
+    from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, fit_from_files
+
+    fit_dir = run / "material" / "full"
+    result = fit_from_files(fit_dir / "model.ply", fit_dir / "light.json")
+    from mi_shadowgs.stages.common import load_training_views
+
+    run_train = load_training_views(Path(json.loads((run / "summary.json").read_text())
+                                         ["dataset"]))
+    bounds = occluder_bounds(result.surfels, run_train.cameras, quantile)
+    metrics, _ = evaluate_decomposition(result, train, test, bounds, preset, figure_lights=1)
+    return {k: metrics.get(k) for k in FIGURES} | {
+        "light_angular_errors_deg": metrics.get("angular_error_deg"),
+        "fitted_lights": metrics.get("fitted_lights"),
+        "spurious_irradiance_fraction": metrics.get("spurious_irradiance_fraction"),
+        "relighting": {n: {k: r[k] for k in ("psnr", "ssim")}
+                       for n, r in metrics["relighting"].items()}}
+
+
+def _timed_run(data: Path, out: Path, preset: str) -> float:
+    """Stages 1-5 on ``data`` (a finished run is reused); the run's own total seconds (of the
+    call that finished it)."""
+    from mi_shadowgs.pipeline import get_config, run_pipeline
+
+    return float(run_pipeline(data, out, get_config(preset), progress=True)["total_seconds"])
+
+
+def markdown(rec: dict) -> str:
+    rows = [("ground-truth cameras and masks", rec["gt"]), ("photos only", rec["photos"])]
+    lines = ["| run | albedo PSNR | albedo SSIM | shadow IoU | relight PSNR | light cos | "
+             "light err deg | lights | wall s |", "|" + "---|" * 9]
+    for name, r in rows:
+        s = r["scores"]
+        err = "/".join(f"{e:.1f}" for e in s["light_angular_errors_deg"] or [])
+        lines.append(f"| {name} | {s['albedo_psnr']:.2f} | {s['albedo_ssim']:.4f} | "
+                     f"{s['shadow_iou']:.3f} | {s['relight_psnr']:.2f} | "
+                     f"{s['light_cosine']:.4f} | {err} | {s['fitted_lights']} | "
+                     f"{r['wall_s']:.0f} |")
+    d = rec["differences"]
+    f = rec["frame"]
+    lines += ["", f"Photo run minus ground-truth run: albedo PSNR {d['albedo_psnr']:+.2f} dB "
+              f"(bound -{ALBEDO_PSNR_TOLERANCE_DB}), shadow IoU {d['shadow_iou']:+.3f} (bound "
+              f"-{SHADOW_IOU_TOLERANCE}), relight PSNR {d['relight_psnr']:+.2f} dB: "
+              f"**{'within' if rec['within_bounds'] else 'outside'} the bounds**.",
+              f"Frame: {f['photos']} photos registered of {rec['photos_imported']}; camera "
+              f"centres {f['centre_rms_pct']:.3f}% RMS, rotations {f['rotation_rms_deg']:.3f} "
+              "deg RMS after the similarity.",
+              f"Photo-only wall time (import + stages 1-5): {rec['photos']['wall_s']:.0f} s "
+              f"(import {rec['import_s']:.0f} s)."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    from validation.pipeline import LIGHT_PAIRS, SCENES
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="default", choices=sorted(SCENES))
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--lights", default="tuned", choices=sorted(LIGHT_PAIRS))
+    ap.add_argument("--preset", default="cpu-small")
+    ap.add_argument("--photo-size", type=int, default=512,
+                    help="photo size in pixels (SfM registers every view at 512)")
+    ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
+    args = ap.parse_args(argv)
+    import drjit as dr
+
+    from mi_shadowgs.dataset.generate import get_config as gen_config
+    from mi_shadowgs.dataset.importer import get_config as import_config
+    from mi_shadowgs.dataset.importer import import_capture
+    from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.io.atomic import write_json, write_text
+    from mi_shadowgs.pipeline import get_config as run_config
+    from validation.import_sfm import truth
+
+    if args.threads:
+        dr.set_thread_count(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    size = gen_config(args.preset).width
+    gt_data = _generate(args.scene, out / "gt-data", args.lights, args.preset, None, False)
+    # SfM wants sharp photos more than clean ones: 64 spp as in validation.import_sfm
+    photoset = _generate(args.scene, out / "photoset", args.lights, args.preset,
+                         args.photo_size, True, n_test=1, spp=64)
+    photos = training_photos(photoset, out / "photos")
+    imported = out / "import"
+    t = time.perf_counter()
+    if not (imported / "import.json").is_file():
+        config = dataclasses.replace(import_config(args.preset), max_size=size)
+        import_capture(photos, imported, config)
+        import_s = time.perf_counter() - t
+    else:
+        import_s = json.loads((imported / "import.json").read_text())["timings"]["total_s"]
+    photos_s = import_s + _timed_run(imported, out / "run-photos", args.preset)
+    gt_s = _timed_run(gt_data, out / "run-gt", args.preset)
+
+    quantile = run_config(args.preset).bounds_quantile
+    train, test = load_dataset(gt_data, "train"), load_dataset(gt_data, "test")
+    sim, frame = fit_frame(imported_cameras(imported), truth(photoset))
+    lights = mapped_lights(train.lights, sim.rotation)
+    gt_scores = score_run(out / "run-gt", dataclasses.replace(train, lights=mapped_lights(
+        train.lights, np.eye(3))), test, args.preset, quantile)
+    photo_scores = score_run(out / "run-photos", mapped_split(train, sim, lights),
+                             mapped_split(test, sim, lights), args.preset, quantile)
+    diff = {k: photo_scores[k] - gt_scores[k] for k in FIGURES}
+    rec = {"scene": args.scene, "lights": args.lights, "preset": args.preset,
+           "photo_size": args.photo_size, "training_size": size,
+           "photos_imported": len(list(photos.iterdir())),
+           "similarity": sim.to_json(), "frame": frame, "import_s": import_s,
+           "gt": {"wall_s": gt_s, "scores": gt_scores},
+           "photos": {"wall_s": photos_s, "scores": photo_scores},
+           "differences": diff,
+           "within_bounds": bool(diff["albedo_psnr"] >= -ALBEDO_PSNR_TOLERANCE_DB and
+                                 diff["shadow_iou"] >= -SHADOW_IOU_TOLERANCE)}
+    write_json(out / "photos.json", rec)
+    md = markdown(rec)
+    write_text(out / "photos.md", md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
