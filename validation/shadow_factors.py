@@ -20,8 +20,9 @@ averaged over the 3! orders of swapping), so the three shares add up to IoU(all 
 (anti-aliased ground-truth irradiance vs pixel-centre rays). **Threshold/bias**: the shadow
 maps' depth bias tau and normal offset are swept with the run's own lights and receivers,
 and the best setting's gain is reported beside the factors, as are the gains of swapping
-only the receivers' points or only their normals, and of fractional (opacity) shadow maps
-(``VisibilityConfig.fractional``) instead of the binary depth test.
+only the receivers' points or only their normals (and the normals only in the shading's
+n . l, or only in the shadow-map lookup's normal offset), and of fractional (opacity)
+shadow maps (``VisibilityConfig.fractional``) instead of the binary depth test.
 
     python -m validation.shadow_factors --run RUN --data DATA --out DIR [--variant full]
                                         [--views N] [--quiet]
@@ -278,14 +279,19 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     est = irradiance(rec, vis, inp.fit_dirs, inp.fit_irr, (h, w))
     fractional_gain = evaluation.shadow_iou(est, inp.gt_irr, inp.mask) - base
     # The receivers split: ground-truth points with the surfels' normals and the reverse
-    # (the run's lights and shadow maps).
+    # (the run's lights and shadow maps); the normals split again into where they act: the
+    # shading's n . l, or the shadow-map lookup's normal offset.
     split = {}
-    for part, mixed in (("points", Receivers(recs[True].points, recs[False].normals,
-                                             recs[True].footprints, recs[False].normals_np)),
-                        ("normals", Receivers(recs[False].points, recs[True].normals,
-                                              recs[False].footprints, recs[True].normals_np))):
-        vis = map_visibility(inp.model, mixed, inp.fit_dirs, inp.bounds, inp.vis_config)
-        est = irradiance(mixed, vis, inp.fit_dirs, inp.fit_irr, (h, w))
+    sr, gr_ = recs[False], recs[True]
+    for part, at_map, shaded in (
+            ("points", Receivers(gr_.points, sr.normals, gr_.footprints, sr.normals_np), None),
+            ("normals", Receivers(sr.points, gr_.normals, sr.footprints, gr_.normals_np), None),
+            ("normals_shading", sr, Receivers(sr.points, sr.normals, sr.footprints,
+                                              gr_.normals_np)),
+            ("normals_offset", Receivers(sr.points, gr_.normals, sr.footprints,
+                                         gr_.normals_np), sr)):
+        vis = map_visibility(inp.model, at_map, inp.fit_dirs, inp.bounds, inp.vis_config)
+        est = irradiance(shaded or at_map, vis, inp.fit_dirs, inp.fit_irr, (h, w))
         split[part] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask) - base
     errs = evaluation.light_angular_errors(inp.fit_dirs, inp.fit_irr, inp.true_dirs)
     ranked = sorted(FACTORS, key=lambda f: -shares[f])
@@ -311,8 +317,9 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
 
 
 HEADER = ("| run | IoU (run / here) | all GT | lights | receivers (points / normals alone) | "
-          "occluders | bias (best) | fractional maps | biggest | fitted lights, angular err "
-          "deg |\n|---|---|---|---|---|---|---|---|---|---|")
+          "normals in n.l / in the map offset | occluders | bias (best) | fractional maps | "
+          "biggest | fitted lights, angular err deg |\n|---|---|---|---|---|---|---|---|---|---|"
+          "---|")
 
 
 def _bias_label(b: dict) -> str:
@@ -320,6 +327,11 @@ def _bias_label(b: dict) -> str:
     depth = f"tau {b['tau']:g}" if b.get("bias_texels") is None else \
         f"{b['bias_texels']:g} texels"
     return f"{depth}, off {b['normal_offset']:g}"
+
+
+def _gain(r: dict, part: str) -> str:
+    g = r["receiver_split_gain"].get(part)  # absent from files written before the split
+    return "-" if g is None else f"{g:+.3f}"
 
 
 def row_markdown(r: dict) -> str:
@@ -331,6 +343,7 @@ def row_markdown(r: dict) -> str:
             f"{r['all_ground_truth_iou']:.3f} | {sh['lights']:+.3f} | {sh['receivers']:+.3f} "
             f"({r['receiver_split_gain']['points']:+.3f} / "
             f"{r['receiver_split_gain']['normals']:+.3f}) | "
+            f"{_gain(r, 'normals_shading')} / {_gain(r, 'normals_offset')} | "
             f"{sh['occluders']:+.3f} | {r['bias_gain']:+.3f} ({_bias_label(b)}) | "
             f"{r.get('fractional_gain', math.nan):+.3f} | "
             f"{r['biggest']} | {r['lights']['fitted']}: {err} |")
