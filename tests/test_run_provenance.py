@@ -335,4 +335,4 @@ def test_one_training_view_warns(data, tmp_path, capsys):
     )
     warnings = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
     assert len(warnings) == 1
-    assert "1 training view(s)" in warnings[0] and "at least 8" in warnings[0]
+    assert "1 training view(s)" in warnings[0] and "at least 16" in warnings[0]
