@@ -399,3 +399,64 @@ def test_end_of_warm_up_prunes_then_settles_before_refining(scene):
         min(_angle(d, weak) for d in dirs) < 6.5, dirs
     n, events, _ = seen[False]
     assert n == 3 and events[0] == "prune", seen[False]  # then refine_lights' own settling
+
+
+def test_segment_nnls_against_a_float64_fit_on_the_pixels():
+    """``segment_nnls`` from per-segment sums against a direct float64 fit of
+    r ~ c_s sum_k e_k B_k on the pixels (scipy minimize over e >= 0 with each c_s in closed
+    form): same minimum; a light left out by ``keep`` stays 0."""
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(5)
+    p, k, n_seg = 300, 3, 3
+    seg = rng.integers(0, n_seg, p)
+    b = rng.uniform(0.0, 1.0, (p, k))
+    r = (b @ np.array([1.5, 0.4, 0.0])) * np.array([1.0, 0.6, 1.4])[seg] + \
+        rng.normal(0.0, 0.02, p)
+    gram = np.stack([b[seg == s].T @ b[seg == s] for s in range(n_seg)])
+    h = np.stack([b[seg == s].T @ r[seg == s] for s in range(n_seg)])
+    rr = np.array([r[seg == s] @ r[seg == s] for s in range(n_seg)])
+
+    def profile(e):  # the error with each segment's scale at its optimum
+        out = 0.0
+        for s in range(n_seg):
+            x, y = b[seg == s] @ e, r[seg == s]
+            c = max(x @ y, 0.0) / max(x @ x, 1e-300)
+            out += np.sum((y - c * x) ** 2)
+        return out
+
+    for keep in (np.array([True, True, True]), np.array([True, False, True])):
+        e, err = material_fit.segment_nnls(gram, h, keep, iterations=200)
+        assert np.all(e >= 0) and np.all(e[~keep] == 0)
+        ref = minimize(lambda x, kp=keep: profile(np.where(kp, x, 0.0)), np.ones(k),
+                       bounds=[(0, None)] * k, method="L-BFGS-B", options={"ftol": 1e-15})
+        # alternating minimisation converges linearly: 1e-6 of the signal after 200 steps
+        assert math.isclose(err + rr.sum(), ref.fun, rel_tol=1e-6, abs_tol=1e-9 * rr.sum())
+
+
+def test_segment_settling_ignores_each_segments_albedo_scale(scene):
+    """With ``settle_score = "segment"`` the settling's errors do not move when a segment's
+    albedo is scaled (an albedo fitted under the wrong lights is off per segment), so the
+    lights it keeps do not depend on it; the "irradiance" errors do move."""
+    s, cams, bounds = scene
+    a, b = direction_from_angles(150.0, 20.0), direction_from_angles(175.0, 35.0)
+    views, ch = _views(s, cams, bounds, a[None], [2.0])
+    seg = np.asarray(s.channels["segment"].numpy()).reshape(-1)
+    albedo = np.asarray(ch["albedo"].numpy()).reshape(-1, 3)
+    scaled = dict(ch, albedo=mi.TensorXf((albedo * np.where(seg == 0, 0.7, 1.3)[:, None])
+                                         .astype(np.float32)))
+    cfg = material_fit.get_config("cpu-small")
+    dirs = np.stack([a, b])
+    maps = render_shadow_maps(s, dirs, bounds, VCFG)
+    errs = {}
+    for name, channels in (("true", ch), ("scaled", scaled)):
+        for per_segment in (False, True):
+            g, hh, _ = material_fit.light_normal_equations(views, channels, dirs, maps, cfg,
+                                                           False, per_segment)
+            solve = material_fit.segment_nnls if per_segment else material_fit.nnls_irradiance
+            errs[name, per_segment] = [solve(g, hh, np.array(k))[1]
+                                       for k in ([True, False], [False, True])]
+    np.testing.assert_allclose(errs["scaled", True], errs["true", True], rtol=1e-4)
+    assert not np.allclose(errs["scaled", False], errs["true", False], rtol=1e-2)
+    # and either way the true light alone fits better than the other one alone
+    assert errs["scaled", True][0] < errs["scaled", True][1]

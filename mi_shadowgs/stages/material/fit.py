@@ -165,6 +165,12 @@ class MaterialConfig:
     # with 0.19 of the irradiance). drop_share = 0: off.
     drop_share: float = 0.25
     drop_gain: float = 0.05
+    # How the lights a settling keeps are judged. "irradiance": the views' squared error
+    # with the lights' irradiance re-fitted, the albedo fixed. "segment": each material
+    # segment also takes its own scale of the direct light (as refine_score "segment"), so
+    # that the albedo fitted under the current lights does not decide between two of them.
+    # The kept lights' irradiance is the global fit either way.
+    settle_score: str = "irradiance"
     # Settle the warm-up's pruned lights before the first refinement too: the pruning now
     # keeps every light that carries irradiance (prune_lights), spurious ones included
     # (toy train under the low pair: 8 lights of >= 0.1 the strongest, among them one 24
@@ -209,6 +215,9 @@ class MaterialConfig:
         if not 0.0 <= self.refine_segment_purity <= 1.0:
             raise ValueError(f"MaterialConfig.refine_segment_purity must be in [0, 1], got "
                              f"{self.refine_segment_purity}")
+        if self.settle_score not in REFINE_SCORES:
+            raise ValueError(f"MaterialConfig.settle_score must be one of {REFINE_SCORES}, got "
+                             f"{self.settle_score!r}")
         if self.refine_score not in REFINE_SCORES:
             raise ValueError(f"MaterialConfig.refine_score must be one of {REFINE_SCORES}, got "
                              f"{self.refine_score!r}")
@@ -755,13 +764,16 @@ def segment_errors(rr: np.ndarray, rb: np.ndarray, bb: np.ndarray) -> np.ndarray
 
 
 def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndarray, maps,
-                           config: MaterialConfig, with_specular: bool
-                           ) -> tuple[np.ndarray, np.ndarray, float]:
+                           config: MaterialConfig, with_specular: bool,
+                           per_segment: bool = False):
     """Least squares of the views in the lights' irradiance e [K] (albedo, materials and
     indirect light fixed): the squared error is rr - 2 e . h + e^T G e. Returns (G [K, K],
-    h [K], rr), float64; rr is the squared direct signal (target minus indirect)."""
+    h [K], rr), float64; rr is the squared direct signal (target minus indirect).
+    ``per_segment``: the same sums per material segment, over the pixels that one segment
+    holds (``TrainView.segment``): G [S, K, K], h [S, K], rr [S]."""
     k = len(dirs)
-    gram, h, rr = np.zeros((k, k)), np.zeros(k), 0.0
+    n_seg = max(v.n_segments for v in views) if per_segment else 1
+    gram, h, rr = np.zeros((n_seg, k, k)), np.zeros((n_seg, k)), np.zeros(n_seg)
     with dr.suspend_grad():
         for v in views:
             albedo, rough, metal, ind, per = _view_direct(v, channels, config, maps, dirs,
@@ -772,10 +784,34 @@ def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndar
             r = np.stack([np.asarray(resid[c], np.float64) for c in range(3)])  # [3, P]
             b *= wgt[None, :, None]  # [3, P, K]
             r *= wgt[None]
-            gram += np.einsum("cpk,cpj->kj", b, b)
-            h += np.einsum("cpk,cp->k", b, r)
-            rr += float(np.sum(r * r))
+            seg = v.segment.numpy() if per_segment else np.zeros(len(wgt), np.int64)  # [P]
+            for s_id in range(n_seg):
+                on = seg == s_id  # mixed pixels (seg == v.n_segments) are in no segment
+                bs, rs = b[:, on], r[:, on]
+                gram[s_id] += np.einsum("cpk,cpj->kj", bs, bs)
+                h[s_id] += np.einsum("cpk,cp->k", bs, rs)
+                rr[s_id] += float(np.sum(rs * rs))
+    if not per_segment:
+        return gram[0], h[0], float(rr[0])
     return gram, h, rr
+
+
+def segment_nnls(gram: np.ndarray, h: np.ndarray, keep: np.ndarray, iterations: int = 20
+                 ) -> tuple[np.ndarray, float]:
+    """argmin over e >= 0 (0 off ``keep``) and one scale c_s >= 0 per segment of
+    sum_s c_s^2 e^T G_s e - 2 c_s e . h_s (``gram`` [S, K, K], ``h`` [S, K]), by
+    alternating the two (each step lowers it); returns (e, that minimum). e's scale is
+    arbitrary (traded with the c_s)."""
+    c = np.ones(len(h))
+    e, err = np.zeros(h.shape[1]), 0.0
+    for _ in range(iterations):
+        e, _ = nnls_irradiance(np.einsum("s,skj->kj", c * c, gram), np.einsum("s,sk->k", c, h),
+                               keep)
+        q = np.einsum("k,skj,j->s", e, gram, e)  # [S]
+        p = h @ e  # [S]
+        c = np.where(q > 0, np.maximum(p, 0.0) / np.where(q > 0, q, 1.0), 0.0)
+        err = float(np.sum(c * c * q - 2.0 * c * p))
+    return e, err
 
 
 def nnls_irradiance(gram: np.ndarray, h: np.ndarray, keep: np.ndarray
@@ -795,14 +831,26 @@ def nnls_irradiance(gram: np.ndarray, h: np.ndarray, keep: np.ndarray
     return e, float(e @ gram @ e - 2.0 * e @ h)
 
 
-def drop_unexplained(gram: np.ndarray, h: np.ndarray, rr: float, config: MaterialConfig
+def drop_unexplained(gram: np.ndarray, h: np.ndarray, rr, config: MaterialConfig
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Backward elimination of lights (see ``MaterialConfig.drop_share``): repeatedly drop
     the light whose removal costs least, while it carries < drop_share of the re-fitted
     irradiance and raises the squared error by < drop_gain times the error with it.
-    Returns (keep [K] bool, irradiance [K])."""
-    keep = np.ones(len(h), bool)
-    e, err = nnls_irradiance(gram, h, keep)
+    Per-segment sums (``gram`` [S, K, K], ``h`` [S, K], ``rr`` [S]) are fitted with a scale
+    per segment (``segment_nnls``). Returns (keep [K] bool, irradiance [K]); the irradiance
+    is the global fit of the kept lights (the segments' sums added)."""
+    if gram.ndim == 3:
+        keep = _eliminate(gram, h, float(np.sum(rr)), config, segment_nnls)
+        return keep, nnls_irradiance(gram.sum(0), h.sum(0), keep)[0]
+    keep = _eliminate(gram, h, float(rr), config, nnls_irradiance)
+    return keep, nnls_irradiance(gram, h, keep)[0]
+
+
+def _eliminate(gram: np.ndarray, h: np.ndarray, rr: float, config: MaterialConfig, solve
+               ) -> np.ndarray:
+    """``drop_unexplained``'s loop with the fit ``solve(gram, h, keep) -> (e, error)``."""
+    keep = np.ones(h.shape[-1], bool)
+    e, err = solve(gram, h, keep)
     while keep.sum() > 1:
         total = e[keep].sum()
         best, best_cost, best_fit = -1, math.inf, None
@@ -811,7 +859,7 @@ def drop_unexplained(gram: np.ndarray, h: np.ndarray, rr: float, config: Materia
                 continue
             trial = keep.copy()
             trial[k] = False
-            e_k, err_k = nnls_irradiance(gram, h, trial)
+            e_k, err_k = solve(gram, h, trial)
             if err_k - err < best_cost:
                 best, best_cost, best_fit = k, err_k - err, (e_k, err_k)
         # The error with every current light: a light the data needs raises it by far more
@@ -820,7 +868,7 @@ def drop_unexplained(gram: np.ndarray, h: np.ndarray, rr: float, config: Materia
             break
         keep[best] = False
         e, err = best_fit
-    return keep, e
+    return keep
 
 
 def settle_lights(views: list[TrainView], channels: dict, dirs: np.ndarray,
@@ -837,7 +885,7 @@ def settle_lights(views: list[TrainView], channels: dict, dirs: np.ndarray,
             maps = render_maps(dirs)
     if config.drop_share > 0 and len(dirs) > 1:
         gram, h, rr = light_normal_equations(views, channels, dirs, maps, config,
-                                             with_specular)
+                                             with_specular, config.settle_score == "segment")
         keep, e = drop_unexplained(gram, h, rr, config)
         dirs, irr = dirs[keep], e[keep]  # the joint re-fit: better than one at a time
         if not keep.all() and maps is not None:
