@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from mi_shadowgs.core.frames import matrix_to_quaternion, quaternion_to_matrix
 from mi_shadowgs.dataset.world_frame import Similarity
 from tests.synthetic_asset import box_on_plane_surfels, ring_cameras, write_cameras
 from validation.photos import fit_frame, mapped_lights, mapped_split
@@ -24,22 +25,6 @@ def _similarity() -> Similarity:
     rx = np.array([[1, 0, 0], [0, math.cos(TILT), -math.sin(TILT)],
                    [0, math.sin(TILT), math.cos(TILT)]])
     return Similarity(scale=0.37, rotation=rx @ ry, translation=np.array([0.4, -1.2, 2.0]))
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of (w, x, y, z) quaternions [N, 4]."""
-    aw, ax, ay, az = a.T
-    bw, bx, by, bz = b.T
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw],
-                    -1)
-
-
-def _quat_of(rot: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) of a proper rotation matrix (its trace is > -1 here)."""
-    w = math.sqrt(max(0.0, 1.0 + np.trace(rot))) / 2.0
-    return np.array([w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
-                     (rot[1, 0] - rot[0, 1]) / (4 * w)])
 
 
 def test_the_fitted_frame_is_the_similarity_that_made_the_cameras():
@@ -68,7 +53,7 @@ def test_a_model_moved_by_the_frame_renders_the_same_under_the_mapped_cameras():
     raw = surf.to_numpy()
     moved = Surfels.from_numpy(
         sim.points(raw["position"]), raw["scale"] * sim.scale,
-        _quat_mul(np.repeat(_quat_of(sim.rotation)[None], surf.count, 0), raw["rotation"]),
+        matrix_to_quaternion(sim.rotation @ quaternion_to_matrix(raw["rotation"])),
         raw["opacity"])
     cams = ring_cameras(3, size=48)
     views = [View(name=f"r_{i}", camera=c, image=np.zeros((48, 48, 3)),

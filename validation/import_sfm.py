@@ -29,7 +29,8 @@ import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import write_json, write_text
 
 
-def _cameras_by_photo(data: Path) -> dict:
+def cameras_by_photo(data: Path) -> dict:
+    """Photo name -> camera of every registered view of an import (both splits)."""
     from mi_shadowgs.dataset.loader import load_cameras
 
     cams = {}
@@ -52,7 +53,7 @@ def truth(data: Path) -> dict:
 def score(imported: Path, gt: dict) -> dict:
     from mi_shadowgs.dataset.world_frame import camera_errors, umeyama
 
-    cams = _cameras_by_photo(imported)
+    cams = cameras_by_photo(imported)
     names = sorted(cams)
     est = np.stack([cams[n].c2w for n in names])
     ref = np.stack([gt[n].c2w for n in names])
@@ -112,7 +113,7 @@ def main(argv=None) -> None:
     shutil.rmtree(again, ignore_errors=True)
     rec = import_capture(data / "photos", again, get_config(args.preset),
                          colmap=out / "import_0" / "colmap" / "sparse" / "0")
-    a, b = _cameras_by_photo(out / "import_0"), _cameras_by_photo(again)
+    a, b = cameras_by_photo(out / "import_0"), cameras_by_photo(again)
     colmap_check = {
         "same_views": sorted(a) == sorted(b),
         "max_c2w_diff": max(float(np.abs(a[n].c2w - b[n].c2w).max()) for n in a),

@@ -3,16 +3,16 @@
 For one scene (``validation.pipeline.SCENES``) under one light pair, on the textured mat
 (``base_texture=mat``: SfM needs features):
 
-1. ``OUT/photoset``: the scene's training views as a user's photos (sRGB JPEG, no camera,
+1. ``OUT/photoset/data``: the scene's training views as a user's photos (sRGB JPEG, no camera,
    no mask) at ``--photo-size`` pixels, where SfM registers every view (BENCHMARKS.md, "Your
    own captures in"). Only the training views' photos are imported (``OUT/photos``): the
    test cameras stay unseen.
 2. ``OUT/import``: ``mi-shadowgs import`` of them (SfM, no cameras, no masks, no material
    ids), resized to the preset's resolution; ``OUT/run-photos``: ``mi-shadowgs run`` on it
    (its own test split has no ground truth; the run skips those metrics).
-3. ``OUT/gt-data``, ``OUT/run-gt``: the same scene, cameras (same seed) and lights at the
+3. ``OUT/gt/data``, ``OUT/run-gt``: the same scene, cameras (same seed) and lights at the
    preset's resolution with full ground truth, run from ground-truth cameras and masks.
-4. Both fits are scored by stage 5's own evaluation on ``gt-data``'s test views. For the
+4. Both fits are scored by stage 5's own evaluation on ``OUT/gt/data``'s test views. For the
    photo run the ground-truth test cameras and lights are mapped into its frame by the
    similarity fitted on the imported cameras (ground-truth centres -> imported centres; it
    composes the unknown SfM frame with ``import.json``'s transform). Env-map relighting and
@@ -46,31 +46,19 @@ SHADOW_IOU_TOLERANCE = 0.05
 
 
 def _generate(scene: str, folder: Path, lights: str, preset: str, size: int | None,
-              photos: bool, n_test: int | None = None, spp: int | None = None) -> Path:
-    """The scene on the mat, ``preset``'s training cameras (seed 0), no env maps."""
-    from mi_shadowgs.dataset.generate import get_config
-    from mi_shadowgs.dataset.writer import write_dataset
-    from mi_shadowgs.scenes import scene_path
-    from validation.pipeline import LIGHT_PAIRS, available_scenes
+              photos: bool, **settings) -> Path:
+    """The scene on the mat in ``folder/data``: ``preset``'s training cameras (seed 0), no
+    env maps, ``settings`` GenerateConfig fields."""
+    from validation.pipeline import available_scenes, make_dataset
 
     scenes = available_scenes()
     if scene not in scenes:
         raise SystemExit(f"--scene {scene}: not available (meshes under ../shared/data); "
                          f"available: {', '.join(scenes)}")
-    mesh = scenes[scene]
-    overrides = {**LIGHT_PAIRS[lights], "base_texture": "mat"}
-    if mesh is not None:
-        overrides["mesh"] = str(mesh)
-    config = dataclasses.replace(get_config(preset), envmaps="none")
-    if size is not None:
-        config = dataclasses.replace(config, width=size, height=size)
-    if n_test is not None:
-        config = dataclasses.replace(config, n_test=n_test)
-    if spp is not None:
-        config = dataclasses.replace(config, spp=spp)
-    write_dataset(scene_path("default" if mesh is None else "mesh"), folder, config, preset,
-                  seed=0, overrides=overrides, photos=photos)
-    return folder
+    return make_dataset(scene, scenes[scene], folder, lights, envmaps="none",
+                        resolution=size, preset=preset,
+                        scene_overrides={"base_texture": "mat"}, settings=settings,
+                        photos=photos)
 
 
 def training_photos(photoset: Path, dst: Path) -> Path:
@@ -84,20 +72,6 @@ def training_photos(photoset: Path, dst: Path) -> Path:
         for f in sorted((photoset / layout.PHOTOS).glob("train_*")):
             shutil.copy2(f, tmp / f.name)
     return dst
-
-
-def imported_cameras(imported: Path) -> dict:
-    """Photo name -> camera of every registered view of an import (both splits)."""
-    from mi_shadowgs.dataset import layout
-    from mi_shadowgs.dataset.loader import load_cameras
-
-    cams = {}
-    for split in layout.SPLITS:
-        path = imported / layout.transforms_name(split)
-        meta = json.loads(path.read_text())
-        for (_, cam), fr in zip(load_cameras(path), meta["frames"], strict=True):
-            cams[fr["source_image"]] = cam
-    return cams
 
 
 def fit_frame(imported: dict, truth: dict):
@@ -139,14 +113,13 @@ def mapped_split(dataset, sim, lights: dict):
 def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     """Stage 5's evaluation of ``run``'s stage-4 fit on ``test`` (cameras and lights in the
     run's frame)."""
+    from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.relight import evaluation
     from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, fit_from_files
 
     fit_dir = run / "material" / "full"
     result = fit_from_files(fit_dir / "model.ply", fit_dir / "light.json")
-    from mi_shadowgs.stages.common import load_training_views
-
     run_train = load_training_views(Path(json.loads((run / "summary.json").read_text())
                                          ["dataset"]))
     bounds = occluder_bounds(result.surfels, run_train.cameras, quantile)
@@ -228,14 +201,14 @@ def main(argv=None) -> int:
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.atomic import write_json, write_text
     from mi_shadowgs.pipeline import get_config as run_config
-    from validation.import_sfm import truth
+    from validation.import_sfm import cameras_by_photo, truth
 
     if args.threads:
         dr.set_thread_count(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     size = gen_config(args.preset).width
-    gt_data = _generate(args.scene, out / "gt-data", args.lights, args.preset, None, False)
+    gt_data = _generate(args.scene, out / "gt", args.lights, args.preset, None, False)
     # SfM wants sharp photos more than clean ones: 64 spp as in validation.import_sfm
     photoset = _generate(args.scene, out / "photoset", args.lights, args.preset,
                          args.photo_size, True, n_test=1, spp=64)
@@ -254,7 +227,7 @@ def main(argv=None) -> int:
 
     quantile = run_config(args.preset).bounds_quantile
     train, test = load_dataset(gt_data, "train"), load_dataset(gt_data, "test")
-    sim, frame = fit_frame(imported_cameras(imported), truth(photoset))
+    sim, frame = fit_frame(cameras_by_photo(imported), truth(photoset))
     lights = mapped_lights(train.lights, sim.rotation)
     gt_scores = score_run(out / "run-gt", dataclasses.replace(train, lights=mapped_lights(
         train.lights, np.eye(3))), test, args.preset, quantile)

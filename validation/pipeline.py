@@ -74,11 +74,15 @@ def available_scenes() -> dict[str, Path | None]:
 
 def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tuned",
                  envmaps: str = ENVMAPS, resolution: int | None = None,
-                 preset: str = "cpu-small", pair: dict | None = None) -> Path:
-    """The scene's ``preset`` dataset under a light pair (``LIGHT_PAIRS[lights]``, or the
-    scene-XML overrides ``pair``) with ``envmaps`` (GenerateConfig's choice) for its env-map
-    relit views, at ``resolution`` pixels square (None: the preset's); kept when it is
-    already complete."""
+                 preset: str = "cpu-small", pair: dict | None = None,
+                 scene_overrides: dict | None = None, settings: dict | None = None,
+                 photos: bool = False) -> Path:
+    """The scene's ``preset`` dataset in ``folder/data`` under a light pair
+    (``LIGHT_PAIRS[lights]``, or the scene-XML overrides ``pair``) with ``envmaps``
+    (GenerateConfig's choice) for its env-map relit views, at ``resolution`` pixels square
+    (None: the preset's); kept when it is already complete. ``scene_overrides`` adds
+    scene parameters (e.g. ``base_texture``), ``settings`` GenerateConfig fields, and
+    ``photos`` the photo set (``write_dataset``)."""
     import dataclasses
 
     from mi_shadowgs.dataset.generate import get_config
@@ -88,15 +92,15 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
     data = folder / "data"
     if (data / "dataset.json").is_file():
         return data
-    overrides = dict(LIGHT_PAIRS[lights] if pair is None else pair)
+    overrides = {**(LIGHT_PAIRS[lights] if pair is None else pair), **(scene_overrides or {})}
     if mesh is not None:
         overrides["mesh"] = str(mesh)
-    config = dataclasses.replace(get_config(preset), envmaps=envmaps)
+    config = dataclasses.replace(get_config(preset), envmaps=envmaps, **(settings or {}))
     if resolution is not None:
         config = dataclasses.replace(config, width=resolution, height=resolution)
     write_dataset(scene_path("default" if mesh is None else "mesh"), data,
                   config, preset, seed=0, progress=True,
-                  overrides=overrides)
+                  overrides=overrides, photos=photos)
     return data
 
 

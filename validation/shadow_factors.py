@@ -282,16 +282,19 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     # (the run's lights and shadow maps); the normals split again into where they act: the
     # shading's n . l, or the shadow-map lookup's normal offset.
     split = {}
-    sr, gr_ = recs[False], recs[True]
-    for part, at_map, shaded in (
-            ("points", Receivers(gr_.points, sr.normals, gr_.footprints, sr.normals_np), None),
-            ("normals", Receivers(sr.points, gr_.normals, sr.footprints, gr_.normals_np), None),
-            ("normals_shading", sr, Receivers(sr.points, sr.normals, sr.footprints,
-                                              gr_.normals_np)),
-            ("normals_offset", Receivers(sr.points, gr_.normals, sr.footprints,
-                                         gr_.normals_np), sr)):
+    fit_rec, gt_rec = recs[False], recs[True]
+
+    def mix(points: Receivers, normals: Receivers) -> Receivers:
+        return Receivers(points.points, normals.normals, points.footprints, normals.normals_np)
+
+    # (part, receivers of the shadow-map lookup, receivers of the shading: None = the same)
+    for part, at_map, shaded in (("points", mix(gt_rec, fit_rec), None),
+                                 ("normals", mix(fit_rec, gt_rec), None),
+                                 ("normals_shading", fit_rec, mix(fit_rec, gt_rec)),
+                                 ("normals_offset", mix(fit_rec, gt_rec), fit_rec)):
+        shaded = at_map if shaded is None else shaded
         vis = map_visibility(inp.model, at_map, inp.fit_dirs, inp.bounds, inp.vis_config)
-        est = irradiance(shaded or at_map, vis, inp.fit_dirs, inp.fit_irr, (h, w))
+        est = irradiance(shaded, vis, inp.fit_dirs, inp.fit_irr, (h, w))
         split[part] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask) - base
     errs = evaluation.light_angular_errors(inp.fit_dirs, inp.fit_irr, inp.true_dirs)
     ranked = sorted(FACTORS, key=lambda f: -shares[f])

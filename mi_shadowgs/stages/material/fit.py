@@ -788,10 +788,10 @@ def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndar
             r = np.stack([np.asarray(resid[c], np.float64) for c in range(3)])  # [3, P]
             b *= wgt[None, :, None]  # [3, P, K]
             r *= wgt[None]
-            seg = v.segment.numpy() if per_segment else np.zeros(len(wgt), np.int64)  # [P]
+            seg = v.segment.numpy() if per_segment else None  # [P]
             for s_id in range(n_seg):
-                on = seg == s_id  # mixed pixels (seg == v.n_segments) are in no segment
-                bs, rs = b[:, on], r[:, on]
+                # mixed pixels (seg == v.n_segments) are in no segment
+                bs, rs = (b, r) if seg is None else (b[:, seg == s_id], r[:, seg == s_id])
                 gram[s_id] += np.einsum("cpk,cpj->kj", bs, bs)
                 h[s_id] += np.einsum("cpk,cp->k", bs, rs)
                 rr[s_id] += float(np.sum(rs * rs))
