@@ -371,3 +371,167 @@ def test_texel_bias_keeps_contact_shadows():
     assert result["tau"][0] > 0.9, result  # the failure the option fixes (the test can fail)
     v_shadowed, v_lit, v_top = result["texels"]
     assert v_shadowed < 0.02 and v_lit > 0.98 and v_top > 0.98, result
+
+
+# -- the occluder layer's slack (VisibilityConfig.layer_bias) -----------------------------
+def _layered_ground_scene(thickness: float, opacity: float, gap: float = 0.04,
+                          half: float = 0.5):
+    """A ground fitted as a layer ``thickness`` deep (surfels of ``opacity`` spread
+    uniformly in y below 0, as a stage-1 fit is a few surfels thick) under a one-layer
+    slab ``gap`` over it."""
+    from mi_shadowgs.core.surfels import Surfels
+
+    scene = mi.load_dict({"type": "scene", "ground": _ground(),
+                          "slab": _rect([0, gap, 0], (half, half), rot=([1, 0, 0], -90.0))},
+                         optimize=False)
+    shapes = list(scene.shapes())
+    ground = surfels_on_surface([s for s in shapes if s.id() == "ground"], 60000, seed=2,
+                                sigma_factor=0.7, opacity=opacity).to_numpy()
+    slab = surfels_on_surface([s for s in shapes if s.id() != "ground"], 6000, seed=3,
+                              sigma_factor=0.7).to_numpy()
+    rng = np.random.default_rng(5)
+    ground["position"][:, 1] -= rng.uniform(0.0, thickness, len(ground["position"]))
+    keys = ("position", "scale", "rotation", "opacity")
+    surfels = Surfels.from_numpy(**{k: np.concatenate([ground[k], slab[k]]) for k in keys},
+                                 channels={"albedo": np.concatenate([ground["albedo"],
+                                                                     slab["albedo"]])})
+    return surfels, slab["position"]
+
+
+def _ground_hit_slab(points: np.ndarray, l_dir: np.ndarray, gap: float, half: float
+                     ) -> np.ndarray:
+    """How far inside (< 0) or outside (> 0) the slab's square the light ray from each
+    ground point's true position (y = 0) crosses the slab's height."""
+    hit = points * [1, 0, 1] + (gap / l_dir[1]) * l_dir
+    return np.maximum(np.abs(hit[:, 0]), np.abs(hit[:, 2])) - half
+
+
+@pytest.mark.parametrize("window", [0, 1])
+def test_layer_slack_matches_float64_reference(window):
+    """The folded map depth is median d + min(max(k |E[d] - median d|, the step to the
+    deepest occupied texel within ``window``), cap texel), from the light's own median and
+    expected depth (rasterized again here and combined in float64), and the lookup compares
+    against it."""
+    from mi_shadowgs.core.raster import rasterize
+
+    surfels, slab_points = _layered_ground_scene(0.01, 0.5)
+    l_dir = np.asarray(direction_from_angles(30.0, 60.0), np.float64)
+    camera = _view([0.0, 2.0, 2.0], (0, 0, 0))
+    bounds = SceneBounds.from_points(slab_points, [camera])
+    cfg = VisibilityConfig(resolution=128, projection="orthographic", bias_texels=1.0,
+                           layer_bias=1.0, layer_cap_texels=3.0, layer_window=window)
+    maps = render_shadow_maps(surfels, l_dir[None], bounds, cfg)
+    out = rasterize(surfels, maps.cameras[0], None, aovs=("alpha", "depth", "median_depth"))
+    alpha = np.asarray(out["alpha"].array, np.float64)
+    med = np.asarray(out["median_depth"].array, np.float64)
+    expected = np.asarray(out["depth"].array, np.float64)
+    empty = (alpha < cfg.empty_alpha) | (med <= 0)
+    slack = np.abs(expected - med)
+    if window:
+        padded = np.pad(np.where(empty, -np.inf, med).reshape(128, 128), window,
+                        mode="edge")
+        deepest = np.max([padded[window + dy:window + dy + 128, window + dx:window + dx + 128]
+                          for dy in range(-window, window + 1)
+                          for dx in range(-window, window + 1)], axis=0).reshape(-1)
+        slack = np.maximum(slack, deepest - med)
+    want = med + np.minimum(slack, 3.0 * maps.texel)
+    want[empty] = np.inf
+    got = maps.depth_image(0).reshape(-1)
+    finite = np.isfinite(want)
+    assert np.array_equal(finite, np.isfinite(got))
+    # float32 sums of the same terms: the error is a few ulps of the depth (~5 units here)
+    np.testing.assert_allclose(got[finite], want[finite], rtol=0, atol=2e-6 * want.max())
+    slack = want[finite] - med[finite]
+    assert (slack > 0.1 * maps.texel).mean() > 0.2  # the slack is not trivially 0 ...
+    assert slack.max() <= 3.0 * maps.texel * (1 + 1e-6)  # ... and the cap holds
+    rng = np.random.default_rng(1)
+    pts = np.c_[rng.uniform(-1, 1, 3000), rng.uniform(-0.02, 0.06, 3000),
+                rng.uniform(-1, 1, 3000)].astype(np.float32)
+    v = np.asarray(maps.evaluate(mi.Point3f(*pts.T))).reshape(-1)
+    uv, z = maps.cameras[0].project(pts.astype(np.float64))
+    ix, iy = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    inside = (ix >= 0) & (ix < 128) & (iy >= 0) & (iy < 128)
+    dg = np.full(len(pts), np.inf)
+    dg[inside] = want.reshape(128, 128)[iy[inside], ix[inside]]
+    ref = (z - dg <= cfg.bias_texels * maps.texel).astype(float)
+    assert np.mean(v != ref) < 5e-3  # texel-edge and threshold ties in float32 only
+    assert 0.05 < ref.mean() < 0.95
+
+
+def test_layer_slack_removes_acne_and_keeps_contact_shadows():
+    """Hard case: receivers are the view's median depth of a ground fitted ~3.6 texels
+    thick, with a one-layer slab 4 cm over it. A fixed 1-texel threshold shadows part of the
+    lit ground (the receivers sit deeper in the layer than the light's median); tau hides
+    the slab's contact shadow. The layer slack grows only where the map's layer is thick:
+    the acne falls to under half and the contact shadow stays."""
+    from mi_shadowgs.core.depth import unproject_depth
+    from mi_shadowgs.core.raster import rasterize
+    from mi_shadowgs.stages.visibility.shadow_maps import point_visibility
+
+    gap, half = 0.04, 0.5
+    surfels, slab_points = _layered_ground_scene(0.01, 0.5, gap, half)
+    l_dir = np.asarray(direction_from_angles(30.0, 60.0), np.float64)
+    camera = _view([0.0, 2.0, 2.0], (0, 0, 0), fov=1.2, res=128)
+    bounds = SceneBounds.from_points(slab_points, [camera])
+    out = rasterize(surfels, camera, None, aovs=("alpha", "median_depth"))
+    p = unproject_depth(out["median_depth"], camera)
+    pts = np.stack([np.asarray(p[k]) for k in range(3)], -1)
+    alpha = np.asarray(out["alpha"].array)
+    pts = pts[(alpha > 0.5) & (pts[:, 1] < gap / 2) & (np.abs(pts[:, 0]) < 1.2)
+              & (np.abs(pts[:, 2]) < 1.2)]
+    lit = _ground_hit_slab(pts, l_dir, gap, half) > 0.03  # clear of the slab's shadow
+    # Under the slab (hidden from the view): ground points anywhere in the layer's depth.
+    rng = np.random.default_rng(0)
+    under = np.c_[rng.uniform(-1.2, 1.2, 20000), -rng.uniform(0.0, 0.01, 20000),
+                  rng.uniform(-1.2, 1.2, 20000)]
+    under = under[_ground_hit_slab(under, l_dir, gap, half) < -0.03]
+    assert len(under) > 1000 and lit.sum() > 3000
+    pts = np.concatenate([pts[lit], under]).astype(np.float32)
+    up = np.tile(np.float32([0.0, 1.0, 0.0]), (len(pts), 1))
+    n_lit = int(lit.sum())
+    result = {}
+    for name, cfg in (("tau", VisibilityConfig()),
+                      ("texel", VisibilityConfig(bias_texels=1.0)),
+                      ("layer", VisibilityConfig(bias_texels=1.0, layer_bias=1.0))):
+        maps = render_shadow_maps(surfels, l_dir[None], bounds, cfg)
+        v = np.asarray(point_visibility(mi.Point3f(*pts.T), maps, mi.Vector3f(*up.T)))
+        result[name] = (v[n_lit:].mean(), 1.0 - v[:n_lit].mean())  # (leak, acne)
+    assert 0.01 / maps.texel > 3  # the layer is several texels thick
+    assert result["tau"][0] > 0.9, result  # tau: no contact shadow
+    assert result["texel"][1] > 0.01, result  # the acne the slack is for (can fail)
+    assert result["layer"][0] < 0.02, result  # the contact shadow kept
+    assert result["layer"][1] < 0.5 * result["texel"][1], result
+
+
+def test_layer_window_removes_grazing_acne():
+    """Hard case: a plane lit at 20 deg elevation, receivers up to 2 texels under it (a view's
+    depth is known to about a pixel) with normals bent up to 20 deg (fitted normals). At
+    grazing light the map depth changes by ~2.7 texels per texel, so a receiver looked up one
+    texel off lands behind its own surface; the normal offset computed from a bent normal
+    does not cover it, and a single-layer plane has no layer slack. The window's deepest
+    neighbour does."""
+    from mi_shadowgs.stages.visibility.shadow_maps import point_visibility
+
+    scene = mi.load_dict({"type": "scene", "ground": _ground(1.0)}, optimize=False)
+    surfels = surfels_on_surface(list(scene.shapes()), 40000, seed=2, sigma_factor=0.7)
+    l_dir = np.asarray(direction_from_angles(30.0, 20.0), np.float64)
+    bounds = SceneBounds.from_points(surfels.to_numpy()["position"],
+                                     [_view([0.0, 2.0, 2.0], (0, 0, 0))])
+    acne = {}
+    for name, cfg in (("texel", VisibilityConfig(bias_texels=1.0)),
+                      ("layer", VisibilityConfig(bias_texels=1.0, layer_bias=1.0)),
+                      ("window", VisibilityConfig(bias_texels=1.0, layer_bias=1.0,
+                                                  layer_window=1))):
+        maps = render_shadow_maps(surfels, l_dir[None], bounds, cfg)
+        rng = np.random.default_rng(0)
+        n = 20000
+        pts = np.c_[rng.uniform(-0.8, 0.8, n), -rng.uniform(0.0, 2.0 * maps.texel, n),
+                    rng.uniform(-0.8, 0.8, n)].astype(np.float32)
+        tilt, phi = np.radians(rng.uniform(0.0, 20.0, n)), rng.uniform(0.0, 2 * np.pi, n)
+        nrm = np.c_[np.sin(tilt) * np.cos(phi), np.cos(tilt),
+                    np.sin(tilt) * np.sin(phi)].astype(np.float32)
+        v = np.asarray(point_visibility(mi.Point3f(*pts.T), maps, mi.Vector3f(*nrm.T)))
+        facing = nrm @ l_dir > 1e-4
+        acne[name] = 1.0 - v[facing].mean()
+    assert acne["texel"] > 0.05 and acne["layer"] > 0.05, acne  # the failure (can fail)
+    assert acne["window"] < 0.005, acne

@@ -45,6 +45,22 @@ class VisibilityConfig:
     # units each at 512^2) cover what the threshold is for: the surfels' own depth spread
     # between the view's and the light's rasterization.
     bias_texels: float | None = None
+    # Depth slack per texel from the occluder layer's own thickness (not in the paper; in
+    # the spirit of Woo's midpoint shadow maps): each texel's depth becomes median d +
+    # min(layer_bias * |E[d] - median d|, layer_cap_texels * texel), both depths rasterized
+    # from the light. A fitted surface is a few surfels thick, and a receiver unprojected
+    # from a view's median depth can sit anywhere in that layer: where the layer is thick a
+    # fixed threshold must be large (tau's ~14 texels) and erases contact shadows, where it
+    # is thin a small one suffices. The slack follows the layer texel by texel; the cap
+    # keeps silhouettes (where E[d] mixes occluder and background) from opening holes.
+    # 0: off (the paper's single depth).
+    layer_bias: float = 0.0
+    layer_cap_texels: float = 3.0
+    # The slack is also at least the depth step to the deepest occupied texel within this
+    # many texels (0: the texel alone). At grazing light a surface's map depth changes by
+    # several texels per texel, and a receiver looked up one texel off lands behind its own
+    # surface: isolated dark specks in relit views. The cap bounds it as above.
+    layer_window: int = 0
     eps: float = 1e-6  # the epsilon of Eq. 7
     depth: str = "median"  # which rasterized depth the map holds: "median" or "expected"
     empty_alpha: float = 0.5  # map pixels with less accumulated alpha hold no occluder
@@ -89,6 +105,7 @@ class VisibilityConfig:
         if self.resolution < 1 or self.distance_factor <= 1.0 or self.tau < 0 or self.pcf < 0 \
                 or (self.bias_texels is not None and self.bias_texels < 0) \
                 or self.normal_offset < 0 or self.receiver_offset < 0 or \
+                self.layer_bias < 0 or self.layer_cap_texels < 0 or self.layer_window < 0 or \
                 not 0.0 < self.fractional_min_alpha <= 1.0:
             raise ValueError(f"invalid visibility settings: {self}")
 
@@ -99,7 +116,11 @@ PRESETS = {
     "paper-exact": VisibilityConfig(normal_offset=0.0, receiver_offset=0.0),
     # Orthographic maps: the light is directional, and the validation (BENCHMARKS.md,
     # Visibility) measured them ahead of the paper's 30x perspective camera.
-    "cpu-small": VisibilityConfig(resolution=512, projection="orthographic"),
+    # A 1-texel threshold plus the occluder layer's slack instead of tau: tau (~14 texels
+    # at 30x the camera distance) erases contact shadows, a bare texel threshold leaves
+    # acne where the fitted layer is thick (BENCHMARKS.md, "The occluder layer's slack").
+    "cpu-small": VisibilityConfig(resolution=512, projection="orthographic", bias_texels=1.0,
+                                  layer_bias=1.0, layer_cap_texels=3.0, layer_window=1),
 }
 # 512 texels across the scene's bounds are ~0.006 units, under the 0.014-unit footprint of a
 # 256^2 view's pixel at the datasets' camera distance: the same maps serve cpu-medium.
@@ -152,7 +173,9 @@ class ShadowMaps:
 
     directions: np.ndarray  # [L, 3] unit, toward the light
     cameras: list[Camera]  # L virtual cameras
-    depth: mi.Float  # [L * R * R] map depth, +inf where no occluder
+    # [L * R * R] map depth (with the layer slack when config.layer_bias > 0), +inf where
+    # no occluder
+    depth: mi.Float
     resolution: int
     config: VisibilityConfig
     texel: float  # size of one map texel at the scene centre, scene units
@@ -205,14 +228,24 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
     cams = [shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance, config)
             for d in directions]
     key = "median_depth" if config.depth == "median" else "depth"
+    aovs = ("alpha", "median_depth", "depth") if config.layer_bias > 0 else ("alpha", key)
+    texel = _texel_size(cams[0], center, config.resolution)
     maps, alphas = [], []
     min_alpha = config.fractional_min_alpha if config.fractional else config.empty_alpha
     with dr.suspend_grad():
         for cam in cams:
-            out = rasterize(surfels, cam, None, aovs=("alpha", key))
+            out = rasterize(surfels, cam, None, aovs=aovs)
             depth = out[key].array
-            empty = out["alpha"].array < min_alpha
-            maps.append(dr.select(empty | (depth <= 0), dr.inf, depth))
+            empty = (out["alpha"].array < min_alpha) | (depth <= 0)
+            if config.layer_bias > 0:
+                spread = dr.abs(out["depth"].array - out["median_depth"].array)
+                slack = config.layer_bias * spread
+                if config.layer_window > 0:
+                    step = _window_max(dr.select(empty, -dr.inf, depth), config.resolution,
+                                       config.layer_window) - depth
+                    slack = dr.maximum(slack, step)
+                depth = depth + dr.minimum(slack, config.layer_cap_texels * texel)
+            maps.append(dr.select(empty, dr.inf, depth))
             alphas.append(dr.clip(out["alpha"].array, 0.0, 1.0))
     depth = dr.concat(maps) if len(maps) > 1 else maps[0]  # [L * R * R]
     alpha = None
@@ -220,13 +253,30 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
         alpha = dr.concat(alphas) if len(alphas) > 1 else alphas[0]  # [L * R * R]
         dr.eval(depth, alpha)
     dr.eval(depth)
-    cam = cams[0]
-    if cam.is_ortho:
-        texel = cam.ortho_width / config.resolution
-    else:
-        dist = float(np.linalg.norm(cam.origin - np.asarray(center, dtype=np.float64)))
-        texel = 2.0 * math.tan(0.5 * cam.fov_x) * dist / config.resolution
     return ShadowMaps(directions, cams, depth, config.resolution, config, texel, alpha)
+
+
+def _window_max(image: mi.Float, resolution: int, radius: int) -> mi.Float:
+    """Max over the (2 radius + 1)^2 window of each texel of an [R * R] image (clamped at
+    the borders)."""
+    r = resolution
+    idx = dr.arange(mi.Int32, r * r)
+    x, y = idx % r, idx // r
+    out = image
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dx or dy:
+                xx, yy = dr.clip(x + dx, 0, r - 1), dr.clip(y + dy, 0, r - 1)
+                out = dr.maximum(out, dr.gather(mi.Float, image, mi.UInt32(yy * r + xx)))
+    return out
+
+
+def _texel_size(cam: Camera, center: np.ndarray, resolution: int) -> float:
+    """One map texel at the scene centre, scene units."""
+    if cam.is_ortho:
+        return cam.ortho_width / resolution
+    dist = float(np.linalg.norm(cam.origin - np.asarray(center, dtype=np.float64)))
+    return 2.0 * math.tan(0.5 * cam.fov_x) * dist / resolution
 
 
 def _camera_rows(cameras: Sequence[Camera]) -> tuple[list[mi.Float], mi.Float, mi.Float]:
