@@ -54,8 +54,9 @@ from mi_shadowgs.stages.relight import evaluation
 
 FACTORS = ("lights", "receivers", "occluders")
 TRACE_LIFT = 1.5  # pixel footprints off a surfel receiver before tracing (see above)
-# (tau, normal_offset, bias_texels) settings of the bias sweep; the presets' are (8e-4, 1.5,
-# None). With bias_texels the threshold is absolute, in map texels, and tau is unused.
+# (tau, normal_offset, bias_texels) settings of the bias sweep; the paper preset's are (8e-4,
+# 1.5, None), cpu-small's (-, 1.5, 1.0) with the layer slack. With bias_texels the threshold is
+# absolute, in map texels, tau is unused and the run's layer slack applies.
 BIAS_SWEEP = ((0.0, 1.5, None), (2e-4, 1.5, None), (8e-4, 0.0, None), (8e-4, 0.75, None),
               (8e-4, 3.0, None), (2e-3, 1.5, None), (5e-3, 1.5, None), (8e-4, 1.5, 1.0),
               (8e-4, 1.5, 2.0), (8e-4, 1.5, 3.0), (8e-4, 1.5, 5.0), (8e-4, 1.5, 8.0))
@@ -266,8 +267,10 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     bias = []
     rec = recs[False]
     for tau, off, texels in tqdm(BIAS_SWEEP, desc=f"{inp.name}: bias", disable=not progress):
+        # A tau row is Eq. 6-7's test alone (the old preset), without the layer slack.
         vc = dataclasses.replace(inp.vis_config, tau=tau, normal_offset=off,
-                                 bias_texels=texels)
+                                 bias_texels=texels,
+                                 layer_bias=inp.vis_config.layer_bias if texels else 0.0)
         vis = map_visibility(inp.model, rec, inp.fit_dirs, inp.bounds, vc)
         est = irradiance(rec, vis, inp.fit_dirs, inp.fit_irr, (h, w))
         bias.append({"tau": tau, "normal_offset": off, "bias_texels": texels,
