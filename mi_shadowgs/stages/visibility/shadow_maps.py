@@ -4,7 +4,9 @@ For a light direction ``l`` a virtual camera looks at the scene from far along `
 (perspective at ``distance_factor`` times the mean training-camera distance, as in the paper,
 or orthographic) and the surfels' depth is rasterized into a shadow map. A view pixel is
 unprojected to its surface point ``x``; projected into the map it has depth ``d_l`` and the map
-holds ``d_g``; ``V = [(d_l - d_g) / (d_l + eps) <= tau]``.
+holds ``d_g``; ``V = [(d_l - d_g) / (d_l + eps) <= tau]``. The ``cpu-small`` preset tests
+``d_l - d_g <= 1 texel`` instead, with ``d_g`` raised per texel by the occluder layer's slack
+(``VisibilityConfig.layer_bias``): tau's fixed margin hides contact shadows.
 
 A shadow map depends on the light, not on the view: ``render_shadow_maps`` renders each once
 and every view reuses them. Lookups for all pixels and all directions run in one Dr.Jit pass.
