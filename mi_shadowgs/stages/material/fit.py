@@ -790,8 +790,10 @@ def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndar
             r *= wgt[None]
             seg = v.segment.numpy() if per_segment else None  # [P]
             for s_id in range(n_seg):
-                # mixed pixels (seg == v.n_segments) are in no segment
-                bs, rs = (b, r) if seg is None else (b[:, seg == s_id], r[:, seg == s_id])
+                bs, rs = b, r
+                if seg is not None:  # mixed pixels (seg == v.n_segments) are in no segment
+                    on = seg == s_id
+                    bs, rs = b[:, on], r[:, on]
                 gram[s_id] += np.einsum("cpk,cpj->kj", bs, bs)
                 h[s_id] += np.einsum("cpk,cp->k", bs, rs)
                 rr[s_id] += float(np.sum(rs * rs))
