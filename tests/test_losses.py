@@ -95,18 +95,36 @@ def _plane_depth(cam: Camera, n: np.ndarray, d: float) -> np.ndarray:
     return t.reshape(cam.height, cam.width)
 
 
-def _normal_consistency_ref(normal, depth, alpha, cam: Camera) -> float:
-    """float64: unproject with Camera.unproject, central differences, facing the camera."""
+def _depth_normals_ref(depth, cam: Camera, differences: str = "central") -> np.ndarray:
+    """float64 world-space normals [H, W, 3] (0 on the 1-pixel border), facing the camera:
+    unproject with Camera.unproject; central differences, or per pixel and axis the
+    one-sided difference on the side whose inverse depth has the smaller second difference
+    (central on the 2-pixel ring)."""
     h, w = depth.shape
     pts = cam.unproject(cam.pixel_grid(), depth.ravel()).reshape(h, w, 3)
+    inv = 1.0 / depth
     nd = np.zeros((h, w, 3))
-    dx = pts[1:-1, 2:] - pts[1:-1, :-2]
-    dy = pts[2:, 1:-1] - pts[:-2, 1:-1]
-    n = np.cross(dx, dy)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    view = pts[1:-1, 1:-1] - cam.origin
-    n = np.where(np.sum(n * view, -1, keepdims=True) > 0, -n, n)
-    nd[1:-1, 1:-1] = n
+    for y in range(1, h - 1):
+        for x in range(1, w - 1):
+            p = pts[y, x]
+            dx, dy = pts[y, x + 1] - pts[y, x - 1], pts[y + 1, x] - pts[y - 1, x]
+            if differences == "same_plane" and 1 < x < w - 2 and 1 < y < h - 2:
+                fwd = abs(inv[y, x + 2] - 2 * inv[y, x + 1] + inv[y, x])
+                bwd = abs(inv[y, x] - 2 * inv[y, x - 1] + inv[y, x - 2])
+                dx = pts[y, x + 1] - p if fwd <= bwd else p - pts[y, x - 1]
+                fwd = abs(inv[y + 2, x] - 2 * inv[y + 1, x] + inv[y, x])
+                bwd = abs(inv[y, x] - 2 * inv[y - 1, x] + inv[y - 2, x])
+                dy = pts[y + 1, x] - p if fwd <= bwd else p - pts[y - 1, x]
+            n = np.cross(dx, dy)
+            n /= np.linalg.norm(n)
+            nd[y, x] = -n if n @ (p - cam.origin) > 0 else n
+    return nd
+
+
+def _normal_consistency_ref(normal, depth, alpha, cam: Camera,
+                            differences: str = "central") -> float:
+    """float64 2DGS normal consistency with ``_depth_normals_ref``."""
+    nd = _depth_normals_ref(depth, cam, differences)
     return float(np.mean(1.0 - alpha * np.sum(normal * nd, -1)))
 
 
@@ -130,17 +148,55 @@ def test_depth_normals_of_a_plane():
                                atol=1e-3)
 
 
-def test_normal_consistency_matches_numpy():
+@pytest.mark.parametrize("differences", losses.DEPTH_NORMAL_DIFFERENCES)
+def test_normal_consistency_matches_numpy(differences):
     cam = _cam()
     rng = np.random.default_rng(3)
     depth = 3.0 + 0.3 * rng.random((cam.height, cam.width))
     normal = rng.standard_normal((cam.height, cam.width, 3))
     alpha = rng.random((cam.height, cam.width))
-    ref = _normal_consistency_ref(normal, depth, alpha, cam)
+    ref = _normal_consistency_ref(normal, depth, alpha, cam, differences)
     got = float(losses.normal_consistency(_t(normal), _t(depth[..., None]),
-                                          _t(alpha[..., None]), cam)[0])
+                                          _t(alpha[..., None]), cam, differences)[0])
     # Random depth: central differences of float32 depths (~3e-7 abs) over ~0.1 steps.
     assert got == pytest.approx(ref, abs=1e-4)
+    with pytest.raises(ValueError, match="differences"):
+        losses.depth_normals(_t(depth[..., None]), cam, "sobel")
+
+
+@pytest.mark.parametrize("crease", ["concave", "convex"])
+def test_same_plane_depth_normals_at_a_crease(crease):
+    """Hard case: two planes meeting in a crease (a ground under a wall: concave; a box's
+    edge: convex). Central differences span both planes on each side of the crease and
+    tilt the normal there by up to ~45 degrees (2DGS's fillets at an object's contact with
+    its base); ``same_plane`` gives each pixel its own plane's normal but where both of its
+    sides cross the crease. The reference is checked on the same pixels."""
+    cam = Camera.look_at((0.3, 2.0, 3.0), (0.0, 0.2, 0.0), fov_x=0.8, width=40, height=32)
+    n_ground = np.array([0.0, 1.0, 0.0])
+    n_wall = np.array([0.0, 0.3, 1.0]) / np.linalg.norm([0.0, 0.3, 1.0])
+    z_ground = _plane_depth(cam, n_ground, 0.0)
+    z_wall = _plane_depth(cam, n_wall, float(n_wall @ np.array([0.0, 0.0, -0.2])))
+    assert (z_ground > 0).all() and (z_wall > 0).all()
+    # Seen from the camera, a concave crease shows the nearer plane, a convex one the farther.
+    on_ground = z_ground <= z_wall if crease == "concave" else z_ground >= z_wall
+    depth = np.where(on_ground, z_ground, z_wall)
+    r = cam.world_to_cv()[:3, :3]
+    true = np.where(on_ground[..., None], r @ n_ground, r @ n_wall)  # [H, W, 3] camera frame
+    off = {}
+    for mode in losses.DEPTH_NORMAL_DIFFERENCES:
+        nd, valid = losses.depth_normals(_t(depth[..., None]), cam, mode)
+        got = np.array(nd).reshape(3, -1).T.reshape(cam.height, cam.width, 3)
+        v = np.array(valid).reshape(cam.height, cam.width)
+        t = np.where(np.sum(true * got, -1, keepdims=True) < 0, -true, true)
+        err = np.degrees(np.arccos(np.clip(np.sum(t * got, -1), -1.0, 1.0)))[v]
+        off[mode] = int(np.sum(err > 2.0))
+        ref = _depth_normals_ref(depth, cam, mode) @ r.T  # world -> camera frame
+        # float32 differences of neighbours: 1e-3 on unit normals (the plane test's bound).
+        np.testing.assert_allclose(got[v], ref[v], atol=1e-3)
+    # The crease crosses every inner column: central differences tilt ~2 pixels a column.
+    columns = int(np.sum(np.any(on_ground[1:] != on_ground[:-1], axis=0)[1:-1]))
+    assert off["central"] >= 1.5 * columns
+    assert off["same_plane"] <= off["central"] // 8
 
 
 def _fd_check(fn, x0: np.ndarray, idx, eps: float, rtol: float, atol: float):
@@ -196,16 +252,19 @@ def test_ssim_with_the_targets_statistics_computed_once(images):
         losses.ssim_map(_t(a), target, window=7)
 
 
-def test_normal_consistency_gradient_wrt_depth_and_normal():
+@pytest.mark.parametrize("differences", losses.DEPTH_NORMAL_DIFFERENCES)
+def test_normal_consistency_gradient_wrt_depth_and_normal(differences):
     cam = _cam(8, 7)
     rng = np.random.default_rng(4)
     depth = 3.0 + 0.3 * rng.random((7, 8, 1))
     normal = rng.standard_normal((7, 8, 3))
     alpha = _t(rng.random((7, 8, 1)))
     tn, td = _t(normal), _t(depth)
-    _fd_check(lambda d: losses.normal_consistency(tn, d, alpha, cam), depth,
+    # "same_plane" picks a side per pixel; the steps below move no choice (random depth:
+    # second differences of 1/z differ by ~1e-2, far above the depth step's ~1e-4).
+    _fd_check(lambda d: losses.normal_consistency(tn, d, alpha, cam, differences), depth,
               [9, 18, 27, 30], eps=1e-3, rtol=3e-2, atol=3e-4)  # depth: a smaller step
-    _fd_check(lambda n: losses.normal_consistency(n, td, alpha, cam), normal,
+    _fd_check(lambda n: losses.normal_consistency(n, td, alpha, cam, differences), normal,
               [30, 31, 50, 80], **FD)
 
 

@@ -343,6 +343,9 @@ def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
     # ... and before the dark-alpha term: off (it acts on views without masks only)
     assert diff(lambda_dark_alpha=0.0, dark_max=1.0 / 255.0) == []
     assert "lambda_dark_alpha" in diff(lambda_dark_alpha=0.1)[0]
+    # ... and before the choice of depth-normal differences: 2DGS's central ones
+    assert diff(normal_depth_differences="central") == []
+    assert "normal_depth_differences" in diff(normal_depth_differences="same_plane")[0]
     # a value the older code did not use is a difference, and so is one it did use
     d = diff(k_select="silhouette", silhouette_samples=2000)
     assert len(d) == 1 and "k_select" in d[0] and "silhouette_samples" in d[0]

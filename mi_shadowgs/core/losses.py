@@ -176,13 +176,26 @@ def _camera_rotation(camera) -> list[list[mi.Float]]:
     return jit.opaque_matrix(camera.world_to_cv()[:3, :3])
 
 
-def depth_normals(depth: mi.TensorXf, camera) -> tuple[mi.Vector3f, mi.Bool]:
+DEPTH_NORMAL_DIFFERENCES = ("central", "same_plane")
+
+
+def depth_normals(depth: mi.TensorXf, camera, differences: str = "central"
+                  ) -> tuple[mi.Vector3f, mi.Bool]:
     """Unit normals [H*W] (CV camera frame, facing the camera) from a z-depth map [H, W, 1].
 
     Points are unprojected at pixel centres; the normal is the cross product of central
-    differences (2DGS's ``depth_to_normal``). Border pixels, and pixels with a zero-depth
-    neighbour, are invalid (second return value False) and get a zero normal.
+    differences (``differences="central"``, 2DGS's ``depth_to_normal``) or, per axis, of the
+    one-sided difference on the side where the surface stays planar (``"same_plane"``): at a
+    crease or an occluding edge the central difference spans both surfaces and tilts the
+    normal, while one side lies on the pixel's own surface. A plane's inverse depth is
+    affine in pixel coordinates, so the side whose second difference of 1/z is smaller is
+    taken (the 2-pixel ring falls back to central differences). Border pixels, and pixels
+    with a zero-depth neighbour, are invalid (second return value False) and get a zero
+    normal.
     """
+    if differences not in DEPTH_NORMAL_DIFFERENCES:
+        raise ValueError(f"depth_normals: differences must be one of "
+                         f"{DEPTH_NORMAL_DIFFERENCES}, got {differences!r}")
     h, w, c = _check_image(depth, "depth_normals depth")
     if c != 1:
         raise ValueError(f"depth_normals: depth must be [H, W, 1], got {tuple(depth.shape)}")
@@ -205,7 +218,26 @@ def depth_normals(depth: mi.TensorXf, camera) -> tuple[mi.Vector3f, mi.Bool]:
 
     right, left, down, up = at(1), at(-1), at(w), at(-w)
     valid = inner & (right.z > 0) & (left.z > 0) & (down.z > 0) & (up.z > 0) & (z > 0)
-    n = dr.cross(right - left, down - up)
+    if differences == "central":
+        n = dr.cross(right - left, down - up)
+    else:
+        # The side is a choice made on detached depth, not a quantity to differentiate.
+        zd = dr.detach(z)
+        inv = dr.select(zd > 0, dr.rcp(dr.select(zd > 0, zd, 1.0)), 0.0)
+        inner2 = (xi > 1) & (xi < w - 2) & (yi > 1) & (yi < h - 2)
+
+        def inv_at(off):
+            return dr.gather(mi.Float, inv, mi.UInt32(mi.Int32(idx) + off), inner2)
+
+        def forward_side(step):  # True: the +step side is the planar one
+            a, b = inv_at(step), inv_at(2 * step)
+            c, d = inv_at(-step), inv_at(-2 * step)
+            return ~inner2 | (dr.abs(b - 2.0 * a + inv) <= dr.abs(inv - 2.0 * c + d))
+
+        fx_, fy_ = forward_side(1), forward_side(w)
+        dx = dr.select(~inner2, right - left, dr.select(fx_, right - pts, pts - left))
+        dy = dr.select(~inner2, down - up, dr.select(fy_, down - pts, pts - up))
+        n = dr.cross(dx, dy)
     n2 = dr.squared_norm(n)
     valid &= n2 > 0
     n = n * dr.rsqrt(dr.select(valid, n2, 1.0))
@@ -215,7 +247,7 @@ def depth_normals(depth: mi.TensorXf, camera) -> tuple[mi.Vector3f, mi.Bool]:
 
 
 def normal_consistency(normal: mi.TensorXf, depth: mi.TensorXf, alpha: mi.TensorXf,
-                       camera) -> mi.Float:
+                       camera, differences: str = "central") -> mi.Float:
     """2DGS's normal consistency: mean over pixels of 1 - n_rend . (alpha * n_depth).
 
     ``normal`` [H, W, 3] is the rasterizer's world-space normal AOV (alpha-weighted, facing
@@ -223,7 +255,7 @@ def normal_consistency(normal: mi.TensorXf, depth: mi.TensorXf, alpha: mi.Tensor
     (detached here, as 2DGS does). Gradients reach both the normals and the depth.
     """
     h, w, _ = _check_image(normal, "normal_consistency normal")
-    nd, _ = depth_normals(depth, camera)  # [H*W] camera frame
+    nd, _ = depth_normals(depth, camera, differences)  # [H*W] camera frame
     r = _camera_rotation(camera)
     nw = dr.unravel(mi.Vector3f, normal.array)  # [H*W] world
     nc = mi.Vector3f(*(r[i][0] * nw.x + r[i][1] * nw.y + r[i][2] * nw.z for i in range(3)))

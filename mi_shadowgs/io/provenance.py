@@ -135,7 +135,8 @@ RESULT_NEUTRAL_SETTINGS = ("checkpoint_every", "checkpoint_seconds",
 ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material ids)
                   "silhouette_samples": None,  # used only by k_select "silhouette"
                   "lambda_dark_alpha": 0.0,  # stage 1, views without masks
-                  "dark_max": 1.0 / 255.0}  # used only with lambda_dark_alpha > 0
+                  "dark_max": 1.0 / 255.0,  # used only with lambda_dark_alpha > 0
+                  "normal_depth_differences": "central"}  # stage 1, 2DGS's differences
 
 
 def _added_as_before(key: str, old: dict, new: dict) -> bool:
