@@ -234,9 +234,9 @@ def depth_normals(depth: mi.TensorXf, camera, differences: str = "central"
             c, d = inv_at(-step), inv_at(-2 * step)
             return ~inner2 | (dr.abs(b - 2.0 * a + inv) <= dr.abs(inv - 2.0 * c + d))
 
-        fx_, fy_ = forward_side(1), forward_side(w)
-        dx = dr.select(~inner2, right - left, dr.select(fx_, right - pts, pts - left))
-        dy = dr.select(~inner2, down - up, dr.select(fy_, down - pts, pts - up))
+        right_planar, down_planar = forward_side(1), forward_side(w)
+        dx = dr.select(~inner2, right - left, dr.select(right_planar, right - pts, pts - left))
+        dy = dr.select(~inner2, down - up, dr.select(down_planar, down - pts, pts - up))
         n = dr.cross(dx, dy)
     n2 = dr.squared_norm(n)
     valid &= n2 > 0
