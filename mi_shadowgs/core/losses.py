@@ -232,7 +232,7 @@ def depth_normals(depth: mi.TensorXf, camera, differences: str = "central"
         def forward_side(step):  # True: the +step side is the planar one
             a, b = inv_at(step), inv_at(2 * step)
             c, d = inv_at(-step), inv_at(-2 * step)
-            return ~inner2 | (dr.abs(b - 2.0 * a + inv) <= dr.abs(inv - 2.0 * c + d))
+            return dr.abs(b - 2.0 * a + inv) <= dr.abs(inv - 2.0 * c + d)
 
         right_planar, down_planar = forward_side(1), forward_side(w)
         dx = dr.select(~inner2, right - left, dr.select(right_planar, right - pts, pts - left))
