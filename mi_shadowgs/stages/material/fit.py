@@ -246,7 +246,8 @@ PRESETS = {
     # lobe off: relight +0.4 to +5.2 dB on every row (mean 26.10 -> 27.86 dB), the ficus's
     # third light gone under both pairs (ficus-low light cosine 0.781 -> 0.999), shadow IoU
     # -0.013 to +0.014 (mean 0.681 -> 0.680), albedo within 0.4 dB except toy train-tuned
-    # (-5.0 dB: its light fitted 2.6x too bright); the glossy hotdog's weak light under the
+    # (-5.0 dB by the per-region metric, but +6.1 dB with one global scale per channel: the
+    # lobe had left its segment albedos grey); the glossy hotdog's weak light under the
     # low pair 7.2 -> 11.3 deg off. BENCHMARKS.md, "The specular lobe off in cpu-small".
     "cpu-small": MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_light=0.1,
                                 lambda_ind2=1.0, log_every=50, refine_global=128,
