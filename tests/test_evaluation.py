@@ -67,6 +67,29 @@ def test_image_metrics_lpips_per_view_and_when_it_cannot_be_computed():
     assert small["lpips"] is None and "below LPIPS's 31 px" in small["lpips_skipped"]
 
 
+def test_global_albedo_psnr_sees_what_per_region_scales_forgive():
+    """Two regions of different hue, fitted as one grey each: per-region per-channel scales
+    make the estimate exact; one global scale per channel (the relighting's alignment)
+    leaves the hue error, whose PSNR is worked out by hand here."""
+    gt = np.zeros((1, 4, 4, 3))
+    regions = np.ones((1, 4, 4), int)
+    regions[:, :, 2:] = 2
+    gt[regions == 1] = [0.6, 0.2, 0.2]  # red
+    gt[regions == 2] = [0.2, 0.2, 0.6]  # blue
+    est = np.full_like(gt, 0.4)  # both grey
+    mask = np.ones((1, 4, 4), bool)
+    m = evaluation.albedo_metrics(est, gt, regions, mask)
+    assert m["psnr"] > 200
+    # Global median scale per channel: gt/est is {1.5, 0.5} on R and B (a tie over 8 + 8
+    # pixels: the median is 1.0), 0.5 on G. So R and B are 0.4 against 0.6 / 0.2 (error 0.2
+    # on every pixel) and G is exact: MSE = (0.04 + 0 + 0.04) / 3.
+    np.testing.assert_allclose(m["global_scale"], [1.0, 0.5, 1.0])
+    assert m["psnr_global"] == pytest.approx(10 * math.log10(3 / 0.08), abs=1e-9)
+    # An exact estimate up to one global per-channel factor scores the same both ways.
+    exact = evaluation.albedo_metrics(gt * [2.0, 1.0, 0.5], gt, regions, mask)
+    assert exact["psnr"] > 200 and exact["psnr_global"] > 200
+
+
 def test_global_albedo_scale():
     gt = np.full((1, 2, 2, 3), 0.4)
     est = gt * [[0.5, 1.0, 2.0]]
@@ -131,3 +154,14 @@ def test_shadow_mask_and_iou():
     est = irr.copy()
     est[2, 0] = 0.8  # median 0.9, threshold 0.45: misses one shadow pixel: IoU = 1 / 2
     assert evaluation.shadow_iou(est[None], irr[None], mask[None]) == pytest.approx(1 / 2)
+
+
+def test_albedo_global_cli_exits_2_naming_what_is_missing(tmp_path, capsys):
+    from validation import albedo_global
+
+    assert albedo_global.main([str(tmp_path)]) == 2
+    assert "model.ply" in capsys.readouterr().err
+    (tmp_path / "taken.md").write_text("mine")
+    assert albedo_global.main([str(tmp_path), "--out", str(tmp_path / "taken.md")]) == 2
+    assert "taken.md exists" in capsys.readouterr().err
+    assert (tmp_path / "taken.md").read_text() == "mine"

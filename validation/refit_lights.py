@@ -23,7 +23,7 @@ from pathlib import Path
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 
 KEYS = ("fitted_lights", "angular_error_deg", "spurious_irradiance_fraction", "light_cosine",
-        "shadow_iou", "albedo_psnr", "relight_psnr")
+        "shadow_iou", "albedo_psnr", "albedo_psnr_global", "relight_psnr")
 
 
 def _value(text: str):
@@ -129,7 +129,7 @@ def _fmt(v) -> str:
 
 def markdown(rows: list[dict]) -> str:
     cols = ("fitted_lights", "angular_error_deg", "spurious_irradiance_fraction",
-            "light_cosine", "shadow_iou", "albedo_psnr", "relight_psnr")
+            "light_cosine", "shadow_iou", "albedo_psnr", "albedo_psnr_global", "relight_psnr")
     head = "| run | overrides | " + " | ".join(f"{c} (before -> after)" for c in cols) + \
         " | fit s |"
     lines = [head, "|---|---|" + "---|" * len(cols) + "---|"]

@@ -128,7 +128,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
                                     for k in order]}
     for metric in METRIC_NEEDS:  # a skipped metric is there as None, named in "skipped"
         if metric in gone:
-            keys = {"albedo PSNR/SSIM/LPIPS": ("albedo_psnr", "albedo_ssim", "albedo_lpips"),
+            keys = {"albedo PSNR/SSIM/LPIPS": ("albedo_psnr", "albedo_ssim", "albedo_lpips",
+                                               "albedo_psnr_global"),
                     "light cosine and angular errors": ("light_cosine",),
                     "light-map cosine": ("light_map_cosine",), "shadow IoU": ("shadow_iou",),
                     "relighting PSNR/SSIM/LPIPS": ("relight_psnr", "relight_ssim",
@@ -139,7 +140,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
         regions = test.stack("material")
         alb = evaluation.albedo_metrics(est_alb, gt_alb, regions, mask)
         metrics.update({"albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
-                        "albedo_lpips": alb["lpips"], "albedo_per_view": alb["per_view"]})
+                        "albedo_lpips": alb["lpips"], "albedo_per_view": alb["per_view"],
+                        "albedo_psnr_global": alb["psnr_global"]})
         if "lpips_skipped" in alb:
             metrics["lpips_skipped"] = alb["lpips_skipped"]
         scales = evaluation.albedo_scales(est_alb, gt_alb, regions, mask)

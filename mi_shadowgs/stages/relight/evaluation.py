@@ -12,6 +12,9 @@ than ``lpips.MIN_SIZE`` or the ``eval`` extra not installed.
   s_rc = median over the region's pixels in all evaluated views of gt_c / est_c (pixels with
   est_c > ``EST_MIN``), then est_c *= s_rc there. PSNR per view over the mask pixels, SSIM
   per view on both images with the background set to 0, each averaged over the views.
+  Beside it, ``psnr_global``: the same PSNR with one per-channel scale over all mask pixels
+  (the relighting's alignment). Per-region scales forgive a wrong hue or brightness between
+  regions (a fit whose regions are all grey can score 34 dB); one global scale does not.
 - **Light cosine**: cosine between the estimated and the ground-truth light distributions,
   each a set of directions with their irradiance (RGB reduced to the mean: the estimated
   light is white), smoothed by the kernel k(d, e) = exp(kappa (d.e - 1)), so that
@@ -114,9 +117,18 @@ def _lpips_per_view(est, gt, mask) -> tuple[list[float] | None, str | None]:
 
 
 def albedo_metrics(est, gt, regions, mask) -> dict:
+    """Image metrics of the per-region aligned albedo, plus ``psnr_global`` (mean over views
+    of the PSNR with one per-channel scale, ``global_albedo_scale``) and both scales."""
     scales = albedo_scales(est, gt, regions, mask)
     out = image_metrics(align_albedo(est, regions, scales), gt, mask)
     out["scales"] = {str(k): v.tolist() for k, v in scales.items()}
+    g = global_albedo_scale(est, gt, mask)
+    m = np.asarray(mask, bool).reshape(np.shape(est)[:3])
+    aligned = _stack(est, "albedo estimate", 4) * g
+    gt = _stack(gt, "albedo ground truth", 4)
+    out["psnr_global"] = float(np.mean([metrics.psnr(e, t, mm) for e, t, mm
+                                        in zip(aligned, gt, m, strict=True) if mm.any()]))
+    out["global_scale"] = g.tolist()
     return out
 
 
