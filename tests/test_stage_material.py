@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import drjit as dr
@@ -30,6 +31,10 @@ def test_presets_and_paper_defaults():
         (5000, 0.01, 0.01, 1.0, 0.001)
     assert (p.n_directions, p.sh_degree) == (128, 2)
     assert material_fit.get_config("cpu-small").iterations < p.iterations
+    # Not in the paper: the albedo TV across segments and the albedo-scale gauge.
+    assert p.albedo_tv_with_segments and p.albedo_ceiling == 0.0
+    with pytest.raises(ValueError, match="albedo_gauge"):
+        material_fit.MaterialConfig(albedo_gauge="float")
     with pytest.raises(ConfigError):
         material_fit.get_config("nope")
     with pytest.raises(ValueError, match="specular"):
@@ -381,3 +386,124 @@ def test_overrides_reach_nested_settings():
         with_overrides(geometry_config("cpu-small"), {"raster": {"lowpass": 8.0}}, "geometry")
     with pytest.raises(ConfigError, match="takes a dict"):
         with_overrides(geometry_config("cpu-small"), {"raster": 8.0}, "geometry")
+
+
+def test_hold_albedo_scale_keeps_the_diffuse_image_and_caps_the_albedo():
+    """The albedo x light (and albedo x indirect) gauge: scaling the albedo down to the
+    ceiling and the light and indirect up by the same factor leaves the rendered diffuse
+    image as it was (float32 rounding only), and the largest albedo at the ceiling."""
+    s, cams, bounds = _plane_scene()
+    vcfg = VisibilityConfig(resolution=64)
+    d = light_grid(128)[int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))]
+    maps = render_shadow_maps(s, d[None], bounds, vcfg)
+    cfg = material_fit.get_config("cpu-small")
+    ch = material_fit.init_channels(s, cfg)
+    rng = np.random.default_rng(3)
+    alb = rng.uniform(0.3, 0.99, (s.count, 3)).astype(np.float32)
+    ch["albedo"] = mi.TensorXf(alb)
+    ind = ch[shading.INDIRECT_CHANNEL]
+    ch[shading.INDIRECT_CHANNEL] = mi.TensorXf(
+        rng.uniform(0.0, 0.3, ind.shape).astype(np.float32))
+    opt = mi.ad.Adam(lr=0.1)
+    dw = solid_angle(128)
+    opt["log_light"] = mi.Float(np.log(np.full(1, 2.5 / dw, np.float32)))  # irradiance 2.5
+
+    def image(ch):
+        e = dr.exp(dr.detach(opt["log_light"])) * dw
+        lights = shading.LightSet(d[None], mi.Color3f(e, e, e))
+        cam = cams[1]
+        pairs = shading.splat_pairs(s, cam)
+        geom = shading.pixel_geometry(s, cam)
+        albedo, rough, metal, ind = material_fit.view_maps(pairs, ch, cfg.sh_degree,
+                                                           geom.normal)
+        vis = maps.evaluate(geom.points, geom.normal, geom.footprint)
+        rgb = shading.shade(geom, albedo, rough, metal, lights, vis, ind, False)
+        return np.stack([np.asarray(rgb[c], np.float64) for c in range(3)], -1)
+
+    before = image(ch)
+    support = np.ones(s.count)
+    cap = dataclasses.replace(cfg, albedo_ceiling=0.8, albedo_gauge="cap",
+                              albedo_gauge_quantile=1.0)
+    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_gauge_factor(
+        ch["albedo"].numpy(), support, cap))
+    after = image(ch)
+    assert ch["albedo"].numpy().max() == pytest.approx(0.8, rel=1e-6)
+    np.testing.assert_allclose(ch["albedo"].numpy(), alb * (0.8 / alb.max()), rtol=1e-6)
+    # float32: a few ulps (exp, log and the scale each round once).
+    np.testing.assert_allclose(after, before, rtol=1e-5, atol=1e-7)
+    assert before.max() > 0.5  # a lit image, not an empty one
+    # Below the ceiling "cap" leaves the scale alone; "pin" brings it up to the ceiling.
+    a0 = ch["albedo"].numpy()
+    assert material_fit.albedo_gauge_factor(a0, support, dataclasses.replace(
+        cap, albedo_ceiling=0.9)) == 1.0
+    pin = dataclasses.replace(cap, albedo_ceiling=0.9, albedo_gauge="pin")
+    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_gauge_factor(a0, support, pin))
+    np.testing.assert_allclose(ch["albedo"].numpy(), a0 * (0.9 / 0.8), rtol=1e-6)
+    np.testing.assert_allclose(image(ch), before, rtol=1e-5, atol=1e-7)
+
+
+def test_albedo_gauge_is_set_by_what_the_views_see():
+    """A bright segment no view supervises (surfels under the base) must not set the
+    albedo scale: the quantile is weighted by each surfel's blending weight in the views."""
+    s, cams, _ = _plane_scene()
+    cfg = with_overrides(material_fit.get_config("cpu-small"), {"specular": "off"}, "material")
+    views = [material_fit.prepare_view(s, c, np.zeros((c.height, c.width, 3)),
+                                       np.ones((c.height, c.width), bool), cfg) for c in cams]
+    support = material_fit.surfel_support(views, s.count)
+    # Against a float64 sum over the pair lists.
+    want = np.zeros(s.count)
+    for v in views:
+        sup = v.weight.numpy()[v.pairs.pix.numpy()]
+        np.add.at(want, v.pairs.sid.numpy(), v.pairs.weight.numpy() * sup)
+    np.testing.assert_allclose(support, want, rtol=1e-5, atol=1e-6)
+    albedo = np.full((s.count, 3), 0.3)
+    albedo[:, 0] = 0.45  # the brightest channel: 0.45 everywhere seen
+    hidden = np.zeros(s.count, bool)
+    hidden[:40] = True
+    albedo[hidden] = 0.99
+    support[hidden] = 0.0  # as surfels below the floor
+    pin = dataclasses.replace(cfg, albedo_ceiling=0.9, albedo_gauge="pin")
+    assert material_fit.albedo_gauge_factor(albedo, support, pin) == pytest.approx(2.0)
+    # Unweighted, 40 of the surfels would be past the 0.99 quantile and set it.
+    flat = dataclasses.replace(pin, albedo_gauge_quantile=1.0)
+    assert material_fit.albedo_gauge_factor(albedo, np.ones(s.count), flat) == \
+        pytest.approx(0.9 / 0.99)
+
+
+def test_albedo_tv_across_segments_only_where_configured():
+    """With the segment constraint the albedo is constant per segment, so its TV is only
+    the pull across segment borders: ``albedo_tv_with_segments=False`` drops it (the loss is
+    then the same for any pair of segment colours with the same image error), and without
+    the segment constraint (the ablation) the TV applies either way."""
+    s, cams, bounds = _plane_scene()
+    cam = cams[0]
+    cfg = with_overrides(material_fit.get_config("cpu-small"),
+                         {"specular": "off", "albedo_tv_with_segments": True}, "material")
+    target = np.full((cam.height, cam.width, 3), 0.3, np.float32)
+    view = material_fit.prepare_view(s, cam, target, np.ones((cam.height, cam.width), bool),
+                                     cfg)
+    ch = material_fit.init_channels(s, cfg)
+    del ch[shading.INDIRECT_CHANNEL]
+    seg = s.channels["segment"].numpy()[:, 0]
+    d = light_grid(128)[int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))]
+    e = mi.Float(2.0)
+    lights = shading.LightSet(d[None], mi.Color3f(e, e, e))
+
+    def loss(c, albedo):
+        ch["albedo"] = mi.TensorXf(np.where(seg[:, None] == 0, albedo[0], albedo[1])
+                                   .astype(np.float32))
+        return float(material_fit.view_loss(view, ch, lights, None, c, False)[0])
+
+    same, apart = [[0.4] * 3, [0.4] * 3], [[0.4] * 3, [0.9, 0.1, 0.4]]
+    no_tv = dataclasses.replace(cfg, albedo_tv_with_segments=False)
+    l1_only = dataclasses.replace(cfg, lambda_brdf=0.0)
+    ablation = dataclasses.replace(no_tv, segment_average=False)
+    for albedo in (same, apart):
+        # Off: the image term alone. The ablation keeps the TV whatever the flag says.
+        assert loss(no_tv, albedo) == pytest.approx(loss(l1_only, albedo), rel=1e-6)
+        assert loss(ablation, albedo) == pytest.approx(loss(cfg, albedo), rel=1e-6)
+    # On: the TV grows with the colour difference across the tile's border (one albedo
+    # everywhere still has TV at the silhouettes, where the blended albedo falls off).
+    tv_same = loss(cfg, same) - loss(l1_only, same)
+    tv_apart = loss(cfg, apart) - loss(l1_only, apart)
+    assert tv_apart > tv_same + 1e-3, (tv_apart, tv_same)

@@ -184,6 +184,32 @@ class MaterialConfig:
     # and the refinement spends ~100 shadow maps on each of the strongest 4. Settled first
     # (the warm-up's materials), toy train kept the two true lights (2 and 11 degrees off).
     settle_warmup: bool = True
+    # The albedo's TV term (Eq. 18's L_brdf) while the segment constraint holds. The albedo
+    # is then constant within each segment, so its TV acts only across segment borders,
+    # where it pulls neighbouring segments' colours together (an L1 TV: the same pull
+    # whatever the difference). At 128^2, where borders are a large share of the pixels,
+    # it won: toy train's five object segments (red, yellow, blue, green, orange) all ended
+    # at one albedo, [0.85, 0.64, 0.73] at step 250, and the colour went into the
+    # per-surfel indirect term. False: the albedo TV applies only without the segment
+    # constraint (the w/o-segmentation ablation).
+    albedo_tv_with_segments: bool = True
+    # The albedo x light scale (not in the paper). The images fix only the product of albedo
+    # and light (and of albedo and indirect light); the loss's other terms are not
+    # scale-free, and the indirect light's fixed step size is not either. So the fit drifts
+    # along that product: up to the albedo's box at 1 with the albedo TV on (default scene:
+    # every segment at 0.97-0.99 in every channel at step 450), down without it (0.5 ->
+    # 0.19 by step 600, the light 4x too bright and still growing). Every
+    # ``albedo_gauge_every`` steps the albedo is scaled so that the support-weighted
+    # ``albedo_gauge_quantile`` of its brightest channel is ``albedo_ceiling`` ("pin"; "cap":
+    # only scaled down to it), the light and the indirect light by the inverse: the diffuse
+    # image is unchanged. Weighted by what the views see (``surfel_support``): on the ficus
+    # a segment under the base, which no view supervises, ran to 0.9 while the rest fell to
+    # 0.01. Only without the specular lobe (its dielectric part does not scale with the
+    # albedo). 0 = off (the paper's fit).
+    albedo_ceiling: float = 0.0
+    albedo_gauge: str = "cap"  # "cap": scale down only; "pin": always to the ceiling
+    albedo_gauge_quantile: float = 0.99  # of the brightest channel, weighted by support
+    albedo_gauge_every: int = 10  # steps (each a host read of the albedo)
     specular: str = "auto"  # "auto" | "on" | "off"
     auto_metallic_max: float = 0.1
     auto_roughness_min: float = 0.6
@@ -227,6 +253,16 @@ class MaterialConfig:
         if self.refine_score not in REFINE_SCORES:
             raise ValueError(f"MaterialConfig.refine_score must be one of {REFINE_SCORES}, got "
                              f"{self.refine_score!r}")
+        if self.albedo_gauge not in ("cap", "pin"):
+            raise ValueError(f"MaterialConfig.albedo_gauge must be 'cap' or 'pin', got "
+                             f"{self.albedo_gauge!r}")
+        if not 0.0 < self.albedo_gauge_quantile <= 1.0 or self.albedo_gauge_every < 1:
+            raise ValueError(f"MaterialConfig: albedo_gauge_quantile in (0, 1] and "
+                             f"albedo_gauge_every >= 1: {self.albedo_gauge_quantile}, "
+                             f"{self.albedo_gauge_every}")
+        if not 0.0 <= self.albedo_ceiling <= 1.0:
+            raise ValueError(f"MaterialConfig.albedo_ceiling must be in [0, 1] (0 = off), got "
+                             f"{self.albedo_ceiling}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")
@@ -249,9 +285,12 @@ PRESETS = {
     # (-5.0 dB by the per-region metric, but +6.1 dB with one global scale per channel: the
     # lobe had left its segment albedos grey); the glossy hotdog's weak light under the
     # low pair 7.2 -> 11.3 deg off. BENCHMARKS.md, "The specular lobe off in cpu-small".
+    # albedo_tv_with_segments False and the gauge pinned at 0.9: see the fields above;
+    # BENCHMARKS.md, "Colour in the albedo".
     "cpu-small": MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_light=0.1,
                                 lambda_ind2=1.0, log_every=50, refine_global=128,
-                                specular="off"),
+                                specular="off", albedo_tv_with_segments=False,
+                                albedo_ceiling=0.9, albedo_gauge="pin"),
 }
 PRESETS["cpu-medium"] = PRESETS["cpu-small"]
 
@@ -503,7 +542,9 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
     if ind is not None:
         loss += config.lambda_ind2 * dr.sum(dr.squared_norm(ind) * wgt) * (inv / 3.0)
         loss += config.lambda_tv * sum(_tv(ind[c], wgt, h, w) for c in range(3)) * (inv / 3.0)
-    tv_mat = sum(_tv(albedo[c], wgt, h, w) for c in range(3)) / 3.0
+    tv_mat = mi.Float(0.0)
+    if config.albedo_tv_with_segments or not config.segment_average:
+        tv_mat += sum(_tv(albedo[c], wgt, h, w) for c in range(3)) / 3.0
     if with_specular:
         tv_mat += _tv(rough, wgt, h, w) + _tv(metal, wgt, h, w)
         loss += config.lambda_reg * dr.sum((1.0 - rough + metal) * wgt) * inv
@@ -536,6 +577,44 @@ def _clamp_channels(ch: dict, seg, n_seg: int, config: MaterialConfig, with_spec
                                       ch["roughness"].shape)
         ch["metallic"] = mi.TensorXf(dr.clip(ch["metallic"].array, 0.0, 1.0),
                                      ch["metallic"].shape)
+
+
+def surfel_support(views: list[TrainView], n: int) -> np.ndarray:
+    """Each surfel's blending weight summed over the supervised pixels of ``views`` [N]."""
+    sup = dr.zeros(mi.Float, n)
+    for v in views:
+        w = v.pairs.weight * dr.gather(mi.Float, v.weight, v.pairs.pix)
+        dr.scatter_reduce(dr.ReduceOp.Add, sup, w, v.pairs.sid)
+    return sup.numpy().astype(np.float64)
+
+
+def albedo_gauge_factor(albedo: np.ndarray, support: np.ndarray, config: MaterialConfig
+                        ) -> float:
+    """The factor c that brings the support-weighted ``albedo_gauge_quantile`` of the
+    surfels' brightest channel (``albedo`` [N, 3]) to ``albedo_ceiling`` ("pin"), or only
+    down to it ("cap"). Weighted by what the views see: a segment under the base, with no
+    supervised pixel, drifts freely under Adam and must not set the scale."""
+    top = np.asarray(albedo, np.float64).reshape(len(support), -1).max(axis=1)  # [N]
+    order = np.argsort(top)
+    cum = np.cumsum(support[order])
+    if cum[-1] <= 0:
+        return 1.0
+    k = min(int(np.searchsorted(cum, config.albedo_gauge_quantile * cum[-1])), len(top) - 1)
+    c = config.albedo_ceiling / max(float(top[order[k]]), 1e-6)
+    return c if config.albedo_gauge == "pin" else min(c, 1.0)
+
+
+def hold_albedo_scale(ch: dict, opt, c: float) -> None:
+    """Scale the albedo by ``c``, the light (``opt["log_light"]``) and the indirect light by
+    1 / c: diffuse shading a (E + ind) is unchanged."""
+    if c == 1.0:
+        return
+    a = ch["albedo"]
+    ch["albedo"] = mi.TensorXf(a.array * c, a.shape)
+    ind = ch.get(shading.INDIRECT_CHANNEL)
+    if ind is not None:
+        ch[shading.INDIRECT_CHANNEL] = mi.TensorXf(ind.array / c, ind.shape)
+    opt["log_light"] = dr.detach(opt["log_light"]) - math.log(c)
 
 
 def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig
@@ -1016,6 +1095,7 @@ class MaterialFit:
     vis_config: VisibilityConfig
     bounds: SceneBounds
     maps: object  # the current lights' shadow maps (None without visibility)
+    support: np.ndarray | None = None  # [N] surfel_support, made when first needed
 
     def shadow_maps(self, directions, resolution=None):
         """Shadow maps of ``directions`` (at ``resolution``, default the visibility's)."""
@@ -1128,6 +1208,12 @@ def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
         if k not in _LIGHT_KEYS:
             ch[k] = opt[k]
     _clamp_channels(ch, fit.seg, fit.n_seg, config, state.specular)
+    if config.albedo_ceiling > 0 and not state.specular and \
+            state.step % config.albedo_gauge_every == 0:  # a host read
+        if fit.support is None:
+            fit.support = surfel_support(fit.views, fit.surfels.count)
+        hold_albedo_scale(ch, opt, albedo_gauge_factor(ch["albedo"].numpy(), fit.support,
+                                                       config))
     for k in opt.keys():
         if k not in _LIGHT_KEYS:
             opt[k] = ch[k]  # keeps Adam's state (same shape)
