@@ -35,23 +35,30 @@ def rows_under(paths: list[Path]) -> list[Path]:
     return out
 
 
+def diffuse_albedo_views(surfels, cameras) -> np.ndarray:
+    """A surfel model's diffuse albedo, albedo x (1 - metallic), as stage 5 renders it for
+    the albedo metrics: [V, H, W, 3]."""
+    from mi_shadowgs.stages.relight import render as relight
+
+    out = []
+    for cam in cameras:
+        b = relight.view_buffers(surfels, cam)
+        out.append(relight.color_image(b.albedo * (1.0 - b.metallic), cam.height, cam.width))
+    return np.stack(out)
+
+
 def score(row: Path, variant: str = "full") -> dict:
     """Albedo PSNR of ``row``'s stage-4 model on its test views, per-region and global."""
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight import render as relight
 
     model_path = row / "run" / "material" / variant / "model.ply"
     if not model_path.is_file():
         raise FileNotFoundError(f"{model_path}: no finished stage 4")
     test = load_dataset(row / "data", "test")
-    model = load_ply(model_path)
-    est = []
-    for cam in test.cameras:  # the diffuse albedo, as relight_view's "albedo" buffer
-        b = relight.view_buffers(model, cam)
-        est.append(relight.color_image(b.albedo * (1.0 - b.metallic), cam.height, cam.width))
-    m = evaluation.albedo_metrics(np.stack(est), test.stack("albedo"), test.stack("material"),
+    est = diffuse_albedo_views(load_ply(model_path), test.cameras)
+    m = evaluation.albedo_metrics(est, test.stack("albedo"), test.stack("material"),
                                   test.stack("mask").astype(bool))
     metrics = row / "run" / "material" / variant / "metrics.json"
     recorded = json.loads(metrics.read_text()).get("albedo_psnr") if metrics.is_file() else None

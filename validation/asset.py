@@ -167,17 +167,10 @@ def surfel_albedo_scale(run: Path, test) -> np.ndarray:
     the surfel model's rendered diffuse albedo against the ground truth)."""
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight import render as relight
+    from validation.albedo_global import diffuse_albedo_views
 
-    model = relight.RelightModel(load_ply(run / "material" / "full" / "model.ply"), True, True)
-    est = []
-    for cam in test.cameras:
-        _, albedo, _, metal, _ = relight.render_buffers(model, cam)
-        diff = albedo * (1.0 - metal)
-        est.append(np.stack([np.asarray(diff[k], np.float32) for k in range(3)], -1)
-                   .reshape(cam.height, cam.width, 3))
-    return evaluation.global_albedo_scale(np.stack(est), test.stack("albedo"),
-                                          test.stack("mask"))
+    est = diffuse_albedo_views(load_ply(run / "material" / "full" / "model.ply"), test.cameras)
+    return evaluation.global_albedo_scale(est, test.stack("albedo"), test.stack("mask"))
 
 
 def _figure(path: Path, rows: list[tuple[str, np.ndarray, np.ndarray]], views) -> None:
