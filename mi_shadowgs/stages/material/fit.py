@@ -11,6 +11,10 @@ V [H, W, L] of ``visibility`` (shadow maps of the surfels' own depth, rendered o
 direction and shared by every view; the view points are the surfels' rasterized expected
 depth and normals). After each step the albedo is replaced by its mean over the surfel's
 segment (the hard constraint; the "segment" channel is an integer id per surfel).
+``cpu-small`` and ``cpu-medium`` then leave the albedo's TV out (with the constraint it acts
+only across segment borders, where it merged the segments' colours) and hold the albedo x
+light scale, which the images leave free, by rescaling albedo, light and indirect light
+together (``hold_albedo_scale``): otherwise the albedo drifted to its box at 1.
 
 Only what the scene needs is modelled: after ``warmup`` steps the grid directions are
 grouped into lights (``merge_directions``) and the lights carrying less than
