@@ -31,10 +31,10 @@ def test_presets_and_paper_defaults():
         (5000, 0.01, 0.01, 1.0, 0.001)
     assert (p.n_directions, p.sh_degree) == (128, 2)
     assert material_fit.get_config("cpu-small").iterations < p.iterations
-    # Not in the paper: the albedo TV across segments and the albedo-scale gauge.
-    assert p.albedo_tv_with_segments and p.albedo_ceiling == 0.0
-    with pytest.raises(ValueError, match="albedo_gauge"):
-        material_fit.MaterialConfig(albedo_gauge="float")
+    # Not in the paper: the albedo TV across segments and the albedo scale held.
+    assert p.albedo_tv_with_segments and p.albedo_scale == 0.0
+    with pytest.raises(ValueError, match="albedo_scale"):
+        material_fit.MaterialConfig(albedo_scale=1.5)
     with pytest.raises(ConfigError):
         material_fit.get_config("nope")
     with pytest.raises(ValueError, match="specular"):
@@ -388,10 +388,10 @@ def test_overrides_reach_nested_settings():
         with_overrides(geometry_config("cpu-small"), {"raster": 8.0}, "geometry")
 
 
-def test_hold_albedo_scale_keeps_the_diffuse_image_and_caps_the_albedo():
-    """The albedo x light (and albedo x indirect) gauge: scaling the albedo down to the
-    ceiling and the light and indirect up by the same factor leaves the rendered diffuse
-    image as it was (float32 rounding only), and the largest albedo at the ceiling."""
+def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
+    """The albedo x light (and albedo x indirect) scale: scaling the albedo to the held value
+    and the light and indirect by the inverse leaves the rendered diffuse image as it was
+    (float32 rounding only), and the largest albedo (quantile 1) at that value."""
     s, cams, bounds = _plane_scene()
     vcfg = VisibilityConfig(resolution=64)
     d = light_grid(128)[int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))]
@@ -422,27 +422,24 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_caps_the_albedo():
 
     before = image(ch)
     support = np.ones(s.count)
-    cap = dataclasses.replace(cfg, albedo_ceiling=0.8, albedo_gauge="cap",
-                              albedo_gauge_quantile=1.0)
-    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_gauge_factor(
-        ch["albedo"].numpy(), support, cap))
+    held = dataclasses.replace(cfg, albedo_scale=0.8, albedo_scale_quantile=1.0)
+    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_scale_factor(
+        ch["albedo"].numpy(), support, held))
     after = image(ch)
     assert ch["albedo"].numpy().max() == pytest.approx(0.8, rel=1e-6)
     np.testing.assert_allclose(ch["albedo"].numpy(), alb * (0.8 / alb.max()), rtol=1e-6)
     # float32: a few ulps (exp, log and the scale each round once).
     np.testing.assert_allclose(after, before, rtol=1e-5, atol=1e-7)
     assert before.max() > 0.5  # a lit image, not an empty one
-    # Below the ceiling "cap" leaves the scale alone; "pin" brings it up to the ceiling.
+    # Held both ways: an albedo below the value is brought up to it.
     a0 = ch["albedo"].numpy()
-    assert material_fit.albedo_gauge_factor(a0, support, dataclasses.replace(
-        cap, albedo_ceiling=0.9)) == 1.0
-    pin = dataclasses.replace(cap, albedo_ceiling=0.9, albedo_gauge="pin")
-    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_gauge_factor(a0, support, pin))
+    up = dataclasses.replace(held, albedo_scale=0.9)
+    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_scale_factor(a0, support, up))
     np.testing.assert_allclose(ch["albedo"].numpy(), a0 * (0.9 / 0.8), rtol=1e-6)
     np.testing.assert_allclose(image(ch), before, rtol=1e-5, atol=1e-7)
 
 
-def test_albedo_gauge_is_set_by_what_the_views_see():
+def test_albedo_scale_is_set_by_what_the_views_see():
     """A bright segment no view supervises (surfels under the base) must not set the
     albedo scale: the quantile is weighted by each surfel's blending weight in the views."""
     s, cams, _ = _plane_scene()
@@ -462,11 +459,11 @@ def test_albedo_gauge_is_set_by_what_the_views_see():
     hidden[:40] = True
     albedo[hidden] = 0.99
     support[hidden] = 0.0  # as surfels below the floor
-    pin = dataclasses.replace(cfg, albedo_ceiling=0.9, albedo_gauge="pin")
-    assert material_fit.albedo_gauge_factor(albedo, support, pin) == pytest.approx(2.0)
+    held = dataclasses.replace(cfg, albedo_scale=0.9)
+    assert material_fit.albedo_scale_factor(albedo, support, held) == pytest.approx(2.0)
     # Unweighted, 40 of the surfels would be past the 0.99 quantile and set it.
-    flat = dataclasses.replace(pin, albedo_gauge_quantile=1.0)
-    assert material_fit.albedo_gauge_factor(albedo, np.ones(s.count), flat) == \
+    flat = dataclasses.replace(held, albedo_scale_quantile=1.0)
+    assert material_fit.albedo_scale_factor(albedo, np.ones(s.count), flat) == \
         pytest.approx(0.9 / 0.99)
 
 

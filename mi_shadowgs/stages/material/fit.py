@@ -203,17 +203,16 @@ class MaterialConfig:
     # along that product: up to the albedo's box at 1 with the albedo TV on (default scene:
     # every segment at 0.97-0.99 in every channel at step 450), down without it (0.5 ->
     # 0.19 by step 600, the light 4x too bright and still growing). Every
-    # ``albedo_gauge_every`` steps the albedo is scaled so that the support-weighted
-    # ``albedo_gauge_quantile`` of its brightest channel is ``albedo_ceiling`` ("pin"; "cap":
-    # only scaled down to it), the light and the indirect light by the inverse: the diffuse
-    # image is unchanged. Weighted by what the views see (``surfel_support``): on the ficus
-    # a segment under the base, which no view supervises, ran to 0.9 while the rest fell to
-    # 0.01. Only without the specular lobe (its dielectric part does not scale with the
-    # albedo). 0 = off (the paper's fit).
-    albedo_ceiling: float = 0.0
-    albedo_gauge: str = "cap"  # "cap": scale down only; "pin": always to the ceiling
-    albedo_gauge_quantile: float = 0.99  # of the brightest channel, weighted by support
-    albedo_gauge_every: int = 10  # steps (each a host read of the albedo)
+    # ``albedo_scale_every`` steps the albedo is scaled so that the support-weighted
+    # ``albedo_scale_quantile`` of its brightest channel is ``albedo_scale``, the light and
+    # the indirect light by the inverse: the diffuse image is unchanged. Weighted by what
+    # the views see (``surfel_support``): on the ficus a segment under the base, which no
+    # view supervises, ran to 0.9 while the rest fell to 0.01 when the largest albedo was
+    # held instead. Only without the specular lobe (its dielectric part does not scale with
+    # the albedo). 0 = off (the paper's fit).
+    albedo_scale: float = 0.0
+    albedo_scale_quantile: float = 0.99  # of the brightest channel, weighted by support
+    albedo_scale_every: int = 10  # steps (each a host read of the albedo)
     specular: str = "auto"  # "auto" | "on" | "off"
     auto_metallic_max: float = 0.1
     auto_roughness_min: float = 0.6
@@ -257,16 +256,12 @@ class MaterialConfig:
         if self.refine_score not in REFINE_SCORES:
             raise ValueError(f"MaterialConfig.refine_score must be one of {REFINE_SCORES}, got "
                              f"{self.refine_score!r}")
-        if self.albedo_gauge not in ("cap", "pin"):
-            raise ValueError(f"MaterialConfig.albedo_gauge must be 'cap' or 'pin', got "
-                             f"{self.albedo_gauge!r}")
-        if not 0.0 < self.albedo_gauge_quantile <= 1.0 or self.albedo_gauge_every < 1:
-            raise ValueError(f"MaterialConfig: albedo_gauge_quantile in (0, 1] and "
-                             f"albedo_gauge_every >= 1: {self.albedo_gauge_quantile}, "
-                             f"{self.albedo_gauge_every}")
-        if not 0.0 <= self.albedo_ceiling <= 1.0:
-            raise ValueError(f"MaterialConfig.albedo_ceiling must be in [0, 1] (0 = off), got "
-                             f"{self.albedo_ceiling}")
+        if not 0.0 <= self.albedo_scale <= 1.0 or not 0.0 < self.albedo_scale_quantile <= 1.0 \
+                or self.albedo_scale_every < 1:
+            raise ValueError(f"MaterialConfig: albedo_scale in [0, 1] (0 = off), "
+                             f"albedo_scale_quantile in (0, 1], albedo_scale_every >= 1: "
+                             f"{self.albedo_scale}, {self.albedo_scale_quantile}, "
+                             f"{self.albedo_scale_every}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")
@@ -289,12 +284,12 @@ PRESETS = {
     # (-5.0 dB by the per-region metric, but +6.1 dB with one global scale per channel: the
     # lobe had left its segment albedos grey); the glossy hotdog's weak light under the
     # low pair 7.2 -> 11.3 deg off. BENCHMARKS.md, "The specular lobe off in cpu-small".
-    # albedo_tv_with_segments False and the gauge pinned at 0.9: see the fields above;
+    # albedo_tv_with_segments False and the albedo scale held at 0.9: see the fields above;
     # BENCHMARKS.md, "Colour in the albedo".
     "cpu-small": MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_light=0.1,
                                 lambda_ind2=1.0, log_every=50, refine_global=128,
                                 specular="off", albedo_tv_with_segments=False,
-                                albedo_ceiling=0.9, albedo_gauge="pin"),
+                                albedo_scale=0.9),
 }
 PRESETS["cpu-medium"] = PRESETS["cpu-small"]
 
@@ -592,20 +587,19 @@ def surfel_support(views: list[TrainView], n: int) -> np.ndarray:
     return sup.numpy().astype(np.float64)
 
 
-def albedo_gauge_factor(albedo: np.ndarray, support: np.ndarray, config: MaterialConfig
+def albedo_scale_factor(albedo: np.ndarray, support: np.ndarray, config: MaterialConfig
                         ) -> float:
-    """The factor c that brings the support-weighted ``albedo_gauge_quantile`` of the
-    surfels' brightest channel (``albedo`` [N, 3]) to ``albedo_ceiling`` ("pin"), or only
-    down to it ("cap"). Weighted by what the views see: a segment under the base, with no
-    supervised pixel, drifts freely under Adam and must not set the scale."""
+    """The factor c that brings the support-weighted ``albedo_scale_quantile`` of the
+    surfels' brightest channel (``albedo`` [N, 3]) to ``albedo_scale``. Weighted by what the
+    views see: a segment under the base, with no supervised pixel, drifts freely under Adam
+    and must not set the scale."""
     top = np.asarray(albedo, np.float64).reshape(len(support), -1).max(axis=1)  # [N]
     order = np.argsort(top)
     cum = np.cumsum(support[order])
     if cum[-1] <= 0:
         return 1.0
-    k = min(int(np.searchsorted(cum, config.albedo_gauge_quantile * cum[-1])), len(top) - 1)
-    c = config.albedo_ceiling / max(float(top[order[k]]), 1e-6)
-    return c if config.albedo_gauge == "pin" else min(c, 1.0)
+    k = min(int(np.searchsorted(cum, config.albedo_scale_quantile * cum[-1])), len(top) - 1)
+    return config.albedo_scale / max(float(top[order[k]]), 1e-6)
 
 
 def hold_albedo_scale(ch: dict, opt, c: float) -> None:
@@ -1212,11 +1206,11 @@ def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
         if k not in _LIGHT_KEYS:
             ch[k] = opt[k]
     _clamp_channels(ch, fit.seg, fit.n_seg, config, state.specular)
-    if config.albedo_ceiling > 0 and not state.specular and \
-            state.step % config.albedo_gauge_every == 0:  # a host read
+    if config.albedo_scale > 0 and not state.specular and \
+            state.step % config.albedo_scale_every == 0:  # a host read
         if fit.support is None:
             fit.support = surfel_support(fit.views, fit.surfels.count)
-        hold_albedo_scale(ch, opt, albedo_gauge_factor(ch["albedo"].numpy(), fit.support,
+        hold_albedo_scale(ch, opt, albedo_scale_factor(ch["albedo"].numpy(), fit.support,
                                                        config))
     for k in opt.keys():
         if k not in _LIGHT_KEYS:
