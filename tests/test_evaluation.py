@@ -165,3 +165,5 @@ def test_albedo_global_cli_exits_2_naming_what_is_missing(tmp_path, capsys):
     assert albedo_global.main([str(tmp_path), "--out", str(tmp_path / "taken.md")]) == 2
     assert "taken.md exists" in capsys.readouterr().err
     assert (tmp_path / "taken.md").read_text() == "mine"
+    assert albedo_global.main([str(tmp_path / "nowhere")]) == 2
+    assert "nowhere: no such folder" in capsys.readouterr().err

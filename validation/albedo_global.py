@@ -91,6 +91,10 @@ def main(argv=None) -> int:
     if args.out is not None and args.out.exists():
         print(f"error: --out {args.out} exists; name a new file", file=sys.stderr)
         return 2
+    missing = [p for p in args.paths if not p.is_dir()]
+    if missing:
+        print(f"error: {missing[0]}: no such folder", file=sys.stderr)
+        return 2
     rows = rows_under(args.paths)
     if not rows:
         print(f"error: no ROW/run/material/{args.variant}/model.ply under "
