@@ -6,11 +6,12 @@ data change that text without changing what the kernel computes:
 - **Python scalars** become literals. A camera's matrix, a light's direction or a scale
   factor then compiles one kernel per camera, light or factor. ``opaque`` makes each a
   kernel parameter instead.
-- **Size-1 arrays made from NumPy** are read as a broadcast scalar whose load carries the
-  alignment of the memory it wraps (``align 1`` or ``align 4``, depending on where NumPy put
-  it), so two calls with the same code can differ in their source. ``array`` copies host
-  values into memory Dr.Jit allocated, whose alignment does not vary. Gathers from larger
-  arrays are not affected.
+- **Arrays made from NumPy** keep NumPy's memory, and a kernel that loads them directly
+  carries that memory's alignment in its source (``align 1`` or ``align 64``, wherever
+  NumPy put it); a size-1 array is read as a broadcast scalar with the same property. Two
+  calls with the same code then differ in their source. ``array`` and ``tensor`` copy host
+  values into memory Dr.Jit allocated, whose alignment does not vary. (Gathers do not carry
+  it; a copy costs one small kernel, compiled once.)
 
 Measured on the default scene's cpu-small evaluation (32 test views at 128^2): every test
 view of a one-light relighting compiled a new ~1,300-operation shading kernel (~100 ms
@@ -42,9 +43,15 @@ def array(values, cls=None):
     docstring); ``cls`` defaults to ``mi.Float``."""
     cls = cls or mi.Float
     src = cls(np.ascontiguousarray(values).ravel())
-    if dr.width(src) != 1:
+    if dr.width(src) == 0:
         return src
-    out = dr.empty(cls, 1)
-    dr.scatter(out, src, dr.zeros(mi.UInt32, 1))
+    out = dr.empty(cls, dr.width(src))
+    dr.scatter(out, src, dr.arange(mi.UInt32, dr.width(src)))
     dr.eval(out)
     return out
+
+
+def tensor(values: np.ndarray) -> mi.TensorXf:
+    """A host array of any shape as an ``mi.TensorXf`` in memory Dr.Jit allocated."""
+    a = np.asarray(values, np.float32)
+    return mi.TensorXf(array(a), a.shape)

@@ -13,12 +13,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.surfels import Surfels
 
 
 def tensor_nc(a: np.ndarray) -> mi.TensorXf:
+    """[N, ...] -> an [N, C] tensor in memory Dr.Jit allocated: the first step after a
+    densification then runs the same kernels as every other (``core.jit``)."""
     a = np.asarray(a, dtype=np.float32)
-    return mi.TensorXf(np.ascontiguousarray(a.reshape(a.shape[0], -1)))
+    return jit.tensor(a.reshape(a.shape[0], -1))
 
 
 def surfels_from_params(params: dict[str, mi.TensorXf], sh_columns: int | None = None

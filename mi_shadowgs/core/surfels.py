@@ -15,6 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.surfel_checks import (
     check_finite,
     check_log_scale,
@@ -250,5 +251,6 @@ def sh_colors(surfels: Surfels, camera_origin) -> mi.TensorXf:
     if "sh" not in surfels.channels:
         raise KeyError("sh_colors: the surfels have no 'sh' channel")
     o = np.asarray(camera_origin, dtype=np.float64).reshape(3)
-    d = surfels.position - mi.Point3f(float(o[0]), float(o[1]), float(o[2]))
+    # Opaque: as literals, every camera would compile its own kernel (``core.jit``).
+    d = surfels.position - mi.Point3f(*(jit.opaque(v) for v in o))
     return eval_sh(surfels.channels["sh"], mi.Vector3f(d))

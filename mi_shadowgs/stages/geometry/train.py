@@ -25,7 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.core import losses, metrics
+from mi_shadowgs.core import jit, losses, metrics
 from mi_shadowgs.core.optim import SurfelAdam, surfels_from_params
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import SH_C0, Surfels, sh_colors
@@ -350,15 +350,16 @@ class ViewData:
 
 
 def _view_data(view, dark_max: float | None = None) -> ViewData:
-    """``dark_max``: also mark the pixels whose channels are all <= it (``dark``)."""
+    """``dark_max``: also mark the pixels whose channels are all <= it (``dark``). The
+    images go into memory Dr.Jit allocated (``jit.tensor``): every view's kernels the same."""
     h, w = view.mask.shape
     has_mask = getattr(view, "has_mask", True)
     dark = None
     if dark_max is not None and not has_mask:
         d = np.all(np.asarray(view.image) <= dark_max, axis=-1)
-        dark = mi.TensorXf(d.astype(np.float32).reshape(h, w, 1))
-    image = mi.TensorXf(np.ascontiguousarray(view.image, np.float32))
-    return ViewData(view.camera, image, mi.TensorXf(view.mask.astype(np.float32).reshape(h, w, 1)),
+        dark = jit.tensor(d.astype(np.float32).reshape(h, w, 1))
+    image = jit.tensor(np.ascontiguousarray(view.image, np.float32))
+    return ViewData(view.camera, image, jit.tensor(view.mask.astype(np.float32).reshape(h, w, 1)),
                     has_mask, dark, losses.ssim_target(image))
 
 

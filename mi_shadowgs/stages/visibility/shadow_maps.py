@@ -232,29 +232,33 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
     key = "median_depth" if config.depth == "median" else "depth"
     aovs = ("alpha", "median_depth", "depth") if config.layer_bias > 0 else ("alpha", key)
     texel = _texel_size(cams[0], center, config.resolution)
-    maps, alphas = [], []
     min_alpha = config.fractional_min_alpha if config.fractional else config.empty_alpha
+    texels = config.resolution * config.resolution
+    depth = dr.empty(mi.Float, len(cams) * texels)  # [L * R * R]
+    alpha = dr.empty(mi.Float, len(cams) * texels) if config.fractional else None
+    local = dr.arange(mi.UInt32, texels)
     with dr.suspend_grad():
-        for cam in cams:
+        for i, cam in enumerate(cams):
             out = rasterize(surfels, cam, None, aovs=aovs)
-            depth = out[key].array
-            empty = (out["alpha"].array < min_alpha) | (depth <= 0)
+            d = out[key].array
+            empty = (out["alpha"].array < min_alpha) | (d <= 0)
             if config.layer_bias > 0:
                 spread = dr.abs(out["depth"].array - out["median_depth"].array)
                 slack = config.layer_bias * spread
                 if config.layer_window > 0:
-                    step = _window_max(dr.select(empty, -dr.inf, depth), config.resolution,
-                                       config.layer_window) - depth
+                    step = _window_max(dr.select(empty, -dr.inf, d), config.resolution,
+                                       config.layer_window) - d
                     slack = dr.maximum(slack, step)
-                depth = depth + dr.minimum(slack, config.layer_cap_texels * texel)
-            maps.append(dr.select(empty, dr.inf, depth))
-            alphas.append(dr.clip(out["alpha"].array, 0.0, 1.0))
-    depth = dr.concat(maps) if len(maps) > 1 else maps[0]  # [L * R * R]
-    alpha = None
-    if config.fractional:
-        alpha = dr.concat(alphas) if len(alphas) > 1 else alphas[0]  # [L * R * R]
-        dr.eval(depth, alpha)
-    dr.eval(depth)
+                d = d + dr.minimum(slack, config.layer_cap_texels * texel)
+            # Each map written into its slice by its own kernel, the same for every map and
+            # light count (the offset opaque). Left lazy and joined by dr.concat, the maps'
+            # post-processing fused into one kernel whose size (L maps) was in its source:
+            # 35k operations and ~11 s to compile for each new count (129 candidates).
+            at = local + jit.opaque(i * texels, mi.UInt32)
+            dr.scatter(depth, dr.select(empty, dr.inf, d), at)
+            if alpha is not None:
+                dr.scatter(alpha, dr.clip(out["alpha"].array, 0.0, 1.0), at)
+            dr.eval(depth, *(() if alpha is None else (alpha,)))
     return ShadowMaps(directions, cams, depth, config.resolution, config, texel, alpha)
 
 

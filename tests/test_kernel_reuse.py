@@ -1,0 +1,104 @@
+"""Kernels compiled once: a new camera must not change the source of a step's kernels.
+
+Dr.Jit reuses a compiled kernel only when its source is the same (``mi_shadowgs.core.jit``).
+A camera value that enters a kernel as a literal compiles every kernel that reads it again
+for every view: ~100 ms per kernel on the CPU, a cost that can exceed the step itself
+(stage 1's view-dependent colours did this for ~1300 steps: BENCHMARKS.md, "Stage 1's
+camera origin compiled every step"). The test compares the kernel hashes (a hash of the
+source) of one stage-1 step from two cameras: equal sets, whatever the kernel cache holds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import numpy as np
+
+from mi_shadowgs.core import jit
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.stages.geometry import train as geometry_train
+
+
+def _surfels(n: int = 200) -> Surfels:
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(-0.5, 0.5, (n, 3))
+    rot = rng.standard_normal((n, 4))
+    sh = rng.uniform(-0.3, 0.3, (n, 12))  # SH degree 1: the colour depends on the view
+    s = Surfels.from_numpy(pos, np.full((n, 2), 0.08), rot, np.full(n, 0.6), {"sh": sh})
+    dr.enable_grad(s.position, s.channels["sh"])
+    return s
+
+
+def _view(origin) -> geometry_train.ViewData:
+    cam = Camera.look_at(origin, (0.0, 0.0, 0.0), width=24, height=24, fov_x=0.8)
+    # In memory Dr.Jit allocated, as stage 1's views are: NumPy's memory would put its
+    # alignment into the loss's kernels (``core.jit``).
+    image = jit.tensor(np.full((24, 24, 3), 0.4, np.float32))
+    mask = jit.tensor(np.ones((24, 24, 1), np.float32))
+    return geometry_train.ViewData(cam, image, mask)
+
+
+def _step_hashes(surfels: Surfels, view, config, step: int) -> set:
+    # Zero gradients: a backward into the arrays' gradients would accumulate (another
+    # kernel). The same arrays every time: arrays wrapping fresh NumPy memory have their
+    # own alignment in the loads' source (``core.jit``), another cause of new kernels.
+    dr.clear_grad(surfels.position)
+    dr.clear_grad(surfels.channels["sh"])
+    dr.kernel_history()  # clear
+    loss, _ = geometry_train.geometry_loss(surfels, view, config, step)
+    dr.backward(loss)
+    dr.eval(dr.grad(surfels.position), dr.grad(surfels.channels["sh"]))
+    dr.sync_thread()
+    return {k["hash"] for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT}
+
+
+def test_a_new_camera_compiles_no_new_stage1_kernel():
+    config = geometry_train.get_config("cpu-small")
+    config = dataclasses.replace(config, sh_degree=1)
+    step = config.dist_from + 1  # every loss term on: colour, mask, normal, distortion
+    surfels = _surfels()
+    views = [_view((2.5, 1.0, 1.5)), _view((-1.0, 1.8, 2.4))]
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        first = _step_hashes(surfels, views[0], config, step)
+        again = _step_hashes(surfels, views[0], config, step)
+        other = _step_hashes(surfels, views[1], config, step)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert first, "no kernel ran: the history did not record the step"
+    assert again == first  # the baseline: the same camera, the same kernels
+    assert other == first, f"{len(other - first)} kernel(s) compiled for the second camera"
+
+
+def test_shadow_maps_compile_no_new_kernel_for_another_light_count():
+    from mi_shadowgs.stages.visibility.shadow_maps import (
+        SceneBounds,
+        VisibilityConfig,
+        render_shadow_maps,
+    )
+
+    surfels = _surfels()
+    bounds = SceneBounds((0.0, 0.0, 0.0), 0.9, 3.0)
+    config = VisibilityConfig(resolution=32)  # the layer slack's window: the default's path
+    rng = np.random.default_rng(5)
+
+    def hashes(count: int) -> set:
+        d = rng.standard_normal((count, 3))
+        d[:, 1] = np.abs(d[:, 1]) + 0.5  # above the horizon
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        dr.kernel_history()
+        maps = render_shadow_maps(surfels, d, bounds, config)
+        dr.eval(maps.depth)
+        dr.sync_thread()
+        return {k["hash"] for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT}
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        three = hashes(3)
+        five = hashes(5)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert three
+    assert five <= three, f"{len(five - three)} kernel(s) compiled for 5 maps after 3"
