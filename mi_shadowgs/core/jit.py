@@ -9,9 +9,13 @@ data change that text without changing what the kernel computes:
 - **Arrays made from NumPy** keep NumPy's memory, and a kernel that loads them directly
   carries that memory's alignment in its source (``align 1`` or ``align 64``, wherever
   NumPy put it); a size-1 array is read as a broadcast scalar with the same property. Two
-  calls with the same code then differ in their source. ``array`` and ``tensor`` copy host
-  values into memory Dr.Jit allocated, whose alignment does not vary. (Gathers do not carry
-  it; a copy costs one small kernel, compiled once.)
+  calls with the same code then differ in their source. ``array`` (size 1) and ``tensor``
+  (any size: images, parameters that kernels load directly) copy host values into memory
+  Dr.Jit allocated, whose alignment does not vary. Gathers do not carry it, and ``array``
+  leaves larger arrays as they are: copying the stage-4 fit's small host arrays (the same
+  values) moved its result on the demo's run, shadow IoU 0.886 -> 0.867, by a different
+  kernel grouping whose effect was not traced (BENCHMARKS.md, "Kernels compiled once,
+  again", session 15).
 
 Measured on the default scene's cpu-small evaluation (32 test views at 128^2): every test
 view of a one-light relighting compiled a new ~1,300-operation shading kernel (~100 ms
@@ -39,19 +43,22 @@ def opaque_matrix(matrix: np.ndarray) -> list[list]:
 
 
 def array(values, cls=None):
-    """A flat host array [K] as a Dr.Jit array in memory Dr.Jit allocated (see the module
-    docstring); ``cls`` defaults to ``mi.Float``."""
+    """A flat host array [K] as a Dr.Jit array; size 1 in memory Dr.Jit allocated (see the
+    module docstring); ``cls`` defaults to ``mi.Float``."""
     cls = cls or mi.Float
     src = cls(np.ascontiguousarray(values).ravel())
-    if dr.width(src) == 0:
-        return src
-    out = dr.empty(cls, dr.width(src))
-    dr.scatter(out, src, dr.arange(mi.UInt32, dr.width(src)))
-    dr.eval(out)
-    return out
+    return _copy(src) if dr.width(src) == 1 else src
 
 
 def tensor(values: np.ndarray) -> mi.TensorXf:
     """A host array of any shape as an ``mi.TensorXf`` in memory Dr.Jit allocated."""
     a = np.asarray(values, np.float32)
-    return mi.TensorXf(array(a), a.shape)
+    src = mi.Float(np.ascontiguousarray(a).ravel())
+    return mi.TensorXf(_copy(src) if dr.width(src) else src, a.shape)
+
+
+def _copy(src):
+    out = dr.empty(type(src), dr.width(src))
+    dr.scatter(out, src, dr.arange(mi.UInt32, dr.width(src)))
+    dr.eval(out)
+    return out
