@@ -528,27 +528,29 @@ def _tiled_backward(op: _TiledOp) -> None:
         w64 = t_before * a64
         w = mi.Float(w64)
         sid = dr.gather(mi.UInt32, bins.sid, i)
-        if not geometry_grad:  # the channels' gradients alone: w_i dL/dc
-            for name, gs in g_chans.items():
-                c = len(gs)
-                for k, gk in enumerate(gs):
-                    dr.scatter_reduce(dr.ReduceOp.Add, acc_chans[name], w * gk, sid * c + k,
-                                      active=comp, mode=reduce_mode)
-            out = dict(s)
-            out["T"] = dr.select(comp, t_before, s["T"])
-            out["j"] = i
-            return (out,)
+        for name, gs in g_chans.items():  # the channels' gradients: w_i dL/d(image)
+            c = len(gs)
+            for k, gk in enumerate(gs):
+                dr.scatter_reduce(dr.ReduceOp.Add, acc_chans[name], w * gk, sid * c + k,
+                                  active=comp, mode=reduce_mode)
+        out = dict(s)
+        out["T"] = dr.select(comp, t_before, s["T"])
+        out["j"] = i
+        if geometry_grad:
+            g64 = geometry_step(i, sid, q, comp, depth, w, w64, t_before, one_minus, s["S"])
+            out["S"] = dr.select(comp, s["S"] + w64 * g64, s["S"])
+        return (out,)
+
+    def geometry_step(i, sid, q, comp, depth, w, w64, t_before, one_minus, suffix):
+        """Scatter pair i's gradients of the projected fields (and the normal's); return
+        g64 = dL/dw_i, whose running sum over later pairs is the state's S (``suffix``)."""
         # g: dL/dw of this pair (every output is linear in w but the distortion);
         # g_z: dL/ddepth at fixed w.
         g = g_wsum
         g_z = dr.zeros(mi.Float, n)
         for name, gs in g_chans.items():
-            c = len(gs)
             for k, gk in enumerate(gs):
-                ck = dr.gather(mi.Float, op.sorted_chans[name][k], i)
-                g = g + gk * ck
-                dr.scatter_reduce(dr.ReduceOp.Add, acc_chans[name], w * gk, sid * c + k,
-                                  active=comp, mode=reduce_mode)
+                g = g + gk * dr.gather(mi.Float, op.sorted_chans[name][k], i)
         if "depth" in aovs:
             g = g + g_dacc * depth
             g_z = g_z + w * g_dacc
@@ -569,16 +571,12 @@ def _tiled_backward(op: _TiledOp) -> None:
             dm_dz = (far * near / (far - near)) / (mi.Float64(depth) * depth)
             g_z = g_z + mi.Float(g_dist * 2.0 * w64 * (wsum64 * m - m1) * dm_dz)
         # dw_i/dalpha_i = T_i; dw_j/dalpha_i = -w_j / (1 - alpha_i) for every later j.
-        g_alpha = mi.Float(t_before * g64 - s["S"] / one_minus)
+        g_alpha = mi.Float(t_before * g64 - suffix / one_minus)
         fg = _pair_eval_grad(q, pxf, pyf, g_alpha, g_z, config)
         for k in _PAIR_FIELDS:
             dr.scatter_reduce(dr.ReduceOp.Add, acc[k], fg[k], sid, active=comp,
                               mode=reduce_mode)
-        out = dict(s)
-        out["T"] = dr.select(comp, t_before, s["T"])
-        out["S"] = dr.select(comp, s["S"] + w64 * g64, s["S"])
-        out["j"] = i
-        return (out,)
+        return g64
 
     dr.while_loop((state,), cond, body, label="raster_tiles_backward")
     dr.eval(*acc.values(), *acc_chans.values())
