@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 
 from mi_shadowgs.config import PRESET_NAMES
+from mi_shadowgs.dataset.generate import SAMPLERS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,7 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output dataset folder")
     parser.add_argument("--preset", default="cpu-small",
                         help=f"generation preset: {', '.join(PRESET_NAMES)} (default cpu-small)")
-    parser.add_argument("--spp", type=int, default=None, help="samples per pixel (preset)")
+    parser.add_argument("--spp", type=int, default=None,
+                        help="samples per pixel (preset): one pass up to 64, else a "
+                             "multiple of 64 in passes of 64")
+    parser.add_argument("--sampler", default=None, choices=SAMPLERS,
+                        help="Mitsuba pixel sampler (default multijitter; a pass count it "
+                             "would round, such as 32 -> 35, exits 2)")
     parser.add_argument("--width", type=int, default=None, help="image width (preset)")
     parser.add_argument("--height", type=int, default=None, help="image height (preset)")
     parser.add_argument("--n-train", type=int, default=None, help="training views (preset)")
@@ -76,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
     for k, v in over.items():
         if v < 1:
             raise ValueError(f"--{k.replace('_', '-')} must be >= 1, got {v}")
+    if args.sampler:
+        over["sampler"] = args.sampler
     if args.envmap:
         from mi_shadowgs.dataset.writer import ENVMAP_KEYWORDS
 

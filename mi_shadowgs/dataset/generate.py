@@ -71,6 +71,9 @@ def sky_envmap_image(sky: SkyConfig) -> np.ndarray:
     return img.astype(np.float32)
 
 
+SAMPLERS = ("multijitter", "independent", "stratified", "ldsampler", "orthogonal")
+
+
 @dataclasses.dataclass(frozen=True)
 class GenerateConfig:
     """Dataset generation settings; defaults are the paper preset (TensoIR-like)."""
@@ -80,6 +83,17 @@ class GenerateConfig:
     n_train: int = 100
     n_test: int = 200
     spp: int = 256  # path-traced samples per pixel
+    # Mitsuba's pixel sampler (one of SAMPLERS), and the samples per pixel of one render
+    # pass: spp / pass_spp passes with their own seeds are averaged. Stratified samples reach
+    # a given noise with fewer paths than independent ones, and multijitter is cheap when
+    # its grid is a power of two (64: 8 x 8; other counts take its permutation's rejection
+    # loop, 1.5-2x slower per sample). On the default scene's 128^2 views, against a
+    # 4096-spp reference, two multi-jittered passes of 64 are 1.8 dB closer than 256
+    # independent samples (2.6 dB under the sky) in 0.6x the time (BENCHMARKS.md,
+    # "Session 16"). An spp up to pass_spp is one pass. The count per pass must be one the
+    # sampler takes as is (``check_sampler``: multijitter rounds 128 up to 132).
+    sampler: str = "multijitter"
+    pass_spp: int = 64
     max_depth: int = 5  # path length limit: up to 3 indirect bounces after direct light
     camera_angle_x: float = NERF_CAMERA_ANGLE_X  # radians, as NeRF-synthetic
     # The object has radius 1 and the base half-size 1.6: at 5 units the whole base usually
@@ -99,16 +113,29 @@ class GenerateConfig:
     envmap_scale: float = 1.0
     gt_chunk_rays: int = 1 << 22  # rays per ground-truth kernel launch (memory bound)
 
+    def __post_init__(self):
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"dataset generation: sampler must be one of {SAMPLERS}, got "
+                             f"{self.sampler!r}")
+        if self.pass_spp < 1 or self.spp < 1 or self.spp % self.samples_per_pass:
+            raise ValueError(f"dataset generation: spp={self.spp} must be at most "
+                             f"pass_spp={self.pass_spp} or a multiple of it")
+
+    @property
+    def samples_per_pass(self) -> int:
+        return min(self.spp, self.pass_spp)
+
 
 PRESETS = {
     "paper": GenerateConfig(),
-    # 256 spp: the images' noise floor is ~36 dB PSNR (64 spp: ~31 dB, which would cap
-    # any reconstruction's test PSNR near the 30 dB goal of stage 1).
-    "cpu-small": GenerateConfig(width=128, height=128, n_train=64, n_test=32, spp=256,
+    # 2 x 64 multi-jittered spp: a noise floor below that of the 256 independent samples
+    # of sessions 1-15 (see pass_spp); 64 independent spp would cost ~4 dB and cap a
+    # reconstruction's test PSNR near stage 1's (35.7 dB).
+    "cpu-small": GenerateConfig(width=128, height=128, n_train=64, n_test=32, spp=128,
                                 max_depth=4),
     # Issue 18: 256^2 and 64-100 views, the resolution real captures need (SfM wants 384^2
     # or more; `import` resizes to ImportConfig.max_size).
-    "cpu-medium": GenerateConfig(width=256, height=256, n_train=96, n_test=32, spp=256,
+    "cpu-medium": GenerateConfig(width=256, height=256, n_train=96, n_test=32, spp=128,
                                  max_depth=4),
 }
 
@@ -221,15 +248,34 @@ def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
 
 
 # -- path tracing -------------------------------------------------------------------------
-class ViewRenderer:
-    """Path-traces many views of a scene with one sensor, so the kernel is compiled once."""
+def check_sampler(sampler: str, spp: int) -> None:
+    """Raise ValueError unless Mitsuba's ``sampler`` takes ``spp`` samples per pixel as
+    they are (it rounds some counts silently: multijitter 128 -> 132)."""
+    import mitsuba as mi
 
-    def __init__(self, camera: Camera, spp: int, max_depth: int, hide_emitters: bool = True):
+    taken = mi.load_dict({"type": sampler, "sample_count": spp}).sample_count()
+    if taken != spp:
+        raise ValueError(f"dataset generation: the {sampler} sampler would take {taken} "
+                         f"samples per pixel in a pass, not {spp}; choose a count it takes "
+                         f"as is for spp (or pass_spp), e.g. 64")
+
+
+class ViewRenderer:
+    """Path-traces many views of a scene with one sensor, so the kernel is compiled once.
+    Each view is the mean of spp / pass_spp passes (one when pass_spp is None or >= spp)."""
+
+    def __init__(self, camera: Camera, spp: int, max_depth: int, hide_emitters: bool = True,
+                 sampler: str = "multijitter", pass_spp: int | None = None):
         import mitsuba as mi
 
-        self.spp = spp
+        pass_spp = min(pass_spp or spp, spp)
+        if spp % pass_spp:
+            raise ValueError(f"dataset generation: spp={spp} must be at most "
+                             f"pass_spp={pass_spp} or a multiple of it")
+        check_sampler(sampler, pass_spp)
+        self.spp, self.passes = pass_spp, spp // pass_spp
         self.size = (camera.width, camera.height)
-        self.sensor = mi.load_dict(camera.to_mitsuba_dict(spp=spp))
+        self.sensor = mi.load_dict(camera.to_mitsuba_dict(spp=pass_spp, sampler=sampler))
         self.params = mi.traverse(self.sensor)
         self.integrator = mi.load_dict({"type": "path", "max_depth": max_depth,
                                         "hide_emitters": hide_emitters})
@@ -243,9 +289,12 @@ class ViewRenderer:
         self.params["to_world"] = mi.AffineTransform4f(camera.mitsuba_to_world())
         self.params["x_fov"] = math.degrees(camera.fov_x)
         self.params.update()
-        img = mi.render(scene, sensor=self.sensor, integrator=self.integrator, spp=self.spp,
-                        seed=seed)
-        return np.asarray(img, dtype=np.float32)
+        img = 0.0
+        for k in range(self.passes):  # pass 0 keeps the view's seed; the others their own
+            img = img + np.asarray(mi.render(
+                scene, sensor=self.sensor, integrator=self.integrator, spp=self.spp,
+                seed=(seed + k * 0x9E3779B1) % (1 << 32)), dtype=np.float64)
+        return (img / self.passes).astype(np.float32)
 
 
 def lit_scene(setup: SceneSetup, lights: list[Light] | None = None,

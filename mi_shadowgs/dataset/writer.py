@@ -31,6 +31,7 @@ from mi_shadowgs.dataset.cameras import test_cameras, train_cameras
 from mi_shadowgs.dataset.generate import (
     GenerateConfig,
     ViewRenderer,
+    check_sampler,
     lit_scene,
     relight_lights,
     sky_envmap_image,
@@ -316,6 +317,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     from tqdm import tqdm
 
     out = Path(out)
+    check_sampler(config.sampler, config.samples_per_pass)  # before any folder is made
     envmaps = resolve_envmaps(config)
     setup = load_scene(scene_path, overrides)
     if not setup.lights:
@@ -354,7 +356,8 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
             write_bytes(partial / env.ref, env.source.read_bytes())
         relights.append((env.name, lit_scene(setup, envmap=str(partial / env.ref),
                                              envmap_scale=config.envmap_scale)))
-    renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth)
+    renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth,
+                            sampler=config.sampler, pass_spp=config.pass_spp)
     total = config.n_train + config.n_test * (1 + len(relights))
     # Ground truth for this many views at a time: what a kill loses beside one render.
     per_chunk = max(1, config.gt_chunk_rays // (config.width * config.height))
