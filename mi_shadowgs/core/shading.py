@@ -176,6 +176,10 @@ def direct(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float, metalli
     e = dr.gather(mi.Color3f, lights.weights, li)
     contrib = direct_per_light(geom, albedo, roughness, metallic, lights.directions, vis,
                                with_specular) * e
+    # The three channels in one kernel: each block_reduce evaluates its own input, and left
+    # lazy every channel would redo the per-light shading and shadow-map lookups [H * W * K]
+    # (at K = 128, the warm-up's and an env map's grid, 3x the work).
+    dr.eval(contrib)
     return mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, contrib[c], k_count)
                         for c in range(3)))
 
