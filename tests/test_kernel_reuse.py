@@ -6,6 +6,7 @@ for every view: ~100 ms per kernel on the CPU, a cost that can exceed the step i
 (stage 1's view-dependent colours did this for ~1300 steps: BENCHMARKS.md, "Stage 1's
 camera origin compiled every step"). The test compares the kernel hashes (a hash of the
 source) of one stage-1 step from two cameras: equal sets, whatever the kernel cache holds.
+The last test counts kernels run rather than compiled: work done once, not per channel.
 """
 
 from __future__ import annotations
@@ -102,3 +103,48 @@ def test_shadow_maps_compile_no_new_kernel_for_another_light_count():
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert three
     assert five <= three, f"{len(five - three)} kernel(s) compiled for 5 maps after 3"
+
+
+def test_per_light_shading_runs_once_for_three_channels():
+    """``shading.direct`` sums f_r (n . l) V E over K lights per pixel with one block_reduce
+    per colour channel. Left lazy, reading the channels one by one (as ``color_image``
+    does) ran the [P * K] shading and its inputs once per channel: 3x the work at the
+    warm-up's and an env map's 128 lights."""
+    import mitsuba as mi
+
+    from mi_shadowgs.core import shading
+
+    npix, k = 64, 8
+    rng = np.random.default_rng(2)
+    normal = rng.standard_normal((npix, 3))
+    normal[:, 1] = np.abs(normal[:, 1]) + 0.5
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    zeros = dr.zeros(mi.Float, npix)
+    geom = shading.PixelGeometry(dr.ones(mi.Float, npix), None, None,
+                                 mi.Vector3f(*(jit.array(normal[:, c]) for c in range(3))),
+                                 None, None, zeros)
+    dirs = rng.standard_normal((k, 3))
+    dirs[:, 1] = np.abs(dirs[:, 1])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    # Three different channels: equal ones would be merged by Dr.Jit into one computation.
+    e = rng.uniform(0.5, 1.0, (3, k))
+    a = rng.uniform(0.2, 0.8, (3, npix))
+    vis = rng.uniform(0.0, 1.0, npix * k)
+    lights = shading.LightSet(dirs, mi.Color3f(*(jit.array(x) for x in e)))
+    albedo = mi.Color3f(*(jit.array(x) for x in a))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        out = shading.direct(geom, albedo, zeros, zeros, lights, jit.array(vis), False)
+        got = [out[c].numpy() for c in range(3)]  # one channel at a time
+        dr.sync_thread()
+        wide = [h for h in dr.kernel_history()
+                if h.get("type") == dr.KernelType.JIT and h["size"] == npix * k]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(wide) == 1, f"{len(wide)} kernels over the {npix} x {k} pixel-light pairs"
+    # and the sum itself, in float64
+    cos = np.maximum(normal @ dirs.T, 0.0)  # [P, K]
+    for c in range(3):
+        want = (a[c][:, None] / np.pi * cos * vis.reshape(npix, k) * e[c][None]).sum(1)
+        np.testing.assert_allclose(got[c], want, rtol=1e-5, atol=1e-7)
