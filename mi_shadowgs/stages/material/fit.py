@@ -768,6 +768,7 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
     vis = None if maps is None else \
         maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
     per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)
+    dr.eval(per)  # [P * K]: its readers (per channel, per sum) would each recompute it
     return albedo, rough, metal, ind, per
 
 
@@ -804,6 +805,7 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
                                    cand_maps.evaluate(v.geom.points, v.geom.normal,
                                                       v.geom.footprint),
                                    with_specular)  # [P * C] pixel-major
+            dr.eval(b)  # once: r.b and b.b below would each recompute the lookups
             pi = dr.arange(mi.UInt32, npix * n_cand) // n_cand
             r = dr.gather(mi.Color3f, resid, pi)
             b = b * dr.gather(mi.Float, v.weight, pi)
