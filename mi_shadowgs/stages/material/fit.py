@@ -124,9 +124,6 @@ class MaterialConfig:
     # The grid spacing (~13 degrees at 128 directions) leaves merged lights a few degrees
     # off, and shadows are the sharpest cue to where a light is. () = off.
     refine_passes: tuple = ((8.0, 2.0), (2.0, 0.5))
-    # The candidates' shadow-map size in each of refine_passes (() or None entries: the
-    # visibility config's resolution).
-    refine_map_resolution: tuple = ()
     refine_views: int = 16  # training views scored per candidate (evenly spaced)
     # Only the strongest lights are refined: each costs ~100 shadow maps, and a fit whose
     # light has not collapsed to a few directions (the w/o-segmentation ablation kept 7-9)
@@ -242,12 +239,6 @@ class MaterialConfig:
                              f"0 < step <= radius, refine_views >= 1, refine_max_lights >= 0:"
                              f" {self.refine_passes}, {self.refine_views}, "
                              f"{self.refine_max_lights}")
-        if self.refine_map_resolution and (
-                len(self.refine_map_resolution) != len(self.refine_passes) or
-                any(r is not None and r < 1 for r in self.refine_map_resolution)):
-            raise ValueError(f"MaterialConfig.refine_map_resolution must give one size >= 1 "
-                             f"(or None) per refine_passes entry: "
-                             f"{self.refine_map_resolution} for {self.refine_passes}")
         if self.refine_global < 0 or self.refine_global_map_resolution < 1 or \
                 self.refine_global_views < 1 or \
                 not 0.0 <= self.drop_share < 1.0 or self.drop_gain < 0:
@@ -1043,14 +1034,10 @@ class Refinement:
                           np.argsort(-irr)[:config.refine_max_lights],
                           global_pass=global_pass and config.refine_global > 0)
 
-    def units(self, config: MaterialConfig) -> list[tuple[int, float, float, int | None]]:
-        """(light, radius, step, candidates' map resolution) in order; radius inf: the
-        global pass."""
-        sizes = config.refine_map_resolution or (None,) * len(config.refine_passes)
-        passes = ([(math.inf, 0.0, config.refine_global_map_resolution)]
-                  if self.global_pass else []) + \
-            [(r, st, size) for (r, st), size in zip(config.refine_passes, sizes, strict=True)]
-        return [(int(k), r, st, size) for k in self.lights for r, st, size in passes]
+    def units(self, config: MaterialConfig) -> list[tuple[int, float, float]]:
+        """(light, radius, step) in order; radius inf: the global pass."""
+        passes = ([(math.inf, 0.0)] if self.global_pass else []) + list(config.refine_passes)
+        return [(int(k), r, st) for k in self.lights for r, st in passes]
 
     def run(self, views: list[TrainView], channels: dict, maps, render_maps,
             config: MaterialConfig, with_specular: bool, on_unit=None) -> None:
@@ -1059,14 +1046,15 @@ class Refinement:
                          .round().astype(int))
         sub = [views[i] for i in pick]
         sub_global = sub[::max(1, -(-len(sub) // config.refine_global_views))]
-        for k, radius, step, size in self.units(config)[self.done:]:
+        for k, radius, step in self.units(config)[self.done:]:
             scored = sub
             if math.isinf(radius):
                 cand = np.concatenate([self.dirs[k][None], light_grid(config.refine_global)])
+                cand_maps = render_maps(cand, config.refine_global_map_resolution)
                 scored = sub_global
             else:
                 cand = candidate_directions(self.dirs[k], radius, step)
-            cand_maps = render_maps(cand, size)
+                cand_maps = render_maps(cand)
             irr = jit.array(self.irradiance.astype(np.float32))
             lights = shading.LightSet(self.dirs, mi.Color3f(irr, irr, irr))
             err, fit = _candidate_scores(scored, channels, lights, maps, k, cand_maps,
