@@ -124,6 +124,12 @@ class MaterialConfig:
     # The grid spacing (~13 degrees at 128 directions) leaves merged lights a few degrees
     # off, and shadows are the sharpest cue to where a light is. () = off.
     refine_passes: tuple = ((8.0, 2.0), (2.0, 0.5))
+    # The passes of the main phase's second refinement (None: refine_passes). The first
+    # leaves each light within a fine step or two of its best direction: on the twelve
+    # table rows the second one moved lights by 0-1 degree, and without its (8, 2) pass
+    # (~100 shadow maps of 512^2) 11 rows fit bit-identically and hotdog-tuned's light
+    # lands 0.1 degree further off (shadow IoU 0.478 -> 0.469; BENCHMARKS.md, "Session 16").
+    refine_again_passes: tuple | None = ((2.0, 0.5),)
     refine_views: int = 16  # training views scored per candidate (evenly spaced)
     # Only the strongest lights are refined: each costs ~100 shadow maps, and a fit whose
     # light has not collapsed to a few directions (the w/o-segmentation ablation kept 7-9)
@@ -233,11 +239,13 @@ class MaterialConfig:
                              f"{self.specular!r}")
         if self.iterations < 0 or self.warmup < 0 or self.views_per_step < 1:
             raise ValueError(f"MaterialConfig: invalid iteration counts: {self}")
-        if any(len(p) != 2 or not 0.0 < p[1] <= p[0] for p in self.refine_passes) or \
+        if any(len(p) != 2 or not 0.0 < p[1] <= p[0]
+               for p in self.refine_passes + (self.refine_again_passes or ())) or \
                 self.refine_views < 1 or self.refine_max_lights < 0:
-            raise ValueError(f"MaterialConfig.refine_passes must be (radius, step) pairs with "
-                             f"0 < step <= radius, refine_views >= 1, refine_max_lights >= 0:"
-                             f" {self.refine_passes}, {self.refine_views}, "
+            raise ValueError(f"MaterialConfig.refine_passes and refine_again_passes must be "
+                             f"(radius, step) pairs with 0 < step <= radius, refine_views >= "
+                             f"1, refine_max_lights >= 0: {self.refine_passes}, "
+                             f"{self.refine_again_passes}, {self.refine_views}, "
                              f"{self.refine_max_lights}")
         if self.refine_global < 0 or self.refine_global_map_resolution < 1 or \
                 self.refine_global_views < 1 or \
@@ -382,7 +390,8 @@ class MaterialState:
                            "refine/irradiance": self.refine.irradiance,
                            "refine/lights": self.refine.lights,
                            "refine/done": np.array([self.refine.done]),
-                           "refine/global": np.array([int(self.refine.global_pass)])})
+                           "refine/global": np.array([int(self.refine.global_pass)]),
+                           "refine/again": np.array([int(self.refine.again)])})
         return arrays, {"step": self.step, "specular": self.specular,
                         "rng": self.rng.bit_generator.state, "history": self.history,
                         "timings": self.timings, "light_log": self.light_log}
@@ -399,7 +408,8 @@ class MaterialState:
                     if k.startswith("channel/")}
         refine = Refinement(arrays["refine/dirs"], arrays["refine/irradiance"],
                             arrays["refine/lights"], int(arrays["refine/done"][0]),
-                            bool(arrays.get("refine/global", [0])[0])) \
+                            bool(arrays.get("refine/global", [0])[0]),
+                            bool(arrays.get("refine/again", [0])[0])) \
             if "refine/dirs" in arrays else None
         return MaterialState(int(meta["step"]), opt, channels, arrays["directions"],
                              bool(meta["specular"]), rng, mi.Float(arrays["loss_sum"]),
@@ -681,7 +691,9 @@ def _refine(views, state: MaterialState, maps, render_maps, config: MaterialConf
             cur[key] = opt[key]
     if state.refine is None:
         irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
-        state.refine = Refinement.start(state.directions, irr, config, global_pass)
+        # the end of the warm-up (global_pass) or the main phase's second refinement
+        state.refine = Refinement.start(state.directions, irr, config, global_pass,
+                                        again=not global_pass)
     else:
         maps = render_maps(state.refine.dirs)
     state.refine.run(views, cur, maps, render_maps, config, state.specular, on_unit)
@@ -1024,19 +1036,22 @@ class Refinement:
     lights: np.ndarray  # [R] the lights refined, strongest first
     done: int = 0  # finished (light, pass) units
     global_pass: bool = False  # each light starts with the global pass (refine_global)
+    again: bool = False  # the main phase's second refinement (refine_again_passes)
 
     @staticmethod
     def start(dirs: np.ndarray, irradiance: np.ndarray, config: MaterialConfig,
-              global_pass: bool = False) -> Refinement:
+              global_pass: bool = False, again: bool = False) -> Refinement:
         irr = np.array(irradiance, np.float64)
         # The strongest first: it shapes the residual most.
         return Refinement(np.array(dirs, np.float64), irr,
                           np.argsort(-irr)[:config.refine_max_lights],
-                          global_pass=global_pass and config.refine_global > 0)
+                          global_pass=global_pass and config.refine_global > 0, again=again)
 
     def units(self, config: MaterialConfig) -> list[tuple[int, float, float]]:
         """(light, radius, step) in order; radius inf: the global pass."""
-        passes = ([(math.inf, 0.0)] if self.global_pass else []) + list(config.refine_passes)
+        local = config.refine_passes if not self.again or config.refine_again_passes is None \
+            else config.refine_again_passes
+        passes = ([(math.inf, 0.0)] if self.global_pass else []) + list(local)
         return [(int(k), r, st) for k in self.lights for r, st in passes]
 
     def run(self, views: list[TrainView], channels: dict, maps, render_maps,
