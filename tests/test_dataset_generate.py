@@ -308,6 +308,8 @@ def test_e_bad_input(tmp_path, capsys):
                   "not 32")
     _assert_error(["default", "--out", str(out), *TINY, "--spp", "72"], capsys, tmp_path,
                   "spp=72")
+    _assert_error(["default", "--out", str(out), *TINY, "--sampler", "bogus"], capsys,
+                  tmp_path, "'bogus'")
     assert not out.exists()
     # an output folder holding a different dataset: untouched unless --overwrite
     assert _run(["default", "--out", str(out), "--seed", "1", *TINY], capsys)[0] == 0

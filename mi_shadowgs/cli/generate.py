@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 
 from mi_shadowgs.config import PRESET_NAMES
-from mi_shadowgs.dataset.generate import SAMPLERS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -20,7 +19,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spp", type=int, default=None,
                         help="samples per pixel (preset): one pass up to 64, else a "
                              "multiple of 64 in passes of 64")
-    parser.add_argument("--sampler", default=None, choices=SAMPLERS,
+    # No choices= here: the parser is built before the libLLVM check, and the list lives
+    # in mi_shadowgs.dataset.generate (importing it here would start Dr.Jit); an unknown name
+    # exits 2 listing them (GenerateConfig).
+    parser.add_argument("--sampler", default=None,
                         help="Mitsuba pixel sampler (default multijitter; a pass count it "
                              "would round, such as 32 -> 35, exits 2)")
     parser.add_argument("--width", type=int, default=None, help="image width (preset)")
