@@ -74,6 +74,16 @@ def sky_envmap_image(sky: SkyConfig) -> np.ndarray:
 SAMPLERS = ("multijitter", "independent", "stratified", "ldsampler", "orthogonal")
 
 
+def render_passes(spp: int, pass_spp: int | None) -> tuple[int, int]:
+    """(samples per pass, passes) of ``spp`` samples per pixel rendered in passes of
+    ``pass_spp`` (None, or more than spp: one pass); ValueError unless they divide evenly."""
+    per = min(pass_spp or spp, spp)
+    if per < 1 or spp % per:
+        raise ValueError(f"dataset generation: spp={spp} must be at most pass_spp="
+                         f"{pass_spp} or a multiple of it")
+    return per, spp // per
+
+
 @dataclasses.dataclass(frozen=True)
 class GenerateConfig:
     """Dataset generation settings; defaults are the paper preset (TensoIR-like)."""
@@ -117,13 +127,13 @@ class GenerateConfig:
         if self.sampler not in SAMPLERS:
             raise ValueError(f"dataset generation: sampler must be one of {SAMPLERS}, got "
                              f"{self.sampler!r}")
-        if self.pass_spp < 1 or self.spp < 1 or self.spp % self.samples_per_pass:
-            raise ValueError(f"dataset generation: spp={self.spp} must be at most "
-                             f"pass_spp={self.pass_spp} or a multiple of it")
+        if self.pass_spp < 1:
+            raise ValueError(f"dataset generation: pass_spp must be >= 1, got {self.pass_spp}")
+        render_passes(self.spp, self.pass_spp)
 
     @property
     def samples_per_pass(self) -> int:
-        return min(self.spp, self.pass_spp)
+        return render_passes(self.spp, self.pass_spp)[0]
 
 
 PRESETS = {
@@ -268,14 +278,10 @@ class ViewRenderer:
                  sampler: str = "multijitter", pass_spp: int | None = None):
         import mitsuba as mi
 
-        pass_spp = min(pass_spp or spp, spp)
-        if spp % pass_spp:
-            raise ValueError(f"dataset generation: spp={spp} must be at most "
-                             f"pass_spp={pass_spp} or a multiple of it")
-        check_sampler(sampler, pass_spp)
-        self.spp, self.passes = pass_spp, spp // pass_spp
+        self.spp, self.passes = render_passes(spp, pass_spp)  # self.spp: per pass
+        check_sampler(sampler, self.spp)
         self.size = (camera.width, camera.height)
-        self.sensor = mi.load_dict(camera.to_mitsuba_dict(spp=pass_spp, sampler=sampler))
+        self.sensor = mi.load_dict(camera.to_mitsuba_dict(spp=self.spp, sampler=sampler))
         self.params = mi.traverse(self.sensor)
         self.integrator = mi.load_dict({"type": "path", "max_depth": max_depth,
                                         "hide_emitters": hide_emitters})

@@ -1217,10 +1217,6 @@ def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
         v = fit.views[int(state.rng.integers(len(fit.views)))]
         vis = None if fit.maps is None else \
             fit.maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-        if vis is not None:
-            # [P * K] shadow-map lookups once: the forward and the backward's kernels would
-            # each recompute them (~25% of a warm-up step at K = 128)
-            dr.eval(vis)
         total += view_loss(v, cur, lights, vis, config, state.specular)
     total = total / config.views_per_step
     dr.backward(total)

@@ -253,8 +253,6 @@ def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, 
     with dr.suspend_grad():
         vis = None if maps is None else \
             maps.evaluate(geom.points, geom.normal, geom.footprint)
-        if vis is not None:
-            dr.eval(vis)  # [P * K] once: the relit image and the irradiance both read it
         indirect = ind * factor if ind is not None and factor > 0 else None
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
         out = {"rgb": color_image(rgb, h, w), "alpha": geom.alpha.numpy().reshape(h, w)}

@@ -189,8 +189,14 @@ class ShadowMaps:
 
     def evaluate(self, points: mi.Point3f, normals: mi.Vector3f | None = None,
                  footprint: mi.Float | None = None) -> mi.Float:
-        """V [P * L] (point-major) for surface points [P]; see ``point_visibility``."""
-        return point_visibility(points, self, normals, footprint)
+        """V [P * L] (point-major) for surface points [P], evaluated; see
+        ``point_visibility``. Evaluated here because its readers are many: a lazy V would be
+        recomputed (the L maps' lookups) in each kernel that reads it, a stage-4 step's
+        forward and backward or a relit view's image and irradiance (144 -> 88 ms per
+        warm-up step at L = 128; BENCHMARKS.md, "Session 16")."""
+        vis = point_visibility(points, self, normals, footprint)
+        dr.eval(vis)
+        return vis
 
     def depth_image(self, index: int) -> np.ndarray:
         """Shadow map ``index`` as [R, R] numpy (inf = empty), for inspection and plots."""
