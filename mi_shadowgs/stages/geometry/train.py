@@ -358,7 +358,7 @@ def _view_data(view, dark_max: float | None = None) -> ViewData:
     if dark_max is not None and not has_mask:
         d = np.all(np.asarray(view.image) <= dark_max, axis=-1)
         dark = jit.tensor(d.astype(np.float32).reshape(h, w, 1))
-    image = jit.tensor(np.ascontiguousarray(view.image, np.float32))
+    image = jit.tensor(view.image)
     return ViewData(view.camera, image, jit.tensor(view.mask.astype(np.float32).reshape(h, w, 1)),
                     has_mask, dark, losses.ssim_target(image))
 

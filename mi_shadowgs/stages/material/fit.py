@@ -124,11 +124,12 @@ class MaterialConfig:
     # The grid spacing (~13 degrees at 128 directions) leaves merged lights a few degrees
     # off, and shadows are the sharpest cue to where a light is. () = off.
     refine_passes: tuple = ((8.0, 2.0), (2.0, 0.5))
-    # The passes of the main phase's second refinement (None: refine_passes). The first
-    # leaves each light within a fine step or two of its best direction: on the twelve
-    # table rows the second one moved lights by 0-1 degree, and without its (8, 2) pass
-    # (~100 shadow maps of 512^2) 11 rows fit bit-identically and hotdog-tuned's light
-    # lands 0.1 degree further off (shadow IoU 0.478 -> 0.469; BENCHMARKS.md, "Session 16").
+    # The passes of the main phase's second refinement (None: refine_passes; (): no second
+    # refinement; refine_passes () turns both off). The first leaves each light within a
+    # fine step or two of its best direction: on the twelve table rows the second one moved
+    # lights by 0-1 degree, and without its (8, 2) pass (~100 shadow maps of 512^2) 11 rows
+    # fit bit-identically and hotdog-tuned's light lands 0.1 degree further off (shadow IoU
+    # 0.478 -> 0.469; BENCHMARKS.md, "Session 16").
     refine_again_passes: tuple | None = ((2.0, 0.5),)
     refine_views: int = 16  # training views scored per candidate (evenly spaced)
     # Only the strongest lights are refined: each costs ~100 shadow maps, and a fit whose
@@ -273,6 +274,13 @@ class MaterialConfig:
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")
+
+    def local_passes(self, again: bool) -> tuple:
+        """The (radius, step) passes of the first refinement, or of the main phase's second
+        (``again``); refine_passes () turns both off."""
+        if not again or self.refine_again_passes is None or not self.refine_passes:
+            return self.refine_passes
+        return self.refine_again_passes
 
 
 PRESETS = {
@@ -1049,9 +1057,8 @@ class Refinement:
 
     def units(self, config: MaterialConfig) -> list[tuple[int, float, float]]:
         """(light, radius, step) in order; radius inf: the global pass."""
-        local = config.refine_passes if not self.again or config.refine_again_passes is None \
-            else config.refine_again_passes
-        passes = ([(math.inf, 0.0)] if self.global_pass else []) + list(local)
+        passes = ([(math.inf, 0.0)] if self.global_pass else []) + \
+            list(config.local_passes(self.again))
         return [(int(k), r, st) for k in self.lights for r, st in passes]
 
     def run(self, views: list[TrainView], channels: dict, maps, render_maps,
@@ -1160,8 +1167,9 @@ def refine_lights(fit: MaterialFit, state: MaterialState, on_unit=None,
     """The light-direction refinement (or the rest of ``state.refine``), then the refined
     lights' maps (nothing without refinement passes or visibility), then ``settle_lights``
     (merge the lights that met, drop those that explain little)."""
-    if (fit.config.refine_passes or (global_pass and fit.config.refine_global)) and \
-            fit.maps is not None:
+    # the end of the warm-up (global_pass) or the main phase's second refinement
+    if (fit.config.local_passes(not global_pass) or (global_pass and fit.config.refine_global)) \
+            and fit.maps is not None:
         state.directions = _refine(fit.views, state, fit.maps, fit.shadow_maps, fit.config,
                                    on_unit, global_pass)
         fit.maps = fit.shadow_maps(state.directions)
