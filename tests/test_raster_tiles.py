@@ -138,6 +138,26 @@ def test_tile_size_does_not_change_the_image(tile_size):
     assert_grads_equal(gg, gw)
 
 
+@pytest.mark.parametrize("tile_size,per_lane", [(4, 1), (4, 2), (4, 16), (8, 4), (8, 64),
+                                                (3, 4), (5, 16)])
+def test_pixels_per_lane_do_not_change_the_image(tile_size, per_lane):
+    # A lane composites per_lane pixels of its tile (3 and 5: odd tiles take 1 per lane);
+    # 16 at 4x4 and 64 at 8x8 tiles: one lane per tile, whose packet spans 16 tiles' lists.
+    # Every output and every gradient against the pair list.
+    camera = cameras()["perspective"]
+    raw = random_scene(40, 3)
+    aovs = tuple(a for a in AOVS if a != "count")
+    outputs = GRAD_CASES[-1]
+    config = dataclasses.replace(TILES, tile_size=tile_size, pixels_per_lane=per_lane)
+    want, gw = render(to_surfels(raw), camera, PAIRS, aovs, BACKGROUND, outputs)
+    got, gg = render(to_surfels(raw), camera, config, aovs, BACKGROUND, outputs)
+    assert_outputs_equal(got, want)
+    assert_grads_equal(gg, gw, outputs)
+    counts, _ = render(to_surfels(raw), camera, config, ("count",))
+    np.testing.assert_array_equal(counts["count"], render(to_surfels(raw), camera, PAIRS,
+                                                          ("count",))[0]["count"])
+
+
 def test_forward_matches_reference():
     """The tiled path against the float64 NumPy reference directly (as test_raster_forward)."""
     camera = cameras()["orthographic"]
@@ -294,6 +314,8 @@ def test_config_is_validated():
         RasterConfig(method="tile")
     with pytest.raises(ValueError, match="RasterConfig.tile_size"):
         RasterConfig(method="tiles", tile_size=0)
+    with pytest.raises(ValueError, match="RasterConfig.pixels_per_lane"):
+        RasterConfig(pixels_per_lane=3)
 
 
 def test_memory_guard_names_the_setting():

@@ -92,6 +92,13 @@ class RasterConfig:
     # CPU ms at 1 thread, bm_raster workload 128^2/20k: 51 (2), 35 (4), 45 (5), 52 (8),
     # 158 (16); at 256^2/20k: 93 (4), 101 (8); the pair list: 123 and 503.
     tile_size: int = 4
+    # Pixels of a tile that one lane of the tiled loops composites (a power of two; fewer
+    # where the tile has fewer pixels). The lane reads each sorted entry once for all of
+    # them and sums their gradients before one scatter per field; more pixels hold more
+    # loop state per lane. Stage-1 step on the default scene (27.5k surfels, 128^2, 2
+    # threads): 51.8-54.9 ms (1), 49.2-49.8 (2), 51.2-53.6 (4), 60-62 (8); a 512^2 shadow
+    # map 37-38 ms (1), 30-31 (2 and 4) (BENCHMARKS.md, "Session 17").
+    pixels_per_lane: int = 2
     bytes_per_tile_pair: int = 128
     bytes_per_pixel: int = 96  # forward only
     bytes_per_pixel_grad: int = 256  # with gradients
@@ -109,6 +116,10 @@ class RasterConfig:
         if not 1 <= self.tile_size <= 256:
             raise ValueError(f"RasterConfig.tile_size must be in [1, 256], got "
                              f"{self.tile_size}")
+        k = self.pixels_per_lane
+        if not (1 <= k <= 256 and k & (k - 1) == 0):
+            raise ValueError(f"RasterConfig.pixels_per_lane must be a power of two in "
+                             f"[1, 256], got {k}")
 
 
 RASTER_METHODS = ("pairs", "tiles")

@@ -8,17 +8,21 @@ per-pair maths (``_pair_eval``), so both composite the same pairs in the same or
    (``RasterConfig.tile_size``); surfel-tile pairs come from a prefix sum over the tile
    counts of the surfels in depth order (one host read), a stable ``dr.argsort`` by tile
    orders them by (tile, centre depth), and each tile gets its [start, end) range;
-2. forward: one lane per pixel, tile-major so that a SIMD packet shares one tile and reads
-   the same sorted entry in every iteration; a symbolic ``dr.while_loop`` walks the tile's
-   list front to back, skips pairs outside the surfel's box or failing the alpha / cutoff /
-   near tests (the pair list drops them), composites with a Float64 transmittance and stops
-   before the splat that would take T below ``transmittance_min`` (``raster._scan``);
+2. forward: one lane per ``RasterConfig.pixels_per_lane`` pixels of a tile, tile-major so
+   that a SIMD packet's lanes share few tiles; a symbolic ``dr.while_loop`` walks the
+   tile's list front to back, reading each entry once for the lane's pixels. Each pixel
+   skips pairs outside the surfel's box or failing the alpha / cutoff / near tests (the
+   pair list drops them), composites with a Float64 transmittance and stops before the
+   splat that would take T below ``transmittance_min`` (``raster._scan``); the lane stops
+   when all of its pixels have;
 3. backward (``_TiledOp``, a ``dr.CustomOp``): the forward keeps per pixel only its final
    T, its stop index and a few Float64 sums; the backward walks each list back to front
-   from the stop index, recovering T_i = T_{i+1} / (1 - alpha_i) in Float64, and chains
-   the output gradients through alpha and depth to the 13 projected fields by hand
-   (``_pair_eval_grad``), scatter-adding per surfel. Dr.Jit's AD then carries those
-   gradients from the projected fields to the surfel parameters (``_project``).
+   from the largest stop index of the lane's group, each pixel active below its own,
+   recovering T_i = T_{i+1} / (1 - alpha_i) in Float64, and chains the output gradients
+   through alpha and depth to the 13 projected fields by hand (``_pair_eval_grad``); the
+   lane sums its pixels' gradients and scatter-adds them per surfel. Dr.Jit's AD then
+   carries those gradients from the projected fields to the surfel parameters
+   (``_project``).
 
 Why T is recovered by division rather than recomputed front to back: one pass instead of
 two (the back-to-front sum of w_j g_j over later pairs needs the output gradients, so a
@@ -31,6 +35,7 @@ of splats: the T recovered at the front of each pixel is 1 to 8.9e-16 after 1753
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import drjit as dr
@@ -77,10 +82,15 @@ class _Bins:
     box: tuple  # ([TP] x0 | x1 << 16, [TP] y0 | y1 << 16): the surfel's pixel box
     start: mi.UInt32  # [tiles] first sorted pair of each tile
     end: mi.UInt32  # [tiles] one past its last
+    per_lane: int = 1  # pixels of a tile that one lane composites (a divisor of size^2)
+
+    @property
+    def lanes_per_tile(self) -> int:
+        return self.size * self.size // self.per_lane
 
     @property
     def lanes(self) -> int:
-        return self.ntx * self.nty * self.size * self.size
+        return self.ntx * self.nty * self.lanes_per_tile
 
 
 def _check_tile_budget(tile_pairs: int, lanes: int, config: RasterConfig, grad: bool,
@@ -160,54 +170,77 @@ def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
     y1 = y0 + bh - 1
     box = (dr.gather(mi.UInt32, x0 | (x1 << 16), sid), dr.gather(mi.UInt32, y0 | (y1 << 16), sid))
     dr.eval(sid, start, end, *box)
-    return _Bins(ts, ntx, nty, sid, box, start, end)
+    return _Bins(ts, ntx, nty, sid, box, start, end, math.gcd(config.pixels_per_lane, ts * ts))
 
 
 def _lanes(bins: _Bins, width: int, height: int):
-    """Per lane (tile-major, row-major inside a tile): (tile, pixel x, pixel y, inside)."""
-    ts2 = bins.size * bins.size
+    """Per lane (tile-major; a lane holds ``bins.per_lane`` consecutive pixels of its tile,
+    row-major inside the tile): (tile [lanes], then per pixel k of the lane: pixel x [lanes],
+    pixel y, inside the image)."""
+    per_tile = bins.lanes_per_tile
     lane = dr.arange(mi.UInt32, bins.lanes)
-    tile = lane // ts2
-    local = lane - tile * ts2
+    tile = lane // per_tile
+    sub = lane - tile * per_tile
     ty = tile // bins.ntx
-    ly = local // bins.size
-    px = (tile - ty * bins.ntx) * bins.size + (local - ly * bins.size)
-    py = ty * bins.size + ly
-    inside = (px < width) & (py < height)
-    return tile, px, py, inside
+    tx = tile - ty * bins.ntx
+    pxs, pys, insides = [], [], []
+    for k in range(bins.per_lane):
+        local = sub * bins.per_lane + k
+        ly = local // bins.size
+        px = tx * bins.size + (local - ly * bins.size)
+        py = ty * bins.size + ly
+        pxs.append(px)
+        pys.append(py)
+        insides.append((px < width) & (py < height))
+    return tile, pxs, pys, insides
 
 
-def _lane_of_pixel(bins: _Bins, width: int, height: int) -> mi.UInt32:
-    """[H * W] the lane (``_lanes``) of each pixel, row-major."""
-    pix = dr.arange(mi.UInt32, width * height)
+def _to_image(vals: list, bins: _Bins, width: int, height: int) -> mi.Float:
+    """Lane values (per pixel k of a lane: C arrays [lanes]) -> a flat image [H * W * C],
+    gathered from each pixel's lane."""
+    c = len(vals[0])
+    idx = dr.arange(mi.UInt32, width * height * c)
+    pix = idx // c
+    ch = idx - pix * c
     py = pix // width
     px = pix - py * width
     ty, tx = py // bins.size, px // bins.size
     local = (py - ty * bins.size) * bins.size + (px - tx * bins.size)
-    return (ty * bins.ntx + tx) * (bins.size * bins.size) + local
-
-
-def _to_image(vals: list, bins: _Bins, width: int, height: int) -> mi.Float:
-    """Lane values (C arrays [lanes]) -> a flat image [H * W * C]."""
-    c = len(vals)
-    lane = _lane_of_pixel(bins, width, height)
-    if c == 1:
-        return dr.gather(mi.Float, vals[0], lane)
-    idx = dr.arange(mi.UInt32, width * height * c)
-    pix = idx // c
-    k = idx - pix * c
-    lane = dr.gather(mi.UInt32, lane, pix)
-    out = dr.gather(mi.Float, vals[0], lane)
-    for i in range(1, c):
-        out = dr.select(k == i, dr.gather(mi.Float, vals[i], lane), out)
+    sub = local // bins.per_lane
+    k = local - sub * bins.per_lane
+    lane = (ty * bins.ntx + tx) * bins.lanes_per_tile + sub
+    out = dr.gather(mi.Float, vals[0][0], lane)
+    for kk, vk in enumerate(vals):
+        for cc, v in enumerate(vk):
+            if kk or cc:
+                out = dr.select((k == kk) & (ch == cc), dr.gather(mi.Float, v, lane), out)
     return out
 
 
-def _in_box(bins: _Bins, j: mi.UInt32, px: mi.UInt32, py: mi.UInt32) -> mi.Bool:
-    """Whether pixel (px, py) lies in the box of sorted pair j's surfel (the pair list
-    holds exactly the box's pixels)."""
-    bx = dr.gather(mi.UInt32, bins.box[0], j)
-    by = dr.gather(mi.UInt32, bins.box[1], j)
+def _all_done(pixels: list) -> mi.Bool:
+    out = pixels[0]["done"]
+    for p in pixels[1:]:
+        out = out & p["done"]
+    return out
+
+
+def _sum(values: list):
+    out = values[0]
+    for v in values[1:]:
+        out = out + v
+    return out
+
+
+def _box_of(bins: _Bins, j: mi.UInt32) -> tuple:
+    """Sorted pair j's surfel pixel box, packed (x0 | x1 << 16, y0 | y1 << 16): read once
+    per lane and tested for each of its pixels (``_in_box``)."""
+    return dr.gather(mi.UInt32, bins.box[0], j), dr.gather(mi.UInt32, bins.box[1], j)
+
+
+def _in_box(box: tuple, px: mi.UInt32, py: mi.UInt32) -> mi.Bool:
+    """Whether pixel (px, py) lies in a pair's box (the pair list holds exactly the box's
+    pixels)."""
+    bx, by = box
     return (px >= (bx & 0xFFFF)) & (px <= (bx >> 16)) & (py >= (by & 0xFFFF)) & \
         (py <= (by >> 16))
 
@@ -225,8 +258,9 @@ class _TiledOp(dr.CustomOp):
         self.sorted_chans = {
             name: [dr.gather(mi.Float, arr, bins.sid * c + k) for k in range(c)]
             for (name, arr), c in zip(chans.items(), ctx.widths.values(), strict=True)}
-        tile, px, py, inside = _lanes(bins, ctx.width, ctx.height)
-        pxf, pyf = mi.Float(px) + 0.5, mi.Float(py) + 0.5
+        tile, pxs, pys, insides = _lanes(bins, ctx.width, ctx.height)
+        pxf = [mi.Float(px) + 0.5 for px in pxs]
+        pyf = [mi.Float(py) + 0.5 for py in pys]
         aovs = ctx.aovs
         want_depth = "depth" in aovs
         want_med = "median_depth" in aovs
@@ -236,109 +270,120 @@ class _TiledOp(dr.CustomOp):
         n = bins.lanes
         zf = dr.zeros(mi.Float, n)
         z64 = dr.zeros(mi.Float64, n)
-        state = {
-            "j": dr.gather(mi.UInt32, bins.start, tile),
-            "T": dr.ones(mi.Float64, n),
-            "done": ~inside,
-            "chans": {name: [zf] * len(v) for name, v in self.sorted_chans.items()},
-        }
-        if want_depth:
-            state["depth"] = zf
-        if want_med:
-            state["med"] = zf
-            state["med_j"] = dr.full(mi.UInt32, 0xFFFFFFFF, n)
-        if want_normal:
-            state["normal"] = [zf, zf, zf]
-        if want_dist:
-            state["m1"], state["m2"], state["dist"] = z64, z64, z64
-        if want_count:
-            state["count"] = zf
+        first = dr.gather(mi.UInt32, bins.start, tile)
         end = dr.gather(mi.UInt32, bins.end, tile)
+        pixels = []  # the compositing state of each pixel of a lane
+        for inside in insides:
+            p = {"T": dr.ones(mi.Float64, n), "done": ~inside,
+                 # Where the pixel stopped (the first pair not composited), else its end.
+                 "stop": dr.select(inside, end, first),
+                 "chans": {name: [zf] * len(v) for name, v in self.sorted_chans.items()}}
+            if want_depth:
+                p["depth"] = zf
+            if want_med:
+                p["med"] = zf
+                p["med_j"] = dr.full(mi.UInt32, 0xFFFFFFFF, n)
+            if want_normal:
+                p["normal"] = [zf, zf, zf]
+            if want_dist:
+                p["m1"], p["m2"], p["dist"] = z64, z64, z64
+            if want_count:
+                p["count"] = zf
+            pixels.append(p)
+        state = {"j": first, "pixels": pixels}
         q_names = _PAIR_FIELDS + (_NORMAL_FIELDS if want_normal else ())
 
         def cond(s):
-            return (s["j"] < end) & ~s["done"]
+            return (s["j"] < end) & ~_all_done(s["pixels"])
 
         def body(s):
             j = s["j"]
+            # One read of the entry per lane, shared by its pixels.
             q = {k: dr.gather(mi.Float, self.sorted[k], j) for k in q_names}
-            alpha, rho, depth = _pair_eval(q, pxf, pyf, config)
-            keep = _pair_kept(alpha, rho, depth, config) & _in_box(bins, j, px, py)
-            a64 = mi.Float64(alpha)
-            t_before = s["T"]
-            t_after = t_before * (1.0 - a64)
-            stop = keep & (t_after < config.transmittance_min)
-            comp = keep & ~stop
-            # A dropped pair's depth may be inf (an edge-on plane): 0 * inf would be NaN.
-            depth = dr.select(comp, depth, config.near)
-            w64 = t_before * a64
-            w = dr.select(comp, mi.Float(w64), 0.0)
-            out = dict(s)
-            out["chans"] = {
-                name: [acc + w * dr.gather(mi.Float, self.sorted_chans[name][k], j)
-                       for k, acc in enumerate(accs)]
-                for name, accs in s["chans"].items()}
-            if want_depth:
-                out["depth"] = s["depth"] + w * depth
-            if want_med:
-                sel = comp & (t_before > 0.5)
-                out["med"] = dr.select(sel, depth, s["med"])
-                out["med_j"] = dr.select(sel, j, s["med_j"])
-            if want_normal:
-                out["normal"] = [acc + w * q[k]
-                                 for acc, k in zip(s["normal"], _NORMAL_FIELDS, strict=True)]
-            if want_dist:
-                m = _distortion_m(depth, config)
-                wm = dr.select(comp, w64 * m, 0.0)
-                front = 1.0 - t_before  # sum of the weights in front
-                out["dist"] = s["dist"] + dr.select(
-                    comp, w64 * (m * m * front + s["m2"] - 2.0 * m * s["m1"]), 0.0)
-                out["m1"] = s["m1"] + wm
-                out["m2"] = s["m2"] + wm * m
-            if want_count:
-                out["count"] = s["count"] + dr.select(comp, 1.0, 0.0)
-            out["T"] = dr.select(comp, t_after, t_before)
-            out["done"] = s["done"] | stop
-            out["j"] = dr.select(stop, j, j + 1)  # the stopping pair is not composited
-            return (out,)
+            box = _box_of(bins, j)
+            chan_vals = {name: [dr.gather(mi.Float, arr, j) for arr in arrs]
+                         for name, arrs in self.sorted_chans.items()}
+            out_pixels = []
+            for k, p in enumerate(s["pixels"]):
+                alpha, rho, depth = _pair_eval(q, pxf[k], pyf[k], config)
+                keep = ~p["done"] & _pair_kept(alpha, rho, depth, config) & \
+                    _in_box(box, pxs[k], pys[k])
+                a64 = mi.Float64(alpha)
+                t_before = p["T"]
+                t_after = t_before * (1.0 - a64)
+                stop = keep & (t_after < config.transmittance_min)
+                comp = keep & ~stop
+                # A dropped pair's depth may be inf (an edge-on plane): 0 * inf is NaN.
+                depth = dr.select(comp, depth, config.near)
+                w64 = t_before * a64
+                w = dr.select(comp, mi.Float(w64), 0.0)
+                o = dict(p)
+                o["chans"] = {name: [acc + w * v for acc, v in zip(accs, chan_vals[name],
+                                                                   strict=True)]
+                              for name, accs in p["chans"].items()}
+                if want_depth:
+                    o["depth"] = p["depth"] + w * depth
+                if want_med:
+                    sel = comp & (t_before > 0.5)
+                    o["med"] = dr.select(sel, depth, p["med"])
+                    o["med_j"] = dr.select(sel, j, p["med_j"])
+                if want_normal:
+                    o["normal"] = [acc + w * q[f]
+                                   for acc, f in zip(p["normal"], _NORMAL_FIELDS, strict=True)]
+                if want_dist:
+                    m = _distortion_m(depth, config)
+                    wm = dr.select(comp, w64 * m, 0.0)
+                    front = 1.0 - t_before  # sum of the weights in front
+                    o["dist"] = p["dist"] + dr.select(
+                        comp, w64 * (m * m * front + p["m2"] - 2.0 * m * p["m1"]), 0.0)
+                    o["m1"] = p["m1"] + wm
+                    o["m2"] = p["m2"] + wm * m
+                if want_count:
+                    o["count"] = p["count"] + dr.select(comp, 1.0, 0.0)
+                o["T"] = dr.select(comp, t_after, t_before)
+                o["done"] = p["done"] | stop
+                o["stop"] = dr.select(stop, j, p["stop"])  # the stopping pair: not composited
+                out_pixels.append(o)
+            return ({"j": j + 1, "pixels": out_pixels},)
 
         (s,) = dr.while_loop((state,), cond, body, label="raster_tiles_forward")
-        t_final = s["T"]  # [lanes] Float64
-        alpha_img = mi.Float(1.0 - t_final)  # = sum of the weights (telescoping)
-        pix = py * ctx.width + px
-        lane_out = {}
-        for name, accs in s["chans"].items():
-            vals = accs
+        pixels = s["pixels"]
+        pixs = [py * ctx.width + px for px, py in zip(pxs, pys, strict=True)]
+        t_final = [p["T"] for p in pixels]  # [lanes] Float64 per pixel of a lane
+        alpha_img = [mi.Float(1.0 - t) for t in t_final]  # = sum of the weights
+        lane_out = {}  # name -> per pixel k: C arrays [lanes]
+        for name in self.sorted_chans:
+            vals = [p["chans"][name] for p in pixels]
             if name in ctx.background:
-                tf = mi.Float(t_final)
-                vals = [v + jit.opaque(b) * tf
-                        for v, b in zip(accs, ctx.background[name], strict=True)]
+                vals = [[v + jit.opaque(b) * mi.Float(t)
+                         for v, b in zip(vk, ctx.background[name], strict=True)]
+                        for vk, t in zip(vals, t_final, strict=True)]
             lane_out[name] = vals
         if "alpha" in aovs:
-            lane_out["alpha"] = [alpha_img]
+            lane_out["alpha"] = [[a] for a in alpha_img]
+        depth_img = None
         if want_depth:
-            ok = alpha_img > 0
-            depth_img = dr.select(ok, s["depth"] / dr.select(ok, alpha_img, 1.0), 0.0)
-            lane_out["depth"] = [depth_img]
+            depth_img = [dr.select(a > 0, p["depth"] / dr.select(a > 0, a, 1.0), 0.0)
+                         for p, a in zip(pixels, alpha_img, strict=True)]
+            lane_out["depth"] = [[d] for d in depth_img]
         if want_med:
-            lane_out["median_depth"] = [s["med"]]
+            lane_out["median_depth"] = [[p["med"]] for p in pixels]
         if want_normal:
-            lane_out["normal"] = s["normal"]
+            lane_out["normal"] = [p["normal"] for p in pixels]
         if want_dist:
-            lane_out["distortion"] = [mi.Float(s["dist"])]
+            lane_out["distortion"] = [[mi.Float(p["dist"])] for p in pixels]
         if want_count:
-            lane_out["count"] = [s["count"]]
-        # What the backward pass needs, per lane: O(pixels).
-        self.lanes = (tile, px, py, inside, pix)
-        self.t_final, self.stop = t_final, s["j"]
+            lane_out["count"] = [[p["count"]] for p in pixels]
+        # What the backward pass needs, per pixel: O(pixels).
+        self.lanes = (tile, pxs, pys, insides, pixs)
+        self.t_final, self.stop = t_final, [p["stop"] for p in pixels]
         self.alpha_img = alpha_img
-        self.depth_img = lane_out["depth"][0] if want_depth else None
-        self.med_j = s["med_j"] if want_med else None
-        self.m_sums = (s["m1"], s["m2"]) if want_dist else None
+        self.depth_img = depth_img
+        self.med_j = [p["med_j"] for p in pixels] if want_med else None
+        self.m_sums = [(p["m1"], p["m2"]) for p in pixels] if want_dist else None
         # Everything the loop yields in one kernel (a later evaluation of any loop output
-        # would run the loop again), then the images by a gather from the lanes.
-        dr.eval(self.t_final, self.stop, *(v for vals in lane_out.values() for v in vals),
-                *([self.med_j] if want_med else []), *(self.m_sums or ()))
+        # would run the loop again), then the images by a scatter from the lanes.
+        dr.eval(self.t_final, self.stop, lane_out, self.med_j, self.m_sums)
         return {name: _to_image(vals, bins, ctx.width, ctx.height)
                 for name, vals in lane_out.items()}
 
@@ -453,61 +498,72 @@ def _tiled_backward(op: _TiledOp) -> None:
     bins, config = ctx.bins, ctx.config
     aovs = ctx.aovs
     grads_out = {k: dr.detach(v) for k, v in op.grad_out().items()}
-    tile, px, py, inside, pix = op.lanes
-    pxf, pyf = mi.Float(px) + 0.5, mi.Float(py) + 0.5
+    tile, pxs, pys, insides, pixs = op.lanes
+    pxf = [mi.Float(px) + 0.5 for px in pxs]
+    pyf = [mi.Float(py) + 0.5 for py in pys]
     n = bins.lanes
 
-    def lane_grad(name, c):  # [lanes] per component of an output's gradient image
+    def lane_grad(name, c, k):  # [lanes] per component of an output's gradient at pixel k
         g = grads_out.get(name)
         if g is None or dr.width(g) == 0:
             return [dr.zeros(mi.Float, n)] * c
-        return [dr.gather(mi.Float, g, pix * c + k, active=inside) for k in range(c)]
+        return [dr.gather(mi.Float, g, pixs[k] * c + ch, active=insides[k])
+                for ch in range(c)]
 
-    g_chans = {name: lane_grad(name, c) for name, c in ctx.widths.items()}
-    # dL/d(sum of weights): alpha, the backgrounds' (1 - alpha) and the depth's division.
-    g_wsum = lane_grad("alpha", 1)[0] if "alpha" in aovs else dr.zeros(mi.Float, n)
-    for name, bg in ctx.background.items():
-        for g, b in zip(g_chans[name], bg, strict=True):
-            g_wsum = g_wsum - jit.opaque(b) * g
-    alpha_img = op.alpha_img
-    ok = alpha_img > 0
-    if "depth" in aovs:
-        g_dimg = lane_grad("depth", 1)[0]
-        g_dacc = dr.select(ok, g_dimg / dr.select(ok, alpha_img, 1.0), 0.0)  # dL/d sum w z
-        g_wsum = g_wsum - g_dacc * op.depth_img
-    g_med = lane_grad("median_depth", 1)[0] if "median_depth" in aovs else None
-    g_normal = lane_grad("normal", 3) if "normal" in aovs else None
-    if "distortion" in aovs:
-        g_dist = mi.Float64(lane_grad("distortion", 1)[0])
-        m1, m2 = op.m_sums
-        wsum64 = 1.0 - op.t_final
-    q_names = _PAIR_FIELDS + (_NORMAL_FIELDS if g_normal is not None else ())
+    # What each pixel k of a lane needs from the output gradients: pixel[k][...].
+    pixel = []
+    for k in range(bins.per_lane):
+        pk = {"chans": {name: lane_grad(name, c, k) for name, c in ctx.widths.items()}}
+        # dL/d(sum of weights): alpha, the backgrounds' (1 - alpha), the depth's division.
+        g_wsum = lane_grad("alpha", 1, k)[0] if "alpha" in aovs else dr.zeros(mi.Float, n)
+        for name, bg in ctx.background.items():
+            for g, b in zip(pk["chans"][name], bg, strict=True):
+                g_wsum = g_wsum - jit.opaque(b) * g
+        alpha_img = op.alpha_img[k]
+        ok = alpha_img > 0
+        if "depth" in aovs:
+            g_dimg = lane_grad("depth", 1, k)[0]
+            pk["g_dacc"] = dr.select(ok, g_dimg / dr.select(ok, alpha_img, 1.0), 0.0)
+            g_wsum = g_wsum - pk["g_dacc"] * op.depth_img[k]
+        pk["g_wsum"] = g_wsum
+        pk["g_med"] = lane_grad("median_depth", 1, k)[0] if "median_depth" in aovs else None
+        pk["g_normal"] = lane_grad("normal", 3, k) if "normal" in aovs else None
+        if "distortion" in aovs:
+            pk["g_dist"] = mi.Float64(lane_grad("distortion", 1, k)[0])
+            pk["m1"], pk["m2"] = op.m_sums[k]
+            pk["wsum64"] = 1.0 - op.t_final[k]
+        pixel.append(pk)
+    normal = "normal" in aovs
+    q_names = _PAIR_FIELDS + (_NORMAL_FIELDS if normal else ())
     nsurf = ctx.nsurfels
     geometry_grad = ctx.geometry_grad
     acc = {k: dr.zeros(mi.Float, nsurf) for k in q_names} if geometry_grad else {}
     acc_chans = {name: dr.zeros(mi.Float, nsurf * c) for name, c in ctx.widths.items()}
     reduce_mode = _grad_reduce_mode(
-        _grad_entries(nsurf, g_normal is not None, sum(ctx.widths.values())), config)
+        _grad_entries(nsurf, normal, sum(ctx.widths.values())), config)
 
     # The lanes of a group (up to _BACKWARD_GROUP consecutive lanes of one tile: a SIMD
-    # packet) walk down together from the group's largest stop index, each active below
-    # its own: the packet reads one sorted entry per iteration (coherent gathers, one
-    # atomic per scatter after the local pre-reduction). Any grouping is correct (a lane
-    # composites only entries in [its tile's start, its stop)), but a group across tiles
-    # would walk through the other tiles' lists: 25x slower with 2x2 tiles.
-    ts2 = bins.size * bins.size
-    per_tile = -(-ts2 // _BACKWARD_GROUP)
+    # packet) walk down together from the group's largest stop index, each pixel active
+    # below its own: the packet reads one sorted entry per iteration (coherent gathers).
+    # Any grouping is correct (a pixel composites only entries in [its tile's start, its
+    # stop)), but a group across tiles would walk through the other tiles' lists: 25x
+    # slower with 2x2 tiles.
+    per_tile = bins.lanes_per_tile
+    groups_per_tile = -(-per_tile // _BACKWARD_GROUP)
     lane = dr.arange(mi.UInt32, n)
-    slot = lane // ts2
-    group = slot * per_tile + (lane - slot * ts2) // _BACKWARD_GROUP
-    group_stop = dr.zeros(mi.UInt32, (n // ts2) * per_tile)
-    dr.scatter_reduce(dr.ReduceOp.Max, group_stop, op.stop, group, active=inside)
+    slot = lane // per_tile
+    group = slot * groups_per_tile + (lane - slot * per_tile) // _BACKWARD_GROUP
     first = dr.gather(mi.UInt32, bins.start, tile)
     own_stop = op.stop
-    state = {"j": dr.select(inside, dr.gather(mi.UInt32, group_stop, group), first),
+    lane_stop = _maximum([dr.select(ins, st, first)
+                          for ins, st in zip(insides, own_stop, strict=True)])
+    group_stop = dr.zeros(mi.UInt32, (n // per_tile) * groups_per_tile)
+    dr.scatter_reduce(dr.ReduceOp.Max, group_stop, lane_stop, group)
+    state = {"j": dr.gather(mi.UInt32, group_stop, group),
+             "T": list(op.t_final),
              # opaque: a literal zero that stays zero (median depth alone: every dL/dw is
              # 0) trips the loop's constant-state check.
-             "T": op.t_final, "S": dr.opaque(mi.Float64, 0.0, n)}
+             "S": [dr.opaque(mi.Float64, 0.0, n) for _ in pixel]}
 
     def cond(s):
         return s["j"] > first
@@ -515,68 +571,88 @@ def _tiled_backward(op: _TiledOp) -> None:
     def body(s):
         j = s["j"]
         i = j - 1
+        # One read of the entry per lane, shared by its pixels.
         q = {k: dr.gather(mi.Float, op.sorted[k], i)
              for k in (q_names if geometry_grad else _PAIR_FIELDS)}
-        alpha, rho, depth = _pair_eval(q, pxf, pyf, config)
-        # Every kept pair before the stop index was composited (T only decreases).
-        comp = (i < own_stop) & _pair_kept(alpha, rho, depth, config) & _in_box(bins, i, px, py)
-        # Pairs that are not composited pass through with alpha 0 and a finite depth.
-        depth = dr.select(comp, depth, config.near)
-        a64 = mi.Float64(dr.select(comp, alpha, 0.0))
-        one_minus = 1.0 - a64
-        t_before = s["T"] / one_minus
-        w64 = t_before * a64
-        w = mi.Float(w64)
+        box = _box_of(bins, i)
         sid = dr.gather(mi.UInt32, bins.sid, i)
-        for name, gs in g_chans.items():  # the channels' gradients: w_i dL/d(image)
-            c = len(gs)
-            for k, gk in enumerate(gs):
-                dr.scatter_reduce(dr.ReduceOp.Add, acc_chans[name], w * gk, sid * c + k,
-                                  active=comp, mode=reduce_mode)
-        out = dict(s)
-        out["T"] = dr.select(comp, t_before, s["T"])
-        out["j"] = i
+        chan_vals = {name: [dr.gather(mi.Float, arr, i) for arr in arrs]
+                     for name, arrs in op.sorted_chans.items()} if geometry_grad else {}
+        comps, ws, t_out, s_out, g_fields = [], [], [], [], []
+        for k, pk in enumerate(pixel):
+            alpha, rho, depth = _pair_eval(q, pxf[k], pyf[k], config)
+            # Every kept pair before the stop index was composited (T only decreases).
+            comp = (i < own_stop[k]) & insides[k] & _pair_kept(alpha, rho, depth, config) & \
+                _in_box(box, pxs[k], pys[k])
+            # Pairs that are not composited pass through with alpha 0 and a finite depth.
+            depth = dr.select(comp, depth, config.near)
+            a64 = mi.Float64(dr.select(comp, alpha, 0.0))
+            one_minus = 1.0 - a64
+            t_before = s["T"][k] / one_minus
+            w64 = t_before * a64
+            w = mi.Float(w64)
+            comps.append(comp)
+            ws.append(w)
+            t_out.append(dr.select(comp, t_before, s["T"][k]))
+            if geometry_grad:
+                g64, fg = geometry_grad_of(k, pk, i, q, chan_vals, pxf[k], pyf[k], depth, w,
+                                           w64, t_before, one_minus, s["S"][k])
+                s_out.append(dr.select(comp, s["S"][k] + w64 * g64, s["S"][k]))
+                g_fields.append({f: dr.select(comp, v, 0.0) for f, v in fg.items()})
+            else:
+                s_out.append(s["S"][k])
+        any_comp = comps[0]
+        for c in comps[1:]:
+            any_comp = any_comp | c
+        # The pixels' sums, then one scatter per field (w is 0 where a pixel did not
+        # composite the pair).
+        for name, c in ctx.widths.items():  # the channels' gradients: w_i dL/d(image)
+            for ch in range(c):
+                v = _sum([w * pk["chans"][name][ch] for w, pk in zip(ws, pixel, strict=True)])
+                dr.scatter_reduce(dr.ReduceOp.Add, acc_chans[name], v, sid * c + ch,
+                                  active=any_comp, mode=reduce_mode)
         if geometry_grad:
-            g64 = geometry_step(i, sid, q, comp, depth, w, w64, t_before, one_minus, s["S"])
-            out["S"] = dr.select(comp, s["S"] + w64 * g64, s["S"])
-        return (out,)
+            for f in g_fields[0]:
+                dr.scatter_reduce(dr.ReduceOp.Add, acc[f], _sum([g[f] for g in g_fields]),
+                                  sid, active=any_comp, mode=reduce_mode)
+        return ({"j": i, "T": t_out, "S": s_out},)
 
-    def geometry_step(i, sid, q, comp, depth, w, w64, t_before, one_minus, suffix):
-        """Scatter pair i's gradients of the projected fields (and the normal's); return
-        g64 = dL/dw_i, whose running sum over later pairs is the state's S (``suffix``)."""
+    def geometry_grad_of(k, pk, i, q, chan_vals, px, py, depth, w, w64, t_before, one_minus,
+                         suffix):
+        """Pixel k's (g64, gradients of the projected fields, the normal's too) for pair
+        i: g64 = dL/dw_i, whose running sum over later pairs is the state's S
+        (``suffix``)."""
         # g: dL/dw of this pair (every output is linear in w but the distortion);
         # g_z: dL/ddepth at fixed w.
-        g = g_wsum
+        g = pk["g_wsum"]
         g_z = dr.zeros(mi.Float, n)
-        for name, gs in g_chans.items():
-            for k, gk in enumerate(gs):
-                g = g + gk * dr.gather(mi.Float, op.sorted_chans[name][k], i)
+        for name, gs in pk["chans"].items():
+            for gk, v in zip(gs, chan_vals[name], strict=True):
+                g = g + gk * v
         if "depth" in aovs:
-            g = g + g_dacc * depth
-            g_z = g_z + w * g_dacc
-        if g_normal is not None:
-            for k, gk in zip(_NORMAL_FIELDS, g_normal, strict=True):
-                g = g + gk * q[k]
-                dr.scatter_reduce(dr.ReduceOp.Add, acc[k], w * gk, sid, active=comp,
-                                  mode=reduce_mode)
+            g = g + pk["g_dacc"] * depth
+            g_z = g_z + w * pk["g_dacc"]
+        grads = {}
+        if pk["g_normal"] is not None:
+            for f, gk in zip(_NORMAL_FIELDS, pk["g_normal"], strict=True):
+                g = g + gk * q[f]
+                grads[f] = w * gk
         g64 = mi.Float64(g)
-        if g_med is not None:
-            g_z = g_z + dr.select(i == op.med_j, g_med, 0.0)
+        if pk["g_med"] is not None:
+            g_z = g_z + dr.select(i == op.med_j[k], pk["g_med"], 0.0)
         if "distortion" in aovs:
             # d = W M2 - M1^2 over the pixel's totals (W = sum w, M1 = sum w m, M2 = sum w
             # m^2): dd/dw_i = sum_j w_j (m_i - m_j)^2, dd/dm_i = 2 w_i (W m_i - M1).
             m = _distortion_m(depth, config)
-            g64 = g64 + g_dist * (m2 + wsum64 * m * m - 2.0 * m1 * m)
+            m1, m2, wsum64 = pk["m1"], pk["m2"], pk["wsum64"]
+            g64 = g64 + pk["g_dist"] * (m2 + wsum64 * m * m - 2.0 * m1 * m)
             near, far = config.distortion_near, config.distortion_far
             dm_dz = (far * near / (far - near)) / (mi.Float64(depth) * depth)
-            g_z = g_z + mi.Float(g_dist * 2.0 * w64 * (wsum64 * m - m1) * dm_dz)
+            g_z = g_z + mi.Float(pk["g_dist"] * 2.0 * w64 * (wsum64 * m - m1) * dm_dz)
         # dw_i/dalpha_i = T_i; dw_j/dalpha_i = -w_j / (1 - alpha_i) for every later j.
         g_alpha = mi.Float(t_before * g64 - suffix / one_minus)
-        fg = _pair_eval_grad(q, pxf, pyf, g_alpha, g_z, config)
-        for k in _PAIR_FIELDS:
-            dr.scatter_reduce(dr.ReduceOp.Add, acc[k], fg[k], sid, active=comp,
-                              mode=reduce_mode)
-        return g64
+        grads.update(_pair_eval_grad(q, px, py, g_alpha, g_z, config))
+        return g64, grads
 
     dr.while_loop((state,), cond, body, label="raster_tiles_backward")
     dr.eval(*acc.values(), *acc_chans.values())
@@ -584,6 +660,13 @@ def _tiled_backward(op: _TiledOp) -> None:
         op.set_grad_in("fields", {k: acc[k] for k in ctx.field_names})
     if acc_chans:
         op.set_grad_in("chans", acc_chans)
+
+
+def _maximum(values: list):
+    out = values[0]
+    for v in values[1:]:
+        out = dr.maximum(out, v)
+    return out
 
 
 def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequence[str],
