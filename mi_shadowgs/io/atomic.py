@@ -31,10 +31,15 @@ def _umask() -> int:
 def _stale_siblings(path: Path, suffix: str) -> list[Path]:
     """Temporaries that ``tempfile`` made for ``path`` with ``suffix`` (8 random characters
     between the prefix and the suffix), so that another output's are never matched."""
-    pattern = re.compile(re.escape(f".{path.name}.") + r"[A-Za-z0-9_]{8}" + re.escape(suffix))
+    prefix = f".{path.name}."
+    pattern = re.compile(re.escape(prefix) + r"[A-Za-z0-9_]{8}" + re.escape(suffix))
     if not path.parent.is_dir():
         return []
-    return [p for p in path.parent.iterdir() if pattern.fullmatch(p.name)]
+    # Every write scans its folder (a dataset's 600+ files: quadratic), so the scan stays
+    # on plain names: a prefix test before the pattern, a Path only for a match.
+    with os.scandir(path.parent) as entries:
+        return [path.parent / e.name for e in entries
+                if e.name.startswith(prefix) and pattern.fullmatch(e.name)]
 
 
 def _remove(path: Path) -> None:
