@@ -175,8 +175,10 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
                 lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
             else:
                 lights = relight.lights_from_json(entry)
+            # Only the relit colours are scored: no irradiance pass (for an env map, a
+            # second shading over its 128 directions).
             rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg,
-                                             cache=cache)
+                                             cache=cache, only_rgb=True)
             est = np.stack([v["rgb"] for v in rv])
             gt = np.stack([v.relit[name] for v in test.views])
             relit[name] = {**evaluation.image_metrics(est, gt, mask), "render_s": secs,

@@ -284,9 +284,12 @@ def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shadin
                   bounds: SceneBounds, config: RelightConfig = DEFAULT_RELIGHT,
                   vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
                   raster: RasterConfig = DEFAULT_RASTER, progress: bool = False,
-                  cache: RelightCache | None = None) -> tuple[list[dict], float]:
+                  cache: RelightCache | None = None,
+                  only_rgb: bool = False) -> tuple[list[dict], float]:
     """Relight every camera's view; returns the per-view dicts and the wall time (s),
-    shadow maps included (taken from ``cache`` when given)."""
+    shadow maps included (taken from ``cache`` when given). ``only_rgb``: each view's "rgb"
+    and "alpha" alone (``relight_view``), without the second shading pass over every light
+    that the irradiance buffer takes."""
     from tqdm import tqdm
 
     dr.sync_thread()
@@ -294,7 +297,7 @@ def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shadin
     maps = shadow_maps_for(model, lights, bounds, vis_config) if cache is None else \
         cache.shadow_maps(model, lights, bounds, vis_config)
     factor = indirect_factor(model, lights, config)
-    out = [relight_view(model, cam, lights, maps, factor, raster)
+    out = [relight_view(model, cam, lights, maps, factor, raster, only_rgb=only_rgb)
            for cam in tqdm(cameras, desc="relight", disable=not progress)]
     dr.sync_thread()
     return out, time.perf_counter() - t0
