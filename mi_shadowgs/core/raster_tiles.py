@@ -231,6 +231,13 @@ def _sum(values: list):
     return out
 
 
+def _maximum(values: list):
+    out = values[0]
+    for v in values[1:]:
+        out = dr.maximum(out, v)
+    return out
+
+
 def _box_of(bins: _Bins, j: mi.UInt32) -> tuple:
     """Sorted pair j's surfel pixel box, packed (x0 | x1 << 16, y0 | y1 << 16): read once
     per lane and tested for each of its pixels (``_in_box``)."""
@@ -660,13 +667,6 @@ def _tiled_backward(op: _TiledOp) -> None:
         op.set_grad_in("fields", {k: acc[k] for k in ctx.field_names})
     if acc_chans:
         op.set_grad_in("chans", acc_chans)
-
-
-def _maximum(values: list):
-    out = values[0]
-    for v in values[1:]:
-        out = dr.maximum(out, v)
-    return out
 
 
 def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequence[str],
