@@ -415,7 +415,7 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
         pairs = shading.splat_pairs(s, cam)
         geom = shading.pixel_geometry(s, cam)
         albedo, rough, metal, ind = material_fit.view_maps(pairs, ch, cfg.sh_degree,
-                                                           geom.normal)
+                                                           shading.facing_normals(s, cam))
         vis = maps.evaluate(geom.points, geom.normal, geom.footprint)
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, ind, False)
         return np.stack([np.asarray(rgb[c], np.float64) for c in range(3)], -1)
@@ -504,3 +504,51 @@ def test_albedo_tv_across_segments_only_where_configured():
     tv_same = loss(cfg, same) - loss(l1_only, same)
     tv_apart = loss(cfg, apart) - loss(l1_only, apart)
     assert tv_apart > tv_same + 1e-3, (tv_apart, tv_same)
+
+
+def _sh2_reference(n: np.ndarray) -> np.ndarray:
+    """The 9 real SH basis values of degree 2 (3DGS's signs) [N, 9], float64, from the
+    textbook constants."""
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    c0, c1 = 0.5 / math.sqrt(math.pi), math.sqrt(3.0 / (4.0 * math.pi))
+    c2, c3, c4 = (0.5 * math.sqrt(15.0 / math.pi), 0.25 * math.sqrt(5.0 / math.pi),
+                  0.25 * math.sqrt(15.0 / math.pi))
+    return np.stack([np.full_like(x, c0), -c1 * y, c1 * z, -c1 * x, c2 * x * y, -c2 * y * z,
+                     c3 * (2 * z * z - x * x - y * y), -c2 * x * z, c4 * (x * x - y * y)], -1)
+
+
+def test_indirect_sh_is_evaluated_per_surfel_at_its_camera_facing_normal():
+    """facing_normals flips each surfel's normal toward the camera as the rasterizer does
+    (its rendered normal at a one-surfel pixel), and surfel_sh_irradiance is max(0, SH(n))
+    per surfel against a float64 reference; its gradient is the basis where unclamped."""
+    rng = np.random.default_rng(5)
+    n = 40
+    q = rng.standard_normal((n, 4))
+    s = Surfels.from_numpy(rng.uniform(-0.5, 0.5, (n, 3)), np.full((n, 2), 0.05), q,
+                           np.full(n, 0.9))
+    cam = Camera.look_at([1.5, 1.2, 2.0], [0, 0, 0], fov_x=0.8, width=32, height=32)
+    nrm = shading.facing_normals(s, cam)
+    got_n = np.stack([np.asarray(nrm[c], np.float64) for c in range(3)], -1)
+    _, _, axis = s.tangent_frame()
+    axis = np.stack([np.asarray(axis[c], np.float64) for c in range(3)], -1)
+    pos = s.to_numpy()["position"]
+    facing = np.sum(axis * (np.asarray(cam.origin) - pos), -1) >= 0
+    np.testing.assert_allclose(got_n, np.where(facing[:, None], axis, -axis), atol=1e-6)
+    one = Surfels.from_numpy(pos[:1], np.full((1, 2), 0.3), q[:1], np.full(1, 0.99))
+    img = rasterize(one, cam, None, aovs=("alpha", "normal"))
+    a = np.asarray(img["alpha"].array).reshape(-1)
+    rendered = np.asarray(img["normal"].array).reshape(-1, 3)[a.argmax()] / a.max()
+    np.testing.assert_allclose(rendered, got_n[0], atol=1e-4)
+
+    sh = rng.normal(0.0, 0.3, (n, 27)).astype(np.float32)
+    sh_t = mi.TensorXf(sh)
+    dr.enable_grad(sh_t)
+    irr = shading.surfel_sh_irradiance(sh_t, nrm, 2)
+    basis = _sh2_reference(got_n)  # [N, 9]
+    want = np.maximum(np.einsum("nk,nkc->nc", basis, sh.astype(np.float64).reshape(n, 9, 3)),
+                      0.0)
+    np.testing.assert_allclose(irr.numpy(), want, atol=1e-6)
+    assert (want > 0).any() and (want == 0).any()  # both sides of the clamp are tested
+    dr.backward(dr.sum(irr.array))
+    grad = dr.grad(sh_t).numpy().reshape(n, 9, 3)
+    np.testing.assert_allclose(grad, basis[:, :, None] * (want > 0)[:, None, :], atol=1e-6)

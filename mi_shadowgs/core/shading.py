@@ -10,8 +10,12 @@ differentiable with respect to them. Shading works per pixel on the rendered buf
 where the lights are a ``LightSet`` of K directions with RGB weights E_k (for the grid light
 map E_k = L_dir(l_k) dw with dw = 2 pi / N_l; for a directional light E_k is its
 irradiance). ``L_ind(x)`` is the paper's view- and light-independent indirect radiance, an
-RGB SH of degree 2 per surfel rendered like a channel and evaluated per pixel at the pixel's
-normal (indirect light depends on where the surface faces). Being independent of ``l`` it
+RGB SH of degree 2 per surfel, evaluated at the surfel's normal facing the view
+(``surfel_sh_irradiance``: indirect light depends on where the surface faces) and blended
+into the pixel like a channel. Evaluated per pixel at the blended normal instead, a view
+splatted 27 coefficients per pixel-splat pair rather than 3, which made a stage-4 step
+2.2x slower, and the twelve table rows fit no better that way (BENCHMARKS.md, "Session 17").
+Being independent of ``l`` it
 is integrated in closed form over the normal's hemisphere: its diffuse part is
 (1 - m) a / pi * pi L_ind; its specular part is left out (the grid covers only the upper
 hemisphere, so Eq. 17's grid sum would cut a vertical surface's hemisphere in half).
@@ -139,6 +143,50 @@ def sh_irradiance(sh_flat: mi.Float, normal: mi.Vector3f, degree: int) -> mi.Col
             acc = acc + bk * channel(sh_flat, kc, 3 * k + c)
         out.append(dr.maximum(acc, 0.0))
     return mi.Color3f(*out)
+
+
+def facing_normals(surfels: Surfels, camera: Camera) -> mi.Vector3f:
+    """Each surfel's unit normal [N] flipped to face ``camera``, as the rasterizer flips it
+    (by the direction from the camera to the surfel's centre; orthographic: the view axis);
+    detached."""
+    with dr.suspend_grad():
+        _, _, nrm = surfels.tangent_frame()
+        if camera.is_ortho:
+            view = mi.Vector3f(*(jit.opaque(v) for v in camera.forward))
+        else:
+            view = mi.Vector3f(dr.detach(surfels.position) -
+                               mi.Point3f(*(jit.opaque(v) for v in camera.origin)))
+        n = dr.select(dr.dot(nrm, view) > 0, -nrm, nrm)
+        dr.eval(n)
+    return n
+
+
+def surfel_sh_irradiance(sh: mi.TensorXf, normal: mi.Vector3f, degree: int) -> mi.TensorXf:
+    """max(0, SH(n)) [N, 3] of each surfel's indirect SH (coefficient-major [N, 3 K]) at its
+    own normal ``normal`` [N] (``facing_normals``). The indirect light is evaluated per
+    surfel and then blended, so a view splats 3 values per pixel-splat pair, not 3 K: in
+    stage 4 the backward's scatter-adds of the 27 degree-2 coefficients were most of a
+    step (BENCHMARKS.md, "Session 17")."""
+    basis = sh_basis(normal, degree)
+    kc = sh.shape[1]
+    if 3 * len(basis) != kc:
+        raise ValueError(f"surfel_sh_irradiance: SH of degree {degree} has {3 * len(basis)} "
+                         f"coefficients per surfel, the channel {kc}")
+    n = sh.shape[0]
+    idx = dr.arange(mi.UInt32, n) * kc
+    cols = []
+    for c in range(3):
+        acc = mi.Float(0.0)
+        for k, bk in enumerate(basis):
+            acc = acc + bk * dr.gather(mi.Float, sh.array, idx + (3 * k + c))
+        cols.append(dr.maximum(acc, 0.0))
+    idx = dr.arange(mi.UInt32, n * 3)  # interleave the columns: [N, 3] row-major
+    row = idx // 3
+    col = idx - row * 3
+    flat = dr.select(col == 0, dr.gather(mi.Float, cols[0], row),
+                     dr.select(col == 1, dr.gather(mi.Float, cols[1], row),
+                               dr.gather(mi.Float, cols[2], row)))
+    return mi.TensorXf(flat, (n, 3))
 
 
 def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float,

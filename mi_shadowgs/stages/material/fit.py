@@ -481,6 +481,8 @@ class TrainView:
     # weight; n_segments where none does (mixed pixels, and pixels nothing covers)
     segment: mi.UInt32
     n_segments: int
+    # [N] each surfel's normal facing this view's camera: where its indirect SH is evaluated
+    surfel_normal: mi.Vector3f
 
 
 def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.ndarray,
@@ -495,7 +497,8 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
     target = mi.Color3f(*(img[:, c] for c in range(3)))
     inv = dr.opaque(mi.Float, 1.0 / float(max(sup.sum(), 1)))
     seg, n_seg = pixel_segments(surfels, pairs, config.refine_segment_purity)
-    return TrainView(camera, pairs, geom, weight, target, inv, seg, n_seg)
+    return TrainView(camera, pairs, geom, weight, target, inv, seg, n_seg,
+                     shading.facing_normals(surfels, camera))
 
 
 def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
@@ -518,16 +521,19 @@ def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
 
 
 def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf], sh_degree: int,
-              normal: mi.Vector3f):
-    """Per-pixel albedo [Color3f], roughness, metallic and indirect radiance of a view."""
+              surfel_normal: mi.Vector3f):
+    """Per-pixel albedo [Color3f], roughness, metallic and indirect radiance of a view (the
+    indirect SH evaluated per surfel at ``surfel_normal`` [N], then blended)."""
     a = shading.splat(pairs, channels["albedo"])
     albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
     rough = shading.splat(pairs, channels["roughness"])
     metal = shading.splat(pairs, channels["metallic"])
     ind = None
     if shading.INDIRECT_CHANNEL in channels:
-        sh = shading.splat(pairs, channels[shading.INDIRECT_CHANNEL])
-        ind = shading.sh_irradiance(sh, normal, sh_degree)
+        irr = shading.surfel_sh_irradiance(channels[shading.INDIRECT_CHANNEL], surfel_normal,
+                                           sh_degree)
+        flat = shading.splat(pairs, irr)
+        ind = mi.Color3f(*(shading.channel(flat, 3, c) for c in range(3)))
     return albedo, rough, metal, ind
 
 
@@ -549,7 +555,7 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
     """Eq. 18 for one view (means over its supervised pixels)."""
     h, w = view.pairs.height, view.pairs.width
     albedo, rough, metal, ind = view_maps(view.pairs, channels, config.sh_degree,
-                                          view.geom.normal)
+                                          view.surfel_normal)
     rgb = shading.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
     wgt = view.weight
     inv = view.inv_count
@@ -775,7 +781,7 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
                  with_specular: bool):
     """A view's materials (albedo, roughness, metallic, indirect or None) and its direct
     shading per light of ``dirs`` [P * K] pixel-major, visibility from ``maps`` if given."""
-    albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree, v.geom.normal)
+    albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree, v.surfel_normal)
     vis = None if maps is None else \
         maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
     per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)

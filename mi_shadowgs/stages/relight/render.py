@@ -202,8 +202,10 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
     if material:
         _check_model(surfels)
         chans = {k: surfels.channels[k] for k in shading.MATERIAL_CHANNELS}
-        if shading.INDIRECT_CHANNEL in surfels.channels:
-            chans[shading.INDIRECT_CHANNEL] = surfels.channels[shading.INDIRECT_CHANNEL]
+        if shading.INDIRECT_CHANNEL in surfels.channels:  # per surfel, as stage 4 fits it
+            sh = surfels.channels[shading.INDIRECT_CHANNEL]
+            chans[shading.INDIRECT_CHANNEL] = shading.surfel_sh_irradiance(
+                sh, shading.facing_normals(surfels, camera), sh_degree(sh.shape[1] // 3))
     chans.update(extra or {})
 
     def color(name: str) -> mi.Color3f:
@@ -219,9 +221,7 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
             buf.albedo = color("albedo")
             buf.roughness, buf.metallic = out["roughness"].array, out["metallic"].array
             if shading.INDIRECT_CHANNEL in out:
-                t = out[shading.INDIRECT_CHANNEL]
-                buf.indirect = shading.sh_irradiance(t.array, buf.geom.normal,
-                                                     sh_degree(t.shape[2] // 3))
+                buf.indirect = color(shading.INDIRECT_CHANNEL)
     return buf
 
 
