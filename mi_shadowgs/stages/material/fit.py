@@ -521,13 +521,18 @@ def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
 
 
 def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf], sh_degree: int,
-              surfel_normal: mi.Vector3f):
+              surfel_normal: mi.Vector3f, with_specular: bool = True):
     """Per-pixel albedo [Color3f], roughness, metallic and indirect radiance of a view (the
-    indirect SH evaluated per surfel at ``surfel_normal`` [N], then blended)."""
+    indirect SH evaluated per surfel at ``surfel_normal`` [N], then blended). Without the
+    specular lobe the metallic channel is held at 0 and the diffuse shading never reads the
+    roughness: both are zero images, not splats."""
     a = shading.splat(pairs, channels["albedo"])
     albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
-    rough = shading.splat(pairs, channels["roughness"])
-    metal = shading.splat(pairs, channels["metallic"])
+    if with_specular:
+        rough = shading.splat(pairs, channels["roughness"])
+        metal = shading.splat(pairs, channels["metallic"])
+    else:
+        rough = metal = dr.zeros(mi.Float, pairs.height * pairs.width)
     ind = None
     if shading.INDIRECT_CHANNEL in channels:
         irr = shading.surfel_sh_irradiance(channels[shading.INDIRECT_CHANNEL], surfel_normal,
@@ -555,7 +560,7 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
     """Eq. 18 for one view (means over its supervised pixels)."""
     h, w = view.pairs.height, view.pairs.width
     albedo, rough, metal, ind = view_maps(view.pairs, channels, config.sh_degree,
-                                          view.surfel_normal)
+                                          view.surfel_normal, with_specular)
     rgb = shading.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
     wgt = view.weight
     inv = view.inv_count
@@ -781,7 +786,8 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
                  with_specular: bool):
     """A view's materials (albedo, roughness, metallic, indirect or None) and its direct
     shading per light of ``dirs`` [P * K] pixel-major, visibility from ``maps`` if given."""
-    albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree, v.surfel_normal)
+    albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree, v.surfel_normal,
+                                          with_specular)
     vis = None if maps is None else \
         maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
     per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)
