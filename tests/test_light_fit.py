@@ -69,8 +69,8 @@ def _views(s, cams, bounds, dirs, irradiance):
     views = []
     for cam in cams:
         geom = shading.pixel_geometry(s, cam)
-        albedo, rough, metal, _ = material_fit.view_maps(shading.splat_pairs(s, cam), ch, 2,
-                                                         geom.normal)
+        albedo, rough, metal, _ = material_fit.view_maps(shading.splat_pairs(s, cam), ch,
+                                                         shading.facing_normals(s, cam))
         rgb = shading.shade(geom, albedo, rough, metal, lights,
                             maps.evaluate(geom.points, geom.normal, geom.footprint), None, False)
         img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)

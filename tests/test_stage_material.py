@@ -16,7 +16,7 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, solid_angle
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.raster import rasterize
-from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.core.surfels import Surfels, eval_sh
 from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
@@ -123,16 +123,14 @@ def test_splat_matches_rasterize():
     assert ref.max() > 0.5
 
 
-def test_sh_irradiance_against_numpy():
+def test_indirect_irradiance_against_numpy():
     rng = np.random.default_rng(2)
     npx = 50
     coef = rng.normal(size=(npx, 27)).astype(np.float32)
     n = rng.normal(size=(npx, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    got = shading.sh_irradiance(
-        mi.Float(coef.ravel()), mi.Vector3f(*(n[:, k].astype(np.float32) for k in range(3))), 2
-    )
-    got = np.stack([np.asarray(got[c]) for c in range(3)], -1)
+    got = eval_sh(mi.TensorXf(coef), mi.Vector3f(*(n[:, k].astype(np.float32)
+                                                   for k in range(3))), offset=0.0).numpy()
     x, y, z = n.T
     c0, c1 = 0.28209479177387814, 0.4886025119029199
     c2 = (
@@ -301,7 +299,7 @@ def _one_light_views(s, cams, bounds, direction, irradiance, vcfg):
     for cam in cams:
         geom = shading.pixel_geometry(s, cam)
         albedo, rough, metal, _ = material_fit.view_maps(
-            shading.splat_pairs(s, cam), ch, 2, geom.normal
+            shading.splat_pairs(s, cam), ch, shading.facing_normals(s, cam)
         )
         rgb = shading.shade(
             geom,
@@ -414,7 +412,7 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
         cam = cams[1]
         pairs = shading.splat_pairs(s, cam)
         geom = shading.pixel_geometry(s, cam)
-        albedo, rough, metal, ind = material_fit.view_maps(pairs, ch, cfg.sh_degree,
+        albedo, rough, metal, ind = material_fit.view_maps(pairs, ch,
                                                            shading.facing_normals(s, cam))
         vis = maps.evaluate(geom.points, geom.normal, geom.footprint)
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, ind, False)
@@ -519,7 +517,7 @@ def _sh2_reference(n: np.ndarray) -> np.ndarray:
 
 def test_indirect_sh_is_evaluated_per_surfel_at_its_camera_facing_normal():
     """facing_normals flips each surfel's normal toward the camera as the rasterizer does
-    (its rendered normal at a one-surfel pixel), and surfel_sh_irradiance is max(0, SH(n))
+    (its rendered normal at a one-surfel pixel), and eval_sh at offset 0 is max(0, SH(n))
     per surfel against a float64 reference; its gradient is the basis where unclamped."""
     rng = np.random.default_rng(5)
     n = 40
@@ -543,7 +541,7 @@ def test_indirect_sh_is_evaluated_per_surfel_at_its_camera_facing_normal():
     sh = rng.normal(0.0, 0.3, (n, 27)).astype(np.float32)
     sh_t = mi.TensorXf(sh)
     dr.enable_grad(sh_t)
-    irr = shading.surfel_sh_irradiance(sh_t, nrm, 2)
+    irr = eval_sh(sh_t, nrm, offset=0.0)
     basis = _sh2_reference(got_n)  # [N, 9]
     want = np.maximum(np.einsum("nk,nkc->nc", basis, sh.astype(np.float64).reshape(n, 9, 3)),
                       0.0)

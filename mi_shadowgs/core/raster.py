@@ -198,7 +198,6 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
         b0, b1 = fy * su * tu[1], fy * sv * tv[1]
         zero = dr.zeros(mi.Float, dr.width(p))
         t20, t21, t22 = zero, zero, zero + 1.0
-        view = mi.Vector3f(*(jit.opaque(v) for v in camera.forward))
     else:
         # Guarded 1/z: culled surfels (z < near) must not put inf into the gradient.
         zs = dr.select(pc[2] > config.near, pc[2], 1.0)
@@ -207,14 +206,21 @@ def _project(surfels: Surfels, camera: Camera, config: RasterConfig) -> _Proj:
         a0, a1 = fx * su * (tu[0] - mx * tu[2]), fx * sv * (tv[0] - mx * tv[2])
         b0, b1 = fy * su * (tu[1] - my * tu[2]), fy * sv * (tv[1] - my * tv[2])
         t20, t21, t22 = z0, z1, zs
-        o = camera.origin
-        view = mi.Vector3f(p - mi.Point3f(*(jit.opaque(v) for v in o)))
     valid = (pc[2] >= config.near) & (su > config.scale_min) & (sv > config.scale_min)
     valid &= dr.isfinite(xc) & dr.isfinite(yc) & dr.isfinite(su) & dr.isfinite(sv)
-    # 2DGS flips each normal to face the camera by the direction to the centre.
-    normal = dr.select(dr.dot(nrm, view) > 0, -nrm, nrm)
     return _Proj(valid, xc, yc, a0, a1, b0, b1, t20, t21, t22, z0, z1, z2,
-                 surfels.opacity(), normal)
+                 surfels.opacity(), face_camera(nrm, p, camera))
+
+
+def face_camera(normal: mi.Vector3f, position: mi.Point3f, camera: Camera) -> mi.Vector3f:
+    """Surfel normals [N] flipped to face ``camera``: 2DGS flips each by the direction from
+    the camera to the surfel's centre (orthographic: by the view axis). The rasterized
+    normals and stage 4's per-surfel indirect light (``shading.facing_normals``) use it."""
+    if camera.is_ortho:
+        view = mi.Vector3f(*(jit.opaque(v) for v in camera.forward))
+    else:
+        view = mi.Vector3f(position - mi.Point3f(*(jit.opaque(v) for v in camera.origin)))
+    return dr.select(dr.dot(normal, view) > 0, -normal, normal)
 
 
 def _boxes(g: _Proj, width: int, height: int, config: RasterConfig, rows=None):

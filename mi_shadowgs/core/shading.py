@@ -11,7 +11,7 @@ where the lights are a ``LightSet`` of K directions with RGB weights E_k (for th
 map E_k = L_dir(l_k) dw with dw = 2 pi / N_l; for a directional light E_k is its
 irradiance). ``L_ind(x)`` is the paper's view- and light-independent indirect radiance, an
 RGB SH of degree 2 per surfel, evaluated at the surfel's normal facing the view
-(``surfel_sh_irradiance``: indirect light depends on where the surface faces) and blended
+(``facing_normals``: indirect light depends on where the surface faces) and blended
 into the pixel like a channel. Evaluated per pixel at the blended normal instead, a view
 splatted 27 coefficients per pixel-splat pair rather than 3, which made a stage-4 step
 2.2x slower, and the twelve table rows fit no better that way (BENCHMARKS.md, "Session 17").
@@ -31,8 +31,8 @@ import numpy as np
 
 from mi_shadowgs.core import brdf, jit
 from mi_shadowgs.core.camera import Camera
-from mi_shadowgs.core.raster import RasterConfig, rasterize
-from mi_shadowgs.core.surfels import Surfels, sh_basis
+from mi_shadowgs.core.raster import RasterConfig, face_camera, rasterize
+from mi_shadowgs.core.surfels import Surfels
 
 MATERIAL_CHANNELS = ("albedo", "roughness", "metallic")
 INDIRECT_CHANNEL = "indirect_sh"
@@ -132,61 +132,18 @@ def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
     return PixelGeometry(alpha, out["depth"], nimg, n, view, pts, footprint)
 
 
-def sh_irradiance(sh_flat: mi.Float, normal: mi.Vector3f, degree: int) -> mi.Color3f:
-    """max(0, SH(n)) per pixel from a flat rendered SH image [H * W * 3 K] (no 0.5 offset)."""
-    basis = sh_basis(normal, degree)
-    kc = 3 * len(basis)
-    out = []
-    for c in range(3):
-        acc = mi.Float(0.0)
-        for k, bk in enumerate(basis):
-            acc = acc + bk * channel(sh_flat, kc, 3 * k + c)
-        out.append(dr.maximum(acc, 0.0))
-    return mi.Color3f(*out)
-
-
 def facing_normals(surfels: Surfels, camera: Camera) -> mi.Vector3f:
-    """Each surfel's unit normal [N] flipped to face ``camera``, as the rasterizer flips it
-    (by the direction from the camera to the surfel's centre; orthographic: the view axis);
-    detached."""
+    """Each surfel's unit normal [N] flipped to face ``camera`` as the rasterizer flips it
+    (``raster.face_camera``), evaluated and detached: where stage 4 and relighting evaluate
+    the surfel's indirect light (``eval_sh(sh, normal, offset=0.0)``: max(0, SH(n)) per
+    surfel, then blended; a view splats 3 values per pixel-splat pair, not 3 K, and in stage
+    4 the backward's scatter-adds of the 27 degree-2 coefficients were most of a step;
+    BENCHMARKS.md, "Session 17")."""
     with dr.suspend_grad():
         _, _, nrm = surfels.tangent_frame()
-        if camera.is_ortho:
-            view = mi.Vector3f(*(jit.opaque(v) for v in camera.forward))
-        else:
-            view = mi.Vector3f(dr.detach(surfels.position) -
-                               mi.Point3f(*(jit.opaque(v) for v in camera.origin)))
-        n = dr.select(dr.dot(nrm, view) > 0, -nrm, nrm)
+        n = face_camera(nrm, dr.detach(surfels.position), camera)
         dr.eval(n)
     return n
-
-
-def surfel_sh_irradiance(sh: mi.TensorXf, normal: mi.Vector3f, degree: int) -> mi.TensorXf:
-    """max(0, SH(n)) [N, 3] of each surfel's indirect SH (coefficient-major [N, 3 K]) at its
-    own normal ``normal`` [N] (``facing_normals``). The indirect light is evaluated per
-    surfel and then blended, so a view splats 3 values per pixel-splat pair, not 3 K: in
-    stage 4 the backward's scatter-adds of the 27 degree-2 coefficients were most of a
-    step (BENCHMARKS.md, "Session 17")."""
-    basis = sh_basis(normal, degree)
-    kc = sh.shape[1]
-    if 3 * len(basis) != kc:
-        raise ValueError(f"surfel_sh_irradiance: SH of degree {degree} has {3 * len(basis)} "
-                         f"coefficients per surfel, the channel {kc}")
-    n = sh.shape[0]
-    idx = dr.arange(mi.UInt32, n) * kc
-    cols = []
-    for c in range(3):
-        acc = mi.Float(0.0)
-        for k, bk in enumerate(basis):
-            acc = acc + bk * dr.gather(mi.Float, sh.array, idx + (3 * k + c))
-        cols.append(dr.maximum(acc, 0.0))
-    idx = dr.arange(mi.UInt32, n * 3)  # interleave the columns: [N, 3] row-major
-    row = idx // 3
-    col = idx - row * 3
-    flat = dr.select(col == 0, dr.gather(mi.Float, cols[0], row),
-                     dr.select(col == 1, dr.gather(mi.Float, cols[1], row),
-                               dr.gather(mi.Float, cols[2], row)))
-    return mi.TensorXf(flat, (n, 3))
 
 
 def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float,

@@ -223,8 +223,9 @@ def sh_basis(d: mi.Vector3f, degree: int) -> list:
     return b
 
 
-def eval_sh(sh: mi.TensorXf, directions: mi.Vector3f) -> mi.TensorXf:
-    """RGB [N, 3] = max(SH(sh [N, K*3] coefficient-major) at ``directions`` [N] + 0.5, 0).
+def eval_sh(sh: mi.TensorXf, directions: mi.Vector3f, offset: float = 0.5) -> mi.TensorXf:
+    """RGB [N, 3] = max(SH(sh [N, K*3] coefficient-major) at ``directions`` [N] + offset, 0):
+    3DGS's colours with the default 0.5, stage 4's indirect irradiance with 0.
 
     ``directions`` need not be normalised (zero -> the DC term only).
     """
@@ -241,7 +242,7 @@ def eval_sh(sh: mi.TensorXf, directions: mi.Vector3f) -> mi.TensorXf:
         acc = mi.Float(0.0)
         for k, bk in enumerate(basis):
             acc = acc + bk * dr.gather(mi.Float, sh.array, idx + (k * 3 + c))
-        rgb.append(dr.maximum(acc + 0.5, 0.0))
+        rgb.append(dr.maximum(acc + offset, 0.0))
     return mi.TensorXf(dr.ravel(mi.Vector3f(*rgb)), shape=(n, 3))
 
 

@@ -59,7 +59,7 @@ from mi_shadowgs.core.brdf import ROUGHNESS_MIN
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
 from mi_shadowgs.core.raster import RasterConfig
-from mi_shadowgs.core.surfels import SH_C0, Surfels
+from mi_shadowgs.core.surfels import SH_C0, Surfels, eval_sh
 from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
     VisibilityConfig,
@@ -520,10 +520,11 @@ def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
     return mi.UInt32(np.where(pure, top, n_seg).astype(np.uint32)), n_seg
 
 
-def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf], sh_degree: int,
+def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf],
               surfel_normal: mi.Vector3f, with_specular: bool = True):
     """Per-pixel albedo [Color3f], roughness, metallic and indirect radiance of a view (the
-    indirect SH evaluated per surfel at ``surfel_normal`` [N], then blended). Without the
+    indirect SH, of the degree its channel holds, evaluated per surfel at ``surfel_normal``
+    [N] (``shading.facing_normals``), then blended). Without the
     specular lobe the metallic channel is held at 0 and the diffuse shading never reads the
     roughness: both are zero images, not splats."""
     a = shading.splat(pairs, channels["albedo"])
@@ -535,8 +536,7 @@ def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf], sh_de
         rough = metal = dr.zeros(mi.Float, pairs.height * pairs.width)
     ind = None
     if shading.INDIRECT_CHANNEL in channels:
-        irr = shading.surfel_sh_irradiance(channels[shading.INDIRECT_CHANNEL], surfel_normal,
-                                           sh_degree)
+        irr = eval_sh(channels[shading.INDIRECT_CHANNEL], surfel_normal, offset=0.0)
         flat = shading.splat(pairs, irr)
         ind = mi.Color3f(*(shading.channel(flat, 3, c) for c in range(3)))
     return albedo, rough, metal, ind
@@ -559,8 +559,8 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
               vis: mi.Float | None, config: MaterialConfig, with_specular: bool) -> mi.Float:
     """Eq. 18 for one view (means over its supervised pixels)."""
     h, w = view.pairs.height, view.pairs.width
-    albedo, rough, metal, ind = view_maps(view.pairs, channels, config.sh_degree,
-                                          view.surfel_normal, with_specular)
+    albedo, rough, metal, ind = view_maps(view.pairs, channels, view.surfel_normal,
+                                          with_specular)
     rgb = shading.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
     wgt = view.weight
     inv = view.inv_count
@@ -786,8 +786,7 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
                  with_specular: bool):
     """A view's materials (albedo, roughness, metallic, indirect or None) and its direct
     shading per light of ``dirs`` [P * K] pixel-major, visibility from ``maps`` if given."""
-    albedo, rough, metal, ind = view_maps(v.pairs, channels, config.sh_degree, v.surfel_normal,
-                                          with_specular)
+    albedo, rough, metal, ind = view_maps(v.pairs, channels, v.surfel_normal, with_specular)
     vis = None if maps is None else \
         maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
     per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)

@@ -32,7 +32,7 @@ from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
 from mi_shadowgs.core.raster import RasterConfig, rasterize
-from mi_shadowgs.core.surfels import Surfels, sh_degree
+from mi_shadowgs.core.surfels import Surfels, eval_sh
 from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
     VisibilityConfig,
@@ -203,9 +203,9 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
         _check_model(surfels)
         chans = {k: surfels.channels[k] for k in shading.MATERIAL_CHANNELS}
         if shading.INDIRECT_CHANNEL in surfels.channels:  # per surfel, as stage 4 fits it
-            sh = surfels.channels[shading.INDIRECT_CHANNEL]
-            chans[shading.INDIRECT_CHANNEL] = shading.surfel_sh_irradiance(
-                sh, shading.facing_normals(surfels, camera), sh_degree(sh.shape[1] // 3))
+            chans[shading.INDIRECT_CHANNEL] = eval_sh(
+                surfels.channels[shading.INDIRECT_CHANNEL],
+                shading.facing_normals(surfels, camera), offset=0.0)
     chans.update(extra or {})
 
     def color(name: str) -> mi.Color3f:
