@@ -22,10 +22,10 @@ install: $(VENV)/.installed
 
 install-dev: install $(VENV)/.installed-dev
 
+# run writes the report (RUN/report.html) itself.
 demo: install
 	$(CLI) generate $(SCENE) --out $(DEMO_DIR)/data --preset $(PRESET)
 	$(CLI) run $(DEMO_DIR)/data --out $(DEMO_DIR)/run --preset $(PRESET)
-	$(CLI) report $(DEMO_DIR)/run
 
 # The viewer's browser test needs chromium and chromium-driver (installed here when root).
 test: install-dev

