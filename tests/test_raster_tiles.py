@@ -407,3 +407,83 @@ def test_several_channel_tensors():
     assert_outputs_equal(outs["tiles"], outs["pairs"])
     assert_grads_equal(grads["tiles"], grads["pairs"])
     assert all(np.abs(g).max() > 0 for g in grads["pairs"].values())
+
+
+def _render_at(surfels, camera, config, pixels, aovs, outputs):
+    """Like ``render`` for ``rasterize(..., pixels=)``: outputs [P, C] and the gradients of
+    a loss weighting each sample by ``_weights`` of its output row."""
+    params = surfels.params()
+    for v in params.values():
+        dr.enable_grad(v)
+    out = rasterize(surfels, camera, surfels.channels, aovs=aovs, config=config,
+                    background=BACKGROUND, pixels=pixels)
+    loss = mi.Float(0.0)
+    for k in outputs:
+        loss += dr.sum(out[k].array * mi.Float(_weights(out[k].shape)))
+    dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+    return ({k: np.array(v, np.float64) for k, v in out.items()},
+            {k: np.array(dr.grad(v), np.float64) for k, v in params.items()})
+
+
+def _weights(shape) -> np.ndarray:
+    return np.sin(np.arange(int(np.prod(shape))) * 0.7 + 0.3).astype(np.float32)
+
+
+@pytest.mark.parametrize("tile_size,per_lane", [(4, 2), (4, 1), (3, 4), (5, 16), (1, 1)])
+def test_sampled_pixels_equal_the_image(tile_size, per_lane):
+    """rasterize(pixels=): each sampled pixel's outputs are the whole image's, bit for bit
+    (the same compositing), and the gradients of a loss over the samples are those of the
+    same loss over the image (the samples as weights on its pixels; float32 summation
+    order apart). Repeats and every tile's and lane's position are among the samples."""
+    camera = cameras()["perspective"]
+    raw = random_scene(40, 2)
+    aovs = tuple(a for a in AOVS if a != "count")
+    outputs = GRAD_CASES[-1]
+    config = dataclasses.replace(TILES, tile_size=tile_size, pixels_per_lane=per_lane)
+    rng = np.random.default_rng(tile_size)
+    npix = camera.width * camera.height
+    pixels = np.concatenate([rng.permutation(npix)[:150], rng.integers(0, npix, 60),
+                             [0, npix - 1, 5, 5]]).astype(np.uint32)
+    image, _ = render(to_surfels(raw), camera, config, aovs, BACKGROUND)
+    got, g_got = _render_at(to_surfels(raw), camera, config, pixels, aovs, outputs)
+    for k, img in image.items():
+        flat = img.reshape(npix, -1)
+        np.testing.assert_array_equal(got[k], flat[pixels], err_msg=k)
+    # The same loss written on the image: the samples' weights scattered onto their pixels.
+    surfels = to_surfels(raw)
+    params = surfels.params()
+    for v in params.values():
+        dr.enable_grad(v)
+    out = rasterize(surfels, camera, surfels.channels, aovs=aovs, config=config,
+                    background=BACKGROUND)
+    loss = mi.Float(0.0)
+    for k in outputs:
+        c = out[k].shape[2]
+        w = np.zeros((npix, c), np.float64)
+        np.add.at(w, pixels, _weights((len(pixels), c)).reshape(-1, c))
+        loss += dr.sum(out[k].array * mi.Float(w.astype(np.float32).reshape(-1)))
+    dr.backward(loss)
+    want = {k: np.array(dr.grad(v), np.float64) for k, v in params.items()}
+    assert_grads_equal(g_got, want, outputs)
+
+
+def test_sampled_pixels_pairs_and_checks():
+    """The pair list gathers the same pixels from its image (the reference); indices
+    outside the image are refused, naming the image size."""
+    camera = cameras()["orthographic"]
+    raw = random_scene(40, 3)
+    pixels = np.array([7, 300, 479, 7], np.uint32)
+    aovs = ("alpha", "depth", "normal")
+    want, _ = render(to_surfels(raw), camera, PAIRS, aovs, BACKGROUND)
+    got = rasterize(to_surfels(raw), camera, to_surfels(raw).channels, aovs=aovs,
+                    config=PAIRS, background=BACKGROUND, pixels=pixels)
+    for k, img in want.items():
+        np.testing.assert_array_equal(np.array(got[k]), img.reshape(480, -1)[pixels], k)
+    tiles = rasterize(to_surfels(raw), camera, to_surfels(raw).channels, aovs=aovs,
+                      config=TILES, background=BACKGROUND, pixels=mi.UInt32(pixels))
+    assert_outputs_equal({k: np.array(v, np.float64) for k, v in tiles.items()},
+                         {k: np.array(v, np.float64) for k, v in got.items()})
+    for bad in (np.array([480], np.uint32), np.array([-1]), np.zeros((2, 2), np.uint32)):
+        with pytest.raises(ValueError, match=r"pixels must be flat indices in \[0, 480\) "
+                                             r"of the 24x20 image"):
+            rasterize(to_surfels(raw), camera, None, aovs=aovs, pixels=bad)

@@ -173,17 +173,36 @@ def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
     return _Bins(ts, ntx, nty, sid, box, start, end, math.gcd(config.pixels_per_lane, ts * ts))
 
 
-def _lanes(bins: _Bins, width: int, height: int):
-    """Per lane (tile-major; a lane holds ``bins.per_lane`` consecutive pixels of its tile,
-    row-major inside the tile): (tile [lanes], then per pixel k of the lane: pixel x [lanes],
-    pixel y, inside the image)."""
+@dataclasses.dataclass
+class _LanePlan:
+    """The pixels the compositing lanes hold, and how the backward groups the lanes.
+
+    A whole image (``_image_plan``): tile-major lanes of ``per_lane`` pixels of one tile.
+    Sampled pixels (``_sample_plan``): one pixel per lane, lanes ordered by tile."""
+
+    n: int  # lanes
+    tile: mi.UInt32  # [n] the tile whose sorted list a lane walks
+    pxs: list  # per pixel k of a lane: x [n] (UInt32)
+    pys: list  # ... y [n]
+    insides: list  # ... inside the image [n] (Bool)
+    out_index: list  # ... the pixel's row in the flat output: its pixel or sample index [n]
+    # The backward's walking groups (up to _BACKWARD_GROUP lanes of one tile): group [n]
+    # in [0, n_groups).
+    group: mi.UInt32
+    n_groups: int
+    samples: int | None = None  # sampled pixels (outputs [samples * C]); None: the image
+
+
+def _image_plan(bins: _Bins, width: int, height: int) -> _LanePlan:
+    """Every pixel: tile-major lanes, each holding ``bins.per_lane`` consecutive pixels of
+    its tile, row-major inside the tile."""
     per_tile = bins.lanes_per_tile
     lane = dr.arange(mi.UInt32, bins.lanes)
     tile = lane // per_tile
     sub = lane - tile * per_tile
     ty = tile // bins.ntx
     tx = tile - ty * bins.ntx
-    pxs, pys, insides = [], [], []
+    pxs, pys, insides, pixs = [], [], [], []
     for k in range(bins.per_lane):
         local = sub * bins.per_lane + k
         ly = local // bins.size
@@ -192,7 +211,32 @@ def _lanes(bins: _Bins, width: int, height: int):
         pxs.append(px)
         pys.append(py)
         insides.append((px < width) & (py < height))
-    return tile, pxs, pys, insides
+        pixs.append(py * width + px)
+    groups_per_tile = -(-per_tile // _BACKWARD_GROUP)
+    group = tile * groups_per_tile + sub // _BACKWARD_GROUP
+    return _LanePlan(bins.lanes, tile, pxs, pys, insides, pixs, group,
+                     bins.ntx * bins.nty * groups_per_tile)
+
+
+def _sample_plan(bins: _Bins, width: int, pixels: mi.UInt32) -> _LanePlan:
+    """One lane per entry of ``pixels`` [P] (flat indices y * width + x inside the image,
+    repeats allowed), the lanes ordered by tile (stable) so that a SIMD packet walks few
+    lists; a group is a run of up to _BACKWARD_GROUP lanes of one tile."""
+    n = dr.width(pixels)
+    py0 = pixels // width
+    px0 = pixels - py0 * width
+    tile0 = (py0 // bins.size) * bins.ntx + px0 // bins.size
+    order = dr.argsort(tile0)  # [n] the sample held by each lane
+    tile = dr.gather(mi.UInt32, tile0, order)
+    lane = dr.arange(mi.UInt32, n)
+    prev = dr.gather(mi.UInt32, tile, dr.maximum(lane, 1) - 1)
+    run_start = dr.prefix_reduce(dr.ReduceOp.Max, dr.select((lane == 0) | (prev != tile),
+                                                             lane, 0), exclusive=False)
+    group = run_start + (lane - run_start) // _BACKWARD_GROUP * _BACKWARD_GROUP
+    px, py = dr.gather(mi.UInt32, px0, order), dr.gather(mi.UInt32, py0, order)
+    dr.eval(tile, px, py, order, group)
+    return _LanePlan(n, tile, [px], [py], [dr.full(mi.Bool, True, n)], [order], group, n,
+                     samples=n)
 
 
 def _to_image(vals: list, bins: _Bins, width: int, height: int) -> mi.Float:
@@ -214,6 +258,16 @@ def _to_image(vals: list, bins: _Bins, width: int, height: int) -> mi.Float:
         for cc, v in enumerate(vk):
             if kk or cc:
                 out = dr.select((k == kk) & (ch == cc), dr.gather(mi.Float, v, lane), out)
+    return out
+
+
+def _to_samples(vals: list, plan: _LanePlan) -> mi.Float:
+    """Lane values (one pixel per lane: C arrays [lanes]) -> [samples * C] in the order of
+    the sampled pixels."""
+    c = len(vals[0])
+    out = dr.zeros(mi.Float, plan.samples * c)
+    for cc, v in enumerate(vals[0]):
+        dr.scatter(out, v, plan.out_index[0] * c + cc)
     return out
 
 
@@ -265,7 +319,9 @@ class _TiledOp(dr.CustomOp):
         self.sorted_chans = {
             name: [dr.gather(mi.Float, arr, bins.sid * c + k) for k in range(c)]
             for (name, arr), c in zip(chans.items(), ctx.widths.values(), strict=True)}
-        tile, pxs, pys, insides = _lanes(bins, ctx.width, ctx.height)
+        plan = _image_plan(bins, ctx.width, ctx.height) if ctx.pixels is None else \
+            _sample_plan(bins, ctx.width, ctx.pixels)
+        tile, pxs, pys, insides = plan.tile, plan.pxs, plan.pys, plan.insides
         pxf = [mi.Float(px) + 0.5 for px in pxs]
         pyf = [mi.Float(py) + 0.5 for py in pys]
         aovs = ctx.aovs
@@ -274,7 +330,7 @@ class _TiledOp(dr.CustomOp):
         want_normal = "normal" in aovs
         want_dist = "distortion" in aovs
         want_count = "count" in aovs
-        n = bins.lanes
+        n = plan.n
         zf = dr.zeros(mi.Float, n)
         z64 = dr.zeros(mi.Float64, n)
         first = dr.gather(mi.UInt32, bins.start, tile)
@@ -355,7 +411,6 @@ class _TiledOp(dr.CustomOp):
 
         (s,) = dr.while_loop((state,), cond, body, label="raster_tiles_forward")
         pixels = s["pixels"]
-        pixs = [py * ctx.width + px for px, py in zip(pxs, pys, strict=True)]
         t_final = [p["T"] for p in pixels]  # [lanes] Float64 per pixel of a lane
         alpha_img = [mi.Float(1.0 - t) for t in t_final]  # = sum of the weights
         lane_out = {}  # name -> per pixel k: C arrays [lanes]
@@ -382,7 +437,7 @@ class _TiledOp(dr.CustomOp):
         if want_count:
             lane_out["count"] = [[p["count"]] for p in pixels]
         # What the backward pass needs, per pixel: O(pixels).
-        self.lanes = (tile, pxs, pys, insides, pixs)
+        self.plan = plan
         self.t_final, self.stop = t_final, [p["stop"] for p in pixels]
         self.alpha_img = alpha_img
         self.depth_img = depth_img
@@ -391,6 +446,8 @@ class _TiledOp(dr.CustomOp):
         # Everything the loop yields in one kernel (a later evaluation of any loop output
         # would run the loop again), then the images by a scatter from the lanes.
         dr.eval(self.t_final, self.stop, lane_out, self.med_j, self.m_sums)
+        if plan.samples is not None:
+            return {name: _to_samples(vals, plan) for name, vals in lane_out.items()}
         return {name: _to_image(vals, bins, ctx.width, ctx.height)
                 for name, vals in lane_out.items()}
 
@@ -422,6 +479,7 @@ class _TiledCtx:
     # Whether any projected field needs a gradient: without (fixed geometry, stage 2's
     # features) the backward skips the pair maths' derivative and its 13-16 scatters.
     geometry_grad: bool = True
+    pixels: mi.UInt32 | None = None  # [P] only these pixels (``_sample_plan``); None: all
 
 
 def _pair_eval_grad(q: dict, px, py, g_alpha, g_depth, config: RasterConfig) -> dict:
@@ -505,21 +563,22 @@ def _tiled_backward(op: _TiledOp) -> None:
     bins, config = ctx.bins, ctx.config
     aovs = ctx.aovs
     grads_out = {k: dr.detach(v) for k, v in op.grad_out().items()}
-    tile, pxs, pys, insides, pixs = op.lanes
+    plan = op.plan
+    tile, pxs, pys, insides = plan.tile, plan.pxs, plan.pys, plan.insides
     pxf = [mi.Float(px) + 0.5 for px in pxs]
     pyf = [mi.Float(py) + 0.5 for py in pys]
-    n = bins.lanes
+    n = plan.n
 
     def lane_grad(name, c, k):  # [lanes] per component of an output's gradient at pixel k
         g = grads_out.get(name)
         if g is None or dr.width(g) == 0:
             return [dr.zeros(mi.Float, n)] * c
-        return [dr.gather(mi.Float, g, pixs[k] * c + ch, active=insides[k])
+        return [dr.gather(mi.Float, g, plan.out_index[k] * c + ch, active=insides[k])
                 for ch in range(c)]
 
     # What each pixel k of a lane needs from the output gradients: pixel[k][...].
     pixel = []
-    for k in range(bins.per_lane):
+    for k in range(len(pxs)):
         pk = {"chans": {name: lane_grad(name, c, k) for name, c in ctx.widths.items()}}
         # dL/d(sum of weights): alpha, the backgrounds' (1 - alpha), the depth's division.
         g_wsum = lane_grad("alpha", 1, k)[0] if "alpha" in aovs else dr.zeros(mi.Float, n)
@@ -555,18 +614,13 @@ def _tiled_backward(op: _TiledOp) -> None:
     # Any grouping is correct (a pixel composites only entries in [its tile's start, its
     # stop)), but a group across tiles would walk through the other tiles' lists: 25x
     # slower with 2x2 tiles.
-    per_tile = bins.lanes_per_tile
-    groups_per_tile = -(-per_tile // _BACKWARD_GROUP)
-    lane = dr.arange(mi.UInt32, n)
-    slot = lane // per_tile
-    group = slot * groups_per_tile + (lane - slot * per_tile) // _BACKWARD_GROUP
     first = dr.gather(mi.UInt32, bins.start, tile)
     own_stop = op.stop
     lane_stop = _maximum([dr.select(ins, st, first)
                           for ins, st in zip(insides, own_stop, strict=True)])
-    group_stop = dr.zeros(mi.UInt32, (n // per_tile) * groups_per_tile)
-    dr.scatter_reduce(dr.ReduceOp.Max, group_stop, lane_stop, group)
-    state = {"j": dr.gather(mi.UInt32, group_stop, group),
+    group_stop = dr.zeros(mi.UInt32, plan.n_groups)
+    dr.scatter_reduce(dr.ReduceOp.Max, group_stop, lane_stop, plan.group)
+    state = {"j": dr.gather(mi.UInt32, group_stop, plan.group),
              "T": list(op.t_final),
              # opaque: a literal zero that stays zero (median depth alone: every dL/dw is
              # 0) trips the loop's constant-state check.
@@ -670,15 +724,18 @@ def _tiled_backward(op: _TiledOp) -> None:
 
 
 def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequence[str],
-                 bg: dict, config: RasterConfig, grad: bool) -> dict[str, mi.Float]:
+                 bg: dict, config: RasterConfig, grad: bool,
+                 pixels: mi.UInt32 | None = None) -> dict[str, mi.Float]:
     """Every output of ``rasterize``, flat ([H * W * C] each), by the tiled renderer; ``g``
-    the projected surfels with AD, ``gd`` detached."""
+    the projected surfels with AD, ``gd`` detached. With ``pixels`` [P] (flat indices
+    inside the image) only those pixels: outputs [P * C], each pixel composited exactly as
+    in the whole image (the same operations in the same order)."""
     if max(W, H) > _BOX_MAX:
         raise ValueError(f"rasterize (tiles): images up to {_BOX_MAX} pixels a side, got "
                          f"{W} x {H}; use RasterConfig.method='pairs'")
     widths = {name: t.shape[1] for name, t in chans.items()}
     bins = _bin(gd, W, H, config, grad, sum(widths.values())) if dr.width(gd.xc) else None
-    npix = W * H
+    npix = W * H if pixels is None else dr.width(pixels)
     if bins is None:
         out = {name: dr.zeros(mi.Float, npix * c) for name, c in widths.items()}
         for name, vals in bg.items():
@@ -691,7 +748,7 @@ def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequenc
     if "normal" in aovs:
         fields |= dict(zip(_NORMAL_FIELDS, (g.normal.x, g.normal.y, g.normal.z), strict=True))
     ctx = _TiledCtx(bins, W, H, widths, tuple(aovs), bg, config, names, dr.width(gd.xc),
-                    any(dr.grad_enabled(v) for v in fields.values()))
+                    any(dr.grad_enabled(v) for v in fields.values()), pixels)
     return dr.custom(_TiledOp, fields, {name: t.array for name, t in chans.items()}, ctx)
 
 

@@ -122,8 +122,9 @@ def normalize_rows(f: list) -> list:
 
 
 def gather_pixels(image: mi.TensorXf, pixels: mi.UInt32) -> list:
-    """The D channels of ``image`` [H, W, D] at flat pixel indices [n]: D arrays [n]."""
-    d = image.shape[2]
+    """The D channels of ``image`` ([H, W, D], or [P, D] sampled pixels) at flat pixel
+    (row) indices [n]: D arrays [n]."""
+    d = image.shape[-1]
     return [dr.gather(mi.Float, image.array, pixels * d + k) for k in range(d)]
 
 
@@ -251,8 +252,9 @@ def norm_loss(features: mi.TensorXf) -> mi.Float:
 def segmentation_loss(image: mi.TensorXf, features: mi.TensorXf, pix1: mi.UInt32,
                       lab1: mi.UInt32, pix2: mi.UInt32, lab2: mi.UInt32, n_labels: int,
                       config: SegmentationConfig) -> dict[str, mi.Float]:
-    """Eq. 11 for one view: ``image`` [H, W, D] rendered features, ``features`` [N, D] the
-    per-surfel ones, X1/X2 as flat pixel indices with labels in [1, n_labels]."""
+    """Eq. 11 for one view: ``image`` [H, W, D] (or [P, D]) rendered features,
+    ``features`` [N, D] the per-surfel ones, X1/X2 as flat pixel (row) indices with labels
+    in [1, n_labels]."""
     f1, f2 = gather_pixels(image, pix1), gather_pixels(image, pix2)
     pos, neg = contrastive_losses(f1, lab1, f2, lab2, config.margin)
     intra, inter = mask_loss([dr.concat([a, b]) for a, b in zip(f1, f2, strict=True)],
@@ -421,10 +423,12 @@ def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet
                    on_checkpoint=None) -> TrainResult:
     """Optimise per-surfel features (geometry fixed) with Eq. 11 for ``config.iterations``.
 
-    Each iteration renders the features of one training view (views visited in shuffled
-    rounds) and samples ``n_samples`` of its labelled pixels. Views without labelled pixels
-    are skipped. The per-surfel coverage (summed splat weight) is accumulated from the same
-    renders through the gradient of a constant channel, at no extra rasterization.
+    Each iteration draws ``n_samples`` of the labelled pixels of one training view (views
+    visited in shuffled rounds) and renders the features at those pixels alone
+    (``rasterize(pixels=)``: the values of the whole image, at an eighth of its compositing
+    at cpu-small). Views without labelled pixels are skipped. The per-surfel coverage (summed
+    splat weight) of each visited view is added on every visit, as a sum over the visits'
+    whole images; each view's is rendered once (the gradient of a constant channel) and kept.
 
     ``state`` (``FeatureState.from_checkpoint``) continues an interrupted run;
     ``on_checkpoint(state)`` is called every ``checkpoint_every`` iterations, every
@@ -458,6 +462,21 @@ def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet
     opt, rng, proto = state.opt, state.rng, state.proto
     proto_from = config.iterations - max(1, config.iterations // 4)
     half = max(1, config.n_samples // 2)
+    rows1 = dr.arange(mi.UInt32, half)  # X1 and X2: the sampled render's rows
+    rows2 = dr.arange(mi.UInt32, half, 2 * half)
+    view_coverage: dict[int, mi.Float] = {}  # view -> [N] its summed splat weights
+
+    def coverage_of(v: int) -> mi.Float:
+        if v not in view_coverage:
+            ones = dr.ones(mi.TensorXf, (n, 1))
+            dr.enable_grad(ones)
+            img = rasterize(geom, cameras[v], {"cover": ones}, aovs=(), config=raster)
+            # d(sum of the cover image)/d(ones_i) = surfel i's summed splat weight.
+            dr.backward(dr.sum(img["cover"].array))
+            view_coverage[v] = dr.detach(ones.grad.array)
+            dr.eval(view_coverage[v])
+        return view_coverage[v]
+
     t0 = time.perf_counter() - state.elapsed
     bar = tqdm(total=config.iterations, initial=state.step, desc="segment", unit="it",
                disable=not progress)
@@ -468,23 +487,19 @@ def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet
                 state.order = rng.permutation(usable).tolist()
             v = state.order.pop()
             feats = opt[FEATURE]
-            ones = dr.ones(mi.TensorXf, (n, 1))
-            dr.enable_grad(ones)
-            img = rasterize(geom, cameras[v], {FEATURE: feats, "cover": ones}, aovs=(),
-                            config=raster)
             # Samples drawn on the host from host-side label lists: no device read-back.
             pix, lab = labels.pixels[v], labels.labels[v]
             pick = rng.integers(0, pix.size, size=2 * half)
-            p1, p2 = mi.UInt32(pix[pick[:half]]), mi.UInt32(pix[pick[half:]])
+            img = rasterize(geom, cameras[v], {FEATURE: feats}, aovs=(), config=raster,
+                            pixels=pix[pick])
             q1, q2 = mi.UInt32(lab[pick[:half]]), mi.UInt32(lab[pick[half:]])
-            terms = segmentation_loss(img[FEATURE], feats, p1, q1, p2, q2, labels.n_labels,
-                                      config)
-            # d(sum of the cover image)/d(ones_i) = surfel i's summed splat weight.
-            dr.backward(terms["total"] + dr.sum(img["cover"].array))
-            state.coverage = state.coverage + ones.grad.array
+            terms = segmentation_loss(img[FEATURE], feats, rows1, q1, rows2, q2,
+                                      labels.n_labels, config)
+            dr.backward(terms["total"])
+            state.coverage = state.coverage + coverage_of(v)
             if it >= proto_from:  # label prototypes of the (nearly) trained features
                 img_d = dr.detach(img[FEATURE])
-                for p, q in ((p1, q1), (p2, q2)):
+                for p, q in ((rows1, q1), (rows2, q2)):
                     for acc, c in zip(proto, normalize_rows(gather_pixels(img_d, p)),
                                       strict=True):
                         dr.scatter_reduce(dr.ReduceOp.Add, acc, c, q)

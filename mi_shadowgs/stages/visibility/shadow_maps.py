@@ -182,6 +182,19 @@ class ShadowMaps:
     config: VisibilityConfig
     texel: float  # size of one map texel at the scene centre, scene units
     alpha: mi.Float | None = None  # [L * R * R] accumulated alpha (config.fractional only)
+    # The lookup's per-light arrays (``_camera_rows`` and the directions), made at the first
+    # ``point_visibility``: a stage-4 step evaluates the same maps again and again, and 128
+    # cameras' inverses and host copies cost ~1 ms each time.
+    _lookup: tuple | None = dataclasses.field(default=None, init=False, repr=False,
+                                              compare=False)
+
+    def lookup_arrays(self) -> tuple:
+        """(12 world->CV rows [L], focal [L], principal point [L], direction [L] x, y, z)."""
+        if self._lookup is None:
+            rows, focal, cx = _camera_rows(self.cameras)
+            light = tuple(jit.array(self.directions[:, k]) for k in range(3))
+            self._lookup = (rows, focal, cx, light)
+        return self._lookup
 
     @property
     def count(self) -> int:
@@ -326,12 +339,11 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
     idx = dr.arange(mi.UInt32, n_points * n_lights)
     pi, li = idx // n_lights, idx % n_lights
     p = dr.gather(mi.Point3f, points, pi)
-    rows, focal_l, cx_l = _camera_rows(maps.cameras)
+    rows, focal_l, cx_l, light_l = maps.lookup_arrays()
     m = [dr.gather(mi.Float, row, li) for row in rows]
     focal = dr.gather(mi.Float, focal_l, li)
     c = dr.gather(mi.Float, cx_l, li)  # square maps: cx == cy
-    light = mi.Vector3f(*(dr.gather(mi.Float, jit.array(maps.directions[:, k]), li)
-                          for k in range(3)))
+    light = mi.Vector3f(*(dr.gather(mi.Float, d, li) for d in light_l))
     facing = mi.Bool(True)
     if normals is not None:
         n = dr.gather(mi.Vector3f, normals, pi)
