@@ -535,3 +535,53 @@ def test_layer_window_removes_grazing_acne():
         acne[name] = 1.0 - v[facing].mean()
     assert acne["texel"] > 0.05 and acne["layer"] > 0.05, acne  # the failure (can fail)
     assert acne["window"] < 0.005, acne
+
+
+def test_map_cache_reuses_maps_that_equal_fresh_ones():
+    """MapCache: a held map is bit-identical to a fresh render, only new directions are
+    rendered, sets come back in the order asked (repeats too), fractional maps keep their
+    alpha, and past its byte budget the oldest maps go while the current set stays whole."""
+    from mi_shadowgs.core.frames import frame_to_quaternion
+    from mi_shadowgs.core.surfels import Surfels
+    from mi_shadowgs.stages.visibility.shadow_maps import MapCache
+
+    rng = np.random.default_rng(4)
+    n = 60
+    surfels = Surfels.from_numpy(rng.uniform(-0.5, 0.5, (n, 3)) + [0.0, 0.5, 0.0],
+                                 np.full((n, 2), 0.08),
+                                 frame_to_quaternion(rng.normal(size=(n, 3))),
+                                 rng.uniform(0.3, 0.99, n))
+    bounds = SceneBounds((0.0, 0.5, 0.0), 1.0, 3.0)
+    dirs = np.array([direction_from_angles(az, el) for az, el in
+                     ((10, 40), (100, 60), (200, 30), (300, 75))])
+    for cfg in (VisibilityConfig(resolution=64, projection="orthographic"),
+                VisibilityConfig(resolution=64, fractional=True)):
+        cache = MapCache(surfels, bounds)
+        fresh = render_shadow_maps(surfels, dirs, bounds, cfg)
+        got = cache.maps(dirs[[2, 0]], cfg)
+        assert cache.rendered == 2
+        got = cache.maps(dirs[[3, 0, 2, 1, 3]], cfg)  # two new ones, a repeat
+        assert cache.rendered == 4
+        r2 = 64 * 64
+        depth = np.asarray(got.depth).reshape(5, r2)
+        want = np.asarray(fresh.depth).reshape(4, r2)
+        np.testing.assert_array_equal(depth, want[[3, 0, 2, 1, 3]])
+        assert np.isfinite(depth).any() and np.isinf(depth).any()  # occluders and empty
+        np.testing.assert_array_equal(got.directions, dirs[[3, 0, 2, 1, 3]])
+        assert [c.origin.tolist() for c in got.cameras] == \
+            [fresh.cameras[i].origin.tolist() for i in (3, 0, 2, 1, 3)]
+        if cfg.fractional:
+            np.testing.assert_array_equal(np.asarray(got.alpha).reshape(5, r2),
+                                          np.asarray(fresh.alpha).reshape(4, r2)[[3, 0, 2, 1, 3]])
+        else:
+            assert got.alpha is None
+        # Room for two maps: asking for three keeps those three, then drops the oldest.
+        small = MapCache(surfels, bounds, max_bytes=2 * 4 * r2 * (2 if cfg.fractional else 1))
+        trio = small.maps(dirs[:3], cfg)
+        np.testing.assert_array_equal(np.asarray(trio.depth).reshape(3, r2), want[:3])
+        assert len(small._maps) == 3  # the set asked for stays whole
+        small.maps(dirs[3], cfg)
+        assert len(small._maps) == 2 and small.rendered == 4
+        again = small.maps(dirs[0], cfg)  # dropped: rendered again, the same map
+        assert small.rendered == 5
+        np.testing.assert_array_equal(np.asarray(again.depth), want[0])

@@ -48,6 +48,7 @@ import mitsuba as mi
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
+from mi_shadowgs.config import with_overrides
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 from mi_shadowgs.dataset.scene import Light
 from mi_shadowgs.stages.relight import evaluation
@@ -118,7 +119,9 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     seg = load_ply(run / "segmentation" / "model.ply")
     bounds = occluder_bounds(seg, train_cams, float(settings.get("bounds_quantile", 0.98)))
     vis = settings.get("visibility")
-    vcfg = shadow_maps.VisibilityConfig(**vis) if vis else shadow_maps.get_config(preset)
+    # (with_overrides: nested settings such as "raster" come back as dicts)
+    vcfg = with_overrides(shadow_maps.VisibilityConfig(), vis, "visibility") if vis else \
+        shadow_maps.get_config(preset)
     name = run.parent.name if run.name == "run" else run.name
     return RunInputs(
         name, load_ply(folder / "model.ply"),

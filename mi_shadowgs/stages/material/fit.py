@@ -61,9 +61,9 @@ from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_an
 from mi_shadowgs.core.raster import RasterConfig
 from mi_shadowgs.core.surfels import SH_C0, Surfels, eval_sh
 from mi_shadowgs.stages.visibility.shadow_maps import (
+    MapCache,
     SceneBounds,
     VisibilityConfig,
-    render_shadow_maps,
 )
 
 SPECULAR_MODES = ("auto", "on", "off")
@@ -1131,6 +1131,10 @@ class MaterialFit:
     bounds: SceneBounds
     maps: object  # the current lights' shadow maps (None without visibility)
     support: np.ndarray | None = None  # [N] surfel_support, made when first needed
+    # The maps rendered so far: the refinement asks again for the candidates' current
+    # direction and, after a move, for every light's map (the moved one a candidate's).
+    # 96 MB: a local pass's 49 candidate maps at 512^2 and the lights'.
+    map_cache: MapCache | None = None
 
     def shadow_maps(self, directions, resolution=None):
         """Shadow maps of ``directions`` (at ``resolution``, default the visibility's)."""
@@ -1138,7 +1142,9 @@ class MaterialFit:
             return None
         cfg = self.vis_config if resolution is None else \
             dataclasses.replace(self.vis_config, resolution=resolution)
-        return render_shadow_maps(self.surfels, directions, self.bounds, cfg)
+        if self.map_cache is None:
+            self.map_cache = MapCache(self.surfels, self.bounds, max_bytes=96 << 20)
+        return self.map_cache.maps(directions, cfg)
 
 
 def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],

@@ -34,6 +34,7 @@ from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_an
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels, eval_sh
 from mi_shadowgs.stages.visibility.shadow_maps import (
+    MapCache,
     SceneBounds,
     VisibilityConfig,
     render_shadow_maps,
@@ -375,62 +376,48 @@ class RelightCache:
     """Shadow maps and env-map grid radiance kept between renders of one model.
 
     A shadow map depends on the surfels, its light direction, the scene bounds and the
-    visibility settings, never on the view: ``shadow_maps`` renders only the directions it
-    has not seen (each map is rendered on its own, so a map gathered from the cache equals a
-    fresh one) and reuses the rest. ``envmap_radiance`` keys an infinite emitter's grid
-    radiance on a digest of its parameters (image, scale, to_world), so an edited env map is
-    integrated again. It holds at most ``max_maps`` maps, ``max_sets`` assembled sets and
+    visibility settings, never on the view: ``shadow_maps`` keeps a ``MapCache`` per
+    geometry and bounds, which renders only the directions it has not seen and reuses the
+    rest. ``envmap_radiance`` keys an infinite emitter's grid radiance on a digest of its
+    parameters (image, scale, to_world), so an edited env map is integrated again. It holds
+    at most ``max_map_bytes`` of maps per geometry, ``max_sets`` assembled sets and
     ``max_envmaps`` emitters (oldest dropped first).
     """
 
-    def __init__(self, max_maps: int = 1024, max_envmaps: int = 8, max_sets: int = 16):
-        self.max_maps, self.max_envmaps, self.max_sets = max_maps, max_envmaps, max_sets
-        self._maps: dict[tuple, tuple] = {}  # (model, bounds, config, direction) -> map
+    def __init__(self, max_map_bytes: int = 1 << 30, max_envmaps: int = 8,
+                 max_sets: int = 16):
+        self.max_map_bytes, self.max_envmaps, self.max_sets = \
+            max_map_bytes, max_envmaps, max_sets
+        self._caches: dict[tuple, MapCache] = {}  # (geometry ids, bounds) -> its maps
         self._sets: dict[tuple, object] = {}  # all keys of a light set -> its ShadowMaps
         self._models: dict[tuple, tuple] = {}
         self._env: dict[str, np.ndarray] = {}
-        self.rendered = 0  # shadow maps rendered (not reused), for tests and benchmarks
 
-    @staticmethod
-    def _direction_key(d) -> bytes:
-        return np.asarray(d, np.float64).round(12).tobytes()
+    @property
+    def rendered(self) -> int:
+        """Shadow maps rendered (not reused), for tests and benchmarks."""
+        return sum(c.rendered for c in self._caches.values())
 
     def shadow_maps(self, model: RelightModel, lights: shading.LightSet, bounds: SceneBounds,
                     vis_config: VisibilityConfig = DEFAULT_VISIBILITY):
         """``shadow_maps_for``, reusing every map of a direction seen before."""
-        from mi_shadowgs.stages.visibility.shadow_maps import ShadowMaps
-
         if not model.use_visibility or lights.count == 0:
             return None
         # Shadow maps see only the geometry: a model with other material channels (e.g.
         # the evaluation's rescaled albedo) shares the maps of its geometry.
         geometry = tuple(getattr(model.surfels, k) for k in GEOMETRY_FIELDS)
-        base = (tuple(id(g) for g in geometry), bounds, vis_config)
+        base = (tuple(id(g) for g in geometry), bounds)
         self._models[base[0]] = geometry  # held: the ids stay unique
         dirs = np.asarray(lights.directions, np.float64).reshape(-1, 3)
-        keys = tuple((*base, self._direction_key(d)) for d in dirs)
-        if keys in self._sets:  # the same lights again: the assembled maps as they are
-            return self._sets[keys]
-        todo = [i for i, k in enumerate(keys) if k not in self._maps]
-        if todo:
-            new = render_shadow_maps(model.surfels, dirs[todo], bounds, vis_config)
-            r2 = new.resolution * new.resolution
-            for j, i in enumerate(todo):
-                part = new.depth if len(todo) == 1 else \
-                    dr.gather(mi.Float, new.depth, dr.arange(mi.UInt32, j * r2, (j + 1) * r2))
-                dr.eval(part)
-                self._maps[keys[i]] = (new.cameras[j], part, new.resolution, new.texel)
-            self.rendered += len(todo)
-        parts = [self._maps[k] for k in keys]
-        depth = parts[0][1] if len(parts) == 1 else dr.concat([p[1] for p in parts])
-        dr.eval(depth)
-        maps = ShadowMaps(dirs, [p[0] for p in parts], depth, parts[0][2], vis_config,
-                          parts[0][3])
-        self._sets[keys] = maps
+        key = (*base, vis_config, dirs.round(12).tobytes())
+        if key in self._sets:  # the same lights again: the assembled maps as they are
+            return self._sets[key]
+        if base not in self._caches:
+            self._caches[base] = MapCache(model.surfels, bounds, self.max_map_bytes)
+        maps = self._caches[base].maps(dirs, vis_config)
+        self._sets[key] = maps
         while len(self._sets) > self.max_sets:  # oldest first
             self._sets.pop(next(iter(self._sets)))
-        while len(self._maps) > self.max_maps:
-            self._maps.pop(next(iter(self._maps)))
         return maps
 
     def envmap_radiance(self, emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np.ndarray:

@@ -24,6 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.config import with_overrides
 from mi_shadowgs.core import shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
@@ -202,7 +203,8 @@ class ViewerSession:
         self.relight_config = self._config(relight.RelightConfig, settings.get("relight"),
                                            lambda: relight.get_config(preset))
         self.raster = RasterConfig()
-        self.maps = relight.RelightCache(max_maps=max_shadow_maps, max_sets=4)
+        self.maps = relight.RelightCache(
+            max_map_bytes=max_shadow_maps * 4 * self.vis_config.resolution ** 2, max_sets=4)
         self.gbuffers = GBufferCache()
         self._light_sets: dict = {}
 
@@ -388,9 +390,10 @@ class ViewerSession:
     def _config(cls, saved: dict | None, fallback):
         if isinstance(saved, dict):
             names = {f.name for f in dataclasses.fields(cls)}
-            try:
-                return cls(**{k: tuple(v) if isinstance(v, list) else v
-                              for k, v in saved.items() if k in names})
+            try:  # (with_overrides: nested settings such as "raster" are saved as dicts)
+                return with_overrides(cls(), {k: tuple(v) if isinstance(v, list) else v
+                                              for k, v in saved.items() if k in names},
+                                      cls.__name__)
             except (TypeError, ValueError):
                 pass  # an older manifest: the preset's settings
         return fallback()

@@ -26,6 +26,7 @@ from mi_shadowgs.config import get_preset
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
+from mi_shadowgs.core.raster import RasterConfig
 
 PROJECTIONS = ("perspective", "orthographic")
 DEPTH_KINDS = ("median", "expected")
@@ -97,6 +98,13 @@ class VisibilityConfig:
     # where the truth is dappled. False: the paper's binary test.
     fractional: bool = False
     fractional_min_alpha: float = 0.05
+    # The maps' rasterization. Forward-only renders of 256^2-512^2 composite faster with
+    # larger tiles and more pixels per lane than the views' training renders (which keep
+    # 4x4 / 2): on the demo's model (27.9k surfels) a 512^2 map took 57 ms at 4x4 tiles /
+    # 2 pixels per lane, 44 ms at 8x8 / 4, 54-57 at 16x16; 256^2 21 -> 17 ms; 128^2 alike
+    # (8.3-9.7 ms). The maps are bit-identical: each texel composites the same surfels in
+    # the same order (BENCHMARKS.md, "Session 18").
+    raster: RasterConfig = RasterConfig(tile_size=8, pixels_per_lane=4)
 
     def __post_init__(self):
         if self.projection not in PROJECTIONS:
@@ -258,7 +266,7 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
     local = dr.arange(mi.UInt32, texels)
     with dr.suspend_grad():
         for i, cam in enumerate(cams):
-            out = rasterize(surfels, cam, None, aovs=aovs)
+            out = rasterize(surfels, cam, None, aovs=aovs, config=config.raster)
             d = out[key].array
             empty = (out["alpha"].array < min_alpha) | (d <= 0)
             if config.layer_bias > 0:
@@ -279,6 +287,73 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
                 dr.scatter(alpha, dr.clip(out["alpha"].array, 0.0, 1.0), at)
             dr.eval(depth, *(() if alpha is None else (alpha,)))
     return ShadowMaps(directions, cams, depth, config.resolution, config, texel, alpha)
+
+
+class MapCache:
+    """Shadow maps of one set of occluders by light direction, rendered once each.
+
+    A map depends on the surfels, the bounds, the visibility settings and its direction,
+    never on the view or the materials: ``maps(directions, config)`` renders only the
+    directions not held (the new ones in one ``render_shadow_maps``, each map by its own
+    kernel, so a held map equals a fresh one) and assembles the set. Stage 4's refinement
+    asks again for maps it has (the candidates' current direction, the lights after a move),
+    and the relighting for every light it has seen. At most ``max_bytes`` of maps are held,
+    the least recently used dropped first.
+    """
+
+    def __init__(self, surfels, bounds: SceneBounds, max_bytes: int = 256 << 20):
+        self.surfels, self.bounds, self.max_bytes = surfels, bounds, max_bytes
+        self._maps: dict[tuple, tuple] = {}  # (config, direction) -> (camera, depth, alpha)
+        self._bytes = 0
+        self.rendered = 0  # maps rendered (not reused), for tests and benchmarks
+
+    @staticmethod
+    def _key(config: VisibilityConfig, direction) -> tuple:
+        return config, np.asarray(direction, np.float64).round(12).tobytes()
+
+    def maps(self, directions: np.ndarray, config: VisibilityConfig) -> ShadowMaps:
+        """``render_shadow_maps(surfels, directions, bounds, config)``, reusing held maps."""
+        dirs = np.atleast_2d(np.asarray(directions, np.float64))
+        keys = [self._key(config, d) for d in dirs]
+        todo = list(dict.fromkeys(k for k in keys if k not in self._maps))
+        if todo:
+            first = {k: i for i, k in reversed(list(enumerate(keys)))}
+            new = render_shadow_maps(self.surfels, dirs[[first[k] for k in todo]],
+                                     self.bounds, config)
+            r2 = new.resolution * new.resolution
+            for j, k in enumerate(todo):
+                part = dr.arange(mi.UInt32, j * r2, (j + 1) * r2)
+                depth = new.depth if len(todo) == 1 else dr.gather(mi.Float, new.depth, part)
+                alpha = None if new.alpha is None else \
+                    new.alpha if len(todo) == 1 else dr.gather(mi.Float, new.alpha, part)
+                dr.eval(depth, *(() if alpha is None else (alpha,)))
+                self._maps[k] = (new.cameras[j], depth, alpha, new.texel)
+                self._bytes += 4 * r2 * (1 if alpha is None else 2)
+            self.rendered += len(todo)
+        for k in keys:  # most recently used last
+            self._maps[k] = self._maps.pop(k)
+        parts = [self._maps[k] for k in keys]
+        maps = ShadowMaps(dirs, [p[0] for p in parts], _joined([p[1] for p in parts]),
+                          config.resolution, config, parts[0][3],
+                          None if parts[0][2] is None else _joined([p[2] for p in parts]))
+        while self._bytes > self.max_bytes and len(self._maps) > len(set(keys)):
+            _, depth, alpha, _ = self._maps.pop(next(iter(self._maps)))
+            self._bytes -= 4 * dr.width(depth) * (1 if alpha is None else 2)
+        return maps
+
+
+def _joined(parts: list) -> mi.Float:
+    """Evaluated arrays of one size laid end to end, evaluated: each copied by the same
+    kernel (an opaque offset; ``dr.concat`` compiles one per count of parts)."""
+    if len(parts) == 1:
+        return parts[0]
+    n = dr.width(parts[0])
+    out = dr.empty(mi.Float, n * len(parts))
+    local = dr.arange(mi.UInt32, n)
+    for i, part in enumerate(parts):
+        dr.scatter(out, part, local + jit.opaque(i * n, mi.UInt32))
+        dr.eval(out)
+    return out
 
 
 def _window_max(image: mi.Float, resolution: int, radius: int) -> mi.Float:
