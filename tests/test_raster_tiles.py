@@ -483,6 +483,11 @@ def test_sampled_pixels_pairs_and_checks():
                       config=TILES, background=BACKGROUND, pixels=mi.UInt32(pixels))
     assert_outputs_equal({k: np.array(v, np.float64) for k, v in tiles.items()},
                          {k: np.array(v, np.float64) for k, v in got.items()})
+    for config in (TILES, PAIRS):  # no pixels: empty outputs of the right width
+        none = rasterize(to_surfels(raw), camera, to_surfels(raw).channels, aovs=aovs,
+                         config=config, pixels=np.zeros(0, np.uint32))
+        assert {k: tuple(v.shape) for k, v in none.items()} == \
+            {"color": (0, 3), "alpha": (0, 1), "depth": (0, 1), "normal": (0, 3)}
     for bad in (np.array([480], np.uint32), np.array([-1]), np.zeros((2, 2), np.uint32)):
         with pytest.raises(ValueError, match=r"pixels must be flat indices in \[0, 480\) "
                                              r"of the 24x20 image"):

@@ -604,6 +604,9 @@ def rasterize(surfels: Surfels, camera: Camera,
         if host.ndim != 1 or (host.size and (host.min() < 0 or host.max() >= W * H)):
             raise ValueError(f"rasterize: pixels must be flat indices in [0, {W * H}) of the "
                              f"{W}x{H} image, got shape {host.shape}")
+        if host.size == 0:  # nothing to composite
+            return {name: dr.zeros(mi.TensorXf, (0, t.shape[1])) for name, t in chans.items()} \
+                | {a: dr.zeros(mi.TensorXf, (0, AOV_CHANNELS[a])) for a in aovs}
         pixels = mi.UInt32(host.astype(np.uint32))
 
     g = _project(surfels, camera, config)
