@@ -427,7 +427,13 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
                                 f"large for the image?)")
     if total == 0:
         return None
-    sid, local = _expand(count, total)
+    # The pairs laid out surfel by surfel front to back (a stable sort of the N centre
+    # depths: equal depths keep surfel order), then a stable sort by pixel alone: each
+    # pixel's pairs in (depth, surfel) order, as a sort of 64-bit (pixel, depth) keys over
+    # the pairs would leave them, with 32-bit keys (3 radix passes over P instead of 6).
+    by_depth = dr.argsort(_depth_key(g.z2))  # [N]
+    pos, local = _expand(dr.gather(mi.UInt32, count, by_depth), total)
+    sid = dr.gather(mi.UInt32, by_depth, pos)
     # max(., 1): masked-off tail lanes of a gather read 0, and x86 integer division by 0
     # traps (SIGFPE) even in lanes that are discarded.
     w = dr.maximum(dr.gather(mi.UInt32, bw, sid), 1)
@@ -442,8 +448,7 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
         return None
     sid = dr.gather(mi.UInt32, sid, idx)
     pix = dr.gather(mi.UInt32, (pyi - dr.opaque(mi.UInt32, r0)) * width + pxi, idx)
-    key = (mi.UInt64(pix) << 32) | mi.UInt64(_depth_key(dr.gather(mi.Float, g.z2, sid)))
-    order = dr.argsort(key)
+    order = dr.argsort(pix)
     sid = dr.gather(mi.UInt32, sid, order)
     pix = dr.gather(mi.UInt32, pix, order)
     dr.eval(sid, pix)
