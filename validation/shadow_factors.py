@@ -148,13 +148,10 @@ class Receivers:
 def surfel_receivers(model, cameras) -> Receivers:
     """Stage 5's receivers: the surfels' rasterized median depth and normals."""
     from mi_shadowgs.core import shading
-    from mi_shadowgs.core.raster import rasterize
 
     pts, nrm, foot, nnp = [], [], [], []
     for cam in cameras:
-        with dr.suspend_grad():
-            out = rasterize(model, cam, None, aovs=("alpha", "depth", "normal"))
-            geom = shading.geometry_from_aovs(out, cam)
+        geom = shading.pixel_geometry(model, cam)  # the shading normals where the model has them
         pts.append(geom.points)
         nrm.append(geom.normal)
         foot.append(geom.footprint)

@@ -36,6 +36,10 @@ from mi_shadowgs.core.surfels import Surfels
 
 MATERIAL_CHANNELS = ("albedo", "roughness", "metallic")
 INDIRECT_CHANNEL = "indirect_sh"
+# Optional per-surfel unit normals [N, 3] that shading uses in place of the surfels' own
+# (their rotations still set the geometry: coverage, depth, shadow-map occluders). Stage 2
+# writes them where a segment is planar (``stages.segmentation.planes``).
+SHADING_NORMAL_CHANNEL = "shading_normal"
 DEFAULT_RASTER = RasterConfig()  # [N, 3 (d + 1)^2] coefficient-major, like "sh"
 
 
@@ -104,18 +108,39 @@ def channel(flat: mi.Float, c: int, k: int) -> mi.Float:
 
 def pixel_geometry(surfels: Surfels, camera: Camera,
                    config: RasterConfig = DEFAULT_RASTER) -> PixelGeometry:
-    """Rasterized alpha, expected depth and normals of a view, plus points and view dirs."""
+    """Rasterized alpha, expected depth and normals of a view, plus points and view dirs
+    (the normals of ``SHADING_NORMAL_CHANNEL`` where the model has it)."""
     with dr.suspend_grad():
-        out = rasterize(surfels, camera, None, aovs=("alpha", "depth", "normal"), config=config)
+        out = rasterize(surfels, camera, geometry_channels(surfels, camera),
+                        aovs=("alpha", "depth", "normal"), config=config)
     return geometry_from_aovs(out, camera)
 
 
+def geometry_channels(surfels: Surfels, camera: Camera) -> dict:
+    """The channels ``geometry_from_aovs`` reads beside the AOVs: the shading normals
+    facing ``camera`` ({} without them)."""
+    if SHADING_NORMAL_CHANNEL not in surfels.channels:
+        return {}
+    n = facing_normals(surfels, camera)
+    return {SHADING_NORMAL_CHANNEL: mi.TensorXf(dr.ravel(n), (surfels.count, 3))}
+
+
+def shading_normals(surfels: Surfels) -> mi.Vector3f:
+    """Unit normals [N] for shading: ``SHADING_NORMAL_CHANNEL`` when the model has it, else
+    the rotations' third column."""
+    if SHADING_NORMAL_CHANNEL in surfels.channels:
+        t = surfels.channels[SHADING_NORMAL_CHANNEL]
+        return dr.normalize(mi.Vector3f(*(channel(t.array, 3, k) for k in range(3))))
+    return surfels.tangent_frame()[2]
+
+
 def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
-    """PixelGeometry from a ``rasterize`` result holding "alpha", "depth" and "normal"."""
+    """PixelGeometry from a ``rasterize`` result holding "alpha", "depth" and "normal"
+    (and the shading normals' channel, when rendered, which then gives the normals)."""
     from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 
     with dr.suspend_grad():
-        nimg = out["normal"]
+        nimg = out.get(SHADING_NORMAL_CHANNEL, out["normal"])
         n = mi.Vector3f(*(channel(nimg.array, 3, k) for k in range(3)))
         n2 = dr.squared_norm(n)
         n = dr.select(n2 > 1e-12, n * dr.rsqrt(dr.select(n2 > 1e-12, n2, 1.0)), 0.0)
@@ -140,8 +165,7 @@ def facing_normals(surfels: Surfels, camera: Camera) -> mi.Vector3f:
     4 the backward's scatter-adds of the 27 degree-2 coefficients were most of a step;
     BENCHMARKS.md, "Session 17")."""
     with dr.suspend_grad():
-        _, _, nrm = surfels.tangent_frame()
-        n = face_camera(nrm, dr.detach(surfels.position), camera)
+        n = face_camera(shading_normals(surfels), dr.detach(surfels.position), camera)
         dr.eval(n)
     return n
 

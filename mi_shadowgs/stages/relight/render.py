@@ -208,6 +208,7 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
                 surfels.channels[shading.INDIRECT_CHANNEL],
                 shading.facing_normals(surfels, camera), offset=0.0)
     chans.update(extra or {})
+    chans.update(shading.geometry_channels(surfels, camera))
 
     def color(name: str) -> mi.Color3f:
         a = out[name].array

@@ -39,6 +39,7 @@ from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.stages.segmentation.planes import PlaneConfig, planar_shading_normals
 
 FEATURE = "feature"
 SEGMENT = "segment"
@@ -89,13 +90,19 @@ class SegmentationConfig:
     # Resumable checkpoints: every so many iterations and at least this often in wall time.
     checkpoint_every: int = 500
     checkpoint_seconds: float = 60.0
+    # After K-means, segments whose surfels lie on one plane are made flat (not in the
+    # paper; off in its preset): ``planes.PlaneConfig``.
+    planes: PlaneConfig = PlaneConfig()
 
 
 PRESETS = {
     "paper": SegmentationConfig(),
     # 2 CPU cores: fewer iterations (~0.2 s each at 128 px), a larger step to make up for
-    # them, and 2k samples (the pairwise term is n^2 / 4).
-    "cpu-small": SegmentationConfig(iterations=300, lr=0.02, n_samples=2048),
+    # them, and 2k samples (the pairwise term is n^2 / 4). Planar segments shaded flat: the
+    # twelve table rows' stage 4 refitted with and without (BENCHMARKS.md, "Planar
+    # segments").
+    "cpu-small": SegmentationConfig(iterations=300, lr=0.02, n_samples=2048,
+                                    planes=PlaneConfig(enabled=True)),
 }
 PRESETS["cpu-medium"] = PRESETS["cpu-small"]  # features of the surfels, not the pixels
 
@@ -589,6 +596,7 @@ class SegmentationResult:
     k: int
     train: TrainResult
     k_scores: dict | None = None  # {K: silhouette} when K was chosen by silhouette
+    planes: list | None = None  # the segments' plane fits (``planes.planar_shading_normals``)
 
 
 def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
@@ -616,7 +624,8 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                   surfels.opacity_logit, dict(surfels.channels))
     out.channels[FEATURE] = mi.TensorXf(tr.features)
     out.channels[SEGMENT] = mi.TensorXf(seg.astype(np.float32)[:, None])
-    return SegmentationResult(out, seg, k, tr, scores)
+    out, planes = planar_shading_normals(out, seg, config.planes)
+    return SegmentationResult(out, seg, k, tr, scores, planes)
 
 
 # -- rendering segment maps ---------------------------------------------------------------

@@ -107,6 +107,8 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
                   "seconds_stage": t_stage, "split": split, "views": len(maps)}
         if result.k_scores:
             report["k_silhouette"] = {str(k): v for k, v in result.k_scores.items()}
+        if result.planes:  # the segments' plane fits (SegmentationConfig.planes)
+            report["planes"] = result.planes
         if all(v.material is not None for v in views.views):
             report.update(_segmentation_metrics(maps, views))
         write_json(folder / "segmentation.json", report)
