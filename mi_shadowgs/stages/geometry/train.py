@@ -66,6 +66,12 @@ class GeometryConfig:
     init_points: int = 100_000
     init_opacity: float = 0.1  # not 0.5: logit 0 is a known zero-gradient point
     hull_resolution: int = 96
+    # The hull's cube: centre +- the mean camera distance when None; else this many times
+    # the half-width every view sees at the centre (``view_radius``). The first left about
+    # 0.1-0.7% of cpu-small's 8000 points on the object: its 48^3 cells were 0.21 across
+    # (the object is 2 across) and most of the cube lay below the base (BENCHMARKS.md,
+    # "Stage 1's hull on the object").
+    hull_extent: float | None = None
     init_consistent_fraction: float = 0.0  # share of hull points in photo-consistent cells
     init_scale_factor: float = 1.0  # initial std-dev = factor * mean 3-NN distance (3DGS: 1)
     # Views without masks only: lambda * L1 of the rendered alpha at the training pixels
@@ -134,7 +140,7 @@ PRESETS = {
         # 34.12 -> 34.17 / 29.08 -> 29.19; toy train, low pair 0.517 -> 0.615 / 34.44 ->
         # 34.03 / 22.70 -> 21.86. BENCHMARKS.md, "Depth normals on the pixel's own plane".
         normal_depth_differences="same_plane",
-        init_points=8000, hull_resolution=48, init_scale_factor=0.4,
+        init_points=8000, hull_resolution=48, hull_extent=1.2, init_scale_factor=0.4,
         init_consistent_fraction=0.5,
         densify=DensifyConfig(start=200, stop=1800, interval=100, opacity_reset_interval=1000,
                               grad_threshold=0.0002, max_surfels=40000),
@@ -183,14 +189,34 @@ def scene_bounds(cameras) -> tuple[np.ndarray, float]:
     return centre, radius
 
 
+def view_radius(cameras, centre: np.ndarray) -> float:
+    """The radius about ``centre`` that a typical view sees: the median over the views that
+    face it of half the narrower image side at the centre's distance (orthographic views:
+    half that side's width). The median, so that one close-up does not shrink it."""
+    radii = []
+    for cam in cameras:
+        if cam.is_ortho:
+            radii.append(0.5 * cam.ortho_width * min(1.0, cam.height / cam.width))
+            continue
+        depth = float(np.dot(centre - cam.origin, cam.forward))
+        if depth > 0:
+            fx, fy = cam.focal_xy
+            radii.append(0.5 * min(cam.width / fx, cam.height / fy) * depth)
+    if not radii:
+        raise ValueError("GeometryConfig.hull_extent: no training camera faces the scene's "
+                         "centre; set hull_extent to None (the cameras' distance)")
+    return float(np.median(radii))
+
+
 def visual_hull_points(views, centre, radius: float, count: int, resolution: int,
                        rng: np.random.Generator, consistent_fraction: float = 0.0
                        ) -> np.ndarray:
     """``count`` random points [count, 3] in the visual hull of the views' masks.
 
     The hull is carved on a ``resolution``^3 grid over the cube centre +- radius: a cell
-    survives when every view that sees its centre (in front, inside the image) has it in
-    the mask. A mask of object plus base leaves the space above the base uncarved, so
+    survives when at least one view sees its centre (in front, inside the image) and every
+    view that does has it in the mask (a cell no view sees would get no gradient). A mask
+    of object plus base leaves the space above the base uncarved, so
     ``consistent_fraction`` of the points go to the most photo-consistent cells (space
     carving: a cell on a diffuse surface shows the same colour in the views that see it;
     the score is the median over views of the colour's distance to the median colour,
@@ -201,12 +227,14 @@ def visual_hull_points(views, centre, radius: float, count: int, resolution: int
     xs, ys, zs = np.meshgrid(g, g, g, indexing="ij")
     pts = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], -1) * radius + centre  # [G^3, 3]
     keep = np.ones(len(pts), bool)
+    seen = np.zeros(len(pts), bool)
     for view in views:
         xi, yi, inside = view.camera.pixel_of(pts)
         hit = np.zeros(len(pts), bool)
         hit[inside] = view.mask[yi[inside], xi[inside]]
         keep &= hit | ~inside
-    cells = pts[keep]
+        seen |= inside
+    cells = pts[keep & seen]
     if len(cells) == 0:
         raise ValueError("visual hull is empty: the masks of the training views do not agree "
                          "on any point (wrong cameras or masks?)")
@@ -286,6 +314,8 @@ def init_params(views, config: GeometryConfig,
     rng = np.random.default_rng(config.seed)
     centre, radius = scene_bounds([v.camera for v in views])
     if config.init == "hull":
+        if config.hull_extent is not None:
+            radius = config.hull_extent * view_radius([v.camera for v in views], centre)
         pts = visual_hull_points(views, centre, radius, config.init_points,
                                  config.hull_resolution, rng, config.init_consistent_fraction)
     elif config.init == "points" and points is not None:
