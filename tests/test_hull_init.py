@@ -75,3 +75,10 @@ def test_hull_points_lie_on_the_object_and_in_some_view():
     wide = train.visual_hull_points(views, centre, cam_radius, 2000, 48, rng)
     wide_share = np.mean(np.linalg.norm(wide - centre, axis=1) < SPHERE_RADIUS + cell)
     assert wide_share < 0.5  # measured: 0.015
+
+
+def test_hull_extent_must_be_positive():
+    views = _ring_views(n=4, elevations_deg=(30.0,))
+    config = dataclasses.replace(train.get_config("cpu-small"), hull_extent=0.0)
+    with pytest.raises(ValueError, match="hull_extent must be > 0"):
+        train.init_params(views, config)

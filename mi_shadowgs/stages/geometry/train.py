@@ -67,10 +67,10 @@ class GeometryConfig:
     init_opacity: float = 0.1  # not 0.5: logit 0 is a known zero-gradient point
     hull_resolution: int = 96
     # The hull's cube: centre +- the mean camera distance when None; else this many times
-    # the half-width every view sees at the centre (``view_radius``). The first left about
+    # the half-width a typical view sees at the centre (``view_radius``). The first left
     # 0.1-0.7% of cpu-small's 8000 points on the object: its 48^3 cells were 0.21 across
-    # (the object is 2 across) and most of the cube lay below the base (BENCHMARKS.md,
-    # "Stage 1's hull on the object").
+    # (the object is 2 across) and 88-90% of the cells kept were ones no view sees
+    # (BENCHMARKS.md, "Stage 1's hull on the object").
     hull_extent: float | None = None
     init_consistent_fraction: float = 0.0  # share of hull points in photo-consistent cells
     init_scale_factor: float = 1.0  # initial std-dev = factor * mean 3-NN distance (3DGS: 1)
@@ -317,6 +317,9 @@ def init_params(views, config: GeometryConfig,
     rng = np.random.default_rng(config.seed)
     centre, radius = scene_bounds([v.camera for v in views])
     if config.init == "hull":
+        if config.hull_extent is not None and not config.hull_extent > 0:
+            raise ValueError(f"GeometryConfig.hull_extent must be > 0 or None, got "
+                             f"{config.hull_extent!r}")
         if config.hull_extent is not None:
             radius = config.hull_extent * view_radius([v.camera for v in views], centre)
         pts = visual_hull_points(views, centre, radius, config.init_points,
