@@ -90,6 +90,11 @@ class Surfels:
     def count(self) -> int:
         return dr.width(self.position)
 
+    def with_channels(self, channels: dict[str, mi.TensorXf]) -> Surfels:
+        """A new set with the same geometry arrays and ``channels`` [N, C] added to (or
+        replacing) this one's; this set is left as it is."""
+        return dataclasses.replace(self, channels={**self.channels, **channels})
+
     # -- activations ------------------------------------------------------------------
     def scale(self) -> mi.Point2f:
         """Activated tangent standard deviations [N] (exp of log_scale)."""

@@ -1279,10 +1279,9 @@ def fit_result(fit: MaterialFit, state: MaterialState) -> MaterialResult:
     active = nearest_grid_index(state.directions, light_grid(config.n_directions))
     radiance = np.zeros(config.n_directions)
     np.add.at(radiance, active, light)
-    out = Surfels(surfels.position, surfels.log_scale, surfels.rotation, surfels.opacity_logit,
-                  dict(surfels.channels))
-    for k in ("albedo", "roughness", "metallic", shading.INDIRECT_CHANNEL):
-        out.channels[k] = mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
+    out = surfels.with_channels({k: mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
+                                 for k in ("albedo", "roughness", "metallic",
+                                           shading.INDIRECT_CHANNEL)})
     return MaterialResult(out, LightModel(radiance, active, state.directions,
                                           light * solid_angle(config.n_directions)),
                           state.specular, config.use_visibility, state.history,

@@ -620,10 +620,8 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
     seg, _ = kmeans_segments(tr.features, k, seen, config.seed,
                              config.kmeans_restarts, config.kmeans_iterations,
                              prototype_seeds(tr.prototypes, labels, k))
-    out = Surfels(surfels.position, surfels.log_scale, surfels.rotation,
-                  surfels.opacity_logit, dict(surfels.channels))
-    out.channels[FEATURE] = mi.TensorXf(tr.features)
-    out.channels[SEGMENT] = mi.TensorXf(seg.astype(np.float32)[:, None])
+    out = surfels.with_channels({FEATURE: mi.TensorXf(tr.features),
+                                 SEGMENT: mi.TensorXf(seg.astype(np.float32)[:, None])})
     out, planes = planar_shading_normals(out, seg, config.planes)
     return SegmentationResult(out, seg, k, tr, scores, planes)
 

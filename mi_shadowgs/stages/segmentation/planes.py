@@ -135,7 +135,5 @@ def planar_shading_normals(surfels: Surfels, segments: np.ndarray, config: Plane
                         "flattened": int(j.size)})
     if not any(r["flattened"] for r in reports):
         return surfels, reports
-    channels = dict(surfels.channels)
-    channels[SHADING_NORMAL_CHANNEL] = mi.TensorXf(shading_normal.astype(np.float32))
-    return Surfels(surfels.position, surfels.log_scale, surfels.rotation,
-                   surfels.opacity_logit, channels), reports
+    return surfels.with_channels(
+        {SHADING_NORMAL_CHANNEL: mi.TensorXf(shading_normal.astype(np.float32))}), reports
