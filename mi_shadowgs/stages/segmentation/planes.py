@@ -127,8 +127,8 @@ def planar_shading_normals(surfels: Surfels, segments: np.ndarray, config: Plane
             continue
         planar = fit.inlier_share >= config.min_inlier_share
         j = idx[fit.inliers] if planar else idx[:0]
-        side = np.sign(normals[j] @ fit.normal)[:, None]
-        shading_normal[j] = np.where(side >= 0, 1.0, -1.0) * fit.normal
+        side = np.where(normals[j] @ fit.normal >= 0, 1.0, -1.0)[:, None]  # each on its own
+        shading_normal[j] = side * fit.normal
         reports.append({"segment": int(k), "surfels": int(idx.size),
                         "normal": fit.normal.tolist(), "point": fit.point.tolist(),
                         "inlier_share": fit.inlier_share, "planar": bool(planar),
