@@ -34,6 +34,28 @@ def test_albedo_alignment_per_region_and_channel():
     assert evaluation.albedo_metrics(est2, gt, regions, mask)["psnr"] < 40
 
 
+def test_surface_albedo_undoes_the_coverage_at_the_silhouette():
+    # A disc of albedo 0.6 whose edge pixels the fit covers in part (alpha 0.3-0.9): the
+    # ground truth holds 0.6 at every pixel whose centre hits the disc, the alpha-blended
+    # estimate 0.6 x alpha there. Compared as rendered, the edge alone costs PSNR; the
+    # surface's albedo is exact. A near-empty pixel (alpha < ALPHA_MIN) stays as rendered.
+    ys, xs = np.mgrid[0:16, 0:16]
+    r = np.hypot(xs - 7.5, ys - 7.5)
+    mask = (r < 6.0)[None]
+    alpha = np.clip(6.5 - r, 0.0, 1.0)[None]
+    alpha[0, 0, 0] = 0.01
+    gt = np.where(mask[..., None], 0.6, 0.0) * np.ones(3)
+    blended = 0.6 * alpha[..., None] * np.ones(3)
+    edge = mask & (alpha < 1)
+    assert 0.3 <= alpha[edge].min() and edge.sum() >= 20
+    surf = evaluation.surface_albedo(blended, alpha)
+    np.testing.assert_allclose(surf[mask], gt[mask], rtol=1e-12)
+    np.testing.assert_allclose(surf[0, 0, 0], blended[0, 0, 0])
+    regions = mask.astype(int)
+    assert evaluation.albedo_metrics(surf, gt, regions, mask)["psnr"] > 200
+    assert evaluation.albedo_metrics(blended, gt, regions, mask)["psnr"] < 30
+
+
 def test_image_metrics_psnr_hand_case():
     gt = np.full((1, 4, 4, 3), 0.5)
     est = gt + 0.1  # MSE 0.01 -> 20 dB
@@ -167,3 +189,20 @@ def test_albedo_global_cli_exits_2_naming_what_is_missing(tmp_path, capsys):
     assert (tmp_path / "taken.md").read_text() == "mine"
     assert albedo_global.main([str(tmp_path / "nowhere")]) == 2
     assert "nowhere: no such folder" in capsys.readouterr().err
+
+
+def test_pipeline_table_names_rows_whose_albedo_was_scored_as_rendered():
+    from mi_shadowgs.stages.relight.evaluate import ALBEDO_ESTIMATE
+    from validation import pipeline as vpipe
+
+    def row(scene, full):
+        return {"scene": scene, "lights": "tuned", "wall_s": 60.0, "segments": 2,
+                "geometry": {"psnr": 30.0, "mask_iou": 0.9}, "segmentation": {},
+                "variants": {"full": {"albedo_psnr": 30.0, **full}}}
+
+    md = vpipe.markdown([row("default", {"albedo_estimate": ALBEDO_ESTIMATE}),
+                         row("bunny", {})], "cmd")
+    note = [line for line in md.splitlines() if "scored as rendered" in line]
+    assert len(note) == 1 and "bunny-tuned" in note[0] and "default" not in note[0]
+    assert "scored as rendered" not in vpipe.markdown(
+        [row("default", {"albedo_estimate": ALBEDO_ESTIMATE})], "cmd")

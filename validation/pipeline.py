@@ -249,6 +249,13 @@ def markdown(rows: list[dict], command: str) -> str:
             cells[col:col] = ["", ""]
             lines.append(f"| **{label}** ({len(vals)}) | | **{variant}** | " +
                          " | ".join(cells) + " |")
+    before = [f"{r['scene']}-{r.get('lights', 'tuned')}" for r in rows
+              if (m := r["variants"].get("full")) and m.get("albedo_psnr") is not None
+              and m.get("albedo_estimate") is None]
+    if before:  # their albedo columns are not comparable with the others'
+        lines += ["", "Albedo of " + ", ".join(before) + ": scored as rendered (alpha-blended), "
+                  "before the evaluation divided it by the pixel's coverage; not comparable "
+                  "with rows evaluated since."]
     return "\n".join(lines) + "\n"
 
 

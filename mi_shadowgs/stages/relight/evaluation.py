@@ -6,7 +6,13 @@ NumPy float64 over [V, H, W, ...] stacks of test views; PSNR and SSIM are those 
 ``None``, with the reason in ``lpips_skipped``, where it cannot be computed: views smaller
 than ``lpips.MIN_SIZE`` or the ``eval`` extra not installed.
 
-- **Albedo**: the estimate is aligned to the ground truth by a per-channel scale per region
+- **Albedo**: the estimate is the albedo of the surface each pixel sees
+  (``surface_albedo``): the rasterized albedo is alpha-blended, so at a pixel the fit
+  covers in part it is the surface's albedo times the coverage, while the ground truth is
+  the albedo at the pixel centre's hit, whatever the coverage. Dividing by the pixel's
+  alpha compares like with like; compared as rendered, the silhouette's pixels alone cost
+  the bunny 11 dB (BENCHMARKS.md, "The albedo at the silhouette"). It is then aligned to
+  the ground truth by a per-channel scale per region
   (the paper extends the usual single-object alignment to every object): for each region id
   r > 0 (the dataset's material ids: each object part and the base) and channel c,
   s_rc = median over the region's pixels in all evaluated views of gt_c / est_c (pixels with
@@ -40,6 +46,9 @@ import numpy as np
 from mi_shadowgs.core import metrics
 
 EST_MIN = 1e-4  # estimated albedo below this carries no usable ratio
+# A pixel the fit covers less than this holds no surface of the fit (a hole, scored as
+# rendered): dividing its near-zero albedo by its alpha would only amplify stray splats.
+ALPHA_MIN = 0.05
 SHADOW_THRESHOLD = 0.5  # shadow: direct irradiance < 0.5 x the view's median over the mask
 
 
@@ -50,6 +59,15 @@ def _stack(x, what: str, ndim: int) -> np.ndarray:
     if a.ndim != ndim:
         raise ValueError(f"{what}: expected {ndim - 1} or {ndim} dimensions, got {a.shape}")
     return a
+
+
+def surface_albedo(albedo, alpha) -> np.ndarray:
+    """The albedo of the surface each pixel sees [V, H, W, 3]: the alpha-blended albedo
+    [V, H, W, 3] divided by the pixel's alpha [V, H, W] where that is >= ``ALPHA_MIN``, as
+    rendered elsewhere."""
+    a = _stack(albedo, "albedo estimate", 4)
+    w = np.asarray(alpha, np.float64).reshape(a.shape[:3])[..., None]
+    return np.where(w >= ALPHA_MIN, a / np.maximum(w, ALPHA_MIN), a)
 
 
 def albedo_scales(est, gt, regions, mask) -> dict[int, np.ndarray]:
