@@ -168,12 +168,15 @@ def relight_lights(config: GenerateConfig) -> list[tuple[str, list[Light]]]:
 
 
 # -- ground truth -----------------------------------------------------------------------
-def camera_rays(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pixel-centre rays of all cameras: origins [M, 3], unit directions [M, 3], and each
+def camera_rays(cameras: list[Camera], offset: tuple[float, float] = (0.5, 0.5)
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One ray per pixel of all cameras, through the point ``offset`` (x, y in [0, 1) of the
+    pixel; (0.5, 0.5): its centre): origins [M, 3], unit directions [M, 3], and each
     camera's forward axis per ray [M, 3] (for z-depth), in view-major, row-major order."""
     origins, dirs, fwd = [], [], []
+    shift = np.asarray(offset, np.float64) - 0.5
     for cam in cameras:
-        pix = cam.pixel_grid()
+        pix = cam.pixel_grid() + shift  # [H*W, 2]
         far = cam.unproject(pix, np.ones(len(pix)))  # points at z-depth 1
         if cam.is_ortho:
             o = cam.unproject(pix, np.zeros(len(pix)))
@@ -190,8 +193,10 @@ def camera_rays(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
                        lights: list[Light] | None = None,
-                       chunk_rays: int = 1 << 22) -> dict[str, np.ndarray]:
-    """Exact per-pixel buffers at pixel centres for each camera (all the same size).
+                       chunk_rays: int = 1 << 22,
+                       offset: tuple[float, float] = (0.5, 0.5)) -> dict[str, np.ndarray]:
+    """Exact per-pixel buffers at pixel centres for each camera (all the same size); at
+    the point ``offset`` of each pixel instead when given (``camera_rays``).
 
     Returns [N, H, W, ...] arrays: ``albedo`` [3], ``normal`` [3] (unit, world, facing the
     camera), ``depth`` (z-depth, 0 on background), ``mask`` (object or base hit), ``object``
@@ -213,7 +218,7 @@ def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
     out = {k: [] for k in ("albedo", "normal", "depth", "mask", "object", "material",
                            "visibility", "irradiance")}
     for v0 in range(0, len(cameras), views_per_chunk):
-        o, d, f = camera_rays(cameras[v0:v0 + views_per_chunk])
+        o, d, f = camera_rays(cameras[v0:v0 + views_per_chunk], offset)
         ray = mi.Ray3f(mi.Point3f(*(o.T.astype(np.float32))),
                        mi.Vector3f(*(d.T.astype(np.float32))))
         si = scene.ray_intersect(ray)
@@ -255,6 +260,35 @@ def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
         out["irradiance"].append(np.stack([arr(e, 3) for e in irr], -2) if irr else
                                  np.zeros((nv, h, w, 0, 3), np.float32))
     return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def box_filtered_ground_truth(setup: SceneSetup, cameras: list[Camera],
+                              lights: list[Light] | None = None, samples: int = 4
+                              ) -> dict[str, np.ndarray]:
+    """The albedo and irradiance a pixel-area sensor sees: ``trace_ground_truth`` at
+    ``samples`` x ``samples`` stratified points of each pixel (the photos' box filter),
+    averaged over the points that hit the scene. Returns [N, H, W, ...] arrays ``albedo``
+    [3], ``irradiance`` [L, 3] (where no point hits: 0) and ``coverage`` (the share of the
+    points that hit). The dataset's buffers are point samples at the pixel centre; this is
+    the reference that no pixel-sized estimate can beat (``validation.metric_floor``)."""
+    if samples < 1:
+        raise ValueError(f"box_filtered_ground_truth: samples must be >= 1, got {samples}")
+    acc: dict[str, np.ndarray] = {}
+    hits = None
+    for iy in range(samples):
+        for ix in range(samples):
+            g = trace_ground_truth(setup, cameras, lights,
+                                   offset=((ix + 0.5) / samples, (iy + 0.5) / samples))
+            hit = g["mask"].astype(np.float64)  # [N, H, W]
+            hits = hit if hits is None else hits + hit
+            for key, extra in (("albedo", 1), ("irradiance", 2)):
+                w = hit.reshape(hit.shape + (1,) * extra)
+                acc[key] = acc.get(key, 0.0) + g[key].astype(np.float64) * w
+    n = samples * samples
+    safe = np.maximum(hits, 1.0)
+    return {"albedo": acc["albedo"] / safe[..., None],
+            "irradiance": acc["irradiance"] / safe[..., None, None],
+            "coverage": hits / n}
 
 
 # -- path tracing -------------------------------------------------------------------------

@@ -1,0 +1,102 @@
+"""The box-filtered ground truth (dataset.generate.box_filtered_ground_truth) and the metric
+floor it gives (validation.metric_floor)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from tiny_cli import TINY, presets
+
+import mi_shadowgs.api as msg
+from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.dataset.generate import (
+    box_filtered_ground_truth,
+    camera_rays,
+    trace_ground_truth,
+)
+from mi_shadowgs.dataset.scene import load_scene
+from mi_shadowgs.scenes import scene_path
+from validation import metric_floor
+
+
+@pytest.fixture(scope="module")
+def setup():
+    return load_scene(scene_path("default"))
+
+
+def test_camera_rays_pass_through_the_asked_point_of_each_pixel():
+    cam = Camera.look_at((0.3, 2.0, 4.0), (0.0, 0.5, 0.0), fov_x=0.8, width=6, height=4)
+    for offset in ((0.5, 0.5), (0.0, 0.0), (0.9, 0.2)):
+        o, d, _ = camera_rays([cam], offset)
+        pix = cam.pixel_grid() - 0.5 + np.asarray(offset)
+        want = cam.unproject(pix, np.ones(len(pix))) - cam.origin
+        np.testing.assert_allclose(d, want / np.linalg.norm(want, axis=1, keepdims=True),
+                                   atol=1e-12)
+
+
+def test_one_sample_is_the_point_truth_and_four_blend_only_at_edges(setup):
+    cam = Camera.look_at((2.5, 2.5, 3.0), setup.object_center, fov_x=0.7, width=40, height=40)
+    point = trace_ground_truth(setup, [cam])
+    one = box_filtered_ground_truth(setup, [cam], samples=1)
+    np.testing.assert_array_equal(one["coverage"], point["mask"].astype(np.float64))
+    np.testing.assert_allclose(one["albedo"], point["albedo"], atol=0)
+    np.testing.assert_allclose(one["irradiance"], point["irradiance"], atol=0)
+    box = box_filtered_ground_truth(setup, [cam], samples=4)
+    cov = box["coverage"]
+    assert cov.min() >= 0 and cov.max() <= 1
+    # The object's silhouette against the background: pixels partly covered.
+    assert np.count_nonzero((cov > 0) & (cov < 1)) > 10
+    # Inside one material, away from every edge, the albedo is the point truth's: the
+    # default scene's parts have constant albedo.
+    mat = point["material"][0]
+    same = np.ones_like(mat, bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            same &= np.roll(np.roll(mat, dy, 0), dx, 1) == mat
+    inner = same & (cov[0] == 1) & point["mask"][0].astype(bool)
+    inner[[0, -1], :] = inner[:, [0, -1]] = False
+    assert inner.sum() > 200
+    np.testing.assert_allclose(box["albedo"][0][inner], point["albedo"][0][inner], atol=1e-6)
+    # Where materials meet, the box filter blends them; the point truth cannot.
+    edge = ~same & (cov[0] == 1)
+    assert np.abs(box["albedo"][0][edge] - point["albedo"][0][edge]).max() > 0.05
+    with pytest.raises(ValueError, match="samples"):
+        box_filtered_ground_truth(setup, [cam], samples=0)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    with pytest.MonkeyPatch.context() as mp:
+        for table, config in presets():
+            mp.setitem(table, TINY, config)
+        return msg.generate_dataset(msg.scene_path("default"),
+                                    tmp_path_factory.mktemp("floor") / "data", preset=TINY)
+
+
+def test_metric_floor_cli(tiny_data, tmp_path, capsys):
+    out = tmp_path / "floor"
+    assert metric_floor.main(["--data", str(tiny_data), "--out", str(out), "--sizes", "24",
+                              "48", "--samples", "1", "--quiet"]) == 0
+    rows = json.loads((out / "metric_floor.json").read_text())["rows"]
+    assert [r["size"] for r in rows] == [24, 48]
+    # One sample per pixel is the point truth itself: a perfect score.
+    assert all(r["shadow_iou"] == 1.0 and r["albedo_psnr"] > 100 for r in rows)
+    assert metric_floor.main(["--data", str(tiny_data), "--out", str(out), "--samples", "3",
+                              "--quiet"]) == 0
+    (row,) = json.loads((out / "metric_floor.json").read_text())["rows"]
+    assert row["size"] == 24 and row["partly_covered_share"] > 0
+    assert row["shadow_iou"] < 1.0 and row["albedo_psnr"] < 100
+    # Exits 2 naming what is wrong; never replaces a folder it did not write.
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("x")
+    for argv, what in ((["--data", str(tmp_path), "--out", str(tmp_path / "o")], "dataset"),
+                       (["--data", str(tiny_data), "--out", str(other)], "metric_floor.json"),
+                       (["--data", str(tiny_data), "--out", str(out), "--samples", "0"],
+                        "--samples")):
+        with pytest.raises(SystemExit) as e:
+            metric_floor.main(argv)
+        assert e.value.code == 2 and what in capsys.readouterr().err
+    assert (other / "keep.txt").read_text() == "x"
