@@ -68,12 +68,13 @@ def test_a_second_call_resumes_in_place(fake_runs, tmp_path):
     assert "| default | tuned |" in md and "| bunny | tuned |" in md
 
 
-def test_a_folder_that_is_not_ours_is_refused(fake_runs, tmp_path):
+def test_a_folder_that_is_not_ours_is_refused(fake_runs, tmp_path, capsys):
     out = tmp_path / "mine"
     out.mkdir()
     (out / "notes.txt").write_text("keep me")
-    with pytest.raises(SystemExit, match="notes.txt"):
+    with pytest.raises(SystemExit) as e:
         run_all.main(["--out", str(out), "--only", "pipeline"])
+    assert e.value.code == 2 and "notes.txt" in capsys.readouterr().err
     assert fake_runs == [] and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 

@@ -34,6 +34,7 @@ from mi_shadowgs.io.images import write_png
 from mi_shadowgs.stages import material, relight
 from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.visibility import shadow_maps
+from validation import fail
 
 VARIANTS = pipeline.VARIANTS
 # Bounds of the occluders' shadow maps: the object's sphere times this covers the shadows it
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
     train = load_dataset(args.data, "train")
     test = load_dataset(args.data, "test")
     if not train.info or "scene" not in train.info:
-        raise SystemExit(f"{args.data}: dataset.json has no 'scene' (need a generated dataset)")
+        fail(f"{args.data}: dataset.json has no 'scene' (need a generated dataset)")
     setup = load_scene(train.info["scene"], train.info.get("parameters"))
     surfels = standin_surfels(setup)
     bounds = scene_bounds(setup, train.cameras)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from validation import fail
 
 SHARE = 0.25  # lights carrying at least this share of the irradiance must be found ...
 MAX_ERROR_DEG = 3.0  # ... within this angle (issue 15's acceptance)
@@ -117,8 +118,8 @@ def main(argv=None) -> int:
         scenes = args.scene or ["default", "bunny"]
         missing = [s for s in scenes if s not in avail]
         if missing:
-            raise SystemExit(f"--scene {missing[0]}: not available (meshes under "
-                             "../shared/data/meshes)")
+            fail(f"--scene {missing[0]}: not available (meshes under "
+                 "../shared/data/meshes)")
         for name in args.pair or list(pairs):  # pair by pair: both scenes see each pair
             for scene in scenes:
                 run_scene(scene, avail[scene], out, name, ablations=False, pair=pairs[name])

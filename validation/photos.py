@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from validation import fail
 
 # The figures compared; the acceptance bounds of issue 17 (photo run against GT-camera run).
 FIGURES = ("albedo_psnr", "albedo_ssim", "shadow_iou", "relight_psnr", "relight_ssim",
@@ -53,8 +54,8 @@ def _generate(scene: str, folder: Path, lights: str, preset: str, size: int | No
 
     scenes = available_scenes()
     if scene not in scenes:
-        raise SystemExit(f"--scene {scene}: not available (meshes under ../shared/data); "
-                         f"available: {', '.join(scenes)}")
+        fail(f"--scene {scene}: not available (meshes under ../shared/data); "
+             f"available: {', '.join(scenes)}")
     return make_dataset(scene, scenes[scene], folder, lights, envmaps="none",
                         resolution=size, preset=preset,
                         scene_overrides={"base_texture": "mat"}, settings=settings,

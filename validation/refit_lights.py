@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from validation import fail
 
 KEYS = ("fitted_lights", "angular_error_deg", "spurious_irradiance_fraction", "light_cosine",
         "shadow_iou", "albedo_psnr", "albedo_psnr_global", "relight_psnr")
@@ -172,17 +173,17 @@ def main(argv=None) -> int:
         rows = [json.loads(p.read_text()) for d in args.table
                 for p in sorted(Path(d).rglob("refit.json"))]
         if not rows:
-            raise SystemExit(f"no refit.json under {args.table}")
+            fail(f"no refit.json under {args.table}")
         print(markdown(rows))
         return 0
     if args.run is None or args.data is None or args.out is None:
         ap.error("--run, --data and --out are required (or --table)")
     if args.out.exists() and not (args.out / "refit.json").is_file():
-        raise SystemExit(f"{args.out}: exists and holds no refit.json; not replacing it")
+        fail(f"{args.out}: exists and holds no refit.json; not replacing it")
     overrides = {}
     for item in args.set:
         if "=" not in item:
-            raise SystemExit(f"--set {item!r}: expected KEY=VALUE")
+            fail(f"--set {item!r}: expected KEY=VALUE")
         k, v = item.split("=", 1)
         overrides[k] = _value(v)
     res = refit(args.run, args.data, overrides, not args.quiet, not args.other_data)

@@ -20,6 +20,8 @@ import tempfile
 from html import unescape
 from pathlib import Path
 
+from validation import fail
+
 PAGE_WIDTH = 1400
 NO_CHROMIUM = ("no chromium on PATH (Debian: apt-get install -y chromium, or "
                "scripts/setup.sh --chromium as root)")
@@ -117,7 +119,7 @@ def main(argv=None) -> int:
     reports = [Path(r) / "report.html" if Path(r).is_dir() else Path(r) for r in args.runs]
     for rep in reports:
         if not rep.is_file():
-            raise SystemExit(f"{rep}: no report page")
+            fail(f"{rep}: no report page")
     try:
         res = run(Path(args.out), reports)
     except AssertionError as exc:

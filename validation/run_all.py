@@ -27,6 +27,7 @@ from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import write_json, write_text
+from validation import fail
 
 
 def _visibility(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
@@ -78,12 +79,12 @@ def _check_out(out: Path) -> None:
     if not out.exists():
         return
     if not out.is_dir():
-        raise SystemExit(f"--out {out}: exists and is not a folder")
+        fail(f"--out {out}: exists and is not a folder")
     entries = {p.name for p in out.iterdir()}
     ours = set(VALIDATIONS) | {RUN_JSON, "README.md"}
     if entries and not entries & ours:
-        raise SystemExit(f"--out {out}: holds files that validation.run_all did not write "
-                         f"(e.g. {sorted(entries)[0]}); choose a new folder")
+        fail(f"--out {out}: holds files that validation.run_all did not write "
+             f"(e.g. {sorted(entries)[0]}); choose a new folder")
 
 
 def main(argv=None) -> int:

@@ -52,6 +52,7 @@ from mi_shadowgs.config import with_overrides
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 from mi_shadowgs.dataset.scene import Light
 from mi_shadowgs.stages.relight import evaluation
+from validation import fail
 
 FACTORS = ("lights", "receivers", "occluders")
 TRACE_LIFT = 1.5  # pixel footprints off a surfel receiver before tracing (see above)
@@ -389,14 +390,14 @@ def main(argv=None) -> int:
         rows = [json.loads(p.read_text()) for d in args.table
                 for p in sorted(Path(d).rglob("shadow_factors.json"))]
         if not rows:
-            raise SystemExit(f"no shadow_factors.json under {args.table}")
+            fail(f"no shadow_factors.json under {args.table}")
         print(markdown(rows))
         return 0
     if args.run is None or args.data is None or args.out is None:
         ap.error("--run, --data and --out are required (or --table)")
     out = args.out
     if out.exists() and not (out / "shadow_factors.json").is_file():
-        raise SystemExit(f"{out}: exists and holds no shadow_factors.json; not replacing it")
+        fail(f"{out}: exists and holds no shadow_factors.json; not replacing it")
     res = analyse(args.run, args.data, args.variant, args.views, not args.quiet)
     md = markdown([res])
     with atomic_dir(out, overwrite=True) as tmp:

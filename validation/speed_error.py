@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from validation import fail
 
 from . import pipeline as vpipe
 
@@ -402,8 +403,8 @@ def attach(run: Path, plots: list[Path]) -> Path:
     manifest = read_manifest(run)
     if manifest is None or manifest.get("command") != "run" or \
             "report.html" not in manifest["files"]:
-        raise SystemExit(f"--attach {run}: not a run folder of `mi-shadowgs run` (no "
-                         f"{MANIFEST_NAME} listing report.html)")
+        fail(f"--attach {run}: not a run folder of `mi-shadowgs run` (no "
+             f"{MANIFEST_NAME} listing report.html)")
     names = [f"speed_error/{p.name}" for p in plots]
     manifest["files"] += [n for n in names if n not in manifest["files"]]
     write_json(run / MANIFEST_NAME, manifest)  # listed before written, as Output does
@@ -440,7 +441,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     base = Path(args.base) if args.base else None
     if base is not None and not base.is_dir():
-        raise SystemExit(f"--base {base}: no such folder")
+        fail(f"--base {base}: no such folder")
     scenes = args.scene or list(SCENES)
     command = "python -m validation.speed_error " + " ".join(argv or sys.argv[1:])
     figures = Path(args.figures) if args.figures else None

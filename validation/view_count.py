@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from validation import fail
 
 # (label, file under the run, key): the figures of a row
 FIGURES = (("test PSNR", "geometry/metrics.json", "psnr"),
@@ -61,7 +62,7 @@ def subset_copy(src: Path, dst: Path, n: int) -> Path:
     meta = json.loads((src / tname).read_text())
     frames = meta["frames"]
     if n > len(frames):
-        raise SystemExit(f"--views {n}: {src / tname} has only {len(frames)} training views")
+        fail(f"--views {n}: {src / tname} has only {len(frames)} training views")
     centres = np.array([np.asarray(f["transform_matrix"], np.float64)[:3, 3] for f in frames])
     keep = [frames[i] for i in sorted(spread_views(centres, n))]
     stems = {Path(f["file_path"]).name for f in keep}
