@@ -100,3 +100,21 @@ def test_metric_floor_cli(tiny_data, tmp_path, capsys):
             metric_floor.main(argv)
         assert e.value.code == 2 and what in capsys.readouterr().err
     assert (other / "keep.txt").read_text() == "x"
+
+
+def test_make_validate_scores_the_pipelines_datasets(tiny_data, tmp_path):
+    import shutil
+
+    from validation import run_all
+
+    assert "metric_floor" in run_all.VALIDATIONS
+    shutil.copytree(tiny_data, tmp_path / "pipeline" / "default-tuned" / "data")
+    summary = run_all._metric_floor(tmp_path / "metric_floor", True, {})
+    (row,) = summary["rows"]
+    assert row["dataset"] == "default-tuned" and row["size"] == 24
+    assert "| default-tuned | 24 |" in summary["markdown"]
+    assert (tmp_path / "metric_floor" / "metric_floor.json").is_file()
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    with pytest.raises(FileExistsError, match="metric_floor.json"):
+        metric_floor.run(foreign, [tiny_data])

@@ -81,9 +81,29 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
+def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
+        views: int | None = None, samples: int = 4, progress: bool = True,
+        command: list[str] | None = None) -> dict:
+    """Every dataset's rows into ``out_dir`` (written atomically; an existing folder is
+    replaced only when it holds a metric_floor.json). Returns {"rows", "markdown"}."""
     from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
 
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not (out_dir / "metric_floor.json").is_file():
+        raise FileExistsError(f"{out_dir}: exists and holds no metric_floor.json; not "
+                              "replacing it")
+    rows = []
+    for d in datas:
+        rows += dataset_floor(Path(d), sizes, views, samples, progress)
+    md = markdown(rows) if rows else "No dataset to score."
+    with atomic_dir(out_dir, overwrite=True) as tmp:
+        write_json(tmp / "metric_floor.json", {"rows": rows, "command": command or sys.argv,
+                                               "loadavg": list(os.getloadavg())})
+        write_text(tmp / "metric_floor.md", md + "\n")
+    return {"rows": rows, "markdown": "## What the metrics can tell apart\n\n" + md}
+
+
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Score the exact scene's box-filtered albedo "
                                  "and irradiance with stage 5's metrics against the "
                                  "point-sampled ground truth.")
@@ -110,15 +130,8 @@ def main(argv=None) -> int:
         if not (d / "dataset.json").is_file():
             ap.error(f"{d / 'dataset.json'}: not found (--data takes a dataset made by "
                      "`mi-shadowgs generate`, whose scene can be reloaded)")
-    rows = []
-    for d in args.data:
-        rows += dataset_floor(d, args.sizes, args.views, args.samples, not args.quiet)
-    md = markdown(rows)
-    with atomic_dir(args.out, overwrite=True) as tmp:
-        write_json(tmp / "metric_floor.json", {"rows": rows, "command": sys.argv,
-                                               "loadavg": list(os.getloadavg())})
-        write_text(tmp / "metric_floor.md", md + "\n")
-    print(md)
+    summary = run(args.out, args.data, args.sizes, args.views, args.samples, not args.quiet)
+    print(markdown(summary["rows"]))
     return 0
 
 

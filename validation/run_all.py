@@ -49,6 +49,16 @@ def _pipeline(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
                         command=opts.get("command", "python -m validation.pipeline"))
 
 
+def _metric_floor(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
+    """The pipeline's datasets, each scene box-filtered against its point-sampled truth:
+    what the table's albedo and shadow figures can tell apart at the datasets' size."""
+    from . import metric_floor
+
+    datas = sorted(p.parent for p in (out_dir.parent / "pipeline").glob("*/data/dataset.json"))
+    return metric_floor.run(out_dir, datas, progress=False,
+                            command=[opts.get("command", "")] if opts else None)
+
+
 def _lowpass_drift(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     from . import lowpass_drift
 
@@ -67,6 +77,7 @@ def _report_pages(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
 VALIDATIONS: dict[str, Callable[[Path, bool, dict], dict]] = {
     "pipeline": _pipeline,  # stages 1-5 per scene and light pair: Tables 1 and 3
     "visibility": _visibility,  # after the pipeline: its stage-1 models get Table 2 rows
+    "metric_floor": _metric_floor,  # after the pipeline: its datasets' exact scenes scored
     "lowpass_drift": _lowpass_drift,  # does stage 1 keep a correct surface in place?
     "report_pages": _report_pages,  # after the pipeline: its reports in headless Chromium
 }
