@@ -270,7 +270,7 @@ def box_filtered_ground_truth(setup: SceneSetup, cameras: list[Camera],
     averaged over the points that hit the scene. Returns [N, H, W, ...] arrays ``albedo``
     [3], ``irradiance`` [L, 3] (where no point hits: 0) and ``coverage`` (the share of the
     points that hit). The dataset's buffers are point samples at the pixel centre; this is
-    the reference that no pixel-sized estimate can beat (``validation.metric_floor``)."""
+    what a fit to the box-filtered photos can be held to (``validation.metric_floor``)."""
     if samples < 1:
         raise ValueError(f"box_filtered_ground_truth: samples must be >= 1, got {samples}")
     acc: dict[str, np.ndarray] = {}
