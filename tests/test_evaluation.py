@@ -198,7 +198,7 @@ def test_pipeline_table_names_rows_whose_albedo_was_scored_as_rendered():
     def row(scene, full):
         return {"scene": scene, "lights": "tuned", "wall_s": 60.0, "segments": 2,
                 "geometry": {"psnr": 30.0, "mask_iou": 0.9}, "segmentation": {},
-                "variants": {"full": {"albedo_psnr": 30.0, **full}}}
+                "variants": {"full": {**dict.fromkeys(vpipe.TABLE_KEYS, 0.5), **full}}}
 
     md = vpipe.markdown([row("default", {"albedo_estimate": ALBEDO_ESTIMATE}),
                          row("bunny", {})], "cmd")
