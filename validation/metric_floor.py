@@ -124,13 +124,15 @@ def main(argv=None) -> int:
         ap.error(f"--views must be >= 1, got {args.views}")
     if any(s < 1 for s in args.sizes or []):
         ap.error(f"--sizes must be >= 1, got {args.sizes}")
-    if args.out.exists() and not (args.out / "metric_floor.json").is_file():
-        ap.error(f"{args.out}: exists and holds no metric_floor.json; not replacing it")
     for d in args.data:
         if not (d / "dataset.json").is_file():
             ap.error(f"{d / 'dataset.json'}: not found (--data takes a dataset made by "
                      "`mi-shadowgs generate`, whose scene can be reloaded)")
-    summary = run(args.out, args.data, args.sizes, args.views, args.samples, not args.quiet)
+    try:  # run refuses a folder it did not write before any work
+        summary = run(args.out, args.data, args.sizes, args.views, args.samples,
+                      not args.quiet)
+    except FileExistsError as e:
+        ap.error(str(e))
     print(markdown(summary["rows"]))
     return 0
 
