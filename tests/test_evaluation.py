@@ -178,6 +178,30 @@ def test_shadow_mask_and_iou():
     assert evaluation.shadow_iou(est[None], irr[None], mask[None]) == pytest.approx(1 / 2)
 
 
+def test_surface_pixels_leave_out_mask_pixels_without_a_ground_truth_surface():
+    # A 4x4 view: the photo's mask covers all 16 pixels, but the pixel centre's ray of two
+    # silhouette pixels misses (material 0, ground-truth albedo and irradiance 0). A perfect
+    # estimate is exact on the surface, yet scored on the whole mask those two pixels read as
+    # a black albedo and as shadow.
+    mask = np.ones((1, 4, 4), bool)
+    material = np.ones((1, 4, 4), int)
+    material[0, 0, :2] = 0
+    gt_alb = np.where(material[..., None] > 0, 0.5, 0.0) * np.ones(3)
+    est_alb = np.full((1, 4, 4, 3), 0.5)
+    gt_irr = np.where(material > 0, 1.0, 0.0)
+    gt_irr[0, 3, 3] = 0.1  # one true shadow pixel
+    est_irr = np.ones((1, 4, 4))
+    est_irr[0, 3, 3] = 0.1
+    scored = evaluation.surface_pixels(mask, material)
+    assert scored.sum() == 14 and not scored[0, 0, :2].any()
+    assert evaluation.albedo_metrics(est_alb, gt_alb, material, scored)["psnr"] > 200
+    assert evaluation.albedo_metrics(est_alb, gt_alb, material, mask)["psnr"] < 20
+    assert evaluation.shadow_iou(est_irr, gt_irr, scored) == pytest.approx(1.0)
+    assert evaluation.shadow_iou(est_irr, gt_irr, mask) == pytest.approx(1 / 3)
+    # Without material ids there is nothing to tell: the mask as it is.
+    assert (evaluation.surface_pixels(mask) == mask).all()
+
+
 def test_albedo_global_cli_exits_2_naming_what_is_missing(tmp_path, capsys):
     from validation import albedo_global
 
@@ -191,8 +215,8 @@ def test_albedo_global_cli_exits_2_naming_what_is_missing(tmp_path, capsys):
     assert "nowhere: no such folder" in capsys.readouterr().err
 
 
-def test_pipeline_table_names_rows_whose_albedo_was_scored_as_rendered():
-    from mi_shadowgs.stages.relight.evaluate import ALBEDO_ESTIMATE
+def test_pipeline_table_names_rows_evaluated_before_each_evaluation_change():
+    from mi_shadowgs.stages.relight.evaluate import ALBEDO_ESTIMATE, SCORED_PIXELS
     from validation import pipeline as vpipe
 
     def row(scene, full):
@@ -200,9 +224,14 @@ def test_pipeline_table_names_rows_whose_albedo_was_scored_as_rendered():
                 "geometry": {"psnr": 30.0, "mask_iou": 0.9}, "segmentation": {},
                 "variants": {"full": {**dict.fromkeys(vpipe.TABLE_KEYS, 0.5), **full}}}
 
-    md = vpipe.markdown([row("default", {"albedo_estimate": ALBEDO_ESTIMATE}),
-                         row("bunny", {})], "cmd")
-    note = [line for line in md.splitlines() if "scored as rendered" in line]
-    assert len(note) == 1 and "bunny-tuned" in note[0] and "default" not in note[0]
-    assert "scored as rendered" not in vpipe.markdown(
-        [row("default", {"albedo_estimate": ALBEDO_ESTIMATE})], "cmd")
+    current = {"albedo_estimate": ALBEDO_ESTIMATE, "scored_pixels": SCORED_PIXELS}
+    md = vpipe.markdown([row("default", current), row("bunny", {}),
+                         row("ficus", {"albedo_estimate": ALBEDO_ESTIMATE})], "cmd")
+    blended = [line for line in md.splitlines() if "scored as rendered" in line]
+    assert len(blended) == 1 and "bunny-tuned" in blended[0]
+    assert "default" not in blended[0] and "ficus" not in blended[0]
+    no_surface = [line for line in md.splitlines() if "no surface" in line]
+    assert len(no_surface) == 1 and "bunny-tuned, ficus-tuned" in no_surface[0]
+    assert "default" not in no_surface[0]
+    md = vpipe.markdown([row("default", current)], "cmd")
+    assert "scored as rendered" not in md and "no surface" not in md

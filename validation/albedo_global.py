@@ -59,7 +59,8 @@ def score(row: Path, variant: str = "full") -> dict:
     test = load_dataset(row / "data", "test")
     est = diffuse_albedo_views(load_ply(model_path), test.cameras)
     m = evaluation.albedo_metrics(est, test.stack("albedo"), test.stack("material"),
-                                  test.stack("mask").astype(bool))
+                                  evaluation.surface_pixels(test.stack("mask"),
+                                                            test.stack("material")))
     metrics = row / "run" / "material" / variant / "metrics.json"
     recorded = json.loads(metrics.read_text()).get("albedo_psnr") if metrics.is_file() else None
     return {"row": row.name, "albedo_psnr": m["psnr"], "albedo_psnr_global": m["psnr_global"],

@@ -170,7 +170,8 @@ def surfel_albedo_scale(run: Path, test) -> np.ndarray:
     from validation.albedo_global import diffuse_albedo_views
 
     est = diffuse_albedo_views(load_ply(run / "material" / "full" / "model.ply"), test.cameras)
-    return evaluation.global_albedo_scale(est, test.stack("albedo"), test.stack("mask"))
+    return evaluation.global_albedo_scale(est, test.stack("albedo"), evaluation.surface_pixels(
+        test.stack("mask"), test.stack("material")))
 
 
 def _figure(path: Path, rows: list[tuple[str, np.ndarray, np.ndarray]], views) -> None:

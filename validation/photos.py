@@ -128,7 +128,8 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
                                              figure_lights=1)
     # The albedo on the object alone: the mat's printed texture is flattened by stage 4's
     # segment averaging (the paper's piecewise-constant albedo), in both runs alike.
-    obj = test.stack("object_mask") & test.stack("mask")
+    obj = test.stack("object_mask") & evaluation.surface_pixels(test.stack("mask"),
+                                                                test.stack("material"))
     object_alb = evaluation.albedo_metrics(images["albedo"], test.stack("albedo"),
                                            test.stack("material"), obj)
     return {k: metrics.get(k) for k in FIGURES} | {

@@ -198,6 +198,17 @@ def _commits(rows: list[dict]) -> str:
     return "; ".join(f"{c} ({', '.join(names)})" for c, names in by.items())
 
 
+# Evaluation changes a table must not mix silently: the metrics.json key each one added, and
+# the note naming the rows evaluated before it.
+EVALUATION_CHANGES = (
+    ("albedo_estimate", "Albedo of {}: scored as rendered (alpha-blended), before the "
+     "evaluation divided it by the pixel's coverage; not comparable with rows evaluated since."),
+    ("scored_pixels", "Albedo and shadow IoU of {}: scored on every mask pixel, also where the "
+     "ground truth has no surface, before the evaluation left those out; not comparable with "
+     "rows evaluated since."),
+)
+
+
 def markdown(rows: list[dict], command: str) -> str:
     lines = ["## Whole pipeline (paper Tables 1 and 3)", "",
              f"`{command}`; {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
@@ -249,13 +260,14 @@ def markdown(rows: list[dict], command: str) -> str:
             cells[col:col] = ["", ""]
             lines.append(f"| **{label}** ({len(vals)}) | | **{variant}** | " +
                          " | ".join(cells) + " |")
-    before = [f"{r['scene']}-{r.get('lights', 'tuned')}" for r in rows
-              if (m := r["variants"].get("full")) and m.get("albedo_psnr") is not None
-              and m.get("albedo_estimate") is None]
-    if before:  # their albedo columns are not comparable with the others'
-        lines += ["", "Albedo of " + ", ".join(before) + ": scored as rendered (alpha-blended), "
-                  "before the evaluation divided it by the pixel's coverage; not comparable "
-                  "with rows evaluated since."]
+    # Rows evaluated before a change of the evaluation (their metrics.json lacks its key):
+    # the columns named are not comparable with rows evaluated since.
+    for key, note in EVALUATION_CHANGES:
+        older = [f"{r['scene']}-{r.get('lights', 'tuned')}" for r in rows
+                 if (m := r["variants"].get("full")) and m.get("albedo_psnr") is not None
+                 and m.get(key) is None]
+        if older:
+            lines += ["", note.format(", ".join(older))]
     return "\n".join(lines) + "\n"
 
 

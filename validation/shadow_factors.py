@@ -131,7 +131,8 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
         .mean(-1),
         np.array([lt["direction"] for lt in gt_lights], np.float64),
         np.array([np.mean(lt["irradiance"]) for lt in gt_lights], np.float64),
-        [v.camera for v in test.views], test.stack("mask").astype(bool),
+        [v.camera for v in test.views],
+        evaluation.surface_pixels(test.stack("mask"), test.stack("material")),
         test.stack("irradiance").sum(axis=3).mean(-1), bounds, vcfg,
         metrics.get("shadow_iou"), preset)
 

@@ -31,6 +31,9 @@ def _scaled_albedo_model(model: relight.RelightModel, scale: np.ndarray) -> reli
 # What the albedo metrics compare with the ground truth, recorded in metrics.json so that a
 # table can tell runs evaluated before it (the alpha-blended albedo as rendered).
 ALBEDO_ESTIMATE = "surface albedo (alpha-normalised)"
+# Which test pixels the albedo metrics and the shadow IoU score (``evaluation.surface_pixels``),
+# recorded likewise: runs evaluated before also scored mask pixels without a ground-truth surface.
+SCORED_PIXELS = "mask with a ground-truth surface"
 
 # What each metric needs from the dataset (names as ``ground_truth`` reports them), so
 # that a dataset without some ground truth (NeRF-synthetic, TensoIR, captures) still runs
@@ -116,7 +119,9 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     views = [relight.relight_view(model, cam, est_light, maps, factor, buffers=True)
              for cam in test.cameras]
     decomp_s = time.perf_counter() - t0  # relight_view reads back to numpy: synced
-    mask = test.stack("mask")
+    mask = test.stack("mask")  # relit images: the photo's coverage
+    material = None if any(v.material is None for v in test.views) else test.stack("material")
+    scored = evaluation.surface_pixels(mask, material)  # albedo and shadows: a true surface
     # The surface's albedo, as the ground truth holds it (not weighted by the coverage).
     est_alb = evaluation.surface_albedo(np.stack([v["albedo"] for v in views]),
                                         np.stack([v["alpha"] for v in views]))
@@ -124,7 +129,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     est_light_w = np.asarray(est_light.weights, np.float64).T  # [K, 3]
     order = np.argsort(-est_light_w.mean(-1))[:figure_lights]  # strongest lights first
     metrics = {"specular": result.specular, "active_directions": int(len(result.light.active)),
-               "decomposition_render_s": decomp_s, "skipped": skipped}
+               "decomposition_render_s": decomp_s, "skipped": skipped,
+               "scored_pixels": SCORED_PIXELS if material is not None else "mask"}
     images = {"albedo": est_alb, "irradiance": est_irr, "light_map": result.light.radiance,
               "roughness": np.stack([v["roughness"] for v in views]),
               "metallic": np.stack([v["metallic"] for v in views]),
@@ -144,14 +150,14 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     if "albedo PSNR/SSIM/LPIPS" not in gone:
         gt_alb = test.stack("albedo")
         regions = test.stack("material")
-        alb = evaluation.albedo_metrics(est_alb, gt_alb, regions, mask)
+        alb = evaluation.albedo_metrics(est_alb, gt_alb, regions, scored)
         metrics.update({"albedo_estimate": ALBEDO_ESTIMATE,
                         "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
                         "albedo_lpips": alb["lpips"], "albedo_per_view": alb["per_view"],
                         "albedo_psnr_global": alb["psnr_global"]})
         if "lpips_skipped" in alb:
             metrics["lpips_skipped"] = alb["lpips_skipped"]
-        scales = evaluation.albedo_scales(est_alb, gt_alb, regions, mask)
+        scales = evaluation.albedo_scales(est_alb, gt_alb, regions, scored)
         images["albedo"] = evaluation.align_albedo(est_alb, regions, scales)
         images["gt/albedo"] = gt_alb
     if "light cosine and angular errors" not in gone:
@@ -169,13 +175,13 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
         images["gt/light_map"] = gt_map.mean(-1) if gt_map.ndim == 2 else gt_map
     if "shadow IoU" not in gone:
         gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
-        metrics["shadow_iou"] = evaluation.shadow_iou(est_irr, gt_irr, mask)
+        metrics["shadow_iou"] = evaluation.shadow_iou(est_irr, gt_irr, scored)
         images["gt/irradiance"] = gt_irr
     relit = {}
     if "relighting PSNR/SSIM/LPIPS" not in gone:
         # The albedo is aligned to ground truth by one global per-channel factor.
         smodel = _scaled_albedo_model(model, evaluation.global_albedo_scale(
-            est_alb, test.stack("albedo"), mask))
+            est_alb, test.stack("albedo"), scored))
         for entry in train.lights.get("relightings", []):
             name = entry["name"]
             if entry.get("type") == "envmap":  # its 128-direction light set, shadows included

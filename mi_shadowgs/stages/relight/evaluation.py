@@ -6,6 +6,13 @@ NumPy float64 over [V, H, W, ...] stacks of test views; PSNR and SSIM are those 
 ``None``, with the reason in ``lpips_skipped``, where it cannot be computed: views smaller
 than ``lpips.MIN_SIZE`` or the ``eval`` extra not installed.
 
+Albedo and shadows are scored on ``surface_pixels``: the test mask where the ground truth
+has a surface (material id > 0). The photo's mask is its coverage, while the ground-truth
+buffers hold the hit of the pixel centre's ray, which misses at some silhouette pixels
+(9-40 of ~250k masked pixels on three rows of the six-scene table, 970 on ficus-low). Their
+albedo 0 cost bunny-low 8 dB of a 53.5 dB albedo figure (BENCHMARKS.md, "What the metrics
+can tell apart at 128^2"). Relit images are scored on the whole mask.
+
 - **Albedo**: the estimate is the albedo of the surface each pixel sees
   (``surface_albedo``): the rasterized albedo is alpha-blended, so at a pixel the fit
   covers in part it is the surface's albedo times the coverage, while the ground truth is
@@ -68,6 +75,21 @@ def surface_albedo(albedo, alpha) -> np.ndarray:
     a = _stack(albedo, "albedo estimate", 4)
     w = np.asarray(alpha, np.float64).reshape(a.shape[:3])[..., None]
     return np.where(w >= ALPHA_MIN, a / np.maximum(w, ALPHA_MIN), a)
+
+
+def surface_pixels(mask, material=None) -> np.ndarray:
+    """The test pixels the albedo and shadow metrics score [V, H, W]: inside the mask and,
+    where the dataset has material ids, on a ground-truth surface (id > 0).
+
+    The mask is the photo's coverage (alpha > 0.5), while the ground-truth buffers hold what
+    the ray through the pixel's centre hits. At a silhouette pixel that ray can miss: the
+    ground truth there is albedo 0 and irradiance 0, a black albedo and a false shadow that no
+    estimate should be scored against. Without material ids the mask is used as it is.
+    """
+    m = np.asarray(mask, bool)
+    if material is None:
+        return m
+    return m & (np.asarray(material).reshape(m.shape) > 0)
 
 
 def albedo_scales(est, gt, regions, mask) -> dict[int, np.ndarray]:
