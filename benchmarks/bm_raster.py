@@ -382,13 +382,14 @@ def _case_cmd(renderer: str, n: int, res: int, cfg: BenchConfig, json_path: Path
     return cmd
 
 
-def _run_subprocess(cmd: list[str], timeout: float) -> tuple[str, str]:
-    """(status, stderr tail) of one benchmark process run from the repository root."""
+def run_subprocess(cmd: list[str], timeout: float, env: dict | None = None) -> tuple[str, str]:
+    """(status, stderr tail) of one benchmark process run from the repository root, with
+    ``env`` added to the environment."""
     root = Path(__file__).resolve().parent.parent
     # A private, empty HOME gives Dr.Jit an empty on-disk kernel cache (~/.drjit), so the
     # first step's time is the real JIT compilation, the same for every case.
     with tempfile.TemporaryDirectory(prefix="bm_home_") as home:
-        env = dict(os.environ, HOME=home)
+        env = dict(os.environ, **(env or {}), HOME=home)
         try:
             proc = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True,
                                   timeout=timeout)
@@ -426,8 +427,8 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
         image_path = raw / f"{renderer}_{res}_{n}.npy" \
             if (n, res) == cfg.image_case and k == 0 else None
         t0 = time.perf_counter()
-        status, err = _run_subprocess(_case_cmd(renderer, n, res, cfg, json_path, image_path),
-                                      cfg.case_timeout_s)
+        status, err = run_subprocess(_case_cmd(renderer, n, res, cfg, json_path, image_path),
+                                     cfg.case_timeout_s)
         if status == "ok":
             row = json.loads(json_path.read_text())
             row["status"] = "ok"

@@ -3,6 +3,7 @@ workload, one tiny configuration of each renderer, and the report writer."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -154,3 +155,51 @@ def test_scale_case_runs_in_its_own_process(tmp_path):
     assert row["method"] == "tiles" and row["fwd_bwd_ms"] > 0
     # The child's own peak: Python + Mitsuba alone take ~100 MB.
     assert 50 << 20 < row["peak_bytes"] < 2 << 30
+
+
+def test_cuda_suite_says_it_was_skipped_without_a_gpu(tmp_path, monkeypatch):
+    from benchmarks import bm_cuda
+    from mi_shadowgs import backend
+
+    monkeypatch.setattr(backend, "variant_available", lambda name: False)
+    summary = bm_cuda.run_suite(tmp_path, preset="cpu-small", log=lambda msg: None)
+    assert "needs an NVIDIA GPU" in summary["skipped"]
+    assert "Skipped: cuda_ad_rgb needs an NVIDIA GPU" in summary["markdown"]
+    assert json.loads((tmp_path / "cuda.json").read_text())["skipped"] == summary["skipped"]
+
+
+def test_cuda_suite_report_ratios_and_failures():
+    # The H100 figures of BENCHMARKS.md (session 21) for one case: llvm / cuda and Mitsuba /
+    # ours are the ratios of the fwd+bwd medians; a failed case reads as failed, not as 0.
+    from benchmarks import bm_cuda
+
+    def case(renderer, variant, ms, status="ok"):
+        return {"renderer": renderer, "variant": variant, "n": 20000, "res": 256,
+                "status": status, "fwd_bwd_ms": ms}
+
+    result = {"tests": {"summary": "2 passed, 18 deselected"},
+              "raster": [case("ours", "cuda_ad_rgb", 4.75), case("ours", "llvm_ad_rgb", 21.13),
+                         case("mitsuba", "cuda_ad_rgb", 50.80)],
+              "runs": [{"variant": "cuda_ad_rgb", "status": "ok", "wall_s": 39.2,
+                        "albedo_psnr": 34.52, "light_cosine": 0.9997, "shadow_iou": 0.891,
+                        "relight_psnr": None},
+                       {"variant": "llvm_ad_rgb", "status": "timeout", "wall_s": 1800.0}]}
+    md = bm_cuda.markdown(result)
+    assert "| 256^2, 20000 surfels | 4.75 | 21.13 | 50.80 | 4.4x | 10.7x |" in md
+    assert "| cuda_ad_rgb | 39.2 | 34.52 | 0.9997 | 0.891 | n/a |" in md
+    assert "| llvm_ad_rgb | timeout |" in md
+    result["raster"][2]["status"] = "error"
+    assert "| 4.75 | 21.13 | failed | 4.4x | - |" in bm_cuda.markdown(result)
+
+
+def test_cuda_suite_raster_case_in_its_own_process(tmp_path, monkeypatch):
+    # The suite's case runner on the backend every machine has: bm_raster in a subprocess
+    # with the variant in its environment, its JSON row read back and labelled.
+    from benchmarks import bm_cuda
+
+    monkeypatch.setattr(bm_cuda, "RASTER_RUNS", (("ours", "llvm_ad_rgb"),))
+    cfg = bm_cuda.CudaBenchConfig(raster_cases=((500, 32),), warmup=0, iters=1)
+    rows = bm_cuda.raster_rows(cfg, tmp_path, log=lambda msg: None)
+    assert len(rows) == 1 and rows[0]["status"] == "ok", rows
+    assert rows[0]["variant"] == "llvm_ad_rgb" and rows[0]["n"] == 500 and rows[0]["res"] == 32
+    assert rows[0]["fwd_bwd_ms"] > 0
