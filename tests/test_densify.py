@@ -96,6 +96,25 @@ def test_max_surfels_and_big_prune():
     np.testing.assert_array_equal(opt.to_numpy()[0]["position"][5:], p["position"][:2])
 
 
+def test_screen_space_prune_and_without_it():
+    # Surfel 1 spanned 25 px (3-sigma) in some view since the last densify: after the first
+    # opacity reset 2DGS's rule prunes it (> 20 px); the paper preset, without that rule,
+    # keeps it. Nothing is hot, so nothing is cloned or split.
+    from mi_shadowgs.stages.geometry.train import PRESETS
+
+    rng = np.random.default_rng(4)
+    p = _params(3, rng)
+    for threshold, kept in ((20.0, [0, 2]), (None, [0, 1, 2])):
+        opt = SurfelAdam(p, LR)
+        cfg = DensifyConfig(grad_threshold=0.1, screen_size_threshold=threshold)
+        strat = DensifyStrategy(cfg, extent=4.0, count=3)
+        strat.max_radii = mi.Float([5.0, 25.0, 19.9])
+        strat.densify_and_prune(opt, 3100, big_prune=True)
+        np.testing.assert_array_equal(opt.to_numpy()[0]["position"], p["position"][kept])
+    assert PRESETS["paper"].densify.screen_size_threshold is None
+    assert PRESETS["cpu-small"].densify.screen_size_threshold == 20.0
+
+
 def test_opacity_reset_and_schedule():
     rng = np.random.default_rng(3)
     p = _params(3, rng)

@@ -39,7 +39,9 @@ class DensifyConfig:
     grad_threshold: float = 0.0002  # on the mean NDC-space gradient norm
     percent_dense: float = 0.01  # clone below / split above this fraction of the extent
     min_opacity: float = 0.05  # prune below
-    screen_size_threshold: float = 20.0  # px; prune larger (after the first opacity reset)
+    # px (3-sigma radius, largest since the last densify); prune larger after the first
+    # opacity reset. None: no screen-space prune (the world-space one below still applies).
+    screen_size_threshold: float | None = 20.0
     world_size_fraction: float = 0.1  # prune tangent std-dev above this * extent (idem)
     split_count: int = 2
     split_scale_factor: float = 0.8  # split children get scale / (factor * split_count)
@@ -161,8 +163,9 @@ class DensifyStrategy:
         opacity = 1.0 / (1.0 + np.exp(-params["opacity_logit"][:, 0].astype(np.float64)))
         prune = split | (opacity < c.min_opacity)
         if big_prune:
-            prune |= (radii > c.screen_size_threshold) | \
-                (smax > c.world_size_fraction * self.extent)
+            prune |= smax > c.world_size_fraction * self.extent
+            if c.screen_size_threshold is not None:
+                prune |= radii > c.screen_size_threshold
         keep = ~prune
         added = {k: np.concatenate(rows, axis=0) for k, rows in new.items()}
         # New surfels' candidates were computed before pruning; prune them by opacity too.
