@@ -235,3 +235,23 @@ def test_pipeline_table_names_rows_evaluated_before_each_evaluation_change():
     assert "default" not in no_surface[0]
     md = vpipe.markdown([row("default", current)], "cmd")
     assert "scored as rendered" not in md and "no surface" not in md
+
+
+def test_pipeline_table_gives_the_median_beside_the_mean():
+    # Three rows' albedo PSNR 25, 30 and 65 dB (one single-material object): the mean is 40,
+    # above what two of the three rows reach; the median, 30, is the typical row.
+    from validation import pipeline as vpipe
+
+    def row(scene, lights, albedo):
+        full = {**dict.fromkeys(vpipe.TABLE_KEYS, 0.5), "albedo_psnr": albedo}
+        return {"scene": scene, "lights": lights, "wall_s": 60.0, "segments": 2,
+                "geometry": {"psnr": 30.0, "mask_iou": 0.9}, "segmentation": {},
+                "variants": {"full": full}}
+
+    md = vpipe.markdown([row("hotdog", "tuned", 25.0), row("default", "tuned", 30.0),
+                         row("bunny", "low", 65.0)], "cmd")
+    table = {line.split("|")[1].strip(): line.split("|")[4].strip()
+             for line in md.splitlines() if line.startswith("| **")}
+    assert table["**mean all** (3)"] == "40"
+    assert table["**median all** (3)"] == "30"
+    assert table["**mean tuned** (2)"] == "27.5" and table["**mean low** (1)"] == "65"
