@@ -24,7 +24,7 @@ from pathlib import Path
 from mi_shadowgs.config import get_preset
 from mi_shadowgs.io.atomic import write_json
 
-from .bm_raster import run_subprocess
+from .bm_raster import case_cmd, run_subprocess
 
 BACKENDS = ("cuda_ad_rgb", "llvm_ad_rgb")
 # (renderer, variant) of each rasterizer case, in run order.
@@ -68,11 +68,8 @@ def raster_rows(cfg: CudaBenchConfig, raw: Path, log) -> list[dict]:
     for n, res in cfg.raster_cases:
         for renderer, variant in RASTER_RUNS:
             path = raw / f"{renderer}_{variant}_{res}_{n}.json"
-            cmd = [sys.executable, "-m", "benchmarks.bm_raster", "--renderer", renderer,
-                   "--n", str(n), "--res", str(res), "--warmup", str(cfg.warmup),
-                   "--iters", str(cfg.iters), "--json", str(path)]
-            status, err = run_subprocess(cmd, cfg.case_timeout_s,
-                                         env={"MI_SHADOWGS_VARIANT": variant})
+            status, err = run_subprocess(case_cmd(renderer, n, res, cfg, path),
+                                         cfg.case_timeout_s, env={"MI_SHADOWGS_VARIANT": variant})
             row = json.loads(path.read_text()) if status == "ok" else {"error": err}
             row.update(renderer=renderer, variant=variant, n=n, res=res, status=status)
             rows.append(row)
@@ -122,16 +119,17 @@ def markdown(result: dict) -> str:
               "One rasterizer training step (medians, ms fwd+bwd):", "",
               "| workload | ours cuda | ours llvm | Mitsuba cuda | cuda vs llvm | "
               "ours vs Mitsuba (cuda) |", "|---|---|---|---|---|---|"]
+
+    def ms(row):
+        return f"{row['fwd_bwd_ms']:.2f}" if row else "failed"
+
+    def ratio(num, den):
+        return f"{num['fwd_bwd_ms'] / den['fwd_bwd_ms']:.1f}x" if num and den else "-"
+
     cases = sorted({(r["n"], r["res"]) for r in result["raster"]}, key=lambda c: (c[1], c[0]))
     for n, res in cases:
         ours, llvm, peer = (_find(result["raster"], renderer=r, variant=v, n=n, res=res)
                             for r, v in RASTER_RUNS)
-
-        def ms(row):
-            return f"{row['fwd_bwd_ms']:.2f}" if row else "failed"
-
-        def ratio(num, den):
-            return f"{num['fwd_bwd_ms'] / den['fwd_bwd_ms']:.1f}x" if num and den else "-"
         lines.append(f"| {res}^2, {n} surfels | {ms(ours)} | {ms(llvm)} | {ms(peer)} | "
                      f"{ratio(llvm, ours)} | {ratio(peer, ours)} |")
     if result.get("runs"):

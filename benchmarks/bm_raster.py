@@ -372,8 +372,9 @@ def fit_line(x, y) -> tuple[float, float, float]:
     return float(slope), float(intercept), r2
 
 
-def _case_cmd(renderer: str, n: int, res: int, cfg: BenchConfig, json_path: Path,
-              image_path: Path | None) -> list[str]:
+def case_cmd(renderer: str, n: int, res: int, cfg, json_path: Path,
+             image_path: Path | None = None) -> list[str]:
+    """One case's command line; ``cfg`` gives ``warmup`` and ``iters`` (BenchConfig)."""
     cmd = [sys.executable, "-m", "benchmarks.bm_raster", "--renderer", renderer, "--n", str(n),
            "--res", str(res), "--warmup", str(cfg.warmup), "--iters", str(cfg.iters),
            "--json", str(json_path)]
@@ -427,7 +428,7 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
         image_path = raw / f"{renderer}_{res}_{n}.npy" \
             if (n, res) == cfg.image_case and k == 0 else None
         t0 = time.perf_counter()
-        status, err = run_subprocess(_case_cmd(renderer, n, res, cfg, json_path, image_path),
+        status, err = run_subprocess(case_cmd(renderer, n, res, cfg, json_path, image_path),
                                      cfg.case_timeout_s)
         if status == "ok":
             row = json.loads(json_path.read_text())

@@ -52,6 +52,7 @@ def score(row: Path, variant: str = "full") -> dict:
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.relight import evaluation
+    from mi_shadowgs.stages.relight.evaluate import scored_pixels
 
     model_path = row / "run" / "material" / variant / "model.ply"
     if not model_path.is_file():
@@ -59,8 +60,7 @@ def score(row: Path, variant: str = "full") -> dict:
     test = load_dataset(row / "data", "test")
     est = diffuse_albedo_views(load_ply(model_path), test.cameras)
     m = evaluation.albedo_metrics(est, test.stack("albedo"), test.stack("material"),
-                                  evaluation.surface_pixels(test.stack("mask"),
-                                                            test.stack("material")))
+                                  scored_pixels(test))
     metrics = row / "run" / "material" / variant / "metrics.json"
     recorded = json.loads(metrics.read_text()).get("albedo_psnr") if metrics.is_file() else None
     return {"row": row.name, "albedo_psnr": m["psnr"], "albedo_psnr_global": m["psnr_global"],

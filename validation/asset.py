@@ -167,11 +167,11 @@ def surfel_albedo_scale(run: Path, test) -> np.ndarray:
     the surfel model's rendered diffuse albedo against the ground truth)."""
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.relight import evaluation
+    from mi_shadowgs.stages.relight.evaluate import scored_pixels
     from validation.albedo_global import diffuse_albedo_views
 
     est = diffuse_albedo_views(load_ply(run / "material" / "full" / "model.ply"), test.cameras)
-    return evaluation.global_albedo_scale(est, test.stack("albedo"), evaluation.surface_pixels(
-        test.stack("mask"), test.stack("material")))
+    return evaluation.global_albedo_scale(est, test.stack("albedo"), scored_pixels(test))
 
 
 def _figure(path: Path, rows: list[tuple[str, np.ndarray, np.ndarray]], views) -> None:

@@ -117,7 +117,11 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, fit_from_files
+    from mi_shadowgs.stages.relight.evaluate import (
+        evaluate_decomposition,
+        fit_from_files,
+        scored_pixels,
+    )
 
     fit_dir = run / "material" / "full"
     result = fit_from_files(fit_dir / "model.ply", fit_dir / "light.json")
@@ -128,8 +132,7 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
                                              figure_lights=1)
     # The albedo on the object alone: the mat's printed texture is flattened by stage 4's
     # segment averaging (the paper's piecewise-constant albedo), in both runs alike.
-    obj = test.stack("object_mask") & evaluation.surface_pixels(test.stack("mask"),
-                                                                test.stack("material"))
+    obj = test.stack("object_mask") & scored_pixels(test)
     object_alb = evaluation.albedo_metrics(images["albedo"], test.stack("albedo"),
                                            test.stack("material"), obj)
     return {k: metrics.get(k) for k in FIGURES} | {

@@ -253,15 +253,16 @@ def markdown(rows: list[dict], command: str) -> str:
             cells[col:col] = [errs or "n/a", str(m.get("fitted_lights", "n/a"))]
             lines.append(f"| {r['scene']} | {r.get('lights', 'tuned')} | {variant} | " +
                          " | ".join(cells) + " |")
-        means = [(f"mean {k}", v) for k, v in groups.items()]
+        summaries = [(f"mean {k}", v, np.nanmean) for k, v in groups.items()]
         if len(groups) > 1:
-            means.append(("mean all", [v for vs in groups.values() for v in vs]))
+            summaries.append(("mean all", [v for vs in groups.values() for v in vs],
+                              np.nanmean))
         # The median beside the mean: a mean of PSNRs is carried by its best rows (the
         # single-material objects' 50-65 dB albedo), the median is what a typical row gets.
-        if means:
-            means.append((means[-1][0].replace("mean", "median"), means[-1][1]))
-        for label, vals in means:
-            reduce = np.nanmedian if label.startswith("median") else np.nanmean
+        if summaries:
+            label, vals, _ = summaries[-1]
+            summaries.append((label.replace("mean", "median", 1), vals, np.nanmedian))
+        for label, vals, reduce in summaries:
             cells = fmt(reduce(np.array(vals, dtype=np.float64), axis=0))
             cells[col:col] = ["", ""]
             lines.append(f"| **{label}** ({len(vals)}) | | **{variant}** | " +

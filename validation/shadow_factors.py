@@ -98,6 +98,7 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.io.provenance import read_manifest
     from mi_shadowgs.stages.material.runner import occluder_bounds
+    from mi_shadowgs.stages.relight.evaluate import scored_pixels
     from mi_shadowgs.stages.visibility import shadow_maps
 
     folder = run / "material" / variant
@@ -131,8 +132,7 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
         .mean(-1),
         np.array([lt["direction"] for lt in gt_lights], np.float64),
         np.array([np.mean(lt["irradiance"]) for lt in gt_lights], np.float64),
-        [v.camera for v in test.views],
-        evaluation.surface_pixels(test.stack("mask"), test.stack("material")),
+        [v.camera for v in test.views], scored_pixels(test),
         test.stack("irradiance").sum(axis=3).mean(-1), bounds, vcfg,
         metrics.get("shadow_iou"), preset)
 

@@ -47,6 +47,17 @@ METRIC_NEEDS = {
 }
 
 
+def material_ids(test) -> np.ndarray | None:
+    """The test views' material ids [V, H, W], or None where a view has none."""
+    return None if any(v.material is None for v in test.views) else test.stack("material")
+
+
+def scored_pixels(test) -> np.ndarray:
+    """The test pixels that albedo and shadow IoU are scored on [V, H, W]
+    (``evaluation.surface_pixels``: the mask where the ground truth has a surface)."""
+    return evaluation.surface_pixels(test.stack("mask"), material_ids(test))
+
+
 def ground_truth(train, test) -> dict[str, str | None]:
     """Which ground truth the dataset has: name -> None when present, else why not."""
     lights = train.lights or {}
@@ -120,7 +131,7 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
              for cam in test.cameras]
     decomp_s = time.perf_counter() - t0  # relight_view reads back to numpy: synced
     mask = test.stack("mask")  # relit images: the photo's coverage
-    material = None if any(v.material is None for v in test.views) else test.stack("material")
+    material = material_ids(test)
     scored = evaluation.surface_pixels(mask, material)  # albedo and shadows: a true surface
     # The surface's albedo, as the ground truth holds it (not weighted by the coverage).
     est_alb = evaluation.surface_albedo(np.stack([v["albedo"] for v in views]),
@@ -149,7 +160,7 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
             metrics.update(dict.fromkeys(keys))
     if "albedo PSNR/SSIM/LPIPS" not in gone:
         gt_alb = test.stack("albedo")
-        regions = test.stack("material")
+        regions = material  # present: the albedo metrics need the material ids
         alb = evaluation.albedo_metrics(est_alb, gt_alb, regions, scored)
         metrics.update({"albedo_estimate": ALBEDO_ESTIMATE,
                         "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
