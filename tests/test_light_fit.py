@@ -129,6 +129,44 @@ def test_light_at_15_degrees_fitted_17_degrees_too_low_is_recovered(scene):
     assert abs(e[0] - 2.0) < 0.05 * 2.0, e
 
 
+def test_second_refinement_with_the_global_pass_recovers_a_light_in_another_cell(scene):
+    """Hotdog-low under some view orders: at the main phase's second refinement a light is
+    still a grid cell from the direction the score prefers, and that refinement's fine pass
+    (2 degrees) cannot reach it. With ``refine_again_global`` it runs the global pass, then
+    the first refinement's local passes."""
+    s, cams, bounds = scene
+    true = direction_from_angles(70.0, 15.0)
+    views, ch = _views(s, cams, bounds, true, [2.0])
+    start = direction_from_angles(85.0, 6.0)
+    assert _angle(start, true) > 16.0
+    dw = solid_angle(128)
+
+    def second_refinement(again_global):
+        cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=128,
+                                  refine_views=len(views), refine_again_global=again_global)
+        units = material_fit.Refinement.start(start[None], [1.0], cfg, again_global,
+                                              again=True).units(cfg)
+        opt = mi.ad.Adam(lr=0.01)
+        opt["log_light"] = mi.Float(np.float32(math.log(1.0 / dw)))
+        state = material_fit.MaterialState(cfg.warmup + 1, opt, ch, start[None], False,
+                                           np.random.default_rng(0), mi.Float(0.0), [], {})
+
+        def render(dirs, resolution=None):
+            vc = VCFG if resolution is None else dataclasses.replace(VCFG, resolution=resolution)
+            return render_shadow_maps(s, dirs, bounds, vc)
+
+        dirs = material_fit._refine(views, state, render(start[None]), render, cfg, None,
+                                    global_pass=False)
+        return units, dirs[0]
+
+    units, fine_only = second_refinement(False)
+    assert [u[1:] for u in units] == [(2.0, 0.5)]  # refine_again_passes
+    assert _angle(fine_only, true) > 10.0
+    units, found = second_refinement(True)
+    assert [u[1:] for u in units] == [(math.inf, 0.0), (8.0, 2.0), (2.0, 0.5)]
+    assert _angle(found, true) < 0.5, _angle(found, true)
+
+
 def test_light_on_a_grid_cell_boundary_merges_into_one(scene):
     """A light halfway between two grid directions, fitted as both (the warm-up's map):
     the refinement moves both onto it and they merge into one."""

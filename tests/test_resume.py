@@ -201,6 +201,7 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
         specular=specular,
         refine_passes=((4.0, 2.0), (2.0, 1.0)),
         refine_again_passes=((2.0, 1.0),),
+        refine_again_global=specular == "auto",
     )
 
     def fit(**kw):
@@ -212,8 +213,10 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
     straight = fit(on_checkpoint=lambda state: seen.append(_where(state)))
     assert straight.specular == (specular == "on")  # "auto" drops the lobe: a diffuse scene
     # The first refinement: per light the global pass then the two local ones (6 units;
-    # (20, 4) resumes after light 2's global pass); the second: its own passes only (2
-    # units; (40, 1) resumes between its lights, so the checkpoint must say which passes).
+    # (20, 4) resumes after light 2's global pass). The second: with refine_again_global
+    # ("auto") the same 6 units, (40, 1) resuming after light 1's global pass; without
+    # ("on") its own pass only (2 units; (40, 1) resumes between its lights). Either way
+    # the checkpoint must say which passes.
     stops = [(20, None), (20, 4), (21, None), (31, None), (40, 1), (60, None)]
     assert all(stop in seen for stop in stops)
     for stop in stops if specular == "auto" else stops[1:5:3]:
