@@ -156,9 +156,6 @@ class MaterialConfig:
     # deg away (BENCHMARKS.md, "Light directions under other view orders"). Needs
     # ``refine_global``.
     refine_again_global: bool = False
-    # At 128 the global pass left hotdog-low's weak light 4.5-7.6 deg off under two of four
-    # view orders, at 256 3.3-4.4 under all four (light cosine >= 0.980; BENCHMARKS.md,
-    # "Light directions under other view orders"); cpu-small uses 256.
     refine_global_map_resolution: int = 128
     # Views scored in the global pass (every other of the refinement's): it scores 129
     # candidates, the cost of ~3 local passes, and only has to land within a grid cell.
@@ -316,7 +313,7 @@ PRESETS = {
     # BENCHMARKS.md, "Colour in the albedo".
     "cpu-small": MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_light=0.1,
                                 lambda_ind2=1.0, log_every=50, refine_global=128,
-                                refine_again_global=True, refine_global_map_resolution=256,
+                                refine_again_global=True,
                                 specular="off", albedo_tv_with_segments=False,
                                 albedo_scale=0.9),
 }
