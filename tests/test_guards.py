@@ -260,3 +260,20 @@ def test_render_of_1e6_scale_surfels_stays_under_the_budget(tmp_path):
     rc, _, err = render("100M", "out_small")
     lines = [ln for ln in err.splitlines() if ln.startswith("mi-shadowgs")]
     assert rc == 2 and len(lines) == 1 and "memory_budget_bytes" in lines[0], err
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("refine_global=0", "refine_again_global needs the global pass"),
+    ("no_such_field=1", "unknown material setting"),
+])
+def test_refit_lights_refuses_a_setting_before_any_work(tmp_path, capsys, setting, message):
+    """``validation.refit_lights --set`` exits 2 naming what the stage-4 config refuses,
+    before it reads the run (an empty folder here) or writes ``--out``."""
+    from validation import refit_lights
+
+    with pytest.raises(SystemExit) as e:
+        refit_lights.main(["--run", str(tmp_path / "run"), "--data", str(tmp_path / "data"),
+                           "--out", str(tmp_path / "out"), "--set", setting])
+    assert e.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -41,6 +41,11 @@ def test_presets_and_paper_defaults():
         material_fit.MaterialConfig(specular="maybe")
     with pytest.raises(ValueError, match="refine_passes"):
         material_fit.MaterialConfig(refine_passes=((2.0, 4.0),))
+    # cpu-small's second global pass needs the global pass: not silently dropped
+    with pytest.raises(ValueError, match="refine_again_global needs the global pass"):
+        dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=0)
+    assert not dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=0,
+                                   refine_again_global=False).refine_global
 
 
 def test_segment_average_exact():

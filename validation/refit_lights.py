@@ -6,9 +6,10 @@ how a change to the light fit moves a scene without redoing stages 1-2.
     python -m validation.refit_lights --table DIR ...   (gather the refit.json under DIRs)
     python -m validation.refit_lights --run RUN --data DATA --settle-only
 
-``--set`` overrides a stage-4 setting (e.g. ``refine_global=0 drop_share=0`` for the fit
-before issue 15). Writes (atomically) ``refit.json`` (before/after metrics), ``light.json``
-and ``metrics.json`` into ``--out``; reads the run, never writes there.
+``--set`` overrides a stage-4 setting (e.g. ``refine_global=0 refine_again_global=False
+drop_share=0`` for the fit before issue 15). Writes (atomically) ``refit.json``
+(before/after metrics), ``light.json`` and ``metrics.json`` into ``--out``; reads the run,
+never writes there.
 """
 
 from __future__ import annotations
@@ -34,6 +35,14 @@ def _value(text: str):
         return text
 
 
+def run_preset(run: Path) -> str:
+    """The run's preset (its summary comes after its ablations; stage 4's own output is
+    enough, and then the preset is cpu-small)."""
+    summary = run / "summary.json"
+    return (json.loads(summary.read_text()).get("preset") if summary.is_file() else None) \
+        or "cpu-small"
+
+
 def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
           before: bool = True) -> dict:
     from mi_shadowgs.dataset.loader import load_dataset
@@ -45,10 +54,7 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
 
     before_path = run / "material" / "full" / "metrics.json"
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
-    # The run's summary comes after its ablations; stage 4's own output is enough.
-    summary = run / "summary.json"
-    preset = (json.loads(summary.read_text()).get("preset") if summary.is_file() else None) \
-        or "cpu-small"
+    preset = run_preset(run)
     train = load_training_views(data)
     test = load_dataset(data, "test")
     surfels = load_ply(run / "segmentation" / "model.ply")
@@ -186,6 +192,13 @@ def main(argv=None) -> int:
             fail(f"--set {item!r}: expected KEY=VALUE")
         k, v = item.split("=", 1)
         overrides[k] = _value(v)
+    from mi_shadowgs.config import ConfigError
+    from mi_shadowgs.stages.material.runner import material_config
+
+    try:  # before any work: a setting the config refuses exits 2 naming it
+        material_config(run_preset(args.run), overrides)
+    except (ConfigError, ValueError) as e:
+        fail(f"--set: {e}")
     res = refit(args.run, args.data, overrides, not args.quiet, not args.other_data)
     with atomic_dir(args.out, overwrite=True) as tmp:
         write_json(tmp / "refit.json", {k: v for k, v in res.items() if k != "metrics"})

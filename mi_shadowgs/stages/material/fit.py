@@ -265,6 +265,9 @@ class MaterialConfig:
                              f"drop_gain >= 0: {self.refine_global}, "
                              f"{self.refine_global_map_resolution}, {self.drop_share}, "
                              f"{self.drop_gain}")
+        if self.refine_again_global and not self.refine_global:
+            raise ValueError("MaterialConfig.refine_again_global needs the global pass: set "
+                             "refine_global > 0 (it is 0)")
         if not 0.0 <= self.refine_segment_purity <= 1.0:
             raise ValueError(f"MaterialConfig.refine_segment_purity must be in [0, 1], got "
                              f"{self.refine_segment_purity}")
