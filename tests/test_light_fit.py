@@ -80,17 +80,21 @@ def _views(s, cams, bounds, dirs, irradiance):
     return views, ch
 
 
+def _map_renderer(s, bounds):
+    """``render_maps(directions, resolution=None)`` as stage 4 calls it, on VCFG."""
+    def render(dirs, resolution=None):
+        vc = VCFG if resolution is None else dataclasses.replace(VCFG, resolution=resolution)
+        return render_shadow_maps(s, dirs, bounds, vc)
+    return render
+
+
 def _fit_lights(s, bounds, views, ch, start_dirs, start_irr, global_pass=True, **over):
     """What stage 4 does at the end of its warm-up with the lights it merged: refine (global
     then local passes), then merge the lights that met and drop those that explain little."""
     cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=128,
                               refine_views=len(views),
                               **over)
-
-    def render(dirs, resolution=None):
-        vc = VCFG if resolution is None else dataclasses.replace(VCFG, resolution=resolution)
-        return render_shadow_maps(s, dirs, bounds, vc)
-
+    render = _map_renderer(s, bounds)
     start_dirs = np.atleast_2d(start_dirs)
     dirs, irr = material_fit.refine_directions(views, ch, start_dirs, np.asarray(start_irr),
                                                render(start_dirs), render, cfg, False,
@@ -150,11 +154,7 @@ def test_second_refinement_with_the_global_pass_recovers_a_light_in_another_cell
         opt["log_light"] = mi.Float(np.float32(math.log(1.0 / dw)))
         state = material_fit.MaterialState(cfg.warmup + 1, opt, ch, start[None], False,
                                            np.random.default_rng(0), mi.Float(0.0), [], {})
-
-        def render(dirs, resolution=None):
-            vc = VCFG if resolution is None else dataclasses.replace(VCFG, resolution=resolution)
-            return render_shadow_maps(s, dirs, bounds, vc)
-
+        render = _map_renderer(s, bounds)
         dirs = material_fit._refine(views, state, render(start[None]), render, cfg, None,
                                     global_pass=False)
         return units, dirs[0]
