@@ -24,11 +24,12 @@ def _fake_row(name: str, lights: str) -> dict:
 def fake_runs(monkeypatch):
     calls = []
 
-    def run_scene(name, mesh, out, lights="tuned", ablations=True, envmaps=vpipe.ENVMAPS):
-        calls.append((name, lights))
+    def run_scene(name, mesh, out, lights="tuned", ablations=True, envmaps=vpipe.ENVMAPS,
+                  preset="cpu-small"):
+        calls.append((name, lights) if preset == "cpu-small" else (name, lights, preset))
         folder = Path(out) / f"{name}-{lights}"
         folder.mkdir(parents=True, exist_ok=True)
-        row = _fake_row(name, lights)
+        row = {**_fake_row(name, lights), "preset": preset}
         (folder / "row.json").write_text(json.dumps(row))
         return row
 
@@ -81,3 +82,39 @@ def test_a_folder_that_is_not_ours_is_refused(fake_runs, tmp_path, capsys):
 def test_report_pages_follow_the_pipeline():
     names = list(run_all.VALIDATIONS)
     assert names.index("pipeline") < names.index("report_pages")
+
+
+def test_one_preset_per_table_folder(fake_runs, tmp_path, capsys):
+    # A cpu-medium table in a folder holding a cpu-small row would mix the two presets in
+    # one table (and the row's dataset would be reused at the wrong size): refused, by name.
+    out = tmp_path / "table"
+    assert vpipe.main(["--out", str(out), "--scene", "default", "--lights", "tuned"]) == 0
+    assert fake_runs == [("default", "tuned")]
+    assert "; cpu-small;" in (out / "pipeline.md").read_text()
+    fake_runs.clear()
+    with pytest.raises(SystemExit) as e:
+        vpipe.main(["--out", str(out), "--scene", "bunny", "--lights", "tuned",
+                    "--preset", "cpu-medium"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "default-tuned" in err and "row.json" in err
+    assert "'cpu-small'" in err and "'cpu-medium'" in err
+    assert fake_runs == []
+    # In a folder of its own the preset reaches every row and the table names it.
+    other = tmp_path / "medium"
+    assert vpipe.main(["--out", str(other), "--scene", "bunny", "--lights", "low",
+                       "--preset", "cpu-medium"]) == 0
+    assert fake_runs == [("bunny", "low", "cpu-medium")]
+    assert "; cpu-medium;" in (other / "pipeline.md").read_text()
+
+
+def test_a_dataset_of_another_preset_is_not_reused(tmp_path):
+    # A half-made row (its dataset written, no row.json) of another preset: refused before
+    # its 128^2 images could feed a 256^2 run.
+    folder = tmp_path / "default-tuned"
+    (folder / "data").mkdir(parents=True)
+    (folder / "data" / "dataset.json").write_text(json.dumps({"preset": "cpu-small"}))
+    with pytest.raises(vpipe.PresetMismatch, match="dataset.json: made at preset 'cpu-small'"):
+        vpipe.make_dataset("default", None, folder, preset="cpu-medium")
+    with pytest.raises(vpipe.PresetMismatch, match="dataset.json"):
+        vpipe.check_preset(tmp_path, "cpu-medium")
+    assert vpipe.make_dataset("default", None, folder) == folder / "data"  # same preset: kept

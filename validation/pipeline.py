@@ -3,18 +3,20 @@
 For the embedded default scene and, when ``../shared/data`` is present, the five asset
 scenes (bunny, armadillo, hotdog, ficus substitute, toy-train substitute for Lego), each under
 two light pairs (``tuned``: the pair the presets were tuned on; ``low``: a second pair with
-its strong light at 20 deg elevation), it generates the ``cpu-small`` dataset, runs
+its strong light at 20 deg elevation), it generates the ``--preset`` dataset (``cpu-small``:
+128^2, 64 views; ``cpu-medium``: 256^2, 96 views), runs
 ``mi-shadowgs run`` (with the two Table 3 ablations under the tuned pair), and tabulates
 stage 1, stage 2 and the decomposition/relighting metrics per scene and on average
 (Tables 1 and 3)::
 
     python -m validation.pipeline --out OUT [--quick] [--scene NAME ...] [--lights PAIR ...]
-                                  [--threads N]
+                                  [--threads N] [--preset cpu-small|cpu-medium]
 
 ``--quick`` runs the default scene under the tuned pair only. Each scene and pair lives under
 ``OUT/<scene>-<pair>/`` (dataset, run, ``row.json``) and is resumed, not redone, on a second
 call; the tables gather every ``row.json`` under OUT, so two processes with disjoint
-``--scene``/``--lights`` subsets may share one OUT.
+``--scene``/``--lights`` subsets may share one OUT. One OUT holds one preset: a row or a
+dataset of another preset already there is refused (exit 2), never reused or mixed.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.provenance import git_commit
+from validation import fail
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MI_SHADOWGS_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -58,6 +61,8 @@ CODE_COMMIT = git_commit()
 # "auto") add three path-traced test sets per row; they are scored apart (BENCHMARKS.md,
 # "Shipped env maps"). One choice for every row keeps the rows comparable.
 ENVMAPS = "sky"
+# The presets a table can be made at (the paper preset's 800^2 runs need a GPU).
+TABLE_PRESETS = ("cpu-small", "cpu-medium")
 TABLE_KEYS = ("albedo_psnr", "albedo_psnr_global", "albedo_ssim", "albedo_lpips",
               "light_cosine", "shadow_iou", "relight_psnr", "relight_ssim", "relight_lpips",
               "relight_render_s")
@@ -71,6 +76,15 @@ def available_scenes() -> dict[str, Path | None]:
         elif (SHARED_DATA / "meshes" / rel).is_file():
             out[name] = SHARED_DATA / "meshes" / rel
     return out
+
+
+class PresetMismatch(ValueError):
+    """A dataset or row under the output folder was made at another preset."""
+
+
+def row_preset(row: dict) -> str:
+    """The preset a row was made at (rows from before the field: cpu-small)."""
+    return row.get("preset", "cpu-small")
 
 
 def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tuned",
@@ -92,6 +106,10 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
 
     data = folder / "data"
     if (data / "dataset.json").is_file():
+        made = json.loads((data / "dataset.json").read_text()).get("preset")
+        if made != preset:
+            raise PresetMismatch(f"{data / 'dataset.json'}: made at preset {made!r}, this "
+                                 f"call asks for {preset!r}; use another output folder")
         return data
     overrides = {**(LIGHT_PAIRS[lights] if pair is None else pair), **(scene_overrides or {})}
     if mesh is not None:
@@ -106,22 +124,29 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
 
 
 def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
-              ablations: bool = True, envmaps: str = ENVMAPS, pair: dict | None = None) -> dict:
+              ablations: bool = True, envmaps: str = ENVMAPS, pair: dict | None = None,
+              preset: str = "cpu-small") -> dict:
     """One scene under one light pair (``LIGHT_PAIRS[lights]``, or ``pair`` named
-    ``lights``); its row is also written to ``row.json``."""
+    ``lights``) at ``preset`` (its dataset and every stage); its row is also written to
+    ``row.json``."""
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.pipeline import RunConfig, run_pipeline
 
     folder = out / f"{name}-{lights}"
     if (folder / "row.json").is_file():  # finished: its row stands as recorded
-        return json.loads((folder / "row.json").read_text())
+        row = json.loads((folder / "row.json").read_text())
+        if row_preset(row) != preset:
+            raise PresetMismatch(f"{folder / 'row.json'}: made at preset {row_preset(row)!r}, "
+                                 f"this call asks for {preset!r}; use another output folder")
+        return row
     t0 = time.perf_counter()
     pair = LIGHT_PAIRS[lights] if pair is None else pair
-    data = make_dataset(name, mesh, folder, lights, envmaps, pair=pair)
+    data = make_dataset(name, mesh, folder, lights, envmaps, preset=preset, pair=pair)
     t_gen = time.perf_counter() - t0
     # Table 3's ablations under the tuned pair only: the second pair measures the light fit
     ablations = ablations and lights == "tuned"
-    summary = run_pipeline(data, folder / "run", RunConfig(ablations=ablations), progress=True)
+    summary = run_pipeline(data, folder / "run", RunConfig(preset=preset, ablations=ablations),
+                           progress=True)
     run = folder / "run"
     geo = json.loads((run / "geometry" / "metrics.json").read_text())
     seg = json.loads((run / "segmentation" / "segmentation.json").read_text())
@@ -129,7 +154,7 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     variants = {v: json.loads((run / "material" / v / "metrics.json").read_text())
                 for v in ("full", "no_visibility", "no_segmentation")
                 if v == "full" or (run / "material" / v / "metrics.json").is_file()}
-    row = {"scene": name, "lights": lights, "light_pair": pair,
+    row = {"scene": name, "lights": lights, "light_pair": pair, "preset": preset,
            "commit": CODE_COMMIT, "envmaps": envmaps,
            "generate_s": t_gen, "wall_s": time.perf_counter() - t0,
            "stage_s": {st["name"]: st.get("seconds") for st in summary.get("stages", [])},
@@ -212,7 +237,8 @@ EVALUATION_CHANGES = (
 def markdown(rows: list[dict], command: str) -> str:
     lines = ["## Whole pipeline (paper Tables 1 and 3)", "",
              f"`{command}`; {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
-             f"load average {os.getloadavg()[0]:.1f} at the end; llvm_ad_rgb; cpu-small; "
+             f"load average {os.getloadavg()[0]:.1f} at the end; llvm_ad_rgb; "
+             f"{', '.join(sorted({row_preset(r) for r in rows})) or 'n/a'}; "
              f"rows made by commit {_commits(rows)}; env maps: "
              f"{', '.join(sorted({str(r.get('envmaps', 'sky')) for r in rows})) or 'n/a'}.",
              "",
@@ -287,9 +313,25 @@ def gather_rows(out_dir: Path) -> list[dict]:
                                        order.get(r["scene"], 99)))
 
 
+def check_preset(out_dir: Path, preset: str) -> None:
+    """Refuse (PresetMismatch) an output folder holding a row or a dataset of another
+    preset: its tables would mix them."""
+    for path in sorted(Path(out_dir).glob("*/row.json")):
+        made = row_preset(json.loads(path.read_text()))
+        if made != preset:
+            raise PresetMismatch(f"{path}: made at preset {made!r}, this call asks for "
+                                 f"{preset!r}; use another output folder")
+    for path in sorted(Path(out_dir).glob("*/data/dataset.json")):
+        made = json.loads(path.read_text()).get("preset")
+        if made != preset:
+            raise PresetMismatch(f"{path}: made at preset {made!r}, this call asks for "
+                                 f"{preset!r}; use another output folder")
+
+
 def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
         command: str = "python -m validation.pipeline", lights: list[str] | None = None,
-        ablations: bool = True, order: str = "pair", envmaps: str = ENVMAPS) -> dict:
+        ablations: bool = True, order: str = "pair", envmaps: str = ENVMAPS,
+        preset: str = "cpu-small") -> dict:
     """validation.run_all entry."""
     from mi_shadowgs.io.atomic import write_json, write_text
 
@@ -300,11 +342,14 @@ def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
     missing = [s for s in chosen if s not in avail]
     if missing:
         raise FileNotFoundError(f"scenes {missing} need meshes under {SHARED_DATA / 'meshes'}")
+    if preset not in TABLE_PRESETS:
+        raise PresetMismatch(f"--preset must be one of {TABLE_PRESETS}, got {preset!r}")
+    check_preset(out_dir, preset)
     # order "pair": the whole table under one pair first; "scene": both pairs of a scene
     jobs = [(s, p) for p in pairs for s in chosen] if order == "pair" else \
         [(s, p) for s in chosen for p in pairs]
     for s, pair in jobs:
-        run_scene(s, avail[s], out_dir, pair, ablations, envmaps)
+        run_scene(s, avail[s], out_dir, pair, ablations, envmaps, preset=preset)
     rows = gather_rows(out_dir)
     md = markdown(rows, command)
     write_json(out_dir / "pipeline.json", rows)
@@ -333,6 +378,9 @@ def main(argv=None) -> int:
     ap.add_argument("--envmap", choices=("sky", "auto", "none"), default=ENVMAPS,
                     help="env maps of the datasets' env-map relit views (default: the "
                          "procedural sky; auto: the shipped maps when present)")
+    ap.add_argument("--preset", choices=TABLE_PRESETS, default="cpu-small",
+                    help="the datasets' and every stage's preset (default cpu-small; one "
+                         "preset per --out)")
     ap.add_argument("--table-only", action="store_true",
                     help="only gather the finished rows under --out into the tables")
     args = ap.parse_args(argv)
@@ -348,8 +396,11 @@ def main(argv=None) -> int:
         write_text(Path(args.out) / "pipeline.md", md)
         print(md)
         return 0
-    res = run(Path(args.out), args.quick, args.scene, command, args.lights,
-              not args.no_ablations, args.order, args.envmap)
+    try:
+        res = run(Path(args.out), args.quick, args.scene, command, args.lights,
+                  not args.no_ablations, args.order, args.envmap, args.preset)
+    except PresetMismatch as e:
+        fail(str(e))
     print(res["markdown"])
     return 0
 
