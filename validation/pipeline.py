@@ -81,6 +81,10 @@ def available_scenes() -> dict[str, Path | None]:
 class PresetMismatch(ValueError):
     """A dataset or row under the output folder was made at another preset."""
 
+    def __init__(self, path: Path, made: str | None, asked: str):
+        super().__init__(f"{path}: made at preset {made!r}, this call asks for {asked!r}; "
+                         "use another output folder")
+
 
 def row_preset(row: dict) -> str:
     """The preset a row was made at (rows from before the field: cpu-small)."""
@@ -108,8 +112,7 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
     if (data / "dataset.json").is_file():
         made = json.loads((data / "dataset.json").read_text()).get("preset")
         if made != preset:
-            raise PresetMismatch(f"{data / 'dataset.json'}: made at preset {made!r}, this "
-                                 f"call asks for {preset!r}; use another output folder")
+            raise PresetMismatch(data / "dataset.json", made, preset)
         return data
     overrides = {**(LIGHT_PAIRS[lights] if pair is None else pair), **(scene_overrides or {})}
     if mesh is not None:
@@ -136,8 +139,7 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     if (folder / "row.json").is_file():  # finished: its row stands as recorded
         row = json.loads((folder / "row.json").read_text())
         if row_preset(row) != preset:
-            raise PresetMismatch(f"{folder / 'row.json'}: made at preset {row_preset(row)!r}, "
-                                 f"this call asks for {preset!r}; use another output folder")
+            raise PresetMismatch(folder / "row.json", row_preset(row), preset)
         return row
     t0 = time.perf_counter()
     pair = LIGHT_PAIRS[lights] if pair is None else pair
@@ -319,13 +321,11 @@ def check_preset(out_dir: Path, preset: str) -> None:
     for path in sorted(Path(out_dir).glob("*/row.json")):
         made = row_preset(json.loads(path.read_text()))
         if made != preset:
-            raise PresetMismatch(f"{path}: made at preset {made!r}, this call asks for "
-                                 f"{preset!r}; use another output folder")
+            raise PresetMismatch(path, made, preset)
     for path in sorted(Path(out_dir).glob("*/data/dataset.json")):
         made = json.loads(path.read_text()).get("preset")
         if made != preset:
-            raise PresetMismatch(f"{path}: made at preset {made!r}, this call asks for "
-                                 f"{preset!r}; use another output folder")
+            raise PresetMismatch(path, made, preset)
 
 
 def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
@@ -343,7 +343,7 @@ def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
     if missing:
         raise FileNotFoundError(f"scenes {missing} need meshes under {SHARED_DATA / 'meshes'}")
     if preset not in TABLE_PRESETS:
-        raise PresetMismatch(f"--preset must be one of {TABLE_PRESETS}, got {preset!r}")
+        raise ValueError(f"preset must be one of {TABLE_PRESETS}, got {preset!r}")
     check_preset(out_dir, preset)
     # order "pair": the whole table under one pair first; "scene": both pairs of a scene
     jobs = [(s, p) for p in pairs for s in chosen] if order == "pair" else \
