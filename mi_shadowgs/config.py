@@ -50,6 +50,16 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
             elif not isinstance(value, type(current)):
                 raise ConfigError(f"{what} setting {name!r} takes a dict of its own settings "
                                   f"or a {type(current).__name__}, got {value!r}")
+        # A switch or a number given as text (a command line's "false", "128") would pass
+        # as a truthy string or fail far from here: refused by name (None stays allowed
+        # for the optional ones).
+        elif value is None:
+            continue
+        elif isinstance(current, bool) and not isinstance(value, bool):
+            raise ConfigError(f"{what} setting {name!r} takes True or False, got {value!r}")
+        elif isinstance(current, (int, float)) and not isinstance(current, bool) and \
+                (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise ConfigError(f"{what} setting {name!r} takes a number, got {value!r}")
     return dataclasses.replace(config, **values)
 
 

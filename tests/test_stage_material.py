@@ -391,6 +391,22 @@ def test_overrides_reach_nested_settings():
         with_overrides(geometry_config("cpu-small"), {"raster": 8.0}, "geometry")
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("refine_again_global", "false", "takes True or False"),  # a truthy string
+    ("refine_again_global", 0, "takes True or False"),
+    ("refine_global", "128", "takes a number"),
+    ("refine_global", True, "takes a number"),
+])
+def test_overrides_of_the_wrong_type_are_refused_by_name(field, value, message):
+    """``refine_again_global="false"`` from a command line once replaced the switch with a
+    truthy string, silently keeping it on (session 23's light-sweep refits)."""
+    with pytest.raises(ConfigError, match=f"{field}.*{message}"):
+        with_overrides(material_fit.get_config("cpu-small"), {field: value}, "material")
+    ok = with_overrides(material_fit.get_config("cpu-small"),
+                        {"refine_again_global": False, "refine_global": 64}, "material")
+    assert ok.refine_again_global is False and ok.refine_global == 64
+
+
 def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
     """The albedo x light (and albedo x indirect) scale: scaling the albedo to the held value
     and the light and indirect by the inverse leaves the rendered diffuse image as it was
