@@ -91,6 +91,12 @@ def row_preset(row: dict) -> str:
     return row.get("preset", "cpu-small")
 
 
+def dataset_preset(path: Path) -> str:
+    """The preset a generated dataset (its ``dataset.json``) was made at; cpu-small where the
+    file predates the field, as the rows of that time."""
+    return json.loads(Path(path).read_text()).get("preset") or "cpu-small"
+
+
 def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tuned",
                  envmaps: str = ENVMAPS, resolution: int | None = None,
                  preset: str = "cpu-small", pair: dict | None = None,
@@ -110,7 +116,7 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
 
     data = folder / "data"
     if (data / "dataset.json").is_file():
-        made = json.loads((data / "dataset.json").read_text()).get("preset")
+        made = dataset_preset(data / "dataset.json")
         if made != preset:
             raise PresetMismatch(data / "dataset.json", made, preset)
         return data
@@ -323,7 +329,7 @@ def check_preset(out_dir: Path, preset: str) -> None:
         if made != preset:
             raise PresetMismatch(path, made, preset)
     for path in sorted(Path(out_dir).glob("*/data/dataset.json")):
-        made = json.loads(path.read_text()).get("preset")
+        made = dataset_preset(path)
         if made != preset:
             raise PresetMismatch(path, made, preset)
 
