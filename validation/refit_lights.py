@@ -35,14 +35,6 @@ def _value(text: str):
         return text
 
 
-def run_preset(run: Path) -> str:
-    """The run's preset (its summary comes after its ablations; stage 4's own output is
-    enough, and then the preset is cpu-small)."""
-    summary = run / "summary.json"
-    return (json.loads(summary.read_text()).get("preset") if summary.is_file() else None) \
-        or "cpu-small"
-
-
 def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
           before: bool = True) -> dict:
     from mi_shadowgs.dataset.loader import load_dataset
@@ -54,6 +46,8 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
 
     before_path = run / "material" / "full" / "metrics.json"
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
+    from mi_shadowgs.stages.relight.runner import run_preset
+
     preset = run_preset(run)
     train = load_training_views(data)
     test = load_dataset(data, "test")
@@ -194,6 +188,7 @@ def main(argv=None) -> int:
         overrides[k] = _value(v)
     from mi_shadowgs.config import ConfigError
     from mi_shadowgs.stages.material.runner import material_config
+    from mi_shadowgs.stages.relight.runner import run_preset
 
     try:  # before any work: a setting the config refuses exits 2 naming it
         material_config(run_preset(args.run), overrides)

@@ -99,16 +99,14 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     from mi_shadowgs.io.provenance import read_manifest
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.relight.evaluate import scored_pixels
+    from mi_shadowgs.stages.relight.runner import run_preset
     from mi_shadowgs.stages.visibility import shadow_maps
 
     folder = run / "material" / variant
     light = _read_json(folder / "light.json")
     metrics = _read_json(folder / "metrics.json")
     settings = (read_manifest(folder) or {}).get("settings", {})
-    # The run's summary comes after its ablations; stage 4's own output is enough.
-    summary = run / "summary.json"
-    preset = (json.loads(summary.read_text()).get("preset") if summary.is_file() else None) \
-        or "cpu-small"
+    preset = run_preset(run)
     if light.get("directions") is None or light.get("irradiance") is None:
         raise ValueError(f"{folder / 'light.json'}: no 'directions'/'irradiance' (an older run)")
     test = load_dataset(data, "test")

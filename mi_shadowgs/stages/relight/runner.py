@@ -157,6 +157,14 @@ class RunFit:
     preset: str
 
 
+def run_preset(run: str | Path) -> str:
+    """The preset a ``mi-shadowgs run`` was made at, from the run's manifest (written when
+    the run starts, so an unfinished run has it too); cpu-small for a folder without one."""
+    from mi_shadowgs.io.provenance import read_manifest
+
+    return (read_manifest(run) or {}).get("settings", {}).get("preset", "cpu-small")
+
+
 def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> RunFit:
     """The fitted model of ``RUN/material/<variant>``, with the shadow-map bounds the run
     used (its training cameras and ``bounds_quantile``; ``fallback_cameras`` where the
@@ -171,7 +179,7 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
                                 "finished `mi-shadowgs run`?)")
     manifest = read_manifest(folder) or {}
     settings = manifest.get("settings") or {}
-    preset = (read_manifest(run) or {}).get("settings", {}).get("preset", "cpu-small")
+    preset = run_preset(run)
     result = fit_from_files(folder / "model.ply", folder / "light.json",
                             folder / "history.csv",
                             use_visibility=settings.get("material", {})
