@@ -255,3 +255,24 @@ def test_make_validate_gives_the_pipeline_models_to_the_visibility_table(tmp_pat
     monkeypatch.undo()
     with pytest.raises(ValueError, match="every --model needs its --data"):
         vv.run(tmp_path / "out", quick=True, model=["a.ply", "b.ply"], data=["d"])
+
+
+def test_two_stage1_models_of_one_dataset_are_told_apart_by_their_run(tmp_path):
+    """Two models fitted to one dataset (say, two stage-1 settings) are compared in one
+    validation: each case also names its run folder. Were their names alike, the results
+    (keyed by name) would mix; that is refused before any work, with exit 2."""
+    import validation.visibility as vv
+
+    data = tmp_path / "ficus-low" / "data"
+    a = tmp_path / "ld3000" / "geometry" / "model.ply"
+    b = tmp_path / "ld300" / "geometry" / "model.ply"
+    assert vv.model_case_names([a, b], [data, data]) == [
+        "stage-1 ficus-low (ld3000)", "stage-1 ficus-low (ld300)"]
+    assert vv.model_case_names([a], [data]) == ["stage-1 ficus-low"]
+    other = tmp_path / "again" / "ld3000" / "geometry" / "model.ply"
+    with pytest.raises(ValueError, match="cannot be told apart"):
+        vv.model_case_names([a, other], [data, data])
+    with pytest.raises(SystemExit) as e:  # before any scene is loaded or traced
+        vv.main(["--out", str(tmp_path / "out"), "--model", str(a), "--data", str(data),
+                 "--model", str(other), "--data", str(data), "--quiet"])
+    assert e.value.code == 2 and not (tmp_path / "out").exists()

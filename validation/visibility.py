@@ -56,6 +56,7 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
     mean_camera_distance,
     render_shadow_maps,
 )
+from validation import fail
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
@@ -256,9 +257,30 @@ def dataset_scene(data: Path):
     return load_scene(info["scene"], params)
 
 
-def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
+def model_case_names(models: list[Path], datas: list[Path]) -> list[str]:
+    """Each stage-1 case's name: "stage-1 " and the dataset folder (its parent when the
+    folder is called "data"); when two models share a dataset, each also names its run (the
+    folder above ``geometry/model.ply``, else the PLY's own folder)."""
+    def scene(data: Path) -> str:
+        return data.parent.name if data.name == "data" else data.name
+
+    def run_name(model: Path) -> str:
+        return model.parent.parent.name if model.parent.name == "geometry" else \
+            model.parent.name
+
+    scenes = [scene(Path(d)) for d in datas]
+    names = [f"stage-1 {s}" + (f" ({run_name(Path(m))})" if scenes.count(s) > 1 else "")
+             for m, s in zip(models, scenes, strict=True)]
+    if len(set(names)) != len(names):
+        raise ValueError(f"--model: two models share a dataset and a run folder name, so "
+                         f"their results cannot be told apart: {names}")
+    return names
+
+
+def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None = None
+               ) -> Case:
     """The test views of ``data`` with points from the stage-1 model's rendered geometry;
-    named after the dataset folder (its parent when the folder is called "data")."""
+    named ``name`` (default ``model_case_names``' for this model alone)."""
     from mi_shadowgs.core.raster import rasterize
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.io.ply import load_ply
@@ -289,8 +311,8 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig) -> Case:
     if len(obj) == 0:
         raise ValueError(f"{model}: the model covers no object pixel of the test views")
     bounds = SceneBounds.from_points(obj, cams)
-    scene = data.parent.name if data.name == "data" else data.name
-    return Case(f"stage-1 {scene}", surfels, bounds, dirs, cams, points, normals,
+    name = name or model_case_names([model], [data])[0]
+    return Case(name, surfels, bounds, dirs, cams, points, normals,
                 np.stack(masks), gt_shadow, footprints)
 
 
@@ -463,6 +485,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     if len(models) != len(datas):
         raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
                          f"{len(models)} models, {len(datas)} datasets")
+    case_names = model_case_names([Path(m) for m in models], [Path(d) for d in datas])
     cfg = QUICK if quick else ValidationConfig()
     base = VisibilityConfig()
     progress = _progress(quiet)
@@ -475,10 +498,9 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         print(f"visibility validation: {notes[-1]}", flush=True)
     t_start = time.perf_counter()
     cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
-    cases += [model_case(Path(m), Path(d), cfg) for m, d in zip(models, datas, strict=True)]
-    names = [c.name for c in cases]
-    if len(set(names)) != len(names):  # results are keyed by case name
-        raise ValueError(f"two --data folders give the same scene name: {names}")
+    cases += [model_case(Path(m), Path(d), cfg, n)
+              for m, d, n in zip(models, datas, case_names, strict=True)]
+    names = [c.name for c in cases]  # results are keyed by case name
     results = {}
     for name, build in methods(base, quick).items():
         results[name] = {}
@@ -557,7 +579,10 @@ def main(argv=None) -> int:
                     help="the dataset folder each --model was trained on, in the same order")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
-    summary = run(args.out, args.quick, args.model, args.data, args.quiet)
+    try:
+        summary = run(args.out, args.quick, args.model, args.data, args.quiet)
+    except (ValueError, FileNotFoundError) as e:  # names the file or option
+        fail(str(e))
     print(summary["markdown"])
     return 0
 
