@@ -857,7 +857,8 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
                 rest = rest + (1.0 - metal) * albedo * ind
             resid = (v.target - rest) * v.weight  # [P], what light k has to explain
             vis = cand_maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-            dr.eval(vis)  # [P * C]: read by both shadings below under "albedo"
+            if alb_sums is not None:
+                dr.eval(vis)  # [P * C]: read by both shadings below
             b = shading.direct_per_light(v.geom, albedo, rough, metal, cand_maps.directions,
                                          vis, with_specular)  # [P * C] pixel-major
             dr.eval(b)  # once: r.b and b.b below would each recompute the lookups
