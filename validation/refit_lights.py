@@ -43,11 +43,10 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
     from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, light_json
+    from mi_shadowgs.stages.relight.runner import run_preset
 
     before_path = run / "material" / "full" / "metrics.json"
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
-    from mi_shadowgs.stages.relight.runner import run_preset
-
     preset = run_preset(run)
     train = load_training_views(data)
     test = load_dataset(data, "test")

@@ -816,14 +816,17 @@ def candidate_directions(direction: np.ndarray, radius_deg: float, step_deg: flo
 
 def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dirs,
                  with_specular: bool):
-    """A view's materials (albedo, roughness, metallic, indirect or None) and its direct
-    shading per light of ``dirs`` [P * K] pixel-major, visibility from ``maps`` if given."""
+    """A view's materials (albedo, roughness, metallic, indirect or None), its direct
+    shading per light of ``dirs`` [P * K] pixel-major and that visibility [P * K] (from
+    ``maps``; None without)."""
     albedo, rough, metal, ind = view_maps(v.pairs, channels, v.surfel_normal, with_specular)
     vis = None if maps is None else \
         maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
     per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)
-    dr.eval(per)  # [P * K]: its readers (per channel, per sum) would each recompute it
-    return albedo, rough, metal, ind, per
+    # [P * K] both, in one kernel: their readers (per channel, per sum, the albedo score's
+    # unit-albedo shading) would each recompute the lookups
+    dr.eval(per, vis)
+    return albedo, rough, metal, ind, per, vis
 
 
 def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.LightSet, maps,
@@ -844,8 +847,8 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
     alb_sums = _AlbedoSums(n_cand, n_seg) if config.refine_score == "albedo" else None
     with dr.suspend_grad():
         for v in views:
-            albedo, rough, metal, ind, per = _view_direct(v, channels, config, maps,
-                                                          lights.directions, with_specular)
+            albedo, rough, metal, ind, per, vis_k = _view_direct(
+                v, channels, config, maps, lights.directions, with_specular)
             npix = dr.width(v.geom.alpha)
             kk = lights.count
             li = dr.arange(mi.UInt32, npix * kk) % kk
@@ -876,7 +879,7 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
             if seg_sums is not None:
                 seg_sums.add(v, resid, rb, bb)
             if alb_sums is not None:
-                _add_albedo_sums(alb_sums, v, lights, maps, k, cand_maps.directions, vis)
+                _add_albedo_sums(alb_sums, v, lights, vis_k, k, cand_maps.directions, vis)
             dr.eval(s_rb, s_bb, s_rr)  # one kernel per view, not one growing graph
     s_rb, s_bb = s_rb.numpy(), s_bb.numpy()
     s_rr = float(s_rr.numpy()[0])
@@ -892,18 +895,18 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
     return err, irr
 
 
-def _add_albedo_sums(sums: _AlbedoSums, v: TrainView, lights: shading.LightSet, maps,
-                     k: int, cand_dirs: np.ndarray, cand_vis: mi.Float) -> None:
+def _add_albedo_sums(sums: _AlbedoSums, v: TrainView, lights: shading.LightSet,
+                     vis: mi.Float | None, k: int, cand_dirs: np.ndarray, cand_vis: mi.Float
+                     ) -> None:
     """One view's sums of ``albedo_errors`` (no lobe): the target, the other lights' shading
-    X at unit albedo and the candidates' B (``cand_vis`` [P * C] their visibility). Only the
-    target, the geometry, the shadow maps and the lights enter, not the fitted materials."""
+    X at unit albedo (``vis`` [P * K] the lights' visibility, None: V = 1) and the
+    candidates' B (``cand_vis`` [P * C] theirs). Only the target, the geometry, the shadow
+    maps and the lights enter, not the fitted materials."""
     npix = dr.width(v.geom.alpha)
     zero = dr.zeros(mi.Float, npix)
     # a unit albedo splatted as the model's albedo is: the pixel's coverage (a silhouette
     # pixel's target is the blend with what lies behind)
     white = mi.Color3f(v.geom.alpha, v.geom.alpha, v.geom.alpha)
-    vis = None if maps is None else maps.evaluate(v.geom.points, v.geom.normal,
-                                                  v.geom.footprint)
     per = shading.direct_per_light(v.geom, white, zero, zero, lights.directions, vis, False)
     kk = lights.count
     li = dr.arange(mi.UInt32, npix * kk) % kk
@@ -1054,8 +1057,8 @@ def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndar
     gram, h, rr = np.zeros((n_seg, k, k)), np.zeros((n_seg, k)), np.zeros(n_seg)
     with dr.suspend_grad():
         for v in views:
-            albedo, rough, metal, ind, per = _view_direct(v, channels, config, maps, dirs,
-                                                          with_specular)  # per: [P * K]
+            albedo, rough, metal, ind, per, _ = _view_direct(v, channels, config, maps, dirs,
+                                                             with_specular)  # per: [P * K]
             resid = v.target - (1.0 - metal) * albedo * ind if ind is not None else v.target
             wgt = np.asarray(v.weight.numpy(), np.float64)  # [P]
             b = np.stack([np.asarray(per[c], np.float64).reshape(-1, k) for c in range(3)])
