@@ -43,9 +43,16 @@ def test_one_sample_is_the_point_truth_and_four_blend_only_at_edges(setup):
     np.testing.assert_array_equal(one["coverage"], point["mask"].astype(np.float64))
     np.testing.assert_allclose(one["albedo"], point["albedo"], atol=0)
     np.testing.assert_allclose(one["irradiance"], point["irradiance"], atol=0)
+    # Lit: the light's shadow ray unoccluded and n . l > 0 (validation.visibility's truth).
+    dirs = np.array([lt.direction for lt in setup.lights])
+    facing = np.einsum("nhwk,lk->nhwl", point["normal"].astype(np.float64), dirs) > 0
+    np.testing.assert_array_equal(one["lit"], (point["visibility"] > 0.5) & facing)
+    assert 0 < one["lit"].mean() < 1  # some of each, so the check above can fail
     box = box_filtered_ground_truth(setup, [cam], samples=4)
     cov = box["coverage"]
     assert cov.min() >= 0 and cov.max() <= 1
+    lit = box["lit"]  # a share of the points: partial at the shadows' edges
+    assert lit.min() >= 0 and lit.max() <= 1 and np.count_nonzero((lit > 0) & (lit < 1)) > 10
     # The object's silhouette against the background: pixels partly covered.
     assert np.count_nonzero((cov > 0) & (cov < 1)) > 10
     # Inside one material, away from every edge, the albedo is the point truth's: the

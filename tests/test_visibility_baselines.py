@@ -259,8 +259,9 @@ def test_make_validate_gives_the_pipeline_models_to_the_visibility_table(tmp_pat
 
 def test_two_stage1_models_of_one_dataset_are_told_apart_by_their_run(tmp_path):
     """Two models fitted to one dataset (say, two stage-1 settings) are compared in one
-    validation: each case also names its run folder. Were their names alike, the results
-    (keyed by name) would mix; that is refused before any work, with exit 2."""
+    validation: each case also names its run folder, and the folders above it where those
+    are alike (the same scene's datasets at two sizes). One model given twice would mix the
+    results (keyed by name); that is refused before any work, with exit 2."""
     import validation.visibility as vv
 
     data = tmp_path / "ficus-low" / "data"
@@ -270,9 +271,64 @@ def test_two_stage1_models_of_one_dataset_are_told_apart_by_their_run(tmp_path):
         "stage-1 ficus-low (ld3000)", "stage-1 ficus-low (ld300)"]
     assert vv.model_case_names([a], [data]) == ["stage-1 ficus-low"]
     other = tmp_path / "again" / "ld3000" / "geometry" / "model.ply"
-    with pytest.raises(ValueError, match="cannot be told apart"):
-        vv.model_case_names([a, other], [data, data])
+    assert vv.model_case_names([a, other], [data, data]) == [
+        f"stage-1 ficus-low ({tmp_path.name}/ld3000)", "stage-1 ficus-low (again/ld3000)"]
+    small, medium = (tmp_path / t / "ficus-low" for t in ("t20", "t23m"))
+    assert vv.model_case_names(
+        [small / "run" / "geometry" / "model.ply", medium / "run" / "geometry" / "model.ply"],
+        [small / "data", medium / "data"]) == [
+        "stage-1 ficus-low (t20/ficus-low/run)", "stage-1 ficus-low (t23m/ficus-low/run)"]
+    with pytest.raises(ValueError, match="given twice"):
+        vv.model_case_names([a, a], [data, data])
     with pytest.raises(SystemExit) as e:  # before any scene is loaded or traced
         vv.main(["--out", str(tmp_path / "out"), "--model", str(a), "--data", str(data),
-                 "--model", str(other), "--data", str(data), "--quiet"])
+                 "--model", str(a), "--data", str(data), "--quiet"])
+    assert e.value.code == 2 and not (tmp_path / "out").exists()
+
+
+def test_factor_split_of_a_model_that_is_the_exact_geometry(tmp_path):
+    """``--factors`` wiring: a "stage-1 model" that is the exact surfels themselves scores
+    the same as the exact-occluder and exact-geometry swaps, and the true receivers score
+    the same over either occluders; with one point per pixel the pixel-area truth is the
+    point truth (IoU 1), with more it blends at the shadows' edges (below 1)."""
+    import dataclasses
+
+    from tiny_cli import TINY, presets
+
+    import mi_shadowgs.api as msg
+    import validation.visibility as vv
+    from mi_shadowgs.dataset import generate
+    from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
+
+    with pytest.MonkeyPatch.context() as mp:
+        for table, config in presets():
+            if table is generate.PRESETS:  # 40 px: enough shadow pixels per view to score
+                config = dataclasses.replace(config, width=40, height=40)
+            mp.setitem(table, TINY, config)
+        data = msg.generate_dataset(msg.scene_path("default"), tmp_path / "data", preset=TINY)
+    cfg = dataclasses.replace(vv.ValidationConfig(), n_views=2, object_surfels=3000,
+                              base_surfels=800)
+    model = tmp_path / "exact" / "geometry" / "model.ply"
+    model.parent.mkdir(parents=True)
+    save_ply(model, vv.scene_surfels(vv.dataset_scene(data), cfg))
+    case = vv.model_case(model, data, cfg)
+    base = VisibilityConfig()
+    one = vv.model_factors(case, data, cfg, base, samples=1)
+    assert set(one) == {k for k, _ in vv.FACTORS}
+    assert one["exact_occluders"] == one["run"] and one["exact_geometry"] == one["run"]
+    assert one["true_receivers_exact_occluders"] == one["true_receivers"]
+    assert one["pixel_ceiling"] == 1.0
+    assert 0.3 < one["run"] < 1.0 and all(0.0 <= v <= 1.0 for v in one.values())
+    sparse = vv.model_factors(case, data, cfg, base, samples=1, exact_surfels=600)
+    assert all(sparse[k] == one[k] for k in ("run", "true_points", "true_receivers"))
+    assert sparse["exact_geometry"] != one["exact_geometry"]  # the exact surfels' count
+    four = vv.model_factors(case, data, cfg, base, samples=4)
+    assert 0.5 < four["pixel_ceiling"] < 1.0
+    assert {k: v for k, v in four.items() if k != "pixel_ceiling"} == \
+        {k: v for k, v in one.items() if k != "pixel_ceiling"}
+    table = vv.factors_markdown({case.name: one})
+    assert table.count("\n") == 2 and "pixel-area truth" in table
+    with pytest.raises(SystemExit) as e:  # a split needs a model; refused before any work
+        vv.main(["--out", str(tmp_path / "out"), "--factors", "--quiet"])
     assert e.value.code == 2 and not (tmp_path / "out").exists()

@@ -9,13 +9,15 @@ the IoU of the shadowed set (V < 0.5, ground truth V = 0 or n . l <= 0) inside t
 averaged over views and directions. With ``--model`` (a stage-1 PLY) and ``--data`` (its
 dataset), the points come from the model's own rendered median depth and normals instead
 (with their pixel footprints, so the methods' receiver offset applies); both repeat, in
-pairs, for one stage-1 table over several scenes.
+pairs, for one stage-1 table over several scenes. ``--factors`` also splits each stage-1
+model's IoU (``model_factors``): its receivers and occluders swapped for the truth's, the
+method on exact geometry, and what the pixel area allows.
 
     python -m validation.visibility --out validation-out/visibility [--quick]
-        [--model RUN/geometry/model.ply --data DATASET ...]
+        [--model RUN/geometry/model.ply --data DATASET ...] [--factors]
 
 Writes (atomically) ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``,
-``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md``.
+``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.sampling import sample_surface
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.dataset.cameras import test_cameras
-from mi_shadowgs.dataset.generate import trace_ground_truth
+from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground_truth
 from mi_shadowgs.dataset.layout import DATASET_JSON, NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, load_scene
 from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
@@ -165,12 +167,7 @@ def ground_truth_case(name: str, scene_path, overrides, cfg: ValidationConfig) -
     normal = gt["normal"].astype(np.float64)  # [V, H, W, 3]
     facing = np.einsum("vhwk,lk->vhwl", normal, dirs) > 0
     gt_shadow = (gt["visibility"] < 0.5) | ~facing
-    points, normals = [], []
-    for v, cam in enumerate(cams):
-        depth = mi.TensorXf(gt["depth"][v].astype(np.float32)[..., None])
-        points.append(unproject_depth(depth, cam))
-        n = normal[v].reshape(-1, 3).astype(np.float32)
-        normals.append(mi.Vector3f(n[:, 0], n[:, 1], n[:, 2]))
+    points, normals = traced_receivers(gt, cams)
     bounds = SceneBounds(tuple(np.asarray(setup.object_center, float).tolist()),
                          float(setup.object_radius),
                          mean_camera_distance(cams, setup.object_center))
@@ -259,29 +256,70 @@ def dataset_scene(data: Path):
 
 def model_case_names(models: list[Path], datas: list[Path]) -> list[str]:
     """Each stage-1 case's name: "stage-1 " and the dataset folder (its parent when the
-    folder is called "data"); when two models share a dataset, each also names its run (the
-    folder above ``geometry/model.ply``, else the PLY's own folder)."""
+    folder is called "data"). When two cases would share that name (two models of one
+    dataset, or of two datasets of one scene), each also names its run: the folder above
+    ``geometry/model.ply`` (else the PLY's own folder), with as many of the folders above it
+    as tell the runs apart. One model given twice is refused."""
     def scene(data: Path) -> str:
         return data.parent.name if data.name == "data" else data.name
 
-    def run_name(model: Path) -> str:
-        return model.parent.parent.name if model.parent.name == "geometry" else \
-            model.parent.name
+    def run_parts(model: Path) -> tuple[str, ...]:
+        model = Path(model).absolute()
+        run = model.parent.parent if model.parent.name == "geometry" else model.parent
+        return run.parts
 
     scenes = [scene(Path(d)) for d in datas]
-    names = [f"stage-1 {s}" + (f" ({run_name(Path(m))})" if scenes.count(s) > 1 else "")
-             for m, s in zip(models, scenes, strict=True)]
-    if len(set(names)) != len(names):
-        raise ValueError(f"--model: two models share a dataset and a run folder name, so "
-                         f"their results cannot be told apart: {names}")
+    parts = [run_parts(Path(m)) for m in models]
+    names = []
+    for i, s in enumerate(scenes):
+        group = [parts[j] for j in range(len(models)) if scenes[j] == s]
+        if len(group) == 1:
+            names.append(f"stage-1 {s}")
+            continue
+        if group.count(parts[i]) > 1:
+            raise ValueError(f"--model: {models[i]} is given twice for {s}; its results "
+                             f"could not be told apart")
+        depth = next(k for k in range(1, max(map(len, group)) + 1)
+                     if len({p[-k:] for p in group}) == len(group))
+        names.append(f"stage-1 {s} ({'/'.join(parts[i][-depth:])})")
     return names
+
+
+def rendered_receivers(surfels: Surfels, cameras) -> tuple[list, list, list, list]:
+    """Receivers as the method renders them from ``surfels``: per camera, the points of the
+    median depth, the blended normals (unit), the pixel footprints and the alpha [H, W]."""
+    from mi_shadowgs.core.raster import rasterize
+
+    points, normals, footprints, alphas = [], [], [], []
+    for cam in cameras:
+        with dr.suspend_grad():
+            out = rasterize(surfels, cam, None, aovs=("alpha", "median_depth", "normal"))
+        alphas.append(np.asarray(out["alpha"].array).reshape(cam.height, cam.width))
+        points.append(unproject_depth(out["median_depth"], cam))
+        footprints.append(pixel_footprint(out["median_depth"], cam))
+        n = np.asarray(out["normal"].array, dtype=np.float64).reshape(-1, 3)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        n = n.astype(np.float32)
+        normals.append(mi.Vector3f(n[:, 0], n[:, 1], n[:, 2]))
+    return points, normals, footprints, alphas
+
+
+def traced_receivers(gt: dict, cameras) -> tuple[list, list]:
+    """Receivers of the true scene (``trace_ground_truth``'s buffers): per camera, the points
+    of the depth at the pixel centre and the normals facing the camera."""
+    points, normals = [], []
+    for v, cam in enumerate(cameras):
+        points.append(unproject_depth(mi.TensorXf(gt["depth"][v].astype(np.float32)[..., None]),
+                                      cam))
+        n = gt["normal"][v].reshape(-1, 3).astype(np.float32)
+        normals.append(mi.Vector3f(n[:, 0], n[:, 1], n[:, 2]))
+    return points, normals
 
 
 def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None = None
                ) -> Case:
     """The test views of ``data`` with points from the stage-1 model's rendered geometry;
     named ``name`` (default ``model_case_names``' for this model alone)."""
-    from mi_shadowgs.core.raster import rasterize
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.io.ply import load_ply
 
@@ -292,18 +330,8 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None 
     gt = trace_ground_truth(setup, cams, lights)
     facing_gt = np.einsum("vhwk,lk->vhwl", gt["normal"].astype(np.float64), dirs) > 0
     gt_shadow = (gt["visibility"] < 0.5) | ~facing_gt
-    points, normals, masks, footprints = [], [], [], []
-    for v, cam in enumerate(cams):
-        with dr.suspend_grad():
-            out = rasterize(surfels, cam, None, aovs=("alpha", "median_depth", "normal"))
-        alpha = np.asarray(out["alpha"].array).reshape(cam.height, cam.width)
-        points.append(unproject_depth(out["median_depth"], cam))
-        footprints.append(pixel_footprint(out["median_depth"], cam))
-        n = np.asarray(out["normal"].array, dtype=np.float64).reshape(-1, 3)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        n = n.astype(np.float32)
-        normals.append(mi.Vector3f(n[:, 0], n[:, 1], n[:, 2]))
-        masks.append(gt["mask"][v].astype(bool) & (alpha > 0.5))
+    points, normals, footprints, alphas = rendered_receivers(surfels, cams)
+    masks = [gt["mask"][v].astype(bool) & (alpha > 0.5) for v, alpha in enumerate(alphas)]
     # Frame the maps on the occluders: the model's own surface points inside the object masks
     # (an input of the method), not every surfel (the base would blow the map up).
     obj = np.concatenate([np.asarray(p, dtype=np.float64).reshape(3, -1).T[
@@ -314,6 +342,73 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None 
     name = name or model_case_names([model], [data])[0]
     return Case(name, surfels, bounds, dirs, cams, points, normals,
                 np.stack(masks), gt_shadow, footprints)
+
+
+# -- where a stage-1 model's IoU is lost --------------------------------------------------
+# (key, label): the pixel method's IoU with each input swapped for the truth's, in the
+# order of the factor table's columns.
+FACTORS = (("run", "run"),
+           ("true_points", "true points"),
+           ("true_normals", "true normals"),
+           ("true_receivers", "true receivers"),
+           ("exact_occluders", "exact occluders"),
+           ("true_receivers_exact_occluders", "true receivers + exact occluders"),
+           ("exact_geometry", "exact geometry, rendered receivers"),
+           ("pixel_ceiling", "pixel-area truth"))
+
+
+def model_factors(case: Case, data: Path, cfg: ValidationConfig, base: VisibilityConfig,
+                  samples: int = 4, exact_surfels: int | None = None) -> dict[str, float]:
+    """Where a stage-1 model's shadow IoU (the pixel method, ``base``) is lost. The model's
+    receivers (rendered median depth and normals) and occluders (its surfels' shadow maps)
+    are swapped for the truth's, one at a time and together: the ray-traced points and
+    normals at each pixel's centre; surfels sampled on the true shapes (``scene_surfels``)
+    in maps framed as the model's. **Exact geometry** renders those surfels' receivers as
+    the method renders a model's: what a perfect stage 1 would score at this view size.
+    **Pixel-area truth** thresholds the true lit fraction over ``samples``^2 points of each
+    pixel (``box_filtered_ground_truth``) at 0.5: what an answer that resolves the scene to
+    the pixel scores against the point-sampled truth. ``exact_surfels``: on the object
+    (default ``cfg.object_surfels``; more for larger views). Returns key -> IoU
+    (``FACTORS``)."""
+    setup = dataset_scene(data)
+    lights, dirs = make_lights(cfg.lights)
+    gt = trace_ground_truth(setup, case.cameras, lights)
+    true_pts, true_nrm = traced_receivers(gt, case.cameras)
+    if exact_surfels is not None:
+        cfg = dataclasses.replace(cfg, object_surfels=exact_surfels)
+    exact = scene_surfels(setup, cfg)
+    exact_pts, exact_nrm, exact_fp, _ = rendered_receivers(exact, case.cameras)
+    views = range(len(case.cameras))
+    model_maps = render_shadow_maps(case.surfels, case.directions, case.bounds, base)
+    exact_maps = render_shadow_maps(exact, case.directions, case.bounds, base)
+    no_fp = [None] * len(case.cameras)  # exact points: no receiver offset
+    combos = {
+        "run": (model_maps, case.points, case.normals, case.footprints),
+        "true_points": (model_maps, true_pts, case.normals, no_fp),
+        "true_normals": (model_maps, case.points, true_nrm, case.footprints),
+        "true_receivers": (model_maps, true_pts, true_nrm, no_fp),
+        "exact_occluders": (exact_maps, case.points, case.normals, case.footprints),
+        "true_receivers_exact_occluders": (exact_maps, true_pts, true_nrm, no_fp),
+        "exact_geometry": (exact_maps, exact_pts, exact_nrm, exact_fp),
+    }
+    h, w = case.mask.shape[1:]
+    out = {}
+    for key, (maps, pts, nrm, fp) in combos.items():
+        vis = [np.asarray(maps.evaluate(pts[v], nrm[v], fp[v]), np.float32).reshape(
+            h, w, len(dirs)) for v in views]
+        out[key] = score(vis, case)["shadow_iou"]
+    box = box_filtered_ground_truth(setup, case.cameras, lights, samples)
+    out["pixel_ceiling"] = score(list(box["lit"]), case)["shadow_iou"]
+    return out
+
+
+def factors_markdown(factors: dict[str, dict[str, float]]) -> str:
+    """One row per stage-1 case: its IoU under each swap of ``FACTORS``."""
+    lines = ["| stage-1 model | " + " | ".join(label for _, label in FACTORS) + " |",
+             "|---|" + "---|" * len(FACTORS)]
+    for name, row in factors.items():
+        lines.append(f"| {name} | " + " | ".join(f"{row[k]:.3f}" for k, _ in FACTORS) + " |")
+    return "\n".join(lines)
 
 
 # -- sweep --------------------------------------------------------------------------------
@@ -476,15 +571,25 @@ def _progress(quiet: bool):
     return lambda it, desc: tqdm(list(it), desc=desc, disable=quiet, leave=False)
 
 
-def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False) -> dict:
+def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False,
+        factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None
+        ) -> dict:
     """Everything above; writes into ``out_dir`` (replaced atomically). ``model`` and
-    ``data``: a stage-1 PLY and its dataset, or equally long lists of them. Returns a
-    summary dict with a ``markdown`` entry."""
+    ``data``: a stage-1 PLY and its dataset, or equally long lists of them; ``factors``:
+    each model's ``model_factors`` too (``factor_samples``^2 points per pixel for the
+    pixel-area truth, ``factor_surfels`` exact surfels on the object). Returns a summary
+    dict with a ``markdown`` entry."""
     models = [model] if isinstance(model, str | Path) else list(model or [])
     datas = [data] if isinstance(data, str | Path) else list(data or [])
     if len(models) != len(datas):
         raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
                          f"{len(models)} models, {len(datas)} datasets")
+    if factors and not models:
+        raise ValueError("--factors splits a stage-1 model's IoU: give --model and --data")
+    if factor_samples < 1:
+        raise ValueError(f"--factor-samples must be >= 1, got {factor_samples}")
+    if factor_surfels is not None and factor_surfels < 1:
+        raise ValueError(f"--factor-surfels must be >= 1, got {factor_surfels}")
     case_names = model_case_names([Path(m) for m in models], [Path(d) for d in datas])
     cfg = QUICK if quick else ValidationConfig()
     base = VisibilityConfig()
@@ -509,6 +614,12 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                              case, cfg.repeats)
             res.pop("vis")
             results[name][case.name] = res
+    split = {}
+    if factors:
+        model_cases = [(c, Path(d)) for c, d in zip(cases[-len(models):], datas, strict=True)]
+        for case, d in progress(model_cases, desc="factors"):
+            split[case.name] = model_factors(case, d, cfg, base, factor_samples,
+                                             factor_surfels)
     sweep = run_sweep(cases[0], cfg, base, progress)
     timing = time_directions(cases[0], cfg, base, progress)
     best = best_tradeoff(sweep)
@@ -536,6 +647,14 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
           f"{cfg.sigma_factor} x spacing). Shadow IoU (V < 0.5) vs Mitsuba ray tracing.", "",
           "### Table 2", "", table, ""]
     md += wins_md + [""]
+    if split:
+        md += ["### Where each stage-1 model's IoU is lost", "",
+               "The pixel method's IoU with the model's receivers (points, normals) and "
+               "occluders swapped for the truth's; exact geometry: surfels on the true shapes, "
+               f"{factor_surfels or cfg.object_surfels} on the object, receivers rendered from "
+               "them as from a model; pixel-area truth: the true lit fraction over "
+               f"{factor_samples}^2 points per pixel, thresholded at 0.5.", "",
+               factors_markdown(split), ""]
     if any("not on: none" not in w for w in wins_md):
         md += ["Where a baseline wins: on surfels sampled exactly on the surface, tracing them "
                "is nearly exact; the pixel method loses map texels, the tau slack and "
@@ -553,7 +672,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     md += [f"Note: {n}" for n in notes]
     markdown = "\n".join(md)
     summary = {"config": dataclasses.asdict(cfg), "results": results, "best_tradeoff": best,
-               "timing": timing, "notes": notes, "wall_s": time.perf_counter() - t_start,
+               "timing": timing, "factors": split, "notes": notes,
+               "wall_s": time.perf_counter() - t_start,
                "loadavg": list(__import__("os").getloadavg())}
     with atomic_dir(out_dir, overwrite=True) as tmp:
         write_text(tmp / "table2.md", table + "\n")
@@ -561,6 +681,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         write_text(tmp / "sweep.csv", _csv(sweep))
         write_text(tmp / "sweep.md", tau_summary(sweep) + "\n\n" + projection_note(sweep) + "\n")
         write_text(tmp / "timing.csv", _csv(timing))
+        if split:
+            write_text(tmp / "factors.md", factors_markdown(split) + "\n")
         plot_sweep(sweep, tmp / "sweep.png")
         write_json(tmp / "summary.json", summary)
         write_text(tmp / "README.md", markdown + "\n")
@@ -577,10 +699,18 @@ def main(argv=None) -> int:
                     help="stage-1 model PLY (RUN/geometry/model.ply); repeat with --data")
     ap.add_argument("--data", action="append",
                     help="the dataset folder each --model was trained on, in the same order")
+    ap.add_argument("--factors", action="store_true",
+                    help="also split each --model's IoU: its receivers and occluders "
+                         "swapped for the truth's, exact geometry, the pixel-area truth")
+    ap.add_argument("--factor-samples", type=int, default=4,
+                    help="points per pixel side of the pixel-area truth (default 4)")
+    ap.add_argument("--factor-surfels", type=int, default=None,
+                    help="exact surfels on the object for the split (default: Table 2's)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
-        summary = run(args.out, args.quick, args.model, args.data, args.quiet)
+        summary = run(args.out, args.quick, args.model, args.data, args.quiet,
+                      args.factors, args.factor_samples, args.factor_surfels)
     except (ValueError, FileNotFoundError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])

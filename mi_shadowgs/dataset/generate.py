@@ -268,9 +268,11 @@ def box_filtered_ground_truth(setup: SceneSetup, cameras: list[Camera],
     """The albedo and irradiance a pixel-area sensor sees: ``trace_ground_truth`` at
     ``samples`` x ``samples`` stratified points of each pixel (the photos' box filter),
     averaged over the points that hit the scene. Returns [N, H, W, ...] arrays ``albedo``
-    [3], ``irradiance`` [L, 3] (where no point hits: 0) and ``coverage`` (the share of the
-    points that hit). The dataset's buffers are point samples at the pixel centre; this is
-    what a fit to the box-filtered photos can be held to (``validation.metric_floor``)."""
+    [3], ``irradiance`` [L, 3], ``lit`` [L] (the share of the points each light reaches:
+    shadow ray unoccluded and n . l > 0; a light of zero irradiance reaches none), all 0
+    where no point hits, and ``coverage`` (the share of the points that hit). The dataset's
+    buffers are point samples at the pixel centre; this is what a fit to the box-filtered
+    photos can be held to (``validation.metric_floor``, ``validation.visibility``)."""
     if samples < 1:
         raise ValueError(f"box_filtered_ground_truth: samples must be >= 1, got {samples}")
     acc: dict[str, np.ndarray] = {}
@@ -281,13 +283,15 @@ def box_filtered_ground_truth(setup: SceneSetup, cameras: list[Camera],
                                    offset=((ix + 0.5) / samples, (iy + 0.5) / samples))
             hit = g["mask"].astype(np.float64)  # [N, H, W]
             hits = hit if hits is None else hits + hit
-            for key, extra in (("albedo", 1), ("irradiance", 2)):
+            g["lit"] = g["irradiance"].sum(axis=-1) > 0  # [N, H, W, L]
+            for key, extra in (("albedo", 1), ("irradiance", 2), ("lit", 1)):
                 w = hit.reshape(hit.shape + (1,) * extra)
                 acc[key] = acc.get(key, 0.0) + g[key].astype(np.float64) * w
     n = samples * samples
     safe = np.maximum(hits, 1.0)
     return {"albedo": acc["albedo"] / safe[..., None],
             "irradiance": acc["irradiance"] / safe[..., None, None],
+            "lit": acc["lit"] / safe[..., None],
             "coverage": hits / n}
 
 
