@@ -7,6 +7,7 @@ import itertools
 import math
 
 import numpy as np
+import pytest
 
 from validation.shadow_factors import FACTORS, irradiance, shapley
 
@@ -38,3 +39,35 @@ def test_irradiance_matches_the_definition():
     out = irradiance(Rec(), vis, dirs, np.array([2.0, 1.0]), (1, 2))
     # pixel 0: 2 * 1 * 1 + 1 * 0.8 * 0; pixel 1: 2 * 0 + 1 * 0.6 * 1
     assert np.allclose(out, [[[2.0, 0.6]]])
+
+
+def test_the_tool_on_a_finished_run_reports_every_factor_and_the_exact_geometry(tmp_path):
+    """End to end on a tiny run of the default scene: every score is an IoU, the run's own
+    is the recorded one (the same receivers, maps and lights as stage 5), and the table
+    carries the method's IoU on exact geometry."""
+    import json
+
+    import tiny_cli
+    from tiny_cli import TINY
+
+    from mi_shadowgs import cli
+    from mi_shadowgs.scenes import scene_path
+    from validation import shadow_factors
+
+    with pytest.MonkeyPatch.context() as mp:
+        for table, config in tiny_cli.presets():
+            mp.setitem(table, TINY, config)
+        assert cli.main(["generate", str(scene_path("default")), "--out",
+                         str(tmp_path / "data"), "--preset", TINY, "--no-progress"]) == 0
+        assert cli.main(["run", str(tmp_path / "data"), "--out", str(tmp_path / "run"),
+                         "--preset", TINY, "--no-progress"]) == 0
+    out = tmp_path / "factors"
+    assert shadow_factors.main(["--run", str(tmp_path / "run"), "--data",
+                                str(tmp_path / "data"), "--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "shadow_factors.json").read_text())
+    ious = [*res["scores"].values(), res["exact_geometry_iou"], res["shadow_iou"]]
+    assert all(0.0 <= v <= 1.0 for v in ious), res
+    assert res["scores"]["---"] == res["shadow_iou"]
+    assert res["shadow_iou"] == pytest.approx(res["recorded_shadow_iou"], abs=1e-6)
+    md = (out / "shadow_factors.md").read_text()
+    assert "exact geometry" in md and f"{res['exact_geometry_iou']:.3f}" in md

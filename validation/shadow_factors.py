@@ -17,9 +17,13 @@ Mitsuba, as ``validation.visibility`` does):
 All 2^3 combinations are scored; a factor's share of the loss is its Shapley value (its gain
 averaged over the 3! orders of swapping), so the three shares add up to IoU(all ground truth)
 - IoU(run). What remains below 1 with everything swapped is the metric's own floor
-(anti-aliased ground-truth irradiance vs pixel-centre rays). **Threshold/bias**: the shadow
-maps' depth bias tau and normal offset are swept with the run's own lights and receivers,
-and the best setting's gain is reported beside the factors, as are the gains of swapping
+(anti-aliased ground-truth irradiance vs pixel-centre rays). **Exact geometry**: the method
+itself on a perfect stage 1 and perfect lights: surfels sampled on the true shapes
+(``validation.visibility.scene_surfels``) give both the receivers (rasterized as the run's)
+and the shadow maps, under the true lights; what this view size allows the method.
+**Threshold/bias**: the shadow maps' depth bias tau and normal offset are swept with the
+run's own lights and receivers, and the best setting's gain is reported beside the
+factors, as are the gains of swapping
 only the receivers' points or only their normals (and the normals only in the shading's
 n . l, or only in the shadow-map lookup's normal offset), and of fractional (opacity)
 shadow maps (``VisibilityConfig.fractional``) instead of the binary depth test.
@@ -235,7 +239,7 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     from tqdm import tqdm
 
     from mi_shadowgs.dataset.generate import trace_ground_truth
-    from validation.visibility import dataset_scene
+    from validation.visibility import ValidationConfig, dataset_scene, scene_surfels
 
     t0 = time.perf_counter()
     inp = load_inputs(run, data, variant, views)
@@ -262,6 +266,11 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         scores[key] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask)
     base = scores[(False, False, False)]
     full = scores[(True, True, True)]
+    exact = scene_surfels(setup, ValidationConfig())
+    exact_rec = surfel_receivers(exact, inp.cameras)
+    vis = map_visibility(exact, exact_rec, inp.true_dirs, inp.bounds, inp.vis_config)
+    exact_iou = evaluation.shadow_iou(
+        irradiance(exact_rec, vis, inp.true_dirs, inp.true_irr, (h, w)), inp.gt_irr, inp.mask)
     shares = shapley(scores)
     single = {f: scores[tuple(i == j for j in range(3))] - base for i, f in enumerate(FACTORS)}
     bias = []
@@ -305,7 +314,7 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         "run": str(run), "data": str(data), "name": inp.name, "variant": variant,
         "views": len(inp.cameras), "preset": inp.preset,
         "recorded_shadow_iou": inp.recorded_iou, "shadow_iou": base,
-        "all_ground_truth_iou": full, "loss": 1.0 - base,
+        "all_ground_truth_iou": full, "exact_geometry_iou": exact_iou, "loss": 1.0 - base,
         "scores": {"".join("LRO"[i] if k[i] else "-" for i in range(3)): s
                    for k, s in scores.items()},
         "shapley": shares, "single_swap_gain": single, "receiver_split_gain": split,
@@ -322,10 +331,10 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     }
 
 
-HEADER = ("| run | IoU (run / here) | all GT | lights | receivers (points / normals alone) | "
-          "normals in n.l / in the map offset | occluders | bias (best) | fractional maps | "
-          "biggest | fitted lights, angular err deg |\n|---|---|---|---|---|---|---|---|---|---|"
-          "---|")
+HEADER = ("| run | IoU (run / here) | all GT | exact geometry | lights | receivers (points / "
+          "normals alone) | normals in n.l / in the map offset | occluders | bias (best) | "
+          "fractional maps | biggest | fitted lights, angular err deg |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|---|")
 
 
 def _bias_label(b: dict) -> str:
@@ -345,8 +354,10 @@ def row_markdown(r: dict) -> str:
     err = ", ".join(f"{e:.1f}" for e in r["lights"]["angular_error_deg"] if not math.isnan(e))
     rec = r["recorded_shadow_iou"]
     b = r["best_bias"]
+    exact = r.get("exact_geometry_iou")  # absent from files written before it
     return (f"| {r['name']} | {rec if rec is None else f'{rec:.3f}'} / {r['shadow_iou']:.3f} | "
-            f"{r['all_ground_truth_iou']:.3f} | {sh['lights']:+.3f} | {sh['receivers']:+.3f} "
+            f"{r['all_ground_truth_iou']:.3f} | {'-' if exact is None else f'{exact:.3f}'} | "
+            f"{sh['lights']:+.3f} | {sh['receivers']:+.3f} "
             f"({r['receiver_split_gain']['points']:+.3f} / "
             f"{r['receiver_split_gain']['normals']:+.3f}) | "
             f"{_gain(r, 'normals_shading')} / {_gain(r, 'normals_offset')} | "
@@ -358,8 +369,9 @@ def row_markdown(r: dict) -> str:
 def markdown(rows: list[dict]) -> str:
     lines = ["Shadow-IoU loss split by factor (Shapley shares: gain in IoU when the factor is "
              "swapped for ground truth, averaged over the swap orders; lights + receivers + "
-             "occluders = all GT - run). Bias: best gain of the tau / normal-offset sweep "
-             "with the run's own lights and receivers.", "", HEADER]
+             "occluders = all GT - run). Exact geometry: the method on surfels sampled on the "
+             "true shapes, under the true lights. Bias: best gain of the tau / normal-offset "
+             "sweep with the run's own lights and receivers.", "", HEADER]
     lines += [row_markdown(r) for r in rows]
     lines += ["", "All 8 combinations (L = true lights, R = ground-truth receivers, O = "
               "ray-traced occluders; - = the run's own):", "",
