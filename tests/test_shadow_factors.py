@@ -71,3 +71,8 @@ def test_the_tool_on_a_finished_run_reports_every_factor_and_the_exact_geometry(
     assert res["shadow_iou"] == pytest.approx(res["recorded_shadow_iou"], abs=1e-6)
     md = (out / "shadow_factors.md").read_text()
     assert "exact geometry" in md and f"{res['exact_geometry_iou']:.3f}" in md
+    assert res["exact_surfels"] == 20000  # the visibility validation's, for 128^2 views
+    with pytest.raises(SystemExit) as e:
+        shadow_factors.main(["--run", str(tmp_path / "run"), "--data", str(tmp_path / "data"),
+                             "--out", str(tmp_path / "none"), "--exact-surfels", "0"])
+    assert e.value.code == 2 and not (tmp_path / "none").exists()

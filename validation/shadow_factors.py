@@ -29,7 +29,7 @@ n . l, or only in the shadow-map lookup's normal offset), and of fractional (opa
 shadow maps (``VisibilityConfig.fractional``) instead of the binary depth test.
 
     python -m validation.shadow_factors --run RUN --data DATA --out DIR [--variant full]
-                                        [--views N] [--quiet]
+                                        [--views N] [--exact-surfels N] [--quiet]
 
 Writes (atomically) ``shadow_factors.json`` and ``shadow_factors.md`` into ``--out``
 (never inside the run: it reads only); ``--table`` gathers every ``shadow_factors.json`` under
@@ -235,7 +235,9 @@ def shapley(scores: dict[tuple, float]) -> dict[str, float]:
 
 
 def analyse(run: Path, data: Path, variant: str = "full", views: int | None = None,
-            progress: bool = True) -> dict:
+            progress: bool = True, exact_surfels: int | None = None) -> dict:
+    """The split of one run (see the module's doc); ``exact_surfels``: on the object for the
+    exact geometry (default the visibility validation's, sized for 128^2 views)."""
     from tqdm import tqdm
 
     from mi_shadowgs.dataset.generate import trace_ground_truth
@@ -266,7 +268,10 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         scores[key] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask)
     base = scores[(False, False, False)]
     full = scores[(True, True, True)]
-    exact = scene_surfels(setup, ValidationConfig())
+    vcfg = ValidationConfig()
+    if exact_surfels is not None:
+        vcfg = dataclasses.replace(vcfg, object_surfels=exact_surfels)
+    exact = scene_surfels(setup, vcfg)
     exact_rec = surfel_receivers(exact, inp.cameras)
     vis = map_visibility(exact, exact_rec, inp.true_dirs, inp.bounds, inp.vis_config)
     exact_iou = evaluation.shadow_iou(
@@ -314,7 +319,8 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         "run": str(run), "data": str(data), "name": inp.name, "variant": variant,
         "views": len(inp.cameras), "preset": inp.preset,
         "recorded_shadow_iou": inp.recorded_iou, "shadow_iou": base,
-        "all_ground_truth_iou": full, "exact_geometry_iou": exact_iou, "loss": 1.0 - base,
+        "all_ground_truth_iou": full, "exact_geometry_iou": exact_iou,
+        "exact_surfels": vcfg.object_surfels, "loss": 1.0 - base,
         "scores": {"".join("LRO"[i] if k[i] else "-" for i in range(3)): s
                    for k, s in scores.items()},
         "shapley": shares, "single_swap_gain": single, "receiver_split_gain": split,
@@ -393,6 +399,9 @@ def main(argv=None) -> int:
                     "only when it holds a shadow_factors.json)")
     ap.add_argument("--variant", default="full")
     ap.add_argument("--views", type=int, default=None, help="first N test views only")
+    ap.add_argument("--exact-surfels", type=int, default=None,
+                    help="surfels on the object for the exact geometry (default 20000, for "
+                         "128^2 views; scale with the pixel count)")
     ap.add_argument("--table", type=Path, nargs="*", default=None,
                     help="only gather the shadow_factors.json under these folders")
     ap.add_argument("--quiet", action="store_true")
@@ -409,7 +418,10 @@ def main(argv=None) -> int:
     out = args.out
     if out.exists() and not (out / "shadow_factors.json").is_file():
         fail(f"{out}: exists and holds no shadow_factors.json; not replacing it")
-    res = analyse(args.run, args.data, args.variant, args.views, not args.quiet)
+    if args.exact_surfels is not None and args.exact_surfels < 1:
+        fail(f"--exact-surfels must be >= 1, got {args.exact_surfels}")
+    res = analyse(args.run, args.data, args.variant, args.views, not args.quiet,
+                  args.exact_surfels)
     md = markdown([res])
     with atomic_dir(out, overwrite=True) as tmp:
         write_json(tmp / "shadow_factors.json", res)
