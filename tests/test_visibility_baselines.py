@@ -247,10 +247,11 @@ def test_make_validate_gives_the_pipeline_models_to_the_visibility_table(tmp_pat
         (tmp_path / "pipeline" / scene / "run" / "geometry").mkdir(parents=True)
         (tmp_path / "pipeline" / scene / "run" / "geometry" / "model.ply").write_text("")
     seen = {}
-    monkeypatch.setattr(vv, "run", lambda out, quick, model, data: seen.update(
-        model=model, data=data) or {"markdown": ""})
+    monkeypatch.setattr(vv, "run", lambda out, quick, model, data, factors: seen.update(
+        model=model, data=data, factors=factors) or {"markdown": ""})
     run_all._visibility(tmp_path / "visibility", True)
     assert [m.parts[-4] for m in seen["model"]] == ["bunny", "default"]
+    assert seen["factors"]  # each model's IoU split by factor too
     assert seen["data"] == [tmp_path / "pipeline" / s / "data" for s in ("bunny", "default")]
     monkeypatch.undo()
     with pytest.raises(ValueError, match="every --model needs its --data"):

@@ -32,12 +32,13 @@ from validation import fail
 
 def _visibility(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     """Table 2 on ground-truth surfels, plus its stage-1 rows for the models the pipeline
-    validation (run before it) trained, when there are any."""
+    validation (run before it) trained, when there are any, each split by factor."""
     from . import visibility
 
     models = sorted((out_dir.parent / "pipeline").glob("*/run/geometry/model.ply"))
     datas = [m.parents[2] / "data" for m in models]
-    return visibility.run(out_dir, quick=quick, model=models, data=datas)
+    return visibility.run(out_dir, quick=quick, model=models, data=datas,
+                          factors=bool(models))
 
 
 def _pipeline(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
