@@ -644,7 +644,9 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
           f"{len(cfg.lights)} light directions (az, el deg): {list(cfg.lights)}; "
           f"{cfg.n_views} test-spiral views at {cfg.resolution}^2; surfels sampled on the true "
           f"shapes ({cfg.object_surfels} object + {cfg.base_surfels} base, sigma "
-          f"{cfg.sigma_factor} x spacing). Shadow IoU (V < 0.5) vs Mitsuba ray tracing.", "",
+          f"{cfg.sigma_factor} x spacing). Stage-1 models: the first {cfg.n_views} test views of "
+          f"their datasets, at the datasets' size. Shadow IoU (V < 0.5) vs Mitsuba ray "
+          f"tracing.", "",
           "### Table 2", "", table, ""]
     md += wins_md + [""]
     if split:
