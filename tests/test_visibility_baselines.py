@@ -333,3 +333,17 @@ def test_factor_split_of_a_model_that_is_the_exact_geometry(tmp_path):
     with pytest.raises(SystemExit) as e:  # a split needs a model; refused before any work
         vv.main(["--out", str(tmp_path / "out"), "--factors", "--quiet"])
     assert e.value.code == 2 and not (tmp_path / "out").exists()
+
+
+def test_never_replaces_a_folder_it_did_not_write(tmp_path, capsys):
+    """--out is replaced when it holds an earlier output of this validation (its
+    summary.json), never someone else's folder: refused before any work, with exit 2."""
+    import validation.visibility as vv
+
+    theirs = tmp_path / "notes"
+    theirs.mkdir()
+    (theirs / "todo.txt").write_text("mine")
+    with pytest.raises(SystemExit) as e:
+        vv.main(["--out", str(theirs), "--quick", "--quiet"])
+    assert e.value.code == 2 and "holds no summary.json" in capsys.readouterr().err
+    assert [p.name for p in theirs.iterdir()] == ["todo.txt"]

@@ -574,7 +574,8 @@ def _progress(quiet: bool):
 def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False,
         factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None
         ) -> dict:
-    """Everything above; writes into ``out_dir`` (replaced atomically). ``model`` and
+    """Everything above; writes into ``out_dir`` (replaced atomically; an existing folder
+    only when empty or holding this validation's summary.json). ``model`` and
     ``data``: a stage-1 PLY and its dataset, or equally long lists of them; ``factors``:
     each model's ``model_factors`` too (``factor_samples``^2 points per pixel for the
     pixel-area truth, ``factor_surfels`` exact surfels on the object). Returns a summary
@@ -584,6 +585,10 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     if len(models) != len(datas):
         raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
                          f"{len(models)} models, {len(datas)} datasets")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and any(out_dir.iterdir()) and not (out_dir / "summary.json").is_file():
+        raise FileExistsError(f"{out_dir}: exists and holds no summary.json of this "
+                              f"validation; not replacing it")
     if factors and not models:
         raise ValueError("--factors splits a stage-1 model's IoU: give --model and --data")
     if factor_samples < 1:
@@ -695,7 +700,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Visibility validation against ray tracing "
                                              "(paper Table 2, speed-vs-error sweep).")
-    ap.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    ap.add_argument("--out", required=True, help="output folder: new, empty or an earlier "
+                    "output of this validation (replaced atomically)")
     ap.add_argument("--quick", action="store_true", help="small smoke run")
     ap.add_argument("--model", action="append",
                     help="stage-1 model PLY (RUN/geometry/model.ply); repeat with --data")
@@ -713,7 +719,7 @@ def main(argv=None) -> int:
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,
                       args.factors, args.factor_samples, args.factor_surfels)
-    except (ValueError, FileNotFoundError) as e:  # names the file or option
+    except (ValueError, FileNotFoundError, FileExistsError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])
     return 0
