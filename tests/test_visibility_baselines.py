@@ -287,11 +287,10 @@ def test_two_stage1_models_of_one_dataset_are_told_apart_by_their_run(tmp_path):
     assert e.value.code == 2 and not (tmp_path / "out").exists()
 
 
-def test_factor_split_of_a_model_that_is_the_exact_geometry(tmp_path):
-    """``--factors`` wiring: a "stage-1 model" that is the exact surfels themselves scores
-    the same as the exact-occluder and exact-geometry swaps, and the true receivers score
-    the same over either occluders; with one point per pixel the pixel-area truth is the
-    point truth (IoU 1), with more it blends at the shadows' edges (below 1)."""
+@pytest.fixture(scope="module")
+def exact_model(tmp_path_factory):
+    """A tiny default-scene dataset (40 px: enough shadow pixels per view to score) and a
+    "stage-1 model" that is the exact surfels themselves: (data, model PLY, config)."""
     import dataclasses
 
     from tiny_cli import TINY, presets
@@ -300,19 +299,31 @@ def test_factor_split_of_a_model_that_is_the_exact_geometry(tmp_path):
     import validation.visibility as vv
     from mi_shadowgs.dataset import generate
     from mi_shadowgs.io.ply import save_ply
-    from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
 
+    root = tmp_path_factory.mktemp("factors")
     with pytest.MonkeyPatch.context() as mp:
         for table, config in presets():
-            if table is generate.PRESETS:  # 40 px: enough shadow pixels per view to score
+            if table is generate.PRESETS:
                 config = dataclasses.replace(config, width=40, height=40)
             mp.setitem(table, TINY, config)
-        data = msg.generate_dataset(msg.scene_path("default"), tmp_path / "data", preset=TINY)
+        data = msg.generate_dataset(msg.scene_path("default"), root / "data", preset=TINY)
     cfg = dataclasses.replace(vv.ValidationConfig(), n_views=2, object_surfels=3000,
                               base_surfels=800)
-    model = tmp_path / "exact" / "geometry" / "model.ply"
+    model = root / "exact" / "geometry" / "model.ply"
     model.parent.mkdir(parents=True)
     save_ply(model, vv.scene_surfels(vv.dataset_scene(data), cfg))
+    return data, model, cfg
+
+
+def test_factor_split_of_a_model_that_is_the_exact_geometry(exact_model, tmp_path):
+    """``--factors`` wiring: a "stage-1 model" that is the exact surfels themselves scores
+    the same as the exact-occluder and exact-geometry swaps, and the true receivers score
+    the same over either occluders; with one point per pixel the pixel-area truth is the
+    point truth (IoU 1), with more it blends at the shadows' edges (below 1)."""
+    import validation.visibility as vv
+    from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
+
+    data, model, cfg = exact_model
     case = vv.model_case(model, data, cfg)
     base = VisibilityConfig()
     one = vv.model_factors(case, data, cfg, base, samples=1)
@@ -330,9 +341,36 @@ def test_factor_split_of_a_model_that_is_the_exact_geometry(tmp_path):
         {k: v for k, v in one.items() if k != "pixel_ceiling"}
     table = vv.factors_markdown({case.name: one})
     assert table.count("\n") == 2 and "pixel-area truth" in table
-    with pytest.raises(SystemExit) as e:  # a split needs a model; refused before any work
-        vv.main(["--out", str(tmp_path / "out"), "--factors", "--quiet"])
-    assert e.value.code == 2 and not (tmp_path / "out").exists()
+    for flag in ("--factors", "--models-only"):  # both need a model; refused before any work
+        with pytest.raises(SystemExit) as e:
+            vv.main(["--out", str(tmp_path / "out"), flag, "--quiet"])
+        assert e.value.code == 2 and not (tmp_path / "out").exists()
+
+
+def test_models_only_factor_table_from_the_command_line(exact_model, tmp_path, monkeypatch):
+    """``--models-only --factors``: the model's Table 2 row and its factor split, without
+    the ground-truth scenes, the sweep or the timing (seconds instead of minutes)."""
+    import json
+
+    import validation.visibility as vv
+
+    data, model, cfg = exact_model
+    monkeypatch.setattr(vv, "QUICK", cfg)
+    out = tmp_path / "vis"
+    assert vv.main(["--out", str(out), "--quick", "--models-only", "--factors",
+                    "--factor-samples", "2", "--model", str(model), "--data", str(data),
+                    "--quiet"]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["README.md", "factors.md", "summary.json", "table2.csv", "table2.md"]
+    summary = json.loads((out / "summary.json").read_text())
+    name = vv.model_case_names([model], [data])[0]
+    assert list(summary["factors"]) == [name]
+    row = summary["factors"][name]
+    pixel = summary["results"]["Pixel-based (ours)"][name]["shadow_iou"]
+    assert row["run"] == pytest.approx(pixel)  # the split's own run is the table's
+    readme = (out / "README.md").read_text()
+    assert "Where each stage-1 model's IoU is lost" in readme and "Threshold tau" not in readme
+    assert "2^2 points per pixel" in readme
 
 
 def test_never_replaces_a_folder_it_did_not_write(tmp_path, capsys):

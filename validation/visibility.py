@@ -11,10 +11,11 @@ dataset), the points come from the model's own rendered median depth and normals
 (with their pixel footprints, so the methods' receiver offset applies); both repeat, in
 pairs, for one stage-1 table over several scenes. ``--factors`` also splits each stage-1
 model's IoU (``model_factors``): its receivers and occluders swapped for the truth's, the
-method on exact geometry, and what the pixel area allows.
+method on exact geometry, and what the pixel area allows; ``--models-only`` leaves out the
+ground-truth scenes, the sweep and the timing (seconds per model instead of minutes).
 
     python -m validation.visibility --out validation-out/visibility [--quick]
-        [--model RUN/geometry/model.ply --data DATASET ...] [--factors]
+        [--model RUN/geometry/model.ply --data DATASET ...] [--factors] [--models-only]
 
 Writes (atomically) ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``,
 ``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``).
@@ -572,14 +573,15 @@ def _progress(quiet: bool):
 
 
 def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False,
-        factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None
-        ) -> dict:
+        factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None,
+        models_only: bool = False) -> dict:
     """Everything above; writes into ``out_dir`` (replaced atomically; an existing folder
     only when empty or holding this validation's summary.json). ``model`` and
     ``data``: a stage-1 PLY and its dataset, or equally long lists of them; ``factors``:
     each model's ``model_factors`` too (``factor_samples``^2 points per pixel for the
-    pixel-area truth, ``factor_surfels`` exact surfels on the object). Returns a summary
-    dict with a ``markdown`` entry."""
+    pixel-area truth, ``factor_surfels`` exact surfels on the object); ``models_only``: the
+    models' rows alone (no ground-truth scenes, sweep or timing). Returns a summary dict
+    with a ``markdown`` entry."""
     models = [model] if isinstance(model, str | Path) else list(model or [])
     datas = [data] if isinstance(data, str | Path) else list(data or [])
     if len(models) != len(datas):
@@ -591,6 +593,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                               f"validation; not replacing it")
     if factors and not models:
         raise ValueError("--factors splits a stage-1 model's IoU: give --model and --data")
+    if models_only and not models:
+        raise ValueError("--models-only scores stage-1 models: give --model and --data")
     if factor_samples < 1:
         raise ValueError(f"--factor-samples must be >= 1, got {factor_samples}")
     if factor_surfels is not None and factor_surfels < 1:
@@ -599,13 +603,15 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     cfg = QUICK if quick else ValidationConfig()
     base = VisibilityConfig()
     progress = _progress(quiet)
-    scenes = [("default", REPO / "mi_shadowgs" / "scenes" / "default.xml", None)]
-    notes = []
-    if BUNNY.is_file():
-        scenes.append(("bunny", REPO / "mi_shadowgs" / "scenes" / "mesh.xml", {"mesh": str(BUNNY)}))
-    else:
-        notes.append(f"bunny skipped: {BUNNY} is absent (shared data not installed)")
-        print(f"visibility validation: {notes[-1]}", flush=True)
+    scenes, notes = [], []
+    if not models_only:
+        scenes.append(("default", REPO / "mi_shadowgs" / "scenes" / "default.xml", None))
+        if BUNNY.is_file():
+            scenes.append(("bunny", REPO / "mi_shadowgs" / "scenes" / "mesh.xml",
+                           {"mesh": str(BUNNY)}))
+        else:
+            notes.append(f"bunny skipped: {BUNNY} is absent (shared data not installed)")
+            print(f"visibility validation: {notes[-1]}", flush=True)
     t_start = time.perf_counter()
     cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
     cases += [model_case(Path(m), Path(d), cfg, n)
@@ -625,10 +631,9 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         for case, d in progress(model_cases, desc="factors"):
             split[case.name] = model_factors(case, d, cfg, base, factor_samples,
                                              factor_surfels)
-    sweep = run_sweep(cases[0], cfg, base, progress)
-    timing = time_directions(cases[0], cfg, base, progress)
-    best = best_tradeoff(sweep)
     gt_names = [c.name for c in cases if c.footprints is None]
+    sweep = run_sweep(cases[0], cfg, base, progress) if gt_names else []
+    timing = time_directions(cases[0], cfg, base, progress) if gt_names else []
     model_names = [c.name for c in cases if c.footprints is not None]
     baselines = [m for m in results if not m.startswith("Pixel")]
     wins_md = []
@@ -639,10 +644,10 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                        f"{', '.join(c for c, w in wins.items() if w) or 'none'}; not on: "
                        f"{', '.join(c for c, w in wins.items() if not w) or 'none'}.")
     t128 = [r for r in timing if r["map_resolution"] == 128 and r["n_directions"] == 128]
-    table = table2_markdown(results, gt_names)
+    table = table2_markdown(results, gt_names) if gt_names else ""
     if model_names:
-        table += "\n\nFrom stage-1 surfels (the models' own rendered depth and normals):\n\n" \
-            + table2_markdown(results, model_names)
+        table += ("\n\n" if table else "") + "From stage-1 surfels (the models' own rendered " \
+            "depth and normals):\n\n" + table2_markdown(results, model_names)
     table_rows = [{"method": m, "case": c, **{k: v for k, v in r.items()}}
                   for m, per in results.items() for c, r in per.items()]
     md = [f"## Visibility ({'quick' if quick else 'full'})", "",
@@ -662,7 +667,9 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                "them as from a model; pixel-area truth: the true lit fraction over "
                f"{factor_samples}^2 points per pixel, thresholded at 0.5.", "",
                factors_markdown(split), ""]
-    if any("not on: none" not in w for w in wins_md):
+    pixel = [m for m in results if m.startswith("Pixel")]
+    if any(results[b][c]["shadow_iou"] >= results[m][c]["shadow_iou"]
+           for m in pixel for b in baselines for c in gt_names):  # exact surfels' cases
         md += ["Where a baseline wins: on surfels sampled exactly on the surface, tracing them "
                "is nearly exact; the pixel method loses map texels, the tau slack and "
                "(perspective maps) the divergence of the light camera's rays from l.", ""]
@@ -673,9 +680,12 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                f"{r['lookup_s_per_view']:.3f} s/view, amortised over {cfg.timing_views} views "
                f"{r['s_per_view_amortised']:.3f} s/view, one view with its maps "
                f"{r['s_single_view_with_maps']:.2f} s.", ""]
-    md += [f"Sweep best trade-off (fastest within 0.005 IoU of the best): {best['setting']} "
-           f"-> IoU {best['shadow_iou']:.4f}, {best['ms_per_view_amortised']:.1f} ms/view.", ""]
-    md += ["### Threshold tau", "", tau_summary(sweep), "", projection_note(sweep), ""]
+    best = best_tradeoff(sweep) if sweep else None
+    if sweep:
+        md += [f"Sweep best trade-off (fastest within 0.005 IoU of the best): "
+               f"{best['setting']} -> IoU {best['shadow_iou']:.4f}, "
+               f"{best['ms_per_view_amortised']:.1f} ms/view.", ""]
+        md += ["### Threshold tau", "", tau_summary(sweep), "", projection_note(sweep), ""]
     md += [f"Note: {n}" for n in notes]
     markdown = "\n".join(md)
     summary = {"config": dataclasses.asdict(cfg), "results": results, "best_tradeoff": best,
@@ -685,12 +695,14 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     with atomic_dir(out_dir, overwrite=True) as tmp:
         write_text(tmp / "table2.md", table + "\n")
         write_text(tmp / "table2.csv", _csv(table_rows))
-        write_text(tmp / "sweep.csv", _csv(sweep))
-        write_text(tmp / "sweep.md", tau_summary(sweep) + "\n\n" + projection_note(sweep) + "\n")
-        write_text(tmp / "timing.csv", _csv(timing))
+        if sweep:
+            write_text(tmp / "sweep.csv", _csv(sweep))
+            write_text(tmp / "sweep.md", tau_summary(sweep) + "\n\n" + projection_note(sweep)
+                       + "\n")
+            write_text(tmp / "timing.csv", _csv(timing))
+            plot_sweep(sweep, tmp / "sweep.png")
         if split:
             write_text(tmp / "factors.md", factors_markdown(split) + "\n")
-        plot_sweep(sweep, tmp / "sweep.png")
         write_json(tmp / "summary.json", summary)
         write_text(tmp / "README.md", markdown + "\n")
     summary["markdown"] = markdown
@@ -714,11 +726,14 @@ def main(argv=None) -> int:
                     help="points per pixel side of the pixel-area truth (default 4)")
     ap.add_argument("--factor-surfels", type=int, default=None,
                     help="exact surfels on the object for the split (default: Table 2's)")
+    ap.add_argument("--models-only", action="store_true",
+                    help="only the --model rows (no ground-truth scenes, sweep or timing)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,
-                      args.factors, args.factor_samples, args.factor_surfels)
+                      args.factors, args.factor_samples, args.factor_surfels,
+                      args.models_only)
     except (ValueError, FileNotFoundError, FileExistsError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])
