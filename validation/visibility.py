@@ -12,7 +12,7 @@ dataset), the points come from the model's own rendered median depth and normals
 pairs, for one stage-1 table over several scenes. ``--factors`` also splits each stage-1
 model's IoU (``model_factors``): its receivers and occluders swapped for the truth's, the
 method on exact geometry, and what the pixel area allows; ``--models-only`` leaves out the
-ground-truth scenes, the sweep and the timing (seconds per model instead of minutes).
+ground-truth scenes, the sweep and the timing (about a minute per model instead of five).
 
     python -m validation.visibility --out validation-out/visibility [--quick]
         [--model RUN/geometry/model.ply --data DATASET ...] [--factors] [--models-only]
