@@ -36,6 +36,7 @@ import numpy as np
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
 from mi_shadowgs.io.images import write_exr
+from validation import claim_out
 
 ACCEPT = {"chamfer_pct": 1.0, "psnr_gap_db": 2.0, "export_s": 60.0}
 SAMPLES = 400_000  # points per surface: nearest-sample spacing ~0.5 % of the diameter
@@ -312,6 +313,7 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=64, help="path-tracing samples per pixel")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.asset", ('asset.json',))
     run = Path(args.run)
     out = Path(args.out)
     r = validate(run, Path(args.data), out, args.spp, progress=not args.no_progress)

@@ -23,6 +23,7 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import atomic_path, write_json
+from validation import claim_out
 
 # Issue 4 acceptance at cpu-small.
 ACCEPT = {"psnr": 30.0, "normal_error_median_deg": 10.0, "mask_iou": 0.98, "wall_s": 480.0}
@@ -118,6 +119,7 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.geometry", ('geometry.json',))
     m = validate(Path(args.data), Path(args.out), args.preset, args.iterations,
                  progress=not args.no_progress)
     print(_markdown(m))

@@ -27,6 +27,7 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import write_json, write_text
+from validation import claim_out
 
 
 def cameras_by_photo(data: Path) -> dict:
@@ -75,6 +76,7 @@ def main(argv=None) -> None:
     parser.add_argument("--mesh", default=None, help="an asset mesh (default scene if none)")
     parser.add_argument("--preset", default="cpu-small")
     args = parser.parse_args(argv)
+    claim_out(args.out, "validation.import_sfm", ('import_sfm.json', 'import_0'))
     from mi_shadowgs.dataset.generate import get_config as gen_config
     from mi_shadowgs.dataset.importer import get_config, import_capture
     from mi_shadowgs.dataset.writer import write_dataset

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from validation import fail
+from validation import claim_out, fail
 
 SHARE = 0.25  # lights carrying at least this share of the irradiance must be found ...
 MAX_ERROR_DEG = 3.0  # ... within this angle (issue 15's acceptance)
@@ -105,6 +105,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--table-only", action="store_true")
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.light_sweep", ('light_sweep.json',))
     from mi_shadowgs.io.atomic import write_json, write_text
 
     out = Path(args.out)

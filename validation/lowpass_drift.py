@@ -24,6 +24,7 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import write_json, write_text
+from validation import claim_out
 
 KS = (2.0, 8.0, 12.0, 32.0)
 
@@ -153,6 +154,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", help="a generated dataset (default: generate the default scene)")
     ap.add_argument("--quick", action="store_true", help="a short smoke run")
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.lowpass_drift", ('lowpass_drift.json',))
     print(run(args.out, args.quick, args.data)["markdown"])
     return 0
 

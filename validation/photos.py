@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from validation import fail
+from validation import claim_out, fail
 
 # The figures compared; the acceptance bounds of issue 17 (photo run against GT-camera run).
 FIGURES = ("albedo_psnr", "albedo_ssim", "shadow_iou", "relight_psnr", "relight_ssim",
@@ -198,6 +198,7 @@ def main(argv=None) -> int:
                     help="photo size in pixels (SfM registers every view at 512)")
     ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr
 
     from mi_shadowgs.dataset.generate import get_config as gen_config

@@ -20,7 +20,7 @@ import tempfile
 from html import unescape
 from pathlib import Path
 
-from validation import fail
+from validation import claim_out, fail
 
 PAGE_WIDTH = 1400
 NO_CHROMIUM = ("no chromium on PATH (Debian: apt-get install -y chromium, or "
@@ -116,6 +116,7 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", help="run folders (or their report.html)")
     ap.add_argument("--out", default="report-pages", help="folder for the screenshots")
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.report_page", ('report_pages.json',))
     reports = [Path(r) / "report.html" if Path(r).is_dir() else Path(r) for r in args.runs]
     for rep in reports:
         if not rep.is_file():

@@ -17,6 +17,7 @@ import platform
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from validation import claim_out
 
 HOTDOG = Path("/work/shared/data/meshes/hotdog/hotdog.ply")
 SCENES = {
@@ -171,6 +172,7 @@ def main(argv=None) -> int:
     ap.add_argument("--model-hotdog", default=None, help="stage-1 model PLY (hotdog)")
     ap.add_argument("--masks", action="append", choices=("material", "chromaticity"))
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.segmentation", ('segmentation.json',))
     models = {k: Path(v) for k, v in (("default", args.model_default),
                                       ("hotdog", args.model_hotdog)) if v}
     res = run(Path(args.out), args.quick, args.data_root, models,

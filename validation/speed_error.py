@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from validation import fail
+from validation import claim_out, fail
 
 from . import pipeline as vpipe
 
@@ -434,6 +434,7 @@ def main(argv=None) -> int:
     ap.add_argument("--plots-only", action="store_true",
                     help="only rewrite the CSV and plots from the finished points")
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.speed_error", ('speed_error.csv',))
     if args.threads:
         import drjit as dr
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from validation import fail
+from validation import claim_out, fail
 
 # (label, file under the run, key): the figures of a row
 FIGURES = (("test PSNR", "geometry/metrics.json", "psnr"),
@@ -116,6 +116,7 @@ def main(argv=None) -> int:
     ap.add_argument("--full", default=None, help="a finished run on all of DATA's views")
     ap.add_argument("--threads", type=int, default=None)
     args = ap.parse_args(argv)
+    claim_out(args.out, "validation.view_count", ('view_count.json',))
     import drjit as dr
 
     from mi_shadowgs.io.atomic import write_json, write_text

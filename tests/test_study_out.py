@@ -1,0 +1,65 @@
+"""Validation studies never write into someone else's folder (``validation.claim_out``): a
+study takes --out when it is new or empty and marks it; a rerun finds its mark (or, for a
+folder from before the mark, one of its own files) and goes on; any other folder is refused
+with exit 2 before any work, and left as it was."""
+
+from __future__ import annotations
+
+import importlib
+import json
+
+import pytest
+
+import validation
+from validation import STUDY_MARK, claim_out
+
+# module -> its arguments besides --out (enough to get past argument parsing)
+STUDIES = {
+    "light_sweep": [],
+    "view_count": ["--data", "nowhere"],
+    "speed_error": [],
+    "photos": [],
+    "import_sfm": [],
+    "geometry": ["--data", "nowhere"],
+    "segmentation": [],
+    "asset": ["--run", "nowhere", "--data", "nowhere"],
+    "lowpass_drift": [],
+    "report_page": ["nowhere"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(STUDIES))
+def test_a_study_refuses_a_folder_it_did_not_write(name, tmp_path, capsys):
+    theirs = tmp_path / "notes"
+    theirs.mkdir()
+    (theirs / "todo.txt").write_text("mine")
+    module = importlib.import_module(f"validation.{name}")
+    with pytest.raises(SystemExit) as e:
+        module.main([*STUDIES[name], "--out", str(theirs)])
+    assert e.value.code == 2
+    assert "did not write" in capsys.readouterr().err
+    assert [p.name for p in theirs.iterdir()] == ["todo.txt"]
+
+
+def test_claim_marks_a_new_folder_and_takes_only_its_own(tmp_path, capsys):
+    out = claim_out(tmp_path / "sweep", "validation.light_sweep")
+    assert json.loads((out / STUDY_MARK).read_text()) == {"study": "validation.light_sweep"}
+    (out / "light_sweep.json").write_text("[]")
+    assert claim_out(out, "validation.light_sweep") == out  # a rerun resumes in place
+    with pytest.raises(SystemExit) as e:  # another study's folder
+        claim_out(out, "validation.view_count")
+    assert e.value.code == 2 and "holds the output of validation.light_sweep" in \
+        capsys.readouterr().err
+    older = tmp_path / "older"  # written before the mark: known by the study's own file
+    older.mkdir()
+    (older / "view_count.json").write_text("[]")
+    claim_out(older, "validation.view_count", ("view_count.json",))
+    assert (older / STUDY_MARK).is_file()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    claim_out(empty, "validation.geometry")
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    with pytest.raises(SystemExit):
+        claim_out(a_file, "validation.geometry")
+    assert validation.STUDY_MARK.startswith(".")  # hidden beside the study's own files
