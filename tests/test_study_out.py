@@ -25,6 +25,7 @@ STUDIES = {
     "asset": ["--run", "nowhere", "--data", "nowhere"],
     "lowpass_drift": [],
     "report_page": ["nowhere"],
+    "pipeline": [],
 }
 
 

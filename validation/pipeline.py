@@ -31,7 +31,7 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.provenance import git_commit
-from validation import fail
+from validation import claim_out, fail
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MI_SHADOWGS_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -395,6 +395,7 @@ def main(argv=None) -> int:
 
         dr.set_thread_count(args.threads)
     command = "python -m validation.pipeline " + " ".join(argv or sys.argv[1:])
+    claim_out(args.out, "validation.pipeline", ("pipeline.json",))
     if args.table_only:
         from mi_shadowgs.io.atomic import write_text
 
