@@ -42,3 +42,19 @@ def without_few_views_warning(err: str) -> str:
     """stderr without the too-few-training-views warning, which the tests' small datasets
     (8 views) rightly get; for tests that check the exact message of a command."""
     return "\n".join(ln for ln in err.splitlines() if FEW_VIEWS not in ln)
+
+
+@pytest.fixture
+def someone_elses_folder(tmp_path):
+    """A folder holding a file no command of ours wrote (``todo.txt``): what an ``--out``
+    must never be written into; check it with ``untouched``."""
+    folder = tmp_path / "notes"
+    folder.mkdir()
+    (folder / "todo.txt").write_text("mine")
+    return folder
+
+
+def untouched(folder) -> bool:
+    """``someone_elses_folder`` as it was made."""
+    return [p.name for p in folder.iterdir()] == ["todo.txt"] and \
+        (folder / "todo.txt").read_text() == "mine"

@@ -205,14 +205,13 @@ def test_cuda_suite_raster_case_in_its_own_process(tmp_path, monkeypatch):
     assert rows[0]["fwd_bwd_ms"] > 0
 
 
-def test_run_all_never_replaces_a_folder_it_did_not_write(tmp_path, capsys):
+def test_run_all_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
     """--out replaces an earlier benchmark run (it holds machine.json), never someone
     else's folder: that is refused before any suite runs, with exit 2, and left as it was."""
+    from conftest import untouched
+
     from benchmarks import run_all
 
-    theirs = tmp_path / "notes"
-    theirs.mkdir()
-    (theirs / "todo.txt").write_text("mine")
-    assert run_all.main(["--out", str(theirs), "--only", "view"]) == 2
+    assert run_all.main(["--out", str(someone_elses_folder), "--only", "view"]) == 2
     assert "holds no machine.json" in capsys.readouterr().err
-    assert [p.name for p in theirs.iterdir()] == ["todo.txt"]
+    assert untouched(someone_elses_folder)

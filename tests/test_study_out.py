@@ -9,6 +9,7 @@ import importlib
 import json
 
 import pytest
+from conftest import untouched
 
 import validation
 from validation import STUDY_MARK, claim_out
@@ -30,16 +31,13 @@ STUDIES = {
 
 
 @pytest.mark.parametrize("name", sorted(STUDIES))
-def test_a_study_refuses_a_folder_it_did_not_write(name, tmp_path, capsys):
-    theirs = tmp_path / "notes"
-    theirs.mkdir()
-    (theirs / "todo.txt").write_text("mine")
+def test_a_study_refuses_a_folder_it_did_not_write(name, someone_elses_folder, capsys):
     module = importlib.import_module(f"validation.{name}")
     with pytest.raises(SystemExit) as e:
-        module.main([*STUDIES[name], "--out", str(theirs)])
+        module.main([*STUDIES[name], "--out", str(someone_elses_folder)])
     assert e.value.code == 2
     assert "did not write" in capsys.readouterr().err
-    assert [p.name for p in theirs.iterdir()] == ["todo.txt"]
+    assert untouched(someone_elses_folder)
 
 
 def test_claim_marks_a_new_folder_and_takes_only_its_own(tmp_path, capsys):

@@ -373,15 +373,14 @@ def test_models_only_factor_table_from_the_command_line(exact_model, tmp_path, m
     assert "2^2 points per pixel" in readme
 
 
-def test_never_replaces_a_folder_it_did_not_write(tmp_path, capsys):
+def test_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
     """--out is replaced when it holds an earlier output of this validation (its
     summary.json), never someone else's folder: refused before any work, with exit 2."""
+    from conftest import untouched
+
     import validation.visibility as vv
 
-    theirs = tmp_path / "notes"
-    theirs.mkdir()
-    (theirs / "todo.txt").write_text("mine")
     with pytest.raises(SystemExit) as e:
-        vv.main(["--out", str(theirs), "--quick", "--quiet"])
+        vv.main(["--out", str(someone_elses_folder), "--quick", "--quiet"])
     assert e.value.code == 2 and "holds no summary.json" in capsys.readouterr().err
-    assert [p.name for p in theirs.iterdir()] == ["todo.txt"]
+    assert untouched(someone_elses_folder)
