@@ -17,16 +17,19 @@ Mitsuba, as ``validation.visibility`` does):
 All 2^3 combinations are scored; a factor's share of the loss is its Shapley value (its gain
 averaged over the 3! orders of swapping), so the three shares add up to IoU(all ground truth)
 - IoU(run). What remains below 1 with everything swapped is the metric's own floor
-(anti-aliased ground-truth irradiance vs pixel-centre rays). **Exact geometry**: the method
-itself on a perfect stage 1 and perfect lights: surfels sampled on the true shapes
-(``validation.visibility.scene_surfels``) give both the receivers (rasterized as the run's)
-and the shadow maps, under the true lights; what this view size allows the method.
+(anti-aliased ground-truth irradiance vs pixel-centre rays).
+
+**Exact geometry**: the method itself on a perfect stage 1 and perfect lights. Surfels
+sampled on the true shapes (``validation.visibility.scene_surfels``; ``--exact-surfels`` on
+the object, more for larger views) give both the receivers (rasterized as the run's) and the
+shadow maps, under the true lights: an estimate of what this view size allows the method.
+
 **Threshold/bias**: the shadow maps' depth bias tau and normal offset are swept with the
-run's own lights and receivers, and the best setting's gain is reported beside the
-factors, as are the gains of swapping
-only the receivers' points or only their normals (and the normals only in the shading's
-n . l, or only in the shadow-map lookup's normal offset), and of fractional (opacity)
-shadow maps (``VisibilityConfig.fractional``) instead of the binary depth test.
+run's own lights and receivers, and the best setting's gain is reported beside the factors,
+as are the gains of swapping only the receivers' points or only their normals (and the
+normals only in the shading's n . l, or only in the shadow-map lookup's normal offset), and
+of fractional (opacity) shadow maps (``VisibilityConfig.fractional``) instead of the binary
+depth test.
 
     python -m validation.shadow_factors --run RUN --data DATA --out DIR [--variant full]
                                         [--views N] [--exact-surfels N] [--quiet]
