@@ -95,6 +95,18 @@ def test_metric_floor_cli(tiny_data, tmp_path, capsys):
     (row,) = json.loads((out / "metric_floor.json").read_text())["rows"]
     assert row["size"] == 24 and row["partly_covered_share"] > 0
     assert row["shadow_iou"] < 1.0 and row["albedo_psnr"] < 100
+    # The method on exact geometry beside it: a denser sampling changes it, the floor not.
+    for surfels in ("1500", "6000"):
+        assert metric_floor.main(["--data", str(tiny_data), "--out", str(out), "--samples",
+                                  "3", "--exact", "cpu-small", "--exact-surfels", surfels,
+                                  "--quiet"]) == 0
+        (ex,) = json.loads((out / "metric_floor.json").read_text())["rows"]
+        assert ex["shadow_iou"] == row["shadow_iou"] and ex["exact_surfels_128"] == int(surfels)
+        assert 0.2 < ex["exact_geometry_iou"] <= 1.0 and ex["exact_preset"] == "cpu-small"
+        assert f"{ex['exact_geometry_iou']:.3f} |" in capsys.readouterr().out
+        if surfels == "1500":
+            sparse = ex["exact_geometry_iou"]
+    assert ex["exact_geometry_iou"] != sparse
     # Exits 2 naming what is wrong; never replaces a folder it did not write.
     other = tmp_path / "other"
     other.mkdir()
@@ -102,7 +114,9 @@ def test_metric_floor_cli(tiny_data, tmp_path, capsys):
     for argv, what in ((["--data", str(tmp_path), "--out", str(tmp_path / "o")], "dataset"),
                        (["--data", str(tiny_data), "--out", str(other)], "metric_floor.json"),
                        (["--data", str(tiny_data), "--out", str(out), "--samples", "0"],
-                        "--samples")):
+                        "--samples"),
+                       (["--data", str(tiny_data), "--out", str(out), "--exact", "nope"],
+                        "--exact")):
         with pytest.raises(SystemExit) as e:
             metric_floor.main(argv)
         assert e.value.code == 2 and what in capsys.readouterr().err

@@ -13,6 +13,12 @@ the same cameras) the disagreement shrinks.
 
     python -m validation.metric_floor --data DATA [--data DATA ...] --out DIR
         [--sizes 128 256 512] [--views N] [--samples 4]
+        [--exact PRESET [--exact-surfels N] [--map-resolution N]]
+
+``--exact`` also scores the method itself on exact geometry at each size: surfels sampled on
+the true shapes give the receivers (rasterized as a run's) and the shadow maps (that
+preset's visibility settings), under the true lights. It estimates what a perfect stage 1
+and stage 4 could reach at that view size.
 
 ``--sizes`` defaults to the dataset's own size; ``--views``, to all its test views (the
 views stage 5 scores). Writes (atomically) ``metric_floor.json`` and ``metric_floor.md`` into
@@ -34,10 +40,46 @@ from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground
 from mi_shadowgs.stages.relight import evaluation
 
 
+def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
+                       surfels_128: int, map_resolution: int | None) -> float:
+    """Stage 5's shadow IoU of the method itself on exact geometry at the size of
+    ``cameras``: surfels sampled on the true shapes (``surfels_128`` on the object at
+    128^2 views, scaled with the pixel count; a fifth of that on the base) give the
+    receivers, rasterized as a run's, and the shadow maps (the visibility settings of
+    ``preset``, at ``map_resolution`` texels when given), under the true lights; scored
+    against the point truth ``point`` (``trace_ground_truth`` at these cameras)."""
+    import dataclasses
+
+    from mi_shadowgs.dataset.loader import load_cameras
+    from mi_shadowgs.stages.material.runner import occluder_bounds
+    from mi_shadowgs.stages.visibility import shadow_maps
+    from validation.shadow_factors import irradiance, map_visibility, surfel_receivers
+    from validation.visibility import ValidationConfig, scene_surfels
+
+    count = max(1, round(surfels_128 * cameras[0].width * cameras[0].height / 128 ** 2))
+    exact = scene_surfels(setup, dataclasses.replace(ValidationConfig(), object_surfels=count,
+                                                     base_surfels=max(1, count // 5)))
+    train = [c for _, c in load_cameras(data / "transforms_train.json")]
+    bounds = occluder_bounds(exact, train, 0.98)  # as a run frames its maps
+    vcfg = shadow_maps.get_config(preset)
+    if map_resolution is not None:
+        vcfg = dataclasses.replace(vcfg, resolution=map_resolution)
+    dirs = np.array([lt.direction for lt in setup.lights], np.float64)  # [L, 3]
+    irr = np.array([np.mean(lt.irradiance) for lt in setup.lights], np.float64)  # [L]
+    rec = surfel_receivers(exact, cameras)
+    vis = map_visibility(exact, rec, dirs, bounds, vcfg)
+    est = irradiance(rec, vis, dirs, irr, (cameras[0].height, cameras[0].width))
+    return evaluation.shadow_iou(est, point["irradiance"].sum(axis=3).mean(-1),
+                                 point["mask"].astype(bool))
+
+
 def dataset_floor(data: Path, sizes: list[int] | None, views: int | None, samples: int,
-                  progress: bool = True) -> list[dict]:
+                  progress: bool = True, exact: str | None = None,
+                  exact_surfels: int = 40_000, map_resolution: int | None = None
+                  ) -> list[dict]:
     """One row per view size: the filtered truth's shadow IoU and albedo PSNR against the
-    point-sampled truth on the test views of ``data`` (a generated dataset)."""
+    point-sampled truth on the test views of ``data`` (a generated dataset); with ``exact``
+    (a preset name) also ``exact_geometry_iou`` with that preset's visibility settings."""
     from tqdm import tqdm
 
     from mi_shadowgs.dataset.loader import load_dataset
@@ -60,30 +102,42 @@ def dataset_floor(data: Path, sizes: list[int] | None, views: int | None, sample
                                     point["irradiance"].sum(axis=3).mean(-1), mask)
         alb = evaluation.albedo_metrics(box["albedo"], point["albedo"], point["material"],
                                         mask)
-        rows.append({"dataset": name, "data": str(data), "size": size, "views": len(at),
-                     "samples": samples, "shadow_iou": iou, "albedo_psnr": alb["psnr"],
-                     "albedo_psnr_global": alb["psnr_global"],
-                     "partly_covered_share": float(np.mean(box["coverage"][mask] < 1.0)),
-                     "wall_s": time.perf_counter() - t0})
+        row = {"dataset": name, "data": str(data), "size": size, "views": len(at),
+               "samples": samples, "shadow_iou": iou, "albedo_psnr": alb["psnr"],
+               "albedo_psnr_global": alb["psnr_global"],
+               "partly_covered_share": float(np.mean(box["coverage"][mask] < 1.0))}
+        if exact is not None:
+            row.update(exact_geometry_iou=exact_geometry_iou(
+                setup, data, at, point, exact, exact_surfels, map_resolution),
+                exact_preset=exact, exact_surfels_128=exact_surfels,
+                map_resolution=map_resolution)
+        rows.append({**row, "wall_s": time.perf_counter() - t0})
     return rows
 
 
 def markdown(rows: list[dict]) -> str:
+    exact = [r for r in rows if "exact_geometry_iou" in r]
     lines = ["The exact scene, box-filtered over each pixel, scored by stage 5's metrics "
-             "against the dataset's point-sampled ground truth:", "",
+             "against the dataset's point-sampled ground truth" +
+             (f"; beside it the method itself on exact geometry under the true lights "
+              f"({exact[0]['exact_preset']} visibility settings)" if exact else "") + ":", "",
              "| dataset | view size | views | shadow IoU | albedo PSNR per region | "
-             "albedo PSNR one scale | mask pixels partly covered |",
-             "|---|---|---|---|---|---|---|"]
+             "albedo PSNR one scale | mask pixels partly covered |" +
+             (" method on exact geometry: shadow IoU |" if exact else ""),
+             "|---|---|---|---|---|---|---|" + ("---|" if exact else "")]
     for r in rows:
         lines.append(f"| {r['dataset']} | {r['size']} | {r['views']} | {r['shadow_iou']:.3f} | "
                      f"{r['albedo_psnr']:.2f} | {r['albedo_psnr_global']:.2f} | "
-                     f"{r['partly_covered_share']:.3f} |")
+                     f"{r['partly_covered_share']:.3f} |" +
+                     (f" {r['exact_geometry_iou']:.3f} |" if "exact_geometry_iou" in r else
+                      " - |" if exact else ""))
     return "\n".join(lines)
 
 
 def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
         views: int | None = None, samples: int = 4, progress: bool = True,
-        command: list[str] | None = None) -> dict:
+        command: list[str] | None = None, exact: str | None = None,
+        exact_surfels: int = 40_000, map_resolution: int | None = None) -> dict:
     """Every dataset's rows into ``out_dir`` (written atomically; an existing folder is
     replaced only when it holds a metric_floor.json). Returns {"rows", "markdown"}."""
     from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
@@ -94,7 +148,8 @@ def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
                               "replacing it")
     rows = []
     for d in datas:
-        rows += dataset_floor(Path(d), sizes, views, samples, progress)
+        rows += dataset_floor(Path(d), sizes, views, samples, progress, exact, exact_surfels,
+                              map_resolution)
     md = markdown(rows) if rows else "No dataset to score."
     with atomic_dir(out_dir, overwrite=True) as tmp:
         write_json(tmp / "metric_floor.json", {"rows": rows, "command": command or sys.argv,
@@ -116,8 +171,26 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=None, help="first N test views only")
     ap.add_argument("--samples", type=int, default=4,
                     help="sub-pixel rays per pixel side for the box filter (default 4)")
+    ap.add_argument("--exact", default=None, metavar="PRESET",
+                    help="also the method itself on exact geometry under the true lights, "
+                         "with this preset's visibility settings (cpu-small, paper, ...)")
+    ap.add_argument("--exact-surfels", type=int, default=40_000,
+                    help="exact surfels on the object at 128^2, scaled with the pixel count "
+                         "(default 40000)")
+    ap.add_argument("--map-resolution", type=int, default=None,
+                    help="shadow-map texels for --exact (default: the preset's)")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
+    if args.exact is not None:
+        from mi_shadowgs.config import ConfigError
+        from mi_shadowgs.stages.visibility import shadow_maps
+
+        try:
+            shadow_maps.get_config(args.exact)
+        except ConfigError as e:
+            ap.error(f"--exact: {e}")
+    if args.exact_surfels < 1 or (args.map_resolution is not None and args.map_resolution < 1):
+        ap.error("--exact-surfels and --map-resolution must be >= 1")
     if args.samples < 1:
         ap.error(f"--samples must be >= 1, got {args.samples}")
     if args.views is not None and args.views < 1:
@@ -130,7 +203,8 @@ def main(argv=None) -> int:
                      "`mi-shadowgs generate`, whose scene can be reloaded)")
     try:  # run refuses a folder it did not write before any work
         summary = run(args.out, args.data, args.sizes, args.views, args.samples,
-                      not args.quiet)
+                      not args.quiet, None, args.exact, args.exact_surfels,
+                      args.map_resolution)
     except FileExistsError as e:
         ap.error(str(e))
     print(markdown(summary["rows"]))
