@@ -133,7 +133,9 @@ def test_make_validate_scores_the_pipelines_datasets(tiny_data, tmp_path):
     summary = run_all._metric_floor(tmp_path / "metric_floor", True, {})
     (row,) = summary["rows"]
     assert row["dataset"] == "default-tuned" and row["size"] == 24
+    assert row["exact_preset"] == "cpu-small" and 0.0 <= row["exact_geometry_iou"] <= 1.0
     assert "| default-tuned | 24 |" in summary["markdown"]
+    assert "method on exact geometry" in summary["markdown"]
     assert (tmp_path / "metric_floor" / "metric_floor.json").is_file()
     foreign = tmp_path / "foreign"
     foreign.mkdir()

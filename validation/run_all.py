@@ -52,12 +52,14 @@ def _pipeline(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
 
 def _metric_floor(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     """The pipeline's datasets, each scene box-filtered against its point-sampled truth:
-    what the table's albedo and shadow figures can tell apart at the datasets' size."""
+    what the table's albedo and shadow figures can tell apart at the datasets' size; and
+    the method itself on each scene's exact geometry (the table's cpu-small settings)."""
     from . import metric_floor
 
     datas = sorted(p.parent for p in (out_dir.parent / "pipeline").glob("*/data/dataset.json"))
     return metric_floor.run(out_dir, datas, progress=False,
-                            command=[opts.get("command", "")] if opts else None)
+                            command=[opts.get("command", "")] if opts else None,
+                            exact="cpu-small")
 
 
 def _lowpass_drift(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
