@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
 
 
 def discover_suites() -> dict[str, object]:
@@ -67,17 +67,17 @@ def machine_info() -> dict:
 def main(argv=None) -> int:
     suites = discover_suites()
     ap = argparse.ArgumentParser(description="Run the mi_shadowgs benchmarks.")
-    ap.add_argument("--out", required=True, help="output folder: new, empty or an earlier "
+    ap.add_argument("--out", required=True, help="output folder: new or an earlier "
                     "benchmark run's (replaced atomically)")
     ap.add_argument("--quick", action="store_true",
                     help="reduced sweep (the cpu-small presets) for a fast check")
     ap.add_argument("--only", action="append", choices=sorted(suites),
                     help="run only this suite (repeatable)")
     args = ap.parse_args(argv)
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not (out / "machine.json").is_file():
-        print(f"error: {out}: exists and holds no machine.json of an earlier benchmark run; "
-              "not replacing it", file=sys.stderr)
+    try:
+        check_replaceable(args.out, "machine.json")
+    except FileExistsError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
     preset = "cpu-small" if args.quick else "paper"
     chosen = args.only or sorted(suites)

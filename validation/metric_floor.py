@@ -53,7 +53,7 @@ def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.visibility import shadow_maps
-    from validation.shadow_factors import irradiance, map_visibility, surfel_receivers
+    from validation.shadow_factors import method_irradiance
     from validation.visibility import ValidationConfig, scene_surfels
 
     count = max(1, round(surfels_128 * cameras[0].width * cameras[0].height / 128 ** 2))
@@ -66,9 +66,7 @@ def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
         vcfg = dataclasses.replace(vcfg, resolution=map_resolution)
     dirs = np.array([lt.direction for lt in setup.lights], np.float64)  # [L, 3]
     irr = np.array([np.mean(lt.irradiance) for lt in setup.lights], np.float64)  # [L]
-    rec = surfel_receivers(exact, cameras)
-    vis = map_visibility(exact, rec, dirs, bounds, vcfg)
-    est = irradiance(rec, vis, dirs, irr, (cameras[0].height, cameras[0].width))
+    est = method_irradiance(exact, cameras, dirs, irr, bounds, vcfg)
     return evaluation.shadow_iou(est, point["irradiance"].sum(axis=3).mean(-1),
                                  point["mask"].astype(bool))
 
@@ -140,12 +138,10 @@ def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
         exact_surfels: int = 40_000, map_resolution: int | None = None) -> dict:
     """Every dataset's rows into ``out_dir`` (written atomically; an existing folder is
     replaced only when it holds a metric_floor.json). Returns {"rows", "markdown"}."""
-    from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+    from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
 
     out_dir = Path(out_dir)
-    if out_dir.exists() and not (out_dir / "metric_floor.json").is_file():
-        raise FileExistsError(f"{out_dir}: exists and holds no metric_floor.json; not "
-                              "replacing it")
+    check_replaceable(out_dir, "metric_floor.json")
     rows = []
     for d in datas:
         rows += dataset_floor(Path(d), sizes, views, samples, progress, exact, exact_surfels,

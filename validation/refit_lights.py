@@ -141,7 +141,7 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+    from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
 
     ap = argparse.ArgumentParser(description="Re-run stages 3-5 of a finished run with "
                                              "today's light fit into a folder of one's own.")
@@ -177,8 +177,10 @@ def main(argv=None) -> int:
         return 0
     if args.run is None or args.data is None or args.out is None:
         ap.error("--run, --data and --out are required (or --table)")
-    if args.out.exists() and not (args.out / "refit.json").is_file():
-        fail(f"{args.out}: exists and holds no refit.json; not replacing it")
+    try:
+        check_replaceable(args.out, "refit.json")
+    except FileExistsError as e:
+        fail(str(e))
     overrides = {}
     for item in args.set:
         if "=" not in item:

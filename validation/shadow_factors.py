@@ -223,6 +223,16 @@ def irradiance(rec: Receivers, vis: list[np.ndarray], dirs: np.ndarray, irr: np.
     return np.stack(out)
 
 
+def method_irradiance(surfels, cameras, dirs: np.ndarray, irr: np.ndarray, bounds, vcfg
+                      ) -> np.ndarray:
+    """The method's white direct irradiance [V, H, W] with ``surfels`` as both receivers
+    (rasterized as stage 5's) and occluders (their shadow maps), lights ``dirs`` [L, 3] of
+    irradiance ``irr`` [L]: the run's model, or surfels on the true shapes."""
+    rec = surfel_receivers(surfels, cameras)
+    vis = map_visibility(surfels, rec, dirs, bounds, vcfg)
+    return irradiance(rec, vis, dirs, irr, (cameras[0].height, cameras[0].width))
+
+
 def shapley(scores: dict[tuple, float]) -> dict[str, float]:
     """Each factor's gain in IoU averaged over the orders of swapping it in.
     ``scores`` maps (lights, receivers, occluders) booleans (True = ground truth) to IoU."""
@@ -274,11 +284,9 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     vcfg = ValidationConfig()
     if exact_surfels is not None:
         vcfg = dataclasses.replace(vcfg, object_surfels=exact_surfels)
-    exact = scene_surfels(setup, vcfg)
-    exact_rec = surfel_receivers(exact, inp.cameras)
-    vis = map_visibility(exact, exact_rec, inp.true_dirs, inp.bounds, inp.vis_config)
-    exact_iou = evaluation.shadow_iou(
-        irradiance(exact_rec, vis, inp.true_dirs, inp.true_irr, (h, w)), inp.gt_irr, inp.mask)
+    exact = method_irradiance(scene_surfels(setup, vcfg), inp.cameras, inp.true_dirs,
+                              inp.true_irr, inp.bounds, inp.vis_config)
+    exact_iou = evaluation.shadow_iou(exact, inp.gt_irr, inp.mask)
     shares = shapley(scores)
     single = {f: scores[tuple(i == j for j in range(3))] - base for i, f in enumerate(FACTORS)}
     bias = []
@@ -392,7 +400,7 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+    from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
 
     ap = argparse.ArgumentParser(description="Split a run's shadow-IoU loss by swapping in "
                                              "ground truth one factor at a time.")
@@ -419,8 +427,10 @@ def main(argv=None) -> int:
     if args.run is None or args.data is None or args.out is None:
         ap.error("--run, --data and --out are required (or --table)")
     out = args.out
-    if out.exists() and not (out / "shadow_factors.json").is_file():
-        fail(f"{out}: exists and holds no shadow_factors.json; not replacing it")
+    try:
+        check_replaceable(out, "shadow_factors.json")
+    except FileExistsError as e:
+        fail(str(e))
     if args.exact_surfels is not None and args.exact_surfels < 1:
         fail(f"--exact-surfels must be >= 1, got {args.exact_surfels}")
     res = analyse(args.run, args.data, args.variant, args.views, not args.quiet,

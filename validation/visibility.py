@@ -46,7 +46,7 @@ from mi_shadowgs.dataset.cameras import test_cameras
 from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground_truth
 from mi_shadowgs.dataset.layout import DATASET_JSON, NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, load_scene
-from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
 from mi_shadowgs.stages.visibility.baselines import (
     GaussianTraceConfig,
     VoxelConfig,
@@ -576,7 +576,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None,
         models_only: bool = False) -> dict:
     """Everything above; writes into ``out_dir`` (replaced atomically; an existing folder
-    only when empty or holding this validation's summary.json). ``model`` and
+    only when it holds this validation's summary.json). ``model`` and
     ``data``: a stage-1 PLY and its dataset, or equally long lists of them; ``factors``:
     each model's ``model_factors`` too (``factor_samples``^2 points per pixel for the
     pixel-area truth, ``factor_surfels`` exact surfels on the object); ``models_only``: the
@@ -587,10 +587,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     if len(models) != len(datas):
         raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
                          f"{len(models)} models, {len(datas)} datasets")
-    out_dir = Path(out_dir)
-    if out_dir.exists() and any(out_dir.iterdir()) and not (out_dir / "summary.json").is_file():
-        raise FileExistsError(f"{out_dir}: exists and holds no summary.json of this "
-                              f"validation; not replacing it")
+    check_replaceable(out_dir, "summary.json")
     if factors and not models:
         raise ValueError("--factors splits a stage-1 model's IoU: give --model and --data")
     if models_only and not models:
@@ -712,7 +709,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Visibility validation against ray tracing "
                                              "(paper Table 2, speed-vs-error sweep).")
-    ap.add_argument("--out", required=True, help="output folder: new, empty or an earlier "
+    ap.add_argument("--out", required=True, help="output folder: new or an earlier "
                     "output of this validation (replaced atomically)")
     ap.add_argument("--quick", action="store_true", help="small smoke run")
     ap.add_argument("--model", action="append",

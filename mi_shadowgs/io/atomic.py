@@ -89,6 +89,15 @@ def write_json(path: str | os.PathLike, obj) -> None:
     write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
 
 
+def check_replaceable(path: str | os.PathLike, marker: str) -> None:
+    """Raise FileExistsError unless ``path`` is absent or holds ``marker``, the file an
+    earlier output of the same command writes there: ``atomic_dir`` with ``overwrite``
+    replaces a folder whole, so a command checks this before any work."""
+    path = Path(path)
+    if path.exists() and not (path / marker).is_file():
+        raise FileExistsError(f"{path}: exists and holds no {marker}; not replacing it")
+
+
 @contextlib.contextmanager
 def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Build a folder in a temporary sibling and move it into place when the block succeeds.
