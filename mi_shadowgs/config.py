@@ -2,8 +2,10 @@
 
 Each stage module defines a frozen dataclass whose field defaults are the paper's values,
 and a ``PRESETS`` dict name -> instance for each of ``PRESET_NAMES``: ``paper``,
-``cpu-small`` (128^2, 64 views, minutes on 2 cores) and ``cpu-medium`` (256^2, 96 views:
-cpu-small's settings where the resolution does not change them; issue 18).
+``cpu-small`` (128^2, 64 views, minutes on 2 cores), ``cpu-medium`` (256^2, 96 views:
+cpu-small's settings where the resolution does not change them; issue 18) and ``gpu-large``
+(512^2, 96 views, cpu-medium's schedule: minutes on a GPU, the size at which the thin parts of
+the table's scenes span enough pixels; issue 15).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import dataclasses
 from typing import Any, TypeVar
 
 T = TypeVar("T")
-PRESET_NAMES = ("cpu-small", "cpu-medium", "paper")
+PRESET_NAMES = ("cpu-small", "cpu-medium", "gpu-large", "paper")
 
 
 class ConfigError(ValueError):

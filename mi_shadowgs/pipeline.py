@@ -71,6 +71,7 @@ class RunConfig:
 PRESETS = {
     "cpu-small": RunConfig(),
     "cpu-medium": RunConfig(preset="cpu-medium"),
+    "gpu-large": RunConfig(preset="gpu-large"),
     "paper": RunConfig(preset="paper", ablations=True),
 }
 

@@ -4,13 +4,14 @@ For the embedded default scene and, when ``../shared/data`` is present, the five
 scenes (bunny, armadillo, hotdog, ficus substitute, toy-train substitute for Lego), each under
 two light pairs (``tuned``: the pair the presets were tuned on; ``low``: a second pair with
 its strong light at 20 deg elevation), it generates the ``--preset`` dataset (``cpu-small``:
-128^2, 64 views; ``cpu-medium``: 256^2, 96 views), runs
+128^2, 64 views; ``cpu-medium``: 256^2, 96 views; ``gpu-large``: 512^2, 96 views, for a
+GPU with ``MI_SHADOWGS_VARIANT=cuda_ad_rgb``), runs
 ``mi-shadowgs run`` (with the two Table 3 ablations under the tuned pair), and tabulates
 stage 1, stage 2 and the decomposition/relighting metrics per scene and on average
 (Tables 1 and 3)::
 
     python -m validation.pipeline --out OUT [--quick] [--scene NAME ...] [--lights PAIR ...]
-                                  [--threads N] [--preset cpu-small|cpu-medium]
+                                  [--threads N] [--preset cpu-small|cpu-medium|gpu-large]
 
 ``--quick`` runs the default scene under the tuned pair only. Each scene and pair lives under
 ``OUT/<scene>-<pair>/`` (dataset, run, ``row.json``) and is resumed, not redone, on a second
@@ -61,8 +62,9 @@ CODE_COMMIT = git_commit()
 # "auto") add three path-traced test sets per row; they are scored apart (BENCHMARKS.md,
 # "Shipped env maps"). One choice for every row keeps the rows comparable.
 ENVMAPS = "sky"
-# The presets a table can be made at (the paper preset's 800^2 runs need a GPU).
-TABLE_PRESETS = ("cpu-small", "cpu-medium")
+# The presets a table can be made at (gpu-large's 512^2 runs take minutes each on a GPU,
+# hours on 2 cores; the paper preset's 800^2 runs, with 40k stage-1 steps, longer still).
+TABLE_PRESETS = ("cpu-small", "cpu-medium", "gpu-large")
 TABLE_KEYS = ("albedo_psnr", "albedo_psnr_global", "albedo_ssim", "albedo_lpips",
               "light_cosine", "shadow_iou", "relight_psnr", "relight_ssim", "relight_lpips",
               "relight_render_s")
@@ -156,6 +158,8 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     summary = run_pipeline(data, folder / "run", RunConfig(preset=preset, ablations=ablations),
                            progress=True)
     run = folder / "run"
+    import mitsuba as mi
+
     geo = json.loads((run / "geometry" / "metrics.json").read_text())
     seg = json.loads((run / "segmentation" / "segmentation.json").read_text())
     # every finished variant (an ablation may have finished before a run without them)
@@ -163,7 +167,7 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
                 for v in ("full", "no_visibility", "no_segmentation")
                 if v == "full" or (run / "material" / v / "metrics.json").is_file()}
     row = {"scene": name, "lights": lights, "light_pair": pair, "preset": preset,
-           "commit": CODE_COMMIT, "envmaps": envmaps,
+           "variant": mi.variant(), "commit": CODE_COMMIT, "envmaps": envmaps,
            "generate_s": t_gen, "wall_s": time.perf_counter() - t0,
            "stage_s": {st["name"]: st.get("seconds") for st in summary.get("stages", [])},
            "load_end": os.getloadavg()[0],
@@ -245,7 +249,8 @@ EVALUATION_CHANGES = (
 def markdown(rows: list[dict], command: str) -> str:
     lines = ["## Whole pipeline (paper Tables 1 and 3)", "",
              f"`{command}`; {time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores, "
-             f"load average {os.getloadavg()[0]:.1f} at the end; llvm_ad_rgb; "
+             f"load average {os.getloadavg()[0]:.1f} at the end; "
+             f"{', '.join(sorted({r.get('variant', 'llvm_ad_rgb') for r in rows})) or 'n/a'}; "
              f"{', '.join(sorted({row_preset(r) for r in rows})) or 'n/a'}; "
              f"rows made by commit {_commits(rows)}; env maps: "
              f"{', '.join(sorted({str(r.get('envmaps', 'sky')) for r in rows})) or 'n/a'}.",

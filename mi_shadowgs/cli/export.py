@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 
+from mi_shadowgs.config import PRESET_NAMES
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="run folder written by `mi-shadowgs run` (stage 4 done)")
@@ -25,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", default=None,
                         help="the run's dataset, when it moved (mesh: training cameras)")
     parser.add_argument("--preset", default="cpu-small",
-                        help="cpu-small (default), cpu-medium or paper")
+                        help=f"{', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--bsdf", default=None, choices=("model", "principled"),
                         help="mesh: scene.xml's BSDF: model (the fitted Cook-Torrance out of "
                              "Mitsuba's diffuse/roughconductor/blendbsdf; default) or "

@@ -13,6 +13,8 @@ import argparse
 import os
 from pathlib import Path
 
+from mi_shadowgs.config import PRESET_NAMES
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("data", help="dataset folder (mi-shadowgs generate, or TensoIR layout)")
@@ -21,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start over, removing the files of an earlier run there (only "
                              "those)")
     parser.add_argument("--preset", default="cpu-small",
-                        help="cpu-small (default), cpu-medium or paper")
+                        help=f"{', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--masks", default=None, choices=("auto", "material", "chromaticity"),
                         help="segmentation labels (default: material ids when present)")
     parser.add_argument("--segments", type=int, default=None, metavar="K",

@@ -19,6 +19,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mi_shadowgs.config import PRESET_NAMES
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", metavar="RUN_OR_MODEL",
@@ -31,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted segment output there from its checkpoint")
     parser.add_argument("--preset", default="cpu-small",
-                        help="cpu-small (default), cpu-medium or paper")
+                        help=f"{', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--masks", default="material", choices=("material", "chromaticity"),
                         help="label maps to train on (default: the dataset's material ids)")
     parser.add_argument("--segments", "--k", dest="k", type=int, default=None,

@@ -130,7 +130,8 @@ class RasterMemoryError(MemoryError, ValueError):
     too, so that the CLI reports it in one line with exit status 2."""
 
 
-PRESETS = {"paper": RasterConfig(), "cpu-small": RasterConfig(), "cpu-medium": RasterConfig()}
+PRESETS = {"paper": RasterConfig(), "cpu-small": RasterConfig(), "cpu-medium": RasterConfig(),
+           "gpu-large": RasterConfig()}
 
 
 def get_config(name: str) -> RasterConfig:

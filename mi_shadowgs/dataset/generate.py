@@ -147,6 +147,10 @@ PRESETS = {
     # or more; `import` resizes to ImportConfig.max_size).
     "cpu-medium": GenerateConfig(width=256, height=256, n_train=96, n_test=32, spp=128,
                                  max_depth=4),
+    # Issue 15: the size at which the table's thin parts (a ficus leaf, the hotdog's
+    # sauces) span a few pixels; made and run on a GPU.
+    "gpu-large": GenerateConfig(width=512, height=512, n_train=96, n_test=32, spp=128,
+                                max_depth=4),
 }
 
 

@@ -61,7 +61,7 @@ class ImportConfig:
 
 
 PRESETS = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512),
-           "cpu-medium": ImportConfig(max_size=512)}
+           "cpu-medium": ImportConfig(max_size=512), "gpu-large": ImportConfig(max_size=512)}
 
 
 def get_config(name: str) -> ImportConfig:

@@ -161,6 +161,13 @@ PRESETS = {
 PRESETS["cpu-medium"] = dataclasses.replace(
     PRESETS["cpu-small"], densify=dataclasses.replace(PRESETS["cpu-small"].densify,
                                                       max_surfels=80000))
+# 512^2, 96 views, on a GPU: cpu-medium's schedule; 200k surfels for 4x its pixels, and no
+# screen-space prune: above ~400^2 the 20 px rule removes the flat surfaces' surfels at each
+# opacity reset (the paper preset's comment above).
+PRESETS["gpu-large"] = dataclasses.replace(
+    PRESETS["cpu-medium"], densify=dataclasses.replace(PRESETS["cpu-medium"].densify,
+                                                       max_surfels=200000,
+                                                       screen_size_threshold=None))
 
 
 def get_config(name: str) -> GeometryConfig:

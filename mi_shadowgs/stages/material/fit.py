@@ -338,7 +338,7 @@ PRESETS = {
                                 specular="off", albedo_tv_with_segments=False,
                                 albedo_scale=0.9, refine_score="albedo"),
 }
-PRESETS["cpu-medium"] = PRESETS["cpu-small"]
+PRESETS["cpu-medium"] = PRESETS["gpu-large"] = PRESETS["cpu-small"]
 
 
 def get_config(name: str) -> MaterialConfig:

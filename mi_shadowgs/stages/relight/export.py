@@ -79,7 +79,7 @@ class ExportConfig:
             raise ValueError(f"ExportConfig.bsdf must be one of {BSDFS}, got {self.bsdf!r}")
 
 
-PRESETS = {"cpu-small": ExportConfig(), "cpu-medium": ExportConfig(),
+PRESETS = {"cpu-small": ExportConfig(), "cpu-medium": ExportConfig(), "gpu-large": ExportConfig(),
            "paper": ExportConfig(mesh=mesh_mod.get_config("paper"))}
 
 

@@ -79,7 +79,7 @@ class MeshConfig:
             raise ValueError(f"MeshConfig: bad settings {self}")
 
 
-PRESETS = {"cpu-small": MeshConfig(), "cpu-medium": MeshConfig(),
+PRESETS = {"cpu-small": MeshConfig(), "cpu-medium": MeshConfig(), "gpu-large": MeshConfig(),
            "paper": MeshConfig(resolution=320)}
 
 

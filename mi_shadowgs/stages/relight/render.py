@@ -60,7 +60,8 @@ class RelightConfig:
                              f"{self.indirect!r}")
 
 
-PRESETS = {"paper": RelightConfig(), "cpu-small": RelightConfig(), "cpu-medium": RelightConfig()}
+PRESETS = {"paper": RelightConfig(), "cpu-small": RelightConfig(), "cpu-medium": RelightConfig(),
+           "gpu-large": RelightConfig()}
 DEFAULT_RELIGHT = RelightConfig()
 
 

@@ -104,7 +104,7 @@ PRESETS = {
     "cpu-small": SegmentationConfig(iterations=300, lr=0.02, n_samples=2048,
                                     planes=PlaneConfig(enabled=True)),
 }
-PRESETS["cpu-medium"] = PRESETS["cpu-small"]  # features of the surfels, not the pixels
+PRESETS["cpu-medium"] = PRESETS["gpu-large"] = PRESETS["cpu-small"]  # of the surfels, not pixels
 
 
 def get_config(name: str) -> SegmentationConfig:

@@ -58,7 +58,7 @@ class ChromaticityConfig:
 
 
 PRESETS = {"paper": ChromaticityConfig(), "cpu-small": ChromaticityConfig(),
-           "cpu-medium": ChromaticityConfig()}
+           "cpu-medium": ChromaticityConfig(), "gpu-large": ChromaticityConfig()}
 
 
 def get_config(name: str) -> ChromaticityConfig:

@@ -85,11 +85,13 @@ GAUSSIAN_PRESETS = {
     "paper": GaussianTraceConfig(),
     "cpu-small": GaussianTraceConfig(max_hits=16),
     "cpu-medium": GaussianTraceConfig(max_hits=16),
+    "gpu-large": GaussianTraceConfig(max_hits=16),
 }
 VOXEL_PRESETS = {
     "paper": VoxelConfig(),
     "cpu-small": VoxelConfig(resolution=48),
     "cpu-medium": VoxelConfig(resolution=48),
+    "gpu-large": VoxelConfig(resolution=48),
 }
 
 

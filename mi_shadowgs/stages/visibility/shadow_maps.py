@@ -135,6 +135,11 @@ PRESETS = {
 # 512 texels across the scene's bounds are ~0.006 units, under the 0.014-unit footprint of a
 # 256^2 view's pixel at the datasets' camera distance: the same maps serve cpu-medium.
 PRESETS["cpu-medium"] = PRESETS["cpu-small"]
+# 512^2 views: the same settings on 1024-texel maps. On exact surfels and the true lights the
+# twelve table datasets at 512^2 score a mean shadow IoU of 0.868, none under 0.764
+# (validation.metric_floor --exact cpu-small --map-resolution 1024; BENCHMARKS.md, "What
+# each view size allows the method").
+PRESETS["gpu-large"] = dataclasses.replace(PRESETS["cpu-small"], resolution=1024)
 
 
 def get_config(name: str) -> VisibilityConfig:
