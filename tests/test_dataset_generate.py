@@ -58,6 +58,27 @@ def test_presets():
         (800, 100, 200)
     medium = PRESETS["cpu-medium"]
     assert (medium.width, medium.height) == (256, 256) and 64 <= medium.n_train <= 100
+    large = PRESETS["gpu-large"]
+    assert (large.width, large.height, large.n_train) == (512, 512, 96)
+
+
+def test_gpu_large_differs_from_cpu_medium_only_where_the_size_asks():
+    # 512^2 views: no screen-space prune (it removed the flat surfaces' surfels at 400^2 and
+    # 800^2), a larger surfel cap, and maps of twice the texels; every other setting is
+    # cpu-medium's, so a gpu-large row differs from a cpu-medium one by the size alone.
+    import dataclasses
+
+    from mi_shadowgs.stages.geometry.train import PRESETS as GEOMETRY
+    from mi_shadowgs.stages.material.fit import PRESETS as MATERIAL
+    from mi_shadowgs.stages.visibility.shadow_maps import PRESETS as VISIBILITY
+
+    large, medium = GEOMETRY["gpu-large"], GEOMETRY["cpu-medium"]
+    assert large.densify.screen_size_threshold is None
+    assert large.densify.max_surfels > medium.densify.max_surfels
+    assert dataclasses.replace(large, densify=medium.densify) == medium
+    assert VISIBILITY["gpu-large"] == dataclasses.replace(VISIBILITY["cpu-medium"],
+                                                          resolution=1024)
+    assert MATERIAL["gpu-large"] == MATERIAL["cpu-medium"]
 
 
 def test_every_stage_has_every_preset():

@@ -255,3 +255,23 @@ def test_pipeline_table_gives_the_median_beside_the_mean():
     assert table["**mean all** (3)"] == "40"
     assert table["**median all** (3)"] == "30"
     assert table["**mean tuned** (2)"] == "27.5" and table["**mean low** (1)"] == "65"
+
+
+def test_pipeline_table_names_each_rows_variant_and_uncommitted_code():
+    # Rows made on a GPU, from a checkout with uncommitted changes, beside rows made on the
+    # CPU before rows recorded their variant: the header names both backends, and the
+    # short commit keeps its "+changes" (a bare hash would claim code that did not run).
+    from validation import pipeline as vpipe
+
+    def row(scene, commit, **extra):
+        return {"scene": scene, "lights": "tuned", "wall_s": 60.0, "segments": 2,
+                "commit": commit, "geometry": {"psnr": 30.0, "mask_iou": 0.9},
+                "segmentation": {}, "variants": {"full": dict.fromkeys(vpipe.TABLE_KEYS, 0.5)},
+                **extra}
+
+    md = vpipe.markdown([row("default", "a" * 40 + " +changes", variant="cuda_ad_rgb"),
+                         row("bunny", "b" * 40)], "cmd")
+    header = md.splitlines()[2]
+    assert "; cuda_ad_rgb, llvm_ad_rgb;" in header
+    assert "aaaaaaaaaaaa +changes (default-tuned)" in header
+    assert "bbbbbbbbbbbb (bunny-tuned)" in header

@@ -105,6 +105,11 @@ def test_one_preset_per_table_folder(fake_runs, tmp_path, capsys):
                        "--preset", "cpu-medium"]) == 0
     assert fake_runs == [("bunny", "low", "cpu-medium")]
     assert "; cpu-medium;" in (other / "pipeline.md").read_text()
+    # gpu-large (512^2, for a GPU) is a table preset too.
+    fake_runs.clear()
+    assert vpipe.main(["--out", str(tmp_path / "large"), "--scene", "bunny", "--lights",
+                       "tuned", "--preset", "gpu-large"]) == 0
+    assert fake_runs == [("bunny", "tuned", "gpu-large")]
 
 
 def test_a_dataset_of_another_preset_is_not_reused(tmp_path):

@@ -228,8 +228,10 @@ def _commits(rows: list[dict]) -> str:
     """The commits that wrote the rows, each with its rows when they differ."""
     by: dict[str, list[str]] = {}
     for r in rows:
-        by.setdefault(str(r.get("commit", "unrecorded"))[:12],
-                      []).append(f"{r['scene']}-{r.get('lights', 'tuned')}")
+        commit = str(r.get("commit", "unrecorded"))
+        # the short hash, and the checkout's uncommitted changes when there were any
+        short = commit[:12] + (" +changes" if commit.endswith("+changes") else "")
+        by.setdefault(short, []).append(f"{r['scene']}-{r.get('lights', 'tuned')}")
     if len(by) <= 1:
         return next(iter(by), "n/a")
     return "; ".join(f"{c} ({', '.join(names)})" for c, names in by.items())
