@@ -15,6 +15,10 @@ from typing import Any, TypeVar
 
 T = TypeVar("T")
 PRESET_NAMES = ("cpu-small", "cpu-medium", "gpu-large", "paper")
+# Presets sized for a GPU: on the CPU backend their runs take hours. A gpu-large row took
+# 4.5-4.8 min on an H100; its stage 1 alone took 30 min on one Xeon thread, and the paper's
+# 40k steps at 800^2 take hours on 2 cores (BENCHMARKS.md, "Session 26").
+GPU_PRESETS = ("gpu-large", "paper")
 
 
 class ConfigError(ValueError):
@@ -63,6 +67,14 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
                 (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise ConfigError(f"{what} setting {name!r} takes a number, got {value!r}")
     return dataclasses.replace(config, **values)
+
+
+def slow_preset_warning(preset: str, variant: str) -> str | None:
+    """The warning for a GPU-sized preset run on another backend, else None."""
+    if preset in GPU_PRESETS and not variant.startswith("cuda"):
+        return (f"preset {preset!r} is sized for a GPU (--variant cuda_ad_rgb); on {variant} "
+                "its run takes hours")
+    return None
 
 
 def to_dict(config: Any) -> dict[str, Any]:

@@ -13,10 +13,12 @@ import json
 import time
 from pathlib import Path
 
-from mi_shadowgs.config import get_preset
+from mi_shadowgs.backend import ensure_variant
+from mi_shadowgs.config import get_preset, slow_preset_warning
 from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
+from mi_shadowgs.stages.common import warn
 from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
 from mi_shadowgs.stages.relight import render as relight
@@ -198,6 +200,9 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
 
     data, run = Path(data), Path(out)
     t_start = time.perf_counter()
+    slow = slow_preset_warning(config.preset, ensure_variant())
+    if slow:
+        warn(slow)
     train = load_training_views(data)
     test = load_dataset(data, "test")
     available = check_evaluation_inputs(train, test)

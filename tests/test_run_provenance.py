@@ -337,3 +337,22 @@ def test_one_training_view_warns(data, tmp_path, capsys):
     warnings = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
     assert len(warnings) == 1
     assert "1 training view(s)" in warnings[0] and "at least 16" in warnings[0]
+
+
+def test_a_gpu_preset_on_the_cpu_warns_before_anything_runs(data, tmp_path, capsys):
+    # gpu-large and paper take minutes on a GPU and hours on the CPU backend: said at once,
+    # before the inputs are read (here they are broken, so the run stops right after).
+    from mi_shadowgs.config import slow_preset_warning
+
+    bad = _broken_copy(data[0], tmp_path)
+    lights = json.loads((bad / "lights.json").read_text())
+    lights["training"]["lights"][0]["direction"] = "up"
+    (bad / "lights.json").write_text(json.dumps(lights))
+    for preset, warned in (("gpu-large", True), ("paper", True), ("cpu-medium", False)):
+        assert cli.main(["run", str(bad), "--out", str(tmp_path / "run"), "--preset", preset,
+                         "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert (f"preset '{preset}' is sized for a GPU (--variant cuda_ad_rgb); on "
+                "llvm_ad_rgb its run takes hours" in err) == warned, (preset, err)
+        assert "lights.json" in err and not (tmp_path / "run").exists()
+    assert slow_preset_warning("gpu-large", "cuda_ad_rgb") is None
