@@ -371,6 +371,8 @@ def test_models_only_factor_table_from_the_command_line(exact_model, tmp_path, m
     readme = (out / "README.md").read_text()
     assert "Where each stage-1 model's IoU is lost" in readme and "Threshold tau" not in readme
     assert "2^2 points per pixel" in readme
+    # no ground-truth scenes: the header names the models' views, not the spiral's
+    assert "test-spiral" not in readme and "Stage-1 models: the first" in readme
 
 
 def test_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):

@@ -140,6 +140,8 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     """One scene under one light pair (``LIGHT_PAIRS[lights]``, or ``pair`` named
     ``lights``) at ``preset`` (its dataset and every stage); its row is also written to
     ``row.json``."""
+    import mitsuba as mi
+
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.pipeline import RunConfig, run_pipeline
 
@@ -158,8 +160,6 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     summary = run_pipeline(data, folder / "run", RunConfig(preset=preset, ablations=ablations),
                            progress=True)
     run = folder / "run"
-    import mitsuba as mi
-
     geo = json.loads((run / "geometry" / "metrics.json").read_text())
     seg = json.loads((run / "segmentation" / "segmentation.json").read_text())
     # every finished variant (an ablation may have finished before a run without them)

@@ -647,13 +647,15 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
             "depth and normals):\n\n" + table2_markdown(results, model_names)
     table_rows = [{"method": m, "case": c, **{k: v for k, v in r.items()}}
                   for m, per in results.items() for c, r in per.items()]
+    # the spiral views and exact surfels are the ground-truth scenes' (none with --models-only)
+    scenes_note = (f"{cfg.n_views} test-spiral views at {cfg.resolution}^2; surfels sampled on "
+                   f"the true shapes ({cfg.object_surfels} object + {cfg.base_surfels} base, "
+                   f"sigma {cfg.sigma_factor} x spacing). ") if gt_names else ""
+    models_note = (f"Stage-1 models: the first {cfg.n_views} test views of their datasets, at "
+                   "the datasets' size. ") if model_names else ""
     md = [f"## Visibility ({'quick' if quick else 'full'})", "",
           f"{len(cfg.lights)} light directions (az, el deg): {list(cfg.lights)}; "
-          f"{cfg.n_views} test-spiral views at {cfg.resolution}^2; surfels sampled on the true "
-          f"shapes ({cfg.object_surfels} object + {cfg.base_surfels} base, sigma "
-          f"{cfg.sigma_factor} x spacing). Stage-1 models: the first {cfg.n_views} test views of "
-          f"their datasets, at the datasets' size. Shadow IoU (V < 0.5) vs Mitsuba ray "
-          f"tracing.", "",
+          f"{scenes_note}{models_note}Shadow IoU (V < 0.5) vs Mitsuba ray tracing.", "",
           "### Table 2", "", table, ""]
     md += wins_md + [""]
     if split:
