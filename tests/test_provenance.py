@@ -346,6 +346,13 @@ def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
     # ... and before the choice of depth-normal differences: 2DGS's central ones
     assert diff(normal_depth_differences="central") == []
     assert "normal_depth_differences" in diff(normal_depth_differences="same_plane")[0]
+    # ... and before stage 4's normal phase: none; its own settings unused then
+    assert diff(normal_steps=0, lr_normal=0.5, lambda_normal_prior=9.0,
+                normal_hold_planar=False) == []
+    d = diff(normal_steps=1500, lr_normal=0.03, lambda_normal_prior=0.3,
+             normal_hold_planar=True)
+    assert len(d) == 1 and all(k in d[0] for k in ("normal_steps", "lr_normal",
+                                                     "lambda_normal_prior")), d
     # a value the older code did not use is a difference, and so is one it did use
     d = diff(k_select="silhouette", silhouette_samples=2000)
     assert len(d) == 1 and "k_select" in d[0] and "silhouette_samples" in d[0]

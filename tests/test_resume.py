@@ -218,9 +218,10 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
     # ("auto") the same 6 units, (40, 1) resuming after light 1's global pass; without
     # ("on") its own pass only (2 units; (40, 1) resumes between its lights). Either way
     # the checkpoint must say which passes.
-    stops = [(20, None), (20, 4), (21, None), (31, None), (40, 1), (60, None)]
+    # (75, None): inside the normal phase (steps 60-90).
+    stops = [(20, None), (20, 4), (21, None), (31, None), (40, 1), (60, None), (75, None)]
     assert all(stop in seen for stop in stops)
-    for stop in stops if specular == "auto" else stops[1:5:3]:
+    for stop in stops if specular == "auto" else stops[1:5:3] + stops[-1:]:
 
         def on_checkpoint(state, stop=stop):
             save_checkpoint(tmp_path, *state.to_checkpoint())
@@ -230,7 +231,7 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
         with pytest.raises(Stop):
             fit(on_checkpoint=on_checkpoint)
         resumed = fit(state=material_fit.MaterialState.from_checkpoint(*load_checkpoint(tmp_path)))
-        for key in ("albedo", "roughness", "metallic", "indirect_sh"):
+        for key in ("albedo", "roughness", "metallic", "indirect_sh", "shading_normal"):
             np.testing.assert_array_equal(
                 resumed.surfels.channels[key].numpy(),
                 straight.surfels.channels[key].numpy(),
@@ -322,7 +323,7 @@ def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatc
     with monkeypatch.context() as mp:
         _sigterm_on_call(mp, material_fit, "view_loss", 27)
         assert cli.main([*argv, "--out", str(run)]) == 143
-    assert "stage 4 stopped at step 27 of 60" in capsys.readouterr().err
+    assert "stage 4 stopped at step 27 of 90" in capsys.readouterr().err  # 60 + 30 normal steps
     assert cli.main([*argv, "--out", str(run)]) == 0
     assert _files(run) == _files(ref)
 

@@ -45,7 +45,7 @@ def presets() -> list[tuple[dict, object]]:
             material_fit.get_config("cpu-small"), iterations=60, warmup=20, prune_every=10,
             warmup_map_resolution=32, refine_passes=((4.0, 2.0),), refine_views=4,
             refine_global=128, refine_global_map_resolution=32, refine_global_views=2,
-            log_every=10, checkpoint_every=15, checkpoint_seconds=0.5)),
+            normal_steps=30, log_every=10, checkpoint_every=15, checkpoint_seconds=0.5)),
         (visibility.PRESETS, dataclasses.replace(visibility.get_config("cpu-small"),
                                                  resolution=64)),
         (relight.PRESETS, relight.get_config("cpu-small")),

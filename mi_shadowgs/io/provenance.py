@@ -136,20 +136,28 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "silhouette_samples": None,  # used only by k_select "silhouette"
                   "lambda_dark_alpha": 0.0,  # stage 1, views without masks
                   "dark_max": 1.0 / 255.0,  # used only with lambda_dark_alpha > 0
-                  "normal_depth_differences": "central"}  # stage 1, 2DGS's differences
+                  "normal_depth_differences": "central",  # stage 1, 2DGS's differences
+                  "normal_steps": 0,  # stage 4's normal phase (none before it)
+                  "lr_normal": None, "lambda_normal_prior": None,  # used only by that
+                  "normal_hold_planar": None}  # phase
+# An ADDED_SETTINGS entry of None is unused while its sibling setting here has the value that
+# does what the older code did: then any value of it counts as before.
+USED_ONLY_WITH = {"silhouette_samples": "k_select", "lr_normal": "normal_steps",
+                  "lambda_normal_prior": "normal_steps", "normal_hold_planar": "normal_steps"}
 
 
 def _added_as_before(key: str, old: dict, new: dict) -> bool:
     """``key`` is an ``ADDED_SETTINGS`` entry that the older manifest lacks and whose new
-    value does what the older code did (None there: any value, the setting being unused
-    then; e.g. ``silhouette_samples`` unless ``k_select`` is "silhouette")."""
+    value does what the older code did (None there: any value while the setting is unused,
+    ``USED_ONLY_WITH``; e.g. ``silhouette_samples`` unless ``k_select`` is "silhouette")."""
     name = key.rsplit(".", 1)[-1]
     if key in old or name not in ADDED_SETTINGS:
         return False
     before = ADDED_SETTINGS[name]
     if before is None:
-        sibling = key.rsplit(".", 1)[0] + ".k_select" if "." in key else "k_select"
-        return new.get(sibling, "labels") == ADDED_SETTINGS["k_select"]
+        gate = USED_ONLY_WITH[name]
+        sibling = key.rsplit(".", 1)[0] + "." + gate if "." in key else gate
+        return new.get(sibling, ADDED_SETTINGS[gate]) == ADDED_SETTINGS[gate]
     return new.get(key) == before
 
 
