@@ -78,13 +78,14 @@ def test_sweep_runs_each_point_once_and_tabulates_it(sweep):
     assert by["cpu-small"]["source"].startswith("reused: ") and \
         by["s4_30"]["source"].startswith("stages 1-2 reused from ")
     # the stage-4 point started from the base's stage 1, byte for byte, and its own fit
-    # ran 30 steps
+    # ran 30 steps (then the preset's normal phase)
     base_run = root / "table" / "default-tuned" / "run"
     s4_run = out / "default" / "s4_30" / "run"
     assert (s4_run / "geometry" / "model.ply").read_bytes() == \
         (base_run / "geometry" / "model.ply").read_bytes()
     hist = (s4_run / "material" / "full" / "history.csv").read_text().splitlines()
-    assert int(hist[-1].split(",")[0]) == 30
+    normal_steps = next(c.normal_steps for _, c in presets() if hasattr(c, "normal_steps"))
+    assert int(hist[-1].split(",")[0]) == 30 + normal_steps
     # the res16 point trained on its own 16-px dataset
     info = json.loads((out / "default" / "res16" / "data" / "dataset.json").read_text())
     assert (info["config"]["width"], info["config"]["height"]) == (16, 16)
