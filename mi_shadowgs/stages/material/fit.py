@@ -625,11 +625,13 @@ def _tv(x: mi.Float, weight: mi.Float, h: int, w: int) -> mi.Float:
 
 
 def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading.LightSet,
-              vis: mi.Float | None, config: MaterialConfig, with_specular: bool) -> mi.Float:
-    """Eq. 18 for one view (means over its supervised pixels)."""
+              vis: mi.Float | None, config: MaterialConfig, with_specular: bool,
+              maps: tuple | None = None) -> mi.Float:
+    """Eq. 18 for one view (means over its supervised pixels); ``maps``: the view's
+    ``view_maps`` of ``channels`` when already made (the normal phase holds them)."""
     h, w = view.pairs.height, view.pairs.width
-    albedo, rough, metal, ind = view_maps(view.pairs, channels, view.surfel_normal,
-                                          with_specular)
+    albedo, rough, metal, ind = maps if maps is not None else \
+        view_maps(view.pairs, channels, view.surfel_normal, with_specular)
     rgb = shading.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
     wgt = view.weight
     inv = view.inv_count
@@ -1328,6 +1330,9 @@ class MaterialFit:
     map_cache: MapCache | None = None
     start_normals: mi.Vector3f | None = None  # [N] the normal phase's n0, made at its start
     held_normals: mi.Bool | None = None  # [N] the surfels whose normal the phase holds
+    # The normal phase's per-view material maps (held there, so made once per view), by view
+    # index; kept while they fit in HELD_MAPS_BYTES.
+    held_maps: dict = dataclasses.field(default_factory=dict)
 
     def shadow_maps(self, directions, resolution=None):
         """Shadow maps of ``directions`` (at ``resolution``, default the visibility's)."""
@@ -1474,6 +1479,7 @@ def start_normal_phase(fit: MaterialFit, state: MaterialState) -> None:
     at learning rate 0 (as fitted), and the shading normals join it, started from the
     surfels' own (stage 2's)."""
     opt, n = state.opt, fit.surfels.count
+    fit.held_maps.clear()  # made again from the materials held from here on
     for k in list(opt.keys()):
         if k not in _LIGHT_KEYS:
             state.channels[k] = opt[k]
@@ -1528,6 +1534,24 @@ def with_surfel_normals(view: TrainView, normals: mi.Vector3f, position: mi.Poin
     return dataclasses.replace(view, geom=dataclasses.replace(view.geom, normal=pn))
 
 
+# Memory for the normal phase's held per-view maps (8 floats a pixel: 33 MB for cpu-small's 64
+# views at 128^2); views beyond it make theirs at each step.
+HELD_MAPS_BYTES = 256 << 20
+
+
+def _held_view_maps(fit: MaterialFit, state: MaterialState, k: int) -> tuple:
+    """View ``k``'s ``view_maps`` of the held materials, made once while they fit."""
+    if k in fit.held_maps:
+        return fit.held_maps[k]
+    v = fit.views[k]
+    with dr.suspend_grad():
+        maps = view_maps(v.pairs, state.channels, v.surfel_normal, state.specular)
+        dr.eval(*(m for m in maps if m is not None))
+    if (len(fit.held_maps) + 1) * 32 * v.pairs.height * v.pairs.width <= HELD_MAPS_BYTES:
+        fit.held_maps[k] = maps
+    return maps
+
+
 def normal_step(fit: MaterialFit, state: MaterialState) -> float | None:
     """One step of the normal phase: Eq. 18's loss over ``views_per_step`` random views with
     the pixel normals blended from the shading-normal channel, plus the prior toward stage
@@ -1540,12 +1564,13 @@ def normal_step(fit: MaterialFit, state: MaterialState) -> float | None:
     position = dr.detach(fit.surfels.position)
     total = mi.Float(0.0)
     for _ in range(config.views_per_step):
-        v = fit.views[int(state.rng.integers(len(fit.views)))]
+        k = int(state.rng.integers(len(fit.views)))
+        v = fit.views[k]
         # The lookup keeps the view's own normals: its offset is part of the occluder test.
         vis = None if fit.maps is None else \
             fit.maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
         total += view_loss(with_surfel_normals(v, normals, position), state.channels, lights,
-                           vis, config, state.specular)
+                           vis, config, state.specular, _held_view_maps(fit, state, k))
     total = total / config.views_per_step
     prior = config.lambda_normal_prior * dr.mean(1.0 - dr.dot(normals, start))
     dr.backward(total + prior)
