@@ -367,8 +367,8 @@ PRESETS = {
                                 # Stages 3-5 refitted on the twelve table rows' stages 1-2,
                                 # off -> on: shadow IoU mean 0.725 -> 0.745 (hotdog +0.03 /
                                 # +0.04, ficus +0.06 / +0.02, toy train-low +0.04,
-                                # default-tuned -0.007), relight mean 29.56 -> 29.56 dB,
-                                # +40-100 s of stage 4. Prior 0.1 and the planes free: 0.755
+                                # default-tuned -0.007), relight mean 29.56 -> 29.56 dB;
+                                # 8.5 s of `make demo`'s stage 4. Prior 0.1, planes free: 0.755
                                 # but relight 28.17 dB (the base's normals drifted, default
                                 # 0.38 -> 2.89 deg median error). BENCHMARKS.md, "Session
                                 # 27: stage 4 refines the shading normals".
