@@ -609,7 +609,7 @@ def test_surfel_normals_blend_as_the_rasterizer_blends_them():
     for cam in cams[:2]:
         view = material_fit.prepare_view(s, cam, np.zeros((48, 48, 3)), np.ones((48, 48)), cfg)
         got = material_fit.with_surfel_normals(
-            view, material_fit.unit_rows(s.channels[shading.SHADING_NORMAL_CHANNEL]),
+            view, shading.unit_rows(s.channels[shading.SHADING_NORMAL_CHANNEL]),
             s.position).geom.normal
         ref = view.geom.normal  # the rasterizer's blended shading normals, normalised
         np.testing.assert_allclose(np.stack([np.asarray(got[k]) for k in range(3)], -1),

@@ -129,9 +129,21 @@ def shading_normals(surfels: Surfels) -> mi.Vector3f:
     """Unit normals [N] for shading: ``SHADING_NORMAL_CHANNEL`` when the model has it, else
     the rotations' third column."""
     if SHADING_NORMAL_CHANNEL in surfels.channels:
-        t = surfels.channels[SHADING_NORMAL_CHANNEL]
-        return dr.normalize(mi.Vector3f(*(channel(t.array, 3, k) for k in range(3))))
+        return unit_rows(surfels.channels[SHADING_NORMAL_CHANNEL])
     return surfels.tangent_frame()[2]
+
+
+def unit_or_zero(v: mi.Vector3f) -> mi.Vector3f:
+    """``v`` [P] normalised, 0 where it is (nearly) zero: a blended normal where nothing
+    covers the pixel."""
+    n2 = dr.squared_norm(v)
+    ok = n2 > 1e-12
+    return dr.select(ok, v * dr.rsqrt(dr.select(ok, n2, 1.0)), 0.0)
+
+
+def unit_rows(t: mi.TensorXf) -> mi.Vector3f:
+    """The rows of an [N, 3] tensor as unit vectors [N] (differentiable)."""
+    return dr.normalize(mi.Vector3f(*(channel(t.array, 3, k) for k in range(3))))
 
 
 def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
@@ -141,9 +153,7 @@ def geometry_from_aovs(out: dict, camera: Camera) -> PixelGeometry:
 
     with dr.suspend_grad():
         nimg = out.get(SHADING_NORMAL_CHANNEL, out["normal"])
-        n = mi.Vector3f(*(channel(nimg.array, 3, k) for k in range(3)))
-        n2 = dr.squared_norm(n)
-        n = dr.select(n2 > 1e-12, n * dr.rsqrt(dr.select(n2 > 1e-12, n2, 1.0)), 0.0)
+        n = unit_or_zero(mi.Vector3f(*(channel(nimg.array, 3, k) for k in range(3))))
         pts = unproject_depth(out["depth"], camera)
         o = camera.origin
         alpha = out["alpha"].array

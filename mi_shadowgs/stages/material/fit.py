@@ -1501,7 +1501,7 @@ def _start_normals(fit: MaterialFit) -> tuple[mi.Vector3f, mi.Bool]:
     which of them the phase holds (``normal_hold_planar``: those stage 2 flattened)."""
     if fit.start_normals is None:
         with dr.suspend_grad():
-            n0 = dr.normalize(shading.shading_normals(fit.surfels))
+            n0 = shading.shading_normals(fit.surfels)  # unit
             held = dr.zeros(mi.Bool, fit.surfels.count)
             if fit.config.normal_hold_planar and \
                     shading.SHADING_NORMAL_CHANNEL in fit.surfels.channels:
@@ -1510,11 +1510,6 @@ def _start_normals(fit: MaterialFit) -> tuple[mi.Vector3f, mi.Bool]:
             dr.eval(n0, held)
         fit.start_normals, fit.held_normals = n0, held
     return fit.start_normals, fit.held_normals
-
-
-def unit_rows(t: mi.TensorXf) -> mi.Vector3f:
-    """The rows of an [N, 3] tensor as unit vectors [N] (differentiable)."""
-    return dr.normalize(mi.Vector3f(*(shading.channel(t.array, 3, k) for k in range(3))))
 
 
 def with_surfel_normals(view: TrainView, normals: mi.Vector3f, position: mi.Point3f
@@ -1527,10 +1522,7 @@ def with_surfel_normals(view: TrainView, normals: mi.Vector3f, position: mi.Poin
     n = dr.width(normals)
     facing = face_camera(normals, position, view.camera)
     flat = shading.splat(view.pairs, mi.TensorXf(dr.ravel(facing), (n, 3)))  # [H * W * 3]
-    pn = mi.Vector3f(*(shading.channel(flat, 3, k) for k in range(3)))
-    n2 = dr.squared_norm(pn)
-    ok = n2 > 1e-12
-    pn = dr.select(ok, pn * dr.rsqrt(dr.select(ok, n2, 1.0)), 0.0)
+    pn = shading.unit_or_zero(mi.Vector3f(*(shading.channel(flat, 3, k) for k in range(3))))
     return dataclasses.replace(view, geom=dataclasses.replace(view.geom, normal=pn))
 
 
@@ -1560,7 +1552,8 @@ def normal_step(fit: MaterialFit, state: MaterialState) -> float | None:
     w_light = dr.detach(dr.exp(opt["log_light"])) * solid_angle(config.n_directions)
     lights = shading.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
     start, held = _start_normals(fit)
-    normals = dr.select(held, start, unit_rows(opt[shading.SHADING_NORMAL_CHANNEL]))  # [N]
+    free = shading.unit_rows(opt[shading.SHADING_NORMAL_CHANNEL])  # [N]
+    normals = dr.select(held, start, free)
     position = dr.detach(fit.surfels.position)
     total = mi.Float(0.0)
     for _ in range(config.views_per_step):
@@ -1593,7 +1586,8 @@ def fit_result(fit: MaterialFit, state: MaterialState) -> MaterialResult:
                                            shading.INDIRECT_CHANNEL)})
     if shading.SHADING_NORMAL_CHANNEL in ch:  # the normal phase's, as unit vectors
         start, held = _start_normals(fit)
-        n = dr.detach(dr.select(held, start, unit_rows(ch[shading.SHADING_NORMAL_CHANNEL])))
+        free = shading.unit_rows(ch[shading.SHADING_NORMAL_CHANNEL])
+        n = dr.detach(dr.select(held, start, free))
         out = out.with_channels({shading.SHADING_NORMAL_CHANNEL:
                                  mi.TensorXf(dr.ravel(n), (surfels.count, 3))})
     return MaterialResult(out, LightModel(radiance, active, state.directions,
