@@ -547,19 +547,31 @@ def _fitted_lights_table(path: Path) -> dict | None:
 
 
 SPEED_ERROR_STAGE = "Speed against error"
+# Where ``validation.speed_error --attach`` says which sweep its plots came from.
+SPEED_ERROR_SOURCE = "speed_error/source.json"
 
 
 def speed_error_stage(run: Path) -> dict:
     """The report's speed-against-error section: the PNGs in ``RUN/speed_error/`` (which
-    ``python -m validation.speed_error --attach RUN`` puts there), or a note saying how to
-    make them."""
+    ``python -m validation.speed_error --attach RUN`` puts there), with the sweep they came
+    from, or a note saying how to make them."""
     plots = sorted((run / "speed_error").glob("*.png"))
+    if not plots:
+        note = ("No speed-against-error plots for this run (`python -m validation.speed_error "
+                "--attach RUN` puts them into RUN/speed_error/).")
+    else:
+        note = ("A study of the method, not a measurement of this run: each plot is a sweep "
+                "of settings around cpu-small on the scene its title names")
+        try:
+            source = json.loads((run / SPEED_ERROR_SOURCE).read_text())
+            note += (f"; attached {source.get('date', '?')} from {source.get('sweep', '?')}"
+                     + (f" (`{source['command']}`)" if source.get("command") else "") + ".")
+        except (OSError, ValueError, AttributeError):
+            note += "; put here by hand (no speed_error/source.json)."
     return {"name": SPEED_ERROR_STAGE,
             "figures": [{"title": p.stem, "path": p.relative_to(run).as_posix(), "wide": True}
                         for p in plots],
-            "note": None if plots else "No speed-against-error plots for this run "
-                                       "(`python -m validation.speed_error --attach RUN` puts "
-                                       "them into RUN/speed_error/)."}
+            "note": note}
 
 
 def refresh_speed_error(run: Path) -> bool:

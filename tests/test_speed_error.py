@@ -110,9 +110,12 @@ def test_attached_plots_show_in_the_report(sweep):
     page = run / "report.html"
     assert "src='speed_error/" not in page.read_text()  # none yet: the section's note says how
     assert "validation.speed_error --attach RUN" in page.read_text()
-    se.attach(run, [root / "out" / "speed_error_default.png"])
+    se.attach(run, [root / "out" / "speed_error_default.png"], "the sweep's command")
     html = page.read_text()
     assert "src='speed_error/speed_error_default.png'" in html
+    # the report says the plots are the sweep's, and which sweep
+    assert "not a measurement of this run" in html and str((root / "out").resolve()) in html
+    assert "the sweep&#x27;s command" in html
     assert (run / "speed_error" / "speed_error_default.png").is_file()
     manifest = json.loads((run / ".mi_shadowgs_manifest.json").read_text())
     assert "speed_error/speed_error_default.png" in manifest["files"]
@@ -121,3 +124,18 @@ def test_attached_plots_show_in_the_report(sweep):
         (run / "speed_error" / "speed_error_default.png").read_bytes())
     assert cli_main(["report", str(run)]) == 0
     assert "src='speed_error/extra.png'" in page.read_text()
+    # attaching again writes over its own plot, never over the one put there by hand
+    se.attach(run, [root / "out" / "speed_error_default.png"])
+    hand = (run / "speed_error" / "extra.png").read_bytes()
+    other = root / "other_sweep" / "extra.png"  # a plot of the same name as the hand's
+    other.parent.mkdir()
+    other.write_bytes(b"not the hand's plot")
+    with pytest.raises(SystemExit) as exc:
+        se.attach(run, [root / "out" / "speed_error_default.png", other])
+    assert exc.value.code == 2
+    assert (run / "speed_error" / "extra.png").read_bytes() == hand
+    assert "speed_error/extra.png" not in json.loads(
+        (run / ".mi_shadowgs_manifest.json").read_text())["files"]
+    with pytest.raises(SystemExit) as exc:  # nothing to attach
+        se.attach(run, [])
+    assert exc.value.code == 2

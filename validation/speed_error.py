@@ -20,7 +20,9 @@ runs' own stage timers; scoring the test views (stage 5) is not counted. Every p
 single-metric Pareto fronts, and whether it is on the joint front of time and all three
 metrics) and one PNG per scene (``speed_error_<scene>.png``) are rewritten from every
 finished point after each one;
-``--attach RUN`` puts the plots into a run's ``speed_error/``, where its report shows them.
+``--attach RUN`` puts the plots into a run's ``speed_error/``, where its report shows them
+with the sweep they came from (``speed_error/source.json``); it never writes over a file there
+that the run's manifest does not list.
 """
 
 from __future__ import annotations
@@ -390,14 +392,17 @@ def sweep(out: Path, base: Path | None, scenes: list[str], points: list[str],
     return write_outputs(out, base, scenes, figures, command)
 
 
-def attach(run: Path, plots: list[Path]) -> Path:
+def attach(run: Path, plots: list[Path], command: str = "") -> Path:
     """Copy ``plots`` into ``RUN/speed_error/`` of a ``mi-shadowgs run`` folder, list them in
-    its manifest (so ``--overwrite`` removes them and they are not foreign files), and
-    rewrite its report with them. Returns the report's path."""
+    its manifest (so ``--overwrite`` removes them and they are not foreign files), say where
+    they came from (``SPEED_ERROR_SOURCE``: the sweep's folder and ``command``; the report
+    shows it, since the plots measure the sweep's scenes, not this run), and rewrite its
+    report with them. A file of the same name that the run's manifest does not list (one
+    put there by hand) is not written over. Returns the report's path."""
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
     from mi_shadowgs.io.report import write_report
-    from mi_shadowgs.pipeline import refresh_speed_error
+    from mi_shadowgs.pipeline import SPEED_ERROR_SOURCE, refresh_speed_error
 
     run = Path(run)
     manifest = read_manifest(run)
@@ -405,12 +410,23 @@ def attach(run: Path, plots: list[Path]) -> Path:
             "report.html" not in manifest["files"]:
         fail(f"--attach {run}: not a run folder of `mi-shadowgs run` (no "
              f"{MANIFEST_NAME} listing report.html)")
-    names = [f"speed_error/{p.name}" for p in plots]
+    if not plots:
+        fail(f"--attach {run}: the sweep has no plots yet (no speed_error_<scene>.png)")
+    names = [f"speed_error/{p.name}" for p in plots] + [SPEED_ERROR_SOURCE]
+    for name in names:
+        if (run / name).exists() and name not in manifest["files"]:
+            fail(f"--attach {run}: {run / name} exists and the run did not write it (its "
+                 f"{MANIFEST_NAME} does not list it); move it away first")
     manifest["files"] += [n for n in names if n not in manifest["files"]]
     write_json(run / MANIFEST_NAME, manifest)  # listed before written, as Output does
     (run / "speed_error").mkdir(exist_ok=True)
-    for p, name in zip(plots, names, strict=True):
-        shutil.copyfile(p, run / name)
+    for p in plots:
+        shutil.copyfile(p, run / "speed_error" / p.name)
+    sweep_folder = Path(plots[0]).resolve().parent
+    write_json(run / SPEED_ERROR_SOURCE, {
+        "sweep": str(sweep_folder), "command": command,
+        "date": time.strftime("%Y-%m-%d %H:%M", time.localtime()),
+        "plots": [p.name for p in plots]})
     refresh_speed_error(run)
     return write_report(run)
 
@@ -454,7 +470,7 @@ def main(argv=None) -> int:
     plots = [out / f"speed_error_{s}.png" for s in scenes
              if (out / f"speed_error_{s}.png").is_file()]
     for run in args.attach:
-        print(f"attached to {attach(Path(run), plots)}")
+        print(f"attached to {attach(Path(run), plots, command)}")
     print(markdown(rows, command))
     return 0
 
