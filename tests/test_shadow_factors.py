@@ -71,7 +71,13 @@ def test_the_tool_on_a_finished_run_reports_every_factor_and_the_exact_geometry(
     assert res["shadow_iou"] == pytest.approx(res["recorded_shadow_iou"], abs=1e-6)
     md = (out / "shadow_factors.md").read_text()
     assert "exact geometry" in md and f"{res['exact_geometry_iou']:.3f}" in md
-    assert res["exact_surfels"] == 20000  # the visibility validation's, for 128^2 views
+    # the visibility validation's 20000 for 128^2 views, scaled to the test views' size
+    from mi_shadowgs.dataset.loader import load_cameras
+
+    cam = load_cameras(tmp_path / "data" / "transforms_test.json")[0][1]
+    assert res["exact_surfels_128"] == 20000
+    assert res["exact_surfels"] == round(20000 * cam.width * cam.height / 128 ** 2)
+    assert res["base_surfels"] == round(4000 * cam.width * cam.height / 128 ** 2)
     with pytest.raises(SystemExit) as e:
         shadow_factors.main(["--run", str(tmp_path / "run"), "--data", str(tmp_path / "data"),
                              "--out", str(tmp_path / "none"), "--exact-surfels", "0"])

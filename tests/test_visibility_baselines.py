@@ -307,8 +307,9 @@ def exact_model(tmp_path_factory):
                 config = dataclasses.replace(config, width=40, height=40)
             mp.setitem(table, TINY, config)
         data = msg.generate_dataset(msg.scene_path("default"), root / "data", preset=TINY)
+    # the counts are for the dataset's 40 px views (exact_surfel_config scales from there)
     cfg = dataclasses.replace(vv.ValidationConfig(), n_views=2, object_surfels=3000,
-                              base_surfels=800)
+                              base_surfels=800, resolution=40)
     model = root / "exact" / "geometry" / "model.ply"
     model.parent.mkdir(parents=True)
     save_ply(model, vv.scene_surfels(vv.dataset_scene(data), cfg))
@@ -386,3 +387,26 @@ def test_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
         vv.main(["--out", str(someone_elses_folder), "--quick", "--quiet"])
     assert e.value.code == 2 and "holds no summary.json" in capsys.readouterr().err
     assert untouched(someone_elses_folder)
+
+
+def test_exact_surfels_scale_with_the_views_pixel_count():
+    """The exact geometry keeps its surfels per pixel at every view size: counts given for
+    ``cfg.resolution``^2 views grow with the pixel count (a fixed 80k on the object was too
+    sparse at 512^2, BENCHMARKS.md "Session 26"); at that size they are as given."""
+    import dataclasses
+
+    import validation.visibility as vv
+    from mi_shadowgs.core.camera import Camera
+
+    def cam(w, h):
+        return Camera.look_at(np.array([0.0, 1.0, 4.0]), np.zeros(3), fov_x=0.7, width=w,
+                              height=h)
+
+    cfg = vv.ValidationConfig()  # 20000 / 4000 for 128^2 views
+    same = vv.exact_surfel_config(cfg, cam(128, 128))
+    assert (same.object_surfels, same.base_surfels) == (20000, 4000)
+    big = vv.exact_surfel_config(cfg, cam(512, 256), object_surfels=40000)
+    assert (big.object_surfels, big.base_surfels) == (320000, 32000)
+    small = vv.exact_surfel_config(dataclasses.replace(cfg, resolution=40), cam(20, 20))
+    assert (small.object_surfels, small.base_surfels) == (5000, 1000)
+

@@ -54,11 +54,10 @@ def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.visibility import shadow_maps
     from validation.shadow_factors import method_irradiance
-    from validation.visibility import ValidationConfig, scene_surfels
+    from validation.visibility import ValidationConfig, exact_surfel_config, scene_surfels
 
-    count = max(1, round(surfels_128 * cameras[0].width * cameras[0].height / 128 ** 2))
-    exact = scene_surfels(setup, dataclasses.replace(ValidationConfig(), object_surfels=count,
-                                                     base_surfels=max(1, count // 5)))
+    exact = scene_surfels(setup, exact_surfel_config(ValidationConfig(), cameras[0],
+                                                     surfels_128, max(1, surfels_128 // 5)))
     train = [c for _, c in load_cameras(data / "transforms_train.json")]
     bounds = occluder_bounds(exact, train, 0.98)  # as a run frames its maps
     vcfg = shadow_maps.get_config(preset)

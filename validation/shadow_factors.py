@@ -21,7 +21,8 @@ averaged over the 3! orders of swapping), so the three shares add up to IoU(all 
 
 **Exact geometry**: the method itself on a perfect stage 1 and perfect lights. Surfels
 sampled on the true shapes (``validation.visibility.scene_surfels``; ``--exact-surfels`` on
-the object, more for larger views) give both the receivers (rasterized as the run's) and the
+the object at 128^2 views, scaled with the test views' pixel count) give both the receivers
+(rasterized as the run's) and the
 shadow maps, under the true lights: an estimate of what this view size allows the method.
 
 **Threshold/bias**: the shadow maps' depth bias tau and normal offset are swept with the
@@ -250,11 +251,17 @@ def shapley(scores: dict[tuple, float]) -> dict[str, float]:
 def analyse(run: Path, data: Path, variant: str = "full", views: int | None = None,
             progress: bool = True, exact_surfels: int | None = None) -> dict:
     """The split of one run (see the module's doc); ``exact_surfels``: on the object for the
-    exact geometry (default the visibility validation's, sized for 128^2 views)."""
+    exact geometry at 128^2 views (default the visibility validation's), scaled with the
+    test views' pixel count, the base's too (``visibility.exact_surfel_config``)."""
     from tqdm import tqdm
 
     from mi_shadowgs.dataset.generate import trace_ground_truth
-    from validation.visibility import ValidationConfig, dataset_scene, scene_surfels
+    from validation.visibility import (
+        ValidationConfig,
+        dataset_scene,
+        exact_surfel_config,
+        scene_surfels,
+    )
 
     t0 = time.perf_counter()
     inp = load_inputs(run, data, variant, views)
@@ -281,9 +288,7 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         scores[key] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask)
     base = scores[(False, False, False)]
     full = scores[(True, True, True)]
-    vcfg = ValidationConfig()
-    if exact_surfels is not None:
-        vcfg = dataclasses.replace(vcfg, object_surfels=exact_surfels)
+    vcfg = exact_surfel_config(ValidationConfig(), inp.cameras[0], exact_surfels)
     exact = method_irradiance(scene_surfels(setup, vcfg), inp.cameras, inp.true_dirs,
                               inp.true_irr, inp.bounds, inp.vis_config)
     exact_iou = evaluation.shadow_iou(exact, inp.gt_irr, inp.mask)
@@ -331,7 +336,9 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         "views": len(inp.cameras), "preset": inp.preset,
         "recorded_shadow_iou": inp.recorded_iou, "shadow_iou": base,
         "all_ground_truth_iou": full, "exact_geometry_iou": exact_iou,
-        "exact_surfels": vcfg.object_surfels, "loss": 1.0 - base,
+        "exact_surfels": vcfg.object_surfels, "base_surfels": vcfg.base_surfels,
+        "exact_surfels_128": exact_surfels or ValidationConfig().object_surfels,
+        "loss": 1.0 - base,
         "scores": {"".join("LRO"[i] if k[i] else "-" for i in range(3)): s
                    for k, s in scores.items()},
         "shapley": shares, "single_swap_gain": single, "receiver_split_gain": split,
@@ -411,8 +418,8 @@ def main(argv=None) -> int:
     ap.add_argument("--variant", default="full")
     ap.add_argument("--views", type=int, default=None, help="first N test views only")
     ap.add_argument("--exact-surfels", type=int, default=None,
-                    help="surfels on the object for the exact geometry (default 20000, for "
-                         "128^2 views; scale with the pixel count)")
+                    help="surfels on the object for the exact geometry at 128^2 views "
+                         "(default 20000), scaled with the test views' pixel count")
     ap.add_argument("--table", type=Path, nargs="*", default=None,
                     help="only gather the shadow_factors.json under these folders")
     ap.add_argument("--quiet", action="store_true")

@@ -358,6 +358,19 @@ FACTORS = (("run", "run"),
            ("pixel_ceiling", "pixel-area truth"))
 
 
+def exact_surfel_config(cfg: ValidationConfig, camera, object_surfels: int | None = None,
+                        base_surfels: int | None = None) -> ValidationConfig:
+    """``cfg`` with the exact geometry's surfel counts for views the size of ``camera``: the
+    counts given for ``cfg.resolution``^2 views (``object_surfels``, ``base_surfels``;
+    default ``cfg``'s), scaled with the pixel count, so that the surfels are as many per
+    pixel at every view size (a fixed count is too sparse for larger views)."""
+    scale = camera.width * camera.height / float(cfg.resolution ** 2)
+    obj = cfg.object_surfels if object_surfels is None else object_surfels
+    base = cfg.base_surfels if base_surfels is None else base_surfels
+    return dataclasses.replace(cfg, object_surfels=max(1, round(obj * scale)),
+                               base_surfels=max(1, round(base * scale)))
+
+
 def model_factors(case: Case, data: Path, cfg: ValidationConfig, base: VisibilityConfig,
                   samples: int = 4, exact_surfels: int | None = None) -> dict[str, float]:
     """Where a stage-1 model's shadow IoU (the pixel method, ``base``) is lost. The model's
@@ -368,16 +381,14 @@ def model_factors(case: Case, data: Path, cfg: ValidationConfig, base: Visibilit
     the method renders a model's: what a perfect stage 1 would score at this view size.
     **Pixel-area truth** thresholds the true lit fraction over ``samples``^2 points of each
     pixel (``box_filtered_ground_truth``) at 0.5: what an answer that resolves the scene to
-    the pixel scores against the point-sampled truth. ``exact_surfels``: on the object
-    (default ``cfg.object_surfels``; more for larger views). Returns key -> IoU
-    (``FACTORS``)."""
+    the pixel scores against the point-sampled truth. ``exact_surfels``: on the object for
+    ``cfg.resolution``^2 views (default ``cfg.object_surfels``), scaled with the views' pixel
+    count as the base's are (``exact_surfel_config``). Returns key -> IoU (``FACTORS``)."""
     setup = dataset_scene(data)
     lights, dirs = make_lights(cfg.lights)
     gt = trace_ground_truth(setup, case.cameras, lights)
     true_pts, true_nrm = traced_receivers(gt, case.cameras)
-    if exact_surfels is not None:
-        cfg = dataclasses.replace(cfg, object_surfels=exact_surfels)
-    exact = scene_surfels(setup, cfg)
+    exact = scene_surfels(setup, exact_surfel_config(cfg, case.cameras[0], exact_surfels))
     exact_pts, exact_nrm, exact_fp, _ = rendered_receivers(exact, case.cameras)
     views = range(len(case.cameras))
     model_maps = render_shadow_maps(case.surfels, case.directions, case.bounds, base)
@@ -662,7 +673,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         md += ["### Where each stage-1 model's IoU is lost", "",
                "The pixel method's IoU with the model's receivers (points, normals) and "
                "occluders swapped for the truth's; exact geometry: surfels on the true shapes, "
-               f"{factor_surfels or cfg.object_surfels} on the object, receivers rendered from "
+               f"{factor_surfels or cfg.object_surfels} on the object at {cfg.resolution}^2 "
+               "views (scaled with the views' pixel count), receivers rendered from "
                "them as from a model; pixel-area truth: the true lit fraction over "
                f"{factor_samples}^2 points per pixel, thresholded at 0.5.", "",
                factors_markdown(split), ""]
