@@ -22,8 +22,8 @@ averaged over the 3! orders of swapping), so the three shares add up to IoU(all 
 **Exact geometry**: the method itself on a perfect stage 1 and perfect lights. Surfels
 sampled on the true shapes (``validation.visibility.scene_surfels``; ``--exact-surfels`` on
 the object at 128^2 views, scaled with the test views' pixel count) give both the receivers
-(rasterized as the run's) and the
-shadow maps, under the true lights: an estimate of what this view size allows the method.
+(rasterized as the run's) and the shadow maps, under the true lights: an estimate of what
+this view size allows the method.
 
 **Threshold/bias**: the shadow maps' depth bias tau and normal offset are swept with the
 run's own lights and receivers, and the best setting's gain is reported beside the factors,
