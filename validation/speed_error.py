@@ -420,8 +420,8 @@ def attach(run: Path, plots: list[Path], command: str = "") -> Path:
     manifest["files"] += [n for n in names if n not in manifest["files"]]
     write_json(run / MANIFEST_NAME, manifest)  # listed before written, as Output does
     (run / "speed_error").mkdir(exist_ok=True)
-    for p in plots:
-        shutil.copyfile(p, run / "speed_error" / p.name)
+    for p, name in zip(plots, names, strict=False):  # names ends with the source file
+        shutil.copyfile(p, run / name)
     sweep_folder = Path(plots[0]).resolve().parent
     write_json(run / SPEED_ERROR_SOURCE, {
         "sweep": str(sweep_folder), "command": command,
