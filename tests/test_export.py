@@ -216,7 +216,7 @@ def _run_digests(run):
 
 @pytest.mark.parametrize("case", ["no-stage-4", "unknown-format", "unknown-color",
                                   "out-is-run", "out-in-stage", "foreign-folder", "no-run",
-                                  "moved-dataset", "not-a-run"])
+                                  "moved-dataset", "not-a-run", "out-names-a-file"])
 def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
     run, data = syn.fake_run(tmp_path / "r", stage4=case != "no-stage-4")
     original = run
@@ -240,6 +240,8 @@ def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
         data.rename(tmp_path / "elsewhere")
     elif case == "not-a-run":
         run = data
+    elif case == "out-names-a-file":
+        out = tmp_path / "model.ply"
     code = export(run, "--format", fmt, "--out", out, *extra)
     err = capsys.readouterr().err.strip()
     assert code == 2, err
@@ -248,7 +250,8 @@ def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
               "unknown-color": "'rainbow'", "out-is-run": "is the run folder",
               "out-in-stage": "material", "foreign-folder": "notes.txt",
               "no-run": "run folder not found", "moved-dataset": "--data",
-              "not-a-run": "not a run folder"}[case]
+              "not-a-run": "not a run folder",
+              "out-names-a-file": "names a .ply file, but --out is a folder"}[case]
     assert expect in err
     assert _run_digests(original) == before  # nothing in the run changed
     if case == "foreign-folder":

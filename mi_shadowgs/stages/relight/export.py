@@ -350,8 +350,8 @@ def _check_out(out: Path, run: Path) -> None:
             raise ExportError(f"{out}: is inside {run / first}, which `mi-shadowgs run` wrote; "
                               "choose another folder")
     if out.suffix.lower() in (".ply", ".obj", ".xml"):
-        raise ExportError(f"--out {out}: is a folder (the files get standard names inside); "
-                          "give a folder name")
+        raise ExportError(f"--out {out}: names a {out.suffix} file, but --out is a folder (the "
+                          "files get standard names inside): give a folder name")
 
 
 def _dataset_of(run: Path, data: str | Path | None) -> Path:
