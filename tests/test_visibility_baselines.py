@@ -409,4 +409,3 @@ def test_exact_surfels_scale_with_the_views_pixel_count():
     assert (big.object_surfels, big.base_surfels) == (320000, 32000)
     small = vv.exact_surfel_config(dataclasses.replace(cfg, resolution=40), cam(20, 20))
     assert (small.object_surfels, small.base_surfels) == (5000, 1000)
-

@@ -412,7 +412,8 @@ def attach(run: Path, plots: list[Path], command: str = "") -> Path:
              f"{MANIFEST_NAME} listing report.html)")
     if not plots:
         fail(f"--attach {run}: the sweep has no plots yet (no speed_error_<scene>.png)")
-    names = [f"speed_error/{p.name}" for p in plots] + [SPEED_ERROR_SOURCE]
+    plot_names = [f"speed_error/{p.name}" for p in plots]
+    names = plot_names + [SPEED_ERROR_SOURCE]
     for name in names:
         if (run / name).exists() and name not in manifest["files"]:
             fail(f"--attach {run}: {run / name} exists and the run did not write it (its "
@@ -420,7 +421,7 @@ def attach(run: Path, plots: list[Path], command: str = "") -> Path:
     manifest["files"] += [n for n in names if n not in manifest["files"]]
     write_json(run / MANIFEST_NAME, manifest)  # listed before written, as Output does
     (run / "speed_error").mkdir(exist_ok=True)
-    for p, name in zip(plots, names, strict=False):  # names ends with the source file
+    for p, name in zip(plots, plot_names, strict=True):
         shutil.copyfile(p, run / name)
     sweep_folder = Path(plots[0]).resolve().parent
     write_json(run / SPEED_ERROR_SOURCE, {
