@@ -59,6 +59,10 @@ class RunConfig:
     figure_views: int = 4  # test views shown in the report's figure grid
     material_iterations: int | None = None  # override of the stage-4 preset
     segments: int | None = None  # stage 2's K; None: the segmentation settings choose it
+    # The seed of every stage's random draws: stage 1's initial points, view order and
+    # densification, stage 2's features and K-means, stage 4's view order. Runs at other
+    # seeds measure how far a figure moves by chance alone (validation.pipeline --seed).
+    seed: int = 0
     # Env maps (files, or folders of .exr) of the report's relit previews, beside the
     # dataset's own; e.g. ../shared/data/envmaps. Missing entries are left out.
     preview_envmaps: tuple[str, ...] = ()
@@ -68,6 +72,8 @@ class RunConfig:
             raise ValueError(f"RunConfig.masks must be one of {MASK_SOURCES}, got {self.masks!r}")
         if self.segments is not None and self.segments < 1:
             raise ValueError(f"RunConfig.segments must be >= 1 (or None), got {self.segments}")
+        if self.seed < 0:
+            raise ValueError(f"RunConfig.seed must be >= 0, got {self.seed}")
 
 
 PRESETS = {
@@ -223,7 +229,9 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
                      compare=("dataset",), inputs=[data],
                      parts=("geometry", "segmentation", "material")) as top:
         top.add_part("geometry")
-        geo = geometry.run_geometry(data, run / "geometry", geometry.get_config(config.preset),
+        geo = geometry.run_geometry(data, run / "geometry",
+                                    dataclasses.replace(geometry.get_config(config.preset),
+                                                        seed=config.seed),
                                     preset=config.preset, reuse=True, overwrite=overwrite,
                                     progress=progress, train=train, test=test)
         done("geometry", geo)
@@ -232,15 +240,16 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
             run / "geometry" / "model.ply", data, run / "segmentation",
             segmentation.segmentation_config(
                 config.preset, masks,
-                None if config.segments is None else {"n_segments": config.segments}),
+                {"seed": config.seed} if config.segments is None else
+                {"seed": config.seed, "n_segments": config.segments}),
             masks=masks,
             preset=config.preset, overwrite=overwrite, reuse=True, progress=progress,
             train=train, views=test)
         done("segmentation", seg)
         surfels = load_ply(run / "segmentation" / "model.ply")
         bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
-        overrides = {} if config.material_iterations is None else \
-            {"iterations": config.material_iterations}
+        overrides = {"seed": config.seed} if config.material_iterations is None else \
+            {"seed": config.seed, "iterations": config.material_iterations}
 
         # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
         variants = VARIANTS if config.ablations else {"full": VARIANTS["full"]}

@@ -25,11 +25,12 @@ def fake_runs(monkeypatch):
     calls = []
 
     def run_scene(name, mesh, out, lights="tuned", ablations=True, envmaps=vpipe.ENVMAPS,
-                  preset="cpu-small"):
-        calls.append((name, lights) if preset == "cpu-small" else (name, lights, preset))
-        folder = Path(out) / f"{name}-{lights}"
+                  preset="cpu-small", seed=0):
+        call = (name, lights) if preset == "cpu-small" else (name, lights, preset)
+        calls.append(call + ((seed,) if seed else ()))
+        folder = Path(out) / vpipe.row_name(name, lights, seed)
         folder.mkdir(parents=True, exist_ok=True)
-        row = {**_fake_row(name, lights), "preset": preset}
+        row = {**_fake_row(name, lights), "preset": preset, "seed": seed}
         (folder / "row.json").write_text(json.dumps(row))
         return row
 
@@ -123,3 +124,56 @@ def test_a_dataset_of_another_preset_is_not_reused(tmp_path):
     with pytest.raises(vpipe.PresetMismatch, match="dataset.json"):
         vpipe.check_preset(tmp_path, "cpu-medium")
     assert vpipe.make_dataset("default", None, folder) == folder / "data"  # same preset: kept
+
+
+def test_seeds_run_each_row_again_beside_seed_0(fake_runs, tmp_path):
+    # --seed 0 --seed 2: every row at both seeds, seed 2 in a folder of its own; the table
+    # names each seed's row and adds the spread over seeds.
+    out = tmp_path / "table"
+    assert vpipe.main(["--out", str(out), "--scene", "default", "--lights", "tuned",
+                       "--seed", "2", "--seed", "0"]) == 0
+    assert fake_runs == [("default", "tuned"), ("default", "tuned", 2)]
+    assert (out / "default-tuned-seed2" / "row.json").is_file()
+    md = (out / "pipeline.md").read_text()
+    assert "| default | tuned, seed 2 |" in md and "| default | tuned |" in md
+    assert "Spread over seeds" in md and "| default | tuned | 0,2 |" in md
+    with pytest.raises(SystemExit) as e:
+        vpipe.main(["--out", str(out), "--seed", "-1"])
+    assert e.value.code == 2
+
+
+def test_seed_spread_weights_each_row_once():
+    # hotdog-low at seeds 0 and 1 (shadow IoU 0.4, 0.6), default-tuned at 0 and 1 (0.9, 0.8)
+    # and bunny-tuned at seed 0 alone (0.7): each row's mean over its seeds, the table's mean
+    # at the one seed every row has, and the mean of the rows' means.
+    def row(scene, lights, seed, iou):
+        full = {**dict.fromkeys(vpipe.TABLE_KEYS, 0.5), "shadow_iou": iou}
+        return {"scene": scene, "lights": lights, "seed": seed, "variants": {"full": full}}
+
+    lines = vpipe.seed_spread([row("hotdog", "low", 0, 0.4), row("hotdog", "low", 1, 0.6),
+                               row("default", "tuned", 0, 0.9), row("default", "tuned", 1, 0.8),
+                               row("bunny", "tuned", 0, 0.7)])
+    col = 4 + vpipe.SPREAD_KEYS.index("shadow_iou")
+    cells = {line.split("|")[1].strip(): line.split("|")[col].strip()
+             for line in lines if line.startswith("| ")}
+    assert cells["hotdog"] == "0.5 [0.4, 0.6]" and cells["default"] == "0.85 [0.8, 0.9]"
+    assert cells["bunny"] == "0.7 [0.7, 0.7]"
+    assert cells["**mean all, seed 0** (3)"] == "0.6667"
+    assert "**mean all, seed 1** (3)" not in cells  # bunny has no seed 1
+    assert cells["**mean all of the seed means** (3)"] == "0.6833"
+    assert vpipe.seed_spread([row("hotdog", "low", 0, 0.4)]) == []
+
+
+def test_every_seed_of_a_row_runs_on_its_seed_0_dataset(monkeypatch, tmp_path):
+    # The seeds measure the method's chance alone: a seed's row must not make (or read) a
+    # dataset of its own.
+    made = []
+
+    def make_dataset(name, mesh, folder, *args, **kwargs):
+        made.append(folder)
+        raise RuntimeError("stop after the dataset")
+
+    monkeypatch.setattr(vpipe, "make_dataset", make_dataset)
+    with pytest.raises(RuntimeError, match="stop after"):
+        vpipe.run_scene("default", None, tmp_path, "low", seed=3)
+    assert made == [tmp_path / "default-low"]

@@ -186,6 +186,36 @@ def test_run_does_not_take_a_stage_1_of_other_settings(data, tmp_path, capsys):
     assert _snapshot(run) == before  # and no run manifest or empty folder left behind
 
 
+def test_a_seed_reaches_every_stage_and_a_run_of_another_seed_is_not_reused(
+    finished, data, tmp_path, capsys
+):
+    # A run at seed 1 into seed 0's folder would mix two runs' stages: refused, naming the
+    # seed, and nothing there changes.
+    run = _copy(finished, tmp_path)
+    before = _snapshot(run)
+    capsys.readouterr()
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--seed", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "geometry" in err and "seed: 0 there, 1 now" in err and "--overwrite" in err
+    assert _snapshot(run) == before
+    # In a folder of its own, every stage records the seed and draws from it: stage 1 starts
+    # from other points, so its model differs from seed 0's.
+    other = tmp_path / "seed1"
+    assert cli.main(["run", str(data[0]), "--out", str(other), "--seed", "1", "--no-progress"]) == 0
+    settings = {
+        stage: json.loads((other / stage / MANIFEST_NAME).read_text())["settings"]
+        for stage in ("geometry", "segmentation", "material/full")
+    }
+    assert settings["geometry"]["seed"] == 1
+    assert settings["segmentation"]["config"]["seed"] == 1
+    assert settings["material/full"]["material"]["seed"] == 1
+    seed0 = ply.read_ply_model(finished / "geometry" / "model.ply")
+    seed1 = ply.read_ply_model(other / "geometry" / "model.ply")
+    assert seed0.position.shape != seed1.position.shape or (seed0.position != seed1.position).any()
+    assert cli.main(["run", str(data[0]), "--out", str(other), "--seed", "-1"]) == 2
+    assert "seed must be >= 0" in capsys.readouterr().err
+
+
 def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data, tmp_path, capsys):
     run = _copy(finished, tmp_path)
     model = ply.read_ply_model(run / "geometry" / "model.ply")

@@ -12,12 +12,18 @@ stage 1, stage 2 and the decomposition/relighting metrics per scene and on avera
 
     python -m validation.pipeline --out OUT [--quick] [--scene NAME ...] [--lights PAIR ...]
                                   [--threads N] [--preset cpu-small|cpu-medium|gpu-large]
+                                  [--seed N ...]
 
 ``--quick`` runs the default scene under the tuned pair only. Each scene and pair lives under
 ``OUT/<scene>-<pair>/`` (dataset, run, ``row.json``) and is resumed, not redone, on a second
 call; the tables gather every ``row.json`` under OUT, so two processes with disjoint
 ``--scene``/``--lights`` subsets may share one OUT. One OUT holds one preset: a row or a
 dataset of another preset already there is refused (exit 2), never reused or mixed.
+
+``--seed N`` (repeatable; default 0) runs each row at those seeds of every stage's random
+draws (``RunConfig.seed``), on the one dataset: seed 0 in ``OUT/<scene>-<pair>/``, seed N in
+``OUT/<scene>-<pair>-seed<N>/`` (its run and row only). The table then adds the spread over
+seeds, so that a difference between two tables can be told from chance.
 """
 
 from __future__ import annotations
@@ -134,18 +140,28 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
     return data
 
 
+def row_name(scene: str, lights: str, seed: int = 0) -> str:
+    """A row's folder under the table's OUT, and its name in the tables."""
+    return f"{scene}-{lights}" + (f"-seed{seed}" if seed else "")
+
+
+def _row_label(row: dict) -> str:
+    return row_name(row["scene"], row.get("lights", "tuned"), row.get("seed", 0))
+
+
 def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
               ablations: bool = True, envmaps: str = ENVMAPS, pair: dict | None = None,
-              preset: str = "cpu-small") -> dict:
+              preset: str = "cpu-small", seed: int = 0) -> dict:
     """One scene under one light pair (``LIGHT_PAIRS[lights]``, or ``pair`` named
-    ``lights``) at ``preset`` (its dataset and every stage); its row is also written to
-    ``row.json``."""
+    ``lights``) at ``preset`` (its dataset and every stage) and ``seed`` (every stage's
+    random draws); its row is also written to ``row.json``. Every seed of a row runs on the
+    dataset in the seed-0 folder, made there by whichever seed comes first."""
     import mitsuba as mi
 
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.pipeline import RunConfig, run_pipeline
 
-    folder = out / f"{name}-{lights}"
+    folder = out / row_name(name, lights, seed)
     if (folder / "row.json").is_file():  # finished: its row stands as recorded
         row = json.loads((folder / "row.json").read_text())
         if row_preset(row) != preset:
@@ -153,11 +169,13 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
         return row
     t0 = time.perf_counter()
     pair = LIGHT_PAIRS[lights] if pair is None else pair
-    data = make_dataset(name, mesh, folder, lights, envmaps, preset=preset, pair=pair)
+    data = make_dataset(name, mesh, out / row_name(name, lights), lights, envmaps,
+                        preset=preset, pair=pair)
     t_gen = time.perf_counter() - t0
     # Table 3's ablations under the tuned pair only: the second pair measures the light fit
     ablations = ablations and lights == "tuned"
-    summary = run_pipeline(data, folder / "run", RunConfig(preset=preset, ablations=ablations),
+    summary = run_pipeline(data, folder / "run",
+                           RunConfig(preset=preset, ablations=ablations, seed=seed),
                            progress=True)
     run = folder / "run"
     geo = json.loads((run / "geometry" / "metrics.json").read_text())
@@ -166,7 +184,7 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     variants = {v: json.loads((run / "material" / v / "metrics.json").read_text())
                 for v in ("full", "no_visibility", "no_segmentation")
                 if v == "full" or (run / "material" / v / "metrics.json").is_file()}
-    row = {"scene": name, "lights": lights, "light_pair": pair, "preset": preset,
+    row = {"scene": name, "lights": lights, "seed": seed, "light_pair": pair, "preset": preset,
            "variant": mi.variant(), "commit": CODE_COMMIT, "envmaps": envmaps,
            "generate_s": t_gen, "wall_s": time.perf_counter() - t0,
            "stage_s": {st["name"]: st.get("seconds") for st in summary.get("stages", [])},
@@ -231,7 +249,7 @@ def _commits(rows: list[dict]) -> str:
         commit = str(r.get("commit", "unrecorded"))
         # the short hash, and the checkout's uncommitted changes when there were any
         short = commit[:12] + (" +changes" if commit.endswith("+changes") else "")
-        by.setdefault(short, []).append(f"{r['scene']}-{r.get('lights', 'tuned')}")
+        by.setdefault(short, []).append(_row_label(r))
     if len(by) <= 1:
         return next(iter(by), "n/a")
     return "; ".join(f"{c} ({', '.join(names)})" for c, names in by.items())
@@ -263,7 +281,7 @@ def markdown(rows: list[dict], command: str) -> str:
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         g, s = r["geometry"], r["segmentation"]
-        lines.append(f"| {r['scene']} | {r.get('lights', 'tuned')} | {g['psnr']:.2f} | "
+        lines.append(f"| {r['scene']} | {_lights_cell(r)} | {g['psnr']:.2f} | "
                      f"{g.get('normal_error_median_deg', float('nan')):.2f} | "
                      f"{g['mask_iou']:.4f} | {r['segments']} | {s.get('ari', float('nan')):.3f} "
                      f"| {s.get('miou', float('nan')):.3f} | {_wall(r)} |")
@@ -292,7 +310,7 @@ def markdown(rows: list[dict], command: str) -> str:
             errs = "/".join(f"{e:.1f}" for e in m.get("angular_error_deg") or [])
             cells = fmt(vals)
             cells[col:col] = [errs or "n/a", str(m.get("fitted_lights", "n/a"))]
-            lines.append(f"| {r['scene']} | {r.get('lights', 'tuned')} | {variant} | " +
+            lines.append(f"| {r['scene']} | {_lights_cell(r)} | {variant} | " +
                          " | ".join(cells) + " |")
         summaries = [(f"mean {k}", v, np.nanmean) for k, v in groups.items()]
         if len(groups) > 1:
@@ -311,12 +329,65 @@ def markdown(rows: list[dict], command: str) -> str:
     # Rows evaluated before a change of the evaluation (their metrics.json lacks its key):
     # the columns named are not comparable with rows evaluated since.
     for key, note in EVALUATION_CHANGES:
-        older = [f"{r['scene']}-{r.get('lights', 'tuned')}" for r in rows
+        older = [_row_label(r) for r in rows
                  if (m := r["variants"].get("full")) and m.get("albedo_psnr") is not None
                  and m.get(key) is None]
         if older:
             lines += ["", note.format(", ".join(older))]
+    lines += seed_spread(rows)
     return "\n".join(lines) + "\n"
+
+
+def _lights_cell(row: dict) -> str:
+    seed = row.get("seed", 0)
+    return row.get("lights", "tuned") + (f", seed {seed}" if seed else "")
+
+
+# The columns whose spread over seeds the table gives (the issue's acceptance figures).
+SPREAD_KEYS = ("albedo_psnr", "light_cosine", "shadow_iou", "relight_psnr")
+
+
+def seed_spread(rows: list[dict]) -> list[str]:
+    """Markdown lines of the full variant's spread over seeds, when the rows hold more than
+    one seed: per scene and pair, the mean with [min, max] over its seeds; then the table's
+    mean at each seed that every scene and pair has, and the mean of the rows' seed means
+    (every scene and pair weighted once). Empty for a table of one seed."""
+    seeds = sorted({r.get("seed", 0) for r in rows})
+    if len(seeds) < 2:
+        return []
+    by_row: dict[tuple[str, str], dict[int, dict]] = {}
+    for r in rows:
+        m = r["variants"].get("full")
+        if m is not None:
+            by_row.setdefault((r["scene"], r.get("lights", "tuned")), {})[r.get("seed", 0)] = m
+
+    def value(m: dict, key: str) -> float:
+        return float("nan") if m.get(key) is None else float(m[key])
+
+    lines = ["", "Spread over seeds (full variant): mean [min, max] over each row's seeds:", "",
+             "| scene | lights | seeds | " + " | ".join(SPREAD_KEYS) + " |",
+             "|---|---|---|" + "---|" * len(SPREAD_KEYS)]
+    means = []
+    for (scene, lights), per_seed in by_row.items():
+        cells = []
+        row_means = []
+        for key in SPREAD_KEYS:
+            vals = np.array([value(m, key) for m in per_seed.values()])
+            row_means.append(np.nanmean(vals))
+            cells.append(f"{np.nanmean(vals):.4g} [{np.nanmin(vals):.4g}, "
+                         f"{np.nanmax(vals):.4g}]")
+        means.append(row_means)
+        lines.append(f"| {scene} | {lights} | {','.join(map(str, sorted(per_seed)))} | " +
+                     " | ".join(cells) + " |")
+    common = [s for s in seeds if all(s in per_seed for per_seed in by_row.values())]
+    for s in common:
+        vals = np.nanmean([[value(per_seed[s], k) for k in SPREAD_KEYS]
+                           for per_seed in by_row.values()], axis=0)
+        lines.append(f"| **mean all, seed {s}** ({len(by_row)}) | | {s} | " +
+                     " | ".join(f"{v:.4g}" for v in vals) + " |")
+    lines.append(f"| **mean all of the seed means** ({len(by_row)}) | | | " +
+                 " | ".join(f"{v:.4g}" for v in np.nanmean(means, axis=0)) + " |")
+    return lines
 
 
 def gather_rows(out_dir: Path) -> list[dict]:
@@ -325,7 +396,7 @@ def gather_rows(out_dir: Path) -> list[dict]:
     order = {name: i for i, name in enumerate(SCENES)}
     pairs = {name: i for i, name in enumerate(LIGHT_PAIRS)}
     return sorted(rows, key=lambda r: (pairs.get(r.get("lights", "tuned"), 99),
-                                       order.get(r["scene"], 99)))
+                                       order.get(r["scene"], 99), r.get("seed", 0)))
 
 
 def check_preset(out_dir: Path, preset: str) -> None:
@@ -344,7 +415,7 @@ def check_preset(out_dir: Path, preset: str) -> None:
 def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
         command: str = "python -m validation.pipeline", lights: list[str] | None = None,
         ablations: bool = True, order: str = "pair", envmaps: str = ENVMAPS,
-        preset: str = "cpu-small") -> dict:
+        preset: str = "cpu-small", seeds: list[int] | None = None) -> dict:
     """validation.run_all entry."""
     from mi_shadowgs.io.atomic import write_json, write_text
 
@@ -361,8 +432,10 @@ def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
     # order "pair": the whole table under one pair first; "scene": both pairs of a scene
     jobs = [(s, p) for p in pairs for s in chosen] if order == "pair" else \
         [(s, p) for s in chosen for p in pairs]
-    for s, pair in jobs:
-        run_scene(s, avail[s], out_dir, pair, ablations, envmaps, preset=preset)
+    for seed in seeds or [0]:
+        for s, pair in jobs:
+            run_scene(s, avail[s], out_dir, pair, ablations, envmaps, preset=preset,
+                      seed=seed)
     rows = gather_rows(out_dir)
     md = markdown(rows, command)
     write_json(out_dir / "pipeline.json", rows)
@@ -394,6 +467,9 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", choices=TABLE_PRESETS, default="cpu-small",
                     help="the datasets' and every stage's preset (default cpu-small; one "
                          "preset per --out)")
+    ap.add_argument("--seed", type=int, action="append", default=None,
+                    help="run every row at this seed of every stage's random draws "
+                         "(repeatable; default 0); the table adds the spread over seeds")
     ap.add_argument("--table-only", action="store_true",
                     help="only gather the finished rows under --out into the tables")
     args = ap.parse_args(argv)
@@ -410,9 +486,12 @@ def main(argv=None) -> int:
         write_text(Path(args.out) / "pipeline.md", md)
         print(md)
         return 0
+    if any(s < 0 for s in args.seed or []):
+        fail(f"--seed must be >= 0, got {args.seed}")
     try:
         res = run(Path(args.out), args.quick, args.scene, command, args.lights,
-                  not args.no_ablations, args.order, args.envmap, args.preset)
+                  not args.no_ablations, args.order, args.envmap, args.preset,
+                  sorted(set(args.seed or [0])))
     except PresetMismatch as e:
         fail(str(e))
     print(res["markdown"])

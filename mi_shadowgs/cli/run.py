@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "ids, or without ids the number of colour labels)")
     parser.add_argument("--ablations", action="store_true", default=None,
                         help="also fit the w/o visibility and w/o segmentation variants")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of every stage's random draws (default 0); a run at "
+                             "another seed shows how far its figures move by chance")
     parser.add_argument("--material-iterations", type=int, default=None,
                         help="override the stage-4 iteration count")
     parser.add_argument("--preview-envmap", action="append", default=None, metavar="PATH",
@@ -54,6 +57,8 @@ def run(args) -> int:
         overrides["ablations"] = True
     if args.material_iterations is not None:
         overrides["material_iterations"] = args.material_iterations
+    if args.seed is not None:
+        overrides["seed"] = args.seed
     envmaps = args.preview_envmap
     if envmaps is None and os.environ.get("MI_SHADOWGS_ENVMAPS"):
         envmaps = [e for e in os.environ["MI_SHADOWGS_ENVMAPS"].split(os.pathsep) if e]

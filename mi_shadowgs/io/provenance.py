@@ -300,6 +300,7 @@ class Output:
         self.folder = folder
         self.command = command
         self.reused = manifest is not None  # an existing output of the same provenance
+        self._provenance = provenance
         self._manifest = manifest or {"format": FORMAT_VERSION, "command": command,
                                       "complete": False, **provenance.to_json(),
                                       "files": [], "parts": []}
@@ -346,8 +347,6 @@ class Output:
                 raise ProvenanceError(f"{folder}: " + "; ".join(diff) +
                                       ". Pass --overwrite to start over (it removes only the "
                                       "files mi-shadowgs listed there)")
-            for key in ("dataset", "inputs", "settings"):
-                manifest[key] = provenance.to_json()[key]  # e.g. a run's new ablations
         return cls(folder, command, provenance, manifest)
 
     @property
@@ -383,7 +382,12 @@ class Output:
         self._save()
 
     def finish(self) -> None:
-        """Mark the output complete: every listed file is written."""
+        """Mark the output complete: every listed file is written. A reused output takes
+        this call's provenance only now (e.g. a run's new ablations, where only its dataset
+        is compared): a call that fails first leaves the manifest as the earlier call made it.
+        """
+        self._manifest.update({k: self._provenance.to_json()[k]
+                               for k in ("dataset", "inputs", "settings")})
         self._manifest["complete"] = True
         self._save()
 
