@@ -458,6 +458,22 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
     np.testing.assert_allclose(image(ch), before, rtol=1e-5, atol=1e-7)
 
 
+def test_albedo_scale_is_not_set_by_a_few_percent_of_the_support_at_the_box():
+    """The ficus at stage-1 seed 1 (session 30), per segment: support share and brightest
+    albedo channel. The pot and the base's under-layer, lit in the model by the indirect term
+    alone, ran to the box with 1.65% of the support; the hold must follow the base (91%),
+    not them: at the 0.99 quantile they held it and the light ran 5x too bright."""
+    shares = np.array([0.9125, 0.0207, 0.0209, 0.0091, 0.0295, 0.0074])
+    top = np.array([0.135, 0.011, 0.007, 0.863, 0.014, 0.963])
+    counts = np.array([1500, 250, 270, 170, 270, 440])  # surfels per segment
+    albedo = np.repeat(top, counts)[:, None] * np.ones(3)
+    support = np.repeat(shares / counts, counts)
+    cfg = material_fit.get_config("cpu-small")
+    assert material_fit.albedo_scale_factor(albedo, support, cfg) == pytest.approx(0.9 / 0.135)
+    old = dataclasses.replace(cfg, albedo_scale_quantile=0.99)
+    assert material_fit.albedo_scale_factor(albedo, support, old) == pytest.approx(0.9 / 0.863)
+
+
 def test_albedo_scale_is_set_by_what_the_views_see():
     """A bright segment no view supervises (surfels under the base) must not set the
     albedo scale: the quantile is weighted by each surfel's blending weight in the views."""
