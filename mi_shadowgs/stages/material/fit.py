@@ -249,7 +249,7 @@ class MaterialConfig:
     # misses (in its shadow maps' shadow wrongly, or a layer under the base) get their albedo
     # from the indirect term alone and run to the box at 1. On the ficus at another stage-1
     # seed such parts held 1.65% of the support: at 0.99 they set the scale, the base fell to
-    # 0.135 and the light rose 5x (albedo 18.0 -> 27.9 dB, relight 23.0 -> 29.1 dB at 0.95).
+    # 0.135 and the light rose 7x (albedo 18.0 -> 27.9 dB, relight 23.0 -> 29.1 dB at 0.95).
     # The twelve table rows at 0.95: shadow IoU within 0.004 but the ficus's two -0.02,
     # albedo and relight +0.06 / +0.10 dB on the mean (BENCHMARKS.md, "Session 30").
     albedo_scale: float = 0.0
