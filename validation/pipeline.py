@@ -343,8 +343,10 @@ def _lights_cell(row: dict) -> str:
     return row.get("lights", "tuned") + (f", seed {seed}" if seed else "")
 
 
-# The columns whose spread over seeds the table gives (the acceptance figures).
+# The columns whose spread over seeds the table gives (the acceptance figures), and
+# their headers.
 SPREAD_KEYS = ("albedo_psnr", "light_cosine", "shadow_iou", "relight_psnr")
+SPREAD_HEADERS = ("albedo PSNR", "light cos", "shadow IoU", "relit PSNR")
 
 
 def seed_spread(rows: list[dict]) -> list[str]:
@@ -365,7 +367,7 @@ def seed_spread(rows: list[dict]) -> list[str]:
         return float("nan") if m.get(key) is None else float(m[key])
 
     lines = ["", "Spread over seeds (full variant): mean [min, max] over each row's seeds:", "",
-             "| scene | lights | seeds | " + " | ".join(SPREAD_KEYS) + " |",
+             "| scene | lights | seeds | " + " | ".join(SPREAD_HEADERS) + " |",
              "|---|---|---|" + "---|" * len(SPREAD_KEYS)]
     means = []
     for (scene, lights), per_seed in by_row.items():
