@@ -460,8 +460,8 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
 
 def test_albedo_scale_is_not_set_by_a_few_percent_of_the_support_at_the_box():
     """The ficus at stage-1 seed 1 (session 30), per segment: support share and brightest
-    albedo channel. The pot and the base's under-layer, lit in the model by the indirect term
-    alone, ran to the box with 1.65% of the support; the hold must follow the base (91%),
+    albedo channel. Two small segments around the pot, with little direct light in the
+    model, ran to the box with 1.65% of the support; the hold must follow the base (91%),
     not them: at the 0.99 quantile they held it and the light ran 7x too bright."""
     shares = np.array([0.9125, 0.0207, 0.0209, 0.0091, 0.0295, 0.0074])
     top = np.array([0.135, 0.011, 0.007, 0.863, 0.014, 0.963])
