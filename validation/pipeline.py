@@ -23,7 +23,9 @@ dataset of another preset already there is refused (exit 2), never reused or mix
 ``--seed N`` (repeatable; default 0) runs each row at those seeds of every stage's random
 draws (``RunConfig.seed``), on the one dataset: seed 0 in ``OUT/<scene>-<pair>/``, seed N in
 ``OUT/<scene>-<pair>-seed<N>/`` (its run and row only). The table then adds the spread over
-seeds, so that a difference between two tables can be told from chance.
+seeds, so that a difference between two tables can be told from chance. The seeds of one row
+share its dataset: give them to one process, or start a second process on other seeds of the
+row only once the first has written the dataset.
 """
 
 from __future__ import annotations
