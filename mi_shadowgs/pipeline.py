@@ -236,20 +236,21 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
                                     progress=progress, train=train, test=test)
         done("geometry", geo)
         top.add_part("segmentation")
+        seg_overrides = {"seed": config.seed}
+        if config.segments is not None:
+            seg_overrides["n_segments"] = config.segments
         seg = segmentation.run_segmentation(
             run / "geometry" / "model.ply", data, run / "segmentation",
-            segmentation.segmentation_config(
-                config.preset, masks,
-                {"seed": config.seed} if config.segments is None else
-                {"seed": config.seed, "n_segments": config.segments}),
+            segmentation.segmentation_config(config.preset, masks, seg_overrides),
             masks=masks,
             preset=config.preset, overwrite=overwrite, reuse=True, progress=progress,
             train=train, views=test)
         done("segmentation", seg)
         surfels = load_ply(run / "segmentation" / "model.ply")
         bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
-        overrides = {"seed": config.seed} if config.material_iterations is None else \
-            {"seed": config.seed, "iterations": config.material_iterations}
+        overrides = {"seed": config.seed}
+        if config.material_iterations is not None:
+            overrides["iterations"] = config.material_iterations
 
         # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
         variants = VARIANTS if config.ablations else {"full": VARIANTS["full"]}

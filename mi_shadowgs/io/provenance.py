@@ -386,8 +386,8 @@ class Output:
         this call's provenance only now (e.g. a run's new ablations, where only its dataset
         is compared): a call that fails first leaves the manifest as the earlier call made it.
         """
-        self._manifest.update({k: self._provenance.to_json()[k]
-                               for k in ("dataset", "inputs", "settings")})
+        now = self._provenance.to_json()
+        self._manifest.update({k: now[k] for k in ("dataset", "inputs", "settings")})
         self._manifest["complete"] = True
         self._save()
 
