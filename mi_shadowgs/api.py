@@ -89,9 +89,9 @@ def relight(surfels, cameras, lights, bounds, specular: bool = True, preset: str
     from mi_shadowgs.stages.relight import get_config as relight_config
     from mi_shadowgs.stages.visibility import get_config as visibility_config
 
-    model = RelightModel(surfels, specular, True)
-    return relight_views(model, cameras, lights, bounds, relight_config(preset),
-                         visibility_config(preset))
+    vis_config = visibility_config(preset)
+    model = RelightModel(surfels, specular, True, receiver_band=vis_config.receiver_band)
+    return relight_views(model, cameras, lights, bounds, relight_config(preset), vis_config)
 
 
 __all__ = [

@@ -30,13 +30,17 @@ def frames(quat_wxyz):  # [N, 4] -> three [N, 3] world axes (t_u, t_v, normal)
     return m[:, :, 0], m[:, :, 1], m[:, :, 2]
 
 
-def render(camera, position, log_scale, rotation, opacity_logit, colors, cfg, margin=1e-4):
+def render(camera, position, log_scale, rotation, opacity_logit, colors, cfg, margin=1e-4,
+           surface_band=None):
     """Images of the raw parameters (float64 numpy) seen by ``camera``.
 
     position [N, 3]; log_scale [N, 2]; rotation [N, 4] wxyz; opacity_logit [N];
     colors [N, C]; ``cfg`` a RasterConfig (only its numbers are read).
     Returns dict: color [H, W, C], alpha, depth, median_depth, distortion [H, W],
-    normal [H, W, 3], count [H, W], unsure [H, W] bool.
+    normal [H, W, 3], count [H, W], unsure [H, W] bool. With ``surface_band`` also the
+    receivers on the median surface (``shading.surface_aovs``): surface_depth [H, W],
+    surface_normal [H, W, 3], surface_unsure [H, W] bool, and reordered [H, W] bool (the
+    pixel's pairs lie in another order along its ray than in compositing order).
     """
     H, W = camera.height, camera.width
     p = np.asarray(position, np.float64)
@@ -138,8 +142,44 @@ def render(camera, position, log_scale, rotation, opacity_logit, colors, cfg, ma
     out["distortion"] = np.sum(w * (m * m * excl + m2 - 2 * m * m1), axis=1).reshape(H, W)
     out["count"] = contrib.sum(axis=1).reshape(H, W).astype(np.float64)
     out["unsure"] = unsure.reshape(H, W)
+    if surface_band is not None:
+        facing = (nrm * flip[:, None])[order]
+        out.update(_surface(camera, w, dep, facing, surface_band, margin, H, W))
     out["_structure"] = (keep, use3d & keep, contrib, contrib & (T > 0.5))
     return out
+
+
+def _surface(camera, w, dep, facing, band, margin, H, W):
+    """Per pixel: the weights summed along the ray (pairs sorted by their hit depth) reach
+    0.5 at the median pair (the last pair where they never do); the pairs whose depth lies
+    within ``band`` pixel footprints of the median's are blended with their weights."""
+    depth = np.zeros(len(w))
+    normal = np.zeros((len(w), 3))
+    unsure = np.zeros(len(w), bool)
+    reordered = np.zeros(len(w), bool)
+    for i in range(len(w)):
+        live = np.nonzero(w[i] > 0)[0]
+        if not len(live):
+            continue
+        by_ray = live[np.argsort(dep[i, live], kind="stable")]
+        reordered[i] = not np.array_equal(by_ray, live)
+        cum = np.cumsum(w[i, by_ray])
+        k = int(np.argmax(cum >= 0.5)) if cum[-1] >= 0.5 else len(by_ray) - 1
+        z_med = dep[i, by_ray[k]]
+        foot = camera.ortho_width / camera.width if camera.is_ortho else z_med / camera.focal
+        reach = band * foot
+        gap = np.abs(dep[i, live] - z_med)
+        near = live[gap <= reach]
+        depth[i] = np.sum(w[i, near] * dep[i, near]) / np.sum(w[i, near])
+        normal[i] = w[i, near] @ facing[near]
+        # float32 may take the other branch: a sum at 0.5, a gap at the band's edge, or
+        # two hits at (nearly) the same depth, whose order along the ray is then a tie.
+        zs = np.sort(dep[i, live])
+        unsure[i] = np.any(np.abs(cum - 0.5) <= margin) or \
+            np.any(np.abs(gap - reach) <= margin * max(reach, 1e-12)) or \
+            (len(zs) > 1 and np.min(np.diff(zs)) <= 1e-5 * abs(zs).max())
+    return {"surface_depth": depth.reshape(H, W), "surface_normal": normal.reshape(H, W, 3),
+            "surface_unsure": unsure.reshape(H, W), "reordered": reordered.reshape(H, W)}
 
 
 def structure_equal(a, b) -> bool:

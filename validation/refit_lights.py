@@ -96,7 +96,8 @@ def settle_only(run: Path, data: Path) -> dict:
     pick = np.unique(np.linspace(0, len(train.views) - 1, cfg.refine_views).round()
                      .astype(int))
     views = [mf.prepare_view(model, train.views[i].camera, train.views[i].image,
-                             train.views[i].mask, cfg) for i in pick]
+                             train.views[i].mask, cfg,
+                             receiver_band=vcfg.receiver_band) for i in pick]
     ch = {k: model.channels[k] for k in ("albedo", "roughness", "metallic", "indirect_sh")}
 
     def render(d, resolution=None):

@@ -7,8 +7,9 @@ is swapped here for the ground truth of the dataset's scene (reloaded and ray-tr
 Mitsuba, as ``validation.visibility`` does):
 
 - **lights** (L): the fitted directions and irradiance (``light.json``) -> the true ones;
-- **receivers** (R): the points and normals rasterized from the surfels (median depth, as
-  stage 5) -> the ray-traced ground-truth depth and normals of each pixel;
+- **receivers** (R): the points and normals rasterized from the surfels (as stage 5's,
+  ``VisibilityConfig.receiver_band``) -> the ray-traced ground-truth depth and normals of
+  each pixel;
 - **occluders** (O): the surfels' shadow maps -> Mitsuba's ``ray_test`` toward each light
   through the true scene, from the same receiver points (from a surfel point the ray starts
   ``TRACE_LIFT`` pixel footprints off the surface along n and l: such points lie up to a
@@ -153,13 +154,15 @@ class Receivers:
     normals_np: list  # [P, 3] float64
 
 
-def surfel_receivers(model, cameras) -> Receivers:
-    """Stage 5's receivers: the surfels' rasterized median depth and normals."""
+def surfel_receivers(model, cameras, receiver_band: float = 0.0) -> Receivers:
+    """Stage 5's receivers: the surfels' rasterized depth and normals, blended over the
+    pixel or over its median surface (``VisibilityConfig.receiver_band``)."""
     from mi_shadowgs.core import shading
 
     pts, nrm, foot, nnp = [], [], [], []
     for cam in cameras:
-        geom = shading.pixel_geometry(model, cam)  # the shading normals where the model has them
+        # the shading normals where the model has them
+        geom = shading.pixel_geometry(model, cam, surface_band=receiver_band)
         pts.append(geom.points)
         nrm.append(geom.normal)
         foot.append(geom.footprint)
@@ -229,7 +232,7 @@ def method_irradiance(surfels, cameras, dirs: np.ndarray, irr: np.ndarray, bound
     """The method's white direct irradiance [V, H, W] with ``surfels`` as both receivers
     (rasterized as stage 5's) and occluders (their shadow maps), lights ``dirs`` [L, 3] of
     irradiance ``irr`` [L]: the run's model, or surfels on the true shapes."""
-    rec = surfel_receivers(surfels, cameras)
+    rec = surfel_receivers(surfels, cameras, vcfg.receiver_band)
     vis = map_visibility(surfels, rec, dirs, bounds, vcfg)
     return irradiance(rec, vis, dirs, irr, (cameras[0].height, cameras[0].width))
 
@@ -271,7 +274,8 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     gt = trace_ground_truth(setup, inp.cameras, [
         Light(f"t{k}", tuple(d.tolist()), (1.0, 1.0, 1.0), 0.0, 0.0)
         for k, d in enumerate(inp.true_dirs)])
-    recs = {False: surfel_receivers(inp.model, inp.cameras), True: gt_receivers(gt, inp.cameras)}
+    recs = {False: surfel_receivers(inp.model, inp.cameras, inp.vis_config.receiver_band),
+            True: gt_receivers(gt, inp.cameras)}
     scores, vis_cache = {}, {}
     combos = list(itertools.product((False, True), repeat=3))
     for key in tqdm(combos, desc=f"{inp.name}: factors", disable=not progress):

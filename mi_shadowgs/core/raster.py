@@ -393,7 +393,7 @@ _PAIR_FIELDS = ("xc", "yc", "a0", "a1", "b0", "b1", "t20", "t21", "t22", "z0", "
                 "opacity")
 
 
-def _depth_key(z: mi.Float) -> mi.UInt32:
+def depth_key(z: mi.Float) -> mi.UInt32:
     """Order-preserving uint of a float (negatives too)."""
     b = dr.reinterpret_array(mi.UInt32, z)
     return dr.select(b >= 0x80000000, ~b, b | 0x80000000)
@@ -432,7 +432,7 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
     # depths: equal depths keep surfel order), then a stable sort by pixel alone: each
     # pixel's pairs in (depth, surfel) order, as a sort of 64-bit (pixel, depth) keys over
     # the pairs would leave them, with 32-bit keys (3 radix passes over P instead of 6).
-    by_depth = dr.argsort(_depth_key(g.z2))  # [N]
+    by_depth = dr.argsort(depth_key(g.z2))  # [N]
     pos, local = _expand(dr.gather(mi.UInt32, count, by_depth), total)
     sid = dr.gather(mi.UInt32, by_depth, pos)
     # max(., 1): masked-off tail lanes of a gather read 0, and x86 integer division by 0
@@ -456,7 +456,7 @@ def _build_pairs(g: _Proj, width: int, height: int, config: RasterConfig,
     return sid, pix
 
 
-def _segment_exclusive(x: mi.Float64, pix: mi.UInt32, first: mi.Bool, npix: int):
+def segment_exclusive_sum(x: mi.Float64, pix: mi.UInt32, first: mi.Bool, npix: int):
     """Exclusive prefix sum of ``x`` restarted at each pixel's first pair (Float64)."""
     cs = dr.prefix_sum(x)
     base = dr.zeros(mi.Float64, npix)
@@ -489,7 +489,7 @@ def _scan(alpha: mi.Float, pix: mi.UInt32, npix: int, config: RasterConfig) -> _
     first = (ar == 0) | (prev_pix != pix)
     last = (ar == last_idx) | (next_pix != pix)
     a64 = mi.Float64(alpha)
-    t_before = dr.exp(_segment_exclusive(dr.log(1.0 - a64), pix, first, npix))
+    t_before = dr.exp(segment_exclusive_sum(dr.log(1.0 - a64), pix, first, npix))
     t_after = t_before * (1.0 - a64)
     # 2DGS stops a pixel before the splat that would take T below transmittance_min.
     contrib = dr.detach(t_after) >= config.transmittance_min
@@ -503,12 +503,15 @@ def _centres(pix: mi.UInt32, width: int, r0: int) -> tuple[mi.Float, mi.Float]:
     return mi.Float(pix - y * width) + 0.5, mi.Float(y + dr.opaque(mi.UInt32, r0)) + 0.5
 
 
-def splat_pairs(surfels: Surfels, camera: Camera, config: RasterConfig = RasterConfig()
-                ) -> tuple[mi.UInt32, mi.UInt32, mi.Float]:
+def splat_pairs(surfels: Surfels, camera: Camera, config: RasterConfig = RasterConfig(),
+                with_depth: bool = False) -> tuple:
     """The contributing (surfel id, pixel id) pairs of a view and their weights T_i alpha_i,
     detached, in compositing order: exactly what ``rasterize`` blends. Stages whose
     geometry is fixed compute them once per view and reuse them (``shading.splat``).
-    Built in bands of rows when the whole list would not fit the memory budget."""
+    ``with_depth``: also each pair's z-depth (the ray-splat intersection that "depth" and
+    "median_depth" blend). Built in bands of rows when the whole list would not fit the
+    memory budget."""
+    n_out = 4 if with_depth else 3
     parts = []
     with dr.suspend_grad():
         g = _project(surfels, camera, config).detach()
@@ -522,18 +525,19 @@ def splat_pairs(surfels: Surfels, camera: Camera, config: RasterConfig = RasterC
                 continue
             sid, pix = pairs
             q = g.gather(sid, _PAIR_FIELDS)
-            alpha, _, _ = _pair_eval(q, *_centres(pix, w, r0), config)
+            alpha, _, depth = _pair_eval(q, *_centres(pix, w, r0), config)
             weight = mi.Float(_scan(alpha, pix, (r1 - r0) * w, config).w64)
             keep = dr.compress(weight > 0)
-            sid, pix, weight = (dr.gather(type(x), x, keep) for x in (sid, pix, weight))
-            pix = pix + dr.opaque(mi.UInt32, r0 * w)
-            dr.eval(sid, pix, weight)
-            parts.append((sid, pix, weight))
+            kept = (sid, pix, weight, depth)[:n_out]
+            kept = [dr.gather(type(x), x, keep) for x in kept]
+            kept[1] = kept[1] + dr.opaque(mi.UInt32, r0 * w)
+            dr.eval(*kept)
+            parts.append(tuple(kept))
     if not parts:
-        return mi.UInt32(), mi.UInt32(), mi.Float()
+        return (mi.UInt32(), mi.UInt32(), mi.Float(), mi.Float())[:n_out]
     if len(parts) == 1:
         return parts[0]
-    return tuple(dr.concat([p[k] for p in parts]) for k in range(3))
+    return tuple(dr.concat([p[k] for p in parts]) for k in range(n_out))
 
 
 def pair_counts(surfels: Surfels, camera: Camera, config: RasterConfig = RasterConfig()
@@ -719,8 +723,8 @@ def _render_rows(g: _Proj, gd: _Proj, r0: int, r1: int, W: int, H: int, chans: d
     if "distortion" in aovs:
         m = _distortion_m(depth, config)
         wm = w64 * m
-        m1 = _segment_exclusive(wm, pix, first, npix)
-        m2 = _segment_exclusive(wm * m, pix, first, npix)
+        m1 = segment_exclusive_sum(wm, pix, first, npix)
+        m2 = segment_exclusive_sum(wm * m, pix, first, npix)
         acc = 1.0 - t_before  # = sum of the weights in front (all of them contribute)
         d = w64 * (m * m * acc + m2 - 2.0 * m * m1)
         out["distortion"] = accumulate([mi.Float(d)], 1)

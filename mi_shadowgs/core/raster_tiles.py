@@ -50,7 +50,6 @@ from mi_shadowgs.core.raster import (
     RasterMemoryError,
     _boxes,
     _budget_text,
-    _depth_key,
     _distortion_m,
     _expand,
     _memory,
@@ -58,6 +57,7 @@ from mi_shadowgs.core.raster import (
     _pair_kept,
     _Proj,
     _total,
+    depth_key,
 )
 
 # Projected per-surfel fields the compositing loops read: the pair maths plus the normal.
@@ -148,7 +148,7 @@ def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
     # Surfels front to back (stable: equal depths keep surfel order, as in the pair list),
     # their pairs laid out in that order, then a stable sort by tile: two 32-bit sorts
     # (N and TP keys) instead of one of 64-bit (tile, depth) keys over TP.
-    by_depth = dr.argsort(_depth_key(gd.z2))  # [N]
+    by_depth = dr.argsort(depth_key(gd.z2))  # [N]
     pos, local = _expand(dr.gather(mi.UInt32, ntiles, by_depth), total)  # [TP]
     sid = dr.gather(mi.UInt32, by_depth, pos)
     w = dr.maximum(dr.gather(mi.UInt32, tw, sid), 1)  # max: see _expand

@@ -77,6 +77,9 @@ class PixelGeometry:
     view: mi.Vector3f  # unit, toward the camera
     points: mi.Point3f  # world
     footprint: mi.Float  # world size of each pixel at its depth (visibility's receiver offset)
+    # With receivers on the median surface (``surface_aovs``): the pairs that blend them,
+    # whose weights are 0 off that surface (what a differentiable normal must splat).
+    surface_pairs: SplatPairs | None = None
 
 
 def splat_pairs(surfels: Surfels, camera: Camera,
@@ -106,14 +109,97 @@ def channel(flat: mi.Float, c: int, k: int) -> mi.Float:
     return dr.gather(mi.Float, flat, dr.arange(mi.UInt32, n) * c + k)
 
 
-def pixel_geometry(surfels: Surfels, camera: Camera,
-                   config: RasterConfig = DEFAULT_RASTER) -> PixelGeometry:
+def pixel_geometry(surfels: Surfels, camera: Camera, config: RasterConfig = DEFAULT_RASTER,
+                   surface_band: float = 0.0) -> PixelGeometry:
     """Rasterized alpha, expected depth and normals of a view, plus points and view dirs
-    (the normals of ``SHADING_NORMAL_CHANNEL`` where the model has it)."""
+    (the normals of ``SHADING_NORMAL_CHANNEL`` where the model has it). ``surface_band`` > 0:
+    the depth and normals of the pixel's median surface instead (``surface_aovs``)."""
     with dr.suspend_grad():
         out = rasterize(surfels, camera, geometry_channels(surfels, camera),
                         aovs=("alpha", "depth", "normal"), config=config)
-    return geometry_from_aovs(out, camera)
+        pairs = with_surface_aovs(out, surfels, camera, config, surface_band)
+    return dataclasses.replace(geometry_from_aovs(out, camera), surface_pairs=pairs)
+
+
+def with_surface_aovs(out: dict, surfels: Surfels, camera: Camera, config: RasterConfig,
+                      surface_band: float) -> SplatPairs | None:
+    """Replace a render's "depth" and "normal" (and shading normals) in ``out`` by the
+    median surface's when ``surface_band`` > 0 (``surface_aovs``; returns its pairs); else
+    leave them (returns None)."""
+    if surface_band <= 0:
+        return None
+    pairs, aovs = surface_aovs(surfels, camera, surface_band, config)
+    out.update(aovs)
+    out.pop(SHADING_NORMAL_CHANNEL, None)  # surface_aovs blends the shading normals
+    return pairs
+
+
+def surface_aovs(surfels: Surfels, camera: Camera, band: float,
+                 config: RasterConfig = DEFAULT_RASTER) -> tuple[SplatPairs, dict]:
+    """A view's receivers on each pixel's median surface: (the pairs with weights T_i
+    alpha_i on that surface and 0 elsewhere, {"depth" [H, W, 1], "normal" [H, W, 3]}); the
+    normal is the shading normals facing the camera, blended with those weights and not
+    renormalised. A pixel's median surface is its splats whose ray intersection lies within
+    ``band`` pixel footprints of the median one's, where the weights, summed front to back
+    by intersection depth, reach 0.5 (the last splat where they never do).
+
+    The alpha-blended depth and normal of ``rasterize`` mix every surface a pixel overlaps:
+    over an object's edge a base pixel's normal bends toward the object's and its point
+    floats between them, and over leaves smaller than a pixel the point lies between leaves.
+    Stage 5 scores the shadows of the surface at the pixel's centre. The compositing order
+    (centre depths) is not the order along the ray for tilted splats, hence the re-sort:
+    taken in compositing order, the median lost a third of the gain (BENCHMARKS.md,
+    "Receivers on the median surface")."""
+    from mi_shadowgs.core.depth import pixel_footprint
+    from mi_shadowgs.core.raster import depth_key, segment_exclusive_sum
+
+    h, w = camera.height, camera.width
+    npix = h * w
+    with dr.suspend_grad():
+        sid, pix, weight, z = splat_pairs_with_depth(surfels, camera, config)
+        if dr.width(pix) == 0:  # nothing in view (a zero-width array cannot be sorted)
+            return SplatPairs(sid, pix, weight, h, w), {
+                "depth": mi.TensorXf(dr.zeros(mi.Float, npix), (h, w, 1)),
+                "normal": mi.TensorXf(dr.zeros(mi.Float, npix * 3), (h, w, 3))}
+        # Each pixel's pairs by intersection depth: a stable sort by depth, then by pixel.
+        order = dr.argsort(depth_key(z))
+        order = dr.gather(mi.UInt32, order, dr.argsort(dr.gather(mi.UInt32, pix, order)))
+        sid, pix, weight, z = (dr.gather(type(x), x, order) for x in (sid, pix, weight, z))
+        n_pairs = dr.width(pix)
+        ar = dr.arange(mi.UInt32, n_pairs)
+        last_idx = dr.opaque(mi.UInt32, n_pairs - 1)
+        prev_pix = dr.gather(mi.UInt32, pix, dr.maximum(ar, 1) - 1)
+        next_pix = dr.gather(mi.UInt32, pix, dr.minimum(ar + 1, last_idx))
+        first = (ar == 0) | (prev_pix != pix)
+        last = (ar == last_idx) | (next_pix != pix)
+        w64 = mi.Float64(weight)
+        before = segment_exclusive_sum(w64, pix, first, npix)  # [P] weight in front
+        median = (before < 0.5) & ((before + w64 >= 0.5) | last)  # one pair per pixel
+        med = dr.zeros(mi.Float, npix)
+        dr.scatter(med, z, pix, active=median)
+        reach = band * pixel_footprint(mi.TensorXf(med, (h, w, 1)), camera)  # [H * W] world
+        near = dr.abs(z - dr.gather(mi.Float, med, pix)) <= dr.gather(mi.Float, reach, pix)
+        pairs = SplatPairs(sid, pix, dr.select(near, weight, 0.0), h, w)
+        # > 0 wherever a splat covers the pixel: its median pair is on the surface.
+        sw = dr.zeros(mi.Float, npix)
+        dr.scatter_reduce(dr.ReduceOp.Add, sw, pairs.weight, pix)
+        depth = dr.zeros(mi.Float, npix)
+        dr.scatter_reduce(dr.ReduceOp.Add, depth, pairs.weight * z, pix)
+        depth = depth / dr.select(sw > 0, sw, 1.0)
+        n = facing_normals(surfels, camera)
+        normal = splat(pairs, mi.TensorXf(dr.ravel(n), (surfels.count, 3)))  # [H * W * 3]
+        dr.eval(pairs.weight, depth, normal)
+    return pairs, {"depth": mi.TensorXf(depth, (h, w, 1)),
+                   "normal": mi.TensorXf(normal, (h, w, 3))}
+
+
+def splat_pairs_with_depth(surfels: Surfels, camera: Camera,
+                           config: RasterConfig = DEFAULT_RASTER) -> tuple:
+    """(surfel id, pixel id, weight T_i alpha_i, z-depth) [P] of a view's pairs, detached,
+    in compositing order."""
+    from mi_shadowgs.core.raster import splat_pairs as raster_pairs
+
+    return raster_pairs(surfels, camera, config, with_depth=True)
 
 
 def geometry_channels(surfels: Surfels, camera: Camera) -> dict:

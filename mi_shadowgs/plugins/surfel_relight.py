@@ -19,6 +19,10 @@ with shadows recomputed from shadow maps of the surfels
   covers the surfels' bounding sphere.
 - `env_samples` | integer | `64` | | Samples per grid direction when integrating an
   infinite emitter over the 128-direction grid.
+- `receiver_band` | float | `0` | | Which surface of a pixel is shaded: `0` the alpha-blended
+  depth and normal (the paper's), > 0 the pixel's median surface, the splats within this
+  many pixel footprints of its median depth. Give the value the model was fitted with
+  (the run's `visibility` settings; the cpu presets' is in `VisibilityConfig`).
 
 **Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`) and
 every infinite emitter (`envmap`, `constant`: mean radiance over each of the 128 equal-area
@@ -84,7 +88,11 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         env = int(props.get("env_samples", 64))
         if res < 1 or env < 1:
             raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
-        self.vis_config = VisibilityConfig(resolution=res)
+        self.receiver_band = float(props.get("receiver_band", 0.0))
+        if not self.receiver_band >= 0:
+            raise ValueError(f"surfel_relight: 'receiver_band' must be >= 0, got "
+                             f"{self.receiver_band}")
+        self.vis_config = VisibilityConfig(resolution=res, receiver_band=self.receiver_band)
         self.relight_config = relight.RelightConfig(indirect=self.indirect, env_samples=env)
         # Shadow maps per light direction and env-map grid radiance, kept between renders.
         self.cache = relight.RelightCache()
@@ -100,7 +108,8 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         lights = self.light_set(scene)
         pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
         bounds = SceneBounds.from_points(pos, [camera])
-        model = relight.RelightModel(self.surfels, self.specular, self.visibility)
+        model = relight.RelightModel(self.surfels, self.specular, self.visibility,
+                                     receiver_band=self.receiver_band)
         maps = self.cache.shadow_maps(model, lights, bounds, self.vis_config)
         factor = relight.indirect_factor(model, lights, self.relight_config)
         out = relight.relight_view(model, camera, lights, maps, factor)

@@ -563,12 +563,14 @@ class TrainView:
 
 
 def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.ndarray,
-                 config: MaterialConfig, raster: RasterConfig = DEFAULT_RASTER) -> TrainView:
-    """Pairs, geometry buffers and the target of one view (computed once: fixed geometry)."""
+                 config: MaterialConfig, raster: RasterConfig = DEFAULT_RASTER,
+                 receiver_band: float = 0.0) -> TrainView:
+    """Pairs, geometry buffers and the target of one view (computed once: fixed geometry);
+    ``receiver_band``: ``VisibilityConfig.receiver_band``."""
     h, w = camera.height, camera.width
     img = np.asarray(image, np.float32).reshape(h * w, -1)[:, :3]
     pairs = shading.splat_pairs(surfels, camera, raster)
-    geom = shading.pixel_geometry(surfels, camera, raster)
+    geom = shading.pixel_geometry(surfels, camera, raster, receiver_band)
     sup = np.asarray(mask, bool).reshape(-1) & (geom.alpha.numpy() >= config.mask_alpha)
     weight = mi.Float(sup.astype(np.float32))
     target = mi.Color3f(*(img[:, c] for c in range(3)))
@@ -1367,7 +1369,7 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
     t0 = time.perf_counter()
     seg = segment_ids(surfels)
     n_seg = int(np.max(seg.numpy())) + 1 if surfels.count else 1
-    views = [prepare_view(surfels, c, im, m, config, raster)
+    views = [prepare_view(surfels, c, im, m, config, raster, vis_config.receiver_band)
              for c, im, m in zip(tqdm(cameras, desc="stage 4: views", disable=not progress),
                                  images, masks, strict=True)]
     if state is None:
@@ -1523,13 +1525,15 @@ def _start_normals(fit: MaterialFit) -> tuple[mi.Vector3f, mi.Bool]:
 def with_surfel_normals(view: TrainView, normals: mi.Vector3f, position: mi.Point3f
                         ) -> TrainView:
     """``view`` with its pixel normals blended from per-surfel ``normals`` [N] (facing its
-    camera, as the rasterizer flips them): differentiable in ``normals``; points, depth and
+    camera, as the rasterizer flips them) over the pairs its receivers blend (the median
+    surface's, with ``receiver_band``): differentiable in ``normals``; points, depth and
     the shadow-map lookups stay the view's."""
     from mi_shadowgs.core.raster import face_camera
 
     n = dr.width(normals)
     facing = face_camera(normals, position, view.camera)
-    flat = shading.splat(view.pairs, mi.TensorXf(dr.ravel(facing), (n, 3)))  # [H * W * 3]
+    pairs = view.geom.surface_pairs or view.pairs
+    flat = shading.splat(pairs, mi.TensorXf(dr.ravel(facing), (n, 3)))  # [H * W * 3]
     pn = shading.unit_or_zero(mi.Vector3f(*(shading.channel(flat, 3, k) for k in range(3))))
     return dataclasses.replace(view, geom=dataclasses.replace(view.geom, normal=pn))
 

@@ -122,7 +122,7 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     gone = {s["metric"] for s in skipped}
     est_light = result.light.light_set()
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
-                                 est_light)
+                                 est_light, vcfg.receiver_band)
     t0 = time.perf_counter()
     maps = relight.shadow_maps_for(model, est_light, bounds, vcfg) if cache is None else \
         cache.shadow_maps(model, est_light, bounds, vcfg)
@@ -457,7 +457,7 @@ def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds, pr
     rcfg = relight.get_config(preset)
     fitted = result.light.light_set()
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
-                                 fitted)
+                                 fitted, vcfg.receiver_band)
     e_up = relight.upward_irradiance(fitted)
     setups = []
     for name, ls in relight.standard_turntable(TURNTABLE_LIGHTS, TURNTABLE_ELEVATION):

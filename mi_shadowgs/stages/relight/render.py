@@ -77,6 +77,8 @@ class RelightModel:
     specular: bool  # the GGX lobe is modelled
     use_visibility: bool  # False: V = 1 (the "w/o visibility" ablation)
     train_lights: shading.LightSet | None = None  # for the indirect scaling
+    # The receivers it was fitted with (``VisibilityConfig.receiver_band``; 0: blended).
+    receiver_band: float = 0.0
 
 
 def directional_light_set(directions, irradiance) -> shading.LightSet:
@@ -196,10 +198,11 @@ class ViewBuffers:
 
 
 def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAULT_RASTER,
-                 material: bool = True, extra: dict | None = None) -> ViewBuffers:
-    """One rasterization of a view: geometry, with ``material`` the albedo, roughness,
-    metallic and indirect channels, and the ``extra`` per-surfel colour channels
-    (name -> TensorXf [N, 3])."""
+                 material: bool = True, extra: dict | None = None,
+                 receiver_band: float = 0.0) -> ViewBuffers:
+    """One rasterization of a view: geometry (its receivers per ``receiver_band``, see
+    ``VisibilityConfig``), with ``material`` the albedo, roughness, metallic and indirect
+    channels, and the ``extra`` per-surfel colour channels (name -> TensorXf [N, 3])."""
     chans = {}
     if material:
         _check_model(surfels)
@@ -218,6 +221,7 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
     with dr.suspend_grad():
         out = rasterize(surfels, camera, chans or None, aovs=("alpha", "depth", "normal"),
                         config=raster)
+        shading.with_surface_aovs(out, surfels, camera, raster, receiver_band)
         buf = ViewBuffers(shading.geometry_from_aovs(out, camera),
                           colors={name: color(name) for name in extra or {}})
         if material:
@@ -231,7 +235,7 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
 def render_buffers(model: RelightModel, camera: Camera,
                    raster: RasterConfig = DEFAULT_RASTER):
     """One rasterization of a view: geometry, albedo, roughness, metallic, indirect."""
-    b = view_buffers(model.surfels, camera, raster)
+    b = view_buffers(model.surfels, camera, raster, receiver_band=model.receiver_band)
     return b.geom, b.albedo, b.roughness, b.metallic, b.indirect
 
 

@@ -155,6 +155,7 @@ class RunFit:
     bounds: shadow_maps.SceneBounds
     dataset: Path | None  # the run's dataset, where it still is
     preset: str
+    vis_config: shadow_maps.VisibilityConfig  # what stage 4 ran with (its receivers too)
 
 
 def run_preset(run: str | Path) -> str:
@@ -198,9 +199,28 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
         gone = (manifest.get("dataset") or {}).get("path")
         raise FileNotFoundError(f"{run}: the run's dataset ({gone}) is gone; give the views "
                                 "with --cameras or --orbit")
+    vis_config = recorded_config(shadow_maps.VisibilityConfig, settings.get("visibility"),
+                                 lambda: shadow_maps.get_config(preset))
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
-                                 result.light.light_set())
-    return RunFit(result, model, bounds, data, preset)
+                                 result.light.light_set(), vis_config.receiver_band)
+    return RunFit(result, model, bounds, data, preset, vis_config)
+
+
+def recorded_config(cls, saved: dict | None, fallback):
+    """A stage's settings as its manifest recorded them (``saved``, a dict of ``cls``'s
+    fields; fields it lacks keep ``cls``'s defaults, which older runs ran with), else
+    ``fallback()`` (the preset's) where nothing usable was recorded."""
+    from mi_shadowgs.config import with_overrides
+
+    if isinstance(saved, dict):
+        names = {f.name for f in dataclasses.fields(cls)}
+        try:  # (with_overrides: nested settings such as "raster" are saved as dicts)
+            return with_overrides(cls(), {k: tuple(v) if isinstance(v, list) else v
+                                          for k, v in saved.items() if k in names},
+                                  cls.__name__)
+        except (TypeError, ValueError):
+            pass  # an older manifest: the preset's settings
+    return fallback()
 
 
 def dataset_cameras(root: Path, split: str) -> list[Camera]:
@@ -242,7 +262,7 @@ def relight_frames(fit: RunFit, cameras, lights, cache: relight.RelightCache,
     from tqdm import tqdm
 
     config = config or relight.get_config(fit.preset)
-    vis_config = vis_config or shadow_maps.get_config(fit.preset)
+    vis_config = vis_config or fit.vis_config
     factor = relight.indirect_factor(fit.model, lights, config)
     for i, cam in enumerate(tqdm(cameras, desc="relight", unit="frame", disable=not progress)):
         dr.sync_thread()

@@ -24,7 +24,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import with_overrides
 from mi_shadowgs.core import shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
@@ -198,10 +197,11 @@ class ViewerSession:
             self.segments_off = "the model has no segments (stage 2 did not run)"
         preset = self.fit.preset if self.fit else "cpu-small"
         # The settings stage 4 ran with (its manifest), else the preset's.
-        self.vis_config = self._config(shadow_maps.VisibilityConfig, settings.get("visibility"),
-                                       lambda: shadow_maps.get_config(preset))
-        self.relight_config = self._config(relight.RelightConfig, settings.get("relight"),
-                                           lambda: relight.get_config(preset))
+        self.vis_config = runner.recorded_config(
+            shadow_maps.VisibilityConfig, settings.get("visibility"),
+            lambda: shadow_maps.get_config(preset))
+        self.relight_config = runner.recorded_config(
+            relight.RelightConfig, settings.get("relight"), lambda: relight.get_config(preset))
         self.raster = RasterConfig()
         self.maps = relight.RelightCache(
             max_map_bytes=max_shadow_maps * 4 * self.vis_config.resolution ** 2, max_sets=4)
@@ -352,7 +352,8 @@ class ViewerSession:
     def _build_gbuffer(self, camera: Camera) -> relight.ViewBuffers:
         extra = None if self._segment_colors is None else {SEGMENT_COLOR: self._segment_colors}
         g = relight.view_buffers(self.surfels, camera, self.raster,
-                                 material=self.fit is not None, extra=extra)
+                                 material=self.fit is not None, extra=extra,
+                                 receiver_band=self.vis_config.receiver_band)
         dr.eval(g.albedo, g.roughness, g.metallic, g.indirect, *g.colors.values())
         return g
 
@@ -385,16 +386,4 @@ class ViewerSession:
         r = float(np.quantile(np.linalg.norm(pos - c, axis=1), 0.98)) if len(pos) else 1.0
         eye = c + 2.8 * max(r, 1e-3) * np.asarray(direction_from_angles(-60.0, 25.0))
         return Camera.look_at(eye, c, width=256, height=256, fov_x=math.radians(40.0))
-
-    @staticmethod
-    def _config(cls, saved: dict | None, fallback):
-        if isinstance(saved, dict):
-            names = {f.name for f in dataclasses.fields(cls)}
-            try:  # (with_overrides: nested settings such as "raster" are saved as dicts)
-                return with_overrides(cls(), {k: tuple(v) if isinstance(v, list) else v
-                                              for k, v in saved.items() if k in names},
-                                      cls.__name__)
-            except (TypeError, ValueError):
-                pass  # an older manifest: the preset's settings
-        return fallback()
 
