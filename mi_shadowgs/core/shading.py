@@ -110,38 +110,41 @@ def channel(flat: mi.Float, c: int, k: int) -> mi.Float:
 
 
 def pixel_geometry(surfels: Surfels, camera: Camera, config: RasterConfig = DEFAULT_RASTER,
-                   surface_band: float = 0.0) -> PixelGeometry:
+                   surface_band: float = 0.0, pairs: tuple | None = None) -> PixelGeometry:
     """Rasterized alpha, expected depth and normals of a view, plus points and view dirs
     (the normals of ``SHADING_NORMAL_CHANNEL`` where the model has it). ``surface_band`` > 0:
-    the depth and normals of the pixel's median surface instead (``surface_aovs``)."""
+    the depth and normals of the pixel's median surface instead (``surface_aovs``; ``pairs``:
+    the view's ``splat_pairs_with_depth`` when the caller has them)."""
     with dr.suspend_grad():
         out = rasterize(surfels, camera, geometry_channels(surfels, camera),
                         aovs=("alpha", "depth", "normal"), config=config)
-        pairs = with_surface_aovs(out, surfels, camera, config, surface_band)
+        pairs = with_surface_aovs(out, surfels, camera, config, surface_band, pairs)
     return dataclasses.replace(geometry_from_aovs(out, camera), surface_pairs=pairs)
 
 
 def with_surface_aovs(out: dict, surfels: Surfels, camera: Camera, config: RasterConfig,
-                      surface_band: float) -> SplatPairs | None:
+                      surface_band: float, pairs: tuple | None = None) -> SplatPairs | None:
     """Replace a render's "depth" and "normal" (and shading normals) in ``out`` by the
     median surface's when ``surface_band`` > 0 (``surface_aovs``; returns its pairs); else
     leave them (returns None)."""
     if surface_band <= 0:
         return None
-    pairs, aovs = surface_aovs(surfels, camera, surface_band, config)
+    surface, aovs = surface_aovs(surfels, camera, surface_band, config, pairs)
     out.update(aovs)
     out.pop(SHADING_NORMAL_CHANNEL, None)  # surface_aovs blends the shading normals
-    return pairs
+    return surface
 
 
 def surface_aovs(surfels: Surfels, camera: Camera, band: float,
-                 config: RasterConfig = DEFAULT_RASTER) -> tuple[SplatPairs, dict]:
+                 config: RasterConfig = DEFAULT_RASTER, pairs: tuple | None = None
+                 ) -> tuple[SplatPairs, dict]:
     """A view's receivers on each pixel's median surface: (the pairs with weights T_i
     alpha_i on that surface and 0 elsewhere, {"depth" [H, W, 1], "normal" [H, W, 3]}); the
     normal is the shading normals facing the camera, blended with those weights and not
     renormalised. A pixel's median surface is its splats whose ray intersection lies within
     ``band`` pixel footprints of the median one's, where the weights, summed front to back
-    by intersection depth, reach 0.5 (the last splat where they never do).
+    by intersection depth, reach 0.5 (the last splat where they never do). ``pairs``: the
+    view's ``splat_pairs_with_depth``, when the caller has them (else made here).
 
     The alpha-blended depth and normal of ``rasterize`` mix every surface a pixel overlaps:
     over an object's edge a base pixel's normal bends toward the object's and its point
@@ -156,7 +159,7 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
     h, w = camera.height, camera.width
     npix = h * w
     with dr.suspend_grad():
-        sid, pix, weight, z = splat_pairs_with_depth(surfels, camera, config)
+        sid, pix, weight, z = pairs or splat_pairs_with_depth(surfels, camera, config)
         if dr.width(pix) == 0:  # nothing in view (a zero-width array cannot be sorted)
             return SplatPairs(sid, pix, weight, h, w), {
                 "depth": mi.TensorXf(dr.zeros(mi.Float, npix), (h, w, 1)),

@@ -569,8 +569,12 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
     ``receiver_band``: ``VisibilityConfig.receiver_band``."""
     h, w = camera.height, camera.width
     img = np.asarray(image, np.float32).reshape(h * w, -1)[:, :3]
-    pairs = shading.splat_pairs(surfels, camera, raster)
-    geom = shading.pixel_geometry(surfels, camera, raster, receiver_band)
+    if receiver_band > 0:  # one pair list for the shading and the receivers
+        with_depth = shading.splat_pairs_with_depth(surfels, camera, raster)
+        pairs = shading.SplatPairs(*with_depth[:3], h, w)
+    else:
+        with_depth, pairs = None, shading.splat_pairs(surfels, camera, raster)
+    geom = shading.pixel_geometry(surfels, camera, raster, receiver_band, with_depth)
     sup = np.asarray(mask, bool).reshape(-1) & (geom.alpha.numpy() >= config.mask_alpha)
     weight = mi.Float(sup.astype(np.float32))
     target = mi.Color3f(*(img[:, c] for c in range(3)))
