@@ -151,8 +151,8 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
     floats between them, and over leaves smaller than a pixel the point lies between leaves.
     Stage 5 scores the shadows of the surface at the pixel's centre. The compositing order
     (centre depths) is not the order along the ray for tilted splats, hence the re-sort:
-    taken in compositing order, the median lost a third of the gain (BENCHMARKS.md,
-    "Receivers on the median surface")."""
+    taken in compositing order, the median lost half of toy train-low's gain (BENCHMARKS.md,
+    "Session 31: receivers on the median surface")."""
     from mi_shadowgs.core.depth import pixel_footprint
     from mi_shadowgs.core.raster import depth_key, segment_exclusive_sum
 
