@@ -57,7 +57,6 @@ import mitsuba as mi
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
-from mi_shadowgs.config import with_overrides
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 from mi_shadowgs.dataset.scene import Light
 from mi_shadowgs.stages.relight import evaluation
@@ -108,7 +107,7 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     from mi_shadowgs.io.provenance import read_manifest
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.relight.evaluate import scored_pixels
-    from mi_shadowgs.stages.relight.runner import run_preset
+    from mi_shadowgs.stages.relight.runner import recorded_config, run_preset
     from mi_shadowgs.stages.visibility import shadow_maps
 
     folder = run / "material" / variant
@@ -127,10 +126,9 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     train_cams = [c for _, c in load_cameras(data / "transforms_train.json")]
     seg = load_ply(run / "segmentation" / "model.ply")
     bounds = occluder_bounds(seg, train_cams, float(settings.get("bounds_quantile", 0.98)))
-    vis = settings.get("visibility")
-    # (with_overrides: nested settings such as "raster" come back as dicts)
-    vcfg = with_overrides(shadow_maps.VisibilityConfig(), vis, "visibility") if vis else \
-        shadow_maps.get_config(preset)
+    # the visibility settings stage 4 ran with, as relighting reads them
+    vcfg = recorded_config(shadow_maps.VisibilityConfig, settings.get("visibility"),
+                           lambda: shadow_maps.get_config(preset))
     name = run.parent.name if run.name == "run" else run.name
     return RunInputs(
         name, load_ply(folder / "model.ply"),

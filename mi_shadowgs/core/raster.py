@@ -478,16 +478,21 @@ class _Scan:
     w64: mi.Float64  # its weight T alpha (0 where it does not contribute)
 
 
-def _scan(alpha: mi.Float, pix: mi.UInt32, npix: int, config: RasterConfig) -> _Scan:
-    """Transmittance and weights of pairs sorted by (pixel, depth): a Float64 prefix sum of
-    log(1 - alpha) restarted at each pixel (differentiable, unlike a product scan)."""
+def pixel_runs(pix: mi.UInt32) -> tuple[mi.UInt32, mi.UInt32, mi.Bool, mi.Bool]:
+    """(pair index, P - 1, first pair of its pixel, last pair of its pixel) [P] of pairs
+    grouped by pixel (P >= 1)."""
     npairs = dr.width(pix)
     ar = dr.arange(mi.UInt32, npairs)
     prev_pix = dr.gather(mi.UInt32, pix, dr.maximum(ar, 1) - 1)
     last_idx = dr.opaque(mi.UInt32, npairs - 1)  # opaque: P must not be baked into kernels
     next_pix = dr.gather(mi.UInt32, pix, dr.minimum(ar + 1, last_idx))
-    first = (ar == 0) | (prev_pix != pix)
-    last = (ar == last_idx) | (next_pix != pix)
+    return ar, last_idx, (ar == 0) | (prev_pix != pix), (ar == last_idx) | (next_pix != pix)
+
+
+def _scan(alpha: mi.Float, pix: mi.UInt32, npix: int, config: RasterConfig) -> _Scan:
+    """Transmittance and weights of pairs sorted by (pixel, depth): a Float64 prefix sum of
+    log(1 - alpha) restarted at each pixel (differentiable, unlike a product scan)."""
+    ar, last_idx, first, last = pixel_runs(pix)
     a64 = mi.Float64(alpha)
     t_before = dr.exp(segment_exclusive_sum(dr.log(1.0 - a64), pix, first, npix))
     t_after = t_before * (1.0 - a64)

@@ -115,23 +115,32 @@ def pixel_geometry(surfels: Surfels, camera: Camera, config: RasterConfig = DEFA
     (the normals of ``SHADING_NORMAL_CHANNEL`` where the model has it). ``surface_band`` > 0:
     the depth and normals of the pixel's median surface instead (``surface_aovs``; ``pairs``:
     the view's ``splat_pairs_with_depth`` when the caller has them)."""
+    chans, aovs = geometry_request(surfels, camera, surface_band)
     with dr.suspend_grad():
-        out = rasterize(surfels, camera, geometry_channels(surfels, camera),
-                        aovs=("alpha", "depth", "normal"), config=config)
+        out = rasterize(surfels, camera, chans, aovs=aovs, config=config)
         pairs = with_surface_aovs(out, surfels, camera, config, surface_band, pairs)
     return dataclasses.replace(geometry_from_aovs(out, camera), surface_pairs=pairs)
 
 
+def geometry_request(surfels: Surfels, camera: Camera, surface_band: float
+                     ) -> tuple[dict, tuple[str, ...]]:
+    """(channels, AOVs) a render needs for ``geometry_from_aovs``: the blend's depth and
+    normals (and shading normals), or with ``surface_band`` > 0 alpha alone, as
+    ``with_surface_aovs`` then adds the median surface's."""
+    if surface_band > 0:
+        return {}, ("alpha",)
+    return geometry_channels(surfels, camera), ("alpha", "depth", "normal")
+
+
 def with_surface_aovs(out: dict, surfels: Surfels, camera: Camera, config: RasterConfig,
                       surface_band: float, pairs: tuple | None = None) -> SplatPairs | None:
-    """Replace a render's "depth" and "normal" (and shading normals) in ``out`` by the
-    median surface's when ``surface_band`` > 0 (``surface_aovs``; returns its pairs); else
-    leave them (returns None)."""
+    """Add the median surface's "depth" and "normal" (``surface_aovs``, blended from the
+    shading normals) to a render's ``out`` when ``surface_band`` > 0 and return its pairs;
+    else leave ``out`` (the blend's, ``geometry_request``) and return None."""
     if surface_band <= 0:
         return None
     surface, aovs = surface_aovs(surfels, camera, surface_band, config, pairs)
     out.update(aovs)
-    out.pop(SHADING_NORMAL_CHANNEL, None)  # surface_aovs blends the shading normals
     return surface
 
 
@@ -154,7 +163,7 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
     taken in compositing order, the median lost half of toy train-low's gain (BENCHMARKS.md,
     "Session 31: receivers on the median surface")."""
     from mi_shadowgs.core.depth import pixel_footprint
-    from mi_shadowgs.core.raster import depth_key, segment_exclusive_sum
+    from mi_shadowgs.core.raster import depth_key, pixel_runs, segment_exclusive_sum
 
     h, w = camera.height, camera.width
     npix = h * w
@@ -168,13 +177,7 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
         order = dr.argsort(depth_key(z))
         order = dr.gather(mi.UInt32, order, dr.argsort(dr.gather(mi.UInt32, pix, order)))
         sid, pix, weight, z = (dr.gather(type(x), x, order) for x in (sid, pix, weight, z))
-        n_pairs = dr.width(pix)
-        ar = dr.arange(mi.UInt32, n_pairs)
-        last_idx = dr.opaque(mi.UInt32, n_pairs - 1)
-        prev_pix = dr.gather(mi.UInt32, pix, dr.maximum(ar, 1) - 1)
-        next_pix = dr.gather(mi.UInt32, pix, dr.minimum(ar + 1, last_idx))
-        first = (ar == 0) | (prev_pix != pix)
-        last = (ar == last_idx) | (next_pix != pix)
+        _, _, first, last = pixel_runs(pix)
         w64 = mi.Float64(weight)
         before = segment_exclusive_sum(w64, pix, first, npix)  # [P] weight in front
         median = (before < 0.5) & ((before + w64 >= 0.5) | last)  # one pair per pixel

@@ -212,15 +212,15 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
                 surfels.channels[shading.INDIRECT_CHANNEL],
                 shading.facing_normals(surfels, camera), offset=0.0)
     chans.update(extra or {})
-    chans.update(shading.geometry_channels(surfels, camera))
+    geometry_chans, aovs = shading.geometry_request(surfels, camera, receiver_band)
+    chans.update(geometry_chans)
 
     def color(name: str) -> mi.Color3f:
         a = out[name].array
         return mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
 
     with dr.suspend_grad():
-        out = rasterize(surfels, camera, chans or None, aovs=("alpha", "depth", "normal"),
-                        config=raster)
+        out = rasterize(surfels, camera, chans or None, aovs=aovs, config=raster)
         shading.with_surface_aovs(out, surfels, camera, raster, receiver_band)
         buf = ViewBuffers(shading.geometry_from_aovs(out, camera),
                           colors={name: color(name) for name in extra or {}})

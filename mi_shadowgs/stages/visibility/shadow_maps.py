@@ -137,7 +137,7 @@ PRESETS = {
     # acne where the fitted layer is thick (BENCHMARKS.md, "The occluder layer's slack").
     # Receivers on the median surface (receiver_band 0.5): stage 4 refitted on the twelve
     # table rows' stages 1-2, shadow IoU 0.751 -> 0.762 on the mean (hotdog +0.02 / +0.035,
-    # default-tuned +0.017, nine rows up, toy train-tuned -0.004), albedo +0.10 dB, relight
+    # default-tuned +0.017, eleven rows up, toy train-tuned -0.004), albedo +0.10 dB, relight
     # -0.18 dB (the blend's antialiased shading suits the photos' edges); 0.25 scored alike
     # (0.762), 1.0 and 2.0 below it on the run's own lights (BENCHMARKS.md, "Session 31").
     "cpu-small": VisibilityConfig(resolution=512, projection="orthographic", bias_texels=1.0,
