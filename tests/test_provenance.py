@@ -4,8 +4,11 @@ under every command's "runs never mix, outputs never destroy" guarantees."""
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -50,6 +53,62 @@ def test_next_write_removes_stale_temporaries_of_the_same_output_only(tmp_path):
     assert all(p.exists() for p in kept)
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == \
         ["data", "out.json"]
+
+
+def _ended_pid() -> int:
+    """The pid of a process that has ended (and been reaped)."""
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_a_temporary_is_stale_only_once_its_writer_has_ended(tmp_path):
+    """Processes that share an output folder (the pipeline's rows, each writing the table)
+    must not remove each other's writes in flight; a killed writer's are removed."""
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        ended = _ended_pid()
+        stale = [tmp_path / f".out.json.{ended}-abcd1234.tmp.json",  # its writer ended
+                 tmp_path / f".out.json.{os.getpid()}-abcd1234.tmp.json",  # ours, not in flight
+                 tmp_path / f".data.{ended}-abcd1234.partial"]
+        kept = [tmp_path / f".out.json.{live.pid}-abcd1234.tmp.json",  # a live writer's
+                tmp_path / f".data.{live.pid}-abcd1234.partial"]
+        for p in stale + kept:
+            p.mkdir() if p.suffix == ".partial" else p.write_text("half")
+        with atomic.atomic_path(tmp_path / "out.json") as tmp:
+            # this write's own temporary is named by this process and survives a scan
+            assert tmp.name.startswith(f".out.json.{os.getpid()}-")
+            atomic.remove_stale(tmp_path / "out.json")
+            tmp.write_text("{}")
+        with atomic.atomic_dir(tmp_path / "data") as d:
+            (d / "f").write_text("y")
+        assert not any(p.exists() for p in stale)
+        assert all(p.exists() for p in kept)
+    finally:
+        live.kill()
+        live.wait()
+    atomic.write_json(tmp_path / "out.json", {"a": 2})  # its writer gone, the rest is stale
+    assert not any(p.exists() for p in kept[:1])
+
+
+def _write_many(path: str, n: int) -> None:
+    for i in range(n):
+        atomic.write_json(path, {"i": i, "pid": os.getpid()})
+
+
+def test_concurrent_writers_of_one_output_do_not_fail(tmp_path):
+    """Session 32's GPU table: twelve rows sharing one folder, each writing pipeline.json at
+    its end; one failed when another's write removed its temporary as stale."""
+    target = str(tmp_path / "table.json")
+    ctx = multiprocessing.get_context("spawn")
+    workers = [ctx.Process(target=_write_many, args=(target, 300)) for _ in range(3)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join(120)
+    assert [w.exitcode for w in workers] == [0, 0, 0]
+    assert json.loads((tmp_path / "table.json").read_text())["i"] == 299
+    assert [p.name for p in tmp_path.iterdir()] == ["table.json"]
 
 
 def test_atomic_dir_puts_back_a_folder_a_kill_left_aside(tmp_path):

@@ -1,9 +1,12 @@
 """Atomic outputs: a reader never sees a half-written file or dataset folder.
 
-Temporary siblings are hidden (``.NAME.XXXXXXXX.tmp.EXT`` files, ``.NAME.XXXXXXXX.partial``
-folders). A write killed half-way leaves one behind; the next write of the same output
-removes it. Outputs get the permissions of a plain ``open`` (0666 / 0777 less the umask),
-not the 0600 / 0700 that ``tempfile`` gives its files and folders.
+Temporary siblings are hidden (``.NAME.PID-XXXXXXXX.tmp.EXT`` files,
+``.NAME.PID-XXXXXXXX.partial`` folders), named by the writing process. A write killed
+half-way leaves one behind; the next write of the same output removes it once its process
+has ended. Another process's write in flight is left alone: processes that share an output
+folder (``validation.pipeline``'s rows) each write its tables. Outputs get the permissions
+of a plain ``open`` (0666 / 0777 less the umask), not the 0600 / 0700 that ``tempfile``
+gives its files and folders.
 """
 
 from __future__ import annotations
@@ -28,18 +31,49 @@ def _umask() -> int:
     return mask
 
 
+# The temporaries this process is writing now (a thread's write is never another's stale).
+_IN_FLIGHT: set[Path] = set()
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _is_stale(tmp: Path, pid: str | None) -> bool:
+    """A temporary is stale unless its writer is still writing it: names from before the
+    writer's pid was recorded are always stale; this process's are stale unless in flight
+    (a killed run's pid is often reused in a container); another's while it lives are not."""
+    if pid is None:
+        return True
+    if int(pid) == os.getpid():
+        return tmp not in _IN_FLIGHT
+    return not _process_alive(int(pid))
+
+
 def _stale_siblings(path: Path, suffix: str) -> list[Path]:
-    """Temporaries that ``tempfile`` made for ``path`` with ``suffix`` (8 random characters
-    between the prefix and the suffix), so that another output's are never matched."""
+    """Temporaries that ``tempfile`` made for ``path`` with ``suffix`` (the writer's pid and
+    8 random characters between the prefix and the suffix), so that another output's are
+    never matched, and whose writer is no longer writing them."""
     prefix = f".{path.name}."
-    pattern = re.compile(re.escape(prefix) + r"[A-Za-z0-9_]{8}" + re.escape(suffix))
+    pattern = re.compile(re.escape(prefix) + r"(?:(\d+)-)?[A-Za-z0-9_]{8}" + re.escape(suffix))
     if not path.parent.is_dir():
         return []
     # Every write scans its folder (a dataset's 600+ files: quadratic), so the scan stays
     # on plain names: a prefix test before the pattern, a Path only for a match.
     with os.scandir(path.parent) as entries:
-        return [path.parent / e.name for e in entries
-                if e.name.startswith(prefix) and pattern.fullmatch(e.name)]
+        matches = [(path.parent / e.name, m.group(1)) for e in entries
+                   if e.name.startswith(prefix) and (m := pattern.fullmatch(e.name))]
+    return [tmp for tmp, pid in matches if _is_stale(tmp, pid)]
+
+
+def _temp_prefix(path: Path) -> str:
+    return f".{path.name}.{os.getpid()}-"
 
 
 def _remove(path: Path) -> None:
@@ -63,15 +97,17 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=_TMP_FILE + path.suffix,
+    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=_TMP_FILE + path.suffix,
                                dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    _IN_FLIGHT.add(tmp)
     try:
         yield tmp
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     finally:
+        _IN_FLIGHT.discard(tmp)
         if tmp.exists():
             tmp.unlink()
 
@@ -115,7 +151,8 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         else:
             os.replace(old, path)
     remove_stale(path)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=_TMP_DIR, dir=path.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=_TMP_DIR, dir=path.parent))
+    _IN_FLIGHT.add(tmp)
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())
@@ -128,5 +165,6 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         else:
             os.replace(tmp, path)
     finally:
+        _IN_FLIGHT.discard(tmp)
         if tmp.exists():
             shutil.rmtree(tmp)
