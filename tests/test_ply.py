@@ -175,3 +175,26 @@ def test_surfels_round_trip(tmp_path):
     np.testing.assert_allclose(act["scale"], np.exp(m.log_scale.astype(np.float64)), rtol=1e-6)
     np.testing.assert_allclose(act["opacity"], 1 / (1 + np.exp(-m.opacity_logit.astype(float))),
                                rtol=1e-6)
+
+
+def test_metadata_round_trips_as_comments_other_readers_skip(tmp_path):
+    model = _model(12, 1)
+    path = tmp_path / "m.ply"
+    ply.write_ply_model(path, model, {"receiver_band": "0.5", "fit": "full"})
+    assert ply.read_ply_metadata(path) == {"receiver_band": "0.5", "fit": "full"}
+    header = path.read_bytes().split(b"end_header")[0].decode()
+    assert "comment mi_shadowgs receiver_band 0.5\n" in header
+    back = ply.read_ply_model(path)  # the vertices read as before
+    np.testing.assert_array_equal(back.position, model.position)
+    plyfile = pytest.importorskip("plyfile", reason="plyfile: the reader other tools use")
+    assert len(plyfile.PlyData.read(str(path))["vertex"]) == 12
+    ply.write_ply_model(tmp_path / "plain.ply", model)
+    assert ply.read_ply_metadata(tmp_path / "plain.ply") == {}
+
+
+@pytest.mark.parametrize("key, value", [("band", "0 .5"), ("band", ""), ("2band", "1"),
+                                        ("band", "\u00b5")])
+def test_metadata_that_cannot_be_a_comment_is_refused(tmp_path, key, value):
+    with pytest.raises(ply.PlyError, match="cannot be a PLY comment"):
+        ply.write_ply_model(tmp_path / "m.ply", _model(3, 0), {key: value})
+    assert not (tmp_path / "m.ply").exists()

@@ -118,6 +118,67 @@ def test_a_base_pixel_beside_an_object_keeps_the_base_normal():
     np.testing.assert_array_equal(np.array(surf.alpha), np.array(plain.alpha))
 
 
+def _wall_on_base_model() -> Surfels:
+    """The wall-on-base scene with stage 4's material channels."""
+    xs = np.linspace(-0.6, 0.6, 13)
+    base = [(x, 0.0, z) for x in xs for z in np.linspace(-1.2, 0.6, 19)]
+    wall = [(x, y, -0.25) for x in xs for y in (0.05, 0.12, 0.19)]
+    s = _surfels(base + wall, [(0.0, 1.0, 0.0)] * len(base) + [(0.0, 0.0, 1.0)] * len(wall),
+                 [(0.07, 0.07)] * len(base) + [(0.07, 0.035)] * len(wall), 0.95)
+    n = s.count
+    return dataclasses.replace(s, channels={
+        "albedo": mi.TensorXf(np.full((n, 3), 0.6, np.float32)),
+        "roughness": mi.TensorXf(np.full((n, 1), 0.5, np.float32)),
+        "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))})
+
+
+def test_the_plugin_shades_the_receivers_its_model_was_fitted_with(tmp_path):
+    """Stage 4 records its receiver band in the model's PLY; the ``surfel_relight`` plugin,
+    which sees only the file, relights with it, as ``relight`` does with the run's."""
+    from mi_shadowgs.io.ply import PlyError, save_ply
+    from mi_shadowgs.stages.relight import render as relight
+
+    s = _wall_on_base_model()
+    fitted, plain, bad = tmp_path / "fitted.ply", tmp_path / "plain.ply", tmp_path / "bad.ply"
+    save_ply(fitted, s, relight.model_metadata(shadow_maps.VisibilityConfig(receiver_band=0.5)))
+    save_ply(plain, s)  # as before the record, or from another tool: the paper's blend
+    save_ply(bad, s, {relight.BAND_METADATA_KEY: "wide"})
+    cam = Camera.look_at([0.0, 0.9, 1.4], [0.0, 0.0, -0.3], width=40, height=32, fov_x=0.9)
+    light = {"type": "directional", "direction": [0.3, -0.8, 0.5], "irradiance": 2.0}
+
+    def plugin(path, **props):
+        return mi.load_dict({"type": "scene", "light": light, "sensor":
+                             cam.to_mitsuba_dict(spp=1), "integrator":
+                             {"type": "surfel_relight", "filename": str(path),
+                              "shadow_resolution": 128, "specular": False, **props}})
+
+    def library(band):
+        model = relight.RelightModel(s, False, True, receiver_band=band)
+        sc = plugin(plain)
+        lights = sc.integrator().light_set(sc)
+        pos = np.stack([np.asarray(s.position[k]) for k in range(3)], -1)
+        bounds = shadow_maps.SceneBounds.from_points(pos, [cam])
+        maps = relight.shadow_maps_for(model, lights, bounds,
+                                       shadow_maps.VisibilityConfig(resolution=128,
+                                                                    receiver_band=band))
+        return relight.relight_view(model, cam, lights, maps, 0.0)["rgb"]
+
+    ref = {band: library(band) for band in (0.0, 0.5)}
+    # the band changes the image here (the base's pixels over the wall's edge), else the
+    # comparisons below would prove nothing
+    assert np.abs(ref[0.5] - ref[0.0]).max() > 0.05
+    for path, props, band in ((fitted, {}, 0.5), (plain, {}, 0.0),
+                              (fitted, {"receiver_band": 0.0}, 0.0)):  # given: used as given
+        sc = plugin(path, **props)
+        assert sc.integrator().receiver_band == band
+        np.testing.assert_allclose(np.asarray(mi.render(sc))[..., :3], ref[band],
+                                   rtol=2e-4, atol=1e-6)
+    with pytest.raises(PlyError, match="receiver_band 'wide' is not a number"):
+        relight.recorded_band(bad)
+    with pytest.raises(Exception, match=f"{bad}: header comment receiver_band 'wide'"):
+        plugin(bad)  # Mitsuba passes the message on in its own exception
+
+
 def test_one_surface_gives_the_blended_receivers():
     """Where a pixel sees one surface (a flat, opaque base seen from above), the median
     surface is all of it: the same depth and normal as the blend."""

@@ -16,6 +16,10 @@ Channel names must survive that mapping and the 2DGS loader (which gathers prope
 prefix): letters, digits and ``_``, not ending in ``_<digits>``, not starting with ``rot``,
 ``scale_``, ``f_dc_`` or ``f_rest_``.
 
+Metadata: settings a reader of the model needs (stage 4's ``receiver_band``) are header
+comments, ``comment mi_shadowgs KEY VALUE``; other PLY readers skip them
+(``read_ply_metadata``).
+
 The reader handles ascii and binary (either byte order) PLY files with scalar vertex
 properties of any PLY type; the writer is atomic (``mi_shadowgs.io.atomic``).
 """
@@ -55,6 +59,8 @@ _RESERVED = re.compile(r"^(x|y|z|nx|ny|nz|opacity)$|^(rot|scale_|f_dc_|f_rest_)"
 _SUFFIX = re.compile(r"^(.+)_(\d+)$")
 _CHANNEL_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 MAX_SH_DEGREE = 3
+METADATA_PREFIX = "mi_shadowgs"  # comment lines of the header that hold metadata
+_METADATA_KEY = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
 
 class PlyError(ValueError):
@@ -220,8 +226,41 @@ def _read_ascii(f, path: Path, count: int, props) -> dict[str, np.ndarray]:
     return {n: table[:, j].astype(t) for j, (n, t) in enumerate(props)}
 
 
-def write_ply_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray]) -> None:
-    """Write float32 vertex properties (name -> [N], in order) as binary little-endian PLY."""
+def _metadata_lines(path, metadata: dict | None) -> list[str]:
+    lines = []
+    for key, value in (metadata or {}).items():
+        key, value = str(key), str(value)
+        if not _METADATA_KEY.fullmatch(key) or not value or any(c.isspace() for c in value) \
+                or not value.isascii():
+            raise PlyError(f"{path}: metadata {key!r}: {value!r} cannot be a PLY comment (a "
+                           "key of letters, digits and '_', one word of ASCII as its value)")
+        lines.append(f"comment {METADATA_PREFIX} {key} {value}")
+    return lines
+
+
+def read_ply_metadata(path: str | os.PathLike) -> dict[str, str]:
+    """The ``metadata`` a model was saved with (``comment mi_shadowgs KEY VALUE`` header
+    lines): key -> value as text. Empty for a PLY written elsewhere or before it existed."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"PLY file not found: {path}")
+    out = {}
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            raise PlyError(f"{path}: not a PLY file (no 'ply' magic line)")
+        for raw in f:
+            words = raw.decode("ascii", errors="replace").split()
+            if words[:1] == ["end_header"]:
+                return out
+            if len(words) == 4 and words[:2] == ["comment", METADATA_PREFIX]:
+                out[words[2]] = words[3]
+    raise PlyError(f"{path}: PLY header has no 'end_header'")
+
+
+def write_ply_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray],
+                       metadata: dict | None = None) -> None:
+    """Write float32 vertex properties (name -> [N], in order) as binary little-endian PLY;
+    ``metadata`` (key -> one word) goes into the header as comments other readers skip."""
     names = list(columns)
     n = len(next(iter(columns.values()))) if columns else 0
     dtype = np.dtype([(name, "<f4") for name in names])
@@ -231,7 +270,8 @@ def write_ply_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray]) 
         if col.shape[0] != n:
             raise PlyError(f"{path}: property {name!r} has {col.shape[0]} values, expected {n}")
         rec[name] = col
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+    header = ["ply", "format binary_little_endian 1.0", *_metadata_lines(path, metadata),
+              f"element vertex {n}"]
     header += [f"property float {name}" for name in names]
     header.append("end_header")
     data = ("\n".join(header) + "\n").encode("ascii") + rec.tobytes()
@@ -303,8 +343,10 @@ def _numbered(props: dict, base: str) -> list[str]:
     return names
 
 
-def write_ply_model(path: str | os.PathLike, model: PlyModel) -> None:
-    """Write raw parameters in the 2DGS layout (atomic); extra channels follow ``rot_3``."""
+def write_ply_model(path: str | os.PathLike, model: PlyModel,
+                    metadata: dict | None = None) -> None:
+    """Write raw parameters in the 2DGS layout (atomic); extra channels follow ``rot_3``;
+    ``metadata`` as ``write_ply_vertices``."""
     n = model.count
     cols: dict[str, np.ndarray] = {}
     shapes = {"position": (model.position, 3), "log_scale": (model.log_scale, 2),
@@ -349,7 +391,7 @@ def write_ply_model(path: str | os.PathLike, model: PlyModel) -> None:
         else:
             for i in range(c.shape[1]):
                 cols[f"{name}_{i}"] = c[:, i]
-    write_ply_vertices(path, cols)
+    write_ply_vertices(path, cols, metadata)
 
 
 def load_ply(path: str | os.PathLike):
@@ -357,6 +399,7 @@ def load_ply(path: str | os.PathLike):
     return read_ply_model(path).to_surfels()
 
 
-def save_ply(path: str | os.PathLike, surfels) -> None:
-    """Save ``Surfels`` (raw parameters, as 2DGS does) to a PLY file, atomically."""
-    write_ply_model(path, PlyModel.from_surfels(surfels))
+def save_ply(path: str | os.PathLike, surfels, metadata: dict | None = None) -> None:
+    """Save ``Surfels`` (raw parameters, as 2DGS does) to a PLY file, atomically, with
+    ``metadata`` (``read_ply_metadata``) in its header."""
+    write_ply_model(path, PlyModel.from_surfels(surfels), metadata)

@@ -19,10 +19,12 @@ with shadows recomputed from shadow maps of the surfels
   covers the surfels' bounding sphere.
 - `env_samples` | integer | `64` | | Samples per grid direction when integrating an
   infinite emitter over the 128-direction grid.
-- `receiver_band` | float | `0` | | Which surface of a pixel is shaded: `0` the alpha-blended
-  depth and normal (the paper's), > 0 the pixel's median surface, the splats within this
-  many pixel footprints of its median depth. Give the value the model was fitted with
-  (the run's `visibility` settings; the cpu presets' is in `VisibilityConfig`).
+- `receiver_band` | float | the model's | | Which surface of a pixel is shaded: `0` the
+  alpha-blended depth and normal (the paper's), > 0 the pixel's median surface, the splats
+  within this many pixel footprints of its median depth. By default the value the model
+  was fitted with, which stage 4 records in the PLY's header (`comment mi_shadowgs
+  receiver_band B`); `0` for a PLY without the record (written before it existed, or by
+  another tool). A value given here is used as given.
 
 **Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`) and
 every infinite emitter (`envmap`, `constant`: mean radiance over each of the 128 equal-area
@@ -88,7 +90,8 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         env = int(props.get("env_samples", 64))
         if res < 1 or env < 1:
             raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
-        self.receiver_band = float(props.get("receiver_band", 0.0))
+        recorded = relight.recorded_band(self.filename)
+        self.receiver_band = float(props.get("receiver_band", recorded or 0.0))
         if not self.receiver_band >= 0:
             raise ValueError(f"surfel_relight: 'receiver_band' must be >= 0, got "
                              f"{self.receiver_band}")
@@ -131,7 +134,7 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
     def to_string(self):
         return (f"SurfelRelightIntegrator[filename={self.filename!r}, "
                 f"surfels={self.surfels.count}, specular={self.specular}, "
-                f"visibility={self.visibility}]")
+                f"visibility={self.visibility}, receiver_band={self.receiver_band}]")
 
 
 mi.register_integrator("surfel_relight", lambda props: SurfelRelightIntegrator(props))

@@ -81,6 +81,34 @@ class RelightModel:
     receiver_band: float = 0.0
 
 
+# The stage-4 model's PLY records the receivers it was fitted with under this key, so a
+# reader of the bare file (the ``surfel_relight`` plugin) shades the same surface.
+BAND_METADATA_KEY = "receiver_band"
+
+
+def model_metadata(vis_config: VisibilityConfig) -> dict[str, str]:
+    """What a stage-4 model's PLY records for its readers (``ply.save_ply``'s metadata)."""
+    return {BAND_METADATA_KEY: repr(float(vis_config.receiver_band))}
+
+
+def recorded_band(path) -> float | None:
+    """The receiver band a stage-4 PLY was saved with; None for a model saved without one
+    (before it was recorded, or by another tool). A malformed value names the file."""
+    from mi_shadowgs.io.ply import PlyError, read_ply_metadata
+
+    value = read_ply_metadata(path).get(BAND_METADATA_KEY)
+    if value is None:
+        return None
+    try:
+        band = float(value)
+    except ValueError:
+        band = float("nan")
+    if not band >= 0:
+        raise PlyError(f"{path}: header comment {BAND_METADATA_KEY} {value!r} is not a "
+                       "number >= 0")
+    return band
+
+
 def directional_light_set(directions, irradiance) -> shading.LightSet:
     """Directional lights: unit directions toward the lights [K, 3], irradiance [K] or [K, 3]."""
     d = np.atleast_2d(np.asarray(directions, np.float64))
