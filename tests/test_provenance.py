@@ -62,7 +62,7 @@ def _ended_pid() -> int:
     return child.pid
 
 
-def test_a_temporary_is_stale_only_once_its_writer_has_ended(tmp_path):
+def test_a_temporary_is_stale_only_once_its_writer_has_ended(tmp_path, monkeypatch):
     """Processes that share an output folder (the pipeline's rows, each writing the table)
     must not remove each other's writes in flight; a killed writer's are removed."""
     live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -79,6 +79,8 @@ def test_a_temporary_is_stale_only_once_its_writer_has_ended(tmp_path):
             # this write's own temporary is named by this process and survives a scan
             assert tmp.name.startswith(f".out.json.{os.getpid()}-")
             atomic.remove_stale(tmp_path / "out.json")
+            monkeypatch.chdir(tmp_path)
+            atomic.remove_stale("out.json")  # the same output, named relatively
             tmp.write_text("{}")
         with atomic.atomic_dir(tmp_path / "data") as d:
             (d / "f").write_text("y")

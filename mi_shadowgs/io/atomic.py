@@ -31,8 +31,13 @@ def _umask() -> int:
     return mask
 
 
-# The temporaries this process is writing now (a thread's write is never another's stale).
-_IN_FLIGHT: set[Path] = set()
+# The temporaries this process is writing now (a thread's write is never another's stale),
+# by absolute path: a caller may name the same output relatively and absolutely.
+_IN_FLIGHT: set[str] = set()
+
+
+def _key(tmp: Path) -> str:
+    return os.path.abspath(tmp)
 
 
 def _process_alive(pid: int) -> bool:
@@ -52,7 +57,7 @@ def _is_stale(tmp: Path, pid: str | None) -> bool:
     if pid is None:
         return True
     if int(pid) == os.getpid():
-        return tmp not in _IN_FLIGHT
+        return _key(tmp) not in _IN_FLIGHT
     return not _process_alive(int(pid))
 
 
@@ -101,13 +106,13 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
                                dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
-    _IN_FLIGHT.add(tmp)
+    _IN_FLIGHT.add(_key(tmp))
     try:
         yield tmp
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     finally:
-        _IN_FLIGHT.discard(tmp)
+        _IN_FLIGHT.discard(_key(tmp))
         if tmp.exists():
             tmp.unlink()
 
@@ -152,7 +157,7 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
             os.replace(old, path)
     remove_stale(path)
     tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=_TMP_DIR, dir=path.parent))
-    _IN_FLIGHT.add(tmp)
+    _IN_FLIGHT.add(_key(tmp))
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())
@@ -165,6 +170,6 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         else:
             os.replace(tmp, path)
     finally:
-        _IN_FLIGHT.discard(tmp)
+        _IN_FLIGHT.discard(_key(tmp))
         if tmp.exists():
             shutil.rmtree(tmp)
