@@ -179,6 +179,29 @@ def test_the_plugin_shades_the_receivers_its_model_was_fitted_with(tmp_path):
         plugin(bad)  # Mitsuba passes the message on in its own exception
 
 
+@pytest.mark.parametrize("settings, lists, band", [
+    ({"visibility": {"receiver_band": 0.5, "layer_bias": 1.0}}, True, 0.5),
+    ({"visibility": {"layer_bias": 1.0}}, True, 0.0),  # a run from before the band: blended
+    ({"visibility": {"receiver_band": 0.5}}, False, None),  # the manifest is not its
+    ({"material": {}}, True, None)])  # no visibility settings (a stage-1 folder)
+def test_a_model_saved_before_the_record_takes_its_band_from_its_manifest(
+        tmp_path, settings, lists, band):
+    """Models fitted on the median surface before the PLY recorded it (session 31's runs)
+    are relit on it too: the stage-4 folder's manifest records the settings it ran with."""
+    import json
+
+    from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.io.provenance import FORMAT_VERSION, MANIFEST_NAME
+    from mi_shadowgs.stages.relight.render import recorded_band
+
+    save_ply(tmp_path / "model.ply", _wall_on_base_model())
+    assert recorded_band(tmp_path / "model.ply") is None  # no manifest: another tool's
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps(
+        {"format": FORMAT_VERSION, "command": "run", "complete": True, "settings": settings,
+         "files": ["model.ply", "light.json"] if lists else ["light.json"]}))
+    assert recorded_band(tmp_path / "model.ply") == band
+
+
 def test_one_surface_gives_the_blended_receivers():
     """Where a pixel sees one surface (a flat, opaque base seen from above), the median
     surface is all of it: the same depth and normal as the blend."""

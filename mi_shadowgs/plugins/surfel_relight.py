@@ -23,8 +23,8 @@ with shadows recomputed from shadow maps of the surfels
   alpha-blended depth and normal (the paper's), > 0 the pixel's median surface, the splats
   within this many pixel footprints of its median depth. By default the value the model
   was fitted with, which stage 4 records in the PLY's header (`comment mi_shadowgs
-  receiver_band B`); `0` for a PLY without the record (written before it existed, or by
-  another tool). A value given here is used as given.
+  receiver_band B`) or, for a model saved before that record, in the run's manifest beside
+  it; `0` for a PLY with neither (another tool's). A value given here is used as given.
 
 **Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`) and
 every infinite emitter (`envmap`, `constant`: mean radiance over each of the 128 equal-area
