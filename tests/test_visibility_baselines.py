@@ -376,6 +376,53 @@ def test_models_only_factor_table_from_the_command_line(exact_model, tmp_path, m
     assert "test-spiral" not in readme and "Stage-1 models: the first" in readme
 
 
+def test_receiver_band_scores_the_median_surface_receivers(exact_model, tmp_path, capsys):
+    """``--receiver-band``: a model's receivers rendered as stages 4-5 of the cpu presets
+    render them (``shading.pixel_geometry`` on the median surface), in the Table 2 row and
+    in the factor split's exact geometry; recorded in the summary and the README."""
+    import json
+
+    import validation.visibility as vv
+    from mi_shadowgs.core import shading
+    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
+
+    data, model, cfg = exact_model
+    blend = vv.model_case(model, data, cfg)
+    surface = vv.model_case(model, data, cfg, receiver_band=0.5)
+    cam = surface.cameras[0]
+    ref = shading.pixel_geometry(load_ply(model), cam, surface_band=0.5)
+    for k in range(3):
+        np.testing.assert_array_equal(np.asarray(surface.points[0][k]),
+                                      np.asarray(ref.points[k]))
+        np.testing.assert_array_equal(np.asarray(surface.normals[0][k]),
+                                      np.asarray(ref.normal[k]))
+    # the band changes receivers here (the object's edges over the base), else the
+    # comparison above would not tell the two apart
+    n0 = np.stack([np.asarray(blend.normals[0][k]) for k in range(3)], -1)
+    n1 = np.stack([np.asarray(surface.normals[0][k]) for k in range(3)], -1)
+    assert (np.sum(n0 * n1, -1)[blend.mask[0].ravel()] < 0.99).sum() >= 3
+    # the split renders the exact surfels' receivers with the same band: a model that is
+    # the exact surfels scores as its exact geometry
+    split = vv.model_factors(surface, data, cfg, VisibilityConfig(), samples=1,
+                             receiver_band=0.5)
+    assert split["exact_geometry"] == split["run"]
+    for bad, msg in ((["--receiver-band", "-1", "--model", str(model), "--data", str(data)],
+                      "must be >= 0"), (["--receiver-band", "0.5"], "give --model")):
+        with pytest.raises(SystemExit) as e:
+            vv.main(["--out", str(tmp_path / "bad"), "--quiet", *bad])
+        assert e.value.code == 2 and not (tmp_path / "bad").exists()
+        assert msg in capsys.readouterr().err
+    out = tmp_path / "vis"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(vv, "QUICK", cfg)
+        assert vv.main(["--out", str(out), "--quick", "--models-only", "--model", str(model),
+                        "--data", str(data), "--receiver-band", "0.5", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["receiver_band"] == 0.5
+    assert "median surface (receiver band 0.5)" in (out / "README.md").read_text()
+
+
 def test_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
     """--out is replaced when it holds an earlier output of this validation (its
     summary.json), never someone else's folder: refused before any work, with exit 2."""

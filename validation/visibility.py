@@ -9,13 +9,17 @@ the IoU of the shadowed set (V < 0.5, ground truth V = 0 or n . l <= 0) inside t
 averaged over views and directions. With ``--model`` (a stage-1 PLY) and ``--data`` (its
 dataset), the points come from the model's own rendered median depth and normals instead
 (with their pixel footprints, so the methods' receiver offset applies); both repeat, in
-pairs, for one stage-1 table over several scenes. ``--factors`` also splits each stage-1
-model's IoU (``model_factors``): its receivers and occluders swapped for the truth's, the
-method on exact geometry, and what the pixel area allows; ``--models-only`` leaves out the
-ground-truth scenes, the sweep and the timing (about a minute per model instead of five).
+pairs, for one stage-1 table over several scenes. ``--receiver-band B`` renders a model's
+receivers as stages 4-5 of the ``cpu-*`` presets do (each pixel's median surface,
+``VisibilityConfig.receiver_band``) instead of the paper's median depth and blended normals.
+``--factors`` also splits each stage-1 model's IoU (``model_factors``): its receivers and
+occluders swapped for the truth's, the method on exact geometry, and what the pixel area
+allows; ``--models-only`` leaves out the ground-truth scenes, the sweep and the timing
+(about a minute per model instead of five).
 
     python -m validation.visibility --out validation-out/visibility [--quick]
         [--model RUN/geometry/model.ply --data DATASET ...] [--factors] [--models-only]
+        [--receiver-band B]
 
 Writes (atomically) ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``,
 ``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``).
@@ -286,13 +290,24 @@ def model_case_names(models: list[Path], datas: list[Path]) -> list[str]:
     return names
 
 
-def rendered_receivers(surfels: Surfels, cameras) -> tuple[list, list, list, list]:
-    """Receivers as the method renders them from ``surfels``: per camera, the points of the
-    median depth, the blended normals (unit), the pixel footprints and the alpha [H, W]."""
+def rendered_receivers(surfels: Surfels, cameras, band: float = 0.0
+                       ) -> tuple[list, list, list, list]:
+    """Receivers as the method renders them from ``surfels``: per camera, the points, the
+    unit normals, the pixel footprints and the alpha [H, W]. ``band`` 0: the paper's points
+    of the median depth and blended normals; > 0: each pixel's median surface, the splats
+    within ``band`` pixel footprints of its median splat (``shading.surface_aovs``)."""
+    from mi_shadowgs.core import shading
     from mi_shadowgs.core.raster import rasterize
 
     points, normals, footprints, alphas = [], [], [], []
     for cam in cameras:
+        if band > 0:
+            g = shading.pixel_geometry(surfels, cam, surface_band=band)
+            alphas.append(np.asarray(g.alpha).reshape(cam.height, cam.width))
+            points.append(g.points)
+            normals.append(g.normal)
+            footprints.append(g.footprint)
+            continue
         with dr.suspend_grad():
             out = rasterize(surfels, cam, None, aovs=("alpha", "median_depth", "normal"))
         alphas.append(np.asarray(out["alpha"].array).reshape(cam.height, cam.width))
@@ -317,10 +332,11 @@ def traced_receivers(gt: dict, cameras) -> tuple[list, list]:
     return points, normals
 
 
-def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None = None
-               ) -> Case:
-    """The test views of ``data`` with points from the stage-1 model's rendered geometry;
-    named ``name`` (default ``model_case_names``' for this model alone)."""
+def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None = None,
+               receiver_band: float = 0.0) -> Case:
+    """The test views of ``data`` with points from the stage-1 model's rendered geometry
+    (``rendered_receivers`` at ``receiver_band``); named ``name`` (default
+    ``model_case_names``' for this model alone)."""
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.io.ply import load_ply
 
@@ -331,7 +347,7 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None 
     gt = trace_ground_truth(setup, cams, lights)
     facing_gt = np.einsum("vhwk,lk->vhwl", gt["normal"].astype(np.float64), dirs) > 0
     gt_shadow = (gt["visibility"] < 0.5) | ~facing_gt
-    points, normals, footprints, alphas = rendered_receivers(surfels, cams)
+    points, normals, footprints, alphas = rendered_receivers(surfels, cams, receiver_band)
     masks = [gt["mask"][v].astype(bool) & (alpha > 0.5) for v, alpha in enumerate(alphas)]
     # Frame the maps on the occluders: the model's own surface points inside the object masks
     # (an input of the method), not every surfel (the base would blow the map up).
@@ -372,7 +388,8 @@ def exact_surfel_config(cfg: ValidationConfig, camera, object_surfels: int | Non
 
 
 def model_factors(case: Case, data: Path, cfg: ValidationConfig, base: VisibilityConfig,
-                  samples: int = 4, exact_surfels: int | None = None) -> dict[str, float]:
+                  samples: int = 4, exact_surfels: int | None = None,
+                  receiver_band: float = 0.0) -> dict[str, float]:
     """Where a stage-1 model's shadow IoU (the pixel method, ``base``) is lost. The model's
     receivers (rendered median depth and normals) and occluders (its surfels' shadow maps)
     are swapped for the truth's, one at a time and together: the ray-traced points and
@@ -383,13 +400,16 @@ def model_factors(case: Case, data: Path, cfg: ValidationConfig, base: Visibilit
     pixel (``box_filtered_ground_truth``) at 0.5: what an answer that resolves the scene to
     the pixel scores against the point-sampled truth. ``exact_surfels``: on the object for
     ``cfg.resolution``^2 views (default ``cfg.object_surfels``), scaled with the views' pixel
-    count as the base's are (``exact_surfel_config``). Returns key -> IoU (``FACTORS``)."""
+    count as the base's are (``exact_surfel_config``). ``receiver_band``: the receivers
+    rendered from surfels (the case's were made with it too). Returns key -> IoU
+    (``FACTORS``)."""
     setup = dataset_scene(data)
     lights, dirs = make_lights(cfg.lights)
     gt = trace_ground_truth(setup, case.cameras, lights)
     true_pts, true_nrm = traced_receivers(gt, case.cameras)
     exact = scene_surfels(setup, exact_surfel_config(cfg, case.cameras[0], exact_surfels))
-    exact_pts, exact_nrm, exact_fp, _ = rendered_receivers(exact, case.cameras)
+    exact_pts, exact_nrm, exact_fp, _ = rendered_receivers(exact, case.cameras,
+                                                           receiver_band)
     views = range(len(case.cameras))
     model_maps = render_shadow_maps(case.surfels, case.directions, case.bounds, base)
     exact_maps = render_shadow_maps(exact, case.directions, case.bounds, base)
@@ -585,14 +605,15 @@ def _progress(quiet: bool):
 
 def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False,
         factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None,
-        models_only: bool = False) -> dict:
+        models_only: bool = False, receiver_band: float = 0.0) -> dict:
     """Everything above; writes into ``out_dir`` (replaced atomically; an existing folder
     only when it holds this validation's summary.json). ``model`` and
     ``data``: a stage-1 PLY and its dataset, or equally long lists of them; ``factors``:
     each model's ``model_factors`` too (``factor_samples``^2 points per pixel for the
     pixel-area truth, ``factor_surfels`` exact surfels on the object); ``models_only``: the
-    models' rows alone (no ground-truth scenes, sweep or timing). Returns a summary dict
-    with a ``markdown`` entry."""
+    models' rows alone (no ground-truth scenes, sweep or timing); ``receiver_band``: the
+    models' receivers (``rendered_receivers``). Returns a summary dict with a ``markdown``
+    entry."""
     models = [model] if isinstance(model, str | Path) else list(model or [])
     datas = [data] if isinstance(data, str | Path) else list(data or [])
     if len(models) != len(datas):
@@ -607,6 +628,11 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         raise ValueError(f"--factor-samples must be >= 1, got {factor_samples}")
     if factor_surfels is not None and factor_surfels < 1:
         raise ValueError(f"--factor-surfels must be >= 1, got {factor_surfels}")
+    if not receiver_band >= 0:
+        raise ValueError(f"--receiver-band must be >= 0, got {receiver_band}")
+    if receiver_band > 0 and not models:
+        raise ValueError("--receiver-band renders a stage-1 model's receivers: give --model "
+                         "and --data")
     case_names = model_case_names([Path(m) for m in models], [Path(d) for d in datas])
     cfg = QUICK if quick else ValidationConfig()
     base = VisibilityConfig()
@@ -622,7 +648,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
             print(f"visibility validation: {notes[-1]}", flush=True)
     t_start = time.perf_counter()
     cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
-    cases += [model_case(Path(m), Path(d), cfg, n)
+    cases += [model_case(Path(m), Path(d), cfg, n, receiver_band)
               for m, d, n in zip(models, datas, case_names, strict=True)]
     names = [c.name for c in cases]  # results are keyed by case name
     results = {}
@@ -638,7 +664,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         model_cases = [(c, Path(d)) for c, d in zip(cases[-len(models):], datas, strict=True)]
         for case, d in progress(model_cases, desc="factors"):
             split[case.name] = model_factors(case, d, cfg, base, factor_samples,
-                                             factor_surfels)
+                                             factor_surfels, receiver_band)
     gt_names = [c.name for c in cases if c.footprints is None]
     sweep = run_sweep(cases[0], cfg, base, progress) if gt_names else []
     timing = time_directions(cases[0], cfg, base, progress) if gt_names else []
@@ -662,8 +688,10 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     scenes_note = (f"{cfg.n_views} test-spiral views at {cfg.resolution}^2; surfels sampled on "
                    f"the true shapes ({cfg.object_surfels} object + {cfg.base_surfels} base, "
                    f"sigma {cfg.sigma_factor} x spacing). ") if gt_names else ""
+    receivers = ("the median depth and blended normals" if receiver_band == 0 else
+                 f"each pixel's median surface (receiver band {receiver_band:g})")
     models_note = (f"Stage-1 models: the first {cfg.n_views} test views of their datasets, at "
-                   "the datasets' size. ") if model_names else ""
+                   f"the datasets' size; receivers from {receivers}. ") if model_names else ""
     md = [f"## Visibility ({'quick' if quick else 'full'})", "",
           f"{len(cfg.lights)} light directions (az, el deg): {list(cfg.lights)}; "
           f"{scenes_note}{models_note}Shadow IoU (V < 0.5) vs Mitsuba ray tracing.", "",
@@ -699,7 +727,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         md += ["### Threshold tau", "", tau_summary(sweep), "", projection_note(sweep), ""]
     md += [f"Note: {n}" for n in notes]
     markdown = "\n".join(md)
-    summary = {"config": dataclasses.asdict(cfg), "results": results, "best_tradeoff": best,
+    summary = {"config": dataclasses.asdict(cfg), "receiver_band": receiver_band,
+               "results": results, "best_tradeoff": best,
                "timing": timing, "factors": split, "notes": notes,
                "wall_s": time.perf_counter() - t_start,
                "loadavg": list(__import__("os").getloadavg())}
@@ -739,12 +768,17 @@ def main(argv=None) -> int:
                     help="exact surfels on the object for the split (default: Table 2's)")
     ap.add_argument("--models-only", action="store_true",
                     help="only the --model rows (no ground-truth scenes, sweep or timing)")
+    ap.add_argument("--receiver-band", type=float, default=0.0,
+                    help="render the models' receivers on each pixel's median surface, the "
+                         "splats within this many pixel footprints of it, as stages 4-5 of "
+                         "the cpu presets do (default 0: the paper's median depth and "
+                         "blended normals)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,
                       args.factors, args.factor_samples, args.factor_surfels,
-                      args.models_only)
+                      args.models_only, args.receiver_band)
     except (ValueError, FileNotFoundError, FileExistsError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])
