@@ -145,12 +145,14 @@ PRESETS = {
                                   receiver_band=0.5),
 }
 # 512 texels across the scene's bounds are ~0.006 units, under the 0.014-unit footprint of a
-# 256^2 view's pixel at the datasets' camera distance: the same maps serve cpu-medium.
+# 256^2 view's pixel at the datasets' camera distance: the same maps serve cpu-medium. The
+# receiver band measured there too: four rows refitted at band 0, every one lower (0.704 ->
+# 0.694 on their mean; BENCHMARKS.md, "Session 32: the receiver band at cpu-medium").
 PRESETS["cpu-medium"] = PRESETS["cpu-small"]
 # 512^2 views: the same settings on 1024-texel maps. On exact surfels and the true lights the
 # twelve table datasets at 512^2 score a mean shadow IoU of 0.868, none under 0.764
 # (validation.metric_floor --exact cpu-small --map-resolution 1024; BENCHMARKS.md, "What
-# each view size allows the method").
+# each view size allows the method"). Its receiver band is cpu-small's, not measured at 512^2.
 PRESETS["gpu-large"] = dataclasses.replace(PRESETS["cpu-small"], resolution=1024)
 
 
