@@ -69,6 +69,21 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
     return dataclasses.replace(config, **values)
 
 
+def recorded_config(cls, saved: dict | None, fallback):
+    """A stage's settings as its manifest recorded them (``saved``, a dict of ``cls``'s
+    fields; fields it lacks keep ``cls``'s defaults, which older runs ran with), else
+    ``fallback()`` (the preset's) where nothing usable was recorded."""
+    if isinstance(saved, dict):
+        names = {f.name for f in dataclasses.fields(cls)}
+        try:  # (with_overrides: nested settings such as "raster" are saved as dicts)
+            return with_overrides(cls(), {k: tuple(v) if isinstance(v, list) else v
+                                          for k, v in saved.items() if k in names},
+                                  cls.__name__)
+        except (TypeError, ValueError):
+            pass  # an older manifest: the preset's settings
+    return fallback()
+
+
 def slow_preset_warning(preset: str, variant: str) -> str | None:
     """The warning for a GPU-sized preset run on another backend, else None."""
     if preset in GPU_PRESETS and not variant.startswith("cuda"):

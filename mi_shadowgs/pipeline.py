@@ -101,8 +101,9 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
     cfg = material_config(config.preset, overrides)
+    vis_config = shadow_maps.get_config(config.preset)  # what decompose fits with
     settings = {"variant": name, "material": dataclasses.asdict(cfg),
-                "visibility": dataclasses.asdict(shadow_maps.get_config(config.preset)),
+                "visibility": dataclasses.asdict(vis_config),
                 "relight": dataclasses.asdict(relight.get_config(config.preset)),
                 "bounds_quantile": config.bounds_quantile, "figure_views": config.figure_views}
     if name == "full" and config.preview_envmaps:  # the previews of the full fit use them
@@ -126,8 +127,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
             res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds,
                                                   overrides, progress, **checkpoints))
-            save_ply(out.path("model.ply"), res.surfels,
-                     relight.model_metadata(shadow_maps.get_config(config.preset)))
+            save_ply(out.path("model.ply"), res.surfels, relight.model_metadata(vis_config))
             write_json(out.path("light.json"), light_json(res))
             write_text(out.path("history.csv"), "step,loss\n" + "".join(
                 f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))

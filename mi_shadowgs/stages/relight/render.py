@@ -95,40 +95,30 @@ def model_metadata(vis_config: VisibilityConfig) -> dict[str, str]:
 def recorded_band(path) -> float | None:
     """The receiver band a stage-4 PLY was saved with: its header's record, else (a model
     saved before the record) the visibility settings of the run's manifest beside it that
-    lists it; None for a model with neither (another tool's). A malformed value names the
-    file."""
+    lists it, read as relighting reads them (``config.recorded_config``: 0 where they
+    predate the band); None for a model with neither (another tool's). A malformed record
+    names the file."""
+    from mi_shadowgs.config import recorded_config
     from mi_shadowgs.io.ply import PlyError, read_ply_metadata
+    from mi_shadowgs.io.provenance import read_manifest
 
+    path = Path(path)
     value = read_ply_metadata(path).get(BAND_METADATA_KEY)
     if value is not None:
-        return _band(value, f"{path}: header comment {BAND_METADATA_KEY}", PlyError)
-    return _manifest_band(Path(path))
-
-
-def _manifest_band(path: Path) -> float | None:
-    """The band in the visibility settings of the manifest that lists ``path`` (a stage-4
-    output); 0 where those settings predate the band (such runs shaded the blend)."""
-    from mi_shadowgs.io.provenance import MANIFEST_NAME, ProvenanceError, read_manifest
-
+        try:
+            band = float(value)
+        except ValueError:
+            band = float("nan")
+        if not band >= 0:
+            raise PlyError(f"{path}: header comment {BAND_METADATA_KEY} {value!r} is not a "
+                           "number >= 0")
+        return band
     manifest = read_manifest(path.parent)
     if not manifest or path.name not in manifest["files"]:
         return None
-    visibility = (manifest.get("settings") or {}).get("visibility")
-    if not isinstance(visibility, dict):
-        return None
-    return _band(visibility.get(BAND_METADATA_KEY, 0.0),
-                 f"{path.parent / MANIFEST_NAME}: settings.visibility.{BAND_METADATA_KEY}",
-                 ProvenanceError)
-
-
-def _band(value, where: str, error: type[Exception]) -> float:
-    try:
-        band = float(value)
-    except (TypeError, ValueError):
-        band = float("nan")
-    if not band >= 0:
-        raise error(f"{where} {value!r} is not a number >= 0")
-    return band
+    config = recorded_config(VisibilityConfig, (manifest.get("settings") or {})
+                             .get("visibility"), lambda: None)
+    return None if config is None else config.receiver_band
 
 
 def directional_light_set(directions, irradiance) -> shading.LightSet:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_shadowgs.config import recorded_config
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.stages.relight import render as relight
@@ -204,23 +205,6 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
                                  result.light.light_set(), vis_config.receiver_band)
     return RunFit(result, model, bounds, data, preset, vis_config)
-
-
-def recorded_config(cls, saved: dict | None, fallback):
-    """A stage's settings as its manifest recorded them (``saved``, a dict of ``cls``'s
-    fields; fields it lacks keep ``cls``'s defaults, which older runs ran with), else
-    ``fallback()`` (the preset's) where nothing usable was recorded."""
-    from mi_shadowgs.config import with_overrides
-
-    if isinstance(saved, dict):
-        names = {f.name for f in dataclasses.fields(cls)}
-        try:  # (with_overrides: nested settings such as "raster" are saved as dicts)
-            return with_overrides(cls(), {k: tuple(v) if isinstance(v, list) else v
-                                          for k, v in saved.items() if k in names},
-                                  cls.__name__)
-        except (TypeError, ValueError):
-            pass  # an older manifest: the preset's settings
-    return fallback()
 
 
 def dataset_cameras(root: Path, split: str) -> list[Camera]:
