@@ -298,6 +298,7 @@ def exact_model(tmp_path_factory):
     import mi_shadowgs.api as msg
     import validation.visibility as vv
     from mi_shadowgs.dataset import generate
+    from mi_shadowgs.dataset.scene import dataset_scene
     from mi_shadowgs.io.ply import save_ply
 
     root = tmp_path_factory.mktemp("factors")
@@ -312,7 +313,7 @@ def exact_model(tmp_path_factory):
                               base_surfels=800, resolution=40)
     model = root / "exact" / "geometry" / "model.ply"
     model.parent.mkdir(parents=True)
-    save_ply(model, vv.scene_surfels(vv.dataset_scene(data), cfg))
+    save_ply(model, vv.scene_surfels(dataset_scene(data), cfg))
     return data, model, cfg
 
 

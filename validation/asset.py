@@ -49,11 +49,9 @@ def ground_truth_points(data: Path, cameras, n: int = SAMPLES, seed: int = 0) ->
     import drjit as dr
     import mitsuba as mi
 
-    info = json.loads((data / "dataset.json").read_text())
-    text = Path(info["scene"]).read_text()
-    # Only what the XML uses: the rest (angles, flags) fed the generator's Python side.
-    params = {k: str(v) for k, v in (info.get("parameters") or {}).items() if f"${k}" in text}
-    scene = mi.load_file(str(info["scene"]), **params)
+    from mi_shadowgs.dataset.scene import dataset_scene
+
+    scene = dataset_scene(data).scene  # as rendered: a mesh scene's parts, if it has them
     shapes = [s for s in scene.shapes() if s.id().startswith("object")]
     if not shapes:
         raise ValueError(f"{data / 'dataset.json'}: its scene has no object* shape")

@@ -27,7 +27,7 @@ from mi_shadowgs import pipeline
 from mi_shadowgs.config import with_overrides
 from mi_shadowgs.core.directions import map_to_blocks
 from mi_shadowgs.dataset.loader import load_dataset
-from mi_shadowgs.dataset.scene import load_scene
+from mi_shadowgs.dataset.scene import SceneError, dataset_scene
 from mi_shadowgs.dataset.standin import standin_surfels
 from mi_shadowgs.io.atomic import atomic_dir, write_json
 from mi_shadowgs.io.images import write_png
@@ -90,9 +90,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     train = load_dataset(args.data, "train")
     test = load_dataset(args.data, "test")
-    if not train.info or "scene" not in train.info:
-        fail(f"{args.data}: dataset.json has no 'scene' (need a generated dataset)")
-    setup = load_scene(train.info["scene"], train.info.get("parameters"))
+    try:
+        setup = dataset_scene(args.data)
+    except SceneError as exc:
+        fail(str(exc))
     surfels = standin_surfels(setup)
     bounds = scene_bounds(setup, train.cameras)
     extra = {} if args.iterations is None else {"iterations": args.iterations}

@@ -81,9 +81,9 @@ def depth_bias(surfels, test, raster, views: int, base_id: int | None) -> float:
 def run_drift(data: Path, cfg: DriftConfig) -> list[dict]:
     from mi_shadowgs.dataset.layout import DATASET_JSON
     from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.dataset.scene import dataset_scene
     from mi_shadowgs.stages.geometry import train as G
     from mi_shadowgs.stages.geometry.densify import DensifyConfig
-    from validation.visibility import dataset_scene
 
     setup = dataset_scene(data)
     info = json.loads((data / DATASET_JSON).read_text())

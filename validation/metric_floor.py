@@ -80,7 +80,7 @@ def dataset_floor(data: Path, sizes: list[int] | None, views: int | None, sample
     from tqdm import tqdm
 
     from mi_shadowgs.dataset.loader import load_dataset
-    from validation.visibility import dataset_scene
+    from mi_shadowgs.dataset.scene import dataset_scene
 
     test = load_dataset(data, "test")
     cams = test.cameras[:views] if views else test.cameras

@@ -257,12 +257,8 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     from tqdm import tqdm
 
     from mi_shadowgs.dataset.generate import trace_ground_truth
-    from validation.visibility import (
-        ValidationConfig,
-        dataset_scene,
-        exact_surfel_config,
-        scene_surfels,
-    )
+    from mi_shadowgs.dataset.scene import dataset_scene
+    from validation.visibility import ValidationConfig, exact_surfel_config, scene_surfels
 
     t0 = time.perf_counter()
     inp = load_inputs(run, data, variant, views)

@@ -31,7 +31,6 @@ import argparse
 import csv
 import dataclasses
 import io
-import json
 import math
 import time
 from pathlib import Path
@@ -48,8 +47,8 @@ from mi_shadowgs.core.sampling import sample_surface
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.dataset.cameras import test_cameras
 from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground_truth
-from mi_shadowgs.dataset.layout import DATASET_JSON, NERF_CAMERA_ANGLE_X, transforms_name
-from mi_shadowgs.dataset.scene import Light, load_scene
+from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X, transforms_name
+from mi_shadowgs.dataset.scene import Light, dataset_scene, load_scene
 from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
 from mi_shadowgs.stages.visibility.baselines import (
     GaussianTraceConfig,
@@ -247,18 +246,6 @@ def methods(cfg_vis: VisibilityConfig, quick: bool):
 
 
 # -- stage-1 model ------------------------------------------------------------------------
-def dataset_scene(data: Path):
-    """The scene a generated dataset was rendered from (its ``dataset.json``), reloaded."""
-    info_path = data / DATASET_JSON
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{info_path}: needed to reload the dataset's scene")
-    info = json.loads(info_path.read_text())
-    computed = {"object_to_world", "mesh_type"}  # derived by the scene from the others
-    params = {k: v for k, v in (info.get("parameters") or {}).items()
-              if k not in computed and not k.endswith("_direction")}
-    return load_scene(info["scene"], params)
-
-
 def model_case_names(models: list[Path], datas: list[Path]) -> list[str]:
     """Each stage-1 case's name: "stage-1 " and the dataset folder (its parent when the
     folder is called "data"). When two cases would share that name (two models of one

@@ -68,6 +68,10 @@ class SceneSetup:
     object_to_world: np.ndarray  # [4, 4]
     object_center: np.ndarray  # [3] centre of the object's bounding sphere
     object_radius: float
+    # Every file the load read, by name: "scene" (the XML), "mesh", "parts" (the
+    # *_parts.json), "part FILE" / "texture FILE" (relative to it), "file VALUE" (another
+    # ``filename`` of the XML). The generator digests them all; ``dataset_scene`` checks them.
+    inputs: dict = dataclasses.field(default_factory=dict)  # name -> Path (resolved)
 
     def shape_material_ids(self) -> dict[str, int]:
         ids = {p.shape_id: p.material_id for p in self.parts}
@@ -172,11 +176,18 @@ def _part_bsdf(json_path: Path, entry: dict, materials: dict) -> tuple[dict, str
     return {"type": "twosided", "bsdf": inner}, kind, albedo
 
 
-def _read_parts_json(path: Path) -> dict:
+def _json_file(path: Path):
+    """A JSON file's value, or ``SceneError`` naming the file."""
+    if not path.is_file():
+        raise SceneError(f"{path}: file not found")
     try:
-        data = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path}: malformed JSON: {exc}") from None
+
+
+def _read_parts_json(path: Path) -> dict:
+    data = _json_file(path)
     parts = data.get("parts") if isinstance(data, dict) else None
     if not isinstance(parts, list) or not parts:
         raise SceneError(f"{path}: field 'parts' must be a non-empty list")
@@ -306,17 +317,24 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
                              f"{msg[-1] if msg else exc}") from None
 
     scene0 = _load(params)
+    inputs = _xml_inputs(path, root, params, mesh)
     if parts_json is not None:
         data = _read_parts_json(parts_json)
+        inputs["parts"] = parts_json.resolve()
         part_meshes, parts = [], []
         for i, entry in enumerate(data["parts"]):
             bsdf, kind, albedo = _part_bsdf(parts_json, entry, data.get("materials") or {})
+            inputs[f"part {entry['file']}"] = (parts_json.parent / entry["file"]).resolve()
+            texture_file = _bitmap_file(bsdf)
+            if texture_file is not None:
+                name = Path(texture_file).relative_to(parts_json.parent).as_posix()
+                inputs[f"texture {name}"] = Path(texture_file).resolve()
             sid = f"object_{entry['part']}"
             parts.append(Part(entry["part"], sid, i + 1, kind, albedo))
             part_meshes.append((sid, {"type": "ply", "filename": str(parts_json.parent /
                                                                     entry["file"]),
                                       "bsdf": bsdf}))
-        lo, hi = _bbox_of([mi.load_dict(d, optimize=False) for _, d in part_meshes])
+        lo, hi = _bbox_of([_load_part(parts_json, sid, d) for sid, d in part_meshes])
     else:
         parts = [Part(e.get("id")[len("object_"):], e.get("id"), i + 1, _bsdf_kind(e))
                  for i, e in enumerate(part_elems)]
@@ -343,7 +361,44 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
     radius = 0.5 * float(np.linalg.norm(hi_w - lo_w))
     return SceneSetup(path=path, params=params, scene=scene, parts=parts,
                       base_id=len(parts) + 1, lights=lights, object_to_world=m,
-                      object_center=centre, object_radius=radius)
+                      object_center=centre, object_radius=radius, inputs=inputs)
+
+
+def _load_part(parts_json: Path, shape_id: str, desc: dict):
+    """One part's shape, or ``SceneError`` naming the part when Mitsuba cannot load it."""
+    import mitsuba as mi
+
+    try:
+        return mi.load_dict(desc, optimize=False)
+    except Exception as exc:  # Mitsuba raises RuntimeError with a long trace
+        msg = str(exc).strip().splitlines()
+        raise SceneError(f"{parts_json}: part {shape_id[len('object_'):]!r}: Mitsuba cannot "
+                         f"load it: {msg[-1] if msg else exc}") from None
+
+
+def _xml_inputs(path: Path, root: ET.Element, params: dict, mesh: Path | None) -> dict:
+    """The XML and the files its ``filename`` strings name (parameters substituted; a
+    relative name from the XML's folder, as Mitsuba resolves it). The mesh keeps its name."""
+    inputs = {"scene": path.resolve()}
+    if mesh is not None:
+        inputs["mesh"] = mesh.resolve()
+    for el in root.iter("string"):
+        if el.get("name") != "filename":
+            continue
+        value = re.sub(r"\$(\w+)", lambda m: params.get(m.group(1), m.group(0)),
+                       el.get("value") or "")
+        file = Path(value).expanduser()
+        file = (file if file.is_absolute() else path.parent / file).resolve()
+        if file.is_file() and file not in inputs.values():
+            inputs[f"file {value}"] = file
+    return inputs
+
+
+def _bitmap_file(bsdf: dict) -> str | None:
+    """The texture file of a part's bsdf dict (``_part_bsdf``), if it has one."""
+    inner = bsdf.get("bsdf", bsdf)
+    color = inner.get("base_color", inner.get("reflectance"))
+    return color.get("filename") if isinstance(color, dict) else None
 
 
 # -- the textured base ("mat") -------------------------------------------------------------
@@ -417,3 +472,75 @@ def _bbox_of(shapes) -> tuple[np.ndarray, np.ndarray]:
         lo = np.minimum(lo, np.array(b.min, dtype=np.float64))
         hi = np.maximum(hi, np.array(b.max, dtype=np.float64))
     return lo, hi
+
+
+# -- a generated dataset's scene, reloaded -----------------------------------------------------
+# Parameters a dataset records that ``load_scene`` derives from the others.
+_DERIVED = re.compile(r"object_to_world|mesh_type|light\d+_direction")
+
+
+def dataset_scene(data: str | Path) -> SceneSetup:
+    """The scene a generated dataset was rendered from, reloaded with its recorded
+    parameters: the ground truth that validations trace.
+
+    Only what was rendered is returned. Every file the scene read then (its manifest's
+    inputs) must have the same content now, and the object must be placed as recorded;
+    otherwise ``SceneError`` names what differs. A shipped scene recorded at a path that is
+    gone (another clone) is taken from this install when its content is the same.
+    """
+    from mi_shadowgs.dataset import layout
+    from mi_shadowgs.io.provenance import file_digest, read_manifest
+    from mi_shadowgs.scenes import SCENE_DIR
+
+    data = Path(data)
+    info_path = data / layout.DATASET_JSON
+    info = _json_file(info_path)
+    recorded = info.get("scene") if isinstance(info, dict) else None
+    if not isinstance(recorded, str) or not recorded:
+        raise SceneError(f"{info_path}: no field 'scene': only a dataset made by "
+                         "mi-shadowgs generate has a scene to reload")
+    manifest = read_manifest(data)
+    generated = manifest is not None and manifest.get("command") == "generate"
+    made = (manifest.get("inputs") or {}) if generated else {}  # name -> {path, digest}
+    scene = Path(recorded)
+    if not scene.is_file():
+        shipped = SCENE_DIR / scene.name
+        want = (made.get("scene") or {}).get("digest")
+        if not (shipped.is_file() and want and file_digest(shipped) == want):
+            why = (f"; the shipped {shipped.name} is not the file it was rendered from"
+                   if shipped.is_file() else "")
+            raise SceneError(f"{info_path}: the scene file it was rendered from is gone: "
+                             f"{recorded} (field 'scene'){why}")
+        scene = shipped
+    params = {k: str(v) for k, v in (info.get("parameters") or {}).items()
+              if not _DERIVED.fullmatch(k)}
+    try:
+        setup = load_scene(scene, params)
+    except SceneError as exc:
+        raise SceneError(f"{info_path}: its scene cannot be reloaded: {exc}") from None
+
+    changed = [f"{setup.inputs[name]} ({name})" for name, ref in made.items()
+               if name in setup.inputs and file_digest(setup.inputs[name]) != ref.get("digest")]
+    changed += [f"{ref.get('path')} ({name}: no longer read)" for name, ref in made.items()
+                if name not in setup.inputs and not name.startswith("envmap ")]
+    if changed:
+        raise SceneError(f"{data}: the files its scene was rendered from have changed: "
+                         f"{', '.join(changed)}. Traced now, its ground truth would not match "
+                         "its images: restore them or generate the dataset again")
+    placed = (info.get("parameters") or {}).get("object_to_world")
+    if placed is not None and not np.allclose(
+            _floats(info_path, "object_to_world", placed),
+            _floats(info_path, "object_to_world", setup.params["object_to_world"]),
+            rtol=1e-6, atol=1e-7):
+        raise SceneError(f"{info_path}: the reloaded object is not where it was rendered "
+                         f"(parameter 'object_to_world' {placed!r}, now "
+                         f"{setup.params['object_to_world']!r})")
+    unchecked = sorted(set(setup.inputs) - set(made))
+    if unchecked:  # datasets made before the manifest recorded these files
+        import sys
+
+        named = ", ".join(unchecked[:3]) + (f" and {len(unchecked) - 3} more"
+                                            if len(unchecked) > 3 else "")
+        print(f"mi-shadowgs: warning: {data}: its manifest has no digest of {named} "
+              "(it predates their record); they are used as they are now", file=sys.stderr)
+    return setup

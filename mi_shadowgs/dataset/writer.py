@@ -69,9 +69,14 @@ def fingerprint(setup: SceneSetup, config: GenerateConfig, seed: int,
     import mitsuba as mi
 
     files = {"scene": _file_digest(setup.path)}
-    for key in ("mesh",):
-        if setup.params.get(key):
-            files[key] = _file_digest(Path(setup.params[key]))
+    if setup.params.get("mesh"):
+        files["mesh"] = _file_digest(Path(setup.params["mesh"]))
+    # The other files the scene read (parts, their meshes and textures): a key of its own,
+    # only where there are any, so that datasets of scenes without them keep their prints.
+    assets = {name: _file_digest(path) for name, path in setup.inputs.items()
+              if name not in ("scene", "mesh")}
+    if assets:
+        files["assets"] = assets
     # the env maps as resolved ("auto" depends on which shared files exist), by content
     files["envmaps"] = [[e.name, None if e.source is None else _file_digest(e.source)]
                         for e in envmaps]
@@ -323,9 +328,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     if not setup.lights:
         raise ValueError(f"{scene_path}: no directional light (emitters light0, light1, ...)")
     fp = fingerprint(setup, config, seed, envmaps, photos)
-    inputs = {"scene": input_ref(setup.path)}
-    if setup.params.get("mesh"):
-        inputs["mesh"] = input_ref(setup.params["mesh"])
+    inputs = {name: input_ref(path) for name, path in setup.inputs.items()}
     for env in envmaps:
         if env.source is not None:
             inputs[f"envmap {env.name}"] = input_ref(env.source)
