@@ -156,7 +156,7 @@ def test_a_dataset_from_another_clone_reloads_the_shipped_scene(tmp_path, capsys
 
 
 def test_a_folder_without_a_generated_scene_is_named(tmp_path):
-    with pytest.raises(SceneError, match=r"dataset\.json: file not found"):
+    with pytest.raises(SceneError, match=r"dataset\.json: not found: only a dataset made by"):
         dataset_scene(tmp_path)
     (tmp_path / "dataset.json").write_text(json.dumps({"format_version": 1}))
     with pytest.raises(SceneError, match="no field 'scene'"):

@@ -24,9 +24,9 @@ import numpy as np  # noqa: I001
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
 from mi_shadowgs import pipeline
-from mi_shadowgs.config import with_overrides
+from mi_shadowgs.config import ConfigError, with_overrides
 from mi_shadowgs.core.directions import map_to_blocks
-from mi_shadowgs.dataset.loader import load_dataset
+from mi_shadowgs.dataset.loader import DatasetError, load_dataset
 from mi_shadowgs.dataset.scene import SceneError, dataset_scene
 from mi_shadowgs.dataset.standin import standin_surfels
 from mi_shadowgs.io.atomic import atomic_dir, write_json
@@ -88,11 +88,13 @@ def main(argv=None) -> int:
     p.add_argument("--iterations", type=int, default=None)
     p.add_argument("--overwrite", action="store_true")
     args = p.parse_args(argv)
-    train = load_dataset(args.data, "train")
-    test = load_dataset(args.data, "test")
     try:
+        for stage in (material_fit, shadow_maps):  # the preset named by stage before any work
+            stage.get_config(args.preset)
+        train = load_dataset(args.data, "train")
+        test = load_dataset(args.data, "test")
         setup = dataset_scene(args.data)
-    except SceneError as exc:
+    except (ConfigError, DatasetError, SceneError) as exc:
         fail(str(exc))
     surfels = standin_surfels(setup)
     bounds = scene_bounds(setup, train.cameras)

@@ -494,6 +494,9 @@ def dataset_scene(data: str | Path) -> SceneSetup:
 
     data = Path(data)
     info_path = data / layout.DATASET_JSON
+    if not info_path.is_file():
+        raise SceneError(f"{info_path}: not found: only a dataset made by mi-shadowgs "
+                         "generate records the scene to reload")
     info = _json_file(info_path)
     recorded = info.get("scene") if isinstance(info, dict) else None
     if not isinstance(recorded, str) or not recorded:
