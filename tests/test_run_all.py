@@ -123,7 +123,9 @@ def test_a_dataset_of_another_preset_is_not_reused(tmp_path):
         vpipe.make_dataset("default", None, folder, preset="cpu-medium")
     with pytest.raises(vpipe.PresetMismatch, match="dataset.json"):
         vpipe.check_preset(tmp_path, "cpu-medium")
-    assert vpipe.make_dataset("default", None, folder) == folder / "data"  # same preset: kept
+    # The same preset: kept only with this row's fingerprint (this dataset.json has none).
+    with pytest.raises(vpipe.DatasetMismatch, match=r"data: holds a dataset made from other"):
+        vpipe.make_dataset("default", None, folder)
 
 
 def test_seeds_run_each_row_again_beside_seed_0(fake_runs, tmp_path):

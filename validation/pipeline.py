@@ -18,7 +18,8 @@ stage 1, stage 2 and the decomposition/relighting metrics per scene and on avera
 ``OUT/<scene>-<pair>/`` (dataset, run, ``row.json``) and is resumed, not redone, on a second
 call; the tables gather every ``row.json`` under OUT, so two processes with disjoint
 ``--scene``/``--lights`` subsets may share one OUT. One OUT holds one preset: a row or a
-dataset of another preset already there is refused (exit 2), never reused or mixed.
+dataset of another preset already there is refused (exit 2), never reused or mixed; so is a
+dataset made from other scene files or settings (its fingerprint).
 
 ``--seed N`` (repeatable; default 0) runs each row at those seeds of every stage's random
 draws (``RunConfig.seed``), on the one dataset: seed 0 in ``OUT/<scene>-<pair>/``, seed N in
@@ -96,6 +97,10 @@ class PresetMismatch(ValueError):
                          "use another output folder")
 
 
+class DatasetMismatch(ValueError):
+    """A row's dataset folder holds a dataset of other scene files or settings."""
+
+
 def row_preset(row: dict) -> str:
     """The preset a row was made at (rows from before the field: cpu-small)."""
     return row.get("preset", "cpu-small")
@@ -115,9 +120,10 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
     """The scene's ``preset`` dataset in ``folder/data`` under a light pair
     (``LIGHT_PAIRS[lights]``, or the scene-XML overrides ``pair``) with ``envmaps``
     (GenerateConfig's choice) for its env-map relit views, at ``resolution`` pixels square
-    (None: the preset's); kept when it is already complete. ``scene_overrides`` adds
-    scene parameters (e.g. ``base_texture``), ``settings`` GenerateConfig fields, and
-    ``photos`` the photo set (``write_dataset``)."""
+    (None: the preset's); kept when it is already complete and made from the same scene
+    files and settings (its fingerprint), refused (``DatasetMismatch``) when not.
+    ``scene_overrides`` adds scene parameters (e.g. ``base_texture``), ``settings``
+    GenerateConfig fields, and ``photos`` the photo set (``write_dataset``)."""
     import dataclasses
 
     from mi_shadowgs.dataset.generate import get_config
@@ -129,16 +135,24 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
         made = dataset_preset(data / "dataset.json")
         if made != preset:
             raise PresetMismatch(data / "dataset.json", made, preset)
-        return data
+    # Kept only when its fingerprint is this row's (scene files, lights, settings).
     overrides = {**(LIGHT_PAIRS[lights] if pair is None else pair), **(scene_overrides or {})}
     if mesh is not None:
         overrides["mesh"] = str(mesh)
     config = dataclasses.replace(get_config(preset), envmaps=envmaps, **(settings or {}))
     if resolution is not None:
         config = dataclasses.replace(config, width=resolution, height=resolution)
-    write_dataset(scene_path("default" if mesh is None else "mesh"), data,
-                  config, preset, seed=0, progress=True,
-                  overrides=overrides, photos=photos)
+    from mi_shadowgs.dataset.writer import OutputExistsError
+
+    try:
+        write_dataset(scene_path("default" if mesh is None else "mesh"), data,
+                      config, preset, seed=0, progress=True,
+                      overrides=overrides, photos=photos)
+    except OutputExistsError:
+        raise DatasetMismatch(
+            f"{data}: holds a dataset made from other scene files or settings than this "
+            "row's (its fingerprint differs); move it away or use another output folder"
+        ) from None
     return data
 
 
@@ -496,7 +510,7 @@ def main(argv=None) -> int:
         res = run(Path(args.out), args.quick, args.scene, command, args.lights,
                   not args.no_ablations, args.order, args.envmap, args.preset,
                   sorted(set(args.seed or [0])))
-    except PresetMismatch as e:
+    except (PresetMismatch, DatasetMismatch) as e:
         fail(str(e))
     print(res["markdown"])
     return 0
