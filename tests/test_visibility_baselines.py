@@ -424,6 +424,47 @@ def test_receiver_band_scores_the_median_surface_receivers(exact_model, tmp_path
     assert "median surface (receiver band 0.5)" in (out / "README.md").read_text()
 
 
+def test_preset_gives_the_pixel_method_a_runs_maps_and_receivers(exact_model, tmp_path,
+                                                                  capsys):
+    """``--preset P``: the pixel method's maps at P's visibility settings and the models'
+    receivers at P's band, as a run at P has them (the paper's maps by default); recorded in
+    the summary and the README; an unknown preset exits 2 naming it."""
+    import json
+
+    import validation.visibility as vv
+    from mi_shadowgs.stages.visibility.shadow_maps import get_config, render_shadow_maps
+
+    data, model, cfg = exact_model
+    preset = get_config("cpu-small")
+    assert preset.receiver_band == 0.5 and preset.projection == "orthographic"
+    case = vv.model_case(model, data, cfg, receiver_band=preset.receiver_band)
+    expected = vv.run_method(
+        lambda: render_shadow_maps(case.surfels, case.directions, case.bounds, preset),
+        case)["shadow_iou"]
+    out = tmp_path / "vis"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(vv, "QUICK", cfg)
+        assert vv.main(["--out", str(out), "--quick", "--models-only", "--model", str(model),
+                        "--data", str(data), "--preset", "cpu-small", "--quiet"]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["visibility_preset"] == "cpu-small" and summary["receiver_band"] == 0.5
+        assert summary["visibility"]["projection"] == "orthographic"
+        name = vv.model_case_names([model], [data])[0]
+        assert summary["results"]["Pixel-based (ours)"][name]["shadow_iou"] == expected
+        assert "the visibility settings of preset 'cpu-small'" in (out / "README.md").read_text()
+        # --receiver-band given: used as given, over the preset's
+        assert vv.main(["--out", str(out), "--quick", "--models-only", "--model", str(model),
+                        "--data", str(data), "--preset", "cpu-small", "--receiver-band", "0",
+                        "--quiet"]) == 0
+        assert json.loads((out / "summary.json").read_text())["receiver_band"] == 0.0
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        vv.main(["--out", str(tmp_path / "bad"), "--models-only", "--model", str(model),
+                 "--data", str(data), "--preset", "cpu-tiny", "--quiet"])
+    assert e.value.code == 2 and not (tmp_path / "bad").exists()
+    assert "'cpu-tiny'" in capsys.readouterr().err
+
+
 def test_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
     """--out is replaced when it holds an earlier output of this validation (its
     summary.json), never someone else's folder: refused before any work, with exit 2."""

@@ -12,6 +12,10 @@ dataset), the points come from the model's own rendered median depth and normals
 pairs, for one stage-1 table over several scenes. ``--receiver-band B`` renders a model's
 receivers as stages 4-5 of the ``cpu-*`` presets do (each pixel's median surface,
 ``VisibilityConfig.receiver_band``) instead of the paper's median depth and blended normals.
+The pixel method's maps have the paper's settings (Table 2 as published: perspective maps
+at 30x, the relative tau); ``--preset P`` gives them preset P's (``shadow_maps.PRESETS``:
+for the ``cpu-*`` presets orthographic maps, a one-texel bias and the occluder layer's
+slack) and its receiver band: the method as a run at P has it.
 ``--factors`` also splits each stage-1 model's IoU (``model_factors``): its receivers and
 occluders swapped for the truth's, the method on exact geometry, and what the pixel area
 allows; ``--models-only`` leaves out the ground-truth scenes, the sweep and the timing
@@ -19,7 +23,7 @@ allows; ``--models-only`` leaves out the ground-truth scenes, the sweep and the 
 
     python -m validation.visibility --out validation-out/visibility [--quick]
         [--model RUN/geometry/model.ply --data DATASET ...] [--factors] [--models-only]
-        [--receiver-band B]
+        [--receiver-band B] [--preset P]
 
 Writes (atomically) ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``,
 ``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``).
@@ -62,6 +66,7 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
     mean_camera_distance,
     render_shadow_maps,
 )
+from mi_shadowgs.stages.visibility.shadow_maps import get_config as get_visibility_config
 from validation import fail
 
 REPO = Path(__file__).resolve().parents[1]
@@ -592,15 +597,18 @@ def _progress(quiet: bool):
 
 def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False,
         factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None,
-        models_only: bool = False, receiver_band: float = 0.0) -> dict:
+        models_only: bool = False, receiver_band: float | None = None,
+        preset: str | None = None) -> dict:
     """Everything above; writes into ``out_dir`` (replaced atomically; an existing folder
     only when it holds this validation's summary.json). ``model`` and
     ``data``: a stage-1 PLY and its dataset, or equally long lists of them; ``factors``:
     each model's ``model_factors`` too (``factor_samples``^2 points per pixel for the
     pixel-area truth, ``factor_surfels`` exact surfels on the object); ``models_only``: the
-    models' rows alone (no ground-truth scenes, sweep or timing); ``receiver_band``: the
-    models' receivers (``rendered_receivers``). Returns a summary dict with a ``markdown``
-    entry."""
+    models' rows alone (no ground-truth scenes, sweep or timing); ``preset``: the pixel
+    method's maps at that preset's visibility settings (``shadow_maps.PRESETS``) instead of
+    the paper's, and its receiver band; ``receiver_band``: the models' receivers
+    (``rendered_receivers``; None: the preset's band, 0 without a preset). Returns a
+    summary dict with a ``markdown`` entry."""
     models = [model] if isinstance(model, str | Path) else list(model or [])
     datas = [data] if isinstance(data, str | Path) else list(data or [])
     if len(models) != len(datas):
@@ -615,14 +623,16 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         raise ValueError(f"--factor-samples must be >= 1, got {factor_samples}")
     if factor_surfels is not None and factor_surfels < 1:
         raise ValueError(f"--factor-surfels must be >= 1, got {factor_surfels}")
-    if not receiver_band >= 0:
+    # The paper's maps (Table 2 as published), or a preset's: what a run at it uses.
+    base = VisibilityConfig() if preset is None else get_visibility_config(preset)
+    if receiver_band is not None and not receiver_band >= 0:
         raise ValueError(f"--receiver-band must be >= 0, got {receiver_band}")
-    if receiver_band > 0 and not models:
+    if receiver_band is not None and receiver_band > 0 and not models:
         raise ValueError("--receiver-band renders a stage-1 model's receivers: give --model "
                          "and --data")
     case_names = model_case_names([Path(m) for m in models], [Path(d) for d in datas])
     cfg = QUICK if quick else ValidationConfig()
-    base = VisibilityConfig()
+    receiver_band = base.receiver_band if receiver_band is None else receiver_band
     progress = _progress(quiet)
     scenes, notes = [], []
     if not models_only:
@@ -679,9 +689,13 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                  f"each pixel's median surface (receiver band {receiver_band:g})")
     models_note = (f"Stage-1 models: the first {cfg.n_views} test views of their datasets, at "
                    f"the datasets' size; receivers from {receivers}. ") if model_names else ""
+    maps_note = ("The pixel method's maps: the paper's settings. " if preset is None else
+                 f"The pixel method's maps: the visibility settings of preset {preset!r} "
+                 f"({base.projection}, {base.resolution} texels). ")
     md = [f"## Visibility ({'quick' if quick else 'full'})", "",
           f"{len(cfg.lights)} light directions (az, el deg): {list(cfg.lights)}; "
-          f"{scenes_note}{models_note}Shadow IoU (V < 0.5) vs Mitsuba ray tracing.", "",
+          f"{scenes_note}{models_note}{maps_note}Shadow IoU (V < 0.5) vs Mitsuba ray "
+          "tracing.", "",
           "### Table 2", "", table, ""]
     md += wins_md + [""]
     if split:
@@ -715,6 +729,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     md += [f"Note: {n}" for n in notes]
     markdown = "\n".join(md)
     summary = {"config": dataclasses.asdict(cfg), "receiver_band": receiver_band,
+               "visibility_preset": preset, "visibility": dataclasses.asdict(base),
                "results": results, "best_tradeoff": best,
                "timing": timing, "factors": split, "notes": notes,
                "wall_s": time.perf_counter() - t_start,
@@ -755,17 +770,22 @@ def main(argv=None) -> int:
                     help="exact surfels on the object for the split (default: Table 2's)")
     ap.add_argument("--models-only", action="store_true",
                     help="only the --model rows (no ground-truth scenes, sweep or timing)")
-    ap.add_argument("--receiver-band", type=float, default=0.0,
+    ap.add_argument("--preset", default=None,
+                    help="the pixel method's maps at this preset's visibility settings, "
+                         "as a run at it has them (e.g. cpu-small: orthographic, a one-texel "
+                         "bias and the occluder layer's slack), and its receiver band "
+                         "(default: the paper's settings, Table 2 as published)")
+    ap.add_argument("--receiver-band", type=float, default=None,
                     help="render the models' receivers on each pixel's median surface, the "
                          "splats within this many pixel footprints of it, as stages 4-5 of "
-                         "the cpu presets do (default 0: the paper's median depth and "
-                         "blended normals)")
+                         "the cpu presets do (default: the preset's; 0 without --preset: "
+                         "the paper's median depth and blended normals)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,
                       args.factors, args.factor_samples, args.factor_surfels,
-                      args.models_only, args.receiver_band)
+                      args.models_only, args.receiver_band, args.preset)
     except (ValueError, FileNotFoundError, FileExistsError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])
