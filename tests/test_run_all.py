@@ -179,3 +179,30 @@ def test_every_seed_of_a_row_runs_on_its_seed_0_dataset(monkeypatch, tmp_path):
     with pytest.raises(RuntimeError, match="stop after"):
         vpipe.run_scene("default", None, tmp_path, "low", seed=3)
     assert made == [tmp_path / "default-low"]
+
+
+def test_visibility_runs_scores_the_table_models_at_their_rows_preset(tmp_path, monkeypatch):
+    # The stage-1 item of issue 15 was measured with the paper's maps for sessions; the
+    # table's models are scored here with the maps their runs use: the rows' preset.
+    from validation import visibility
+
+    out = tmp_path / "validate"
+    assert run_all._visibility_runs(out / "visibility_runs", False)["markdown"].startswith(
+        "## visibility_runs")  # no table yet: a note, no work
+    calls = []
+    monkeypatch.setattr(visibility, "run", lambda *a, **k: calls.append((a, k)) or {})
+    for row, preset in (("default-tuned", "cpu-medium"), ("bunny-low", "cpu-medium")):
+        model = out / "pipeline" / row / "run" / "geometry" / "model.ply"
+        model.parent.mkdir(parents=True)
+        model.write_bytes(b"")
+        (out / "pipeline" / row / "row.json").write_text(json.dumps({"preset": preset}))
+    run_all._visibility_runs(out / "visibility_runs", False)
+    (args, kwargs), = calls
+    assert kwargs["preset"] == "cpu-medium" and kwargs["models_only"] and kwargs["factors"]
+    assert [m.parts[-4] for m in kwargs["model"]] == ["bunny-low", "default-tuned"]
+    assert kwargs["data"] == [out / "pipeline" / r / "data" for r in ("bunny-low",
+                                                                     "default-tuned")]
+    run_all._visibility(out / "visibility", False)  # Table 2: the paper's maps, no preset
+    assert "preset" not in calls[-1][1] and not calls[-1][1].get("factors")
+    names = list(run_all.VALIDATIONS)
+    assert names.index("pipeline") < names.index("visibility_runs")

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import sys
 import time
@@ -30,15 +31,34 @@ from mi_shadowgs.io.atomic import write_json, write_text
 from validation import fail
 
 
+def _table_models(out_dir: Path) -> tuple[list[Path], list[Path]]:
+    """The stage-1 models the pipeline validation (run before) trained, and their datasets."""
+    models = sorted((out_dir.parent / "pipeline").glob("*/run/geometry/model.ply"))
+    return models, [m.parents[2] / "data" for m in models]
+
+
 def _visibility(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
-    """Table 2 on ground-truth surfels, plus its stage-1 rows for the models the pipeline
-    validation (run before it) trained, when there are any, each split by factor."""
+    """Table 2 on ground-truth surfels, with the paper's maps, plus rows for the table's
+    stage-1 models when there are any."""
     from . import visibility
 
-    models = sorted((out_dir.parent / "pipeline").glob("*/run/geometry/model.ply"))
-    datas = [m.parents[2] / "data" for m in models]
-    return visibility.run(out_dir, quick=quick, model=models, data=datas,
-                          factors=bool(models))
+    models, datas = _table_models(out_dir)
+    return visibility.run(out_dir, quick=quick, model=models, data=datas)
+
+
+def _visibility_runs(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
+    """The table's stage-1 models with the maps and receivers their runs use (the preset
+    the rows were made at), each split by factor."""
+    from . import pipeline, visibility
+
+    models, datas = _table_models(out_dir)
+    if not models:
+        return {"markdown": "## visibility_runs\n\nNo stage-1 models: run the pipeline first."}
+    row = models[0].parents[2] / "row.json"
+    preset = pipeline.row_preset(json.loads(row.read_text())) if row.is_file() else \
+        pipeline.dataset_preset(datas[0] / "dataset.json")
+    return visibility.run(out_dir, quick=quick, model=models, data=datas, factors=True,
+                          models_only=True, preset=preset)
 
 
 def _pipeline(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
@@ -80,6 +100,7 @@ def _report_pages(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
 VALIDATIONS: dict[str, Callable[[Path, bool, dict], dict]] = {
     "pipeline": _pipeline,  # stages 1-5 per scene and light pair: Tables 1 and 3
     "visibility": _visibility,  # after the pipeline: its stage-1 models get Table 2 rows
+    "visibility_runs": _visibility_runs,  # the same models with their runs' maps, split
     "metric_floor": _metric_floor,  # after the pipeline: its datasets' exact scenes scored
     "lowpass_drift": _lowpass_drift,  # does stage 1 keep a correct surface in place?
     "report_pages": _report_pages,  # after the pipeline: its reports in headless Chromium
