@@ -247,11 +247,12 @@ def test_make_validate_gives_the_pipeline_models_to_the_visibility_table(tmp_pat
         (tmp_path / "pipeline" / scene / "run" / "geometry").mkdir(parents=True)
         (tmp_path / "pipeline" / scene / "run" / "geometry" / "model.ply").write_text("")
     seen = {}
-    monkeypatch.setattr(vv, "run", lambda out, quick, model, data, factors: seen.update(
-        model=model, data=data, factors=factors) or {"markdown": ""})
+    monkeypatch.setattr(vv, "run", lambda out, quick, model, data, **kw: seen.update(
+        model=model, data=data, **kw) or {"markdown": ""})
     run_all._visibility(tmp_path / "visibility", True)
     assert [m.parts[-4] for m in seen["model"]] == ["bunny", "default"]
-    assert seen["factors"]  # each model's IoU split by factor too
+    # the split comes with the runs' maps (visibility_runs; tests/test_run_all.py)
+    assert not seen.get("factors") and "preset" not in seen
     assert seen["data"] == [tmp_path / "pipeline" / s / "data" for s in ("bunny", "default")]
     monkeypatch.undo()
     with pytest.raises(ValueError, match="every --model needs its --data"):
@@ -377,11 +378,24 @@ def test_models_only_factor_table_from_the_command_line(exact_model, tmp_path, m
     assert "test-spiral" not in readme and "Stage-1 models: the first" in readme
 
 
+def _models_only(exact_model, out, *options) -> dict:
+    """``--quick --models-only`` on the exact model (at its small config); the summary."""
+    import json
+
+    import validation.visibility as vv
+
+    data, model, cfg = exact_model
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(vv, "QUICK", cfg)
+        assert vv.main(["--out", str(out), "--quick", "--models-only", "--model", str(model),
+                        "--data", str(data), "--quiet", *options]) == 0
+    return json.loads((out / "summary.json").read_text())
+
+
 def test_receiver_band_scores_the_median_surface_receivers(exact_model, tmp_path, capsys):
     """``--receiver-band``: a model's receivers rendered as stages 4-5 of the cpu presets
     render them (``shading.pixel_geometry`` on the median surface), in the Table 2 row and
     in the factor split's exact geometry; recorded in the summary and the README."""
-    import json
 
     import validation.visibility as vv
     from mi_shadowgs.core import shading
@@ -415,11 +429,7 @@ def test_receiver_band_scores_the_median_surface_receivers(exact_model, tmp_path
         assert e.value.code == 2 and not (tmp_path / "bad").exists()
         assert msg in capsys.readouterr().err
     out = tmp_path / "vis"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(vv, "QUICK", cfg)
-        assert vv.main(["--out", str(out), "--quick", "--models-only", "--model", str(model),
-                        "--data", str(data), "--receiver-band", "0.5", "--quiet"]) == 0
-    summary = json.loads((out / "summary.json").read_text())
+    summary = _models_only(exact_model, out, "--receiver-band", "0.5")
     assert summary["receiver_band"] == 0.5
     assert "median surface (receiver band 0.5)" in (out / "README.md").read_text()
 
@@ -429,7 +439,6 @@ def test_preset_gives_the_pixel_method_a_runs_maps_and_receivers(exact_model, tm
     """``--preset P``: the pixel method's maps at P's visibility settings and the models'
     receivers at P's band, as a run at P has them (the paper's maps by default); recorded in
     the summary and the README; an unknown preset exits 2 naming it."""
-    import json
 
     import validation.visibility as vv
     from mi_shadowgs.stages.visibility.shadow_maps import get_config, render_shadow_maps
@@ -442,21 +451,15 @@ def test_preset_gives_the_pixel_method_a_runs_maps_and_receivers(exact_model, tm
         lambda: render_shadow_maps(case.surfels, case.directions, case.bounds, preset),
         case)["shadow_iou"]
     out = tmp_path / "vis"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(vv, "QUICK", cfg)
-        assert vv.main(["--out", str(out), "--quick", "--models-only", "--model", str(model),
-                        "--data", str(data), "--preset", "cpu-small", "--quiet"]) == 0
-        summary = json.loads((out / "summary.json").read_text())
-        assert summary["visibility_preset"] == "cpu-small" and summary["receiver_band"] == 0.5
-        assert summary["visibility"]["projection"] == "orthographic"
-        name = vv.model_case_names([model], [data])[0]
-        assert summary["results"]["Pixel-based (ours)"][name]["shadow_iou"] == expected
-        assert "the visibility settings of preset 'cpu-small'" in (out / "README.md").read_text()
-        # --receiver-band given: used as given, over the preset's
-        assert vv.main(["--out", str(out), "--quick", "--models-only", "--model", str(model),
-                        "--data", str(data), "--preset", "cpu-small", "--receiver-band", "0",
-                        "--quiet"]) == 0
-        assert json.loads((out / "summary.json").read_text())["receiver_band"] == 0.0
+    summary = _models_only(exact_model, out, "--preset", "cpu-small")
+    assert summary["visibility_preset"] == "cpu-small" and summary["receiver_band"] == 0.5
+    assert summary["visibility"]["projection"] == "orthographic"
+    name = vv.model_case_names([model], [data])[0]
+    assert summary["results"]["Pixel-based (ours)"][name]["shadow_iou"] == expected
+    assert "the visibility settings of preset 'cpu-small'" in (out / "README.md").read_text()
+    # --receiver-band given: used as given, over the preset's
+    summary = _models_only(exact_model, out, "--preset", "cpu-small", "--receiver-band", "0")
+    assert summary["receiver_band"] == 0.0
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
         vv.main(["--out", str(tmp_path / "bad"), "--models-only", "--model", str(model),
