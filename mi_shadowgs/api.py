@@ -22,6 +22,7 @@ from mi_shadowgs import backend, stages
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.render import render_surfels
 from mi_shadowgs.dataset.loader import Dataset, load_dataset
+from mi_shadowgs.dataset.scene import dataset_scene
 from mi_shadowgs.io.ply import load_ply, save_ply
 from mi_shadowgs.pipeline import RunConfig, get_config, run_pipeline
 from mi_shadowgs.scenes import scene_path
@@ -95,7 +96,8 @@ def relight(surfels, cameras, lights, bounds, specular: bool = True, preset: str
 
 
 __all__ = [
-    "Camera", "Dataset", "RunConfig", "directional_light_set", "export_asset", "export_ply",
+    "Camera", "Dataset", "RunConfig", "dataset_scene", "directional_light_set", "export_asset",
+    "export_ply",
     "generate_dataset", "get_config", "lights_from_json", "load_dataset", "load_model",
     "relight", "render", "run", "run_geometry", "run_pipeline", "run_segmentation",
     "scene_path", "set_variant", "stages",

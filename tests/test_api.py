@@ -18,6 +18,8 @@ def tiny_presets(monkeypatch):
 
 def test_script_the_method(tiny_presets, tmp_path):
     data = msg.generate_dataset(msg.scene_path("default"), tmp_path / "data", preset=TINY)
+    truth = msg.dataset_scene(data)  # the scene as rendered, for ray-traced ground truth
+    assert len(truth.lights) == 2 and truth.inputs == {"scene": msg.scene_path("default")}
     summary = msg.run(data, tmp_path / "run", preset=TINY)
     assert summary["tables"][0]["rows"][0][0] == "full"
     assert (tmp_path / "run" / "report.html").is_file()
