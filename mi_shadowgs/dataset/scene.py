@@ -144,8 +144,10 @@ def _ply_has_uv(path: Path) -> bool:
     return b"property float u" in head and b"property float v" in head
 
 
-def _part_bsdf(json_path: Path, entry: dict, materials: dict) -> tuple[dict, str, tuple | None]:
-    """Mitsuba bsdf dict, kind and constant albedo of one part of a ``*_parts.json``."""
+def _part_bsdf(json_path: Path, entry: dict, materials: dict
+               ) -> tuple[dict, str, tuple | None, str | None]:
+    """Mitsuba bsdf dict, kind, constant albedo and texture (as the parts file names it,
+    when the part uses one) of one part of a ``*_parts.json``."""
     root = json_path.parent
     part_file = root / entry["file"]
     mat = materials.get(entry.get("material")) if materials else None
@@ -173,7 +175,7 @@ def _part_bsdf(json_path: Path, entry: dict, materials: dict) -> tuple[dict, str
                            or (0.5, 0.5, 0.5))
             color = {"type": "rgb", "value": list(albedo)}
         inner, kind = {"type": "diffuse", "reflectance": color}, "diffuse"
-    return {"type": "twosided", "bsdf": inner}, kind, albedo
+    return {"type": "twosided", "bsdf": inner}, kind, albedo, (tex if albedo is None else None)
 
 
 def _json_file(path: Path):
@@ -323,12 +325,11 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
         inputs["parts"] = parts_json.resolve()
         part_meshes, parts = [], []
         for i, entry in enumerate(data["parts"]):
-            bsdf, kind, albedo = _part_bsdf(parts_json, entry, data.get("materials") or {})
+            bsdf, kind, albedo, texture = _part_bsdf(parts_json, entry,
+                                                     data.get("materials") or {})
             inputs[f"part {entry['file']}"] = (parts_json.parent / entry["file"]).resolve()
-            texture_file = _bitmap_file(bsdf)
-            if texture_file is not None:
-                name = Path(texture_file).relative_to(parts_json.parent).as_posix()
-                inputs[f"texture {name}"] = Path(texture_file).resolve()
+            if texture is not None:
+                inputs[f"texture {texture}"] = (parts_json.parent / texture).resolve()
             sid = f"object_{entry['part']}"
             parts.append(Part(entry["part"], sid, i + 1, kind, albedo))
             part_meshes.append((sid, {"type": "ply", "filename": str(parts_json.parent /
@@ -392,13 +393,6 @@ def _xml_inputs(path: Path, root: ET.Element, params: dict, mesh: Path | None) -
         if file.is_file() and file not in inputs.values():
             inputs[f"file {value}"] = file
     return inputs
-
-
-def _bitmap_file(bsdf: dict) -> str | None:
-    """The texture file of a part's bsdf dict (``_part_bsdf``), if it has one."""
-    inner = bsdf.get("bsdf", bsdf)
-    color = inner.get("base_color", inner.get("reflectance"))
-    return color.get("filename") if isinstance(color, dict) else None
 
 
 # -- the textured base ("mat") -------------------------------------------------------------
