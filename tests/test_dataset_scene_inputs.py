@@ -161,3 +161,26 @@ def test_a_folder_without_a_generated_scene_is_named(tmp_path):
     (tmp_path / "dataset.json").write_text(json.dumps({"format_version": 1}))
     with pytest.raises(SceneError, match="no field 'scene'"):
         dataset_scene(tmp_path)
+
+
+def test_a_file_a_users_xml_names_is_an_input(tmp_path, capsys):
+    """A user's scene XML whose base reads a texture (a ``filename`` of the XML, relative to
+    it): the texture is an input of the dataset, and editing it makes another dataset."""
+    xml = scene_path("default").read_text().replace(
+        '<bsdf type="diffuse"><rgb name="reflectance" value="$base_albedo"/></bsdf>\n  </shape>\n'
+        '</scene>',
+        '<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+        '<string name="filename" value="mat.png"/></texture></bsdf>\n  </shape>\n</scene>')
+    assert "mat.png" in xml
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "scene.xml").write_text(xml)
+    write_png(tmp_path / "mine" / "mat.png", np.full((4, 4, 3), 0.4, np.float32))
+    setup = load_scene(tmp_path / "mine" / "scene.xml")
+    assert setup.inputs["file mat.png"] == (tmp_path / "mine" / "mat.png").resolve()
+    out = tmp_path / "data"
+    argv = [str(tmp_path / "mine" / "scene.xml"), "--out", str(out), *TINY]
+    assert _generate(argv, capsys)[0] == 0
+    assert "file mat.png" in json.loads((out / MANIFEST_NAME).read_text())["inputs"]
+    write_png(tmp_path / "mine" / "mat.png", np.full((4, 4, 3), 0.6, np.float32))
+    rc, cap = _generate(argv, capsys)
+    assert rc == 2 and "different dataset" in cap.err, cap.err
