@@ -456,6 +456,8 @@ def test_preset_gives_the_pixel_method_a_runs_maps_and_receivers(exact_model, tm
     assert summary["visibility"]["projection"] == "orthographic"
     name = vv.model_case_names([model], [data])[0]
     assert summary["results"]["Pixel-based (ours)"][name]["shadow_iou"] == expected
+    # the preset's maps are orthographic already: no second, identical row
+    assert sorted(summary["results"]) == ["Gaussian-based", "Pixel-based (ours)", "Voxel-based"]
     assert "the visibility settings of preset 'cpu-small'" in (out / "README.md").read_text()
     # --receiver-band given: used as given, over the preset's
     summary = _models_only(exact_model, out, "--preset", "cpu-small", "--receiver-band", "0")

@@ -238,16 +238,20 @@ def run_method(build, case: Case, repeats: int = 1) -> dict:
 
 
 def methods(cfg_vis: VisibilityConfig, quick: bool):
-    """Table 2's methods: name -> builder(surfels, directions, bounds)."""
+    """Table 2's methods: name -> builder(surfels, directions, bounds). Perspective maps
+    (the paper's) also get an orthographic row; maps already orthographic (a ``cpu-*``
+    preset's) would repeat it."""
     g = GaussianTraceConfig(max_hits=16) if quick else GaussianTraceConfig()
     vx = VoxelConfig(resolution=48) if quick else VoxelConfig()
-    return {
+    out = {
         "Voxel-based": lambda s, d, b: voxelize_surfels(s, d, b, vx),
         "Gaussian-based": lambda s, d, b: trace_surfels(s, d, b, g),
         "Pixel-based (ours)": lambda s, d, b: render_shadow_maps(s, d, b, cfg_vis),
-        "Pixel-based (ours, orthographic)": lambda s, d, b: render_shadow_maps(
-            s, d, b, dataclasses.replace(cfg_vis, projection="orthographic")),
     }
+    if cfg_vis.projection != "orthographic":
+        out["Pixel-based (ours, orthographic)"] = lambda s, d, b: render_shadow_maps(
+            s, d, b, dataclasses.replace(cfg_vis, projection="orthographic"))
+    return out
 
 
 # -- stage-1 model ------------------------------------------------------------------------
