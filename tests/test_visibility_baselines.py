@@ -329,16 +329,16 @@ def test_factor_split_of_a_model_that_is_the_exact_geometry(exact_model, tmp_pat
     data, model, cfg = exact_model
     case = vv.model_case(model, data, cfg)
     base = VisibilityConfig()
-    one = vv.model_factors(case, data, cfg, base, samples=1)
+    one = vv.model_factors(case, cfg, base, samples=1)
     assert set(one) == {k for k, _ in vv.FACTORS}
     assert one["exact_occluders"] == one["run"] and one["exact_geometry"] == one["run"]
     assert one["true_receivers_exact_occluders"] == one["true_receivers"]
     assert one["pixel_ceiling"] == 1.0
     assert 0.3 < one["run"] < 1.0 and all(0.0 <= v <= 1.0 for v in one.values())
-    sparse = vv.model_factors(case, data, cfg, base, samples=1, exact_surfels=600)
+    sparse = vv.model_factors(case, cfg, base, samples=1, exact_surfels=600)
     assert all(sparse[k] == one[k] for k in ("run", "true_points", "true_receivers"))
     assert sparse["exact_geometry"] != one["exact_geometry"]  # the exact surfels' count
-    four = vv.model_factors(case, data, cfg, base, samples=4)
+    four = vv.model_factors(case, cfg, base, samples=4)
     assert 0.5 < four["pixel_ceiling"] < 1.0
     assert {k: v for k, v in four.items() if k != "pixel_ceiling"} == \
         {k: v for k, v in one.items() if k != "pixel_ceiling"}
@@ -419,7 +419,7 @@ def test_receiver_band_scores_the_median_surface_receivers(exact_model, tmp_path
     assert (np.sum(n0 * n1, -1)[blend.mask[0].ravel()] < 0.99).sum() >= 3
     # the split renders the exact surfels' receivers with the same band: a model that is
     # the exact surfels scores as its exact geometry
-    split = vv.model_factors(surface, data, cfg, VisibilityConfig(), samples=1,
+    split = vv.model_factors(surface, cfg, VisibilityConfig(), samples=1,
                              receiver_band=0.5)
     assert split["exact_geometry"] == split["run"]
     for bad, msg in ((["--receiver-band", "-1", "--model", str(model), "--data", str(data)],

@@ -123,6 +123,10 @@ class Case:
     # per view: mi.Float [H*W] pixel footprints when the points come from rendered depth
     # (the receiver offset applies); None for exact ray-traced points
     footprints: list | None = None
+    # a model's case (``model_case``): its dataset's scene and that scene traced for these
+    # views and lights, which ``model_factors`` reuses
+    setup: object = None
+    truth: dict | None = None
 
     def footprint(self, view: int):
         return None if self.footprints is None else self.footprints[view]
@@ -354,7 +358,7 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None 
     bounds = SceneBounds.from_points(obj, cams)
     name = name or model_case_names([model], [data])[0]
     return Case(name, surfels, bounds, dirs, cams, points, normals,
-                np.stack(masks), gt_shadow, footprints)
+                np.stack(masks), gt_shadow, footprints, setup, gt)
 
 
 # -- where a stage-1 model's IoU is lost --------------------------------------------------
@@ -383,10 +387,11 @@ def exact_surfel_config(cfg: ValidationConfig, camera, object_surfels: int | Non
                                base_surfels=max(1, round(base * scale)))
 
 
-def model_factors(case: Case, data: Path, cfg: ValidationConfig, base: VisibilityConfig,
+def model_factors(case: Case, cfg: ValidationConfig, base: VisibilityConfig,
                   samples: int = 4, exact_surfels: int | None = None,
                   receiver_band: float = 0.0) -> dict[str, float]:
-    """Where a stage-1 model's shadow IoU (the pixel method, ``base``) is lost. The model's
+    """Where a stage-1 model's shadow IoU (the pixel method, ``base``) is lost (``case``:
+    a ``model_case``, whose scene and traced truth are reused). The model's
     receivers (rendered median depth and normals) and occluders (its surfels' shadow maps)
     are swapped for the truth's, one at a time and together: the ray-traced points and
     normals at each pixel's centre; surfels sampled on the true shapes (``scene_surfels``)
@@ -399,9 +404,10 @@ def model_factors(case: Case, data: Path, cfg: ValidationConfig, base: Visibilit
     count as the base's are (``exact_surfel_config``). ``receiver_band``: the receivers
     rendered from surfels (the case's were made with it too). Returns key -> IoU
     (``FACTORS``)."""
-    setup = dataset_scene(data)
+    if case.setup is None:
+        raise ValueError(f"{case.name}: the factor split is for a model's case (model_case)")
+    setup, gt = case.setup, case.truth
     lights, dirs = make_lights(cfg.lights)
-    gt = trace_ground_truth(setup, case.cameras, lights)
     true_pts, true_nrm = traced_receivers(gt, case.cameras)
     exact = scene_surfels(setup, exact_surfel_config(cfg, case.cameras[0], exact_surfels))
     exact_pts, exact_nrm, exact_fp, _ = rendered_receivers(exact, case.cameras,
@@ -662,9 +668,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
             results[name][case.name] = res
     split = {}
     if factors:
-        model_cases = [(c, Path(d)) for c, d in zip(cases[-len(models):], datas, strict=True)]
-        for case, d in progress(model_cases, desc="factors"):
-            split[case.name] = model_factors(case, d, cfg, base, factor_samples,
+        for case in progress(cases[-len(models):], desc="factors"):
+            split[case.name] = model_factors(case, cfg, base, factor_samples,
                                              factor_surfels, receiver_band)
     gt_names = [c.name for c in cases if c.footprints is None]
     sweep = run_sweep(cases[0], cfg, base, progress) if gt_names else []

@@ -20,6 +20,7 @@ import dataclasses
 import json
 import math
 import re
+import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -534,8 +535,6 @@ def dataset_scene(data: str | Path) -> SceneSetup:
                          f"{setup.params['object_to_world']!r})")
     unchecked = sorted(set(setup.inputs) - set(made))
     if unchecked:  # datasets made before the manifest recorded these files
-        import sys
-
         named = ", ".join(unchecked[:3]) + (f" and {len(unchecked) - 3} more"
                                             if len(unchecked) > 3 else "")
         print(f"mi-shadowgs: warning: {data}: its manifest has no digest of {named} "

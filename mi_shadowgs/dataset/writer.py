@@ -68,15 +68,12 @@ def fingerprint(setup: SceneSetup, config: GenerateConfig, seed: int,
     """sha256 of everything that determines the dataset's content."""
     import mitsuba as mi
 
-    files = {"scene": _file_digest(setup.path)}
-    if setup.params.get("mesh"):
-        files["mesh"] = _file_digest(Path(setup.params["mesh"]))
+    digests = {name: _file_digest(path) for name, path in setup.inputs.items()}
+    files = {name: digests.pop(name) for name in ("scene", "mesh") if name in digests}
     # The other files the scene read (parts, their meshes and textures): a key of its own,
     # only where there are any, so that datasets of scenes without them keep their prints.
-    assets = {name: _file_digest(path) for name, path in setup.inputs.items()
-              if name not in ("scene", "mesh")}
-    if assets:
-        files["assets"] = assets
+    if digests:
+        files["assets"] = digests
     # the env maps as resolved ("auto" depends on which shared files exist), by content
     files["envmaps"] = [[e.name, None if e.source is None else _file_digest(e.source)]
                         for e in envmaps]
