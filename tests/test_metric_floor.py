@@ -48,11 +48,18 @@ def test_one_sample_is_the_point_truth_and_four_blend_only_at_edges(setup):
     facing = np.einsum("nhwk,lk->nhwl", point["normal"].astype(np.float64), dirs) > 0
     np.testing.assert_array_equal(one["lit"], (point["visibility"] > 0.5) & facing)
     assert 0 < one["lit"].mean() < 1  # some of each, so the check above can fail
+    # Facing: the horizon test alone, occluded or not.
+    np.testing.assert_array_equal(one["facing"], facing & point["mask"][..., None])
+    assert np.count_nonzero(one["facing"] > one["lit"]) > 10  # cast shadows: facing, unlit
     box = box_filtered_ground_truth(setup, [cam], samples=4)
     cov = box["coverage"]
     assert cov.min() >= 0 and cov.max() <= 1
     lit = box["lit"]  # a share of the points: partial at the shadows' edges
     assert lit.min() >= 0 and lit.max() <= 1 and np.count_nonzero((lit > 0) & (lit < 1)) > 10
+    # Every lit point faces its light; the curved parts' edges face it in part.
+    facing_share = box["facing"]
+    assert np.all(facing_share >= lit) and facing_share.max() <= 1
+    assert np.count_nonzero((facing_share > 0) & (facing_share < 1)) > 10
     # The object's silhouette against the background: pixels partly covered.
     assert np.count_nonzero((cov > 0) & (cov < 1)) > 10
     # Inside one material, away from every edge, the albedo is the point truth's: the

@@ -3,6 +3,7 @@ an analytic disk-over-plane shadow, grazing and below-horizon lights, interface 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import drjit as dr
@@ -14,7 +15,7 @@ from mi_shadowgs.config import ConfigError
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.stages.visibility import baselines
-from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
+from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, render_shadow_maps
 
 SPACING = 0.03
 DISK_R, DISK_H = 0.5, 1.0
@@ -338,10 +339,27 @@ def test_factor_split_of_a_model_that_is_the_exact_geometry(exact_model, tmp_pat
     sparse = vv.model_factors(case, cfg, base, samples=1, exact_surfels=600)
     assert all(sparse[k] == one[k] for k in ("run", "true_points", "true_receivers"))
     assert sparse["exact_geometry"] != one["exact_geometry"]  # the exact surfels' count
+    # The horizon columns' cast shadows are the run's without its horizon test: with the
+    # model's own test they give the run back.
+    cast_cfg = dataclasses.replace(base, horizon_cos=-math.inf)
+    cast_maps = render_shadow_maps(case.surfels, case.directions, case.bounds, cast_cfg)
+    h, w = case.mask.shape[1:]
+    own = []
+    for v in range(len(case.cameras)):
+        n = np.stack([np.asarray(case.normals[v][k]) for k in range(3)], -1)  # [H*W, 3]
+        cast = np.asarray(cast_maps.evaluate(case.points[v], case.normals[v],
+                                             case.footprints[v])).reshape(h, w, -1)
+        own.append(cast * ((n @ case.directions.T) > base.horizon_cos).reshape(h, w, -1))
+    assert vv.score(own, case)["shadow_iou"] == pytest.approx(one["run"], abs=1e-12)
+    assert one["true_horizon"] != one["run"]  # the model's normals are not the truth's
+    # One point per pixel: the pixel-area horizon test is the pixel centre's.
+    assert one["pixel_horizon"] == one["true_horizon"]
     four = vv.model_factors(case, cfg, base, samples=4)
     assert 0.5 < four["pixel_ceiling"] < 1.0
-    assert {k: v for k, v in four.items() if k != "pixel_ceiling"} == \
-        {k: v for k, v in one.items() if k != "pixel_ceiling"}
+    boxed = ("pixel_ceiling", "pixel_horizon")  # the keys that read the pixel's area
+    assert {k: v for k, v in four.items() if k not in boxed} == \
+        {k: v for k, v in one.items() if k not in boxed}
+    assert four["pixel_horizon"] != one["pixel_horizon"]
     table = vv.factors_markdown({case.name: one})
     assert table.count("\n") == 2 and "pixel-area truth" in table
     for flag in ("--factors", "--models-only"):  # both need a model; refused before any work

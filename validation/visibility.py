@@ -367,6 +367,8 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None 
 FACTORS = (("run", "run"),
            ("true_points", "true points"),
            ("true_normals", "true normals"),
+           ("true_horizon", "true normals, horizon test alone"),
+           ("pixel_horizon", "pixel-area horizon test"),
            ("true_receivers", "true receivers"),
            ("exact_occluders", "exact occluders"),
            ("true_receivers_exact_occluders", "true receivers + exact occluders"),
@@ -399,7 +401,12 @@ def model_factors(case: Case, cfg: ValidationConfig, base: VisibilityConfig,
     the method renders a model's: what a perfect stage 1 would score at this view size.
     **Pixel-area truth** thresholds the true lit fraction over ``samples``^2 points of each
     pixel (``box_filtered_ground_truth``) at 0.5: what an answer that resolves the scene to
-    the pixel scores against the point-sampled truth. ``exact_surfels``: on the object for
+    the pixel scores against the point-sampled truth. The truth's normals enter twice, in
+    the horizon test (V = 0 where n . l <= 0: attached shadow) and the normal offset; the
+    **horizon test alone** keeps the model's cast shadows (its maps, points and offset) and
+    takes the truth's test at each pixel's centre, the **pixel-area horizon test** the test
+    passed by most of the pixel's area (over the same ``samples``^2 points): what normals
+    right at the pixel scale, but not within it, allow. ``exact_surfels``: on the object for
     ``cfg.resolution``^2 views (default ``cfg.object_surfels``), scaled with the views' pixel
     count as the base's are (``exact_surfel_config``). ``receiver_band``: the receivers
     rendered from surfels (the case's were made with it too). Returns key -> IoU
@@ -426,14 +433,24 @@ def model_factors(case: Case, cfg: ValidationConfig, base: VisibilityConfig,
         "exact_geometry": (exact_maps, exact_pts, exact_nrm, exact_fp),
     }
     h, w = case.mask.shape[1:]
-    out = {}
-    for key, (maps, pts, nrm, fp) in combos.items():
-        vis = [np.asarray(maps.evaluate(pts[v], nrm[v], fp[v]), np.float32).reshape(
-            h, w, len(dirs)) for v in views]
-        out[key] = score(vis, case)["shadow_iou"]
+
+    def visibility(maps, pts, nrm, fp) -> list[np.ndarray]:
+        return [np.asarray(maps.evaluate(pts[v], nrm[v], fp[v]), np.float32).reshape(
+            h, w, len(dirs)) for v in views]  # per view [H, W, L]
+
+    out = {key: score(visibility(*combo), case)["shadow_iou"] for key, combo in combos.items()}
     box = box_filtered_ground_truth(setup, case.cameras, lights, samples)
     out["pixel_ceiling"] = score(list(box["lit"]), case)["shadow_iou"]
-    return out
+    # The model's cast shadows alone (no horizon test), then each truth's horizon test.
+    cast_maps = dataclasses.replace(model_maps, config=dataclasses.replace(
+        base, horizon_cos=-math.inf))
+    cast = visibility(cast_maps, case.points, case.normals, case.footprints)
+    horizons = {"true_horizon": np.einsum("vhwk,lk->vhwl", gt["normal"].astype(np.float64),
+                                          dirs) > 0,  # [V, H, W, L]
+                "pixel_horizon": box["facing"] > 0.5}
+    for key, facing in horizons.items():
+        out[key] = score([c * facing[v] for v, c in enumerate(cast)], case)["shadow_iou"]
+    return {key: out[key] for key, _ in FACTORS}
 
 
 def factors_markdown(factors: dict[str, dict[str, float]]) -> str:
@@ -710,7 +727,10 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     if split:
         md += ["### Where each stage-1 model's IoU is lost", "",
                "The pixel method's IoU with the model's receivers (points, normals) and "
-               "occluders swapped for the truth's; exact geometry: surfels on the true shapes, "
+               "occluders swapped for the truth's; horizon test alone: the model's cast "
+               "shadows with the truth's attached ones (n . l <= 0) at the pixel's centre; "
+               "pixel-area horizon test: with the attached shadows of most of the pixel's "
+               "area; exact geometry: surfels on the true shapes, "
                f"{factor_surfels or cfg.object_surfels} on the object at {cfg.resolution}^2 "
                "views (scaled with the views' pixel count), receivers rendered from "
                "them as from a model; pixel-area truth: the true lit fraction over "
