@@ -289,6 +289,24 @@ def test_two_stage1_models_of_one_dataset_are_told_apart_by_their_run(tmp_path):
     assert e.value.code == 2 and not (tmp_path / "out").exists()
 
 
+def test_a_model_is_named_by_the_stage_that_wrote_it(tmp_path):
+    """A run's PLYs of stages 1, 2 and 4 (its layout) are named by their stage; two of one
+    run are told apart by it alone, and a PLY outside a run's layout is a "model"."""
+    import validation.visibility as vv
+
+    data = tmp_path / "ficus-low" / "data"
+    run = tmp_path / "ficus-low" / "run"
+    plys = [run / "geometry" / "model.ply", run / "segmentation" / "model.ply",
+            run / "material" / "full" / "model.ply", run / "material" / "no_vis" / "model.ply",
+            tmp_path / "mine.ply"]
+    assert vv.model_case_names(plys, [data] * len(plys)) == [
+        "stage-1 ficus-low", "stage-2 ficus-low", "stage-4 ficus-low",
+        "stage-4 no_vis ficus-low", "model ficus-low"]
+    other = tmp_path / "again" / "material" / "full" / "model.ply"
+    assert vv.model_case_names([plys[2], other], [data, data]) == [
+        "stage-4 ficus-low (run)", "stage-4 ficus-low (again)"]
+
+
 @pytest.fixture(scope="module")
 def exact_model(tmp_path_factory):
     """A tiny default-scene dataset (40 px: enough shadow pixels per view to score) and a
@@ -390,7 +408,7 @@ def test_models_only_factor_table_from_the_command_line(exact_model, tmp_path, m
     pixel = summary["results"]["Pixel-based (ours)"][name]["shadow_iou"]
     assert row["run"] == pytest.approx(pixel)  # the split's own run is the table's
     readme = (out / "README.md").read_text()
-    assert "Where each stage-1 model's IoU is lost" in readme and "Threshold tau" not in readme
+    assert "Where each model's IoU is lost" in readme and "Threshold tau" not in readme
     assert "2^2 points per pixel" in readme
     # no ground-truth scenes: the header names the models' views, not the spiral's
     assert "test-spiral" not in readme and "Stage-1 models: the first" in readme

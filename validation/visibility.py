@@ -6,12 +6,13 @@ directions spread in azimuth and elevation (down to 10 degrees), the ground trut
 Every method gets the same ground-truth surface points (unprojected GT depth) and normals and
 surfels sampled on the true shapes (object dense, base sparse near the object); the score is
 the IoU of the shadowed set (V < 0.5, ground truth V = 0 or n . l <= 0) inside the mask,
-averaged over views and directions. With ``--model`` (a stage-1 PLY) and ``--data`` (its
-dataset), the points come from the model's own rendered median depth and normals instead
-(with their pixel footprints, so the methods' receiver offset applies); both repeat, in
-pairs, for one stage-1 table over several scenes. ``--receiver-band B`` renders a model's
-receivers as stages 4-5 of the ``cpu-*`` presets do (each pixel's median surface,
-``VisibilityConfig.receiver_band``) instead of the paper's median depth and blended normals.
+averaged over views and directions. With ``--model`` (a stage-1 PLY, or a later stage's,
+named by its stage) and ``--data`` (its dataset), the points come from the model's own
+rendered median depth and normals instead (with their pixel footprints, so the methods'
+receiver offset applies); both repeat, in pairs, for one table over several scenes.
+``--receiver-band B`` renders a model's receivers as stages 4-5 of the ``cpu-*`` presets
+do (each pixel's median surface, ``VisibilityConfig.receiver_band``) instead of the paper's
+median depth and blended normals.
 The pixel method's maps have the paper's settings (Table 2 as published: perspective maps
 at 30x, the relative tau); ``--preset P`` gives them preset P's (``shadow_maps.PRESETS``:
 for the ``cpu-*`` presets orthographic maps, a one-texel bias and the occluder layer's
@@ -259,34 +260,47 @@ def methods(cfg_vis: VisibilityConfig, quick: bool):
 
 
 # -- stage-1 model ------------------------------------------------------------------------
+def model_stage(model: Path) -> tuple[str, Path]:
+    """(label, run folder) of a model PLY in a run's layout: ``RUN/geometry/model.ply``
+    "stage-1", ``RUN/segmentation/model.ply`` "stage-2", ``RUN/material/VARIANT/model.ply``
+    "stage-4" ("stage-4 VARIANT" for an ablation); any other PLY "model", its folder the
+    run."""
+    model = Path(model).absolute()
+    folder = model.parent
+    if folder.name == "geometry":
+        return "stage-1", folder.parent
+    if folder.name == "segmentation":
+        return "stage-2", folder.parent
+    if folder.parent.name == "material":
+        return ("stage-4" if folder.name == "full" else f"stage-4 {folder.name}",
+                folder.parent.parent)
+    return "model", folder
+
+
 def model_case_names(models: list[Path], datas: list[Path]) -> list[str]:
-    """Each stage-1 case's name: "stage-1 " and the dataset folder (its parent when the
-    folder is called "data"). When two cases would share that name (two models of one
-    dataset, or of two datasets of one scene), each also names its run: the folder above
-    ``geometry/model.ply`` (else the PLY's own folder), with as many of the folders above it
-    as tell the runs apart. One model given twice is refused."""
+    """Each model case's name: its stage (``model_stage``) and the dataset folder (its
+    parent when the folder is called "data"). When two cases would share that name (two
+    runs of one dataset, or of two datasets of one scene), each also names its run folder,
+    with as many of the folders above it as tell the runs apart. One model given twice is
+    refused."""
     def scene(data: Path) -> str:
         return data.parent.name if data.name == "data" else data.name
 
-    def run_parts(model: Path) -> tuple[str, ...]:
-        model = Path(model).absolute()
-        run = model.parent.parent if model.parent.name == "geometry" else model.parent
-        return run.parts
-
-    scenes = [scene(Path(d)) for d in datas]
-    parts = [run_parts(Path(m)) for m in models]
+    stages = [model_stage(Path(m)) for m in models]
+    keys = [f"{label} {scene(Path(d))}" for (label, _), d in zip(stages, datas, strict=True)]
+    parts = [run.parts for _, run in stages]
     names = []
-    for i, s in enumerate(scenes):
-        group = [parts[j] for j in range(len(models)) if scenes[j] == s]
+    for i, key in enumerate(keys):
+        group = [parts[j] for j in range(len(models)) if keys[j] == key]
         if len(group) == 1:
-            names.append(f"stage-1 {s}")
+            names.append(key)
             continue
         if group.count(parts[i]) > 1:
-            raise ValueError(f"--model: {models[i]} is given twice for {s}; its results "
+            raise ValueError(f"--model: {models[i]} is given twice for {key}; its results "
                              f"could not be told apart")
         depth = next(k for k in range(1, max(map(len, group)) + 1)
                      if len({p[-k:] for p in group}) == len(group))
-        names.append(f"stage-1 {s} ({'/'.join(parts[i][-depth:])})")
+        names.append(f"{key} ({'/'.join(parts[i][-depth:])})")
     return names
 
 
@@ -455,7 +469,7 @@ def model_factors(case: Case, cfg: ValidationConfig, base: VisibilityConfig,
 
 def factors_markdown(factors: dict[str, dict[str, float]]) -> str:
     """One row per stage-1 case: its IoU under each swap of ``FACTORS``."""
-    lines = ["| stage-1 model | " + " | ".join(label for _, label in FACTORS) + " |",
+    lines = ["| model | " + " | ".join(label for _, label in FACTORS) + " |",
              "|---|" + "---|" * len(FACTORS)]
     for name, row in factors.items():
         lines.append(f"| {name} | " + " | ".join(f"{row[k]:.3f}" for k, _ in FACTORS) + " |")
@@ -703,7 +717,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     t128 = [r for r in timing if r["map_resolution"] == 128 and r["n_directions"] == 128]
     table = table2_markdown(results, gt_names) if gt_names else ""
     if model_names:
-        table += ("\n\n" if table else "") + "From stage-1 surfels (the models' own rendered " \
+        table += ("\n\n" if table else "") + "From the models' surfels (their own rendered " \
             "depth and normals):\n\n" + table2_markdown(results, model_names)
     table_rows = [{"method": m, "case": c, **{k: v for k, v in r.items()}}
                   for m, per in results.items() for c, r in per.items()]
@@ -725,7 +739,7 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
           "### Table 2", "", table, ""]
     md += wins_md + [""]
     if split:
-        md += ["### Where each stage-1 model's IoU is lost", "",
+        md += ["### Where each model's IoU is lost", "",
                "The pixel method's IoU with the model's receivers (points, normals) and "
                "occluders swapped for the truth's; horizon test alone: the model's cast "
                "shadows with the truth's attached ones (n . l <= 0) at the pixel's centre; "
@@ -787,7 +801,8 @@ def main(argv=None) -> int:
                     "output of this validation (replaced atomically)")
     ap.add_argument("--quick", action="store_true", help="small smoke run")
     ap.add_argument("--model", action="append",
-                    help="stage-1 model PLY (RUN/geometry/model.ply); repeat with --data")
+                    help="model PLY (RUN/geometry/model.ply, or a later stage's); repeat with "
+                         "--data")
     ap.add_argument("--data", action="append",
                     help="the dataset folder each --model was trained on, in the same order")
     ap.add_argument("--factors", action="store_true",
