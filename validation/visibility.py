@@ -51,7 +51,11 @@ from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.sampling import sample_surface
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.dataset.cameras import test_cameras
-from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground_truth
+from mi_shadowgs.dataset.generate import (
+    box_filtered_ground_truth,
+    facing_lights,
+    trace_ground_truth,
+)
 from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, dataset_scene, load_scene
 from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
@@ -171,6 +175,12 @@ def make_lights(angles) -> tuple[list[Light], np.ndarray]:
     return lights, np.stack(dirs)
 
 
+def truth_shadow(gt: dict, dirs: np.ndarray) -> np.ndarray:
+    """The traced truth's shadow [V, H, W, L]: the light's shadow ray occluded, or the
+    light below the surface's horizon (n . l <= 0)."""
+    return (gt["visibility"] < 0.5) | ~facing_lights(gt["normal"], dirs)
+
+
 def ground_truth_case(name: str, scene_path, overrides, cfg: ValidationConfig) -> Case:
     setup = load_scene(scene_path, overrides)
     cams = test_cameras(cfg.n_views, setup.object_center, cfg.camera_distance,
@@ -178,9 +188,7 @@ def ground_truth_case(name: str, scene_path, overrides, cfg: ValidationConfig) -
     lights, dirs = make_lights(cfg.lights)
     gt = trace_ground_truth(setup, cams, lights)
     mask = gt["mask"].astype(bool)
-    normal = gt["normal"].astype(np.float64)  # [V, H, W, 3]
-    facing = np.einsum("vhwk,lk->vhwl", normal, dirs) > 0
-    gt_shadow = (gt["visibility"] < 0.5) | ~facing
+    gt_shadow = truth_shadow(gt, dirs)
     points, normals = traced_receivers(gt, cams)
     bounds = SceneBounds(tuple(np.asarray(setup.object_center, float).tolist()),
                          float(setup.object_radius),
@@ -359,8 +367,7 @@ def model_case(model: Path, data: Path, cfg: ValidationConfig, name: str | None 
     surfels = load_ply(model)
     lights, dirs = make_lights(cfg.lights)
     gt = trace_ground_truth(setup, cams, lights)
-    facing_gt = np.einsum("vhwk,lk->vhwl", gt["normal"].astype(np.float64), dirs) > 0
-    gt_shadow = (gt["visibility"] < 0.5) | ~facing_gt
+    gt_shadow = truth_shadow(gt, dirs)
     points, normals, footprints, alphas = rendered_receivers(surfels, cams, receiver_band)
     masks = [gt["mask"][v].astype(bool) & (alpha > 0.5) for v, alpha in enumerate(alphas)]
     # Frame the maps on the occluders: the model's own surface points inside the object masks
@@ -459,8 +466,7 @@ def model_factors(case: Case, cfg: ValidationConfig, base: VisibilityConfig,
     cast_maps = dataclasses.replace(model_maps, config=dataclasses.replace(
         base, horizon_cos=-math.inf))
     cast = visibility(cast_maps, case.points, case.normals, case.footprints)
-    horizons = {"true_horizon": np.einsum("vhwk,lk->vhwl", gt["normal"].astype(np.float64),
-                                          dirs) > 0,  # [V, H, W, L]
+    horizons = {"true_horizon": facing_lights(gt["normal"], dirs),  # [V, H, W, L]
                 "pixel_horizon": box["facing"] > 0.5}
     for key, facing in horizons.items():
         out[key] = score([c * facing[v] for v, c in enumerate(cast)], case)["shadow_iou"]

@@ -266,6 +266,13 @@ def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+def facing_lights(normal: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Whether each normal [..., 3] faces each light direction [L, 3] (n . l > 0, the
+    horizon test of the truth's visibility): [..., L] bool."""
+    return np.einsum("...k,lk->...l", np.asarray(normal, np.float64),
+                     np.asarray(directions, np.float64)) > 0
+
+
 def box_filtered_ground_truth(setup: SceneSetup, cameras: list[Camera],
                               lights: list[Light] | None = None, samples: int = 4
                               ) -> dict[str, np.ndarray]:
@@ -274,17 +281,16 @@ def box_filtered_ground_truth(setup: SceneSetup, cameras: list[Camera],
     averaged over the points that hit the scene. Returns [N, H, W, ...] arrays ``albedo``
     [3], ``irradiance`` [L, 3], ``lit`` [L] (the share of the points each light reaches:
     shadow ray unoccluded and n . l > 0; a light of zero irradiance reaches none),
-    ``facing`` [L] (the share of the points whose normal faces each light, n . l > 0,
-    occluded or not), all 0 where no point hits, and ``coverage`` (the share of the points
-    that hit). The dataset's
-    buffers are point samples at the pixel centre; this is what a fit to the box-filtered
-    photos can be held to (``validation.metric_floor``, ``validation.visibility``)."""
+    ``facing`` [L] (the share of the points whose normal faces each light, occluded or
+    not), all 0 where no point hits, and ``coverage`` (the share of the points that hit).
+    The dataset's buffers are point samples at the pixel centre; this is what a fit to the
+    box-filtered photos can be held to (``validation.metric_floor``, ``validation.visibility``)."""
     if samples < 1:
         raise ValueError(f"box_filtered_ground_truth: samples must be >= 1, got {samples}")
     acc: dict[str, np.ndarray] = {}
     hits = None
     lights = setup.lights if lights is None else lights
-    dirs = np.array([light.direction for light in lights], np.float64).reshape(-1, 3)
+    dirs = np.array([light.direction for light in lights], np.float64).reshape(-1, 3)  # [L, 3]
     for iy in range(samples):
         for ix in range(samples):
             g = trace_ground_truth(setup, cameras, lights,
@@ -292,8 +298,7 @@ def box_filtered_ground_truth(setup: SceneSetup, cameras: list[Camera],
             hit = g["mask"].astype(np.float64)  # [N, H, W]
             hits = hit if hits is None else hits + hit
             g["lit"] = g["irradiance"].sum(axis=-1) > 0  # [N, H, W, L]
-            g["facing"] = np.einsum("nhwk,lk->nhwl", g["normal"].astype(np.float64),
-                                    dirs) > 0  # [N, H, W, L]
+            g["facing"] = facing_lights(g["normal"], dirs)  # [N, H, W, L]
             for key, extra in (("albedo", 1), ("irradiance", 2), ("lit", 1), ("facing", 1)):
                 w = hit.reshape(hit.shape + (1,) * extra)
                 acc[key] = acc.get(key, 0.0) + g[key].astype(np.float64) * w
