@@ -8,10 +8,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.optim import SurfelAdam
-from mi_shadowgs.stages.geometry.densify import DensifyConfig, DensifyStrategy, _quat_to_matrix
+from mi_shadowgs.stages.geometry.densify import DensifyConfig, DensifyStrategy
 
 LR = {"position": 1e-3, "log_scale": 1e-3, "rotation": 1e-3, "opacity_logit": 1e-2,
       "sh_dc": 1e-3}
@@ -71,11 +72,18 @@ def test_clone_split_prune():
     kids = out["position"][3:]
     np.testing.assert_allclose(np.exp(out["log_scale"][3:]), [[0.5 / 1.6, 0.2 / 1.6]] * 2,
                                rtol=1e-6)
-    normal = _quat_to_matrix(p["rotation"][1:2].astype(np.float64))[0, :, 2]
+    # The parent's frame from SciPy (quaternion (w, x, y, z), docs/conventions.md): columns
+    # t_u, t_v, n.
+    q = p["rotation"][1].astype(np.float64)
+    frame = Rotation.from_quat(q[[1, 2, 3, 0]] / np.linalg.norm(q)).as_matrix()
     off = kids - p["position"][1]
-    # Children stay in the parent's tangent plane (float32 positions: 1e-6).
-    np.testing.assert_allclose(off @ normal, 0.0, atol=1e-5)
+    # Children stay in the parent's tangent plane (float32 positions: 1e-6) ...
+    np.testing.assert_allclose(off @ frame[:, 2], 0.0, atol=1e-5)
     assert np.all(np.linalg.norm(off, axis=1) > 0)
+    # ... at draws of the parent's Gaussian: within 5 sigma along each axis (a draw beyond
+    # has probability ~6e-7), not at the scale of the scene or of a wrong axis' units.
+    tangent = (off @ frame[:, :2]) / np.array([0.5, 0.2])  # [2, 2] in parent sigmas
+    assert np.all(np.abs(tangent) < 5.0), tangent
     np.testing.assert_array_equal(mo["position"][1], 7.0)  # surfel 2's moments kept
     np.testing.assert_array_equal(mo["position"][2:], 0.0)  # new surfels start afresh
     assert dr.width(strat.grad_accum) == 5 and float(dr.sum(strat.grad_accum)[0]) == 0

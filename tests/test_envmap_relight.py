@@ -40,7 +40,9 @@ def test_sun_sits_where_it_is_configured(tmp_path, az, el):
     si.wi = mi.Vector3f(*(float(-x) for x in sun))  # looking up the sun's direction
     sun_radiance = float(np.asarray(em.eval(si)[0])[0])
     disc = 2 * np.pi * (1 - np.cos(np.radians(sky.sun_radius_deg)))
-    assert sun_radiance == pytest.approx(sky.sun_irradiance / disc + sky.zenith[0], rel=0.2)
+    # The disc's centre lies pixels inside the 6-pixel disc, where the bilinear lookup reads
+    # the disc's own radiance: measured within 0.07%; 1% is the margin.
+    assert sun_radiance == pytest.approx(sky.sun_irradiance / disc + sky.zenith[0], rel=0.01)
     # The brightest of the 128 grid cells is the one nearest the sun (cells are ~12.7 deg).
     rad = envmap_grid_radiance(em).mean(1)
     grid = light_grid(128)

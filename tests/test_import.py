@@ -36,8 +36,10 @@ CONFIG = with_overrides(get_config("cpu-small"), {"min_registered": 0.75, "test_
 def photos(tmp_path_factory):
     out = tmp_path_factory.mktemp("photos") / "data"
     cfg = gen_config("cpu-small")
+    # The procedural sky, as every other fixture: "auto" would pick up the env maps of
+    # ../shared/data where present, and the dataset would depend on the machine.
     cfg = type(cfg)(**{**cfg.__dict__, "width": 256, "height": 256, "n_train": 20,
-                       "n_test": 4, "spp": 16})
+                       "n_test": 4, "spp": 16, "envmaps": "sky"})
     write_dataset(scene_path("default"), out, cfg, "cpu-small", seed=0, progress=False,
                   overrides={"base_texture": "mat"}, photos=True)
     return out

@@ -15,6 +15,8 @@ from mi_shadowgs.core.surfels import Surfels, eval_sh, sh_colors
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
 CFG = RasterConfig()
+# Both rasterizers (the tiled default and the pair list) against the float64 reference.
+METHODS = ("tiles", "pairs")
 
 
 def cameras():
@@ -24,19 +26,20 @@ def cameras():
     return {"perspective": persp, "orthographic": ortho}
 
 
-def render_both(camera, raw):
+def render_both(camera, raw, method="tiles"):
     s = to_surfels(raw)
-    out = rasterize(s, camera, s.channels, aovs=AOVS, config=CFG)
+    out = rasterize(s, camera, s.channels, aovs=AOVS, config=RasterConfig(method=method))
     got = {k: np.array(v, dtype=np.float64) for k, v in out.items()}
     return got, reference(camera, raw, CFG)
 
 
+@pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("kind", ["perspective", "orthographic"])
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_forward_matches_reference(kind, seed):
+def test_forward_matches_reference(kind, seed, method):
     camera = cameras()[kind]
     raw = random_scene(40, seed)
-    got, ref = render_both(camera, raw)
+    got, ref = render_both(camera, raw, method)
     ok = ~ref["unsure"]
     # Pixels with a pair within 1e-4 (relative) of a discrete threshold may take the other
     # branch in float32; they must stay rare, or the comparison would prove little.

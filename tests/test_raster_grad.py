@@ -18,7 +18,9 @@ from raster_reference import random_scene, reference, structure_equal, to_surfel
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 
-CFG = RasterConfig()
+# The pair list, the rasterizer's reference path; test_raster_tiles.py runs this test on the
+# tiled default by setting CFG to its config.
+CFG = RasterConfig(method="pairs")
 # Outputs in the loss; each gets its own random weights.
 OUTPUTS = ("color", "alpha", "depth", "median_depth", "normal", "distortion")
 EPS = 1e-6  # float64 central differences: truncation ~EPS^2, rounding ~1e-16 / EPS

@@ -171,7 +171,8 @@ def test_1e5_surfels_stacked_on_one_pixel(method):
     res, _ = render_checked(s, cam, dataclasses.replace(CFG, method=method))
     # Expected: front to back (largest z first, the camera is on +Z), float64.
     order = np.argsort(5.0 - z.astype(np.float32), kind="stable")
-    a = np.array(s.opacity(), np.float64)[order]
+    logit = raw[3].astype(np.float32).astype(np.float64)  # the logits the kernel reads
+    a = (1.0 / (1.0 + np.exp(-logit)))[order]  # opacities, float64 sigmoid
     T = np.concatenate([[1.0], np.cumprod(1.0 - a)])
     k = np.sum(T[1:] >= CFG.transmittance_min)  # splats before the stop
     w = T[:k] * a[:k]

@@ -3,7 +3,7 @@
 Both renderers composite the same pairs in the same order with the same per-pair float32
 maths, so outputs agree to float32 summation order and gradients to float32 rounding of
 two different (hand-written vs Dr.Jit AD) backward passes. The finite-difference test of
-test_raster_grad.py runs on the tiled path too.
+test_raster_grad.py (on the pair list there) runs on the tiled path too.
 """
 
 from __future__ import annotations
@@ -210,6 +210,7 @@ def test_both_gradient_reduce_modes_match_pairs(expand_grad_bytes):
 def test_gradients_match_finite_differences(kind, outputs, monkeypatch):
     # test_raster_grad's float64 finite differences, with its renders on the tiled path
     # (the reference reads only RasterConfig's numbers, which are the same).
+    assert test_raster_grad.CFG.method != TILES.method  # else this only repeats that test
     monkeypatch.setattr(test_raster_grad, "CFG", TILES)
     test_raster_grad.test_gradients_match_finite_differences(kind, outputs)
 

@@ -210,9 +210,10 @@ def test_segmentation_loss_gradient_matches_central_differences():
         fp[i, k] += h
         fm[i, k] -= h
         fd = (loss(fp) - loss(fm)) / (2 * h)
-        # 2e-3 absolute: the truncation and rounding bounds above, with a 10x margin.
-        assert g[i, k] == pytest.approx(fd, abs=2e-3), (i, k)
-        checked += abs(fd) > 1e-3
+        # 3e-4 absolute: the truncation and rounding bounds above, with a 2.5x margin (the
+        # errors measured are ~5e-6), under a tenth of the gradients checked (2e-3 to 3e-2).
+        assert g[i, k] == pytest.approx(fd, abs=3e-4), (i, k, g[i, k], fd)
+        checked += abs(fd) > 3e-3
     assert checked >= 3  # the check is not vacuous: most entries have a real gradient
 
 

@@ -12,7 +12,6 @@ the viewer itself, on 127.0.0.1)."""
 from __future__ import annotations
 
 import shutil
-import tempfile
 import time
 
 import numpy as np
@@ -36,7 +35,7 @@ WINDOW = (1400, 800)
 
 
 @pytest.fixture(scope="module")
-def browser():
+def browser(tmp_path_factory):
     if not (CHROMIUM and DRIVER and HAVE_SELENIUM):
         pytest.skip(f"{WHY}; found chromium={CHROMIUM}, chromedriver={DRIVER}, "
                     f"selenium={HAVE_SELENIUM}")
@@ -45,7 +44,7 @@ def browser():
 
     opts = webdriver.ChromeOptions()
     opts.binary_location = CHROMIUM
-    profile = tempfile.mkdtemp(prefix="view-chromium-")
+    profile = tmp_path_factory.mktemp("view-chromium")
     for arg in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                 "--no-first-run", "--disable-background-networking",
                 "--disable-component-update", "--disable-sync",
@@ -56,7 +55,6 @@ def browser():
         yield driver
     finally:
         driver.quit()
-        shutil.rmtree(profile, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from mi_shadowgs.config import ConfigError
 from mi_shadowgs.core.frames import frame_to_quaternion
@@ -68,6 +69,33 @@ BUILDERS = {
 
 
 # -- float64 references -------------------------------------------------------------------
+def _reference_arrays(surfels: Surfels) -> dict[str, np.ndarray]:
+    """Float64 surfel values with each frame from SciPy: t_u, t_v, n are the columns of the
+    rotation of the (w, x, y, z) quaternion (docs/conventions.md)."""
+    s = surfels.to_numpy()
+    rot = Rotation.from_quat(s["rotation"][:, [1, 2, 3, 0]]).as_matrix()  # [N, 3, 3]
+    return {"position": s["position"], "scale": s["scale"], "opacity": s["opacity"],
+            "t_u": rot[:, :, 0], "t_v": rot[:, :, 1], "n": rot[:, :, 2]}
+
+
+def _reference_occupancy(arr: dict, lower: np.ndarray, voxel: float, g: int,
+                         splat_sigma: float) -> np.ndarray:
+    """Occupancy [G, G, G] as VoxelConfig documents it, written out surfel by surfel: each
+    covers opacity * 2 pi s_u s_v / h^2 of a voxel's cross-section, a fifth at its centre and
+    at +-splat_sigma sigma along t_u and t_v each; a voxel holds at most 1."""
+    grid = np.zeros((g, g, g))
+    for i in range(len(arr["position"])):
+        su, sv = arr["scale"][i]
+        cover = arr["opacity"][i] * 2.0 * math.pi * su * sv / voxel ** 2 / 5.0
+        for off in (0.0 * arr["t_u"][i], splat_sigma * su * arr["t_u"][i],
+                    -splat_sigma * su * arr["t_u"][i], splat_sigma * sv * arr["t_v"][i],
+                    -splat_sigma * sv * arr["t_v"][i]):
+            cell = np.floor((arr["position"][i] + off - lower) / voxel).astype(int)
+            if np.all((cell >= 0) & (cell < g)):
+                grid[tuple(cell)] += cover
+    return np.minimum(grid, 1.0)
+
+
 def test_gaussian_transmittance_matches_float64_reference():
     rng = np.random.default_rng(3)
     n = 40
@@ -75,10 +103,12 @@ def test_gaussian_transmittance_matches_float64_reference():
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     surf = Surfels.from_numpy(rng.uniform(-0.3, 0.3, (n, 3)), rng.uniform(0.05, 0.15, (n, 2)),
                               frame_to_quaternion(normals), rng.uniform(0.2, 0.95, n))
-    cfg = baselines.GaussianTraceConfig(soft=True, max_hits=64, t_min=0.0, offset=0.0)
+    # No stagger: the traced planes pass through the surfels' own centres.
+    cfg = baselines.GaussianTraceConfig(soft=True, max_hits=64, t_min=0.0, offset=0.0,
+                                        stagger=0.0)
     tracer = baselines.trace_surfels(surf, [[0.0, 1.0, 0.0]], SceneBounds((0, 0, 0), 0.6, 4.0), cfg)
-    arr = baselines._surfel_arrays(surf)
-    _, _, centre, _ = baselines.surfel_quads(arr, cfg)
+    arr = _reference_arrays(surf)
+    centre = arr["position"]
     o = rng.uniform(-0.4, 0.4, (300, 3))
     o[:, 1] = -1.0
     d = rng.normal(size=(300, 3)) * 0.3 + [0.0, 1.0, 0.0]
@@ -107,13 +137,24 @@ def test_voxel_occupancy_and_march_match_float64_reference():
     surf = _disk()
     cfg = baselines.VoxelConfig(resolution=16, soft=True, tau_stop=1e9, start_offset=0.0)
     vox = baselines.voxelize_surfels(surf, [[0.0, 1.0, 0.0]], BOUNDS, cfg)
+    # The grid: the voxel frame from the bounds (a cube of half-size radius * margin about
+    # the centre), then the surfels' coverage, against the reference splat.
+    half = BOUNDS.radius * cfg.margin
+    lower, voxel = np.asarray(BOUNDS.center) - half, 2.0 * half / cfg.resolution
+    np.testing.assert_allclose(vox.lower, lower, rtol=0, atol=1e-12)
+    assert vox.voxel == pytest.approx(voxel, rel=1e-12)
+    grid = _reference_occupancy(_reference_arrays(surf), lower, voxel, cfg.resolution,
+                                cfg.splat_sigma)
+    assert (grid == 1.0).any() and ((grid > 0) & (grid < 1)).any()  # clipped and partial
+    np.testing.assert_allclose(vox.grid_np, grid, rtol=0, atol=1e-9)  # float64 both sides
     # Coverage is conserved where no voxel saturates (small surfels): the grid sums to
     # sum opacity * 2 pi s_u s_v / h^2, all five splat points landing inside the grid.
-    small = baselines._surfel_arrays(_surfels(_grid_surfels(DISK_R, DISK_H, SPACING, DISK_R, 0.1)))
+    small = _surfels(_grid_surfels(DISK_R, DISK_H, SPACING, DISK_R, 0.1))
     cfg64 = baselines.VoxelConfig(resolution=64)
-    h64 = baselines.grid_frame(BOUNDS, cfg64)[1]
-    unclipped = baselines.occupancy_grid(small, BOUNDS, cfg64)
-    raw = small["opacity"] * 2 * math.pi * small["scale"].prod(1) / h64 ** 2
+    h64 = 2.0 * half / 64
+    unclipped = baselines.voxelize_surfels(small, [[0.0, 1.0, 0.0]], BOUNDS, cfg64).grid_np
+    arr = small.to_numpy()
+    raw = arr["opacity"] * 2 * math.pi * arr["scale"].prod(1) / h64 ** 2
     assert 0.0 < unclipped.max() < 1.0
     np.testing.assert_allclose(unclipped.sum(), raw.sum(), rtol=1e-9)  # float64 both sides
     # March: trilinear occupancy at the same sample points, in float64.
@@ -124,7 +165,7 @@ def test_voxel_occupancy_and_march_match_float64_reference():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     got = np.asarray(vox.optical_depth(mi.Point3f(*o.T.astype(np.float32)),
                                        mi.Vector3f(*d.T.astype(np.float32)), mi.Bool(True)))
-    grid, g, h, lo = vox.grid_np, cfg.resolution, vox.voxel, vox.lower
+    g, h, lo = cfg.resolution, voxel, lower
     hi = lo + g * h
     ref = np.zeros(64)
     step = cfg.step * h

@@ -25,6 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.core import jit
+from mi_shadowgs.core.frames import quaternion_to_matrix
 from mi_shadowgs.core.optim import SurfelAdam
 
 
@@ -51,17 +52,6 @@ class DensifyConfig:
 
 def _logit(p: float) -> float:
     return float(np.log(p) - np.log1p(-p))
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """[N, 4] (w, x, y, z) -> [N, 3, 3] rotation matrices (normalised first)."""
-    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-30)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)
 
 
 class DensifyStrategy:
@@ -148,7 +138,7 @@ class DensifyStrategy:
         new = {k: [a[clone]] for k, a in params.items()}
         si = np.flatnonzero(split)
         if si.size:
-            rot = _quat_to_matrix(params["rotation"][si].astype(np.float64))  # [S, 3, 3]
+            rot = quaternion_to_matrix(params["rotation"][si])  # [S, 3, 3]
             for _ in range(c.split_count):
                 local = rng.standard_normal((si.size, 2)) * scale[si]  # [S, 2] tangent offsets
                 off = rot[:, :, 0] * local[:, :1] + rot[:, :, 1] * local[:, 1:]
