@@ -30,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-train", type=int, default=None, help="training views (preset)")
     parser.add_argument("--n-test", type=int, default=None, help="test views (preset)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--envmap", action="append", default=None, metavar="PATH|sky|auto",
+    parser.add_argument("--envmap", action="append", default=None, metavar="PATH|sky|auto|none",
                         help="an env map (EXR/HDR) of one env-map relit test set; repeatable. "
                              "'sky': the procedural sky; 'auto' (the preset's default): the "
                              "shipped maps in ../shared/data/envmaps (or "
@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "'none': no env-map relighting")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a dataset that generate wrote before (refused when "
-                             "the folder holds files not in its manifest.json)")
+                             "the folder holds files not in its .mi_shadowgs_manifest.json)")
     parser.add_argument("-D", dest="defines", action="append", default=[],
                         metavar="NAME=VALUE", help="set a scene <default> parameter")
     parser.add_argument("--photos", action="store_true",

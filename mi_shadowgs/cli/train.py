@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from mi_shadowgs.config import PRESET_NAMES
+
 GEOMETRY_FOLDER = "geometry"  # the stage's subfolder of the run, as `mi-shadowgs run` has it
 
 
@@ -20,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("data", help="dataset folder (transforms_train.json, ...)")
     parser.add_argument("--out", required=True, help="run folder; the stage writes a subfolder")
     parser.add_argument("--preset", default="cpu-small",
-                        help="cpu-small (default), cpu-medium or paper")
+                        help=f"stage 1's preset: {', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--iterations", type=int, default=None, help="override the preset")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the stage's last checkpoint (from step 0 when "

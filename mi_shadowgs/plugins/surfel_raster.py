@@ -75,13 +75,14 @@ import mi_shadowgs  # registers surfel_raster
 
 scene = mi.load_file("scene.xml")
 img = mi.render(scene)                        # [256, 256, 4 + 1 + 3]
+target = mi.TensorXf(mi.Bitmap("photo.exr"))  # the RGBA image to fit, [256, 256, 4]
 params = mi.traverse(scene)
 opt = mi.ad.Adam(lr=0.01)
 opt["surf.channels.sh"] = params["surf.channels.sh"]
 params.update(opt)
 for it in range(100):
     img = mi.render(scene, params, seed=it)
-    loss = dr.mean(dr.square(img - target), axis=None)
+    loss = dr.mean(dr.square(img[:, :, :4] - target), axis=None)
     dr.backward(loss)
     opt.step()
     params.update(opt)

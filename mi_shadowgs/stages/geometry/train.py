@@ -7,7 +7,7 @@ position schedule) and 3DGS/2DGS density control (``mi_shadowgs.stages.geometry.
 Only the training images, their masks (alpha: object plus base) and cameras are used;
 ground-truth normals and depth serve evaluation (``evaluate``) only.
 
-- ``GeometryConfig`` / ``PRESETS`` ("paper", "cpu-small");
+- ``GeometryConfig`` / ``PRESETS`` ("cpu-small", "cpu-medium", "gpu-large", "paper");
 - ``scene_bounds``, ``visual_hull_points``, ``init_params``: initialisation;
 - ``train_geometry(dataset, config, ...) -> Surfels``: the loop (I/O through callbacks);
 - ``evaluate(surfels, dataset)``: test-view metrics (``mi_shadowgs.core.metrics``).
