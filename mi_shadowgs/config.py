@@ -69,19 +69,71 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
     return dataclasses.replace(config, **values)
 
 
-def recorded_config(cls, saved: dict | None, fallback):
+def parse_settings(cls, items, what: str) -> dict[str, Any]:
+    """A command line's ``--set KEY=VALUE`` items -> {field: value} for config class ``cls``,
+    each read as its field's annotated type (bool, int, float, str; ``none`` for an optional
+    one). A malformed item, an unknown key or a value of the wrong type is a ConfigError
+    naming the setting."""
+    kinds = {f.name: str(f.type) for f in dataclasses.fields(cls)}
+    readers = {"bool": _read_bool, "int": int, "float": float, "str": str}
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        if key not in kinds:
+            raise ConfigError(f"--set: unknown {what} setting {key!r}; known: {sorted(kinds)}")
+        kind = kinds[key]
+        options = [k.strip() for k in kind.split("|")]
+        if text.lower() == "none" and "None" in options:
+            out[key] = None
+            continue
+        reader = readers.get(options[0])
+        if reader is None:
+            raise ConfigError(f"--set {key}: {what} setting {key!r} ({kind}) is not set from "
+                              "the command line")
+        try:
+            out[key] = reader(text)
+        except ValueError as err:
+            raise ConfigError(f"--set {key}={text!r}: {what} setting {key!r} takes {kind}") \
+                from err
+    return out
+
+
+def _read_bool(text: str) -> bool:
+    if text.lower() not in ("true", "false"):
+        raise ValueError(text)
+    return text.lower() == "true"
+
+
+def check_fields(config, rules) -> None:
+    """ConfigError naming the first field of ``config`` that breaks its rule; ``rules`` are
+    (field, holds, rule) triples, e.g. ``("iterations", c.iterations >= 1, ">= 1")``. Called
+    from a config's ``__post_init__``: a bad value never reaches a loop that would write the
+    untrained model as a result or divide by it."""
+    for field, holds, rule in rules:
+        if not holds:
+            raise ConfigError(f"{type(config).__name__}.{field} must be {rule}, got "
+                              f"{getattr(config, field)!r}")
+
+
+def recorded_config(cls, saved: dict | None, fallback, source: str = "the manifest"):
     """A stage's settings as its manifest recorded them (``saved``, a dict of ``cls``'s
     fields; fields it lacks keep ``cls``'s defaults, which older runs ran with), else
-    ``fallback()`` (the preset's) where nothing usable was recorded."""
-    if isinstance(saved, dict):
-        names = {f.name for f in dataclasses.fields(cls)}
-        try:  # (with_overrides: nested settings such as "raster" are saved as dicts)
-            return with_overrides(cls(), {k: tuple(v) if isinstance(v, list) else v
-                                          for k, v in saved.items() if k in names},
-                                  cls.__name__)
-        except (TypeError, ValueError):
-            pass  # an older manifest: the preset's settings
-    return fallback()
+    ``fallback()`` (the preset's) where none were recorded. A record that is there but
+    does not read (a field of the wrong type or out of range) is a ConfigError naming
+    ``source`` and the field: the fit's settings are never swapped for the preset's."""
+    if saved is None:
+        return fallback()
+    if not isinstance(saved, dict):
+        raise ConfigError(f"{source}: the {cls.__name__} record is not a dict of settings: "
+                          f"{saved!r}")
+    names = {f.name for f in dataclasses.fields(cls)}
+    try:  # (with_overrides: nested settings such as "raster" are saved as dicts)
+        return with_overrides(cls(), {k: tuple(v) if isinstance(v, list) else v
+                                      for k, v in saved.items() if k in names}, cls.__name__)
+    except (TypeError, ValueError) as err:  # ConfigError is a ValueError
+        raise ConfigError(f"{source}: its recorded {cls.__name__} does not read: {err}") from err
 
 
 def slow_preset_warning(preset: str, variant: str) -> str | None:

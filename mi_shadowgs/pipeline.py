@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from mi_shadowgs.backend import ensure_variant
-from mi_shadowgs.config import get_preset, slow_preset_warning
+from mi_shadowgs.config import check_fields, get_preset, slow_preset_warning
 from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
@@ -74,6 +74,10 @@ class RunConfig:
             raise ValueError(f"RunConfig.segments must be >= 1 (or None), got {self.segments}")
         if self.seed < 0:
             raise ValueError(f"RunConfig.seed must be >= 0, got {self.seed}")
+        check_fields(self, (("bounds_quantile", 0 < self.bounds_quantile <= 1, "in (0, 1]"),
+                            ("figure_views", self.figure_views >= 1, ">= 1"),
+                            ("material_iterations", self.material_iterations is None
+                             or self.material_iterations >= 0, ">= 0 or None")))
 
 
 PRESETS = {

@@ -277,3 +277,44 @@ def test_refit_lights_refuses_a_setting_before_any_work(tmp_path, capsys, settin
     assert e.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["train", "{data}", "--out", "{out}", "--iterations", "-5"],
+     "GeometryConfig.iterations must be >= 1, got -5"),
+    (["segment", "{data}/m.ply", "--data", "{data}", "--out", "{out}", "--set", "log_every=0"],
+     "SegmentationConfig.log_every must be >= 1, got 0"),
+    (["segment", "{data}/m.ply", "--data", "{data}", "--out", "{out}", "--set",
+      "iterations=abc"], "--set iterations='abc': segmentation setting 'iterations' takes int"),
+    (["segment", "{data}/m.ply", "--data", "{data}", "--out", "{out}", "--set",
+      "temperature=0"], "SegmentationConfig.temperature must be > 0"),
+    (["segment", "{data}/m.ply", "--data", "{data}", "--out", "{out}", "--set", "nope=1"],
+     "unknown segmentation setting 'nope'"),
+])
+def test_a_setting_out_of_range_exits_2_naming_it(tmp_path, capsys, argv, message):
+    """Hard case: a count of 0 or below would write the untrained model as the stage's
+    result (or divide by it), a word where a number goes would fail far from the flag. Each
+    exits 2 with one line naming the setting, before anything is read or written."""
+    data, out = tmp_path / "data", tmp_path / "out"
+    argv = [a.format(data=data, out=out) for a in argv]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert not out.exists()
+
+
+def test_parse_settings_reads_each_field_by_its_type():
+    from mi_shadowgs.config import parse_settings
+    from mi_shadowgs.stages.geometry.train import GeometryConfig
+
+    got = parse_settings(GeometryConfig, ["iterations=7", "lambda_dist=3e3", "init=random",
+                                          "hull_extent=none", "unmasked_opacity_reset=true"],
+                         "geometry")
+    assert got == {"iterations": 7, "lambda_dist": 3000.0, "init": "random",
+                   "hull_extent": None, "unmasked_opacity_reset": True}
+    assert type(got["lambda_dist"]) is float and type(got["iterations"]) is int
+    for item, message in (("unmasked_opacity_reset=1", "takes bool"),
+                          ("iterations=none", "takes int"), ("densify=3", "not set from"),
+                          ("iterations", "expected KEY=VALUE")):
+        with pytest.raises(ValueError, match=message):
+            parse_settings(GeometryConfig, [item], "geometry")

@@ -414,6 +414,11 @@ def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
              normal_hold_planar=True)
     assert len(d) == 1 and all(k in d[0] for k in ("normal_steps", "lr_normal",
                                                      "lambda_normal_prior")), d
+    # ... and before the shares of stage 1's consistent cells and stage 2's prototypes
+    # were settings: the 5% and the last quarter, written in the code
+    assert diff(init_consistent_top=0.05, prototype_share=0.25) == []
+    assert "init_consistent_top" in diff(init_consistent_top=0.1)[0]
+    assert "prototype_share" in diff(prototype_share=0.5)[0]
     # a value the older code did not use is a difference, and so is one it did use
     d = diff(k_select="silhouette", silhouette_samples=2000)
     assert len(d) == 1 and "k_select" in d[0] and "silhouette_samples" in d[0]

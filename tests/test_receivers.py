@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from raster_reference import random_scene, reference, to_surfels
 
+from mi_shadowgs.config import ConfigError
 from mi_shadowgs.core import shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig
@@ -272,6 +273,13 @@ def test_a_run_is_relit_with_the_receivers_it_was_fitted_with():
     got = recorded_config(shadow_maps.VisibilityConfig, old, lambda: None)
     assert got.receiver_band == 0.0 and got.layer_bias == preset.layer_bias
     assert recorded_config(shadow_maps.VisibilityConfig, None, lambda: preset) is preset
+    # A record that is there but does not read is refused by name, never swapped for the
+    # preset's settings (a relight would use maps and receivers the fit did not).
+    for broken, field in (({**saved, "receiver_band": "0.5"}, "receiver_band"),
+                          ({**saved, "resolution": -3}, "resolution"), ([1, 2], "not a dict")):
+        with pytest.raises(ConfigError, match=f"run/manifest.*{field}"):
+            recorded_config(shadow_maps.VisibilityConfig, broken, lambda: preset,
+                            "run/manifest")
 
 
 def test_a_view_with_nothing_in_it_has_empty_receivers():

@@ -62,6 +62,13 @@ def test_shadow_consistency_counts():
     pred = np.array([[2, 2, 2, 2], [2, 2, 3, 3]])
     r = seg.shadow_consistency([pred], [gt], [vis], 5)
     assert r["segment"] == 2 and r["lit_fraction"] == 1.0 and r["shadow_fraction"] == 0.5
+    # No shadowed pixel: its own error, which the stage reports as a fact of the views; a
+    # malformed input (maps of other sizes) is another error, not reported as that one.
+    with pytest.raises(seg.NoPixelsToCompare, match="no shadowed pixel"):
+        seg.shadow_consistency([pred], [gt], [np.ones((2, 4, 2))], 5)
+    with pytest.raises(ValueError) as err:
+        seg.shadow_consistency([pred], [gt[:1]], [vis], 5)
+    assert not isinstance(err.value, seg.NoPixelsToCompare)
 
 
 # -- loss kernels against float64 NumPy -----------------------------------------------------

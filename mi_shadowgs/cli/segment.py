@@ -60,40 +60,16 @@ def resolve_model(path: str | Path) -> Path:
     return p
 
 
-def _parse_sets(items: list[str]) -> dict:
-    import dataclasses
-
+def run(args) -> int:
+    from mi_shadowgs.config import parse_settings
+    from mi_shadowgs.stages.segmentation import run_segmentation, segmentation_config
     from mi_shadowgs.stages.segmentation.features import SegmentationConfig
 
-    kinds = {f.name: f.type for f in dataclasses.fields(SegmentationConfig)}
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--set {item!r}: expected KEY=VALUE")
-        if key not in kinds:
-            raise ValueError(f"--set: unknown segmentation setting {key!r}; known: "
-                             f"{sorted(kinds)}")
-        kind = str(kinds[key])
-        if value.lower() == "none" and "None" in kind:
-            out[key] = None
-        elif kind.startswith("str"):
-            out[key] = value
-        elif kind.startswith("int"):
-            out[key] = int(value)
-        else:
-            out[key] = float(value)
-    return out
-
-
-def run(args) -> int:
-    from mi_shadowgs.stages.segmentation import run_segmentation, segmentation_config
-
-    overrides = _parse_sets(args.set)
+    overrides = parse_settings(SegmentationConfig, args.set, "segmentation")
     if args.k is not None:
         overrides["n_segments"] = args.k
-    result = run_segmentation(resolve_model(args.model), args.data, args.out,
-                              segmentation_config(args.preset, args.masks, overrides),
+    config = segmentation_config(args.preset, args.masks, overrides)  # before any file
+    result = run_segmentation(resolve_model(args.model), args.data, args.out, config,
                               masks=args.masks, preset=args.preset, split=args.split,
                               overwrite=args.overwrite, reuse=args.resume,
                               progress=not args.quiet)

@@ -58,13 +58,13 @@ def sample_surface(shapes, count: int, seed: int = 0) -> SurfaceSamples:
         ps = shape.sample_position(0.0, mi.Point2f(uv[:, 0], uv[:, 1]))
         si = mi.SurfaceInteraction3f(ps, mi.Color0f())
         si.shape = mi.ShapePtr(shape)
-        albedo = np.full((m, 3), 0.5)
+        # Every Mitsuba BSDF answers the query (0 for conductors and dielectrics, the
+        # weighted sum for blends); a shape given none renders with Mitsuba's default
+        # diffuse BSDF, of reflectance 0.5. An error in the query is not swallowed: it
+        # would stand a plausible 0.5 in for the ground truth.
         bsdf = shape.bsdf()
-        if bsdf is not None:
-            try:
-                albedo = _to_numpy3(bsdf.eval_diffuse_reflectance(si), m)
-            except Exception:  # some BSDFs have no diffuse reflectance query
-                pass
+        albedo = (np.full((m, 3), 0.5) if bsdf is None
+                  else _to_numpy3(bsdf.eval_diffuse_reflectance(si), m))
         out_p.append(_to_numpy3(ps.p, m))
         out_n.append(_to_numpy3(ps.n, m))
         out_a.append(albedo)

@@ -139,7 +139,9 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "normal_depth_differences": "central",  # stage 1, 2DGS's differences
                   "normal_steps": 0,  # stage 4's normal phase (none before it)
                   "lr_normal": None, "lambda_normal_prior": None,  # used only by that
-                  "normal_hold_planar": None}  # phase
+                  "normal_hold_planar": None,  # phase
+                  "init_consistent_top": 0.05,  # stage 1: the photo-consistent cells' share
+                  "prototype_share": 0.25}  # stage 2: the label prototypes' last iterations
 # An ADDED_SETTINGS entry of None is unused while its sibling setting here has the value that
 # does what the older code did: then any value of it counts as before.
 USED_ONLY_WITH = {"silhouette_samples": "k_select", "lr_normal": "normal_steps",

@@ -24,6 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.config import check_fields
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.frames import quaternion_to_matrix
 from mi_shadowgs.core.optim import SurfelAdam
@@ -48,6 +49,21 @@ class DensifyConfig:
     split_scale_factor: float = 0.8  # split children get scale / (factor * split_count)
     reset_opacity: float = 0.01  # opacity reset caps opacity here
     max_surfels: int = 2_000_000  # no clone/split beyond this count
+
+    def __post_init__(self):
+        check_fields(self, (
+            ("start", self.start >= 0, ">= 0"), ("interval", self.interval >= 1, ">= 1"),
+            ("opacity_reset_interval", self.opacity_reset_interval >= 0, ">= 0 (0: never)"),
+            ("grad_threshold", self.grad_threshold > 0, "> 0"),
+            ("percent_dense", self.percent_dense > 0, "> 0"),
+            ("min_opacity", 0 <= self.min_opacity < 1, "in [0, 1)"),
+            ("screen_size_threshold", self.screen_size_threshold is None
+             or self.screen_size_threshold > 0, "> 0 or None"),
+            ("world_size_fraction", self.world_size_fraction > 0, "> 0"),
+            ("split_count", self.split_count >= 2, ">= 2"),
+            ("split_scale_factor", self.split_scale_factor > 0, "> 0"),
+            ("reset_opacity", 0 < self.reset_opacity < 1, "in (0, 1)"),
+            ("max_surfels", self.max_surfels >= 1, ">= 1")))
 
 
 def _logit(p: float) -> float:

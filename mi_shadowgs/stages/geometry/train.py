@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import get_preset
+from mi_shadowgs.config import check_fields, get_preset
 from mi_shadowgs.core import jit, losses, metrics
 from mi_shadowgs.core.optim import SurfelAdam, surfels_from_params
 from mi_shadowgs.core.raster import RasterConfig, rasterize
@@ -73,6 +73,7 @@ class GeometryConfig:
     # (BENCHMARKS.md, "Stage 1's hull on the object").
     hull_extent: float | None = None
     init_consistent_fraction: float = 0.0  # share of hull points in photo-consistent cells
+    init_consistent_top: float = 0.05  # ... which are this share of the hull's cells, best first
     init_scale_factor: float = 1.0  # initial std-dev = factor * mean 3-NN distance (3DGS: 1)
     # Views without masks only: lambda * L1 of the rendered alpha at the training pixels
     # whose channels are all <= dark_max (a black background): transparency preferred where
@@ -108,6 +109,27 @@ class GeometryConfig:
     checkpoint_every: int = 2000
     # ... and at least this often in wall time (a kill loses at most this much work).
     checkpoint_seconds: float = 60.0
+
+    def __post_init__(self):
+        check_fields(self, (
+            ("iterations", self.iterations >= 1, ">= 1"),
+            ("sh_degree", 0 <= self.sh_degree <= 3, "in [0, 3]"),
+            ("sh_degree_interval", self.sh_degree_interval >= 1, ">= 1"),
+            *((name, getattr(self, name) >= 0, ">= 0") for name in (
+                "lr_position_init", "lr_position_final", "lr_sh_dc", "lr_sh_rest",
+                "lr_opacity", "lr_scale", "lr_rotation", "lambda_dssim", "lambda_normal",
+                "lambda_dist", "lambda_mask", "lambda_dark_alpha", "normal_from", "dist_from",
+                "lr_position_delay_steps", "unmasked_lambda_dark_alpha")),
+            ("init_points", self.init_points >= 1, ">= 1"),
+            ("init_opacity", 0 < self.init_opacity < 1, "in (0, 1)"),
+            ("hull_resolution", self.hull_resolution >= 2, ">= 2"),
+            ("init_consistent_fraction", 0 <= self.init_consistent_fraction <= 1, "in [0, 1]"),
+            ("init_consistent_top", 0 < self.init_consistent_top <= 1, "in (0, 1]"),
+            ("init_scale_factor", self.init_scale_factor > 0, "> 0"),
+            ("log_every", self.log_every >= 1, ">= 1"),
+            ("preview_every", self.preview_every >= 1, ">= 1"),
+            ("checkpoint_every", self.checkpoint_every >= 1, ">= 1"),
+            ("checkpoint_seconds", self.checkpoint_seconds > 0, "> 0")))
 
 
 PRESETS = {
@@ -236,8 +258,8 @@ def view_radius(cameras, centre: np.ndarray) -> float:
 
 
 def visual_hull_points(views, centre, radius: float, count: int, resolution: int,
-                       rng: np.random.Generator, consistent_fraction: float = 0.0
-                       ) -> np.ndarray:
+                       rng: np.random.Generator, consistent_fraction: float = 0.0,
+                       consistent_top: float = 0.05) -> np.ndarray:
     """``count`` random points [count, 3] in the visual hull of the views' masks.
 
     The hull is carved on a ``resolution``^3 grid over the cube centre +- radius: a cell
@@ -247,8 +269,8 @@ def visual_hull_points(views, centre, radius: float, count: int, resolution: int
     ``consistent_fraction`` of the points go to the most photo-consistent cells (space
     carving: a cell on a diffuse surface shows the same colour in the views that see it;
     the score is the median over views of the colour's distance to the median colour,
-    robust to the views where the cell is occluded). Points are jittered uniformly within
-    their cells.
+    robust to the views where the cell is occluded); those are the ``consistent_top`` share
+    of the cells with the best scores. Points are jittered uniformly within their cells.
     """
     g = (np.arange(resolution) + 0.5) / resolution * 2.0 - 1.0
     xs, ys, zs = np.meshgrid(g, g, g, indexing="ij")
@@ -270,7 +292,7 @@ def visual_hull_points(views, centre, radius: float, count: int, resolution: int
     pick = [rng.integers(0, len(cells), count - n_cons)]
     if n_cons:
         score = _photo_inconsistency(views, cells)
-        best = np.argsort(score, kind="stable")[:max(len(cells) // 20, 1)]  # top 5%
+        best = np.argsort(score, kind="stable")[:max(int(len(cells) * consistent_top), 1)]
         pick.append(best[rng.integers(0, len(best), n_cons)])
     pick = np.concatenate(pick)
     return cells[pick] + (rng.random((len(pick), 3)) - 0.5) * cell
@@ -347,7 +369,8 @@ def init_params(views, config: GeometryConfig,
         if config.hull_extent is not None:
             radius = config.hull_extent * view_radius([v.camera for v in views], centre)
         pts = visual_hull_points(views, centre, radius, config.init_points,
-                                 config.hull_resolution, rng, config.init_consistent_fraction)
+                                 config.hull_resolution, rng, config.init_consistent_fraction,
+                                 config.init_consistent_top)
     elif config.init == "points" and points is not None:
         # duplicates of a point would get a zero nearest-neighbour scale: jitter them apart
         pts = points + rng.normal(scale=1e-3 * radius, size=points.shape)

@@ -100,7 +100,7 @@ def recorded_band(path) -> float | None:
     names the file."""
     from mi_shadowgs.config import recorded_config
     from mi_shadowgs.io.ply import PlyError, read_ply_metadata
-    from mi_shadowgs.io.provenance import read_manifest
+    from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
 
     path = Path(path)
     value = read_ply_metadata(path).get(BAND_METADATA_KEY)
@@ -117,7 +117,8 @@ def recorded_band(path) -> float | None:
     if not manifest or path.name not in manifest["files"]:
         return None
     config = recorded_config(VisibilityConfig, (manifest.get("settings") or {})
-                             .get("visibility"), lambda: None)
+                             .get("visibility"), lambda: None,
+                             f"{path.parent / MANIFEST_NAME}: settings.visibility")
     return None if config is None else config.receiver_band
 
 

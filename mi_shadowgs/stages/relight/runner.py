@@ -171,7 +171,7 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
     """The fitted model of ``RUN/material/<variant>``, with the shadow-map bounds the run
     used (its training cameras and ``bounds_quantile``; ``fallback_cameras`` where the
     dataset is no longer there)."""
-    from mi_shadowgs.io.provenance import read_manifest
+    from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
     from mi_shadowgs.stages.material.runner import occluder_bounds
 
     run = Path(run)
@@ -201,7 +201,8 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
         raise FileNotFoundError(f"{run}: the run's dataset ({gone}) is gone; give the views "
                                 "with --cameras or --orbit")
     vis_config = recorded_config(shadow_maps.VisibilityConfig, settings.get("visibility"),
-                                 lambda: shadow_maps.get_config(preset))
+                                 lambda: shadow_maps.get_config(preset),
+                                 f"{folder / MANIFEST_NAME}: settings.visibility")
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
                                  result.light.light_set(), vis_config.receiver_band)
     return RunFit(result, model, bounds, data, preset, vis_config)

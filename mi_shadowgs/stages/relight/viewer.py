@@ -154,7 +154,7 @@ class ViewerSession:
 
     def __init__(self, run: str | Path, fit: str = "full", *, max_shadow_maps: int = 192):
         from mi_shadowgs.io.ply import load_ply
-        from mi_shadowgs.io.provenance import read_manifest
+        from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
         from mi_shadowgs.stages.relight import runner
 
         self.run = Path(run)
@@ -197,11 +197,13 @@ class ViewerSession:
             self.segments_off = "the model has no segments (stage 2 did not run)"
         preset = self.fit.preset if self.fit else "cpu-small"
         # The settings stage 4 ran with (its manifest), else the preset's.
+        recorded = material / MANIFEST_NAME
         self.vis_config = runner.recorded_config(
             shadow_maps.VisibilityConfig, settings.get("visibility"),
-            lambda: shadow_maps.get_config(preset))
+            lambda: shadow_maps.get_config(preset), f"{recorded}: settings.visibility")
         self.relight_config = runner.recorded_config(
-            relight.RelightConfig, settings.get("relight"), lambda: relight.get_config(preset))
+            relight.RelightConfig, settings.get("relight"), lambda: relight.get_config(preset),
+            f"{recorded}: settings.relight")
         self.raster = RasterConfig()
         self.maps = relight.RelightCache(
             max_map_bytes=max_shadow_maps * 4 * self.vis_config.resolution ** 2, max_sets=4)

@@ -34,7 +34,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import get_preset
+from mi_shadowgs.config import check_fields, get_preset
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, rasterize
@@ -85,6 +85,9 @@ class SegmentationConfig:
     # Initial features N(0, init_std^2 / D) per coordinate: small, so that the trained
     # direction dominates surfels that received few updates.
     init_std: float = 0.01
+    # The label prototypes (the mean feature of each label) average the features over this
+    # last share of the iterations: nearly trained, and many samples.
+    prototype_share: float = 0.25
     seed: int = 0
     log_every: int = 25  # iterations between progress-bar loss reads (host syncs)
     # Resumable checkpoints: every so many iterations and at least this often in wall time.
@@ -93,6 +96,23 @@ class SegmentationConfig:
     # After K-means, segments whose surfels lie on one plane are made flat (not in the
     # paper; off in its preset): ``planes.PlaneConfig``.
     planes: PlaneConfig = PlaneConfig()
+
+    def __post_init__(self):
+        check_fields(self, (
+            *((name, getattr(self, name) >= 1, ">= 1") for name in (
+                "feature_dim", "iterations", "silhouette_samples", "kmeans_restarts",
+                "kmeans_iterations", "log_every", "checkpoint_every")),
+            ("n_samples", self.n_samples >= 4, ">= 4 (two halves of pairs)"),
+            ("lr", self.lr > 0, "> 0"), ("temperature", self.temperature > 0, "> 0"),
+            *((name, getattr(self, name) >= 0, ">= 0") for name in (
+                "lambda_neg", "lambda_norm", "lambda_mask", "min_label_pixels", "init_std")),
+            ("n_segments", self.n_segments is None or self.n_segments >= 1, ">= 1 or None"),
+            ("k_select", self.k_select in ("labels", "silhouette"), "'labels' or 'silhouette'"),
+            ("min_label_fraction", 0 <= self.min_label_fraction < 1, "in [0, 1)"),
+            ("min_coverage", self.min_coverage >= 0, ">= 0"),
+            ("prototype_share", 0 < self.prototype_share <= 1, "in (0, 1]"),
+            ("segment_alpha", 0 <= self.segment_alpha <= 1, "in [0, 1]"),
+            ("checkpoint_seconds", self.checkpoint_seconds > 0, "> 0")))
 
 
 PRESETS = {
@@ -318,10 +338,7 @@ def prepare_labels(label_maps: Sequence[np.ndarray], cameras: Sequence[Camera],
 
 def auto_k(labels: LabelSet, config: SegmentationConfig) -> int:
     """K: ``config.n_segments``, else the number of labels with enough pixels."""
-    if config.n_segments is not None:
-        if config.n_segments < 1:
-            raise ValueError(f"SegmentationConfig.n_segments must be >= 1, got "
-                             f"{config.n_segments}")
+    if config.n_segments is not None:  # (>= 1: SegmentationConfig checks it)
         return int(config.n_segments)
     least = max(config.min_label_pixels,
                 config.min_label_fraction * float(labels.pixel_counts.sum()))
@@ -467,7 +484,7 @@ def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet
                               for _ in range(config.feature_dim)],
                              np.random.default_rng(config.seed), [], [])
     opt, rng, proto = state.opt, state.rng, state.proto
-    proto_from = config.iterations - max(1, config.iterations // 4)
+    proto_from = config.iterations - max(1, int(config.iterations * config.prototype_share))
     half = max(1, config.n_samples // 2)
     rows1 = dr.arange(mi.UInt32, half)  # X1 and X2: the sampled render's rows
     rows2 = dr.arange(mi.UInt32, half, 2 * half)
@@ -606,9 +623,6 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                     on_checkpoint=None) -> SegmentationResult:
     """The whole stage: train features on ``label_maps`` (one per camera), then K-means.
     ``state`` and ``on_checkpoint``: see ``train_features``."""
-    if config.k_select not in ("labels", "silhouette"):
-        raise ValueError(f"SegmentationConfig.k_select must be 'labels' or 'silhouette', got "
-                         f"{config.k_select!r}")
     labels = prepare_labels(label_maps, cameras, names)
     k = auto_k(labels, config)
     tr = train_features(surfels, cameras, labels, config, raster, progress, state,
@@ -731,6 +745,11 @@ def evaluate_maps(pred_maps: Sequence[np.ndarray],
             "pixels": int(keep.sum()), "pred_background": float((p[keep] == 0).mean())}
 
 
+class NoPixelsToCompare(ValueError):
+    """``shadow_consistency``: the surface has no lit or no shadowed pixel in the views (a
+    fact of the data, reported as such; any other error propagates)."""
+
+
 def shadow_consistency(pred_maps: Sequence[np.ndarray], gt_maps: Sequence[np.ndarray],
                        visibility: Sequence[np.ndarray], label: int) -> dict[str, float]:
     """Do shadowed and lit pixels of the surface with ground-truth id ``label`` fall in one
@@ -744,7 +763,7 @@ def shadow_consistency(pred_maps: Sequence[np.ndarray], gt_maps: Sequence[np.nda
     on = g == label
     lit, shadow = on & (v >= 0.5), on & (v < 0.5)
     if not lit.any() or not shadow.any():
-        raise ValueError(f"shadow_consistency: surface {label} has no "
+        raise NoPixelsToCompare(f"shadow_consistency: surface {label} has no "
                          f"{'lit' if not lit.any() else 'shadowed'} pixel in these views")
     major = int(np.bincount(p[lit]).argmax())
     return {"segment": major, "lit_fraction": float((p[lit] == major).mean()),

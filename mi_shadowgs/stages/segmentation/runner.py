@@ -22,6 +22,10 @@ from mi_shadowgs.stages.common import (
     settings_dict,
 )
 
+# Chromaticity masks: labels below this share of the labelled pixels do not count for K
+# (their edge and highlight slivers would; SegmentationConfig.min_label_fraction).
+CHROMATICITY_MIN_LABEL_FRACTION = 0.005
+
 
 def segmentation_config(preset: str, masks: str, overrides: dict | None = None):
     """The segmentation settings for label maps from ``masks``, with ``overrides``."""
@@ -29,7 +33,7 @@ def segmentation_config(preset: str, masks: str, overrides: dict | None = None):
 
     overrides = dict(overrides or {})
     if masks == "chromaticity":  # see SegmentationConfig.min_label_fraction and k_select
-        overrides.setdefault("min_label_fraction", 0.005)
+        overrides.setdefault("min_label_fraction", CHROMATICITY_MIN_LABEL_FRACTION)
     return with_overrides(get_config(preset), overrides, "segmentation")
 
 
@@ -134,6 +138,6 @@ def _segmentation_metrics(maps: list, views) -> dict:
         try:
             out["base_shadow"] = seg.shadow_consistency(
                 maps, gt, [v.visibility for v in views.views], int(base))
-        except ValueError as exc:  # no shadowed base pixel in these views
+        except seg.NoPixelsToCompare as exc:  # no shadowed base pixel in these views
             out["base_shadow"] = {"error": str(exc)}
     return out
