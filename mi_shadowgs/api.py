@@ -7,6 +7,9 @@
     model = msg.load_model("runs/run/segmentation/model.ply")
     images = msg.render(model, msg.load_dataset("runs/data", "test").cameras[0])
 
+A model's views go to files with ``render_views`` (``mi-shadowgs render``), a finished run's
+relit views with ``run_relight`` (``mi-shadowgs relight``).
+
 Each stage can also be run alone (``run_geometry``, ``run_segmentation``) or used through
 its package (``mi_shadowgs.stages.<stage>``: ``get_config(preset)``, its maths, its runner).
 Everything here is a re-export or a thin wrapper; the CLI (``mi-shadowgs``) calls the same
@@ -33,6 +36,8 @@ from mi_shadowgs.stages.relight import (
     lights_from_json,
     relight_views,
 )
+from mi_shadowgs.stages.relight.images import render_views
+from mi_shadowgs.stages.relight.runner import run_relight
 from mi_shadowgs.stages.segmentation import run_segmentation
 
 set_variant = backend.set_variant
@@ -99,6 +104,6 @@ __all__ = [
     "Camera", "Dataset", "RunConfig", "dataset_scene", "directional_light_set", "export_asset",
     "export_ply",
     "generate_dataset", "get_config", "lights_from_json", "load_dataset", "load_model",
-    "relight", "render", "run", "run_geometry", "run_pipeline", "run_segmentation",
-    "scene_path", "set_variant", "stages",
+    "relight", "render", "render_views", "run", "run_geometry", "run_pipeline", "run_relight",
+    "run_segmentation", "scene_path", "set_variant", "stages",
 ]

@@ -288,6 +288,104 @@ def frame_stats(seconds: list[float]) -> dict:
             "later_median_s": float(np.median(seconds[1:])) if len(seconds) > 1 else None}
 
 
+@dataclasses.dataclass(frozen=True)
+class RelightResult:
+    folder: Path
+    views: int
+    light_directions: int
+    stats: dict  # frame_stats
+    video: Path | None
+    video_note: str | None  # why the video is not an MP4
+
+
+def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None = None,
+                rotate_deg: float = 0.0, envmap_scale: float = 1.0, scene: str | None = None,
+                cameras: str | None = None, orbit: int | None = None,
+                orbit_elevation: float | None = None, video: bool = False, fps: float = 12.0,
+                fit: str = "full", overwrite: bool = False,
+                progress: bool = True) -> RelightResult:
+    """The fit ``material/<fit>`` of the finished run ``run`` under new lights (module
+    docstring), into the folder ``out``: ``NAME.exr`` / ``NAME.png`` per view,
+    ``relight.json`` (lights, views, per-frame times) and, with ``video``, a turntable. Views:
+    ``cameras`` (a transforms.json), an ``orbit`` of N views, else the run's test views.
+    Every argument is checked before the run is read; ``out`` is new or an earlier relight
+    (``overwrite`` removes only its files)."""
+    from mi_shadowgs.dataset.loader import load_cameras
+    from mi_shadowgs.io.images import linear_to_srgb, to_uint8
+    from mi_shadowgs.io.provenance import Output, Provenance, input_ref
+    from mi_shadowgs.stages.relight.images import view_stems, write_rgba
+
+    if not lights and envmap is None and scene is None:
+        raise ValueError("no light: give --light AZ,EL,IRRADIANCE, --envmap FILE or --scene XML")
+    check_light_args(lights, envmap, rotate_deg, envmap_scale, scene)
+    if not (fps > 0 and math.isfinite(fps)):
+        raise ValueError(f"--fps must be > 0, got {fps:g}")
+    run_dir = Path(run)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run folder not found: {run_dir}")
+    named = []
+    if cameras is not None:
+        if not Path(cameras).is_file():
+            raise FileNotFoundError(f"--cameras {cameras}: file not found")
+        named = list(load_cameras(cameras))
+    run_fit = load_run(run_dir, fit, [c for _, c in named])
+    cache = relight.RelightCache()
+    light_set = build_lights(lights, envmap, rotate_deg, envmap_scale, scene,
+                             relight.get_config(run_fit.preset), cache)
+    if orbit is not None or not named:
+        named = _default_views(run_dir, run_fit, orbit, orbit_elevation)
+    names = view_stems(n for n, _ in named)
+    inputs = [run_dir / "material" / fit / n for n in ("model.ply", "light.json")]
+    extra = [Path(p) for p in (envmap, scene, cameras) if p]
+    provenance = Provenance(
+        inputs={p.name: input_ref(p) for p in inputs + extra},
+        settings={"lights": list(lights), "envmap": envmap, "rotate": rotate_deg,
+                  "envmap_scale": envmap_scale, "scene": scene, "orbit": orbit,
+                  "orbit_elevation": orbit_elevation, "fit": fit, "video": video,
+                  "fps": fps})
+    seconds, frames = [], []
+    with Output.open(out, "relight", provenance, overwrite=overwrite,
+                     inputs=inputs + extra + ([run_fit.dataset] if run_fit.dataset else [])
+                     ) as output:
+        output.claim(*(f"{n}{x}" for n in names for x in (".exr", ".png")), "relight.json")
+        for i, img, secs in relight_frames(run_fit, [c for _, c in named], light_set, cache,
+                                           progress=progress):
+            rgb = img["rgb"]
+            write_rgba(output.folder, names[i], rgb, img["alpha"][..., None])
+            seconds.append(secs)
+            if video:
+                frames.append(to_uint8(linear_to_srgb(np.clip(rgb, 0, 1)), srgb=False))
+        movie, why = None, None
+        if video:
+            output.claim("turntable.mp4", "turntable.gif")
+            movie, why = write_video(output.folder / "turntable", frames, fps)
+        stats = frame_stats(seconds)
+        summary_json(output.path("relight.json"), {
+            "run": str(run_dir.resolve()), "fit": fit, "views": names,
+            "light_directions": light_set.count, "shadow_maps_rendered": cache.rendered,
+            "frame_seconds": seconds, **stats,
+            "video": movie.name if movie else None, "video_note": why})
+        output.finish()
+    return RelightResult(output.folder, len(names), light_set.count, stats, movie, why)
+
+
+def _default_views(run_dir: Path, fit: RunFit, orbit: int | None,
+                   orbit_elevation: float | None) -> list[tuple[str, Camera]]:
+    """(name, camera) of an orbit of ``orbit`` views, or of the run's test views."""
+    test = dataset_cameras(fit.dataset, "test") if fit.dataset else []
+    if orbit is None:
+        if not test:
+            raise FileNotFoundError(f"{run_dir}: its dataset's test views are gone; give "
+                                    "--cameras or --orbit")
+        return [(f"test_{i:03d}", c) for i, c in enumerate(test)]
+    template = (test or dataset_cameras(fit.dataset, "train"))[0] if fit.dataset else None
+    if template is None:
+        raise FileNotFoundError(f"{run_dir}: no camera to orbit with (its dataset is gone); "
+                                "give --cameras")
+    return [(f"orbit_{i:03d}", c) for i, c in enumerate(orbit_cameras(
+        orbit, template, fit.bounds.center, orbit_elevation))]
+
+
 def summary_json(path: Path, info: dict) -> None:
     from mi_shadowgs.io.atomic import write_json
 

@@ -1,0 +1,145 @@
+"""Images out: a surfel model's views rendered to files (``mi-shadowgs render``), and the
+one way every command writes a premultiplied RGBA frame (EXR and PNG).
+
+Per view (named after the frame's ``file_path``): ``NAME.exr`` linear RGBA (colour
+premultiplied over black, or composited over ``background``), ``NAME.png`` an sRGB preview,
+and for each AOV: ``NAME_AOV.exr`` plus a normalised ``NAME_AOV.png`` preview. The output
+folder is new, or holds an earlier render: ``overwrite`` removes the files its manifest
+lists (``mi_shadowgs.io.provenance``) so that old and new renders never mix. It is never a
+dataset folder or inside one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+# AOVs whose preview is stretched over the covered pixels' range (see ``aov_preview``).
+RANGE_AOVS = ("depth", "median_depth")
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderResult:
+    folder: Path
+    views: int
+    surfels: int
+
+
+def write_rgba(folder: Path, name: str, rgb: np.ndarray, alpha: np.ndarray,
+               composited: bool = False) -> None:
+    """``NAME.exr`` linear RGBA of ``rgb`` [H, W, 3] (premultiplied) and ``alpha`` [H, W, 1],
+    and ``NAME.png``: sRGB with straight alpha (PNG's), or the colour alone where it was
+    ``composited`` over a background."""
+    from mi_shadowgs.io.images import write_exr, write_png
+
+    write_exr(folder / f"{name}.exr", np.concatenate([rgb, alpha], axis=-1))
+    if composited:
+        write_png(folder / f"{name}.png", rgb)
+        return
+    straight = np.where(alpha > 0, rgb / np.maximum(alpha, 1e-12), 0.0)
+    write_png(folder / f"{name}.png", np.concatenate([straight, alpha], axis=-1))
+
+
+def exr_channel_names(width: int) -> list[str]:
+    if width in (1, 3):
+        return ["Y"] if width == 1 else ["R", "G", "B"]
+    return [f"C{i:02d}" for i in range(width)]  # zero-padded: EXR sorts channel names
+
+
+def aov_preview(name: str, img: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """A displayable [H, W, 1 or 3] image in [0, 1] for AOV ``name`` (linear)."""
+    covered = alpha[..., 0] > 0
+    if name == "normal":
+        return np.where(covered[..., None], img * 0.5 + 0.5, 0.0)
+    if name == "alpha":
+        return img
+    if name in RANGE_AOVS:
+        # min-max over covered pixels onto [0.1, 1], so the nearest surface is not black
+        # like the background.
+        vals = img[covered]
+        lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (0.0, 1.0)
+        out = (img - lo) / max(hi - lo, 1e-12)
+        return np.where(covered[..., None], 0.1 + 0.9 * np.clip(out, 0, 1), 0.0)
+    if img.shape[-1] == 3 and name not in ("distortion", "count"):
+        return img  # a colour-like channel (e.g. albedo): premultiplied linear colour
+    img = img[..., :3] if img.shape[-1] >= 3 else img[..., :1]
+    lo, hi = float(img.min()), float(img.max())
+    return (img - lo) / max(hi - lo, 1e-12)
+
+
+def view_stems(names) -> list[str]:
+    """File stems of the views: each frame's file name, numbered where two are equal
+    (frames from different folders) or where a frame has none."""
+    stems = [Path(name).name or f"view_{i:03d}" for i, name in enumerate(names)]
+    if len(set(stems)) != len(stems):
+        stems = [f"{i:03d}_{s}" for i, s in enumerate(stems)]
+    return stems
+
+
+def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(),
+                 background=None, color_channel: str = "sh",
+                 memory_budget: str | None = None, overwrite: bool = False,
+                 progress: bool = True) -> RenderResult:
+    """Render the surfel PLY ``model`` from every view of the NeRF-synthetic ``cameras``
+    file into the folder ``out`` (module docstring). Every argument is checked before any
+    rendering: a missing file, an unknown AOV or colour channel, a bad background or
+    budget raise an error naming it."""
+    from mi_shadowgs.core.memory import parse_bytes
+    from mi_shadowgs.core.raster import RasterConfig
+    from mi_shadowgs.core.render import aov_layout, parse_background
+    from mi_shadowgs.dataset.loader import load_cameras
+    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.io.provenance import Output, Provenance, input_ref
+
+    model = Path(model)
+    if not model.is_file():
+        raise FileNotFoundError(f"model file not found: {model}")
+    if not Path(cameras).is_file():
+        raise FileNotFoundError(f"cameras file not found: {cameras}")
+    surfels = load_ply(model)
+    aovs = list(dict.fromkeys(aovs))
+    aov_layout(aovs, surfels)  # unknown names fail before any rendering
+    background = parse_background(background, "--background")
+    raster = RasterConfig() if memory_budget is None else \
+        RasterConfig(memory_budget_bytes=parse_bytes(memory_budget, "--memory-budget"))
+    if color_channel not in surfels.channels:
+        raise ValueError(f"{model}: no channel {color_channel!r} for --color-channel "
+                         f"(channels: {sorted(surfels.channels)})")
+    views = load_cameras(cameras)
+    stems = view_stems(name for name, _ in views)
+    provenance = Provenance(
+        inputs={"model": input_ref(model), "cameras": input_ref(cameras)},
+        settings={"aovs": aovs, "background": background, "color_channel": color_channel})
+    with Output.open(out, "render", provenance, overwrite=overwrite,
+                     inputs=[model, cameras]) as output:
+        output.claim(*(f"{stem}{suffix}" for stem in stems for suffix in
+                       [".exr", ".png"] + [f"_{a}{ext}" for a in aovs
+                                           for ext in (".exr", ".png")]))
+        _render(output.folder, surfels, [c for _, c in views], stems, aovs, background,
+                color_channel, raster, progress)
+        output.finish()
+    return RenderResult(output.folder, len(views), surfels.count)
+
+
+def _render(folder: Path, surfels, cameras, stems, aovs, background, color_channel, raster,
+            progress: bool) -> None:
+    from tqdm import tqdm
+
+    from mi_shadowgs.core.render import render_surfels
+    from mi_shadowgs.io.images import write_exr, write_png
+
+    for stem, camera in tqdm(list(zip(stems, cameras, strict=True)), desc="render",
+                             unit="view", disable=not progress):
+        images = render_surfels(surfels, camera, color_channel=color_channel, aovs=aovs,
+                                background=background, config=raster)
+        arrays = {k: np.asarray(v.numpy(), dtype=np.float32) for k, v in images.items()}
+        alpha = arrays["alpha"]
+        write_rgba(folder, stem, arrays["rgb"], alpha, composited=background is not None)
+        for name in aovs:
+            img = arrays[name]
+            write_exr(folder / f"{stem}_{name}.exr", img,
+                      channels=exr_channel_names(img.shape[-1]))
+            write_png(folder / f"{stem}_{name}.png", aov_preview(name, img, alpha),
+                      srgb=name not in ("normal", "alpha") + RANGE_AOVS)
