@@ -416,7 +416,8 @@ def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
                                                      "lambda_normal_prior")), d
     # ... and before the shares of stage 1's consistent cells and stage 2's prototypes
     # were settings: the 5% and the last quarter, written in the code
-    assert diff(init_consistent_top=0.05, prototype_share=0.25) == []
+    assert diff(init_consistent_top=0.05, prototype_share=0.25, outline_weld=0.25,
+                sliver_area=1e-3, min_points=10) == []
     assert "init_consistent_top" in diff(init_consistent_top=0.1)[0]
     assert "prototype_share" in diff(prototype_share=0.5)[0]
     # a value the older code did not use is a difference, and so is one it did use

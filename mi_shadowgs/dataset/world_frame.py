@@ -63,6 +63,8 @@ class FrameConfig:
     # robust object bounds: these percentiles of the object's points along each axis
     bound_percentiles: tuple = (1.0, 99.0)
     seed: int = 0
+    # fewer SfM points than this in all: the whole frame from the cameras (no plane fit)
+    min_points: int = 10
     # fewer object points than this: centre and size from the cameras instead
     min_object_points: int = 50
     # then the cameras are taken to stand this many object radii from the centre (the
@@ -125,7 +127,7 @@ def world_frame(points: np.ndarray, c2w: np.ndarray,
     """
     points = np.asarray(points, np.float64).reshape(-1, 3)
     c2w = np.asarray(c2w, np.float64)
-    if len(points) < 10:
+    if len(points) < config.min_points:
         return _frame_from_cameras(c2w, config, len(points))
     rng = np.random.default_rng(config.seed)
     median = np.median(points, axis=0)

@@ -1133,8 +1133,13 @@ def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndar
     return gram, h, rr
 
 
-def segment_nnls(gram: np.ndarray, h: np.ndarray, keep: np.ndarray, iterations: int = 20
-                 ) -> tuple[np.ndarray, float]:
+# segment_nnls's alternations of the light and the segments' scales; each lowers the error,
+# and a fixed count (not a tolerance) keeps the light drops the same on every machine.
+SEGMENT_NNLS_ALTERNATIONS = 20
+
+
+def segment_nnls(gram: np.ndarray, h: np.ndarray, keep: np.ndarray,
+                 iterations: int = SEGMENT_NNLS_ALTERNATIONS) -> tuple[np.ndarray, float]:
     """argmin over e >= 0 (0 off ``keep``) and one scale c_s >= 0 per segment of
     sum_s c_s^2 e^T G_s e - 2 c_s e . h_s (``gram`` [S, K, K], ``h`` [S, K]), by
     alternating the two (each step lowers it); returns (e, that minimum). e's scale is

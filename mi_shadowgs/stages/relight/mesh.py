@@ -30,7 +30,7 @@ import dataclasses
 
 import numpy as np
 
-from mi_shadowgs.config import get_preset
+from mi_shadowgs.config import check_fields, get_preset
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.tsdf import VoxelGrid, fuse_tsdf
 
@@ -68,6 +68,10 @@ class MeshConfig:
     outline_snap: float = 4.0
     outline_vote: float = 0.5  # share of the views seeing a plane point that must mask it
     weld: float = 0.01  # vertices closer than this many voxels are merged (no slivers)
+    outline_weld: float = 0.25  # border vertices snapped closer than this many outline cells
+    # Triangles left by a weld with less area than this times the weld radius squared are
+    # dropped (a ray hitting one gets NaN barycentrics in Mitsuba).
+    sliver_area: float = 1e-3
 
     def __post_init__(self):
         if self.depth not in DEPTH_KINDS:
@@ -77,6 +81,8 @@ class MeshConfig:
         if not (self.trunc_voxels > 0 and 0 <= self.alpha_min < 1 and self.neighbours >= 1
                 and 0.5 < self.bounds_quantile <= 1 and 0 <= self.min_component <= 1):
             raise ValueError(f"MeshConfig: bad settings {self}")
+        check_fields(self, (("outline_weld", self.outline_weld >= 0, ">= 0"),
+                            ("sliver_area", self.sliver_area >= 0, ">= 0")))
 
 
 PRESETS = {"cpu-small": MeshConfig(), "cpu-medium": MeshConfig(), "gpu-large": MeshConfig(),
@@ -337,9 +343,11 @@ def _boundary_vertices(faces: np.ndarray) -> np.ndarray:
     return np.unique(uniq[count == 1].ravel())
 
 
-def _weld(part: MeshPart, candidates: np.ndarray, radius: float) -> MeshPart:
+def _weld(part: MeshPart, candidates: np.ndarray, radius: float, sliver_area: float
+          ) -> MeshPart:
     """``part`` with the ``candidates`` vertices closer than ``radius`` merged (each group
-    onto one of them) and the triangles left with a repeated vertex or no area dropped."""
+    onto one of them) and the triangles left with a repeated vertex or under ``sliver_area``
+    x radius^2 of area dropped."""
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(part.vertices[candidates].astype(np.float64)).query_pairs(radius,
@@ -356,7 +364,7 @@ def _weld(part: MeshPart, candidates: np.ndarray, radius: float) -> MeshPart:
     ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
     f = f[ok]
     area = _face_areas(part.vertices, f)
-    return _part(part.vertices, f[area > 1e-3 * radius * radius].astype(np.int32))
+    return _part(part.vertices, f[area > sliver_area * radius * radius].astype(np.int32))
 
 
 def outline_base(base: MeshPart, views: list[tuple[Camera, np.ndarray]], voxel: float,
@@ -403,7 +411,7 @@ def outline_base(base: MeshPart, views: list[tuple[Camera, np.ndarray]], voxel: 
     # Border vertices that landed (almost) on one contour point leave slivers between them;
     # a ray hitting a sliver gets NaN barycentrics in Mitsuba (measured: NaN pixels on the
     # default scene). Weld such vertices and drop the triangles that collapse.
-    part = _weld(part, border[move], 0.25 * cell)
+    part = _weld(part, border[move], config.outline_weld * cell, config.sliver_area)
     part.normals[:] = (0.0, 1.0, 0.0)  # the plane's normal (welded slivers had none)
     return part, {"outline_hull_cells": int(occ.sum()), "outline_moved": int(move.sum()),
                   "outline_border_vertices": len(border),
@@ -443,10 +451,12 @@ def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known:
     # Marching cubes puts vertices on grid edges; where the surface passes through a grid
     # vertex, two of them coincide and their triangle is a sliver, on which a ray gets NaN
     # barycentrics in Mitsuba (NaN pixels in the default scene's path-traced relighting).
-    obj = _weld(obj, np.arange(len(obj.vertices)), config.weld * grid.voxel)
+    obj = _weld(obj, np.arange(len(obj.vertices)), config.weld * grid.voxel,
+                config.sliver_area)
     if base is not None:
         flat = config.flatten_base and base_grid is not None
-        base = _weld(base, np.arange(len(base.vertices)), config.weld * grid.voxel)
+        base = _weld(base, np.arange(len(base.vertices)), config.weld * grid.voxel,
+                     config.sliver_area)
         if flat:
             base.normals[:] = (0.0, 1.0, 0.0)
     t.append(time.perf_counter())
