@@ -78,7 +78,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     claim_out(args.out, "validation.import_sfm", ('import_sfm.json', 'import_0'))
     from mi_shadowgs.dataset.generate import get_config as gen_config
-    from mi_shadowgs.dataset.importer import get_config, import_capture
+    from mi_shadowgs.dataset.importer import get_config, import_capture, sfm_work_folder
     from mi_shadowgs.dataset.writer import write_dataset
     from mi_shadowgs.scenes import scene_path
 
@@ -99,8 +99,13 @@ def main(argv=None) -> None:
     gt = truth(data)
     runs = []
     for r in range(args.repeats):
-        target = out / f"import_{r}"
+        target, row_file = out / f"import_{r}", out / f"import_{r}.json"
+        if row_file.is_file() and (target / "import.json").is_file():  # done before a kill
+            runs.append(json.loads(row_file.read_text()))
+            continue
+        # Each repeat is timed whole: no earlier import's folder or SfM work is resumed.
         shutil.rmtree(target, ignore_errors=True)
+        shutil.rmtree(sfm_work_folder(target), ignore_errors=True)
         t = time.perf_counter()
         rec = import_capture(data / "photos", target, get_config(args.preset))
         wall = time.perf_counter() - t
@@ -108,6 +113,7 @@ def main(argv=None) -> None:
                "points": rec["points"],
                "reprojection_px": rec["mean_reprojection_error_px"],
                "timings": rec["timings"], "wall_s": wall, **score(target, gt)}
+        write_json(row_file, row)
         runs.append(row)
         print(json.dumps(row))
     # The COLMAP model the first import wrote, imported again with --colmap: same cameras?

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.config import get_preset
+from mi_shadowgs.config import check_fields, get_preset
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.world_frame import FrameConfig, world_frame
@@ -37,6 +37,10 @@ from mi_shadowgs.dataset.world_frame import FrameConfig, world_frame
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 IMPORT_JSON = "import.json"
 COLMAP_DIR = "colmap"  # sparse/0 (SfM as found), undistorted/{images,sparse}
+SFM_STATE = "sfm_state.json"  # the SfM work folder's record of what is done (run_sfm)
+# SfM settings: a work folder made with other values of these is not resumed.
+_SFM_SETTINGS = ("exhaustive_max", "sequential_overlap", "max_features", "camera_model",
+                 "focal_px", "sfm_chunk_photos", "sfm_chunk_pairs")
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -58,6 +62,15 @@ class ImportConfig:
     focal_px: float | None = None  # known focal length (pixels of the photos), else EXIF
     frame: FrameConfig = FrameConfig()
     threads: int = -1  # pycolmap threads (-1: all cores)
+    # SfM runs in pieces recorded as they finish (``run_sfm``): a kill loses at most one
+    # piece. Features of this many photos at a time (~0.1 s a photo at 256^2 on 2 cores)...
+    sfm_chunk_photos: int = 8
+    # ... and matches of this many photo pairs (~8 ms a pair there).
+    sfm_chunk_pairs: int = 500
+
+    def __post_init__(self):
+        check_fields(self, (("sfm_chunk_photos", self.sfm_chunk_photos >= 1, ">= 1"),
+                            ("sfm_chunk_pairs", self.sfm_chunk_pairs >= 1, ">= 1")))
 
 
 PRESETS = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512),
@@ -140,45 +153,122 @@ def check_colmap(model: Path) -> None:
 
 
 # -- SfM ----------------------------------------------------------------------------------------
+def sfm_work_folder(out: Path) -> Path:
+    """Where the SfM of an import into ``out`` keeps its work until the dataset is written:
+    beside ``out`` (which does not exist until then), so that a killed import resumes."""
+    return out.parent / f".{out.name}.sfm"
+
+
+def sfm_key(photos: list[Path], config: ImportConfig) -> str:
+    """The photos' names and contents and the SfM settings: a work folder of another key
+    holds another import's features and is not resumed."""
+    import hashlib
+
+    from mi_shadowgs.io.provenance import file_digest
+
+    settings = {k: getattr(config, k) for k in _SFM_SETTINGS}
+    payload = {"photos": [[p.name, file_digest(p)] for p in photos], "settings": settings,
+               "seed": config.frame.seed}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def open_sfm_work(work: Path, key: str) -> dict:
+    """The work folder's state: resumed when it holds this key, started afresh when it holds
+    another import's (ours: it has our state file), refused when it is someone else's."""
+    from mi_shadowgs.io.atomic import write_json
+
+    state_path = work / SFM_STATE
+    if work.exists():
+        try:
+            state = json.loads(state_path.read_text())
+        except (OSError, ValueError):
+            raise CaptureError(f"{work}: a folder that import did not write (no readable "
+                               f"{SFM_STATE}) is where its SfM work goes; move it") from None
+        if state.get("key") == key:
+            return state
+        shutil.rmtree(work)  # another import's work: features of other photos or settings
+    work.mkdir(parents=True)
+    state = {"key": key, "extracted": [], "matched_pairs": 0, "mapped": False}
+    write_json(state_path, state)
+    return state
+
+
 def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
-            size: tuple[int, int], timings: dict):
-    """pycolmap SfM on the CPU; the reconstruction with the most registered images."""
+            size: tuple[int, int], timings: dict, state: dict, progress: bool = False):
+    """pycolmap SfM on the CPU; the reconstruction with the most registered images.
+
+    Features are extracted ``sfm_chunk_photos`` photos at a time and matched
+    ``sfm_chunk_pairs`` pairs at a time (the pairs pycolmap's exhaustive or sequential
+    pairing gives), each piece recorded in ``state`` (``work/SFM_STATE``) once the database
+    holds it; the mapping is recorded when its models are written. A rerun after a kill
+    continues from the last piece (the database's features and matches are COLMAP's; a
+    piece cut short is redone, COLMAP skipping what it already holds). One camera for all
+    photos: the pieces after the first reuse the first piece's."""
     import pycolmap
+    from tqdm import tqdm
+
+    from mi_shadowgs.io.atomic import write_json
 
     db = work / "database.db"
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = config.camera_model
-    if config.focal_px is not None:
-        w, h = size
-        extra = ",0" if config.camera_model in ("SIMPLE_RADIAL", "RADIAL") else ""
-        reader.camera_params = f"{config.focal_px},{w / 2},{h / 2}{extra}"
+
+    def record():
+        write_json(work / SFM_STATE, state)
+
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = config.threads
     extraction.sift.max_num_features = config.max_features
+    done = set(state["extracted"])
+    todo = [n for n in names if n not in done]
     t = time.perf_counter()
-    pycolmap.extract_features(db, image_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    for i in tqdm(range(0, len(todo), config.sfm_chunk_photos), desc="SfM features",
+                  unit="chunk", disable=not progress or not todo):
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = config.camera_model
+        if config.focal_px is not None:
+            w, h = size
+            extra = ",0" if config.camera_model in ("SIMPLE_RADIAL", "RADIAL") else ""
+            reader.camera_params = f"{config.focal_px},{w / 2},{h / 2}{extra}"
+        camera = _first_camera(db)
+        if camera is not None:
+            reader.existing_camera_id = camera
+        chunk = todo[i:i + config.sfm_chunk_photos]
+        pycolmap.extract_features(db, image_dir, image_names=chunk,
+                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        state["extracted"] += chunk
+        record()
     timings["extract_s"] = time.perf_counter() - t
     t = time.perf_counter()
+    pairs, timings["matcher"] = _sfm_pairs(db, len(names), config)
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = config.threads
-    if len(names) <= config.exhaustive_max:
-        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
-        timings["matcher"] = "exhaustive"
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = config.sequential_overlap
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                  device=pycolmap.Device.cpu)
-        timings["matcher"] = f"sequential (overlap {config.sequential_overlap})"
+    start = state["matched_pairs"]
+    for i in tqdm(range(start, len(pairs), config.sfm_chunk_pairs), desc="SfM matches",
+                  unit="chunk", disable=not progress or start >= len(pairs)):
+        chunk = pairs[i:i + config.sfm_chunk_pairs]
+        listing = work / "pairs.txt"
+        listing.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(listing)
+        pycolmap.match_image_pairs(db, matching_options=matching, pairing_options=pairing,
+                                   device=pycolmap.Device.cpu)
+        state["matched_pairs"] = i + len(chunk)
+        record()
     timings["match_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = config.threads
-    options.random_seed = config.frame.seed
-    (work / "sparse").mkdir()
-    recs = pycolmap.incremental_mapping(db, image_dir, work / "sparse", options=options)
+    sparse = work / "sparse"
+    if state["mapped"]:
+        recs = {int(d.name): pycolmap.Reconstruction(str(d)) for d in sparse.iterdir()
+                if d.is_dir()}
+    else:
+        shutil.rmtree(sparse, ignore_errors=True)  # a mapping cut short
+        sparse.mkdir()
+        options = pycolmap.IncrementalPipelineOptions()
+        options.num_threads = config.threads
+        options.random_seed = config.frame.seed
+        recs = pycolmap.incremental_mapping(db, image_dir, sparse, options=options)
+        state["mapped"] = True
+        record()
     timings["map_s"] = time.perf_counter() - t
     if not recs:
         raise CaptureError(f"{image_dir}: SfM registered 0 of {len(names)} photos; dropped: "
@@ -187,6 +277,42 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
                            "background (a printed mat, newspaper) with more overlap between "
                            "photos")
     return max(recs.values(), key=lambda r: r.num_reg_images())
+
+
+def _first_camera(db: Path) -> int | None:
+    """The camera of the database's photos (one for all), or None before any."""
+    import pycolmap
+
+    if not db.is_file():
+        return None
+    database = pycolmap.Database.open(str(db))
+    try:
+        images = database.read_all_images()
+        return int(images[0].camera_id) if images else None
+    finally:
+        database.close()
+
+
+def _sfm_pairs(db: Path, count: int, config: ImportConfig) -> tuple[list[tuple[str, str]], str]:
+    """The photo pairs to match, by name, as pycolmap pairs them: every pair up to
+    ``exhaustive_max`` photos, else sequential with ``sequential_overlap``."""
+    import pycolmap
+
+    database = pycolmap.Database.open(str(db))
+    try:
+        names = {im.image_id: im.name for im in database.read_all_images()}
+        if count <= config.exhaustive_max:
+            generator = pycolmap.ExhaustivePairGenerator(pycolmap.ExhaustivePairingOptions(),
+                                                         database)
+            how = "exhaustive"
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = config.sequential_overlap
+            generator = pycolmap.SequentialPairGenerator(pairing, database)
+            how = f"sequential (overlap {config.sequential_overlap})"
+        return [(names[a], names[b]) for a, b in generator.all_pairs()], how
+    finally:
+        database.close()
 
 
 # -- from a reconstruction to our cameras ----------------------------------------------------------
@@ -293,11 +419,8 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
     """Import photos (SfM) or a COLMAP model of them into the dataset ``out``; returns the
     ``import.json`` record. Every input is checked before anything is written."""
     import pycolmap
-    from PIL import Image
-    from tqdm import tqdm
 
-    from mi_shadowgs.io.atomic import atomic_dir
-    from mi_shadowgs.io.provenance import Output, Provenance, check_output_location
+    from mi_shadowgs.io.provenance import check_output_location
 
     t_start, cpu_start = time.perf_counter(), time.process_time()
     # fatal only: its per-step log (and its own "failed" lines) would drown our one line
@@ -319,21 +442,51 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
         raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
     check_output_location(out, [source] + ([Path(colmap)] if colmap else []))
     timings = {}
+    # Our SfM's work (features, matches, models) outlives a kill, beside OUT; a COLMAP model
+    # given needs none.
+    sfm_work = sfm_work_folder(out) if colmap is None else None
+    sfm_state = open_sfm_work(sfm_work, sfm_key(photos, config)) if sfm_work else None
+    try:
+        record = _import_photos(source, out, photos, size, turned, mask_files, colmap, masks,
+                                config, sfm_work, sfm_state, timings, t_start, cpu_start,
+                                progress)
+    except KeyboardInterrupt:  # (io.interrupt.Interrupted too: SIGTERM)
+        raise  # the SfM work stays for the rerun to continue
+    except BaseException:
+        if sfm_work is not None:  # a failure a rerun would meet again: no work left behind
+            shutil.rmtree(sfm_work, ignore_errors=True)
+        raise
+    if sfm_work is not None:
+        shutil.rmtree(sfm_work, ignore_errors=True)  # the dataset is written
+    return record
+
+
+def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, colmap, masks,
+                   config: ImportConfig, sfm_work: Path | None, sfm_state: dict | None,
+                   timings: dict, t_start: float, cpu_start: float, progress: bool) -> dict:
+    """``import_capture``'s work once every input is checked (its docstring)."""
+    import pycolmap
+    from PIL import Image
+    from tqdm import tqdm
+
+    from mi_shadowgs.io.atomic import atomic_dir
+    from mi_shadowgs.io.provenance import Output, Provenance
+
     steps = tqdm(total=5, desc=f"import {out.name}", unit="step", disable=not progress)
     with tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s, \
             atomic_dir(out) as tmp:
-        work = Path(work_s)
         image_dir = source
         names = [p.name for p in photos]
         if turned:  # SfM reads pixels as stored: give it upright copies
-            image_dir = work / "upright"
-            image_dir.mkdir()
+            image_dir = (sfm_work or Path(work_s)) / "upright"
+            image_dir.mkdir(exist_ok=True)
             for p in photos:
                 im, _ = _read_photo(p)
                 im.save(image_dir / p.name, quality=98) if p in turned else \
                     shutil.copy2(p, image_dir / p.name)
         if colmap is None:
-            rec = run_sfm(image_dir, names, work, config, size, timings)
+            rec = run_sfm(image_dir, names, sfm_work, config, size, timings, sfm_state,
+                          progress)
             mode = "photos"
         else:
             rec = pycolmap.Reconstruction(str(colmap))
