@@ -346,3 +346,23 @@ def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatc
     assert "pass --resume to continue it" in capsys.readouterr().err
     assert cli.main([*seg_argv, "--resume"]) == 0
     assert _files(tmp_path / "seg") == _files(ref / "segmentation")
+
+
+def test_a_log_row_cut_short_is_dropped_on_resume(tmp_path):
+    """Hard case: a crash while stage 1 appended a log row leaves it cut short; the resume
+    keeps the whole rows up to its checkpoint and drops that one (before, it kept it with
+    empty fields, or failed on int('') where the cut fell in the first field)."""
+    from types import SimpleNamespace
+
+    from mi_shadowgs.stages.geometry.runner import LOG_FIELDS, GeometryWriter
+
+    log = tmp_path / "log.csv"
+    whole = [",".join([str(i), "0.5"] + ["1"] * (len(LOG_FIELDS) - 2)) for i in (25, 50, 75)]
+    log.write_text(",".join(LOG_FIELDS) + "\n" + "\n".join(whole) + "\n100,0.4")
+    writer = GeometryWriter(SimpleNamespace(path=lambda name: tmp_path / name), {})
+    writer.start_log(100)
+    rows = log.read_text().splitlines()
+    assert rows[0] == ",".join(LOG_FIELDS) and [r.split(",")[0] for r in rows[1:]] == \
+        ["25", "50", "75"]
+    writer.start_log(50)  # an earlier checkpoint: the rows after it go too
+    assert [r.split(",")[0] for r in log.read_text().splitlines()[1:]] == ["25", "50"]

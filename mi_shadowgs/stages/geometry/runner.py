@@ -30,11 +30,15 @@ class GeometryWriter:
         self.log_path = out.path("log.csv")
 
     def start_log(self, from_step: int) -> None:
-        """Keep the log rows up to ``from_step`` (a resumed run rewrites what came after)."""
+        """Keep the log rows up to ``from_step`` (a resumed run rewrites what came after). A
+        row cut short by a crash while it was appended (no iteration, or not all fields) is
+        one the rerun writes again: dropped."""
         rows = []
         if from_step > 0 and self.log_path.is_file():
             with open(self.log_path, newline="") as f:
-                rows = [r for r in csv.DictReader(f) if int(r["iteration"]) <= from_step]
+                rows = [r for r in csv.DictReader(f)
+                        if None not in r.values() and (r["iteration"] or "").isdigit()
+                        and int(r["iteration"]) <= from_step]
         buf = io.StringIO()
         w = csv.DictWriter(buf, fieldnames=LOG_FIELDS, extrasaction="ignore")
         w.writeheader()
