@@ -686,3 +686,29 @@ def test_normal_phase_settings_are_checked_and_off_in_the_paper():
     for bad in ({"normal_steps": -1}, {"lr_normal": 0.0}, {"lambda_normal_prior": -1.0}):
         with pytest.raises(ValueError, match="normal_steps >= 0"):
             material_fit.MaterialConfig(**bad)
+
+
+def test_a_pixel_covered_in_part_shades_its_surface_not_a_diluted_one():
+    """Hard case (silhouettes): pixel 0 is covered whole by surfel 0, pixel 1 to 0.6 by
+    surfel 1 of the same material. The albedo carries the coverage (the photo's colour is
+    premultiplied); roughness, metallic and the indirect irradiance are the surface's own.
+    Blended as the albedo, pixel 1 was a smoother (0.18), less metallic (0.6) surface with
+    0.6^2 of its indirect light. Float64 by hand."""
+    pairs = shading.SplatPairs(mi.UInt32([0, 1]), mi.UInt32([0, 1]), mi.Float([1.0, 0.6]),
+                               1, 2)
+    dc = np.array([0.4, 0.2, 0.1])
+    channels = {"albedo": mi.TensorXf(np.full((2, 3), 0.5, np.float32)),
+                "roughness": mi.TensorXf(np.full((2, 1), 0.3, np.float32)),
+                "metallic": mi.TensorXf(np.ones((2, 1), np.float32)),
+                shading.INDIRECT_CHANNEL: mi.TensorXf(np.tile(dc, (2, 1)).astype(np.float32))}
+    normals = mi.Vector3f([0.0, 0.0], [1.0, 1.0], [0.0, 0.0])
+    albedo, rough, metal, ind = material_fit.view_maps(pairs, channels, normals, True)
+    np.testing.assert_allclose(np.array(albedo), [[0.5, 0.3]] * 3, rtol=1e-6)  # [3, pixels]
+    np.testing.assert_allclose(np.array(rough), [0.3, 0.3], rtol=1e-6)
+    np.testing.assert_allclose(np.array(metal), [1.0, 1.0], rtol=1e-6)
+    sh_c0 = 0.28209479177387814  # the DC basis function
+    np.testing.assert_allclose(np.array(ind), np.tile(sh_c0 * dc[:, None], (1, 2)), rtol=1e-6)
+    # An empty pixel stays 0 (no division by its zero coverage).
+    empty = shading.SplatPairs(mi.UInt32([0]), mi.UInt32([0]), mi.Float([1.0]), 1, 2)
+    _, rough, metal, ind = material_fit.view_maps(empty, channels, normals, True)
+    assert np.array(rough)[1] == 0 and np.array(metal)[1] == 0 and not np.array(ind)[:, 1].any()

@@ -103,6 +103,27 @@ def splat(pairs: SplatPairs, values: mi.TensorXf) -> mi.Float:
     return out
 
 
+def per_surface(flat: mi.Float, cover: mi.Float) -> mi.Float:
+    """A splatted [H * W * C] image divided by each pixel's coverage ``cover`` [H * W]
+    (sum_i T_i alpha_i; 0 where nothing covers it): the blended surface's own value.
+
+    What a pixel covered in part needs for the quantities that do not scale with coverage:
+    a roughness or metallic blended over alpha 0.6 is not a smoother, less metallic
+    surface, and the indirect irradiance multiplies the albedo, which carries the coverage
+    already (alpha^2 otherwise)."""
+    c = dr.width(flat) // dr.width(cover)
+    idx = dr.arange(mi.UInt32, dr.width(flat))
+    w = dr.gather(mi.Float, cover, idx // c)
+    return dr.select(w > 0.0, flat / dr.maximum(w, 1e-30), 0.0)
+
+
+def splat_weight(pairs: SplatPairs) -> mi.Float:
+    """sum_i T_i alpha_i per pixel [H * W]: the coverage ``splat`` blends with."""
+    out = dr.zeros(mi.Float, pairs.height * pairs.width)
+    dr.scatter_reduce(dr.ReduceOp.Add, out, pairs.weight, pairs.pix)
+    return out
+
+
 def channel(flat: mi.Float, c: int, k: int) -> mi.Float:
     """Column ``k`` [H * W] of a flat [H * W * C] image."""
     n = dr.width(flat) // c

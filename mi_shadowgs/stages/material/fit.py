@@ -607,20 +607,24 @@ def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf],
               surfel_normal: mi.Vector3f, with_specular: bool = True):
     """Per-pixel albedo [Color3f], roughness, metallic and indirect radiance of a view (the
     indirect SH, of the degree its channel holds, evaluated per surfel at ``surfel_normal``
-    [N] (``shading.facing_normals``), then blended). Without the
-    specular lobe the metallic channel is held at 0 and the diffuse shading never reads the
-    roughness: both are zero images, not splats."""
+    [N] (``shading.facing_normals``), then blended). The albedo is blended (it carries the
+    pixel's coverage, as the photo's premultiplied colour does); roughness, metallic and the
+    indirect irradiance are the covering surface's own (``shading.per_surface``). Without
+    the specular lobe the metallic channel is held at 0 and the diffuse shading never reads
+    the roughness: both are zero images, not splats."""
     a = shading.splat(pairs, channels["albedo"])
     albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
+    cover = shading.splat_weight(pairs) if with_specular or \
+        shading.INDIRECT_CHANNEL in channels else None
     if with_specular:
-        rough = shading.splat(pairs, channels["roughness"])
-        metal = shading.splat(pairs, channels["metallic"])
+        rough = shading.per_surface(shading.splat(pairs, channels["roughness"]), cover)
+        metal = shading.per_surface(shading.splat(pairs, channels["metallic"]), cover)
     else:
         rough = metal = dr.zeros(mi.Float, pairs.height * pairs.width)
     ind = None
     if shading.INDIRECT_CHANNEL in channels:
         irr = eval_sh(channels[shading.INDIRECT_CHANNEL], surfel_normal, offset=0.0)
-        flat = shading.splat(pairs, irr)
+        flat = shading.per_surface(shading.splat(pairs, irr), cover)
         ind = mi.Color3f(*(shading.channel(flat, 3, c) for c in range(3)))
     return albedo, rough, metal, ind
 

@@ -265,11 +265,15 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
         shading.with_surface_aovs(out, surfels, camera, raster, receiver_band)
         buf = ViewBuffers(shading.geometry_from_aovs(out, camera),
                           colors={name: color(name) for name in extra or {}})
-        if material:
+        if material:  # as stage 4 fits them (fit.view_maps): the albedo blended, the
+            # roughness, metallic and indirect irradiance the covering surface's own
+            cover = out["alpha"].array
             buf.albedo = color("albedo")
-            buf.roughness, buf.metallic = out["roughness"].array, out["metallic"].array
+            buf.roughness = shading.per_surface(out["roughness"].array, cover)
+            buf.metallic = shading.per_surface(out["metallic"].array, cover)
             if shading.INDIRECT_CHANNEL in out:
-                buf.indirect = color(shading.INDIRECT_CHANNEL)
+                ind = shading.per_surface(out[shading.INDIRECT_CHANNEL].array, cover)
+                buf.indirect = mi.Color3f(*(shading.channel(ind, 3, c) for c in range(3)))
     return buf
 
 
