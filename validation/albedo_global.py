@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from mi_shadowgs.io.atomic import write_text
 
 
 def rows_under(paths: list[Path]) -> list[Path]:
@@ -109,7 +110,7 @@ def main(argv=None) -> int:
     text = markdown(results)
     print(text)
     if args.out is not None:
-        args.out.write_text(text + "\n")
+        write_text(args.out, text + "\n")  # atomic: a cut write never blocks the rerun
     return 0
 
 

@@ -23,10 +23,19 @@ import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 def blender_copy(src: Path, dst: Path) -> None:
     from mi_shadowgs.dataset import layout
     from mi_shadowgs.dataset.loader import BLENDER_TO_YUP
+    from mi_shadowgs.io.atomic import atomic_dir
     from mi_shadowgs.io.images import read_exr, write_exr
 
+    if dst.exists():
+        raise FileExistsError(f"{dst} already exists; the copy goes to a new folder")
     to_blender = np.linalg.inv(BLENDER_TO_YUP)
-    dst.mkdir(parents=True)
+    # Whole or not at all: a copy cut short would look like a dataset (its transforms
+    # written) with images missing.
+    with atomic_dir(dst) as tmp:
+        _copy_splits(src, tmp, to_blender, layout, read_exr, write_exr)
+
+
+def _copy_splits(src: Path, dst: Path, to_blender, layout, read_exr, write_exr) -> None:
     for split in layout.SPLITS:
         meta = json.loads((src / layout.transforms_name(split)).read_text())
         meta.pop("world_up", None)

@@ -20,6 +20,7 @@ import tempfile
 from html import unescape
 from pathlib import Path
 
+from mi_shadowgs.io.atomic import write_json
 from validation import claim_out, fail
 
 PAGE_WIDTH = 1400
@@ -103,7 +104,7 @@ def run(out_dir: Path, reports: list[Path]) -> dict:
         results.append(check_report(Path(rep), out_dir / name))
     md = markdown(results)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "report_pages.json").write_text(json.dumps(results, indent=1))
+    write_json(out_dir / "report_pages.json", results)
     bad = [r for r in results if not r["ok"]]
     if bad:
         raise AssertionError(f"{len(bad)} report page(s) fail: " + "; ".join(
