@@ -68,13 +68,11 @@ class RunConfig:
     preview_envmaps: tuple[str, ...] = ()
 
     def __post_init__(self):
-        if self.masks not in MASK_SOURCES:
-            raise ValueError(f"RunConfig.masks must be one of {MASK_SOURCES}, got {self.masks!r}")
-        if self.segments is not None and self.segments < 1:
-            raise ValueError(f"RunConfig.segments must be >= 1 (or None), got {self.segments}")
-        if self.seed < 0:
-            raise ValueError(f"RunConfig.seed must be >= 0, got {self.seed}")
-        check_fields(self, (("bounds_quantile", 0 < self.bounds_quantile <= 1, "in (0, 1]"),
+        check_fields(self, (("masks", self.masks in MASK_SOURCES, f"one of {MASK_SOURCES}"),
+                            ("segments", self.segments is None or self.segments >= 1,
+                             ">= 1 (or None)"),
+                            ("seed", self.seed >= 0, ">= 0"),
+                            ("bounds_quantile", 0 < self.bounds_quantile <= 1, "in (0, 1]"),
                             ("figure_views", self.figure_views >= 1, ">= 1"),
                             ("material_iterations", self.material_iterations is None
                              or self.material_iterations >= 0, ">= 0 or None")))

@@ -24,6 +24,7 @@ hemisphere, so Eq. 17's grid sum would cut a vertical surface's hemisphere in ha
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import drjit as dr
 import mitsuba as mi
@@ -64,6 +65,15 @@ class SplatPairs:
     weight: mi.Float  # [P] detached
     height: int
     width: int
+
+    @functools.cached_property
+    def coverage(self) -> mi.Float:
+        """sum_i T_i alpha_i per pixel [H * W], the coverage ``splat`` blends with: made
+        once per view (the pairs and weights are fixed while stage 4 fits)."""
+        out = dr.zeros(mi.Float, self.height * self.width)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, self.weight, self.pix)
+        dr.eval(out)
+        return out
 
 
 @dataclasses.dataclass
@@ -115,13 +125,6 @@ def per_surface(flat: mi.Float, cover: mi.Float) -> mi.Float:
     idx = dr.arange(mi.UInt32, dr.width(flat))
     w = dr.gather(mi.Float, cover, idx // c)
     return dr.select(w > 0.0, flat / dr.maximum(w, 1e-30), 0.0)
-
-
-def splat_weight(pairs: SplatPairs) -> mi.Float:
-    """sum_i T_i alpha_i per pixel [H * W]: the coverage ``splat`` blends with."""
-    out = dr.zeros(mi.Float, pairs.height * pairs.width)
-    dr.scatter_reduce(dr.ReduceOp.Add, out, pairs.weight, pairs.pix)
-    return out
 
 
 def channel(flat: mi.Float, c: int, k: int) -> mi.Float:

@@ -618,8 +618,7 @@ def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf],
     the roughness: both are zero images, not splats."""
     a = shading.splat(pairs, channels["albedo"])
     albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
-    cover = shading.splat_weight(pairs) if with_specular or \
-        shading.INDIRECT_CHANNEL in channels else None
+    cover = pairs.coverage
     if with_specular:
         rough = shading.per_surface(shading.splat(pairs, channels["roughness"]), cover)
         metal = shading.per_surface(shading.splat(pairs, channels["metallic"]), cover)
