@@ -62,3 +62,33 @@ def test_claim_marks_a_new_folder_and_takes_only_its_own(tmp_path, capsys):
     with pytest.raises(SystemExit):
         claim_out(a_file, "validation.geometry")
     assert validation.STUDY_MARK.startswith(".")  # hidden beside the study's own files
+
+
+def test_a_unit_is_reused_only_with_its_own_provenance(tmp_path, capsys):
+    """``validation.units.run_unit``: a finished unit is reused (its work not run again),
+    one cut short is run again, one of other settings exits 2 naming the setting, and
+    ``overwrite`` runs it again; files the unit's work wrote are its own."""
+    from mi_shadowgs.io.provenance import Provenance
+    from validation.units import run_unit, settings_of
+
+    calls = []
+
+    def work(unit, fail_now=False):
+        calls.append(unit.reused)
+        unit.path("figure.txt").write_text("x")
+        if fail_now:
+            raise KeyboardInterrupt
+        return {"value": len(calls)}
+
+    same = Provenance(settings=settings_of(size=128, views=(0, 1)))
+    with pytest.raises(KeyboardInterrupt):
+        run_unit(tmp_path, "a", "validation.t", same, lambda u: work(u, True))
+    assert run_unit(tmp_path, "a", "validation.t", same, work) == {"value": 2}
+    assert calls == [False, True]  # cut short: run again, in its own folder
+    assert run_unit(tmp_path, "a", "validation.t", same, work) == {"value": 2}
+    assert len(calls) == 2
+    with pytest.raises(SystemExit) as e:
+        run_unit(tmp_path, "a", "validation.t", Provenance(settings=settings_of(size=256)),
+                 work)
+    assert e.value.code == 2 and "size: 128 there, 256 now" in capsys.readouterr().err
+    assert run_unit(tmp_path, "a", "validation.t", same, work, overwrite=True) == {"value": 3}

@@ -9,8 +9,11 @@ PSNR/SSIM for each directional relighting of ``lights.json`` and the relighting 
 
     python -m validation.decomposition DATA --out OUT [--preset cpu-small] [--no-ablations]
 
-Writes (atomically) ``OUT/summary.json`` and PNGs per variant: albedo (estimate | GT),
-irradiance (estimate | GT), light map 22x12 (estimate | GT), relit (estimate | GT).
+Writes ``OUT/summary.json`` and PNGs per variant: albedo (estimate | GT), irradiance
+(estimate | GT), light map 22x12 (estimate | GT), relit (estimate | GT). Each variant is a
+unit of its own (``validation.units``, ``OUT/units/<variant>/``, with stage 4's checkpoint):
+a killed call, run again, continues the variant in progress and reuses the finished ones;
+``--overwrite`` fits them again.
 """
 
 from __future__ import annotations
@@ -29,12 +32,17 @@ from mi_shadowgs.core.directions import map_to_blocks
 from mi_shadowgs.dataset.loader import DatasetError, load_dataset
 from mi_shadowgs.dataset.scene import SceneError, dataset_scene
 from mi_shadowgs.dataset.standin import standin_surfels
-from mi_shadowgs.io.atomic import atomic_dir, write_json
+from mi_shadowgs.io.atomic import write_bytes, write_json
 from mi_shadowgs.io.images import write_png
+from mi_shadowgs.io.provenance import Provenance, dataset_ref
 from mi_shadowgs.stages import material, relight
+from mi_shadowgs.stages.common import checkpoint_hooks
 from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.visibility import shadow_maps
-from validation import fail
+from validation import claim_out, fail
+from validation.units import run_unit, settings_of
+
+STUDY = "validation.decomposition"
 
 VARIANTS = pipeline.VARIANTS
 # Bounds of the occluders' shadow maps: the object's sphere times this covers the shadows it
@@ -48,10 +56,13 @@ def scene_bounds(setup, cameras) -> shadow_maps.SceneBounds:
                          shadow_maps.mean_camera_distance(cameras, c))
 
 
-def run_variant(name, overrides, surfels, train, test, bounds, preset, extra) -> dict:
-    """Fit one variant on the stand-in and evaluate it (``mi_shadowgs.pipeline``)."""
+def run_variant(name, overrides, surfels, train, test, bounds, preset, extra,
+                checkpoints=None) -> dict:
+    """Fit one variant on the stand-in and evaluate it (``mi_shadowgs.pipeline``);
+    ``checkpoints``: ``state`` and ``on_checkpoint`` of stage 4."""
     t0 = time.perf_counter()
-    res = material.decompose(surfels, train, preset, bounds, {**overrides, **extra})
+    res = material.decompose(surfels, train, preset, bounds, {**overrides, **extra},
+                             **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
     out, images = relight.evaluate_decomposition(res, train, test, bounds, preset)
     out.update(fit_s=fit_s, timings=res.timings, history=res.history)
@@ -96,25 +107,39 @@ def main(argv=None) -> int:
         setup = dataset_scene(args.data)
     except (ConfigError, DatasetError, SceneError) as exc:
         fail(str(exc))
+    claim_out(args.out, STUDY, ("summary.json",))
     surfels = standin_surfels(setup)
     bounds = scene_bounds(setup, train.cameras)
     extra = {} if args.iterations is None else {"iterations": args.iterations}
     variants = {"full": {}} if args.no_ablations else VARIANTS
+    data_ref = dataset_ref(args.data)
     summary = {"data": str(Path(args.data).resolve()), "preset": args.preset,
                "surfels": surfels.count, "date": time.strftime("%Y-%m-%d %H:%M"),
                "variants": {}}
-    with atomic_dir(args.out, overwrite=args.overwrite) as tmp:
-        for name, ov in variants.items():
-            res, figs = run_variant(name, ov, surfels, train, test, bounds, args.preset, extra)
-            summary["variants"][name] = res
+    for name, ov in variants.items():
+        def fit_variant(unit, name=name, ov=ov) -> dict:
+            hooks = checkpoint_hooks(unit, material_fit.MaterialState.from_checkpoint)
+            res, figs = run_variant(name, ov, surfels, train, test, bounds, args.preset,
+                                    extra, hooks)
+            res["resumed"] = hooks["state"] is not None  # fit_s: this call's part only
             for fig, (a, b) in figs.items():
                 img = _side_by_side(a, b)
                 if fig in ("irradiance", "light_map"):
                     img = img / max(np.percentile(img, 99), 1e-6)
-                write_png(tmp / f"{name}_{fig}.png", np.clip(img, 0, 1))
-            print(name, json.dumps({k: v for k, v in res.items()
-                                    if k not in ("history", "relighting", "timings")}))
-        write_json(tmp / "summary.json", summary)
+                write_png(unit.path(f"{fig}.png"), np.clip(img, 0, 1))
+            return res
+
+        provenance = Provenance(data_ref, settings=settings_of(
+            preset=args.preset, variant=ov, overrides=extra, surfels=surfels.count))
+        res = run_unit(args.out, name, STUDY, provenance, fit_variant,
+                       overwrite=args.overwrite)
+        summary["variants"][name] = res
+        for png in sorted((Path(args.out) / "units" / name).glob("*.png")):
+            # Beside summary.json, where the figures always were.
+            write_bytes(Path(args.out) / f"{name}_{png.name}", png.read_bytes())
+        print(name, json.dumps({k: v for k, v in res.items()
+                                if k not in ("history", "relighting", "timings")}))
+    write_json(Path(args.out) / "summary.json", summary)
     return 0
 
 

@@ -9,7 +9,9 @@ how a change to the light fit moves a scene without redoing stages 1-2.
 ``--set`` overrides a stage-4 setting (e.g. ``refine_global=0 refine_again_global=False
 drop_share=0`` for the fit before issue 15). Writes (atomically) ``refit.json``
 (before/after metrics), ``light.json`` and ``metrics.json`` into ``--out``; reads the run,
-never writes there.
+never writes there. The fit is a unit (``validation.units``, ``OUT/units/refit/``, with stage
+4's checkpoint): a killed call, run again, continues it; other settings or another model
+exit 2 naming them.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import time
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from validation import fail
+from validation import claim_out, fail
 
 KEYS = ("fitted_lights", "angular_error_deg", "spurious_irradiance_fraction", "light_cosine",
         "shadow_iou", "albedo_psnr", "albedo_psnr_global", "relight_psnr")
@@ -36,7 +38,9 @@ def _value(text: str):
 
 
 def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
-          before: bool = True) -> dict:
+          before: bool = True, checkpoints: dict | None = None) -> dict:
+    """Stages 3-5 of ``run`` again on ``data``; ``checkpoints``: ``state`` and
+    ``on_checkpoint`` of stage 4."""
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.io.provenance import read_manifest
@@ -53,7 +57,7 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     surfels = load_ply(run / "segmentation" / "model.ply")
     bounds = occluder_bounds(surfels, train.cameras, float(settings.get("bounds_quantile", 0.98)))
     t0 = time.perf_counter()
-    res = decompose(surfels, train, preset, bounds, overrides, progress)
+    res = decompose(surfels, train, preset, bounds, overrides, progress, **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
     metrics, _ = evaluate_decomposition(res, train, test, bounds, preset)
     metrics["fit_s"] = fit_s
@@ -142,7 +146,9 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
+    from mi_shadowgs.io.atomic import write_json, write_text
+    from mi_shadowgs.io.provenance import Provenance, dataset_ref, input_ref
+    from validation.units import run_unit, settings_of
 
     ap = argparse.ArgumentParser(description="Re-run stages 3-5 of a finished run with "
                                              "today's light fit into a folder of one's own.")
@@ -178,10 +184,6 @@ def main(argv=None) -> int:
         return 0
     if args.run is None or args.data is None or args.out is None:
         ap.error("--run, --data and --out are required (or --table)")
-    try:
-        check_replaceable(args.out, "refit.json")
-    except FileExistsError as e:
-        fail(str(e))
     overrides = {}
     for item in args.set:
         if "=" not in item:
@@ -196,12 +198,29 @@ def main(argv=None) -> int:
         material_config(run_preset(args.run), overrides)
     except (ConfigError, ValueError) as e:
         fail(f"--set: {e}")
-    res = refit(args.run, args.data, overrides, not args.quiet, not args.other_data)
-    with atomic_dir(args.out, overwrite=True) as tmp:
-        write_json(tmp / "refit.json", {k: v for k, v in res.items() if k != "metrics"})
-        write_json(tmp / "metrics.json", res["metrics"])
-        write_json(tmp / "light.json", res["light"])
-        write_text(tmp / "refit.md", markdown([res]) + "\n")
+    model = args.run / "segmentation" / "model.ply"
+    if not model.is_file():
+        fail(f"{model}: not found (--run takes a finished run)")
+    if args.run.resolve() in (args.out.resolve(), *args.out.resolve().parents):
+        fail(f"--out {args.out}: inside the run {args.run}, which this tool only reads")
+    claim_out(args.out, "validation.refit_lights", ("refit.json",))
+
+    def fit(unit) -> dict:
+        from mi_shadowgs.stages.common import checkpoint_hooks
+        from mi_shadowgs.stages.material.fit import MaterialState
+
+        return refit(args.run, args.data, overrides, not args.quiet, not args.other_data,
+                     checkpoint_hooks(unit, MaterialState.from_checkpoint))
+
+    provenance = Provenance(dataset_ref(args.data), {"model": input_ref(model)},
+                            settings_of(preset=run_preset(args.run), overrides=overrides,
+                                        other_data=args.other_data))
+    res = run_unit(args.out, "refit", "validation.refit_lights", provenance, fit,
+                   inputs=(args.run, args.data))
+    write_json(args.out / "refit.json", {k: v for k, v in res.items() if k != "metrics"})
+    write_json(args.out / "metrics.json", res["metrics"])
+    write_json(args.out / "light.json", res["light"])
+    write_text(args.out / "refit.md", markdown([res]) + "\n")
     print(markdown([res]))
     return 0
 

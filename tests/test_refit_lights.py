@@ -1,0 +1,81 @@
+"""``python -m validation.refit_lights`` keeps its stage-4 fit as a unit
+(``validation.units``): a killed call, run again, continues the fit from its checkpoint; the
+same --out with other settings exits 2 naming the setting; --out inside the run it reads is
+refused."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import tiny_cli
+from conftest import untouched
+from tiny_cli import TINY
+
+from mi_shadowgs import cli
+from mi_shadowgs.scenes import scene_path
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    with pytest.MonkeyPatch.context() as mp:
+        for table, config in tiny_cli.presets():
+            mp.setitem(table, TINY, config)
+        base = tmp_path_factory.mktemp("refit")
+        assert cli.main(["generate", str(scene_path("default")), "--out", str(base / "data"),
+                         "--preset", TINY, "--no-progress"]) == 0
+        assert cli.main(["run", str(base / "data"), "--out", str(base / "run"), "--preset",
+                         TINY, "--no-progress"]) == 0
+        yield base
+
+
+def test_a_killed_refit_continues_from_its_checkpoint(tiny_run, tmp_path, capsys,
+                                                      monkeypatch, someone_elses_folder):
+    from mi_shadowgs.stages.material import runner
+    from mi_shadowgs.stages.relight import evaluate
+    from validation import refit_lights
+
+    run, data, out = tiny_run / "run", tiny_run / "data", tmp_path / "refit"
+    argv = ["--run", str(run), "--data", str(data), "--out", str(out), "--quiet"]
+    for table, config in tiny_cli.presets():
+        monkeypatch.setitem(table, TINY, config)
+    fits = []
+    decompose, score = runner.decompose, evaluate.evaluate_decomposition
+
+    def counted_fit(*args, **kwargs):
+        fits.append(kwargs.get("state") is not None)
+        return decompose(*args, **kwargs)
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt  # as a kill after the fit's last checkpoint
+
+    monkeypatch.setattr(runner, "decompose", counted_fit)
+    monkeypatch.setattr(evaluate, "evaluate_decomposition", killed)
+    with pytest.raises(KeyboardInterrupt):
+        refit_lights.main(argv)
+    assert fits == [False] and not (out / "refit.json").exists()
+    assert (out / "units" / "refit" / "checkpoint" / "checkpoint.npz").is_file()
+    monkeypatch.setattr(evaluate, "evaluate_decomposition", score)
+    assert refit_lights.main(argv) == 0
+    assert fits == [False, True]  # continued, not fitted afresh
+    res = json.loads((out / "refit.json").read_text())
+    assert math.isfinite(res["after"]["shadow_iou"]) and res["before"]["shadow_iou"] is not None
+    assert refit_lights.main(argv) == 0 and len(fits) == 2  # finished: only gathered
+    capsys.readouterr()
+    for extra, named in ((["--set", "iterations=3"], "overrides.iterations"),
+                         (["--other-data"], "other_data")):
+        with pytest.raises(SystemExit) as exc:
+            refit_lights.main([*argv, *extra])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and named in err, err
+    with pytest.raises(SystemExit) as exc:
+        refit_lights.main(["--run", str(run), "--data", str(data), "--out",
+                           str(run / "refit")])
+    assert exc.value.code == 2 and "only reads" in capsys.readouterr().err
+    assert not (run / "refit").exists()
+    with pytest.raises(SystemExit) as exc:
+        refit_lights.main(["--run", str(run), "--data", str(data), "--out",
+                           str(someone_elses_folder)])
+    assert exc.value.code == 2 and "did not write" in capsys.readouterr().err
+    assert untouched(someone_elses_folder)
