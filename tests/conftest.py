@@ -54,6 +54,36 @@ def someone_elses_folder(tmp_path):
     return folder
 
 
+@pytest.fixture
+def tiny_presets(monkeypatch):
+    """The test-tiny preset in every stage's table, for one test."""
+    import tiny_cli
+
+    for table, config in tiny_cli.presets():
+        monkeypatch.setitem(table, tiny_cli.TINY, config)
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """``BASE/data`` (the default scene) and ``BASE/run`` (the method on it), at the test-tiny
+    preset, made once in this process; tests only read them (with ``tiny_presets``)."""
+    import tiny_cli
+    from tiny_cli import TINY
+
+    from mi_shadowgs import cli
+    from mi_shadowgs.scenes import scene_path
+
+    with pytest.MonkeyPatch.context() as mp:
+        for table, config in tiny_cli.presets():
+            mp.setitem(table, TINY, config)
+        base = tmp_path_factory.mktemp("tiny_run")
+        assert cli.main(["generate", str(scene_path("default")), "--out", str(base / "data"),
+                         "--preset", TINY, "--no-progress"]) == 0
+        assert cli.main(["run", str(base / "data"), "--out", str(base / "run"), "--preset",
+                         TINY, "--no-progress"]) == 0
+    return base
+
+
 def untouched(folder) -> bool:
     """``someone_elses_folder`` as it was made."""
     return [p.name for p in folder.iterdir()] == ["todo.txt"] and \

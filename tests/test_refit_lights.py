@@ -9,28 +9,10 @@ import json
 import math
 
 import pytest
-import tiny_cli
 from conftest import untouched
-from tiny_cli import TINY
-
-from mi_shadowgs import cli
-from mi_shadowgs.scenes import scene_path
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        for table, config in tiny_cli.presets():
-            mp.setitem(table, TINY, config)
-        base = tmp_path_factory.mktemp("refit")
-        assert cli.main(["generate", str(scene_path("default")), "--out", str(base / "data"),
-                         "--preset", TINY, "--no-progress"]) == 0
-        assert cli.main(["run", str(base / "data"), "--out", str(base / "run"), "--preset",
-                         TINY, "--no-progress"]) == 0
-        yield base
-
-
-def test_a_killed_refit_continues_from_its_checkpoint(tiny_run, tmp_path, capsys,
+def test_a_killed_refit_continues_from_its_checkpoint(tiny_run, tiny_presets, tmp_path, capsys,
                                                       monkeypatch, someone_elses_folder):
     from mi_shadowgs.stages.material import runner
     from mi_shadowgs.stages.relight import evaluate
@@ -38,8 +20,6 @@ def test_a_killed_refit_continues_from_its_checkpoint(tiny_run, tmp_path, capsys
 
     run, data, out = tiny_run / "run", tiny_run / "data", tmp_path / "refit"
     argv = ["--run", str(run), "--data", str(data), "--out", str(out), "--quiet"]
-    for table, config in tiny_cli.presets():
-        monkeypatch.setitem(table, TINY, config)
     fits = []
     decompose, score = runner.decompose, evaluate.evaluate_decomposition
 

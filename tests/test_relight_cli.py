@@ -19,7 +19,6 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, light_grid
 from mi_shadowgs.dataset.generate import SkyConfig, sky_envmap_image
 from mi_shadowgs.io.images import read_exr, write_exr
-from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.relight import runner
 from mi_shadowgs.stages.visibility.shadow_maps import (
@@ -157,20 +156,7 @@ def test_plugin_second_render_reuses_its_maps(tmp_path):
     np.testing.assert_allclose(third[..., :3][lit], 2 * first[..., :3][lit], rtol=1e-3)
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        for table, config in tiny_cli.presets():
-            mp.setitem(table, TINY, config)
-        base = tmp_path_factory.mktemp("relight")
-        assert cli.main(["generate", str(scene_path("default")), "--out", str(base / "data"),
-                         "--preset", TINY, "--no-progress"]) == 0
-        assert cli.main(["run", str(base / "data"), "--out", str(base / "run"), "--preset",
-                         TINY, "--no-progress"]) == 0
-        yield base
-
-
-def test_relight_command_orbit_video_and_test_views(tiny_run, tmp_path, capsys):
+def test_relight_command_orbit_video_and_test_views(tiny_run, tiny_presets, tmp_path, capsys):
     run = tiny_run / "run"
     out = tmp_path / "orbit"
     assert cli.main(["relight", str(run), "--out", str(out), "--light", "30,45,3",
@@ -197,7 +183,7 @@ def test_relight_command_orbit_video_and_test_views(tiny_run, tmp_path, capsys):
     assert cli.main(["relight", str(run), "--out", str(out), "--light", "30,45,3"]) == 2
 
 
-def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tmp_path):
+def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_presets, tmp_path):
     run = tiny_run / "run"
     d = direction_from_angles(30.0, 45.0)
     xml = tmp_path / "lights.xml"
