@@ -454,6 +454,43 @@ def test_a_killed_sfm_resumes_where_it_stopped(photos, imported, tmp_path, monke
         np.testing.assert_allclose(b[n].c2w, a[n].c2w, atol=5e-3)
 
 
+def test_a_mapping_killed_between_registrations_continues_its_models(photos, imported,
+                                                                     tmp_path, monkeypatch):
+    """The mapping writes its models so far (here at every registration: checkpoint_seconds
+    tiny); killed at the sixth registration, the rerun continues them, not the mapping from
+    its start, and gives the cameras of the import that ran through."""
+    import pycolmap
+
+    from mi_shadowgs.dataset import importer
+    from mi_shadowgs.io import interrupt
+
+    config = with_overrides(CONFIG, {"checkpoint_seconds": 1e-9}, "import")
+    out = tmp_path / "data"
+    registrations, read = [], []
+    real_raise, real_read = interrupt.raise_pending, pycolmap.ReconstructionManager.read
+
+    def killed_at_the_sixth(detail):  # called right after each write of the models
+        registrations.append(detail)
+        if len(registrations) == 6:
+            raise KeyboardInterrupt
+        real_raise(detail)
+
+    monkeypatch.setattr(interrupt, "raise_pending", killed_at_the_sixth)
+    with pytest.raises(KeyboardInterrupt):
+        import_capture(photos / "photos", out, config, progress=False)
+    saved = importer.sfm_work_folder(out) / importer.MAPPING / "0"
+    assert pycolmap.Reconstruction(str(saved)).num_reg_images() == 8  # the pair and 6 more
+    monkeypatch.setattr(pycolmap.ReconstructionManager, "read",
+                        lambda self, path: read.append(path) or real_read(self, path))
+    rec = import_capture(photos / "photos", out, config, progress=False)
+    assert read == [str(saved)]
+    data, whole = imported
+    assert rec["registered"] == whole["registered"]
+    a, b = _cameras_by_photo(data), _cameras_by_photo(out)
+    for n in a:  # pycolmap's own spread, as above
+        np.testing.assert_allclose(b[n].c2w, a[n].c2w, atol=5e-3)
+
+
 def test_sfm_work_of_other_photos_is_not_resumed_and_a_stranger_folder_is_refused(tmp_path):
     from mi_shadowgs.dataset import importer
 

@@ -38,6 +38,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 IMPORT_JSON = "import.json"
 COLMAP_DIR = "colmap"  # sparse/0 (SfM as found), undistorted/{images,sparse}
 SFM_STATE = "sfm_state.json"  # the SfM work folder's record of what is done (run_sfm)
+MAPPING = "mapping"  # the SfM work folder's models of a mapping in progress
 # SfM settings: a work folder made with other values of these is not resumed.
 _SFM_SETTINGS = ("exhaustive_max", "sequential_overlap", "max_features", "camera_model",
                  "focal_px", "sfm_chunk_photos", "sfm_chunk_pairs")
@@ -67,10 +68,14 @@ class ImportConfig:
     sfm_chunk_photos: int = 8
     # ... and matches of this many photo pairs (~8 ms a pair there).
     sfm_chunk_pairs: int = 500
+    # The mapping's models so far are written within this many seconds of the last write
+    # (between two photo registrations; ``incremental_mapping``).
+    checkpoint_seconds: float = 60.0
 
     def __post_init__(self):
         check_fields(self, (("sfm_chunk_photos", self.sfm_chunk_photos >= 1, ">= 1"),
-                            ("sfm_chunk_pairs", self.sfm_chunk_pairs >= 1, ">= 1")))
+                            ("sfm_chunk_pairs", self.sfm_chunk_pairs >= 1, ">= 1"),
+                            ("checkpoint_seconds", self.checkpoint_seconds > 0, "> 0")))
 
 
 PRESETS = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512),
@@ -202,12 +207,13 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
     pairing gives), each piece recorded in ``state`` (``work/SFM_STATE``) once the database
     holds it; the mapping is recorded when its models are written. A rerun after a kill
     continues from the last piece (the database's features and matches are COLMAP's; a
-    piece cut short is redone, COLMAP skipping what it already holds). One camera for all
-    photos: the pieces after the first reuse the first piece's."""
+    piece cut short is redone, COLMAP skipping what it already holds); the mapping continues
+    from its last written models (``incremental_mapping``). One camera for all photos: the
+    pieces after the first reuse the first piece's."""
     import pycolmap
     from tqdm import tqdm
 
-    from mi_shadowgs.io.atomic import write_json
+    from mi_shadowgs.io.atomic import atomic_dir, write_json
 
     db = work / "database.db"
 
@@ -261,12 +267,12 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
         recs = {int(d.name): pycolmap.Reconstruction(str(d)) for d in sparse.iterdir()
                 if d.is_dir()}
     else:
-        shutil.rmtree(sparse, ignore_errors=True)  # a mapping cut short
-        sparse.mkdir()
-        options = pycolmap.IncrementalPipelineOptions()
-        options.num_threads = config.threads
-        options.random_seed = config.frame.seed
-        recs = pycolmap.incremental_mapping(db, image_dir, sparse, options=options)
+        shutil.rmtree(sparse, ignore_errors=True)  # a write of the models cut short
+        recs = incremental_mapping(db, image_dir, work, config)
+        with atomic_dir(sparse) as tmp:
+            for i, rec in recs.items():
+                (tmp / str(i)).mkdir()
+                rec.write(str(tmp / str(i)))
         state["mapped"] = True
         record()
     timings["map_s"] = time.perf_counter() - t
@@ -277,6 +283,50 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
                            "background (a printed mat, newspaper) with more overlap between "
                            "photos")
     return max(recs.values(), key=lambda r: r.num_reg_images())
+
+
+def incremental_mapping(db: Path, image_dir: Path, work: Path, config: ImportConfig) -> dict:
+    """pycolmap's incremental mapping of the database ``db``: {index: Reconstruction}.
+
+    Its models so far are written to ``work/MAPPING`` between two photo registrations,
+    within ``checkpoint_seconds`` of the last write and at SIGINT/SIGTERM
+    (``mi_shadowgs.io.interrupt``); a rerun continues them (COLMAP's mapper extends the
+    first model it is given, then starts new ones), so a kill loses at most that much of
+    the mapping. The cameras equal an unkilled mapping's to pycolmap's own spread."""
+    import pycolmap
+
+    from mi_shadowgs.io.atomic import atomic_dir
+    from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
+
+    saved = work / MAPPING
+    manager = pycolmap.ReconstructionManager()
+    if saved.is_dir():
+        for model in sorted((d for d in saved.iterdir() if d.name.isdigit()),
+                            key=lambda d: int(d.name)):
+            manager.read(str(model))
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = config.threads
+    options.random_seed = config.frame.seed
+    options.image_path = str(image_dir)
+    clock = CheckpointClock(0, config.checkpoint_seconds)
+
+    def on_registration() -> None:
+        if clock.due():
+            with atomic_dir(saved, overwrite=True) as tmp:
+                manager.write(str(tmp))
+            clock.saved()
+            raise_pending("SfM mapping")
+
+    database = pycolmap.Database.open(str(db))
+    try:
+        pipeline = pycolmap.IncrementalPipeline(options, database, manager)
+        pipeline.add_callback(pycolmap.IncrementalPipelineCallback.NEXT_IMAGE_REG_CALLBACK,
+                              on_registration)
+        with clock.running():
+            pipeline.run()
+    finally:
+        database.close()
+    return {i: manager.get(i) for i in range(manager.size())}
 
 
 def _first_camera(db: Path) -> int | None:
