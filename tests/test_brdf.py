@@ -221,3 +221,30 @@ def test_gradients_match_finite_differences():
     # float32 AD through sharp lobes: relative 1e-3 of the largest derivative magnitude.
     for g, fd in ((g_r, fd_r), (g_m, fd_m), (g_a[:, 0], fd_a0)):
         np.testing.assert_allclose(g, fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
+
+
+def test_roughness_at_its_clamp_has_the_gradient_from_above():
+    """Stage 4 projects roughness onto [ROUGHNESS_MIN, 1] after each step: a surfel on the
+    clamp must still feel the pull toward rougher. AD at exactly ROUGHNESS_MIN vs the
+    one-sided forward difference of the float64 reference (h = 1e-6: its truncation error,
+    ~h |f''|, is far below the tolerance); below the clamp the lobe is constant (zero)."""
+    rng = np.random.default_rng(5)
+    n, l, v, a, _, m = _random_case(rng, 64)
+    at = np.full(len(n), brdf.ROUGHNESS_MIN, np.float32)
+    for r, expect_zero in ((at, False), (at * np.float32(0.5), True)):
+        ad_r = mi.Float(r)
+        dr.enable_grad(ad_r)
+        out = brdf.cook_torrance(_v3(n), _v3(l), _v3(v), _c3(a), ad_r, mi.Float(np.float32(m)))
+        dr.backward(dr.sum(out[0] + out[1] + out[2]))
+        g = np.asarray(dr.grad(ad_r), np.float64)
+        if expect_zero:
+            assert np.all(g == 0.0)
+            continue
+        h = 1e-6
+        r64 = r.astype(np.float64)
+        fd = (ref_cook_torrance(n, l, v, a, r64 + h, m).sum(-1)
+              - ref_cook_torrance(n, l, v, a, r64, m).sum(-1)) / h
+        assert np.count_nonzero(np.abs(fd) > 1e-3) > 8  # the lobe depends on it here
+        # float32 AD through the sharpest lobe the clamp allows: relative 1e-3 of the
+        # largest derivative, as for the other parameters
+        np.testing.assert_allclose(g, fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())

@@ -32,13 +32,21 @@ def _clamp_cos(x):
     return dr.clip(x, 0.0, 1.0)
 
 
+def ggx_alpha(roughness):
+    """GGX alpha = max(roughness, ROUGHNESS_MIN)^2. At the clamp itself the gradient is the
+    one from above: stage 4 projects roughness onto [ROUGHNESS_MIN, 1] after each step, and
+    ``dr.maximum`` would give a tie's gradient to the constant, so a surfel projected onto
+    the clamp could never become rougher again."""
+    return dr.square(dr.select(roughness >= ROUGHNESS_MIN, roughness, ROUGHNESS_MIN))
+
+
 def ggx_d(n_dot_h, roughness, sin2_nh=None):
     """GGX normal distribution D(h) (normalised: int D (n . h) dw_h = 1).
 
     ``sin2_nh`` = |n x h|^2 when known: 1 - (n . h)^2 cancels catastrophically in float32
     near the peak of a sharp lobe (0.2 % error at the roughness clamp), the cross does not.
     """
-    a = dr.square(dr.maximum(roughness, ROUGHNESS_MIN))
+    a = ggx_alpha(roughness)
     a2 = a * a
     c = _clamp_cos(n_dot_h)
     s2 = 1.0 - c * c if sin2_nh is None else dr.select(n_dot_h > 0.0, sin2_nh, 1.0)
@@ -55,7 +63,7 @@ def schlick_f(v_dot_h, f0):
 
 def smith_vis(n_dot_l, n_dot_v, roughness):
     """G / (4 (n . l)(n . v)) for the separable Smith G = G1(l) G1(v), finite at 0."""
-    a = dr.square(dr.maximum(roughness, ROUGHNESS_MIN))
+    a = ggx_alpha(roughness)
     a2 = a * a
     nl, nv = _clamp_cos(n_dot_l), _clamp_cos(n_dot_v)
     gl = nl + dr.sqrt(a2 + (1.0 - a2) * nl * nl)
