@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -77,8 +78,23 @@ def test_hull_points_lie_on_the_object_and_in_some_view():
     assert wide_share < 0.5  # measured: 0.015
 
 
-def test_hull_extent_must_be_positive():
+@pytest.mark.parametrize("field, value, message", [
+    ("hull_extent", 0.0, "GeometryConfig.hull_extent must be > 0 or None, got 0.0"),
+    ("init", "hul", "GeometryConfig.init must be one of ('hull', 'random', 'points'), got 'hul'"),
+    ("normal_depth_differences", "forward", "GeometryConfig.normal_depth_differences must be "
+     "one of"),
+])
+def test_an_initialisation_setting_out_of_range_is_refused_when_made(field, value, message):
+    """Refused when the config is made (a preset with ``--set``, a recorded config), not
+    after stage 1 has loaded every view and started."""
+    from mi_shadowgs.config import ConfigError
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        dataclasses.replace(train.get_config("cpu-small"), **{field: value})
+
+
+def test_points_without_points_names_what_is_missing():
     views = _ring_views(n=4, elevations_deg=(30.0,))
-    config = dataclasses.replace(train.get_config("cpu-small"), hull_extent=0.0)
-    with pytest.raises(ValueError, match="hull_extent must be > 0"):
+    config = dataclasses.replace(train.get_config("cpu-small"), init="points")
+    with pytest.raises(ValueError, match="init 'points' needs the dataset's SfM points"):
         train.init_params(views, config)

@@ -32,6 +32,8 @@ from mi_shadowgs.core.surfels import SH_C0, Surfels, sh_colors
 from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
 from mi_shadowgs.stages.geometry.densify import DensifyConfig, DensifyStrategy
 
+INITS = ("hull", "random", "points")
+
 
 @dataclasses.dataclass(frozen=True)
 class GeometryConfig:
@@ -62,7 +64,9 @@ class GeometryConfig:
     normal_depth_differences: str = "central"
     dist_from: int = 3000
     # Initialisation.
-    init: str = "hull"  # "hull" (visual hull of the masks) or "random" (scene bounds)
+    # "hull" (visual hull of the masks) or "random" (scene bounds); "points" (the SfM points)
+    # is what "hull" becomes on views without masks.
+    init: str = "hull"
     init_points: int = 100_000
     init_opacity: float = 0.1  # not 0.5: logit 0 is a known zero-gradient point
     hull_resolution: int = 96
@@ -120,6 +124,11 @@ class GeometryConfig:
                 "lr_opacity", "lr_scale", "lr_rotation", "lambda_dssim", "lambda_normal",
                 "lambda_dist", "lambda_mask", "lambda_dark_alpha", "normal_from", "dist_from",
                 "lr_position_delay_steps", "unmasked_lambda_dark_alpha")),
+            ("init", self.init in INITS, f"one of {INITS}"),
+            ("hull_extent", self.hull_extent is None or self.hull_extent > 0, "> 0 or None"),
+            ("normal_depth_differences",
+             self.normal_depth_differences in losses.DEPTH_NORMAL_DIFFERENCES,
+             f"one of {losses.DEPTH_NORMAL_DIFFERENCES}"),
             ("init_points", self.init_points >= 1, ">= 1"),
             ("init_opacity", 0 < self.init_opacity < 1, "in (0, 1)"),
             ("hull_resolution", self.hull_resolution >= 2, ">= 2"),
@@ -363,21 +372,19 @@ def init_params(views, config: GeometryConfig,
     rng = np.random.default_rng(config.seed)
     centre, radius = scene_bounds([v.camera for v in views])
     if config.init == "hull":
-        if config.hull_extent is not None and not config.hull_extent > 0:
-            raise ValueError(f"GeometryConfig.hull_extent must be > 0 or None, got "
-                             f"{config.hull_extent!r}")
         if config.hull_extent is not None:
             radius = config.hull_extent * view_radius([v.camera for v in views], centre)
         pts = visual_hull_points(views, centre, radius, config.init_points,
                                  config.hull_resolution, rng, config.init_consistent_fraction,
                                  config.init_consistent_top)
-    elif config.init == "points" and points is not None:
+    elif config.init == "points":
+        if points is None:
+            raise ValueError("GeometryConfig.init 'points' needs the dataset's SfM points "
+                             "(points3d.ply); use 'hull' or 'random'")
         # duplicates of a point would get a zero nearest-neighbour scale: jitter them apart
         pts = points + rng.normal(scale=1e-3 * radius, size=points.shape)
-    elif config.init == "random":
+    else:  # "random"
         pts = points_in_views(views, centre, radius, config.init_points, rng)
-    else:
-        raise ValueError(f"GeometryConfig.init must be 'hull' or 'random', got {config.init!r}")
     n = len(pts)
     # 3DGS: scale from the mean distance to the 3 nearest neighbours.
     d, _ = cKDTree(pts).query(pts, k=4)
@@ -638,10 +645,6 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     for v in dataset.views:
         if not v.mask.any():
             raise ValueError(f"{dataset.root}: view {v.name!r} has an empty mask")
-    if config.normal_depth_differences not in losses.DEPTH_NORMAL_DIFFERENCES:
-        raise ValueError(f"GeometryConfig.normal_depth_differences must be one of "
-                         f"{losses.DEPTH_NORMAL_DIFFERENCES}, got "
-                         f"{config.normal_depth_differences!r}")
     dark_max = config.dark_max if config.lambda_dark_alpha > 0 else None
     views = [_view_data(v, dark_max) for v in dataset.views]
     if state is None:
