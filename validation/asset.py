@@ -1,6 +1,6 @@
 """Issue 19 acceptance: the exported mesh asset, path-traced by Mitsuba, against ground truth.
 
-    python -m validation.asset --run RUN --data DATA --out OUT [--spp 64]
+    python -m validation.asset --run RUN --data DATA --out OUT [--spp 64] [--overwrite]
 
 1. ``mi-shadowgs export RUN --format mesh`` into ``OUT/export`` (its wall time: the speed
    item, <= 60 s at cpu-small).
@@ -18,7 +18,13 @@
    from ``RUN/material/full/metrics.json``.
 
 Writes ``OUT/asset.json`` (numbers, pass/fail per acceptance item, load average) and
-``OUT/asset.png`` (per relighting: ground truth | path-traced exported asset | error).
+``OUT/asset.png`` (per relighting: ground truth | path-traced exported asset | error). The
+export (``OUT/export``), the Chamfer distance, the albedo scale and each relighting's
+path-trace are units (``validation.units``: ``OUT/units/chamfer/``,
+``OUT/units/albedo_scale/``, ``OUT/units/relight_<name>/`` with its ``scene.xml`` and
+``renders/<view>.exr``): a killed call, run again, reuses what is finished and continues a
+path-trace from its last view, when the inputs and settings are the same; it exits 2 naming
+what differs otherwise (``--overwrite`` makes them again).
 """
 
 from __future__ import annotations
@@ -35,9 +41,11 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
-from mi_shadowgs.io.images import write_exr
-from validation import claim_out
+from mi_shadowgs.io.images import read_exr, write_exr
+from validation import claim_out, fail
+from validation.units import UNITS, run_unit, settings_of
 
+STUDY = "validation.asset"
 ACCEPT = {"chamfer_pct": 1.0, "psnr_gap_db": 2.0, "export_s": 60.0}
 SAMPLES = 400_000  # points per surface: nearest-sample spacing ~0.5 % of the diameter
 
@@ -141,8 +149,10 @@ def relight_scene_xml(scene_xml: Path, lights: list[dict], max_depth: int) -> st
 
 
 def path_trace(xml_text: str, where: Path, albedo_scale: np.ndarray, spp: int,
-               progress: bool) -> np.ndarray:
-    """Every sensor's render [V, H, W, 3] of the scene text (written to ``where``)."""
+               progress: bool, renders: list[Path]) -> tuple[np.ndarray, int]:
+    """Every sensor's render [V, H, W, 3] of the scene text (written to ``where``), each
+    kept as the EXR ``renders[i]``: one already there (a killed call's; sensor i's seed is
+    i) is read, not traced again. Returns the renders and how many were traced now."""
     import mitsuba as mi
     from tqdm import tqdm
 
@@ -154,11 +164,15 @@ def path_trace(xml_text: str, where: Path, albedo_scale: np.ndarray, spp: int,
             np.float32)
         params[key] = mi.Float(a.ravel())
     params.update()
-    out = []
-    for i in tqdm(range(len(scene.sensors())), desc="path trace", disable=not progress):
-        img = np.asarray(mi.render(scene, sensor=i, spp=spp, seed=i))
-        out.append(img[..., :3])
-    return np.stack(out)
+    if len(renders) != len(scene.sensors()):
+        raise ValueError(f"{where}: {len(scene.sensors())} sensors, {len(renders)} renders")
+    out, traced = [], 0
+    for i in tqdm(range(len(renders)), desc="path trace", disable=not progress):
+        if not renders[i].is_file():
+            write_exr(renders[i], np.asarray(mi.render(scene, sensor=i, spp=spp, seed=i))[..., :3])
+            traced += 1
+        out.append(read_exr(renders[i])[..., :3])
+    return np.stack(out), traced
 
 
 def surfel_albedo_scale(run: Path, test) -> np.ndarray:
@@ -216,57 +230,99 @@ def interior_psnr(est: np.ndarray, gt: np.ndarray, mask: np.ndarray, band: int =
                           if m.any()]))
 
 
-def validate(run: Path, data: Path, out: Path, spp: int = 64, progress: bool = True) -> dict:
-    from mi_shadowgs.dataset.loader import load_dataset
+def _export_files(scene_xml: Path) -> dict:
+    """``input_ref`` of the exported scene and of every file it loads (the meshes)."""
+    from mi_shadowgs.io.provenance import input_ref
+
+    names = [s.get("value") for s in ET.parse(scene_xml).getroot().iter("string")
+             if s.get("name") == "filename"]
+    return {name: input_ref(scene_xml.parent / name) for name in [scene_xml.name, *names]}
+
+
+def validate(run: Path, data: Path, out: Path, spp: int = 64, progress: bool = True,
+             overwrite: bool = False) -> dict:
+    from mi_shadowgs.dataset.loader import DatasetError, load_dataset
+    from mi_shadowgs.io.provenance import Provenance, ProvenanceError, dataset_ref, input_ref
     from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight.export import export_run
+    from mi_shadowgs.stages.relight.export import ExportError, export_run
 
     out.mkdir(parents=True, exist_ok=True)
     load0 = os.getloadavg()
     t0 = time.perf_counter()
-    res = export_run(run, out / "export", "mesh", data=data, progress=progress)
+    try:
+        res = export_run(run, out / "export", "mesh", data=data, overwrite=overwrite,
+                         progress=progress)
+        train = load_dataset(data, "train")
+        test = load_dataset(data, "test")
+    except (ExportError, ProvenanceError, DatasetError, FileNotFoundError) as exc:
+        fail(f"{exc} (validation.asset)")
     export_s = time.perf_counter() - t0
     info = json.loads((out / "export" / "export.json").read_text())
     if not res.ran:  # reused: its own recorded time
         export_s = float(info["seconds_total"])
-    train = load_dataset(data, "train")
-    test = load_dataset(data, "test")
-    # Geometry.
+    data_ref = dataset_ref(data)
     dataset = json.loads((data / "dataset.json").read_text())
-    diameter = 2.0 * float(dataset["object"]["radius"])
-    truth = ground_truth_points(data, train.cameras)
-    cd = chamfer(mesh_points(out / "export" / "object.ply"), truth)
-    cd.update({k + "_pct": 100.0 * v / diameter for k, v in list(cd.items())})
-    cd["diameter"] = diameter
-    cd["truth_points_seen"] = len(truth)
-    # Relighting.
-    scale = surfel_albedo_scale(run, test)
+    # Geometry.
+    mesh = out / "export" / "object.ply"
+
+    def score_geometry(unit) -> dict:
+        diameter = 2.0 * float(dataset["object"]["radius"])
+        truth = ground_truth_points(data, train.cameras)
+        cd = chamfer(mesh_points(mesh), truth)
+        cd.update({k + "_pct": 100.0 * v / diameter for k, v in list(cd.items())})
+        cd["diameter"] = diameter
+        cd["truth_points_seen"] = len(truth)
+        return cd
+
+    cd = run_unit(out, "chamfer", STUDY, Provenance(
+        data_ref, {"mesh": input_ref(mesh)}, settings_of(samples=SAMPLES)),
+        score_geometry, overwrite=overwrite)
+    # Relighting. The scale is recorded: renders with threads may differ in the last bits,
+    # and the path-traces' settings hold it.
+    model = run / "material" / "full" / "model.ply"
+    scale = np.asarray(run_unit(
+        out, "albedo_scale", STUDY, Provenance(data_ref, {"model": input_ref(model)}),
+        lambda unit: {"albedo_scale": surfel_albedo_scale(run, test).tolist()},
+        overwrite=overwrite)["albedo_scale"])
     surfel = json.loads((run / "material" / "full" / "metrics.json").read_text())
     max_depth = int((dataset.get("config") or {}).get("max_depth", 8))
     mask = test.stack("mask")
+    exported = _export_files(out / "export" / "scene.xml")
+    stems = [Path(view.name).name for view in test.views]
     relit, fig_rows = {}, []
     for entry in train.lights.get("relightings", []):
         if entry.get("type", "directional") != "directional":
             continue
         name = entry["name"]
-        xml = relight_scene_xml(out / "export" / "scene.xml", entry["lights"], max_depth)
-        t1 = time.perf_counter()
-        est = path_trace(xml, out / f"relight_{name}.xml", scale, spp, progress)
-        secs = time.perf_counter() - t1
         gt = np.stack([v.relit[name] for v in test.views])
-        m = evaluation.image_metrics(est, gt, mask)
+
+        def trace(unit, lights=entry["lights"], gt=gt) -> dict:
+            xml = relight_scene_xml(out / "export" / "scene.xml", lights, max_depth)
+            t1 = time.perf_counter()
+            est, traced = path_trace(xml, unit.path("scene.xml"), scale, spp, progress,
+                                     [unit.path(f"renders/{s}.exr") for s in stems])
+            secs = time.perf_counter() - t1
+            m = evaluation.image_metrics(est, gt, mask)
+            return {"path_traced_psnr": m["psnr"],
+                    # the same without a 2-pixel band inside the masks' outline: how much
+                    # of the error is the edge of the base and the silhouettes
+                    "path_traced_psnr_interior": interior_psnr(est, gt, mask),
+                    "path_traced_ssim": m["ssim"], "path_traced_lpips": m["lpips"],
+                    "render_s": secs,  # of the views traced in the call that finished
+                    "views_traced": traced}
+
+        unit = f"relight_{name}"
+        provenance = Provenance(data_ref, exported, settings_of(
+            spp=spp, max_depth=max_depth, lights=entry["lights"],
+            albedo_scale=scale.tolist()))
+        scores = run_unit(out, unit, STUDY, provenance, trace, overwrite=overwrite)
         ours = (surfel.get("relighting") or {}).get(name, {})
-        for view, img in zip(test.views, est, strict=True):  # for a look, and for diagnosis
-            write_exr(out / "renders" / name / f"{Path(view.name).name}.exr", img)
-        relit[name] = {"path_traced_psnr": m["psnr"],
-                       # the same without a 2-pixel band inside the masks' outline: how much
-                       # of the error is the edge of the base and the silhouettes
-                       "path_traced_psnr_interior": interior_psnr(est, gt, mask),
-                       "path_traced_ssim": m["ssim"],
-                       "path_traced_lpips": m["lpips"], "surfel_psnr": ours.get("psnr"),
-                       "surfel_ssim": ours.get("ssim"), "render_s": secs,
+        relit[name] = {**scores, "surfel_psnr": ours.get("psnr"),
+                       "surfel_ssim": ours.get("ssim"),
                        "gap_db": None if ours.get("psnr") is None else
-                       ours["psnr"] - m["psnr"]}
+                       ours["psnr"] - scores["path_traced_psnr"]}
+        est = np.stack([read_exr(out / UNITS / unit / "renders" / f"{s}.exr")[..., :3]
+                        for s in stems])
         fig_rows.append((name, est, gt))
     if fig_rows:
         _figure(out / "asset.png", fig_rows, [0, len(test.views) // 2])
@@ -310,11 +366,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="output folder (export/, asset.json, ...)")
     ap.add_argument("--spp", type=int, default=64, help="path-tracing samples per pixel")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="make the export, the Chamfer distance and the path-traces again")
     args = ap.parse_args(argv)
-    claim_out(args.out, "validation.asset", ('asset.json',))
+    claim_out(args.out, STUDY, ('asset.json',))
     run = Path(args.run)
     out = Path(args.out)
-    r = validate(run, Path(args.data), out, args.spp, progress=not args.no_progress)
+    r = validate(run, Path(args.data), out, args.spp, progress=not args.no_progress,
+                 overwrite=args.overwrite)
     print(markdown(r))
     print("accept:", r["accept"])
     return 0 if all(r["accept"].values()) else 1

@@ -7,9 +7,13 @@ schedule from ``start_step`` and no densification, once per low-pass filter stre
 surface: reported is the signed depth error of the model's median depth against the ground
 truth on the test views (positive: behind the true surface), with PSNR and normal error.
 
-    python -m validation.lowpass_drift --out OUT [--data DATA] [--quick]
+    python -m validation.lowpass_drift --out OUT [--data DATA] [--quick] [--overwrite]
 
-Writes (atomically) ``OUT/lowpass_drift.json`` and ``OUT/lowpass_drift.md``.
+Writes (atomically) ``OUT/lowpass_drift.json`` and ``OUT/lowpass_drift.md``. Each k is a
+unit of its own (``validation.units``, ``OUT/units/k_<k>/``, ``quick_k_<k>/`` with
+``--quick``, with the training's checkpoint): a killed call, run again, reuses the finished
+ks and continues the one in progress when the dataset and the settings are the same, and
+exits 2 naming what differs otherwise; ``--overwrite`` trains them again.
 """
 
 from __future__ import annotations
@@ -24,8 +28,10 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import write_json, write_text
-from validation import claim_out
+from validation import claim_out, fail
+from validation.units import run_unit, settings_of
 
+STUDY = "validation.lowpass_drift"
 KS = (2.0, 8.0, 12.0, 32.0)
 
 
@@ -78,39 +84,96 @@ def depth_bias(surfels, test, raster, views: int, base_id: int | None) -> float:
     return float(np.median(np.concatenate(rel)))
 
 
-def run_drift(data: Path, cfg: DriftConfig) -> list[dict]:
-    from mi_shadowgs.dataset.layout import DATASET_JSON
-    from mi_shadowgs.dataset.loader import load_dataset
-    from mi_shadowgs.dataset.scene import dataset_scene
-    from mi_shadowgs.stages.geometry import train as G
+def drift_geometry_config(base, cfg: DriftConfig, k: float):
+    """Stage 1's settings for filter strength ``k``: ``base`` (cpu-small) with the filter,
+    ``cfg``'s steps after ``start_step`` and no densification."""
     from mi_shadowgs.stages.geometry.densify import DensifyConfig
 
-    setup = dataset_scene(data)
-    info = json.loads((data / DATASET_JSON).read_text())
-    base_id = next((m["id"] for m in info.get("materials", []) if m.get("name") == "base"),
-                   None)
-    train, test = load_dataset(data, "train"), load_dataset(data, "test")
+    raster = dataclasses.replace(base.raster, lowpass_inv_var=k)
+    return dataclasses.replace(
+        base, raster=raster, iterations=cfg.start_step + cfg.steps,
+        densify=DensifyConfig(start=10**9, stop=0, opacity_reset_interval=0))
+
+
+@dataclasses.dataclass
+class _Checkpointable:
+    """Stage 1's ``TrainState`` as ``checkpoint_hooks`` saves a state (``to_checkpoint``,
+    the interface of stages 2 and 4)."""
+
+    state: object
+
+    def to_checkpoint(self) -> tuple[dict, dict]:
+        return self.state.to_numpy(), {"stage": "geometry", "step": self.state.step}
+
+
+def train_k(unit, k: float, gcfg, inputs: dict, cfg: DriftConfig) -> dict:
+    """One filter strength's row: ``cfg.steps`` stage-1 steps from the surfels on the true
+    surface, checkpointed in ``unit`` (continued from there when it has one)."""
+    from mi_shadowgs.stages.common import checkpoint_hooks
+    from mi_shadowgs.stages.geometry import train as G
+
+    train, test, base_id = inputs["train"], inputs["test"], inputs["base_id"]
+    hooks = checkpoint_hooks(unit, lambda arrays, meta: G.TrainState.from_numpy(arrays, gcfg))
+    # The start is made again when continuing (it is seeded) for its depth bias.
+    start = G.state_from_params(inputs["params"], train.cameras, gcfg, cfg.start_step)
+    bias0 = depth_bias(G.model_surfels(dict(start.opt.params)), test, gcfg.raster,
+                       cfg.test_views, base_id)
+    save = hooks["on_checkpoint"]
+    state = start if hooks["state"] is None else hooks["state"]
+    model = G.train_geometry(train, gcfg, state=state, progress=False, callbacks=G.Callbacks(
+        on_checkpoint=lambda s: save(_Checkpointable(s))))
+    m = G.evaluate(model, test, gcfg.raster)
+    return {"k": k, "filter_std_px": 1.0 / math.sqrt(k),
+            "depth_bias_start": bias0,
+            "depth_bias": depth_bias(model, test, gcfg.raster, cfg.test_views, base_id),
+            "depth_error_mean_rel": m.get("depth_error_mean_rel", float("nan")),
+            "psnr": m["psnr"], "normal_error_median_deg":
+                m.get("normal_error_median_deg", float("nan"))}
+
+
+def run_drift(data: Path, cfg: DriftConfig, out: Path, overwrite: bool = False,
+              unit_prefix: str = "") -> list[dict]:
+    """One row per k of ``cfg.ks``, each the unit ``OUT/units/<unit_prefix>k_<k>``."""
+    from mi_shadowgs.dataset.layout import DATASET_JSON
+    from mi_shadowgs.dataset.loader import DatasetError, load_dataset
+    from mi_shadowgs.dataset.scene import SceneError, dataset_scene
+    from mi_shadowgs.io.provenance import Provenance, dataset_ref
+    from mi_shadowgs.stages.common import settings_dict
+    from mi_shadowgs.stages.geometry import train as G
+
+    if not (data / DATASET_JSON).is_file():
+        fail(f"--data {data}: no {DATASET_JSON}; name a dataset of mi-shadowgs generate")
     base = G.get_config("cpu-small")
-    params = _initial_params(setup, train, cfg, base.sh_degree)
+    inputs = {}
+
+    def loaded() -> dict:
+        """The views and the initial surfels, read once and only when a k is to train."""
+        if not inputs:
+            try:
+                setup = dataset_scene(data)
+                inputs["train"] = load_dataset(data, "train")
+                inputs["test"] = load_dataset(data, "test")
+            except (DatasetError, SceneError) as exc:
+                fail(str(exc))
+            info = json.loads((data / DATASET_JSON).read_text())
+            inputs["base_id"] = next((m["id"] for m in info.get("materials", [])
+                                      if m.get("name") == "base"), None)
+            inputs["params"] = _initial_params(setup, inputs["train"], cfg, base.sh_degree)
+        return inputs
+
+    data_ref = dataset_ref(data)
+    drift = {f: v for f, v in dataclasses.asdict(cfg).items() if f != "ks"}  # the unit's k
     rows = []
     for k in cfg.ks:
-        raster = dataclasses.replace(base.raster, lowpass_inv_var=k)
-        gcfg = dataclasses.replace(
-            base, raster=raster, iterations=cfg.start_step + cfg.steps,
-            densify=DensifyConfig(start=10**9, stop=0, opacity_reset_interval=0))
-        state = G.state_from_params(params, train.cameras, gcfg, cfg.start_step)
-        start = G.model_surfels(dict(state.opt.params))
-        bias0 = depth_bias(start, test, raster, cfg.test_views, base_id)
-        model = G.train_geometry(train, gcfg, state=state, progress=False)
-        m = G.evaluate(model, test, raster)
-        rows.append({"k": k, "filter_std_px": 1.0 / math.sqrt(k),
-                     "depth_bias_start": bias0,
-                     "depth_bias": depth_bias(model, test, raster, cfg.test_views, base_id),
-                     "depth_error_mean_rel": m.get("depth_error_mean_rel", float("nan")),
-                     "psnr": m["psnr"], "normal_error_median_deg":
-                         m.get("normal_error_median_deg", float("nan"))})
-        print(f"k={k:g}: depth bias {rows[-1]['depth_bias']:+.4%} "
-              f"(start {bias0:+.4%}), PSNR {m['psnr']:.2f} dB", flush=True)
+        gcfg = drift_geometry_config(base, cfg, k)
+        provenance = Provenance(data_ref, settings=settings_of(
+            drift=drift, k=k, geometry=settings_dict(gcfg)))
+        row = run_unit(out, f"{unit_prefix}k_{k:g}", STUDY, provenance,
+                       lambda unit, k=k, gcfg=gcfg: train_k(unit, k, gcfg, loaded(), cfg),
+                       overwrite=overwrite, inputs=[data])
+        rows.append(row)
+        print(f"k={k:g}: depth bias {row['depth_bias']:+.4%} "
+              f"(start {row['depth_bias_start']:+.4%}), PSNR {row['psnr']:.2f} dB", flush=True)
     return rows
 
 
@@ -131,7 +194,8 @@ def markdown(rows: list[dict], cfg: DriftConfig, data: Path) -> str:
     return "\n".join(out) + "\n"
 
 
-def run(out_dir, quick: bool = False, data: str | None = None) -> dict:
+def run(out_dir, quick: bool = False, data: str | None = None,
+        overwrite: bool = False) -> dict:
     out_dir = Path(out_dir)
     cfg = QUICK if quick else DriftConfig()
     if data is None:
@@ -140,7 +204,8 @@ def run(out_dir, quick: bool = False, data: str | None = None) -> dict:
         data_path = make_dataset("default", None, out_dir)
     else:
         data_path = Path(data)
-    rows = run_drift(data_path, cfg)
+    # The quick run's ks are units of their own: a smoke run leaves the real one's alone.
+    rows = run_drift(data_path, cfg, out_dir, overwrite, "quick_" if quick else "")
     md = markdown(rows, cfg, data_path)
     write_json(out_dir / "lowpass_drift.json", {"config": dataclasses.asdict(cfg),
                                                 "rows": rows})
@@ -153,9 +218,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--data", help="a generated dataset (default: generate the default scene)")
     ap.add_argument("--quick", action="store_true", help="a short smoke run")
+    ap.add_argument("--overwrite", action="store_true", help="train every k again")
     args = ap.parse_args(argv)
-    claim_out(args.out, "validation.lowpass_drift", ('lowpass_drift.json',))
-    print(run(args.out, args.quick, args.data)["markdown"])
+    claim_out(args.out, STUDY, ('lowpass_drift.json',))
+    print(run(args.out, args.quick, args.data, args.overwrite)["markdown"])
     return 0
 
 

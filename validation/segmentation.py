@@ -6,7 +6,11 @@ stage-1 model (``--model-default`` / ``--model-hotdog``): train features on the 
 masks and on the chromaticity masks, cluster, render the test views' segment maps, and
 report ARI, Hungarian mIoU, the lit/shadowed base check, and the stage's wall time::
 
-    python -m validation.segmentation --out OUT [--data-root DIR] [--quick]
+    python -m validation.segmentation --out OUT [--data-root DIR] [--quick] [--overwrite]
+
+A killed call, run again, reuses the datasets and the finished stages and continues the
+stage in progress from its checkpoint, when they were made from the same inputs and
+settings; it exits 2 naming what differs otherwise (``--overwrite`` makes them again).
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ import platform
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from validation import claim_out
+from mi_shadowgs.io.provenance import ProvenanceError
+from validation import claim_out, fail
 
 HOTDOG = Path("/work/shared/data/meshes/hotdog/hotdog.ply")
 SCENES = {
@@ -51,22 +56,32 @@ def standin_surfels(setup, n_object: int, n_base: int, object_sigma: float = 0.7
     return surf, cat["material"]
 
 
-def _dataset(root: Path, scene: str) -> Path:
+def _dataset(root: Path, scene: str, overwrite: bool = False) -> Path:
+    """The scene's cpu-small dataset in ``root``: kept when it is this one (its fingerprint),
+    else made; one made from other scene files or settings is replaced only with
+    ``overwrite`` (exit 2 naming the folder otherwise)."""
     from mi_shadowgs.dataset.generate import get_config
-    from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.dataset.writer import OutputExistsError, write_dataset
     from mi_shadowgs.scenes import scene_path
 
     name, overrides = SCENES[scene]
-    write_dataset(scene_path(name), root, get_config("cpu-small"), "cpu-small",
-                  overrides=overrides or None, overwrite=True, progress=False)
+    generate = (scene_path(name), root, get_config("cpu-small"), "cpu-small")
+    try:
+        write_dataset(*generate, overrides=overrides or None, progress=False)
+    except OutputExistsError as exc:
+        if not overwrite:
+            fail(f"{exc} (validation.segmentation)")
+        write_dataset(*generate, overrides=overrides or None, overwrite=True, progress=False)
     return root
 
 
 def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
              preset: str = "cpu-small", n_object: int = 8000, n_base: int = 12000,
-             overrides: dict | None = None) -> dict:
+             overrides: dict | None = None, overwrite: bool = False) -> dict:
     """Stage 2 through its library runner (``run_segmentation``, into
-    ``OUT/<scene>_<masks>/``) on the stand-in geometry or ``model``; one table row."""
+    ``OUT/<scene>_<masks>/``: reused when finished, continued from its checkpoint when not,
+    exit 2 naming the difference when made otherwise) on the stand-in geometry or
+    ``model``; one table row."""
     import json
 
     import numpy as np
@@ -84,12 +99,17 @@ def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
         surfels, _ = standin_surfels(setup, n_object, n_base)
         geometry = f"stand-in ({n_object} object + {n_base} base surfels on the true shapes)"
         model = out / f"{scene}_standin.ply"
+        # Made again each call, the same bytes (seeded): the stage's input digest matches.
         save_ply(model, surfels)
     else:
         geometry = f"stage-1 model {model} ({load_ply(model).count} surfels)"
     config = segmentation_config(preset, masks, overrides)
-    stage = run_segmentation(model, data, out / f"{scene}_{masks}", config, masks=masks,
-                             preset=preset, overwrite=True, progress=False)
+    try:
+        stage = run_segmentation(model, data, out / f"{scene}_{masks}", config, masks=masks,
+                                 preset=preset, overwrite=overwrite, reuse=True,
+                                 progress=False)
+    except ProvenanceError as exc:
+        fail(f"{exc} (validation.segmentation)")
     report = json.loads((stage.folder / "segmentation.json").read_text())
     metrics, shadow = report["metrics"], report["base_shadow"]
     firsts = sorted((stage.folder / "segments").glob("*.png"))
@@ -136,7 +156,7 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def run(out_dir: Path, quick: bool = False, data_root: Path | None = None,
         models: dict | None = None, mask_sources=("material", "chromaticity"),
-        command: str = "python -m validation.segmentation") -> dict:
+        command: str = "python -m validation.segmentation", overwrite: bool = False) -> dict:
     from mi_shadowgs.io.atomic import write_json, write_text
 
     out_dir = Path(out_dir)
@@ -146,12 +166,12 @@ def run(out_dir: Path, quick: bool = False, data_root: Path | None = None,
     for scene in SCENES:
         if scene == "hotdog" and not HOTDOG.is_file():
             continue
-        # Its own folders: regenerated (overwrite) only when the dataset code or scene changed.
+        # Its own folders, kept while the dataset code and the scene are the same.
         root = out_dir / "data" if data_root is None else Path(data_root)
-        data = _dataset(root / f"seg_val_{scene}", scene)
+        data = _dataset(root / f"seg_val_{scene}", scene, overwrite)
         for masks in mask_sources:  # chromaticity: see runner.segmentation_config
             r = evaluate(scene, data, (models or {}).get(scene), masks, out_dir,
-                         overrides=overrides)
+                         overrides=overrides, overwrite=overwrite)
             print(r, flush=True)
             rows.append(r)
     md = markdown(rows, command)
@@ -171,13 +191,19 @@ def main(argv=None) -> int:
     ap.add_argument("--model-default", default=None, help="stage-1 model PLY (default)")
     ap.add_argument("--model-hotdog", default=None, help="stage-1 model PLY (hotdog)")
     ap.add_argument("--masks", action="append", choices=("material", "chromaticity"))
+    ap.add_argument("--overwrite", action="store_true",
+                    help="make the stages (and datasets made otherwise) again")
     args = ap.parse_args(argv)
-    claim_out(args.out, "validation.segmentation", ('segmentation.json',))
     models = {k: Path(v) for k, v in (("default", args.model_default),
                                       ("hotdog", args.model_hotdog)) if v}
+    for scene, model in models.items():
+        if not model.is_file():
+            fail(f"--model-{scene} {model}: no such file")
+    claim_out(args.out, "validation.segmentation", ('segmentation.json',))
     res = run(Path(args.out), args.quick, args.data_root, models,
               tuple(args.masks or ("material", "chromaticity")),
-              "python -m validation.segmentation " + " ".join(argv or sys.argv[1:]))
+              "python -m validation.segmentation " + " ".join(argv or sys.argv[1:]),
+              overwrite=args.overwrite)
     print(res["markdown"])
     return 0
 
