@@ -1,10 +1,18 @@
 """Run every benchmark suite and write its figures into one folder (``make bench``).
 
 Each ``benchmarks/bm_*.py`` module that defines ``run_suite(out, preset, log) -> dict``
-(with a ``markdown`` entry) is a suite. The folder is built beside ``--out`` and moved into
-place when every suite has run, so a reader never sees a half-written report::
+(with a ``markdown`` entry) is a suite. Each suite is a unit (``validation.units``),
+``OUT/units/<suite>/``: it runs into a temporary folder that moves into place when the suite
+has finished, so that a kill loses only the suite in progress and the same command again
+runs only the unfinished suites. A unit records the preset, the code's commit, the CPU
+model and core count, the Mitsuba variant and the library versions: one made otherwise
+exits 2 naming what differs, so figures of other code or another machine are never mixed
+in (``--overwrite`` runs this call's suites again). When every suite has run, their files
+are copied to OUT's top level, then ``machine.json`` and ``README.md`` are written, each
+atomically, so a reader never sees a half-written report::
 
     python -m benchmarks.run_all --out BENCHMARKS-latest [--quick] [--only raster]
+                                 [--overwrite]
 """
 
 from __future__ import annotations
@@ -15,13 +23,20 @@ import importlib
 import os
 import pkgutil
 import platform
+import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
-from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
+from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
+from mi_shadowgs.io.provenance import Provenance, git_commit
+from validation import claim_out
+from validation.units import UNITS, open_unit, run_unit, settings_of, staged_folder
+
+STUDY = "benchmarks.run_all"
+SUITE_FILES = "files"  # a suite unit's sub-folder holding the files the suite wrote
 
 
 def discover_suites() -> dict[str, object]:
@@ -51,7 +66,7 @@ def machine_info() -> dict:
     except (OSError, subprocess.SubprocessError):
         pass
     return {
-        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "date_utc": _now(),
         "cpu_model": model,
         "cpu_count": os.cpu_count(),
         "loadavg_start": list(os.getloadavg()),
@@ -64,48 +79,111 @@ def machine_info() -> dict:
     }
 
 
+def _now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def suite_settings(info: dict, preset: str) -> dict:
+    """What a suite's figures depend on besides the suite: the preset, the code, the
+    machine and the libraries. ``git_commit`` marks uncommitted changes, not which ones."""
+    return settings_of(preset=preset, commit=git_commit(),
+                       **{k: info[k] for k in ("cpu_model", "cpu_count", "variant", "python",
+                                               "mitsuba", "drjit")})
+
+
+def suite_provenance(name: str, settings: dict) -> Provenance:
+    return Provenance(settings={**settings, "suite": name})
+
+
+def run_suite_unit(out: Path, name: str, module, settings: dict, overwrite: bool) -> dict:
+    """Suite ``name``'s unit: {"markdown", "wall_s", "date_utc"}, the suite run (into the
+    unit's ``SUITE_FILES``) unless it finished earlier with the same settings."""
+    def work(unit) -> dict:
+        t0 = time.perf_counter()
+        date = _now()
+        with staged_folder(unit, SUITE_FILES) as tmp:
+            summary = module.run_suite(tmp, preset=settings["preset"],
+                                       log=lambda msg: print(msg, flush=True))
+        return {"markdown": summary.get("markdown", f"## {name}\n(no summary)"),
+                "wall_s": time.perf_counter() - t0, "date_utc": date}
+
+    return run_unit(out, name, STUDY, suite_provenance(name, settings), work,
+                    overwrite=overwrite)
+
+
+def publish(out: Path, suites: list[str]) -> None:
+    """Copy the files of ``suites``' units to ``out``'s top level, where the suites wrote
+    them before they were units, each atomically. A file that another suite's unit holds and
+    these do not is removed there: an earlier call's, which this call's report does not
+    cover."""
+    def files(name: str) -> dict[str, Path]:
+        root = out / UNITS / name / SUITE_FILES
+        return {p.relative_to(root).as_posix(): p for p in sorted(root.rglob("*"))
+                if p.is_file()}
+
+    ours = {rel: path for name in suites for rel, path in files(name).items()}
+    for rel, path in ours.items():
+        with atomic_path(out / rel) as tmp:
+            shutil.copyfile(path, tmp)
+    others = [p.name for p in (out / UNITS).iterdir() if p.is_dir() and p.name not in suites] \
+        if (out / UNITS).is_dir() else []
+    for rel in {rel for name in others for rel in files(name)} - set(ours):
+        (out / rel).unlink(missing_ok=True)
+
+
+def _suite_times(suites: dict) -> str:
+    return ", ".join(f"{name} {s['wall_s'] / 60:.1f} min on {s['date_utc']}"
+                     for name, s in suites.items())
+
+
 def main(argv=None) -> int:
     suites = discover_suites()
     ap = argparse.ArgumentParser(description="Run the mi_shadowgs benchmarks.")
     ap.add_argument("--out", required=True, help="output folder: new or an earlier "
-                    "benchmark run's (replaced atomically)")
+                    "benchmark run's (its finished suites are reused)")
     ap.add_argument("--quick", action="store_true",
                     help="reduced sweep (the cpu-small presets) for a fast check")
     ap.add_argument("--only", action="append", choices=sorted(suites),
                     help="run only this suite (repeatable)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="run this call's suites again, also those that finished (with other "
+                         "code, on another machine or preset: those exit 2 otherwise)")
     args = ap.parse_args(argv)
-    try:
-        check_replaceable(args.out, "machine.json")
-    except FileExistsError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    out = claim_out(args.out, STUDY, ("machine.json",))
     preset = "cpu-small" if args.quick else "paper"
     chosen = args.only or sorted(suites)
     info = machine_info()
     info["preset"] = preset
+    settings = suite_settings(info, preset)
     print(f"benchmarks: {', '.join(chosen)} ({preset}) on {info['cpu_model']}, "
           f"{info['cpu_count']} cores, load {info['loadavg_start']}", flush=True)
-    t0 = time.perf_counter()
-    sections = []
-    with atomic_dir(args.out, overwrite=True) as tmp:
+    if not args.overwrite:  # a unit made otherwise exits 2 before any suite runs, not after
         for name in chosen:
-            summary = suites[name].run_suite(
-                tmp, preset=preset, log=lambda msg: print(msg, flush=True))
-            sections.append(summary.get("markdown", f"## {name}\n(no summary)"))
-        info["loadavg_end"] = list(os.getloadavg())
-        info["wall_s"] = time.perf_counter() - t0
-        write_json(tmp / "machine.json", info)
-        header = [
-            "# Benchmarks (latest run)", "",
-            f"- Command: `{info['command']}`",
-            f"- Date: {info['date_utc']}; total {info['wall_s'] / 60:.1f} min",
-            f"- Machine: {info['cpu_model']}, {info['cpu_count']} cores; load average "
-            f"{info['loadavg_start'][0]:.2f} at start, {info['loadavg_end'][0]:.2f} at end "
-            "(above ~0.5 means other processes shared the cores)",
-            f"- Mitsuba {info['mitsuba']}, Dr.Jit {info['drjit']}, {info['variant']}, "
-            f"Python {info['python']}", "",
-        ]
-        write_text(tmp / "README.md", "\n".join(header + sections) + "\n")
+            open_unit(out, name, STUDY, suite_provenance(name, settings))
+    t0 = time.perf_counter()
+    results = {name: run_suite_unit(out, name, suites[name], settings, args.overwrite)
+               for name in chosen}
+    sections = [r["markdown"] for r in results.values()]
+    publish(out, chosen)
+    info["loadavg_end"] = list(os.getloadavg())
+    # the suites' own seconds: a call that resumes runs only the unfinished ones
+    info["wall_s"] = sum(r["wall_s"] for r in results.values())
+    info["suites"] = {name: {"wall_s": r["wall_s"], "date_utc": r["date_utc"]}
+                      for name, r in results.items()}
+    info["commit"] = settings["commit"]
+    write_json(out / "machine.json", info)
+    header = [
+        "# Benchmarks (latest run)", "",
+        f"- Command: `{info['command']}`",
+        f"- Date: {info['date_utc']}; total {info['wall_s'] / 60:.1f} min "
+        f"(the suites: {_suite_times(info['suites'])})",
+        f"- Machine: {info['cpu_model']}, {info['cpu_count']} cores; load average "
+        f"{info['loadavg_start'][0]:.2f} at start, {info['loadavg_end'][0]:.2f} at end "
+        "(above ~0.5 means other processes shared the cores)",
+        f"- Mitsuba {info['mitsuba']}, Dr.Jit {info['drjit']}, {info['variant']}, "
+        f"Python {info['python']}; code {info['commit']}", "",
+    ]
+    write_text(out / "README.md", "\n".join(header + sections) + "\n")
     print("\n".join(sections))
     print(f"benchmarks: wrote {args.out} in {(time.perf_counter() - t0) / 60:.1f} min")
     return 0

@@ -206,12 +206,14 @@ def test_cuda_suite_raster_case_in_its_own_process(tmp_path, monkeypatch):
 
 
 def test_run_all_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
-    """--out replaces an earlier benchmark run (it holds machine.json), never someone
-    else's folder: that is refused before any suite runs, with exit 2, and left as it was."""
+    """--out continues an earlier benchmark run (its mark, or machine.json from before the
+    mark), never someone else's folder: that is refused before any suite runs, with exit 2,
+    and left as it was."""
     from conftest import untouched
 
     from benchmarks import run_all
 
-    assert run_all.main(["--out", str(someone_elses_folder), "--only", "view"]) == 2
-    assert "holds no machine.json" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        run_all.main(["--out", str(someone_elses_folder), "--only", "view"])
+    assert e.value.code == 2 and "did not write" in capsys.readouterr().err
     assert untouched(someone_elses_folder)

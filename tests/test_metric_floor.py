@@ -98,7 +98,7 @@ def test_metric_floor_cli(tiny_data, tmp_path, capsys):
     # One sample per pixel is the point truth itself: a perfect score.
     assert all(r["shadow_iou"] == 1.0 and r["albedo_psnr"] > 100 for r in rows)
     assert metric_floor.main(["--data", str(tiny_data), "--out", str(out), "--samples", "3",
-                              "--quiet"]) == 0
+                              "--quiet", "--overwrite"]) == 0
     (row,) = json.loads((out / "metric_floor.json").read_text())["rows"]
     assert row["size"] == 24 and row["partly_covered_share"] > 0
     assert row["shadow_iou"] < 1.0 and row["albedo_psnr"] < 100
@@ -106,7 +106,7 @@ def test_metric_floor_cli(tiny_data, tmp_path, capsys):
     for surfels in ("1500", "6000"):
         assert metric_floor.main(["--data", str(tiny_data), "--out", str(out), "--samples",
                                   "3", "--exact", "cpu-small", "--exact-surfels", surfels,
-                                  "--quiet"]) == 0
+                                  "--quiet", "--overwrite"]) == 0
         (ex,) = json.loads((out / "metric_floor.json").read_text())["rows"]
         assert ex["shadow_iou"] == row["shadow_iou"] and ex["exact_surfels_128"] == int(surfels)
         assert 0.2 < ex["exact_geometry_iou"] <= 1.0 and ex["exact_preset"] == "cpu-small"
@@ -119,7 +119,7 @@ def test_metric_floor_cli(tiny_data, tmp_path, capsys):
     other.mkdir()
     (other / "keep.txt").write_text("x")
     for argv, what in ((["--data", str(tmp_path), "--out", str(tmp_path / "o")], "dataset"),
-                       (["--data", str(tiny_data), "--out", str(other)], "metric_floor.json"),
+                       (["--data", str(tiny_data), "--out", str(other)], "did not write"),
                        (["--data", str(tiny_data), "--out", str(out), "--samples", "0"],
                         "--samples"),
                        (["--data", str(tiny_data), "--out", str(out), "--exact", "nope"],
@@ -146,5 +146,7 @@ def test_make_validate_scores_the_pipelines_datasets(tiny_data, tmp_path):
     assert (tmp_path / "metric_floor" / "metric_floor.json").is_file()
     foreign = tmp_path / "foreign"
     foreign.mkdir()
-    with pytest.raises(FileExistsError, match="metric_floor.json"):
+    (foreign / "keep.txt").write_text("x")
+    with pytest.raises(SystemExit) as e:
         metric_floor.run(foreign, [tiny_data])
+    assert e.value.code == 2 and [p.name for p in foreign.iterdir()] == ["keep.txt"]

@@ -441,7 +441,8 @@ def test_models_only_factor_table_from_the_command_line(exact_model, tmp_path, m
                     "--factor-samples", "2", "--model", str(model), "--data", str(data),
                     "--quiet"]) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["README.md", "factors.md", "summary.json", "table2.csv", "table2.md"]
+    assert names == [".mi_shadowgs_study.json", "README.md", "factors.md", "summary.json",
+                     "table2.csv", "table2.md", "units"]
     summary = json.loads((out / "summary.json").read_text())
     name = vv.model_case_names([model], [data])[0]
     assert list(summary["factors"]) == [name]
@@ -537,7 +538,8 @@ def test_preset_gives_the_pixel_method_a_runs_maps_and_receivers(exact_model, tm
     assert sorted(summary["results"]) == ["Gaussian-based", "Pixel-based (ours)", "Voxel-based"]
     assert "the visibility settings of preset 'cpu-small'" in (out / "README.md").read_text()
     # --receiver-band given: used as given, over the preset's
-    summary = _models_only(exact_model, out, "--preset", "cpu-small", "--receiver-band", "0")
+    summary = _models_only(exact_model, out, "--preset", "cpu-small", "--receiver-band", "0",
+                           "--overwrite")
     assert summary["receiver_band"] == 0.0
     capsys.readouterr()
     with pytest.raises(SystemExit) as e:
@@ -556,7 +558,7 @@ def test_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
 
     with pytest.raises(SystemExit) as e:
         vv.main(["--out", str(someone_elses_folder), "--quick", "--quiet"])
-    assert e.value.code == 2 and "holds no summary.json" in capsys.readouterr().err
+    assert e.value.code == 2 and "did not write" in capsys.readouterr().err
     assert untouched(someone_elses_folder)
 
 

@@ -13,7 +13,7 @@ the same cameras) the disagreement shrinks.
 
     python -m validation.metric_floor --data DATA [--data DATA ...] --out DIR
         [--sizes 128 256 512] [--views N] [--samples 4]
-        [--exact PRESET [--exact-surfels N] [--map-resolution N]]
+        [--exact PRESET [--exact-surfels N] [--map-resolution N]] [--overwrite]
 
 ``--exact`` also scores the method itself on exact geometry at each size: surfels sampled on
 the true shapes give the receivers (rasterized as a run's) and the shadow maps (that
@@ -21,13 +21,18 @@ preset's visibility settings), under the true lights. It estimates what a perfec
 and stage 4 could reach at that view size.
 
 ``--sizes`` defaults to the dataset's own size; ``--views``, to all its test views (the
-views stage 5 scores). Writes (atomically) ``metric_floor.json`` and ``metric_floor.md`` into
-``--out``, replacing only a folder that holds a ``metric_floor.json``.
+views stage 5 scores). Writes ``metric_floor.json`` and ``metric_floor.md`` into ``--out``
+(new, or an earlier output of this study), each atomically, from its units under ``units/``
+(``validation.units``), one per dataset and view size: a rerun after a kill redoes only the
+unfinished ones; one made from another dataset or settings exits 2 naming what differs
+(``--overwrite`` makes this call's units again).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import functools
 import os
 import sys
 import time
@@ -48,8 +53,6 @@ def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
     receivers, rasterized as a run's, and the shadow maps (the visibility settings of
     ``preset``, at ``map_resolution`` texels when given), under the true lights; scored
     against the point truth ``point`` (``trace_ground_truth`` at these cameras)."""
-    import dataclasses
-
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.visibility import shadow_maps
@@ -70,46 +73,60 @@ def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
                                  point["mask"].astype(bool))
 
 
-def dataset_floor(data: Path, sizes: list[int] | None, views: int | None, samples: int,
-                  progress: bool = True, exact: str | None = None,
-                  exact_surfels: int = 40_000, map_resolution: int | None = None
-                  ) -> list[dict]:
-    """One row per view size: the filtered truth's shadow IoU and albedo PSNR against the
-    point-sampled truth on the test views of ``data`` (a generated dataset); with ``exact``
-    (a preset name) also ``exact_geometry_iou`` with that preset's visibility settings."""
-    from tqdm import tqdm
+def dataset_name(data: Path) -> str:
+    """The dataset's name in the table: its folder's (the parent's when it is "data")."""
+    return data.parent.name if data.name == "data" else data.name
 
-    from mi_shadowgs.dataset.loader import load_dataset
-    from mi_shadowgs.dataset.scene import dataset_scene
 
-    test = load_dataset(data, "test")
-    cams = test.cameras[:views] if views else test.cameras
-    if not cams:
-        raise ValueError(f"{data}: no test views")
-    setup = dataset_scene(data)  # its lights are the dataset's training lights
-    name = data.parent.name if data.name == "data" else data.name
-    rows = []
-    for size in tqdm(sizes or [cams[0].width], desc=f"{name}: sizes", disable=not progress):
-        t0 = time.perf_counter()
-        at = [c.with_size(size, round(size * c.height / c.width)) for c in cams]
-        point = trace_ground_truth(setup, at)
-        box = box_filtered_ground_truth(setup, at, samples=samples)
-        mask = point["mask"].astype(bool)  # [V, H, W]
-        iou = evaluation.shadow_iou(box["irradiance"].sum(axis=3).mean(-1),
-                                    point["irradiance"].sum(axis=3).mean(-1), mask)
-        alb = evaluation.albedo_metrics(box["albedo"], point["albedo"], point["material"],
-                                        mask)
-        row = {"dataset": name, "data": str(data), "size": size, "views": len(at),
-               "samples": samples, "shadow_iou": iou, "albedo_psnr": alb["psnr"],
-               "albedo_psnr_global": alb["psnr_global"],
-               "partly_covered_share": float(np.mean(box["coverage"][mask] < 1.0))}
-        if exact is not None:
-            row.update(exact_geometry_iou=exact_geometry_iou(
-                setup, data, at, point, exact, exact_surfels, map_resolution),
-                exact_preset=exact, exact_surfels_128=exact_surfels,
-                map_resolution=map_resolution)
-        rows.append({**row, "wall_s": time.perf_counter() - t0})
-    return rows
+@dataclasses.dataclass
+class DatasetViews:
+    """A dataset's test views to score (the first ``views``, or all) and its scene, which is
+    loaded on first use (``setup``): a rerun whose units are finished loads none."""
+
+    data: Path
+    cameras: list
+
+    @functools.cached_property
+    def setup(self):
+        from mi_shadowgs.dataset.scene import dataset_scene
+
+        return dataset_scene(self.data)  # its lights are the dataset's training lights
+
+    @classmethod
+    def load(cls, data: Path, views: int | None) -> DatasetViews:
+        from mi_shadowgs.dataset.loader import load_dataset
+
+        cams = load_dataset(data, "test").cameras
+        cams = cams[:views] if views else cams
+        if not cams:
+            raise ValueError(f"{data}: no test views")
+        return cls(data, cams)
+
+
+def size_row(views: DatasetViews, size: int, samples: int, exact: str | None = None,
+             exact_surfels: int = 40_000, map_resolution: int | None = None) -> dict:
+    """The row of one view size: the filtered truth's shadow IoU and albedo PSNR against the
+    point-sampled truth on the dataset's test views at width ``size``; with ``exact`` (a
+    preset name) also ``exact_geometry_iou`` with that preset's visibility settings."""
+    t0 = time.perf_counter()
+    setup, data = views.setup, views.data
+    at = [c.with_size(size, round(size * c.height / c.width)) for c in views.cameras]
+    point = trace_ground_truth(setup, at)
+    box = box_filtered_ground_truth(setup, at, samples=samples)
+    mask = point["mask"].astype(bool)  # [V, H, W]
+    iou = evaluation.shadow_iou(box["irradiance"].sum(axis=3).mean(-1),
+                                point["irradiance"].sum(axis=3).mean(-1), mask)
+    alb = evaluation.albedo_metrics(box["albedo"], point["albedo"], point["material"], mask)
+    row = {"dataset": dataset_name(data), "data": str(data), "size": size, "views": len(at),
+           "samples": samples, "shadow_iou": iou, "albedo_psnr": alb["psnr"],
+           "albedo_psnr_global": alb["psnr_global"],
+           "partly_covered_share": float(np.mean(box["coverage"][mask] < 1.0))}
+    if exact is not None:
+        row.update(exact_geometry_iou=exact_geometry_iou(
+            setup, data, at, point, exact, exact_surfels, map_resolution),
+            exact_preset=exact, exact_surfels_128=exact_surfels,
+            map_resolution=map_resolution)
+    return {**row, "wall_s": time.perf_counter() - t0}
 
 
 def markdown(rows: list[dict]) -> str:
@@ -131,25 +148,66 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+STUDY = "validation.metric_floor"
+
+
+def unit_labels(datas: list[Path]) -> list[str]:
+    """Each dataset's part of its units' names: its name in the table, and where two
+    datasets share one, a digest of its folder too (their units would mix otherwise)."""
+    import hashlib
+
+    names = [dataset_name(d) for d in datas]
+    folders = [str(d.resolve()) for d in datas]
+    return [n if len({f for m, f in zip(names, folders, strict=True) if m == n}) == 1 else
+            f"{n}-{hashlib.blake2b(f.encode(), digest_size=4).hexdigest()}"
+            for n, f in zip(names, folders, strict=True)]
+
+
 def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
         views: int | None = None, samples: int = 4, progress: bool = True,
         command: list[str] | None = None, exact: str | None = None,
-        exact_surfels: int = 40_000, map_resolution: int | None = None) -> dict:
-    """Every dataset's rows into ``out_dir`` (written atomically; an existing folder is
-    replaced only when it holds a metric_floor.json). Returns {"rows", "markdown"}."""
-    from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
+        exact_surfels: int = 40_000, map_resolution: int | None = None,
+        overwrite: bool = False) -> dict:
+    """Every dataset's rows into ``out_dir`` (new, or this study's: ``claim_out``). Each
+    (dataset, view size) is a unit (``validation.units``): a rerun after a kill redoes only
+    the unfinished ones, and exits 2 naming what differs where one was made from another
+    dataset or settings (``overwrite``: made again). The tables are written from the units
+    at the end. Returns {"rows", "markdown"}."""
+    from tqdm import tqdm
 
-    out_dir = Path(out_dir)
-    check_replaceable(out_dir, "metric_floor.json")
+    from mi_shadowgs.io.atomic import write_json, write_text
+    from mi_shadowgs.io.provenance import Provenance, dataset_ref
+    from mi_shadowgs.stages.visibility import shadow_maps
+    from validation import claim_out
+    from validation.units import run_unit, settings_of, unit_name
+
+    datas = [Path(d) for d in datas]
+    exact_visibility = None  # the maps' settings: a preset's may change with the code
+    if exact is not None:
+        vcfg = shadow_maps.get_config(exact)
+        exact_visibility = dataclasses.asdict(vcfg if map_resolution is None else
+                                              dataclasses.replace(vcfg,
+                                                                  resolution=map_resolution))
+    tests = [DatasetViews.load(d, views) for d in datas]  # before any file is written
+    out_dir = claim_out(out_dir, STUDY, ("metric_floor.json",))
     rows = []
-    for d in datas:
-        rows += dataset_floor(Path(d), sizes, views, samples, progress, exact, exact_surfels,
-                              map_resolution)
+    for test, label in zip(tests, unit_labels(datas), strict=True):
+        dataset = dataset_ref(test.data)
+        for size in tqdm(sizes or [test.cameras[0].width],
+                         desc=f"{dataset_name(test.data)}: sizes", disable=not progress):
+            settings = settings_of(size=size, views=len(test.cameras), samples=samples,
+                                   exact=exact, exact_visibility=exact_visibility,
+                                   exact_surfels=exact_surfels if exact else None)
+            rows.append(run_unit(
+                out_dir, unit_name(label, f"{size}px"), STUDY,
+                Provenance(dataset, settings=settings),
+                lambda _, t=test, s=size: size_row(t, s, samples, exact, exact_surfels,
+                                                   map_resolution),
+                overwrite=overwrite, inputs=(test.data,)))
     md = markdown(rows) if rows else "No dataset to score."
-    with atomic_dir(out_dir, overwrite=True) as tmp:
-        write_json(tmp / "metric_floor.json", {"rows": rows, "command": command or sys.argv,
+    write_json(out_dir / "metric_floor.json", {"rows": rows, "command": command or sys.argv,
                                                "loadavg": list(os.getloadavg())})
-        write_text(tmp / "metric_floor.md", md + "\n")
+    write_text(out_dir / "metric_floor.md", md + "\n")
     return {"rows": rows, "markdown": "## What the metrics can tell apart\n\n" + md}
 
 
@@ -160,7 +218,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, action="append", required=True,
                     help="a generated dataset (repeat for several)")
     ap.add_argument("--out", type=Path, required=True,
-                    help="output folder (replaced only when it holds a metric_floor.json)")
+                    help="output folder: new or an earlier output of this study (its "
+                         "finished units are reused)")
     ap.add_argument("--sizes", type=int, nargs="*", default=None,
                     help="view widths to score at (default: the dataset's own)")
     ap.add_argument("--views", type=int, default=None, help="first N test views only")
@@ -174,6 +233,9 @@ def main(argv=None) -> int:
                          "(default 40000)")
     ap.add_argument("--map-resolution", type=int, default=None,
                     help="shadow-map texels for --exact (default: the preset's)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="make this call's units again (those made from another dataset or "
+                         "settings exit 2 otherwise)")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
     if args.exact is not None:
@@ -196,12 +258,8 @@ def main(argv=None) -> int:
         if not (d / "dataset.json").is_file():
             ap.error(f"{d / 'dataset.json'}: not found (--data takes a dataset made by "
                      "`mi-shadowgs generate`, whose scene can be reloaded)")
-    try:  # run refuses a folder it did not write before any work
-        summary = run(args.out, args.data, args.sizes, args.views, args.samples,
-                      not args.quiet, None, args.exact, args.exact_surfels,
-                      args.map_resolution)
-    except FileExistsError as e:
-        ap.error(str(e))
+    summary = run(args.out, args.data, args.sizes, args.views, args.samples, not args.quiet,
+                  None, args.exact, args.exact_surfels, args.map_resolution, args.overwrite)
     print(markdown(summary["rows"]))
     return 0
 

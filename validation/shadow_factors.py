@@ -34,10 +34,15 @@ of fractional (opacity) shadow maps (``VisibilityConfig.fractional``) instead of
 depth test.
 
     python -m validation.shadow_factors --run RUN --data DATA --out DIR [--variant full]
-                                        [--views N] [--exact-surfels N] [--quiet]
+                                        [--views N] [--exact-surfels N] [--overwrite] [--quiet]
 
-Writes (atomically) ``shadow_factors.json`` and ``shadow_factors.md`` into ``--out``
-(never inside the run: it reads only); ``--table`` gathers every ``shadow_factors.json`` under
+Writes ``shadow_factors.json`` and ``shadow_factors.md`` into ``--out`` (new, or an earlier
+output of this tool; never inside the run: it reads only), each atomically, from four units
+under ``units/`` (``validation.units``): the 2^3 factors, the exact geometry, the bias sweep,
+the receivers' split (at cpu-small's 32 views of 128^2, 9-18 s for all four on two busy
+cores, the first with the loading they share). A rerun after a kill redoes only the
+unfinished ones; one made from other inputs or settings exits 2 naming what differs
+(``--overwrite`` makes them again). ``--table`` gathers every ``shadow_factors.json`` under
 the folders given into one markdown table.
 """
 
@@ -45,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import itertools
 import json
 import math
@@ -100,21 +106,43 @@ def _read_json(path: Path) -> dict:
         raise ValueError(f"{path}: malformed JSON ({e})") from None
 
 
+def run_files(run: Path, variant: str = "full") -> dict[str, Path]:
+    """The files of a finished run that the analysis reads: name -> path."""
+    folder = run / "material" / variant
+    files = {"model": folder / "model.ply", "light": folder / "light.json",
+             "metrics": folder / "metrics.json",
+             "segmentation": run / "segmentation" / "model.ply"}
+    for path in files.values():
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: not found (is the run finished?)")
+    return files
+
+
+def run_visibility(run: Path, variant: str = "full") -> tuple[str, object, float]:
+    """The run's preset, the visibility settings its stage 4 ran with (as relighting reads
+    them) and its bounds quantile."""
+    from mi_shadowgs.io.provenance import read_manifest
+    from mi_shadowgs.stages.relight.runner import recorded_config, run_preset
+    from mi_shadowgs.stages.visibility import shadow_maps
+
+    settings = (read_manifest(run / "material" / variant) or {}).get("settings", {})
+    preset = run_preset(run)
+    vcfg = recorded_config(shadow_maps.VisibilityConfig, settings.get("visibility"),
+                           lambda: shadow_maps.get_config(preset))
+    return preset, vcfg, float(settings.get("bounds_quantile", 0.98))
+
+
 def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None = None
                 ) -> RunInputs:
     from mi_shadowgs.dataset.loader import load_cameras, load_dataset
     from mi_shadowgs.io.ply import load_ply
-    from mi_shadowgs.io.provenance import read_manifest
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.relight.evaluate import scored_pixels
-    from mi_shadowgs.stages.relight.runner import recorded_config, run_preset
-    from mi_shadowgs.stages.visibility import shadow_maps
 
     folder = run / "material" / variant
     light = _read_json(folder / "light.json")
     metrics = _read_json(folder / "metrics.json")
-    settings = (read_manifest(folder) or {}).get("settings", {})
-    preset = run_preset(run)
+    preset, vcfg, quantile = run_visibility(run, variant)
     if light.get("directions") is None or light.get("irradiance") is None:
         raise ValueError(f"{folder / 'light.json'}: no 'directions'/'irradiance' (an older run)")
     test = load_dataset(data, "test")
@@ -125,10 +153,7 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
         raise ValueError(f"{data}: lights.json has no training lights")
     train_cams = [c for _, c in load_cameras(data / "transforms_train.json")]
     seg = load_ply(run / "segmentation" / "model.ply")
-    bounds = occluder_bounds(seg, train_cams, float(settings.get("bounds_quantile", 0.98)))
-    # the visibility settings stage 4 ran with, as relighting reads them
-    vcfg = recorded_config(shadow_maps.VisibilityConfig, settings.get("visibility"),
-                           lambda: shadow_maps.get_config(preset))
+    bounds = occluder_bounds(seg, train_cams, quantile)
     name = run.parent.name if run.name == "run" else run.name
     return RunInputs(
         name, load_ply(folder / "model.ply"),
@@ -249,106 +274,211 @@ def shapley(scores: dict[tuple, float]) -> dict[str, float]:
     return out
 
 
-def analyse(run: Path, data: Path, variant: str = "full", views: int | None = None,
-            progress: bool = True, exact_surfels: int | None = None) -> dict:
-    """The split of one run (see the module's doc); ``exact_surfels``: on the object for the
-    exact geometry at 128^2 views (default the visibility validation's), scaled with the
-    test views' pixel count, the base's too (``visibility.exact_surfel_config``)."""
+class Analysis:
+    """What the parts of the analysis share, each made on first use: a rerun whose parts
+    are finished makes none of it."""
+
+    def __init__(self, run: Path, data: Path, variant: str, views: int | None):
+        self.run, self.data, self.variant, self.views = run, data, variant, views
+
+    @functools.cached_property
+    def inp(self) -> RunInputs:
+        return load_inputs(self.run, self.data, self.variant, self.views)
+
+    @functools.cached_property
+    def setup(self):
+        from mi_shadowgs.dataset.scene import dataset_scene
+
+        return dataset_scene(self.data)
+
+    @functools.cached_property
+    def recs(self) -> dict[bool, Receivers]:
+        """Receivers: the run's (False) and the ray-traced ground truth (True)."""
+        from mi_shadowgs.dataset.generate import trace_ground_truth
+
+        inp = self.inp
+        gt = trace_ground_truth(self.setup, inp.cameras, [
+            Light(f"t{k}", tuple(d.tolist()), (1.0, 1.0, 1.0), 0.0, 0.0)
+            for k, d in enumerate(inp.true_dirs)])
+        return {False: surfel_receivers(inp.model, inp.cameras, inp.vis_config.receiver_band),
+                True: gt_receivers(gt, inp.cameras)}
+
+    def iou(self, rec: Receivers, vis: list[np.ndarray], dirs: np.ndarray,
+            irr: np.ndarray) -> float:
+        """Stage 5's shadow IoU of the irradiance of ``rec`` under ``vis``, ``dirs``, ``irr``."""
+        est = irradiance(rec, vis, dirs, irr, self.inp.mask.shape[1:])
+        return evaluation.shadow_iou(est, self.inp.gt_irr, self.inp.mask)
+
+    def run_maps_iou(self, vcfg, at_map: Receivers | None = None,
+                     shaded: Receivers | None = None) -> float:
+        """The IoU with the run's model, lights and receivers, its shadow maps made with
+        ``vcfg``; ``at_map`` / ``shaded``: other receivers for the maps' lookup / for the
+        shading."""
+        inp, own = self.inp, self.recs[False]
+        at_map = at_map or own
+        vis = map_visibility(inp.model, at_map, inp.fit_dirs, inp.bounds, vcfg)
+        return self.iou(shaded or at_map, vis, inp.fit_dirs, inp.fit_irr)
+
+
+def combo_label(key: tuple) -> str:
+    """(lights, receivers, occluders) booleans as "LRO" letters, "-" for the run's own."""
+    return "".join("LRO"[i] if key[i] else "-" for i in range(3))
+
+
+def factor_scores(a: Analysis, progress: bool) -> dict:
+    """The IoU of each of the 2^3 combinations (``combo_label``: IoU), and what the report
+    says of the run."""
     from tqdm import tqdm
 
-    from mi_shadowgs.dataset.generate import trace_ground_truth
-    from mi_shadowgs.dataset.scene import dataset_scene
-    from validation.visibility import ValidationConfig, exact_surfel_config, scene_surfels
-
-    t0 = time.perf_counter()
-    inp = load_inputs(run, data, variant, views)
-    setup = dataset_scene(data)
-    h, w = inp.mask.shape[1:]
+    inp = a.inp
     light_sets = {False: (inp.fit_dirs, inp.fit_irr), True: (inp.true_dirs, inp.true_irr)}
-    gt = trace_ground_truth(setup, inp.cameras, [
-        Light(f"t{k}", tuple(d.tolist()), (1.0, 1.0, 1.0), 0.0, 0.0)
-        for k, d in enumerate(inp.true_dirs)])
-    recs = {False: surfel_receivers(inp.model, inp.cameras, inp.vis_config.receiver_band),
-            True: gt_receivers(gt, inp.cameras)}
-    scores, vis_cache = {}, {}
-    combos = list(itertools.product((False, True), repeat=3))
-    for key in tqdm(combos, desc=f"{inp.name}: factors", disable=not progress):
+    scores = {}
+    for key in tqdm(list(itertools.product((False, True), repeat=3)),
+                    desc=f"{inp.name}: factors", disable=not progress):
         gl, gr, go = key
         dirs, irr = light_sets[gl]
-        rec = recs[gr]
-        ck = (gl, gr, go)
+        rec = a.recs[gr]
         if go:
-            vis = traced_visibility(setup.scene, rec, dirs, None if gr else rec.footprints)
+            vis = traced_visibility(a.setup.scene, rec, dirs, None if gr else rec.footprints)
         else:
             vis = map_visibility(inp.model, rec, dirs, inp.bounds, inp.vis_config)
-        vis_cache[ck] = vis
-        est = irradiance(rec, vis, dirs, irr, (h, w))
-        scores[key] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask)
-    base = scores[(False, False, False)]
-    full = scores[(True, True, True)]
+        scores[combo_label(key)] = a.iou(rec, vis, dirs, irr)
+    errs = evaluation.light_angular_errors(inp.fit_dirs, inp.fit_irr, inp.true_dirs)
+    return {"scores": scores, "name": inp.name, "views": len(inp.cameras),
+            "preset": inp.preset, "recorded_shadow_iou": inp.recorded_iou,
+            "lights": {"fitted": len(inp.fit_dirs), "true": len(inp.true_dirs),
+                       "angular_error_deg": errs["angular_error_deg"],
+                       "spurious_irradiance_fraction": errs["spurious_irradiance_fraction"]}}
+
+
+def exact_geometry(a: Analysis, exact_surfels: int | None) -> dict:
+    """The method on surfels sampled on the true shapes under the true lights."""
+    from validation.visibility import ValidationConfig, exact_surfel_config, scene_surfels
+
+    inp = a.inp
     vcfg = exact_surfel_config(ValidationConfig(), inp.cameras[0], exact_surfels)
-    exact = method_irradiance(scene_surfels(setup, vcfg), inp.cameras, inp.true_dirs,
+    exact = method_irradiance(scene_surfels(a.setup, vcfg), inp.cameras, inp.true_dirs,
                               inp.true_irr, inp.bounds, inp.vis_config)
-    exact_iou = evaluation.shadow_iou(exact, inp.gt_irr, inp.mask)
-    shares = shapley(scores)
-    single = {f: scores[tuple(i == j for j in range(3))] - base for i, f in enumerate(FACTORS)}
-    bias = []
-    rec = recs[False]
-    for tau, off, texels in tqdm(BIAS_SWEEP, desc=f"{inp.name}: bias", disable=not progress):
+    return {"exact_geometry_iou": evaluation.shadow_iou(exact, inp.gt_irr, inp.mask),
+            "exact_surfels": vcfg.object_surfels, "base_surfels": vcfg.base_surfels}
+
+
+def bias_sweep(a: Analysis, progress: bool) -> dict:
+    """The IoU of each ``BIAS_SWEEP`` setting, and of fractional maps, with the run's own
+    lights and receivers."""
+    from tqdm import tqdm
+
+    vis_config = a.inp.vis_config
+    rows = []
+    for tau, off, texels in tqdm(BIAS_SWEEP, desc=f"{a.inp.name}: bias",
+                                 disable=not progress):
         # A tau row is Eq. 6-7's test alone (the old preset), without the layer slack.
-        vc = dataclasses.replace(inp.vis_config, tau=tau, normal_offset=off,
-                                 bias_texels=texels,
-                                 layer_bias=inp.vis_config.layer_bias if texels else 0.0)
-        vis = map_visibility(inp.model, rec, inp.fit_dirs, inp.bounds, vc)
-        est = irradiance(rec, vis, inp.fit_dirs, inp.fit_irr, (h, w))
-        bias.append({"tau": tau, "normal_offset": off, "bias_texels": texels,
-                     "shadow_iou": evaluation.shadow_iou(est, inp.gt_irr, inp.mask)})
-    best_bias = max(bias, key=lambda r: r["shadow_iou"])
+        vc = dataclasses.replace(vis_config, tau=tau, normal_offset=off, bias_texels=texels,
+                                 layer_bias=vis_config.layer_bias if texels else 0.0)
+        rows.append({"tau": tau, "normal_offset": off, "bias_texels": texels,
+                     "shadow_iou": a.run_maps_iou(vc)})
     # Fractional (opacity) maps instead of the binary test, all else the run's.
-    vc = dataclasses.replace(inp.vis_config, fractional=True)
-    vis = map_visibility(inp.model, rec, inp.fit_dirs, inp.bounds, vc)
-    est = irradiance(rec, vis, inp.fit_dirs, inp.fit_irr, (h, w))
-    fractional_gain = evaluation.shadow_iou(est, inp.gt_irr, inp.mask) - base
-    # The receivers split: ground-truth points with the surfels' normals and the reverse
-    # (the run's lights and shadow maps); the normals split again into where they act: the
-    # shading's n . l, or the shadow-map lookup's normal offset.
-    split = {}
-    fit_rec, gt_rec = recs[False], recs[True]
+    fractional = a.run_maps_iou(dataclasses.replace(vis_config, fractional=True))
+    return {"bias_sweep": rows, "fractional_iou": fractional}
+
+
+def receiver_split(a: Analysis) -> dict:
+    """The IoU with ground-truth points and the run's normals and the reverse (the run's
+    lights and shadow maps); the normals split again into where they act: the shading's
+    n . l, or the shadow-map lookup's normal offset."""
+    fit_rec, gt_rec = a.recs[False], a.recs[True]
 
     def mix(points: Receivers, normals: Receivers) -> Receivers:
         return Receivers(points.points, normals.normals, points.footprints, normals.normals_np)
 
     # (part, receivers of the shadow-map lookup, receivers of the shading: None = the same)
-    for part, at_map, shaded in (("points", mix(gt_rec, fit_rec), None),
-                                 ("normals", mix(fit_rec, gt_rec), None),
-                                 ("normals_shading", fit_rec, mix(fit_rec, gt_rec)),
-                                 ("normals_offset", mix(fit_rec, gt_rec), fit_rec)):
-        shaded = at_map if shaded is None else shaded
-        vis = map_visibility(inp.model, at_map, inp.fit_dirs, inp.bounds, inp.vis_config)
-        est = irradiance(shaded, vis, inp.fit_dirs, inp.fit_irr, (h, w))
-        split[part] = evaluation.shadow_iou(est, inp.gt_irr, inp.mask) - base
-    errs = evaluation.light_angular_errors(inp.fit_dirs, inp.fit_irr, inp.true_dirs)
+    return {part: a.run_maps_iou(a.inp.vis_config, at_map, shaded)
+            for part, at_map, shaded in (("points", mix(gt_rec, fit_rec), None),
+                                         ("normals", mix(fit_rec, gt_rec), None),
+                                         ("normals_shading", fit_rec, mix(fit_rec, gt_rec)),
+                                         ("normals_offset", mix(fit_rec, gt_rec), fit_rec))}
+
+
+STUDY = "validation.shadow_factors"
+
+
+def analysis_provenance(run: Path, data: Path, variant: str, views: int | None,
+               exact_surfels: int | None):
+    """What the analysis of ``run`` is made from: the dataset, the run's files it reads, the
+    visibility settings the run's stage 4 ran with and this tool's options."""
+    from mi_shadowgs.io.provenance import Provenance, dataset_ref, input_ref
+    from validation.units import settings_of
+    from validation.visibility import ValidationConfig
+
+    preset, vcfg, quantile = run_visibility(run, variant)
+    return Provenance(dataset_ref(data),
+                      {name: input_ref(path) for name, path in run_files(run, variant).items()},
+                      settings_of(variant=variant, views=views, preset=preset,
+                                  visibility=dataclasses.asdict(vcfg),
+                                  bounds_quantile=quantile, bias_sweep=BIAS_SWEEP,
+                                  trace_lift=TRACE_LIFT,
+                                  exact_surfels=exact_surfels or
+                                  ValidationConfig().object_surfels))
+
+
+def analyse(run: Path, data: Path, variant: str = "full", views: int | None = None,
+            progress: bool = True, exact_surfels: int | None = None,
+            out: Path | None = None, overwrite: bool = False) -> dict:
+    """The split of one run (see the module's doc); ``exact_surfels``: on the object for the
+    exact geometry at 128^2 views (default the visibility validation's), scaled with the
+    test views' pixel count, the base's too (``visibility.exact_surfel_config``). With
+    ``out`` (new, or this tool's: ``claim_out``) its four parts (the 2^3 factors, the exact
+    geometry, the bias sweep, the receivers' split) are units there (``validation.units``):
+    a rerun after a kill redoes only the unfinished ones, and exits 2 naming what differs
+    where one was made from other inputs or settings (``overwrite``: made again)."""
+    from validation.visibility import ValidationConfig
+
+    t0 = time.perf_counter()
+    run, data = Path(run), Path(data)
+    a = Analysis(run, data, variant, views)
+    if out is None:
+        def part(name, work):
+            return work()
+    else:
+        from validation import claim_out
+        from validation.units import run_unit
+
+        made_from = analysis_provenance(run, data, variant, views, exact_surfels)
+        out = claim_out(out, STUDY, ("shadow_factors.json",))
+
+        def part(name, work):
+            return run_unit(out, name, STUDY, made_from, lambda _: work(),
+                            overwrite=overwrite, inputs=(run, data))
+    factors = part("factors", lambda: factor_scores(a, progress))
+    exact = part("exact_geometry", lambda: exact_geometry(a, exact_surfels))
+    bias = part("bias_sweep", lambda: bias_sweep(a, progress))
+    split = part("receiver_split", lambda: receiver_split(a))
+    scores = factors["scores"]
+    base, full = scores["---"], scores["LRO"]
+    # the Shapley split reads the scores by (lights, receivers, occluders) booleans
+    shares = shapley({key: scores[combo_label(key)]
+                      for key in itertools.product((False, True), repeat=3)})
+    single = {f: scores[combo_label(tuple(i == j for j in range(3)))] - base
+              for i, f in enumerate(FACTORS)}
+    best_bias = max(bias["bias_sweep"], key=lambda r: r["shadow_iou"])
     ranked = sorted(FACTORS, key=lambda f: -shares[f])
     return {
-        "run": str(run), "data": str(data), "name": inp.name, "variant": variant,
-        "views": len(inp.cameras), "preset": inp.preset,
-        "recorded_shadow_iou": inp.recorded_iou, "shadow_iou": base,
-        "all_ground_truth_iou": full, "exact_geometry_iou": exact_iou,
-        "exact_surfels": vcfg.object_surfels, "base_surfels": vcfg.base_surfels,
+        "run": str(run), "data": str(data), "name": factors["name"], "variant": variant,
+        "views": factors["views"], "preset": factors["preset"],
+        "recorded_shadow_iou": factors["recorded_shadow_iou"], "shadow_iou": base,
+        "all_ground_truth_iou": full, "exact_geometry_iou": exact["exact_geometry_iou"],
+        "exact_surfels": exact["exact_surfels"], "base_surfels": exact["base_surfels"],
         "exact_surfels_128": exact_surfels or ValidationConfig().object_surfels,
-        "loss": 1.0 - base,
-        "scores": {"".join("LRO"[i] if k[i] else "-" for i in range(3)): s
-                   for k, s in scores.items()},
-        "shapley": shares, "single_swap_gain": single, "receiver_split_gain": split,
+        "loss": 1.0 - base, "scores": scores,
+        "shapley": shares, "single_swap_gain": single,
+        "receiver_split_gain": {part: iou - base for part, iou in split.items()},
         "metric_floor": 1.0 - full,
-        "bias_sweep": bias, "bias_gain": best_bias["shadow_iou"] - base,
-        "fractional_gain": fractional_gain,
+        "bias_sweep": bias["bias_sweep"], "bias_gain": best_bias["shadow_iou"] - base,
+        "fractional_gain": bias["fractional_iou"] - base,
         "best_bias": {"tau": best_bias["tau"], "normal_offset": best_bias["normal_offset"],
                       "bias_texels": best_bias["bias_texels"]},
-        "biggest": ranked[0],
-        "lights": {"fitted": len(inp.fit_dirs), "true": len(inp.true_dirs),
-                   "angular_error_deg": errs["angular_error_deg"],
-                   "spurious_irradiance_fraction": errs["spurious_irradiance_fraction"]},
+        "biggest": ranked[0], "lights": factors["lights"],
+        # this call's: a call that finds its units finished only gathers
         "wall_s": time.perf_counter() - t0, "loadavg": list(os.getloadavg()),
     }
 
@@ -405,14 +535,14 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
+    from mi_shadowgs.io.atomic import write_json, write_text
 
     ap = argparse.ArgumentParser(description="Split a run's shadow-IoU loss by swapping in "
                                              "ground truth one factor at a time.")
     ap.add_argument("--run", type=Path, help="a finished run folder (RUN/material/VARIANT)")
     ap.add_argument("--data", type=Path, help="the dataset the run was made from")
-    ap.add_argument("--out", type=Path, help="output folder (required with --run; replaced "
-                    "only when it holds a shadow_factors.json)")
+    ap.add_argument("--out", type=Path, help="output folder (required with --run): new or an "
+                    "earlier output of this tool (its finished units are reused)")
     ap.add_argument("--variant", default="full")
     ap.add_argument("--views", type=int, default=None, help="first N test views only")
     ap.add_argument("--exact-surfels", type=int, default=None,
@@ -420,6 +550,9 @@ def main(argv=None) -> int:
                          "(default 20000), scaled with the test views' pixel count")
     ap.add_argument("--table", type=Path, nargs="*", default=None,
                     help="only gather the shadow_factors.json under these folders")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="make the units again (those made from other inputs or settings "
+                         "exit 2 otherwise)")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
     if args.table is not None:
@@ -431,19 +564,16 @@ def main(argv=None) -> int:
         return 0
     if args.run is None or args.data is None or args.out is None:
         ap.error("--run, --data and --out are required (or --table)")
-    out = args.out
-    try:
-        check_replaceable(out, "shadow_factors.json")
-    except FileExistsError as e:
-        fail(str(e))
     if args.exact_surfels is not None and args.exact_surfels < 1:
         fail(f"--exact-surfels must be >= 1, got {args.exact_surfels}")
-    res = analyse(args.run, args.data, args.variant, args.views, not args.quiet,
-                  args.exact_surfels)
+    try:
+        res = analyse(args.run, args.data, args.variant, args.views, not args.quiet,
+                      args.exact_surfels, args.out, args.overwrite)
+    except (ValueError, FileNotFoundError) as e:  # names the file
+        fail(str(e))
     md = markdown([res])
-    with atomic_dir(out, overwrite=True) as tmp:
-        write_json(tmp / "shadow_factors.json", res)
-        write_text(tmp / "shadow_factors.md", md + "\n")
+    write_json(args.out / "shadow_factors.json", res)
+    write_text(args.out / "shadow_factors.md", md + "\n")
     print(md)
     return 0
 

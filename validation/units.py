@@ -19,11 +19,13 @@ gathers.
 
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Callable
+import re
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from mi_shadowgs.io.atomic import write_json
+from mi_shadowgs.io.atomic import atomic_dir, write_json
 from mi_shadowgs.io.provenance import Output, Provenance, ProvenanceError
 from validation import fail
 
@@ -76,3 +78,25 @@ def settings_of(**values) -> dict:
     """Settings for a unit's provenance: ``values`` as JSON (tuples as lists, paths as
     strings), so that a rerun's settings compare equal to the recorded ones."""
     return json.loads(json.dumps(values, default=str))
+
+
+def unit_name(*parts) -> str:
+    """A unit's folder name made of ``parts`` (a case's name, a method, a size): in each part
+    every run of characters other than letters, digits, '.', '_' and '-' becomes one '_';
+    the parts are joined by '-'. Distinct texts can map to one name ("a b", "a_b"): a study
+    whose names come from free text checks that its names differ."""
+    return "-".join(re.sub(r"[^A-Za-z0-9._-]+", "_", str(p)).strip("_") or "_" for p in parts)
+
+
+@contextlib.contextmanager
+def staged_folder(unit: Output, name: str) -> Iterator[Path]:
+    """The unit's sub-folder ``name`` for work that writes files of its own choosing (a
+    benchmark suite into its folder): yields a temporary sibling, moved into place whole when
+    the block succeeds (``atomic_dir``), each of its files listed in the unit's manifest just
+    before (so that ``overwrite`` removes them). A kill leaves only the temporary, which the
+    next try removes."""
+    unit.claim()  # the manifest first: a kill never leaves the unit folder without one
+    with atomic_dir(unit.folder / name, overwrite=True) as tmp:
+        yield tmp
+        unit.claim(*sorted(f"{name}/{p.relative_to(tmp).as_posix()}"
+                           for p in tmp.rglob("*") if p.is_file()))

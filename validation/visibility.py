@@ -24,10 +24,14 @@ allows; ``--models-only`` leaves out the ground-truth scenes, the sweep and the 
 
     python -m validation.visibility --out validation-out/visibility [--quick]
         [--model RUN/geometry/model.ply --data DATASET ...] [--factors] [--models-only]
-        [--receiver-band B] [--preset P]
+        [--receiver-band B] [--preset P] [--overwrite]
 
-Writes (atomically) ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``,
-``sweep.md``, ``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``).
+Writes ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``, ``sweep.md``,
+``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``), each atomically, from
+its units under ``units/`` (``validation.units``): each case's row of each method, each
+model's factor split, each setting of the sweep and of the timing. A rerun after a kill
+redoes only the unfinished units; one made from other inputs or settings exits 2 naming what
+differs (``--overwrite`` makes this call's units again).
 """
 
 from __future__ import annotations
@@ -35,9 +39,12 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
 import io
 import math
+import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import drjit as dr
@@ -58,7 +65,8 @@ from mi_shadowgs.dataset.generate import (
 )
 from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, dataset_scene, load_scene
-from mi_shadowgs.io.atomic import atomic_dir, check_replaceable, write_json, write_text
+from mi_shadowgs.io.atomic import write_json, write_text
+from mi_shadowgs.io.provenance import Provenance, dataset_ref, input_ref
 from mi_shadowgs.stages.visibility.baselines import (
     GaussianTraceConfig,
     VoxelConfig,
@@ -72,7 +80,8 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
     render_shadow_maps,
 )
 from mi_shadowgs.stages.visibility.shadow_maps import get_config as get_visibility_config
-from validation import fail
+from validation import claim_out, fail
+from validation.units import UNITS, run_unit, settings_of, unit_name
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
@@ -250,21 +259,24 @@ def run_method(build, case: Case, repeats: int = 1) -> dict:
     return res
 
 
-def methods(cfg_vis: VisibilityConfig, quick: bool):
-    """Table 2's methods: name -> builder(surfels, directions, bounds). Perspective maps
-    (the paper's) also get an orthographic row; maps already orthographic (a ``cpu-*``
-    preset's) would repeat it."""
-    g = GaussianTraceConfig(max_hits=16) if quick else GaussianTraceConfig()
-    vx = VoxelConfig(resolution=48) if quick else VoxelConfig()
+def method_configs(cfg_vis: VisibilityConfig, quick: bool) -> dict[str, object]:
+    """Table 2's methods: name -> the settings of its visibility (``BUILDERS``' configs).
+    Perspective maps (the paper's) also get an orthographic row; maps already orthographic
+    (a ``cpu-*`` preset's) would repeat it."""
     out = {
-        "Voxel-based": lambda s, d, b: voxelize_surfels(s, d, b, vx),
-        "Gaussian-based": lambda s, d, b: trace_surfels(s, d, b, g),
-        "Pixel-based (ours)": lambda s, d, b: render_shadow_maps(s, d, b, cfg_vis),
+        "Voxel-based": VoxelConfig(resolution=48) if quick else VoxelConfig(),
+        "Gaussian-based": GaussianTraceConfig(max_hits=16) if quick else GaussianTraceConfig(),
+        "Pixel-based (ours)": cfg_vis,
     }
     if cfg_vis.projection != "orthographic":
-        out["Pixel-based (ours, orthographic)"] = lambda s, d, b: render_shadow_maps(
-            s, d, b, dataclasses.replace(cfg_vis, projection="orthographic"))
+        out["Pixel-based (ours, orthographic)"] = dataclasses.replace(
+            cfg_vis, projection="orthographic")
     return out
+
+
+# A method's config type -> its builder(surfels, directions, bounds, config).
+BUILDERS = {VoxelConfig: voxelize_surfels, GaussianTraceConfig: trace_surfels,
+            VisibilityConfig: render_shadow_maps}
 
 
 # -- stage-1 model ------------------------------------------------------------------------
@@ -497,50 +509,43 @@ def sweep_configs(cfg: ValidationConfig, base: VisibilityConfig) -> list[tuple[s
     return out
 
 
-def run_sweep(case: Case, cfg: ValidationConfig, base: VisibilityConfig, progress) -> list:
-    rows = []
-    for group, over in progress(sweep_configs(cfg, base), desc="sweep"):
-        vc = dataclasses.replace(base, **over)
-        res = run_method(lambda vc=vc: render_shadow_maps(case.surfels, case.directions,
-                                                          case.bounds, vc), case,
-                         cfg.sweep_repeats)
-        n_l = len(case.directions)
-        rows.append({"group": group, "setting": ", ".join(f"{k}={v}" for k, v in over.items())
-                     or "paper defaults", **dataclasses.asdict(vc),
-                     "shadow_iou": res["shadow_iou"], "visible_iou": res["visible_iou"],
-                     "accuracy": res["accuracy"], "map_ms_per_direction":
-                     1e3 * res["build_s"] / n_l, "lookup_ms_per_view": res["eval_ms_per_view"],
-                     "ms_per_view_amortised": res["eval_ms_per_view"]
-                     + 1e3 * res["build_s"] / cfg.timing_views})
-    return rows
+def sweep_row(case: Case, cfg: ValidationConfig, vc: VisibilityConfig, group: str,
+              over: dict) -> dict:
+    """One setting of the sweep (``sweep_configs``' ``group``, ``over``; ``vc`` the maps'
+    config with it): the scores and times of the pixel method on ``case``."""
+    res = run_method(lambda: render_shadow_maps(case.surfels, case.directions, case.bounds,
+                                                vc), case, cfg.sweep_repeats)
+    n_l = len(case.directions)
+    return {"group": group, "setting": sweep_label(over), **dataclasses.asdict(vc),
+            "shadow_iou": res["shadow_iou"], "visible_iou": res["visible_iou"],
+            "accuracy": res["accuracy"], "map_ms_per_direction": 1e3 * res["build_s"] / n_l,
+            "lookup_ms_per_view": res["eval_ms_per_view"],
+            "ms_per_view_amortised": res["eval_ms_per_view"]
+            + 1e3 * res["build_s"] / cfg.timing_views}
 
 
-def time_directions(case: Case, cfg: ValidationConfig, base: VisibilityConfig, progress
-                    ) -> list:
-    """Shadow-map visibility time for N_l grid directions (maps of each of
-    ``cfg.timing_map_resolutions``) for a view of cfg.resolution^2 pixels (all pixels, as
-    the training pipeline does)."""
-    rows = []
+def sweep_label(over: dict) -> str:
+    return ", ".join(f"{k}={v}" for k, v in over.items()) or "paper defaults"
+
+
+def timing_row(case: Case, cfg: ValidationConfig, vc: VisibilityConfig, n_l: int) -> dict:
+    """Shadow-map visibility time for ``n_l`` grid directions (maps of ``vc``) for a view of
+    cfg.resolution^2 pixels (all pixels, as the training pipeline does)."""
     pts, nrm, foot = case.points[0], case.normals[0], case.footprint(0)
-    for res_map in cfg.timing_map_resolutions:
-        vc = dataclasses.replace(base, resolution=res_map)
-        for n_l in progress(cfg.sweep_lights, desc=f"N_l @ {res_map}^2"):
-            dirs = light_grid(n_l)
-            tm, tl = [], []
-            for r in range(cfg.repeats + 1):
-                maps, t_map = _sync_time(lambda vc=vc, dirs=dirs: render_shadow_maps(
-                    case.surfels, dirs, case.bounds, vc))
-                _, t_look = _sync_time(lambda m=maps: dr.eval(m.evaluate(pts, nrm, foot)))
-                if r > 0 or cfg.repeats == 0:
-                    tm.append(t_map)
-                    tl.append(t_look)
-            t_map, t_look = float(np.median(tm)), float(np.median(tl))
-            rows.append({"map_resolution": res_map, "n_directions": n_l,
-                         "view_pixels": dr.width(pts), "maps_s": t_map,
-                         "lookup_s_per_view": t_look,
-                         "s_per_view_amortised": t_look + t_map / cfg.timing_views,
-                         "s_single_view_with_maps": t_look + t_map})
-    return rows
+    dirs = light_grid(n_l)
+    tm, tl = [], []
+    for r in range(cfg.repeats + 1):
+        maps, t_map = _sync_time(lambda: render_shadow_maps(case.surfels, dirs, case.bounds,
+                                                            vc))
+        _, t_look = _sync_time(lambda m=maps: dr.eval(m.evaluate(pts, nrm, foot)))
+        if r > 0 or cfg.repeats == 0:
+            tm.append(t_map)
+            tl.append(t_look)
+    t_map, t_look = float(np.median(tm)), float(np.median(tl))
+    return {"map_resolution": vc.resolution, "n_directions": n_l,
+            "view_pixels": dr.width(pts), "maps_s": t_map, "lookup_s_per_view": t_look,
+            "s_per_view_amortised": t_look + t_map / cfg.timing_views,
+            "s_single_view_with_maps": t_look + t_map}
 
 
 # -- reports ------------------------------------------------------------------------------
@@ -635,6 +640,60 @@ def best_tradeoff(rows: list[dict]) -> dict:
     return min(ok, key=lambda r: r["ms_per_view_amortised"])
 
 
+# -- units -------------------------------------------------------------------------------
+STUDY = "validation.visibility"
+# Top-level files that only some calls write (the sweep's with the ground-truth scenes,
+# factors.md with --factors): a call without them removes an earlier call's, so that the
+# folder's files tell of one call.
+ONE_CALL_FILES = ("sweep.csv", "sweep.md", "timing.csv", "sweep.png", "factors.md")
+
+
+@dataclasses.dataclass
+class CaseSpec:
+    """A case and what its units are made from; the case is built on first use (``case``),
+    so that a rerun whose units are finished builds none."""
+
+    name: str
+    dataset: dict | None  # dataset_ref of a model's dataset
+    inputs: dict  # name -> input_ref: the scene's files, a model's PLY
+    settings: dict  # what every unit of the case depends on
+    case: Callable[[], Case]  # cached
+    files: tuple = ()  # inputs that a unit's folder must not hold
+
+    def provenance(self, **settings) -> Provenance:
+        return Provenance(self.dataset, self.inputs, settings_of(**self.settings, **settings))
+
+
+def scene_spec(name: str, scene_path: Path, overrides: dict | None,
+               cfg: ValidationConfig) -> CaseSpec:
+    """A ground-truth scene's case (``ground_truth_case``)."""
+    inputs = {"scene": input_ref(scene_path)}
+    inputs.update({key: input_ref(path) for key, path in (overrides or {}).items()})
+    return CaseSpec(name, None, inputs,
+                    {"case": name, "config": dataclasses.asdict(cfg)},
+                    functools.cache(lambda: ground_truth_case(name, scene_path, overrides,
+                                                              cfg)))
+
+
+def model_spec(model: Path, data: Path, cfg: ValidationConfig, name: str,
+               receiver_band: float) -> CaseSpec:
+    """A model's case (``model_case``)."""
+    return CaseSpec(name, dataset_ref(data), {"model": input_ref(model)},
+                    {"case": name, "config": dataclasses.asdict(cfg),
+                     "receiver_band": receiver_band},
+                    functools.cache(lambda: model_case(model, data, cfg, name,
+                                                       receiver_band)),
+                    (model, data))
+
+
+def table2_result(case: Case, config, repeats: int) -> dict:
+    """One method's Table 2 figures on ``case`` (``config``: one of ``method_configs``)."""
+    res = run_method(lambda: BUILDERS[type(config)](case.surfels, case.directions,
+                                                    case.bounds, config), case, repeats)
+    res.pop("vis")
+    return res
+
+
 # -- entry points -------------------------------------------------------------------------
 def _progress(quiet: bool):
     from tqdm import tqdm
@@ -645,9 +704,13 @@ def _progress(quiet: bool):
 def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False,
         factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None,
         models_only: bool = False, receiver_band: float | None = None,
-        preset: str | None = None) -> dict:
-    """Everything above; writes into ``out_dir`` (replaced atomically; an existing folder
-    only when it holds this validation's summary.json). ``model`` and
+        preset: str | None = None, overwrite: bool = False) -> dict:
+    """Everything above; writes into ``out_dir`` (new, or this validation's: ``claim_out``):
+    each case's row of each method, each model's factor split, each setting of the sweep
+    and of the timing is a unit (``validation.units``), so that a rerun after a kill redoes
+    only the unfinished ones and exits 2 naming what differs where a unit was made from
+    other inputs or settings (``overwrite``: its units made again); the tables are written
+    from the units at the end. ``model`` and
     ``data``: a stage-1 PLY and its dataset, or equally long lists of them; ``factors``:
     each model's ``model_factors`` too (``factor_samples``^2 points per pixel for the
     pixel-area truth, ``factor_surfels`` exact surfels on the object); ``models_only``: the
@@ -661,7 +724,6 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     if len(models) != len(datas):
         raise ValueError(f"every --model needs its --data (the dataset it was trained on): "
                          f"{len(models)} models, {len(datas)} datasets")
-    check_replaceable(out_dir, "summary.json")
     if factors and not models:
         raise ValueError("--factors splits a stage-1 model's IoU: give --model and --data")
     if models_only and not models:
@@ -690,28 +752,57 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
         else:
             notes.append(f"bunny skipped: {BUNNY} is absent (shared data not installed)")
             print(f"visibility validation: {notes[-1]}", flush=True)
+    scene_specs = [scene_spec(n, p, o, cfg) for n, p, o in scenes]
+    model_specs = [model_spec(Path(m), Path(d), cfg, n, receiver_band)
+                   for m, d, n in zip(models, datas, case_names, strict=True)]
+    specs = scene_specs + model_specs
+    if len({unit_name(s.name) for s in specs}) < len(specs):
+        raise ValueError(f"the cases {[s.name for s in specs]} do not all make distinct "
+                         f"folder names under {UNITS}/; rename a run folder")
+    out = claim_out(out_dir, STUDY, ("summary.json",))
     t_start = time.perf_counter()
-    cases = [ground_truth_case(n, p, o, cfg) for n, p, o in progress(scenes, desc="scenes")]
-    cases += [model_case(Path(m), Path(d), cfg, n, receiver_band)
-              for m, d, n in zip(models, datas, case_names, strict=True)]
-    names = [c.name for c in cases]  # results are keyed by case name
+
+    def unit(name: str, spec: CaseSpec, work, **settings) -> dict:
+        """Unit ``name``: ``work(case)`` on ``spec``'s case, with ``settings`` besides the
+        case's own."""
+        return run_unit(out, name, STUDY, spec.provenance(**settings),
+                        lambda _: work(spec.case()), overwrite=overwrite, inputs=spec.files)
+
+    names = [s.name for s in specs]  # results are keyed by case name
     results = {}
-    for name, build in methods(base, quick).items():
-        results[name] = {}
-        for case in progress(cases, desc=name):
-            res = run_method(lambda b=build, c=case: b(c.surfels, c.directions, c.bounds),
-                             case, cfg.repeats)
-            res.pop("vis")
-            results[name][case.name] = res
+    for method, config in method_configs(base, quick).items():
+        results[method] = {}
+        for spec in progress(specs, desc=method):
+            results[method][spec.name] = unit(
+                unit_name("table2", spec.name, method), spec,
+                functools.partial(table2_result, config=config, repeats=cfg.repeats),
+                method=method, method_settings=dataclasses.asdict(config))
     split = {}
     if factors:
-        for case in progress(cases[-len(models):], desc="factors"):
-            split[case.name] = model_factors(case, cfg, base, factor_samples,
-                                             factor_surfels, receiver_band)
-    gt_names = [c.name for c in cases if c.footprints is None]
-    sweep = run_sweep(cases[0], cfg, base, progress) if gt_names else []
-    timing = time_directions(cases[0], cfg, base, progress) if gt_names else []
-    model_names = [c.name for c in cases if c.footprints is not None]
+        for spec in progress(model_specs, desc="factors"):
+            split[spec.name] = unit(
+                unit_name("factors", spec.name), spec,
+                functools.partial(model_factors, cfg=cfg, base=base, samples=factor_samples,
+                                  exact_surfels=factor_surfels, receiver_band=receiver_band),
+                visibility=dataclasses.asdict(base), factor_samples=factor_samples,
+                factor_surfels=factor_surfels)
+    gt_names = [s.name for s in scene_specs]
+    model_names = [s.name for s in model_specs]
+    sweep, timing = [], []
+    if scene_specs:  # on the default scene's exact surfels
+        for group, over in progress(sweep_configs(cfg, base), desc="sweep"):
+            vc = dataclasses.replace(base, **over)
+            sweep.append(unit(unit_name("sweep", sweep_label(over)), scene_specs[0],
+                              functools.partial(sweep_row, cfg=cfg, vc=vc, group=group,
+                                                over=over),
+                              visibility=dataclasses.asdict(vc)))
+        for res_map in cfg.timing_map_resolutions:
+            vc = dataclasses.replace(base, resolution=res_map)
+            for n_l in progress(cfg.sweep_lights, desc=f"N_l @ {res_map}^2"):
+                timing.append(unit(unit_name("timing", f"{res_map}px", f"{n_l}lights"),
+                                   scene_specs[0],
+                                   functools.partial(timing_row, cfg=cfg, vc=vc, n_l=n_l),
+                                   visibility=dataclasses.asdict(vc), n_directions=n_l))
     baselines = [m for m in results if not m.startswith("Pixel")]
     wins_md = []
     for m in (m for m in results if m.startswith("Pixel")):
@@ -781,21 +872,23 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                "visibility_preset": preset, "visibility": dataclasses.asdict(base),
                "results": results, "best_tradeoff": best,
                "timing": timing, "factors": split, "notes": notes,
-               "wall_s": time.perf_counter() - t_start,
-               "loadavg": list(__import__("os").getloadavg())}
-    with atomic_dir(out_dir, overwrite=True) as tmp:
-        write_text(tmp / "table2.md", table + "\n")
-        write_text(tmp / "table2.csv", _csv(table_rows))
-        if sweep:
-            write_text(tmp / "sweep.csv", _csv(sweep))
-            write_text(tmp / "sweep.md", tau_summary(sweep) + "\n\n" + projection_note(sweep)
-                       + "\n")
-            write_text(tmp / "timing.csv", _csv(timing))
-            plot_sweep(sweep, tmp / "sweep.png")
-        if split:
-            write_text(tmp / "factors.md", factors_markdown(split) + "\n")
-        write_json(tmp / "summary.json", summary)
-        write_text(tmp / "README.md", markdown + "\n")
+               # this call's: a call that finds its units finished only gathers
+               "wall_s": time.perf_counter() - t_start, "loadavg": list(os.getloadavg())}
+    texts = {"table2.md": table + "\n", "table2.csv": _csv(table_rows)}
+    if sweep:
+        texts.update({"sweep.csv": _csv(sweep), "timing.csv": _csv(timing),
+                      "sweep.md": tau_summary(sweep) + "\n\n" + projection_note(sweep) + "\n"})
+        plot_sweep(sweep, out / "sweep.png")
+    if split:
+        texts["factors.md"] = factors_markdown(split) + "\n"
+    for name, text in texts.items():
+        write_text(out / name, text)
+    written = {*texts, *(["sweep.png"] if sweep else [])}
+    for name in ONE_CALL_FILES:
+        if name not in written:  # an earlier call's, which this call lacks
+            (out / name).unlink(missing_ok=True)
+    write_json(out / "summary.json", summary)
+    write_text(out / "README.md", markdown + "\n")
     summary["markdown"] = markdown
     return summary
 
@@ -804,7 +897,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Visibility validation against ray tracing "
                                              "(paper Table 2, speed-vs-error sweep).")
     ap.add_argument("--out", required=True, help="output folder: new or an earlier "
-                    "output of this validation (replaced atomically)")
+                    "output of this validation (its finished units are reused)")
     ap.add_argument("--quick", action="store_true", help="small smoke run")
     ap.add_argument("--model", action="append",
                     help="model PLY (RUN/geometry/model.ply, or a later stage's); repeat with "
@@ -830,12 +923,15 @@ def main(argv=None) -> int:
                          "splats within this many pixel footprints of it, as stages 4-5 of "
                          "the cpu presets do (default: the preset's; 0 without --preset: "
                          "the paper's median depth and blended normals)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="make this call's units again (those made from other inputs or "
+                         "settings exit 2 otherwise)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,
                       args.factors, args.factor_samples, args.factor_surfels,
-                      args.models_only, args.receiver_band, args.preset)
+                      args.models_only, args.receiver_band, args.preset, args.overwrite)
     except (ValueError, FileNotFoundError, FileExistsError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])
