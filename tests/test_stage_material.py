@@ -588,6 +588,32 @@ def test_indirect_sh_is_evaluated_per_surfel_at_its_camera_facing_normal():
     grad = dr.grad(sh_t).numpy().reshape(n, 9, 3)
     np.testing.assert_allclose(grad, basis[:, :, None] * (want > 0)[:, None, :], atol=1e-6)
 
+    # Unclamped (floor None): SH(n) itself. On the clamp itself (SH(n) = 0 exactly: the DC
+    # term alone, at 0) the gradient is the one from above, as for any value over it.
+    raw = np.einsum("nk,nkc->nc", basis, sh.astype(np.float64).reshape(n, 9, 3))
+    np.testing.assert_allclose(eval_sh(mi.TensorXf(sh), nrm, 0.0, None).numpy(), raw,
+                               atol=1e-6)
+    zero = mi.TensorXf(np.zeros((n, 27), np.float32))
+    dr.enable_grad(zero)
+    dr.backward(dr.sum(eval_sh(zero, nrm, offset=0.0).array))
+    np.testing.assert_allclose(dr.grad(zero).numpy().reshape(n, 9, 3), basis[:, :, None]
+                               * np.ones((1, 1, 3)), atol=1e-6)
+
+    # The floor's pull (lambda_ind_floor): mean of min(SH(n), 0)^2 against the float64
+    # reference; its gradient reaches exactly the clamped values, and raises them.
+    sh_t = mi.TensorXf(sh)
+    dr.enable_grad(sh_t)
+    pen = material_fit.indirect_floor_penalty(sh_t, nrm)
+    np.testing.assert_allclose(pen[0], np.mean(np.minimum(raw, 0.0) ** 2), rtol=1e-5)
+    dr.backward(pen)
+    grad = dr.grad(sh_t).numpy().reshape(n, 9, 3)
+    want_grad = 2.0 * np.minimum(raw, 0.0)[:, None, :] * basis[:, :, None] / raw.size
+    np.testing.assert_allclose(grad, want_grad, atol=1e-7)
+    # a small step against it raises every clamped value and leaves the others
+    step = sh - 1e-1 * grad.reshape(n, 27) / np.abs(grad).max()
+    after = np.einsum("nk,nkc->nc", basis, step.astype(np.float64).reshape(n, 9, 3))
+    assert np.all(after[raw < 0] > raw[raw < 0]) and np.allclose(after[raw > 0], raw[raw > 0])
+
 
 def _tilted_tile_truth():
     """The floor + tile scene whose tile is shaded with normals tilted 25 degrees about x

@@ -228,9 +228,11 @@ def sh_basis(d: mi.Vector3f, degree: int) -> list:
     return b
 
 
-def eval_sh(sh: mi.TensorXf, directions: mi.Vector3f, offset: float = 0.5) -> mi.TensorXf:
-    """RGB [N, 3] = max(SH(sh [N, K*3] coefficient-major) at ``directions`` [N] + offset, 0):
-    3DGS's colours with the default 0.5, stage 4's indirect irradiance with 0.
+def eval_sh(sh: mi.TensorXf, directions: mi.Vector3f, offset: float = 0.5,
+            floor: float | None = 0.0) -> mi.TensorXf:
+    """RGB [N, 3] = max(SH(sh [N, K*3] coefficient-major) at ``directions`` [N] + offset,
+    floor): 3DGS's colours with the default 0.5, stage 4's indirect irradiance with 0.
+    ``floor`` None: no clamp. At the floor itself the gradient is the one from above.
 
     ``directions`` need not be normalised (zero -> the DC term only).
     """
@@ -247,7 +249,8 @@ def eval_sh(sh: mi.TensorXf, directions: mi.Vector3f, offset: float = 0.5) -> mi
         acc = mi.Float(0.0)
         for k, bk in enumerate(basis):
             acc = acc + bk * dr.gather(mi.Float, sh.array, idx + (k * 3 + c))
-        rgb.append(dr.maximum(acc + offset, 0.0))
+        v = acc + offset
+        rgb.append(v if floor is None else dr.select(v >= floor, v, floor))
     return mi.TensorXf(dr.ravel(mi.Vector3f(*rgb)), shape=(n, 3))
 
 

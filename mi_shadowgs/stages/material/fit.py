@@ -88,6 +88,14 @@ class MaterialConfig:
 
     iterations: int = 5000
     lambda_ind2: float = 0.01
+    # A surfel whose indirect SH is negative at its normal is clamped to no indirect light
+    # and gets no gradient from the render: it could never light up again. This weight
+    # pulls such values back to 0 (mean of min(SH(n), 0)^2 over the surfels), where the
+    # render's gradient reaches them. 0: off (the paper's fit). At cpu-small such surfels
+    # are 2-5% of the default scene's and the hotdog's, 37% of the ficus's; at 1 they fall
+    # to 0.2-2.4%, but shadow IoU moves by -0.004 to +0.003 and albedo by -0.1 to 0 dB
+    # (BENCHMARKS.md, "Session 36: surfels with no indirect light"), so it stays off.
+    lambda_ind_floor: float = 0.0
     lambda_tv: float = 0.01
     lambda_brdf: float = 1.0
     lambda_reg: float = 0.001
@@ -645,6 +653,14 @@ def _tv(x: mi.Float, weight: mi.Float, h: int, w: int) -> mi.Float:
     return dr.sum((dx + dy) * weight)
 
 
+def indirect_floor_penalty(indirect_sh: mi.TensorXf, surfel_normal: mi.Vector3f) -> mi.Float:
+    """mean over surfels and channels of min(SH(n), 0)^2, the indirect SH [N, K*3] at each
+    surfel's normal [N] unclamped: zero wherever the render's clamp lets gradients through,
+    and pulling the clamped ones back up to it (``MaterialConfig.lambda_ind_floor``)."""
+    raw = eval_sh(indirect_sh, surfel_normal, offset=0.0, floor=None)
+    return dr.mean(dr.square(dr.minimum(raw.array, 0.0)))
+
+
 def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading.LightSet,
               vis: mi.Float | None, config: MaterialConfig, with_specular: bool,
               maps: tuple | None = None) -> mi.Float:
@@ -661,6 +677,9 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
     loss = l_rend
     if ind is not None:
         loss += config.lambda_ind2 * dr.sum(dr.squared_norm(ind) * wgt) * (inv / 3.0)
+        if config.lambda_ind_floor > 0:
+            loss += config.lambda_ind_floor * indirect_floor_penalty(
+                channels[shading.INDIRECT_CHANNEL], view.surfel_normal)
         loss += config.lambda_tv * sum(_tv(ind[c], wgt, h, w) for c in range(3)) * (inv / 3.0)
     tv_mat = mi.Float(0.0)
     if config.albedo_tv_with_segments or not config.segment_average:
