@@ -206,3 +206,25 @@ def test_visibility_runs_scores_the_table_models_at_their_rows_preset(tmp_path, 
     assert "preset" not in calls[-1][1] and not calls[-1][1].get("factors")
     names = list(run_all.VALIDATIONS)
     assert names.index("pipeline") < names.index("visibility_runs")
+
+
+def test_a_study_that_exits_2_does_not_stop_the_others(fake_runs, tmp_path, monkeypatch,
+                                                      capsys):
+    """A study refusing its folder (``validation.fail``: exit 2, e.g. a unit made with other
+    settings) is reported as failed; the validations after it still run."""
+    from validation import fail
+
+    def refuses(out_dir, quick, opts):
+        fail(f"{out_dir}/units/x: other settings (size: 128 there, 256 now)")
+
+    monkeypatch.setitem(run_all.VALIDATIONS, "lowpass_drift", refuses)
+    ran = []
+    monkeypatch.setitem(run_all.VALIDATIONS, "report_pages",
+                        lambda out_dir, quick, opts: ran.append(1) or {"markdown": "## ok"})
+    out = tmp_path / "validate"
+    assert run_all.main(["--out", str(out), "--only", "lowpass_drift", "--only",
+                         "report_pages"]) == 1
+    assert ran == [1]
+    assert json.loads((out / "run.json").read_text())["failed"] == ["lowpass_drift"]
+    err = capsys.readouterr().err
+    assert "size: 128 there, 256 now" in err and "lowpass_drift FAILED: exit 2" in err

@@ -155,10 +155,14 @@ def main(argv=None) -> int:
         try:
             summary = VALIDATIONS[name](out / name, args.quick, opts)
             sections.append(summary.get("markdown", f"## {name}\n(no summary)"))
-        except Exception as exc:  # one broken stage must not hide the others' reports
+        except (Exception, SystemExit) as exc:  # one broken stage must not hide the others
+            # A study that refuses its folder (exit 2, e.g. a unit made with other settings)
+            # has said why on stderr; the others still run.
+            why = f"exit {exc.code} (its message is above)" if isinstance(exc, SystemExit) \
+                else f"{type(exc).__name__}: {exc}"
             failed.append(name)
-            sections.append(f"## {name}\nFAILED: {type(exc).__name__}: {exc}")
-            print(f"validation {name} FAILED: {exc!r}", file=sys.stderr, flush=True)
+            sections.append(f"## {name}\nFAILED: {why}")
+            print(f"validation {name} FAILED: {why}", file=sys.stderr, flush=True)
         print(f"validation: {name} took {time.perf_counter() - t:.0f} s", flush=True)
     info = {"date_utc": datetime.datetime.now(datetime.timezone.utc)
             .strftime("%Y-%m-%d %H:%M UTC"), "cpu_count": os.cpu_count(),
