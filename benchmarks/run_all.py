@@ -31,7 +31,7 @@ from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
-from mi_shadowgs.io.provenance import Provenance, git_commit
+from mi_shadowgs.io.provenance import Provenance, git_commit, uncommitted_digest
 from validation import claim_out
 from validation.units import UNITS, open_unit, run_unit, settings_of, staged_folder
 
@@ -84,9 +84,9 @@ def _now() -> str:
 
 
 def suite_settings(info: dict, preset: str) -> dict:
-    """What a suite's figures depend on besides the suite: the preset, the code, the
-    machine and the libraries. ``git_commit`` marks uncommitted changes, not which ones."""
-    return settings_of(preset=preset, commit=git_commit(),
+    """What a suite's figures depend on besides the suite: the preset, the code (its commit
+    and any uncommitted changes), the machine and the libraries."""
+    return settings_of(preset=preset, commit=git_commit(), changes=uncommitted_digest(),
                        **{k: info[k] for k in ("cpu_model", "cpu_count", "variant", "python",
                                                "mitsuba", "drjit")})
 

@@ -426,3 +426,26 @@ def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
     assert "lambda_dist" in provenance.differences(
         old, provenance.Provenance(settings={"config": {"iterations": 300,
                                                         "lambda_dist": 0.0}}), ("settings",))[0]
+
+
+def test_uncommitted_changes_are_told_apart(tmp_path):
+    """``uncommitted_digest``: None on a clean checkout (and outside one); two different
+    edits of a tracked file give two digests, which "+changes" alone does not."""
+    import subprocess
+
+    from mi_shadowgs.io.provenance import git_commit, uncommitted_digest
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    assert uncommitted_digest(tmp_path) is None  # not a checkout
+    git("init", "-q")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", "code.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "one")
+    assert uncommitted_digest(tmp_path) is None
+    (tmp_path / "code.py").write_text("x = 2\n")
+    first = uncommitted_digest(tmp_path)
+    (tmp_path / "code.py").write_text("x = 3\n")
+    assert first is not None and uncommitted_digest(tmp_path) not in (None, first)
+    assert git_commit(tmp_path).endswith(" +changes")

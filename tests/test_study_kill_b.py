@@ -266,7 +266,13 @@ def test_benchmarks_killed_in_a_suite_run_only_the_unfinished_ones(monkeypatch, 
     assert ran == ["second", "first", "second"]
     assert not (out / "second.md").exists() and (out / "first.md").is_file()
     assert "## second" not in (out / "README.md").read_text()
-    # Other code (or another machine, or preset): exit 2 naming it, before any suite runs.
+    # Other code (or another machine, or preset): exit 2 naming it, before any suite runs;
+    # uncommitted edits count as other code, which "+changes" alone would not tell apart.
+    real = run_all.uncommitted_digest
+    monkeypatch.setattr(run_all, "uncommitted_digest", lambda: "ab12")
+    err = _exits_2(run_all.main, ["--out", str(out), "--quick"], capsys)
+    assert "changes: " in err and '"ab12" now' in err, err
+    monkeypatch.setattr(run_all, "uncommitted_digest", real)
     monkeypatch.setattr(run_all, "git_commit", lambda: "0123abc")
     err = _exits_2(run_all.main, ["--out", str(out), "--quick"], capsys)
     assert 'commit: "' in err and '"0123abc" now' in err and str(out / "units") in err, err

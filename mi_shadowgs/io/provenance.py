@@ -409,24 +409,40 @@ class Output:
         _prune_empty(self.folder, self._existing_root)
 
 
+def _git(path: str | os.PathLike | None, *args: str) -> str:
+    """``git args`` in the checkout holding ``path`` (default: this package), its output."""
+    import subprocess
+
+    where = Path(path) if path is not None else Path(__file__).resolve().parents[1]
+    return subprocess.run(["git", "-C", str(where), *args], capture_output=True, text=True,
+                          timeout=20, check=True).stdout.strip()
+
+
 def git_commit(path: str | os.PathLike | None = None) -> str:
     """The commit of the git checkout holding ``path`` (default: this package), with
     ``+changes`` when its tracked files differ from it; "unknown" outside a checkout or
     without git."""
     import subprocess
 
-    where = Path(path) if path is not None else Path(__file__).resolve().parents[1]
-
-    def git(*args: str) -> str:
-        return subprocess.run(["git", "-C", str(where), *args], capture_output=True,
-                              text=True, timeout=20, check=True).stdout.strip()
-
     try:
-        commit = git("rev-parse", "HEAD")
-        dirty = git("status", "--porcelain", "--untracked-files=no")
+        commit = _git(path, "rev-parse", "HEAD")
+        dirty = _git(path, "status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return commit + (" +changes" if dirty else "") if commit else "unknown"
+
+
+def uncommitted_digest(path: str | os.PathLike | None = None) -> str | None:
+    """blake2b-128 of the checkout's uncommitted changes to tracked files (``git diff
+    HEAD``), which ``git_commit``'s "+changes" does not tell apart; None when there are none
+    or outside a checkout."""
+    import subprocess
+
+    try:
+        diff = _git(path, "diff", "HEAD", "--binary")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return hashlib.blake2b(diff.encode(), digest_size=16).hexdigest() if diff else None
 
 
 def device_name(variant: str) -> str:
