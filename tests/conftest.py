@@ -84,6 +84,28 @@ def tiny_run(tmp_path_factory):
     return base
 
 
+@pytest.fixture
+def one_thread():
+    """Dr.Jit on one thread for one test: its float atomics then add in a fixed order, so
+    two runs are bit-identical (see test_kill.py)."""
+    import drjit as dr
+
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    yield
+    dr.set_thread_count(threads)
+
+
+def exits_2(main, argv, capsys) -> str:
+    """stderr of ``main(argv)``, which must exit 2."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2, err
+    return err
+
+
 def untouched(folder) -> bool:
     """``someone_elses_folder`` as it was made."""
     return [p.name for p in folder.iterdir()] == ["todo.txt"] and \

@@ -15,29 +15,10 @@ import dataclasses
 import json
 
 import pytest
+from conftest import exits_2
 from tiny_cli import TINY
 
 from mi_shadowgs.stages.geometry import train as geometry_train
-
-
-@pytest.fixture
-def one_thread():
-    import drjit as dr
-
-    threads = dr.thread_count()
-    dr.set_thread_count(1)
-    yield
-    dr.set_thread_count(threads)
-
-
-def _exits_2(main, argv, capsys) -> str:
-    """stderr of ``main(argv)``, which must exit 2."""
-    capsys.readouterr()
-    with pytest.raises(SystemExit) as exc:
-        main(argv)
-    err = capsys.readouterr().err
-    assert exc.value.code == 2, err
-    return err
 
 
 def _stopped_after_step(step: int):
@@ -92,7 +73,7 @@ def test_geometry_continues_its_stage_and_times_it_from_the_log(
     assert starts == [0, 50, 0]  # reused
     again = json.loads((out / "geometry.json").read_text())
     assert again["stage"] == "reused" and again["train_s"] == m["train_s"]
-    err = _exits_2(geometry.main, [*argv, "--iterations", "60"], capsys)
+    err = exits_2(geometry.main, [*argv, "--iterations", "60"], capsys)
     assert "iterations: 80 there, 60 now" in err and str(out / "stage") in err, err
     assert starts == [0, 50, 0]
 
@@ -147,7 +128,7 @@ def test_segmentation_reuses_its_dataset_and_stages_and_continues_the_one_in_pro
     assert timeless(rows) == timeless(json.loads((whole / "segmentation.json").read_text()))
     monkeypatch.setitem(features.PRESETS, "cpu-small",
                  dataclasses.replace(features.PRESETS[TINY], n_samples=128))
-    err = _exits_2(segmentation.main, argv, capsys)
+    err = exits_2(segmentation.main, argv, capsys)
     assert "config.n_samples: 256 there, 128 now" in err and str(out / "default_material") \
         in err, err
 
@@ -189,7 +170,7 @@ def test_lowpass_drift_keeps_each_finished_k_and_continues_the_one_in_progress(
     assert [r["k"] for r in json.loads((out / "lowpass_drift.json").read_text())["rows"]] == \
         [2.0, 12.0]
     monkeypatch.setattr(lowpass_drift, "QUICK", dataclasses.replace(quick, steps=25))
-    err = _exits_2(lowpass_drift.main, argv, capsys)
+    err = exits_2(lowpass_drift.main, argv, capsys)
     assert "drift.steps: 20 there, 25 now" in err and str(out / "units" / "quick_k_2") in err
 
 
@@ -253,5 +234,5 @@ def test_asset_keeps_its_finished_parts_and_continues_a_path_trace_from_its_last
 
     assert scores(result) == scores(once)
     assert (out / "asset.png").read_bytes() == (whole / "asset.png").read_bytes()
-    err = _exits_2(asset.main, [*argv[:6], "--spp", "8", "--no-progress"], capsys)
+    err = exits_2(asset.main, [*argv[:6], "--spp", "8", "--no-progress"], capsys)
     assert "spp: 4 there, 8 now" in err and str(out / "units" / f"relight_{name}") in err

@@ -18,28 +18,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import exits_2
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture
-def one_thread():
-    import drjit as dr
-
-    threads = dr.thread_count()
-    dr.set_thread_count(1)
-    yield
-    dr.set_thread_count(threads)
-
-
-def _exits_2(main, argv, capsys) -> str:
-    """stderr of ``main(argv)``, which must exit 2."""
-    capsys.readouterr()
-    with pytest.raises(SystemExit) as exc:
-        main(argv)
-    err = capsys.readouterr().err
-    assert exc.value.code == 2, err
-    return err
 
 
 def _counted(monkeypatch, module, name: str, stop_at: int | None = None) -> list:
@@ -90,7 +71,7 @@ def test_metric_floor_reuses_each_finished_view_size(tiny_run, monkeypatch, tmp_
         (tmp_path / "whole" / "metric_floor.md").read_text()
     metric_floor.main(argv)  # only gathers
     assert len(calls) == 5 and json.loads((out / "metric_floor.json").read_text())["rows"] == rows
-    err = _exits_2(metric_floor.main, [*argv[:-2], "3", "--quiet"], capsys)
+    err = exits_2(metric_floor.main, [*argv[:-2], "3", "--quiet"], capsys)
     assert "samples: 2 there, 3 now" in err and str(out / "units") in err, err
     assert len(calls) == 5
     metric_floor.main([*argv[:-2], "3", "--quiet", "--overwrite"])
@@ -145,7 +126,7 @@ def test_visibility_reuses_each_models_rows_and_split(tiny_run, tiny_presets, mo
     vv.main(argv)  # only gathers (the uninterrupted call made 4 rows and a split)
     assert len(rows) == 5 + 4 and len(splits) == 1 + 1
     assert json.loads((out / "summary.json").read_text())["results"] == summary["results"]
-    err = _exits_2(vv.main, [*argv, "--receiver-band", "0.5"], capsys)
+    err = exits_2(vv.main, [*argv, "--receiver-band", "0.5"], capsys)
     assert "receiver_band: 0.0 there, 0.5 now" in err and str(out / "units") in err, err
     assert len(rows) == 9
     # --overwrite makes the call's units again; a call without --factors drops factors.md
@@ -183,7 +164,7 @@ def test_shadow_factors_reuses_its_finished_parts(tiny_run, tiny_presets, monkey
         (tmp_path / "whole" / "shadow_factors.md").read_text()
     sf.main(argv)  # only gathers
     assert sum(len(c) for c in calls.values()) == 5 + 4
-    err = _exits_2(sf.main, [*argv, "--exact-surfels", "600"], capsys)
+    err = exits_2(sf.main, [*argv, "--exact-surfels", "600"], capsys)
     assert "exact_surfels: 20000 there, 600 now" in err and str(out / "units") in err, err
 
 
@@ -270,13 +251,13 @@ def test_benchmarks_killed_in_a_suite_run_only_the_unfinished_ones(monkeypatch, 
     # uncommitted edits count as other code, which "+changes" alone would not tell apart.
     real = run_all.uncommitted_digest
     monkeypatch.setattr(run_all, "uncommitted_digest", lambda: "ab12")
-    err = _exits_2(run_all.main, ["--out", str(out), "--quick"], capsys)
+    err = exits_2(run_all.main, ["--out", str(out), "--quick"], capsys)
     assert "changes: " in err and '"ab12" now' in err, err
     monkeypatch.setattr(run_all, "uncommitted_digest", real)
     monkeypatch.setattr(run_all, "git_commit", lambda: "0123abc")
-    err = _exits_2(run_all.main, ["--out", str(out), "--quick"], capsys)
+    err = exits_2(run_all.main, ["--out", str(out), "--quick"], capsys)
     assert 'commit: "' in err and '"0123abc" now' in err and str(out / "units") in err, err
-    err = _exits_2(run_all.main, ["--out", str(out)], capsys)
+    err = exits_2(run_all.main, ["--out", str(out)], capsys)
     assert 'preset: "cpu-small" there, "paper" now' in err, err
     assert ran == ["second", "first", "second"]
     assert run_all.main(["--out", str(out), "--quick", "--overwrite"]) == 0
@@ -291,5 +272,5 @@ def test_benchmarks_refuse_a_folder_they_did_not_write(someone_elses_folder, mon
     from benchmarks import run_all
 
     ran = _fake_suites(monkeypatch)
-    err = _exits_2(run_all.main, ["--out", str(someone_elses_folder), "--quick"], capsys)
+    err = exits_2(run_all.main, ["--out", str(someone_elses_folder), "--quick"], capsys)
     assert "did not write" in err and not ran and untouched(someone_elses_folder)
