@@ -128,6 +128,12 @@ def test_visibility_reuses_each_models_rows_and_split(tiny_run, tiny_presets, mo
     assert json.loads((out / "summary.json").read_text())["results"] == summary["results"]
     err = exits_2(vv.main, [*argv, "--receiver-band", "0.5"], capsys)
     assert "receiver_band: 0.0 there, 0.5 now" in err and str(out / "units") in err, err
+    # rows hold timings: on another device they are not reused
+    real = vv.device_name
+    monkeypatch.setattr(vv, "device_name", lambda variant: "another CPU (64 cores)")
+    err = exits_2(vv.main, argv, capsys)
+    assert 'device: "' in err and '"another CPU (64 cores)" now' in err, err
+    monkeypatch.setattr(vv, "device_name", real)
     assert len(rows) == 9
     # --overwrite makes the call's units again; a call without --factors drops factors.md
     vv.main([*argv[:4], *argv[7:], "--receiver-band", "0.5", "--overwrite"])

@@ -66,7 +66,7 @@ from mi_shadowgs.dataset.generate import (
 from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, dataset_scene, load_scene
 from mi_shadowgs.io.atomic import write_json, write_text
-from mi_shadowgs.io.provenance import Provenance, dataset_ref, input_ref
+from mi_shadowgs.io.provenance import Provenance, dataset_ref, device_name, input_ref
 from mi_shadowgs.stages.visibility.baselines import (
     GaussianTraceConfig,
     VoxelConfig,
@@ -762,10 +762,13 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     out = claim_out(out_dir, STUDY, ("summary.json",))
     t_start = time.perf_counter()
 
+    # Rows hold timings as well as scores: a unit timed on another device is not reused.
+    device = device_name(mi.variant())
+
     def unit(name: str, spec: CaseSpec, work, **settings) -> dict:
         """Unit ``name``: ``work(case)`` on ``spec``'s case, with ``settings`` besides the
         case's own."""
-        return run_unit(out, name, STUDY, spec.provenance(**settings),
+        return run_unit(out, name, STUDY, spec.provenance(device=device, **settings),
                         lambda _: work(spec.case()), overwrite=overwrite, inputs=spec.files)
 
     names = [s.name for s in specs]  # results are keyed by case name
