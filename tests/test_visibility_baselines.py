@@ -582,3 +582,22 @@ def test_exact_surfels_scale_with_the_views_pixel_count():
     assert (big.object_surfels, big.base_surfels) == (320000, 32000)
     small = vv.exact_surfel_config(dataclasses.replace(cfg, resolution=40), cam(20, 20))
     assert (small.object_surfels, small.base_surfels) == (5000, 1000)
+
+
+def test_a_full_run_after_a_smoke_run_in_the_same_folder(exact_model, tmp_path, monkeypatch):
+    """``make validate`` after ``make validate --quick`` into the same folder: the smoke
+    run's units are its own (``quick-``), so the full run makes its own instead of being
+    refused for their other settings."""
+    import validation.visibility as vv
+
+    data, model, cfg = exact_model
+    monkeypatch.setattr(vv, "QUICK", cfg)
+    monkeypatch.setattr(vv, "ValidationConfig", lambda: cfg)  # the full run, at test size
+    out = tmp_path / "vis"
+    argv = ["--out", str(out), "--models-only", "--model", str(model), "--data", str(data),
+            "--quiet"]
+    assert vv.main([*argv, "--quick"]) == 0
+    assert vv.main(argv) == 0
+    units = sorted(p.name for p in (out / "units").iterdir())
+    quick = [n for n in units if n.startswith("quick-")]
+    assert len(quick) == 4 and len(units) == 8  # one row per method, each run its own

@@ -767,8 +767,10 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
 
     def unit(name: str, spec: CaseSpec, work, **settings) -> dict:
         """Unit ``name``: ``work(case)`` on ``spec``'s case, with ``settings`` besides the
-        case's own."""
-        return run_unit(out, name, STUDY, spec.provenance(device=device, **settings),
+        case's own. A smoke run's units are its own (``quick-``): a full run into the same
+        folder after it (``make validate`` after a quick one) is not refused."""
+        return run_unit(out, ("quick-" if quick else "") + name, STUDY,
+                        spec.provenance(device=device, **settings),
                         lambda _: work(spec.case()), overwrite=overwrite, inputs=spec.files)
 
     names = [s.name for s in specs]  # results are keyed by case name
