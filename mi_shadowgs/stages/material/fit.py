@@ -93,8 +93,9 @@ class MaterialConfig:
     # pulls such values back to 0 (mean of min(SH(n), 0)^2 over the surfels), where the
     # render's gradient reaches them. 0: off (the paper's fit). At cpu-small such surfels
     # are 2-5% of the default scene's and the hotdog's, 37% of the ficus's; at 1 they fall
-    # to 0.2-2.4%, but shadow IoU moves by -0.004 to +0.003 and albedo by -0.1 to 0 dB
-    # (BENCHMARKS.md, "Session 36: surfels with no indirect light"), so it stays off.
+    # to 0.2-2.8%, but shadow IoU moves by -0.004 to +0.003 on the twelve rows (mean
+    # +0.0005, inside the runs' spread; BENCHMARKS.md, "Session 36: surfels with no
+    # indirect light"), so it stays off.
     lambda_ind_floor: float = 0.0
     lambda_tv: float = 0.01
     lambda_brdf: float = 1.0
