@@ -491,6 +491,35 @@ def test_a_mapping_killed_between_registrations_continues_its_models(photos, imp
         np.testing.assert_allclose(b[n].c2w, a[n].c2w, atol=5e-3)
 
 
+def test_an_import_killed_after_its_mapping_does_not_map_again(photos, imported, tmp_path,
+                                                              monkeypatch):
+    """Killed once the mapping is recorded (here in the world frame that follows it): the
+    rerun reads the finished mapping's models back instead of mapping again."""
+    from mi_shadowgs.dataset import importer
+
+    out = tmp_path / "data"
+    mappings, frames = [], []
+    real_map, real_frame = importer.incremental_mapping, importer.world_frame
+
+    def counted_map(*args, **kwargs):
+        mappings.append(1)
+        return real_map(*args, **kwargs)
+
+    def killed_once(*args, **kwargs):
+        frames.append(1)
+        if len(frames) == 1:
+            raise KeyboardInterrupt
+        return real_frame(*args, **kwargs)
+
+    monkeypatch.setattr(importer, "incremental_mapping", counted_map)
+    monkeypatch.setattr(importer, "world_frame", killed_once)
+    with pytest.raises(KeyboardInterrupt):
+        import_capture(photos / "photos", out, CONFIG, progress=False)
+    rec = import_capture(photos / "photos", out, CONFIG, progress=False)
+    assert mappings == [1] and len(frames) == 2
+    assert rec["registered"] == imported[1]["registered"]
+
+
 def test_sfm_work_of_other_photos_is_not_resumed_and_a_stranger_folder_is_refused(tmp_path):
     from mi_shadowgs.dataset import importer
 

@@ -213,7 +213,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
     import pycolmap
     from tqdm import tqdm
 
-    from mi_shadowgs.io.atomic import atomic_dir, write_json
+    from mi_shadowgs.io.atomic import write_json
 
     db = work / "database.db"
 
@@ -262,17 +262,11 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
         record()
     timings["match_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    sparse = work / "sparse"
-    if state["mapped"]:
-        recs = {int(d.name): pycolmap.Reconstruction(str(d)) for d in sparse.iterdir()
-                if d.is_dir()}
+    if state["mapped"]:  # its last write of the models is the finished mapping's
+        recs = {i: pycolmap.Reconstruction(str(d))
+                for i, d in enumerate(_saved_models(work / MAPPING))}
     else:
-        shutil.rmtree(sparse, ignore_errors=True)  # a write of the models cut short
         recs = incremental_mapping(db, image_dir, work, config)
-        with atomic_dir(sparse) as tmp:
-            for i, rec in recs.items():
-                (tmp / str(i)).mkdir()
-                rec.write(str(tmp / str(i)))
         state["mapped"] = True
         record()
     timings["map_s"] = time.perf_counter() - t
@@ -300,21 +294,22 @@ def incremental_mapping(db: Path, image_dir: Path, work: Path, config: ImportCon
 
     saved = work / MAPPING
     manager = pycolmap.ReconstructionManager()
-    if saved.is_dir():
-        for model in sorted((d for d in saved.iterdir() if d.name.isdigit()),
-                            key=lambda d: int(d.name)):
-            manager.read(str(model))
+    for model in _saved_models(saved):
+        manager.read(str(model))
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = config.threads
     options.random_seed = config.frame.seed
     options.image_path = str(image_dir)
     clock = CheckpointClock(0, config.checkpoint_seconds)
 
+    def save() -> None:
+        with atomic_dir(saved, overwrite=True) as tmp:
+            manager.write(str(tmp))
+        clock.saved()
+
     def on_registration() -> None:
         if clock.due():
-            with atomic_dir(saved, overwrite=True) as tmp:
-                manager.write(str(tmp))
-            clock.saved()
+            save()
             raise_pending("SfM mapping")
 
     database = pycolmap.Database.open(str(db))
@@ -326,7 +321,16 @@ def incremental_mapping(db: Path, image_dir: Path, work: Path, config: ImportCon
             pipeline.run()
     finally:
         database.close()
+    save()  # the finished mapping, which a rerun after a later kill reads back
     return {i: manager.get(i) for i in range(manager.size())}
+
+
+def _saved_models(folder: Path) -> list[Path]:
+    """The model folders (0, 1, ...) a ReconstructionManager wrote into ``folder``, in
+    order; none when it does not exist."""
+    if not folder.is_dir():
+        return []
+    return sorted((d for d in folder.iterdir() if d.name.isdigit()), key=lambda d: int(d.name))
 
 
 def _first_camera(db: Path) -> int | None:
