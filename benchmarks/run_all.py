@@ -31,7 +31,12 @@ from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
-from mi_shadowgs.io.provenance import Provenance, git_commit, uncommitted_digest
+from mi_shadowgs.io.provenance import (
+    Provenance,
+    device_name,
+    git_commit,
+    uncommitted_digest,
+)
 from validation import claim_out
 from validation.units import UNITS, open_unit, run_unit, settings_of, staged_folder
 
@@ -85,8 +90,13 @@ def _now() -> str:
 
 def suite_settings(info: dict, preset: str) -> dict:
     """What a suite's figures depend on besides the suite: the preset, the code (its commit
-    and any uncommitted changes), the machine and the libraries."""
+    and any uncommitted changes), the machine (its GPU too: the CUDA suite runs where one
+    exists) and the libraries."""
+    from mi_shadowgs import backend
+
+    gpu = device_name("cuda_ad_rgb") if backend.variant_available("cuda_ad_rgb") else None
     return settings_of(preset=preset, commit=git_commit(), changes=uncommitted_digest(),
+                       gpu=gpu,
                        **{k: info[k] for k in ("cpu_model", "cpu_count", "variant", "python",
                                                "mitsuba", "drjit")})
 

@@ -92,3 +92,22 @@ def test_a_unit_is_reused_only_with_its_own_provenance(tmp_path, capsys):
                  work)
     assert e.value.code == 2 and "size: 128 there, 256 now" in capsys.readouterr().err
     assert run_unit(tmp_path, "a", "validation.t", same, work, overwrite=True) == {"value": 3}
+
+
+def test_a_study_never_writes_into_a_dataset_or_over_what_it_reads(tmp_path, capsys):
+    """``claim_out``: an --out inside a dataset folder, or one that holds a file the study
+    reads, exits 2 before anything is written there."""
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "dataset.json").write_text("{}")
+    with pytest.raises(SystemExit) as e:
+        claim_out(data / "study", "validation.metric_floor")
+    assert e.value.code == 2 and "dataset folder" in capsys.readouterr().err
+    assert not (data / "study").exists()
+    model = tmp_path / "runs" / "model.ply"
+    model.parent.mkdir()
+    model.write_text("ply")
+    with pytest.raises(SystemExit) as e:
+        claim_out(tmp_path / "runs", "validation.visibility", inputs=[model])
+    assert e.value.code == 2 and "holds the input" in capsys.readouterr().err
+    assert not (tmp_path / "runs" / STUDY_MARK).exists()

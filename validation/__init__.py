@@ -23,18 +23,24 @@ def fail(message: str) -> NoReturn:
 STUDY_MARK = ".mi_shadowgs_study.json"
 
 
-def claim_out(out, study: str, earlier: tuple[str, ...] = ()):
+def claim_out(out, study: str, earlier: tuple[str, ...] = (), inputs=()):
     """``out`` as study ``study``'s output folder, or exit 2 when it is someone else's: a
     study writes named files into it, and must never write over files it did not write.
     Taken when new or empty (the mark is written), when it holds this study's mark, or when
-    it holds one of ``earlier`` (what this study wrote before the mark existed). Returns
-    ``out`` as a Path."""
+    it holds one of ``earlier`` (what this study wrote before the mark existed). Like every
+    output, it may not lie in a dataset folder nor hold one of ``inputs`` (the files and
+    folders the study reads). Returns ``out`` as a Path."""
     import json
     from pathlib import Path
 
     from mi_shadowgs.io.atomic import write_json
+    from mi_shadowgs.io.provenance import ProvenanceError, check_output_location
 
     out = Path(out)
+    try:
+        check_output_location(out, inputs)
+    except ProvenanceError as exc:
+        fail(f"--out: {exc}")
     if out.exists() and not out.is_dir():
         fail(f"--out {out}: exists and is not a folder")
     mark = out / STUDY_MARK

@@ -107,7 +107,7 @@ def main(argv=None) -> int:
         setup = dataset_scene(args.data)
     except (ConfigError, DatasetError, SceneError) as exc:
         fail(str(exc))
-    claim_out(args.out, STUDY, ("summary.json",))
+    claim_out(args.out, STUDY, ("summary.json",), inputs=(args.data,))
     surfels = standin_surfels(setup)
     bounds = scene_bounds(setup, train.cameras)
     extra = {} if args.iterations is None else {"iterations": args.iterations}

@@ -94,9 +94,11 @@ class DatasetViews:
 
     @classmethod
     def load(cls, data: Path, views: int | None) -> DatasetViews:
-        from mi_shadowgs.dataset.loader import load_dataset
+        from mi_shadowgs.dataset.layout import transforms_name
+        from mi_shadowgs.dataset.loader import load_cameras
 
-        cams = load_dataset(data, "test").cameras
+        # The cameras alone: a call that only gathers finished units reads no image.
+        cams = [c for _, c in load_cameras(data / transforms_name("test"))]
         cams = cams[:views] if views else cams
         if not cams:
             raise ValueError(f"{data}: no test views")
@@ -178,7 +180,7 @@ def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
     from mi_shadowgs.io.atomic import write_json, write_text
     from mi_shadowgs.io.provenance import Provenance, dataset_ref
     from mi_shadowgs.stages.visibility import shadow_maps
-    from validation import claim_out
+    from validation import claim_out, fail
     from validation.units import run_unit, settings_of, unit_name
 
     datas = [Path(d) for d in datas]
@@ -188,8 +190,11 @@ def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
         exact_visibility = dataclasses.asdict(vcfg if map_resolution is None else
                                               dataclasses.replace(vcfg,
                                                                   resolution=map_resolution))
-    tests = [DatasetViews.load(d, views) for d in datas]  # before any file is written
-    out_dir = claim_out(out_dir, STUDY, ("metric_floor.json",))
+    try:  # before any file is written
+        tests = [DatasetViews.load(d, views) for d in datas]
+    except ValueError as exc:  # (DatasetError too) naming the file
+        fail(str(exc))
+    out_dir = claim_out(out_dir, STUDY, ("metric_floor.json",), inputs=datas)
     rows = []
     for test, label in zip(tests, unit_labels(datas), strict=True):
         dataset = dataset_ref(test.data)

@@ -203,7 +203,8 @@ def main(argv=None) -> int:
         fail(f"{model}: not found (--run takes a finished run)")
     if args.run.resolve() in (args.out.resolve(), *args.out.resolve().parents):
         fail(f"--out {args.out}: inside the run {args.run}, which this tool only reads")
-    claim_out(args.out, "validation.refit_lights", ("refit.json",))
+    claim_out(args.out, "validation.refit_lights", ("refit.json",),
+              inputs=(args.run, args.data))
 
     def fit(unit) -> dict:
         from mi_shadowgs.stages.common import checkpoint_hooks

@@ -444,7 +444,7 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
         from validation.units import run_unit
 
         made_from = analysis_provenance(run, data, variant, views, exact_surfels)
-        out = claim_out(out, STUDY, ("shadow_factors.json",))
+        out = claim_out(out, STUDY, ("shadow_factors.json",), inputs=(run, data))
 
         def part(name, work):
             return run_unit(out, name, STUDY, made_from, lambda _: work(),

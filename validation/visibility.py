@@ -759,7 +759,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     if len({unit_name(s.name) for s in specs}) < len(specs):
         raise ValueError(f"the cases {[s.name for s in specs]} do not all make distinct "
                          f"folder names under {UNITS}/; rename a run folder")
-    out = claim_out(out_dir, STUDY, ("summary.json",))
+    out = claim_out(out_dir, STUDY, ("summary.json",),
+                    inputs=[f for spec in specs for f in spec.files])
     t_start = time.perf_counter()
 
     # Rows hold timings as well as scores: a unit timed on another device is not reused.
