@@ -106,6 +106,11 @@ def _read_json(path: Path) -> dict:
         raise ValueError(f"{path}: malformed JSON ({e})") from None
 
 
+def run_name(run: Path) -> str:
+    """A run's name in the tables: its folder's, or its row's for a table row's ``run/``."""
+    return run.parent.name if run.name == "run" else run.name
+
+
 def run_files(run: Path, variant: str = "full") -> dict[str, Path]:
     """The files of a finished run that the analysis reads: name -> path."""
     folder = run / "material" / variant
@@ -154,9 +159,8 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     train_cams = [c for _, c in load_cameras(data / "transforms_train.json")]
     seg = load_ply(run / "segmentation" / "model.ply")
     bounds = occluder_bounds(seg, train_cams, quantile)
-    name = run.parent.name if run.name == "run" else run.name
     return RunInputs(
-        name, load_ply(folder / "model.ply"),
+        run_name(run), load_ply(folder / "model.ply"),
         np.asarray(light["directions"], np.float64),
         np.asarray(light["irradiance"], np.float64).reshape(len(light["directions"]), -1)
         .mean(-1),
@@ -344,7 +348,7 @@ def factor_scores(a: Analysis, progress: bool) -> dict:
             vis = map_visibility(inp.model, rec, dirs, inp.bounds, inp.vis_config)
         scores[combo_label(key)] = a.iou(rec, vis, dirs, irr)
     errs = evaluation.light_angular_errors(inp.fit_dirs, inp.fit_irr, inp.true_dirs)
-    return {"scores": scores, "name": inp.name, "views": len(inp.cameras),
+    return {"scores": scores, "views": len(inp.cameras),
             "preset": inp.preset, "recorded_shadow_iou": inp.recorded_iou,
             "lights": {"fitted": len(inp.fit_dirs), "true": len(inp.true_dirs),
                        "angular_error_deg": errs["angular_error_deg"],
@@ -403,22 +407,19 @@ STUDY = "validation.shadow_factors"
 
 
 def analysis_provenance(run: Path, data: Path, variant: str, views: int | None,
-               exact_surfels: int | None):
-    """What the analysis of ``run`` is made from: the dataset, the run's files it reads, the
-    visibility settings the run's stage 4 ran with and this tool's options."""
+                        **part_settings):
+    """What a part of the analysis of ``run`` is made from: the dataset, the run's files it
+    reads, the visibility settings the run's stage 4 ran with, the views scored, and the
+    part's own options ``part_settings``."""
     from mi_shadowgs.io.provenance import Provenance, dataset_ref, input_ref
     from validation.units import settings_of
-    from validation.visibility import ValidationConfig
 
     preset, vcfg, quantile = run_visibility(run, variant)
     return Provenance(dataset_ref(data),
                       {name: input_ref(path) for name, path in run_files(run, variant).items()},
                       settings_of(variant=variant, views=views, preset=preset,
                                   visibility=dataclasses.asdict(vcfg),
-                                  bounds_quantile=quantile, bias_sweep=BIAS_SWEEP,
-                                  trace_lift=TRACE_LIFT,
-                                  exact_surfels=exact_surfels or
-                                  ValidationConfig().object_surfels))
+                                  bounds_quantile=quantile, **part_settings))
 
 
 def analyse(run: Path, data: Path, variant: str = "full", views: int | None = None,
@@ -437,21 +438,24 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     run, data = Path(run), Path(data)
     a = Analysis(run, data, variant, views)
     if out is None:
-        def part(name, work):
+        def part(name, work, **settings):
             return work()
     else:
         from validation import claim_out
         from validation.units import run_unit
 
-        made_from = analysis_provenance(run, data, variant, views, exact_surfels)
         out = claim_out(out, STUDY, ("shadow_factors.json",), inputs=(run, data))
 
-        def part(name, work):
-            return run_unit(out, name, STUDY, made_from, lambda _: work(),
-                            overwrite=overwrite, inputs=(run, data))
-    factors = part("factors", lambda: factor_scores(a, progress))
-    exact = part("exact_geometry", lambda: exact_geometry(a, exact_surfels))
-    bias = part("bias_sweep", lambda: bias_sweep(a, progress))
+        def part(name, work, **settings):
+            """Unit ``name``, made from the run and ``settings``, its own options: another
+            value of one part's option leaves the other parts reusable."""
+            return run_unit(out, name, STUDY,
+                            analysis_provenance(run, data, variant, views, **settings),
+                            lambda _: work(), overwrite=overwrite, inputs=(run, data))
+    factors = part("factors", lambda: factor_scores(a, progress), trace_lift=TRACE_LIFT)
+    exact = part("exact_geometry", lambda: exact_geometry(a, exact_surfels),
+                 exact_surfels=exact_surfels or ValidationConfig().object_surfels)
+    bias = part("bias_sweep", lambda: bias_sweep(a, progress), bias_sweep=BIAS_SWEEP)
     split = part("receiver_split", lambda: receiver_split(a))
     scores = factors["scores"]
     base, full = scores["---"], scores["LRO"]
@@ -463,7 +467,7 @@ def analyse(run: Path, data: Path, variant: str = "full", views: int | None = No
     best_bias = max(bias["bias_sweep"], key=lambda r: r["shadow_iou"])
     ranked = sorted(FACTORS, key=lambda f: -shares[f])
     return {
-        "run": str(run), "data": str(data), "name": factors["name"], "variant": variant,
+        "run": str(run), "data": str(data), "name": run_name(run), "variant": variant,
         "views": factors["views"], "preset": factors["preset"],
         "recorded_shadow_iou": factors["recorded_shadow_iou"], "shadow_iou": base,
         "all_ground_truth_iou": full, "exact_geometry_iou": exact["exact_geometry_iou"],
