@@ -664,13 +664,23 @@ class CaseSpec:
         return Provenance(self.dataset, self.inputs, settings_of(**self.settings, **settings))
 
 
+# The ValidationConfig fields a case's surfels, views and lights are made from; the timing
+# and sweep fields are settings of the units that use them.
+CASE_FIELDS = ("n_views", "resolution", "camera_distance", "object_surfels", "base_surfels",
+               "base_radius", "sigma_factor", "lights")
+
+
+def case_settings(cfg: ValidationConfig) -> dict:
+    return {field: getattr(cfg, field) for field in CASE_FIELDS}
+
+
 def scene_spec(name: str, scene_path: Path, overrides: dict | None,
                cfg: ValidationConfig) -> CaseSpec:
     """A ground-truth scene's case (``ground_truth_case``)."""
     inputs = {"scene": input_ref(scene_path)}
     inputs.update({key: input_ref(path) for key, path in (overrides or {}).items()})
     return CaseSpec(name, None, inputs,
-                    {"case": name, "config": dataclasses.asdict(cfg)},
+                    {"case": name, "config": case_settings(cfg)},
                     functools.cache(lambda: ground_truth_case(name, scene_path, overrides,
                                                               cfg)))
 
@@ -679,7 +689,7 @@ def model_spec(model: Path, data: Path, cfg: ValidationConfig, name: str,
                receiver_band: float) -> CaseSpec:
     """A model's case (``model_case``)."""
     return CaseSpec(name, dataset_ref(data), {"model": input_ref(model)},
-                    {"case": name, "config": dataclasses.asdict(cfg),
+                    {"case": name, "config": case_settings(cfg),
                      "receiver_band": receiver_band},
                     functools.cache(lambda: model_case(model, data, cfg, name,
                                                        receiver_band)),
@@ -782,7 +792,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
             results[method][spec.name] = unit(
                 unit_name("table2", spec.name, method), spec,
                 functools.partial(table2_result, config=config, repeats=cfg.repeats),
-                method=method, method_settings=dataclasses.asdict(config))
+                method=method, method_settings=dataclasses.asdict(config),
+                repeats=cfg.repeats)
     split = {}
     if factors:
         for spec in progress(model_specs, desc="factors"):
@@ -801,14 +812,16 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
             sweep.append(unit(unit_name("sweep", sweep_label(over)), scene_specs[0],
                               functools.partial(sweep_row, cfg=cfg, vc=vc, group=group,
                                                 over=over),
-                              visibility=dataclasses.asdict(vc)))
+                              visibility=dataclasses.asdict(vc),
+                              sweep_repeats=cfg.sweep_repeats, timing_views=cfg.timing_views))
         for res_map in cfg.timing_map_resolutions:
             vc = dataclasses.replace(base, resolution=res_map)
             for n_l in progress(cfg.sweep_lights, desc=f"N_l @ {res_map}^2"):
                 timing.append(unit(unit_name("timing", f"{res_map}px", f"{n_l}lights"),
                                    scene_specs[0],
                                    functools.partial(timing_row, cfg=cfg, vc=vc, n_l=n_l),
-                                   visibility=dataclasses.asdict(vc), n_directions=n_l))
+                                   visibility=dataclasses.asdict(vc), n_directions=n_l,
+                                   repeats=cfg.repeats, timing_views=cfg.timing_views))
     baselines = [m for m in results if not m.startswith("Pixel")]
     wins_md = []
     for m in (m for m in results if m.startswith("Pixel")):
