@@ -45,6 +45,16 @@ from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground
 from mi_shadowgs.stages.relight import evaluation
 
 
+def exact_visibility_config(preset: str, map_resolution: int | None):
+    """The shadow maps' settings of the method on exact geometry: ``preset``'s, at
+    ``map_resolution`` texels when given."""
+    from mi_shadowgs.stages.visibility import shadow_maps
+
+    vcfg = shadow_maps.get_config(preset)
+    return vcfg if map_resolution is None else \
+        dataclasses.replace(vcfg, resolution=map_resolution)
+
+
 def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
                        surfels_128: int, map_resolution: int | None) -> float:
     """Stage 5's shadow IoU of the method itself on exact geometry at the size of
@@ -55,7 +65,6 @@ def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
     against the point truth ``point`` (``trace_ground_truth`` at these cameras)."""
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.stages.material.runner import occluder_bounds
-    from mi_shadowgs.stages.visibility import shadow_maps
     from validation.shadow_factors import method_irradiance
     from validation.visibility import ValidationConfig, exact_surfel_config, scene_surfels
 
@@ -63,9 +72,7 @@ def exact_geometry_iou(setup, data: Path, cameras, point: dict, preset: str,
                                                      surfels_128, max(1, surfels_128 // 5)))
     train = [c for _, c in load_cameras(data / "transforms_train.json")]
     bounds = occluder_bounds(exact, train, 0.98)  # as a run frames its maps
-    vcfg = shadow_maps.get_config(preset)
-    if map_resolution is not None:
-        vcfg = dataclasses.replace(vcfg, resolution=map_resolution)
+    vcfg = exact_visibility_config(preset, map_resolution)
     dirs = np.array([lt.direction for lt in setup.lights], np.float64)  # [L, 3]
     irr = np.array([np.mean(lt.irradiance) for lt in setup.lights], np.float64)  # [L]
     est = method_irradiance(exact, cameras, dirs, irr, bounds, vcfg)
@@ -179,17 +186,13 @@ def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
 
     from mi_shadowgs.io.atomic import write_json, write_text
     from mi_shadowgs.io.provenance import Provenance, dataset_ref
-    from mi_shadowgs.stages.visibility import shadow_maps
     from validation import claim_out, fail
     from validation.units import run_unit, settings_of, unit_name
 
     datas = [Path(d) for d in datas]
     exact_visibility = None  # the maps' settings: a preset's may change with the code
     if exact is not None:
-        vcfg = shadow_maps.get_config(exact)
-        exact_visibility = dataclasses.asdict(vcfg if map_resolution is None else
-                                              dataclasses.replace(vcfg,
-                                                                  resolution=map_resolution))
+        exact_visibility = dataclasses.asdict(exact_visibility_config(exact, map_resolution))
     try:  # before any file is written
         tests = [DatasetViews.load(d, views) for d in datas]
     except ValueError as exc:  # (DatasetError too) naming the file
