@@ -41,6 +41,8 @@ bench: install
 # The whole table (6 scenes x 2 light pairs, hours on 2 cores; resumed after a kill), Table 2,
 # the filter drift and the report pages in headless Chromium. A subset:
 #   make validate VALIDATE_ARGS="--scene bunny --lights low --only pipeline"
+# The studies after the table exit 2 on units made from other inputs or settings:
+#   make validate VALIDATE_ARGS=--overwrite
 VALIDATE_ARGS ?=
 validate: install
 	@bash scripts/setup.sh --chromium

@@ -228,3 +228,33 @@ def test_a_study_that_exits_2_does_not_stop_the_others(fake_runs, tmp_path, monk
     assert json.loads((out / "run.json").read_text())["failed"] == ["lowpass_drift"]
     err = capsys.readouterr().err
     assert "size: 128 there, 256 now" in err and "lowpass_drift FAILED: exit 2" in err
+
+
+def test_overwrite_reaches_the_studies_with_units(fake_runs, tmp_path, monkeypatch):
+    """``make validate VALIDATE_ARGS=--overwrite``: the studies that keep units make them
+    again; without it they are asked to reuse them (and refuse units made otherwise)."""
+    from validation import lowpass_drift, metric_floor, visibility
+
+    seen = []
+
+    def study(name):
+        def run(*args, **kwargs):
+            seen.append((name, kwargs["overwrite"]))
+            return {"markdown": f"## {name}"}
+        return run
+
+    monkeypatch.setattr(visibility, "run", study("visibility"))
+    monkeypatch.setattr(metric_floor, "run", study("metric_floor"))
+    monkeypatch.setattr(lowpass_drift, "run", study("lowpass_drift"))
+    out = tmp_path / "validate"
+    assert run_all.main(["--out", str(out), "--only", "pipeline", "--scene", "default",
+                         "--lights", "tuned"]) == 0
+    model = out / "pipeline" / "default-tuned" / "run" / "geometry" / "model.ply"
+    model.parent.mkdir(parents=True)
+    model.write_bytes(b"")
+    studies = ["--only", "visibility", "--only", "visibility_runs", "--only", "metric_floor",
+               "--only", "lowpass_drift"]
+    assert run_all.main(["--out", str(out), *studies]) == 0
+    assert run_all.main(["--out", str(out), *studies, "--overwrite"]) == 0
+    names = ["visibility", "visibility", "metric_floor", "lowpass_drift"]
+    assert seen == [(n, False) for n in names] + [(n, True) for n in names]

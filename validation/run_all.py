@@ -6,6 +6,7 @@ one, import it here and give it a name in ``VALIDATIONS``::
 
     python -m validation.run_all --out validation-out [--quick] [--only visibility]
                                  [--scene NAME ...] [--lights PAIR ...] [--threads N]
+                                 [--overwrite]
 
 The pipeline table (every scene under both light pairs, ``validation.pipeline``) takes hours,
 so each validation writes into ``OUT/<name>/`` in place and the table resumes per scene and
@@ -13,6 +14,11 @@ pair: the same command again after a kill redoes only the unfinished runs. ``--s
 ``--lights`` choose a subset of the table (the tables gather every finished row under
 ``OUT/pipeline``). ``report_pages`` then checks each table run's ``report.html`` in headless
 Chromium (``validation.report_page``). ``README.md`` and ``run.json`` are written last.
+
+The studies after the table keep their work in units (``validation.units``): a unit made
+from other inputs or settings makes its study exit 2, reported as failed, and
+``--overwrite`` makes those studies' units again. The table's finished rows always stand as
+recorded (each row names its commit): remove ``OUT/pipeline/<row>`` to run one again.
 """
 
 from __future__ import annotations
@@ -31,6 +37,11 @@ from mi_shadowgs.io.atomic import write_json, write_text
 from validation import fail
 
 
+def _overwrite(opts: dict | None) -> bool:
+    """Whether the studies make their units again (``--overwrite``)."""
+    return bool(opts and opts.get("overwrite"))
+
+
 def _table_models(out_dir: Path) -> tuple[list[Path], list[Path]]:
     """The stage-1 models the pipeline validation (run before) trained, and their datasets."""
     models = sorted((out_dir.parent / "pipeline").glob("*/run/geometry/model.ply"))
@@ -43,7 +54,8 @@ def _visibility(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     from . import visibility
 
     models, datas = _table_models(out_dir)
-    return visibility.run(out_dir, quick=quick, model=models, data=datas)
+    return visibility.run(out_dir, quick=quick, model=models, data=datas,
+                          overwrite=_overwrite(opts))
 
 
 def _visibility_runs(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
@@ -58,7 +70,7 @@ def _visibility_runs(out_dir: Path, quick: bool, opts: dict | None = None) -> di
     preset = pipeline.row_preset(json.loads(row.read_text())) if row.is_file() else \
         pipeline.dataset_preset(datas[0] / "dataset.json")
     return visibility.run(out_dir, quick=quick, model=models, data=datas, factors=True,
-                          models_only=True, preset=preset)
+                          models_only=True, preset=preset, overwrite=_overwrite(opts))
 
 
 def _pipeline(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
@@ -79,13 +91,13 @@ def _metric_floor(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     datas = sorted(p.parent for p in (out_dir.parent / "pipeline").glob("*/data/dataset.json"))
     return metric_floor.run(out_dir, datas, progress=False,
                             command=[opts.get("command", "")] if opts else None,
-                            exact="cpu-small")
+                            exact="cpu-small", overwrite=_overwrite(opts))
 
 
 def _lowpass_drift(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     from . import lowpass_drift
 
-    return lowpass_drift.run(out_dir, quick=quick)
+    return lowpass_drift.run(out_dir, quick=quick, overwrite=_overwrite(opts))
 
 
 def _report_pages(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
@@ -135,6 +147,9 @@ def main(argv=None) -> int:
     ap.add_argument("--lights", action="append", choices=sorted(pipeline.LIGHT_PAIRS),
                     help="pipeline table: only this light pair (repeatable)")
     ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="make the studies' units again where they were made from other "
+                         "inputs or settings (the table's finished rows stand)")
     args = ap.parse_args(argv)
     if args.threads:
         import drjit as dr
@@ -144,7 +159,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     _check_out(out)
     command = " ".join(["python", "-m", "validation.run_all", *(argv or sys.argv[1:])])
-    opts = {"scenes": args.scene, "lights": args.lights, "command": command}
+    opts = {"scenes": args.scene, "lights": args.lights, "command": command,
+            "overwrite": args.overwrite}
     t0 = time.perf_counter()
     load0 = os.getloadavg()
     sections, failed = [], []
