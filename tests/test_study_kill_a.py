@@ -171,7 +171,7 @@ def test_lowpass_drift_keeps_each_finished_k_and_continues_the_one_in_progress(
         [2.0, 12.0]
     monkeypatch.setattr(lowpass_drift, "QUICK", dataclasses.replace(quick, steps=25))
     err = exits_2(lowpass_drift.main, argv, capsys)
-    assert "drift.steps: 20 there, 25 now" in err and str(out / "units" / "quick_k_2") in err
+    assert "drift.steps: 20 there, 25 now" in err and str(out / "units" / "quick-k_2") in err
 
 
 def test_asset_keeps_its_finished_parts_and_continues_a_path_trace_from_its_last_view(

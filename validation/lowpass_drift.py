@@ -10,7 +10,7 @@ truth on the test views (positive: behind the true surface), with PSNR and norma
     python -m validation.lowpass_drift --out OUT [--data DATA] [--quick] [--overwrite]
 
 Writes (atomically) ``OUT/lowpass_drift.json`` and ``OUT/lowpass_drift.md``. Each k is a
-unit of its own (``validation.units``, ``OUT/units/k_<k>/``, ``quick_k_<k>/`` with
+unit of its own (``validation.units``, ``OUT/units/k_<k>/``, ``quick-k_<k>/`` with
 ``--quick``, with the training's checkpoint): a killed call, run again, reuses the finished
 ks and continues the one in progress when the dataset and the settings are the same, and
 exits 2 naming what differs otherwise; ``--overwrite`` trains them again.
@@ -29,7 +29,7 @@ import numpy as np
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from mi_shadowgs.io.atomic import write_json, write_text
 from validation import claim_out, fail
-from validation.units import run_unit, settings_of
+from validation.units import run_unit, settings_of, smoke_name
 
 STUDY = "validation.lowpass_drift"
 KS = (2.0, 8.0, 12.0, 32.0)
@@ -95,17 +95,6 @@ def drift_geometry_config(base, cfg: DriftConfig, k: float):
         densify=DensifyConfig(start=10**9, stop=0, opacity_reset_interval=0))
 
 
-@dataclasses.dataclass
-class _Checkpointable:
-    """Stage 1's ``TrainState`` as ``checkpoint_hooks`` saves a state (``to_checkpoint``,
-    the interface of stages 2 and 4)."""
-
-    state: object
-
-    def to_checkpoint(self) -> tuple[dict, dict]:
-        return self.state.to_numpy(), {"stage": "geometry", "step": self.state.step}
-
-
 def train_k(unit, k: float, gcfg, inputs: dict, cfg: DriftConfig) -> dict:
     """One filter strength's row: ``cfg.steps`` stage-1 steps from the surfels on the true
     surface, checkpointed in ``unit`` (continued from there when it has one)."""
@@ -118,10 +107,9 @@ def train_k(unit, k: float, gcfg, inputs: dict, cfg: DriftConfig) -> dict:
     start = G.state_from_params(inputs["params"], train.cameras, gcfg, cfg.start_step)
     bias0 = depth_bias(G.model_surfels(dict(start.opt.params)), test, gcfg.raster,
                        cfg.test_views, base_id)
-    save = hooks["on_checkpoint"]
     state = start if hooks["state"] is None else hooks["state"]
-    model = G.train_geometry(train, gcfg, state=state, progress=False, callbacks=G.Callbacks(
-        on_checkpoint=lambda s: save(_Checkpointable(s))))
+    model = G.train_geometry(train, gcfg, state=state, progress=False,
+                             callbacks=G.Callbacks(on_checkpoint=hooks["on_checkpoint"]))
     m = G.evaluate(model, test, gcfg.raster)
     return {"k": k, "filter_std_px": 1.0 / math.sqrt(k),
             "depth_bias_start": bias0,
@@ -132,8 +120,9 @@ def train_k(unit, k: float, gcfg, inputs: dict, cfg: DriftConfig) -> dict:
 
 
 def run_drift(data: Path, cfg: DriftConfig, out: Path, overwrite: bool = False,
-              unit_prefix: str = "") -> list[dict]:
-    """One row per k of ``cfg.ks``, each the unit ``OUT/units/<unit_prefix>k_<k>``."""
+              quick: bool = False) -> list[dict]:
+    """One row per k of ``cfg.ks``, each the unit ``OUT/units/k_<k>`` (a smoke run's:
+    ``smoke_name``)."""
     from mi_shadowgs.dataset.layout import DATASET_JSON
     from mi_shadowgs.dataset.loader import DatasetError, load_dataset
     from mi_shadowgs.dataset.scene import SceneError, dataset_scene
@@ -168,7 +157,7 @@ def run_drift(data: Path, cfg: DriftConfig, out: Path, overwrite: bool = False,
         gcfg = drift_geometry_config(base, cfg, k)
         provenance = Provenance(data_ref, settings=settings_of(
             drift=drift, k=k, geometry=settings_dict(gcfg)))
-        row = run_unit(out, f"{unit_prefix}k_{k:g}", STUDY, provenance,
+        row = run_unit(out, smoke_name(f"k_{k:g}", quick), STUDY, provenance,
                        lambda unit, k=k, gcfg=gcfg: train_k(unit, k, gcfg, loaded(), cfg),
                        overwrite=overwrite, inputs=[data])
         rows.append(row)
@@ -204,8 +193,7 @@ def run(out_dir, quick: bool = False, data: str | None = None,
         data_path = make_dataset("default", None, out_dir)
     else:
         data_path = Path(data)
-    # The quick run's ks are units of their own: a smoke run leaves the real one's alone.
-    rows = run_drift(data_path, cfg, out_dir, overwrite, "quick_" if quick else "")
+    rows = run_drift(data_path, cfg, out_dir, overwrite, quick)
     md = markdown(rows, cfg, data_path)
     write_json(out_dir / "lowpass_drift.json", {"config": dataclasses.asdict(cfg),
                                                 "rows": rows})

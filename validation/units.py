@@ -31,6 +31,7 @@ from validation import fail
 
 UNITS = "units"
 RESULT = "result.json"
+SMOKE = "quick-"  # a smoke run's (--quick) unit names start with it
 
 
 def open_unit(out: str | Path, name: str, study: str, provenance: Provenance, *,
@@ -86,6 +87,13 @@ def unit_name(*parts) -> str:
     the parts are joined by '-'. Distinct texts can map to one name ("a b", "a_b"): a study
     whose names come from free text checks that its names differ."""
     return "-".join(re.sub(r"[^A-Za-z0-9._-]+", "_", str(p)).strip("_") or "_" for p in parts)
+
+
+def smoke_name(name: str, quick: bool) -> str:
+    """Unit ``name`` of a smoke run (``quick``) or a full one: a smoke run's units are its own
+    (``SMOKE``), so a full run into the same folder after it (``make validate`` after a quick
+    one) makes its own instead of being refused for the smaller settings."""
+    return SMOKE + name if quick else name
 
 
 @contextlib.contextmanager

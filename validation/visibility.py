@@ -81,7 +81,7 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
 )
 from mi_shadowgs.stages.visibility.shadow_maps import get_config as get_visibility_config
 from validation import claim_out, fail
-from validation.units import UNITS, run_unit, settings_of, unit_name
+from validation.units import UNITS, run_unit, settings_of, smoke_name, unit_name
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
@@ -778,9 +778,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
 
     def unit(name: str, spec: CaseSpec, work, **settings) -> dict:
         """Unit ``name``: ``work(case)`` on ``spec``'s case, with ``settings`` besides the
-        case's own. A smoke run's units are its own (``quick-``): a full run into the same
-        folder after it (``make validate`` after a quick one) is not refused."""
-        return run_unit(out, ("quick-" if quick else "") + name, STUDY,
+        case's own; a smoke run's are its own (``smoke_name``)."""
+        return run_unit(out, smoke_name(name, quick), STUDY,
                         spec.provenance(device=device, **settings),
                         lambda _: work(spec.case()), overwrite=overwrite, inputs=spec.files)
 

@@ -61,8 +61,8 @@ class StageRun:
 
 
 def checkpoint_hooks(out: Output, from_checkpoint) -> dict:
-    """``state`` and ``on_checkpoint`` of a loop whose state has ``to_checkpoint`` (stages 2
-    and 4), saved in ``out``'s ``checkpoint/``: the state is the checkpoint's when ``out``
+    """``state`` and ``on_checkpoint`` of a loop whose state has ``to_checkpoint`` (stages 1,
+    2 and 4), saved in ``out``'s ``checkpoint/``: the state is the checkpoint's when ``out``
     is a reused output that has one."""
     from mi_shadowgs.io.checkpoint import has_checkpoint, load_checkpoint, save_checkpoint
 

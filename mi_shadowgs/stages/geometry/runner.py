@@ -65,8 +65,8 @@ class GeometryWriter:
     def on_checkpoint(self, state) -> None:
         from mi_shadowgs.io.checkpoint import save_checkpoint
 
-        save_checkpoint(self.out.folder / "checkpoint", state.to_numpy(),
-                        {"stage": "geometry", "step": state.step, "config": self.config_dict})
+        save_checkpoint(self.out.folder / "checkpoint",
+                        *state.to_checkpoint(config=self.config_dict))
 
 
 def geometry_line(metrics: dict) -> str:

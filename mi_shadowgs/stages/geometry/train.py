@@ -519,6 +519,12 @@ class TrainState:
                                    self.log_count], np.float64)
         return out
 
+    def to_checkpoint(self, **meta) -> tuple[dict[str, np.ndarray], dict]:
+        """(arrays, JSON meta) for ``mi_shadowgs.io.checkpoint.save_checkpoint``, as stages 2
+        and 4 save theirs (``stages.common.checkpoint_hooks``); ``meta`` is recorded beside
+        the stage and step. ``from_numpy`` reads the arrays back."""
+        return self.to_numpy(), {"stage": "geometry", "step": self.step, **meta}
+
     @staticmethod
     def from_numpy(arrays: dict[str, np.ndarray], config: GeometryConfig) -> TrainState:
         def group(prefix):
