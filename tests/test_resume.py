@@ -9,6 +9,7 @@ in the last bits (tests/test_kill.py says more).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import signal
 
@@ -342,10 +343,18 @@ def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatc
         _sigterm_on_call(mp, seg, "segmentation_loss", 9)
         assert cli.main(seg_argv) == 143
     assert "run it again with --resume" in capsys.readouterr().err
+    # The killed call's training is counted in the stage's time as in the training's: made
+    # long here (1000 s) so that the continuing call's own time cannot stand in for it.
+    ckpt = tmp_path / "seg" / "checkpoint"
+    arrays, meta = load_checkpoint(ckpt)
+    save_checkpoint(ckpt, arrays, {**meta, "elapsed": meta["elapsed"] + 1000.0})
     assert cli.main(seg_argv) == 2
     assert "pass --resume to continue it" in capsys.readouterr().err
     assert cli.main([*seg_argv, "--resume"]) == 0
     assert _files(tmp_path / "seg") == _files(ref / "segmentation")
+    report = json.loads((tmp_path / "seg" / "segmentation.json").read_text())
+    assert report["seconds_train"] > 1000.0
+    assert report["seconds_stage"] > report["seconds_train"] + report["seconds_masks"]
 
 
 def test_a_log_row_cut_short_is_dropped_on_resume(tmp_path):

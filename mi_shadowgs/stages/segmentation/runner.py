@@ -87,10 +87,14 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     t0 = time.perf_counter()
     label_maps = masks_mod.masks_for(train, masks, mask_config)
     t_masks = time.perf_counter() - t0
+    hooks = checkpoint_hooks(out, seg.FeatureState.from_checkpoint)
+    # The training that earlier calls did (a continued stage): counted in seconds_stage as
+    # seconds_train counts it, so a resumed stage reports its whole time.
+    trained_before = 0.0 if hooks["state"] is None else hooks["state"].elapsed
     result = seg.segment_surfels(surfels, train.cameras, label_maps, config,
                                  progress=progress, names=[v.name for v in train.views],
-                                 **checkpoint_hooks(out, seg.FeatureState.from_checkpoint))
-    t_stage = time.perf_counter() - t0
+                                 **hooks)
+    t_stage = time.perf_counter() - t0 + trained_before
     stems = [Path(v.name).name for v in views.views]
     with out:
         out.claim("model.ply", *(f"segments/{s}{x}.png" for s in stems
