@@ -225,17 +225,17 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
     extraction.sift.max_num_features = config.max_features
     done = set(state["extracted"])
     todo = [n for n in names if n not in done]
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = config.camera_model
+    if config.focal_px is not None:
+        w, h = size
+        extra = ",0" if config.camera_model in ("SIMPLE_RADIAL", "RADIAL") else ""
+        reader.camera_params = f"{config.focal_px},{w / 2},{h / 2}{extra}"
+    camera = None  # the photos' one camera: the database's once a piece has made it
     t = time.perf_counter()
     for i in tqdm(range(0, len(todo), config.sfm_chunk_photos), desc="SfM features",
                   unit="chunk", disable=not progress or not todo):
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = config.camera_model
-        if config.focal_px is not None:
-            w, h = size
-            extra = ",0" if config.camera_model in ("SIMPLE_RADIAL", "RADIAL") else ""
-            reader.camera_params = f"{config.focal_px},{w / 2},{h / 2}{extra}"
-        camera = _first_camera(db)
-        if camera is not None:
+        if camera is None and (camera := _first_camera(db)) is not None:
             reader.existing_camera_id = camera
         chunk = todo[i:i + config.sfm_chunk_photos]
         pycolmap.extract_features(db, image_dir, image_names=chunk,
