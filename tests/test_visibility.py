@@ -585,3 +585,32 @@ def test_map_cache_reuses_maps_that_equal_fresh_ones():
         again = small.maps(dirs[0], cfg)  # dropped: rendered again, the same map
         assert small.rendered == 5
         np.testing.assert_array_equal(np.asarray(again.depth), want[0])
+
+
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+def test_a_maps_texel_does_not_depend_on_its_light(projection):
+    """A map's texel (its bias, slack and normal offset scale with it) is the map's design,
+    one value for every light direction: a set of maps gathered from renders of other
+    batches (the relight cache) has the texel of a fresh render of the set, to the bit. The
+    light cameras' origins differ in their last bits from direction to direction, so a
+    texel read off the set's first camera did not. The design's texel is the cameras' own
+    to rounding."""
+    from mi_shadowgs.core.frames import frame_to_quaternion
+    from mi_shadowgs.core.surfels import Surfels
+    from mi_shadowgs.stages.visibility.shadow_maps import map_texel, shadow_camera
+
+    surfels = Surfels.from_numpy(np.array([[0.0, 0.5, 0.0]]), np.full((1, 2), 0.1),
+                                 frame_to_quaternion(np.array([[0.0, 1.0, 0.0]])), [0.9])
+    bounds = SceneBounds((0.1, 0.5, -0.2), 1.3, 3.7)
+    cfg = VisibilityConfig(resolution=64, projection=projection)
+    rng = np.random.default_rng(5)
+    dirs = [direction_from_angles(az, el)
+            for az, el in zip(rng.uniform(0, 360, 24), rng.uniform(5, 89, 24), strict=True)]
+    texels = {render_shadow_maps(surfels, np.array([d]), bounds, cfg).texel for d in dirs}
+    assert texels == {map_texel(bounds, cfg)}
+    for d in dirs:
+        cam = shadow_camera(d, np.array(bounds.center), bounds.radius,
+                            bounds.mean_camera_distance, cfg)
+        own = cam.ortho_width / 64 if cam.is_ortho else \
+            2.0 * math.tan(0.5 * cam.fov_x) * np.linalg.norm(cam.origin - bounds.center) / 64
+        assert own == pytest.approx(map_texel(bounds, cfg), rel=1e-12)

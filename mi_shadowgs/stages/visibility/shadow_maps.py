@@ -277,7 +277,7 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
             for d in directions]
     key = "median_depth" if config.depth == "median" else "depth"
     aovs = ("alpha", "median_depth", "depth") if config.layer_bias > 0 else ("alpha", key)
-    texel = _texel_size(cams[0], center, config.resolution)
+    texel = map_texel(bounds, config)
     min_alpha = config.fractional_min_alpha if config.fractional else config.empty_alpha
     texels = config.resolution * config.resolution
     depth = dr.empty(mi.Float, len(cams) * texels)  # [L * R * R]
@@ -390,12 +390,18 @@ def _window_max(image: mi.Float, resolution: int, radius: int) -> mi.Float:
     return out
 
 
-def _texel_size(cam: Camera, center: np.ndarray, resolution: int) -> float:
-    """One map texel at the scene centre, scene units."""
-    if cam.is_ortho:
-        return cam.ortho_width / resolution
-    dist = float(np.linalg.norm(cam.origin - np.asarray(center, dtype=np.float64)))
-    return 2.0 * math.tan(0.5 * cam.fov_x) * dist / resolution
+def map_texel(bounds: SceneBounds, config: VisibilityConfig) -> float:
+    """One map texel at the scene centre, scene units: the same for every light direction.
+    From the map's design (``shadow_camera``'s distance and reach), not from a light's
+    camera: the cameras' origins differ in their last bits from direction to direction, so
+    a map's texel would depend on the light that came first in its batch (the relight
+    cache keeps maps rendered in other batches)."""
+    distance = config.distance_factor * bounds.mean_camera_distance
+    reach = bounds.radius * config.margin
+    if config.projection == "orthographic":
+        return 2.0 * reach / config.resolution
+    half = min(1.0, reach / distance)  # sin of the half field of view
+    return 2.0 * half / math.sqrt(max(1.0 - half * half, 1e-12)) * distance / config.resolution
 
 
 def _camera_rows(cameras: Sequence[Camera]) -> tuple[list[mi.Float], mi.Float, mi.Float]:
