@@ -25,12 +25,13 @@ def test_script_the_method(tiny_presets, tmp_path):
     assert (tmp_path / "run" / "report.html").is_file()
     model = msg.load_model(tmp_path / "run" / "material" / "full" / "model.ply")
     assert "albedo" in model.channels
-    # The model records the receivers it was fitted with, for readers of the bare PLY.
-    from mi_shadowgs.stages.relight.render import recorded_band
+    # The model records the maps and receivers it was fitted with, for readers of the bare
+    # PLY.
+    from mi_shadowgs.stages.relight.render import recorded_visibility
     from mi_shadowgs.stages.visibility.shadow_maps import get_config
 
-    assert recorded_band(tmp_path / "run" / "material" / "full" / "model.ply") == \
-        get_config(TINY).receiver_band
+    assert recorded_visibility(tmp_path / "run" / "material" / "full" / "model.ply") == \
+        get_config(TINY)
     camera = msg.load_dataset(data, "test").cameras[0]
     images = msg.render(model, camera, aovs=("depth",))
     alpha = images["alpha"].numpy()

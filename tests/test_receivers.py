@@ -133,18 +133,29 @@ def _wall_on_base_model() -> Surfels:
         "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))})
 
 
-def test_the_plugin_shades_the_receivers_its_model_was_fitted_with(tmp_path):
-    """Stage 4 records its receiver band in the model's PLY; the ``surfel_relight`` plugin,
-    which sees only the file, relights with it, as ``relight`` does with the run's."""
+def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(tmp_path):
+    """Stage 4 records its shadow-map and receiver settings in the model's PLY; the
+    ``surfel_relight`` plugin, which sees only the file, relights with them, as ``relight``
+    does with the run's."""
     from mi_shadowgs.io.ply import PlyError, save_ply
     from mi_shadowgs.stages.relight import render as relight
 
     s = _wall_on_base_model()
-    fitted, plain, bad = tmp_path / "fitted.ply", tmp_path / "plain.ply", tmp_path / "bad.ply"
-    save_ply(fitted, s, relight.model_metadata(shadow_maps.VisibilityConfig(receiver_band=0.5)))
+    paper = shadow_maps.VisibilityConfig(resolution=128, receiver_band=0.5)
+    cpu = dataclasses.replace(shadow_maps.get_config("cpu-small"), resolution=128)
+    assert cpu.projection != paper.projection  # else the cpu case below would prove nothing
+    fitted, plain, ortho = tmp_path / "fitted.ply", tmp_path / "plain.ply", tmp_path / "o.ply"
+    save_ply(fitted, s, relight.model_metadata(paper))
     save_ply(plain, s)  # as before the record, or from another tool: the paper's blend
+    save_ply(ortho, s, relight.model_metadata(cpu))
+    # A model saved with the band alone (sessions 31-36): the paper's maps, its band.
+    banded = tmp_path / "banded.ply"
+    save_ply(banded, s, {relight.BAND_METADATA_KEY: "0.5"})
+    bad, bad_json = tmp_path / "bad.ply", tmp_path / "bad_json.ply"
     save_ply(bad, s, {relight.BAND_METADATA_KEY: "wide"})
-    cam = Camera.look_at([0.0, 0.9, 1.4], [0.0, 0.0, -0.3], width=40, height=32, fov_x=0.9)
+    save_ply(bad_json, s, {relight.VISIBILITY_METADATA_KEY: '{"projection":"fisheye"}'})
+    # 80 x 64: at 40 x 32 no pixel centre lands where the two maps' depth tests differ
+    cam = Camera.look_at([0.0, 0.9, 1.4], [0.0, 0.0, -0.3], width=80, height=64, fov_x=0.9)
     light = {"type": "directional", "direction": [0.3, -0.8, 0.5], "irradiance": 2.0}
 
     def plugin(path, **props):
@@ -153,31 +164,37 @@ def test_the_plugin_shades_the_receivers_its_model_was_fitted_with(tmp_path):
                              {"type": "surfel_relight", "filename": str(path),
                               "shadow_resolution": 128, "specular": False, **props}})
 
-    def library(band):
-        model = relight.RelightModel(s, False, True, receiver_band=band)
+    def library(config):
+        model = relight.RelightModel(s, False, True, receiver_band=config.receiver_band)
         sc = plugin(plain)
         lights = sc.integrator().light_set(sc)
         pos = np.stack([np.asarray(s.position[k]) for k in range(3)], -1)
         bounds = shadow_maps.SceneBounds.from_points(pos, [cam])
-        maps = relight.shadow_maps_for(model, lights, bounds,
-                                       shadow_maps.VisibilityConfig(resolution=128,
-                                                                    receiver_band=band))
+        maps = relight.shadow_maps_for(model, lights, bounds, config)
         return relight.relight_view(model, cam, lights, maps, 0.0)["rgb"]
 
-    ref = {band: library(band) for band in (0.0, 0.5)}
-    # the band changes the image here (the base's pixels over the wall's edge), else the
-    # comparisons below would prove nothing
-    assert np.abs(ref[0.5] - ref[0.0]).max() > 0.05
-    for path, props, band in ((fitted, {}, 0.5), (plain, {}, 0.0),
-                              (fitted, {"receiver_band": 0.0}, 0.0)):  # given: used as given
+    blended = dataclasses.replace(paper, receiver_band=0.0)
+    ref = {"paper": library(paper), "blended": library(blended), "cpu": library(cpu)}
+    # the band and the maps each change the image here (the base's pixels over the wall's
+    # edge; the shadow's outline), else the comparisons below would prove nothing
+    assert np.abs(ref["paper"] - ref["blended"]).max() > 0.05
+    assert np.abs(ref["cpu"] - ref["paper"]).max() > 0.05
+    for path, props, config, key in ((fitted, {}, paper, "paper"),
+                                     (banded, {}, paper, "paper"),
+                                     (plain, {}, blended, "blended"),
+                                     (fitted, {"receiver_band": 0.0}, blended, "blended"),
+                                     (ortho, {}, cpu, "cpu")):  # given: used as given
         sc = plugin(path, **props)
-        assert sc.integrator().receiver_band == band
-        np.testing.assert_allclose(np.asarray(mi.render(sc))[..., :3], ref[band],
+        assert sc.integrator().vis_config == config
+        np.testing.assert_allclose(np.asarray(mi.render(sc))[..., :3], ref[key],
                                    rtol=2e-4, atol=1e-6)
     with pytest.raises(PlyError, match="receiver_band 'wide' is not a number"):
-        relight.recorded_band(bad)
-    with pytest.raises(Exception, match=f"{bad}: header comment receiver_band 'wide'"):
-        plugin(bad)  # Mitsuba passes the message on in its own exception
+        relight.recorded_visibility(bad)
+    for path, props in ((bad, {}), (bad, {"receiver_band": 0.0})):
+        with pytest.raises(Exception, match=f"{path}: header comment receiver_band 'wide'"):
+            plugin(path, **props)  # Mitsuba passes the message on in its own exception
+    with pytest.raises(PlyError, match=f"{bad_json}: header comment visibility.*projection"):
+        relight.recorded_visibility(bad_json)
 
 
 @pytest.mark.parametrize("settings, lists, band", [
@@ -185,22 +202,27 @@ def test_the_plugin_shades_the_receivers_its_model_was_fitted_with(tmp_path):
     ({"visibility": {"layer_bias": 1.0}}, True, 0.0),  # a run from before the band: blended
     ({"visibility": {"receiver_band": 0.5}}, False, None),  # the manifest is not its
     ({"material": {}}, True, None)])  # no visibility settings (a stage-1 folder)
-def test_a_model_saved_before_the_record_takes_its_band_from_its_manifest(
+def test_a_model_saved_before_the_record_takes_its_settings_from_its_manifest(
         tmp_path, settings, lists, band):
-    """Models fitted on the median surface before the PLY recorded it (session 31's runs)
-    are relit on it too: the stage-4 folder's manifest records the settings it ran with."""
+    """Models fitted before the PLY recorded their maps and receivers (session 31's runs)
+    are relit with them too: the stage-4 folder's manifest records the settings it ran
+    with."""
     import json
 
     from mi_shadowgs.io.ply import save_ply
     from mi_shadowgs.io.provenance import FORMAT_VERSION, MANIFEST_NAME
-    from mi_shadowgs.stages.relight.render import recorded_band
+    from mi_shadowgs.stages.relight.render import recorded_visibility
 
     save_ply(tmp_path / "model.ply", _wall_on_base_model())
-    assert recorded_band(tmp_path / "model.ply") is None  # no manifest: another tool's
+    assert recorded_visibility(tmp_path / "model.ply") is None  # no manifest: another tool's
     (tmp_path / MANIFEST_NAME).write_text(json.dumps(
         {"format": FORMAT_VERSION, "command": "run", "complete": True, "settings": settings,
          "files": ["model.ply", "light.json"] if lists else ["light.json"]}))
-    assert recorded_band(tmp_path / "model.ply") == band
+    config = recorded_visibility(tmp_path / "model.ply")
+    if band is None:
+        assert config is None
+    else:
+        assert config.receiver_band == band and config.layer_bias == 1.0
 
 
 def test_one_surface_gives_the_blended_receivers():

@@ -89,8 +89,9 @@ for it in range(100):
 ```
 
 Command line: `mi-shadowgs render MODEL.ply --cameras transforms.json --out DIR
-[--aov NAME ...] [--background R,G,B] [--color-channel NAME]` renders the same images from
-dataset cameras (`NAME.exr` linear RGBA, `NAME.png`, `NAME_<aov>.exr/.png`).
+[--aov NAME]... [--background R,G,B] [--color-channel NAME]` (`--aov` once per AOV)
+renders the same images from dataset cameras (`NAME.exr` linear RGBA, `NAME.png`,
+`NAME_<aov>.exr/.png`).
 """
 
 from __future__ import annotations

@@ -15,16 +15,25 @@ with shadows recomputed from shadow maps of the surfels
 - `indirect` | string | `"none"` | | `"none"` or `"keep"` (add the fitted `indirect_sh`
   unchanged). The training light is not known to the plugin, so the library's default
   `"scaled"` mode is not offered.
-- `shadow_resolution` | integer | `512` | | Shadow-map width = height (texels); the map
-  covers the surfels' bounding sphere.
+- `shadow_resolution` | integer | the model's | | Shadow-map width = height (texels); the map
+  covers the surfels' bounding sphere. By default the resolution the model was fitted with
+  (below); `512` for another tool's PLY.
 - `env_samples` | integer | `64` | | Samples per grid direction when integrating an
   infinite emitter over the 128-direction grid.
 - `receiver_band` | float | the model's | | Which surface of a pixel is shaded: `0` the
   alpha-blended depth and normal (the paper's), > 0 the pixel's median surface, the splats
   within this many pixel footprints of its median depth. By default the value the model
-  was fitted with, which stage 4 records in the PLY's header (`comment mi_shadowgs
-  receiver_band B`) or, for a model saved before that record, in the run's manifest beside
-  it; `0` for a PLY with neither (another tool's). A value given here is used as given.
+  was fitted with (below); `0` for another tool's PLY. A value given here is used as given.
+
+**The model's shadow maps.** Stage 4 records the shadow-map and receiver settings it fitted
+with (`VisibilityConfig`: projection, depth bias, occluder layer, receivers) in the PLY's
+header (`comment mi_shadowgs visibility {...}`), and the plugin renders its maps with them,
+as `mi-shadowgs relight` does for the run: a `cpu-*` model gets its orthographic maps with a
+one-texel bias, a `paper` one the paper's perspective maps and depth threshold. A model
+saved before that record takes them from the run's manifest beside it, or, with only its
+`receiver_band` record, the paper's maps with that band. Another tool's PLY gets the
+paper's maps. A malformed record is an error naming the file, even where a property above
+is given.
 
 **Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`) and
 every infinite emitter (`envmap`, `constant`: mean radiance over each of the 128 equal-area
@@ -53,6 +62,8 @@ and `render_backward` are not implemented). The film gets `R, G, B` (and `A` = c
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import drjit as dr
 import mitsuba as mi
@@ -86,16 +97,17 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         if self.indirect not in ("none", "keep"):
             raise ValueError(f"surfel_relight: 'indirect' must be 'none' or 'keep', got "
                              f"{self.indirect!r}")
-        res = int(props.get("shadow_resolution", 512))
+        fitted = relight.recorded_visibility(self.filename) or VisibilityConfig()
+        res = int(props.get("shadow_resolution", fitted.resolution))
         env = int(props.get("env_samples", 64))
         if res < 1 or env < 1:
             raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
-        recorded = relight.recorded_band(self.filename)
-        self.receiver_band = float(props.get("receiver_band", recorded or 0.0))
+        self.receiver_band = float(props.get("receiver_band", fitted.receiver_band))
         if not self.receiver_band >= 0:
             raise ValueError(f"surfel_relight: 'receiver_band' must be >= 0, got "
                              f"{self.receiver_band}")
-        self.vis_config = VisibilityConfig(resolution=res, receiver_band=self.receiver_band)
+        self.vis_config = dataclasses.replace(fitted, resolution=res,
+                                              receiver_band=self.receiver_band)
         self.relight_config = relight.RelightConfig(indirect=self.indirect, env_samples=env)
         # Shadow maps per light direction and env-map grid radiance, kept between renders.
         self.cache = relight.RelightCache()

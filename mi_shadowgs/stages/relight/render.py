@@ -82,44 +82,68 @@ class RelightModel:
     receiver_band: float = 0.0
 
 
-# The stage-4 model's PLY records the receivers it was fitted with under this key, so a
-# reader of the bare file (the ``surfel_relight`` plugin) shades the same surface.
+# The stage-4 model's PLY records the shadow maps and receivers it was fitted with under
+# these keys (the whole ``VisibilityConfig`` as one word of JSON, and its band alone, which
+# models saved in sessions 31-36 hold without the rest), so that a reader of the bare file
+# (the ``surfel_relight`` plugin) shades it as ``relight`` shades the run.
 BAND_METADATA_KEY = "receiver_band"
+VISIBILITY_METADATA_KEY = "visibility"
 
 
 def model_metadata(vis_config: VisibilityConfig) -> dict[str, str]:
     """What a stage-4 model's PLY records for its readers (``ply.save_ply``'s metadata)."""
-    return {BAND_METADATA_KEY: repr(float(vis_config.receiver_band))}
+    import json
+
+    from mi_shadowgs.config import to_dict
+
+    return {BAND_METADATA_KEY: repr(float(vis_config.receiver_band)),
+            VISIBILITY_METADATA_KEY: json.dumps(to_dict(vis_config), separators=(",", ":"))}
 
 
-def recorded_band(path) -> float | None:
-    """The receiver band a stage-4 PLY was saved with: its header's record, else (a model
-    saved before the record) the visibility settings of the run's manifest beside it that
-    lists it, read as relighting reads them (``config.recorded_config``: 0 where they
-    predate the band); None for a model with neither (another tool's). A malformed record
-    names the file."""
-    from mi_shadowgs.config import recorded_config
+def recorded_visibility(path) -> VisibilityConfig | None:
+    """The shadow-map and receiver settings a stage-4 PLY was fitted with: its header's
+    record; else the visibility settings of the run's manifest beside it that lists it, read
+    as relighting reads them (``config.recorded_config``: fields it predates keep their
+    defaults), with the header's band where the model has only that; else the paper's maps
+    with the header's band; None for a model with none of these (another tool's). A
+    malformed record is an error naming the file."""
+    import json
+
+    from mi_shadowgs.config import ConfigError, recorded_config
     from mi_shadowgs.io.ply import PlyError, read_ply_metadata
     from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
 
     path = Path(path)
-    value = read_ply_metadata(path).get(BAND_METADATA_KEY)
-    if value is not None:
+    header = read_ply_metadata(path)
+    if VISIBILITY_METADATA_KEY in header:
+        text = header[VISIBILITY_METADATA_KEY]
         try:
-            band = float(value)
+            saved = json.loads(text)
+            return recorded_config(VisibilityConfig, saved, lambda: None,
+                                   f"{path}: header comment {VISIBILITY_METADATA_KEY}")
+        except json.JSONDecodeError as err:
+            raise PlyError(f"{path}: header comment {VISIBILITY_METADATA_KEY} is not JSON "
+                           f"({err})") from err
+        except ConfigError as err:
+            raise PlyError(str(err)) from err
+    band = header.get(BAND_METADATA_KEY)
+    if band is not None:
+        try:
+            band = float(band)
         except ValueError:
             band = float("nan")
         if not band >= 0:
-            raise PlyError(f"{path}: header comment {BAND_METADATA_KEY} {value!r} is not a "
-                           "number >= 0")
-        return band
+            raise PlyError(f"{path}: header comment {BAND_METADATA_KEY} "
+                           f"{header[BAND_METADATA_KEY]!r} is not a number >= 0")
     manifest = read_manifest(path.parent)
-    if not manifest or path.name not in manifest["files"]:
-        return None
-    config = recorded_config(VisibilityConfig, (manifest.get("settings") or {})
-                             .get("visibility"), lambda: None,
-                             f"{path.parent / MANIFEST_NAME}: settings.visibility")
-    return None if config is None else config.receiver_band
+    config = None
+    if manifest and path.name in manifest["files"]:
+        config = recorded_config(VisibilityConfig, (manifest.get("settings") or {})
+                                 .get("visibility"), lambda: None,
+                                 f"{path.parent / MANIFEST_NAME}: settings.visibility")
+    if band is None:
+        return config
+    return dataclasses.replace(config or VisibilityConfig(), receiver_band=band)
 
 
 def directional_light_set(directions, irradiance) -> shading.LightSet:
@@ -359,7 +383,7 @@ def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shadin
 def standard_turntable(count: int = 8, elevation_deg: float = 45.0,
                        irradiance: float = 1.0) -> list[tuple[str, shading.LightSet]]:
     """One directional light per azimuth 0, 360/count, ... at ``elevation_deg``: the light
-    turntable of the report's previews and of ``relight --turntable``."""
+    turntable of the report's previews."""
     from mi_shadowgs.core.directions import direction_from_angles
 
     out = []
