@@ -190,10 +190,14 @@ def _lpips_chunks(a, b, w) -> np.ndarray:
     out = np.empty(len(a), np.float64)
     for s in range(0, len(a), CHUNK_VIEWS):
         n = len(a[s:s + CHUNK_VIEWS])
-        feats = _features(np.concatenate([a[s:s + n], b[s:s + n]]), w["convs"])
+        # One forward per stack, of one shape: a GEMM over both stacks at once rounds the
+        # rows of the two halves differently (BLAS blocks the rows by position), so an image
+        # scored against itself gave ~1e-14 instead of 0 with some OpenBLAS builds.
+        feats_a = _features(a[s:s + n], w["convs"])
+        feats_b = _features(b[s:s + n], w["convs"])
         total = np.zeros(n, np.float64)
-        for f, lin in zip(feats, w["lins"], strict=True):
-            d = (f[:n] - f[n:]) ** 2  # [n, h, w, C]
+        for fa, fb, lin in zip(feats_a, feats_b, w["lins"], strict=True):
+            d = (fa - fb) ** 2  # [n, h, w, C]
             total += (d @ lin).mean(axis=(1, 2), dtype=np.float64)
         out[s:s + n] = total
     return out
