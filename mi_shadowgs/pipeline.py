@@ -219,6 +219,10 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     if masks == "auto":
         masks = "material" if all(v.material is not None for v in train.views) else \
             "chromaticity"
+    elif masks == "material":  # checked before stage 1 trains, not when stage 2 starts
+        from mi_shadowgs.stages.segmentation.masks import material_masks
+
+        material_masks(train)
     provenance = Provenance(dataset=dataset_ref(data), settings=dataclasses.asdict(config))
     stages = []
 

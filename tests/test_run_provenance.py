@@ -226,6 +226,60 @@ def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data,
     assert "segmentation" in err and "input model differs" in err
 
 
+def test_a_stage_made_again_in_a_finished_run_is_not_read_with_the_later_ones(
+        finished, data, tmp_path, capsys):
+    """`train --overwrite` (or `segment --overwrite`) into a finished run makes one stage
+    again and leaves the later stages, the summary and the report made from the old one:
+    report, relight, view and export refuse the mix, naming the stage, instead of using it;
+    `run --overwrite` makes the run whole again."""
+    from mi_shadowgs.stages.relight.runner import load_run
+
+    run = _copy(finished, tmp_path)
+    readers = (["report", str(run)],
+               ["relight", str(run), "--out", str(tmp_path / "relit"), "--light", "30,45,3",
+                "--no-progress"],
+               ["export", str(run), "--format", "2dgs-ply", "--out", str(tmp_path / "ply")])
+    for argv in readers:  # the finished run reads
+        assert cli.main(argv) == 0, argv
+    assert cli.main(["train", str(data[0]), "--out", str(run), "--iterations", "10",
+                     "--overwrite", "--no-progress"]) == 0
+    for argv in readers:
+        assert cli.main([*argv, "--overwrite"] if argv[0] != "report" else argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "segmentation was made from another geometry/model.ply" in err, err
+    with pytest.raises(ValueError, match="segmentation was made from another geometry"):
+        load_run(run)  # the viewer's reader
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--overwrite",
+                     "--no-progress"]) == 0
+    assert cli.main(readers[0]) == 0
+    # Stage 2 made again: stage 4 is the stale one.
+    assert cli.main(["segment", str(run), "--data", str(data[0]), "--out",
+                     str(run / "segmentation"), "--segments", "2", "--overwrite",
+                     "--quiet"]) == 0
+    assert cli.main(readers[0]) == 2
+    assert "material/full was made from another segmentation/model.ply" in \
+        capsys.readouterr().err
+
+
+def test_a_stage_1_trained_without_its_evaluation_is_evaluated_by_run(data, tmp_path):
+    """`train --no-eval` then `run` into the same folder: stage 1 is reused and evaluated
+    then, so the run's summary and report have stage 1."""
+    run = tmp_path / "run"
+    assert cli.main(["train", str(data[0]), "--out", str(run), "--no-eval",
+                     "--no-progress"]) == 0
+    assert not (run / "geometry" / "metrics.json").exists()
+    model = (run / "geometry" / "model.ply").read_bytes()
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 0
+    assert (run / "geometry" / "model.ply").read_bytes() == model  # reused, not trained
+    metrics = json.loads((run / "geometry" / "metrics.json").read_text())
+    assert metrics["psnr"] > 0 and metrics["surfels"] > 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["stages"][0]["name"] == "Stage 1: geometry"
+    assert summary["stages"][0]["metrics"]["psnr"] == metrics["psnr"]
+    manifest = json.loads((run / "geometry" / MANIFEST_NAME).read_text())
+    assert manifest["complete"] and "metrics.json" in manifest["files"]
+
+
 def test_train_resume_against_another_dataset_changes_nothing(data, tmp_path, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", str(data[0]), "--out", str(run), "--no-eval", "--no-progress"]) == 0
@@ -329,6 +383,35 @@ def test_a_corrupt_test_image_stops_the_command_before_training(data, tmp_path, 
     err = without_few_views_warning(capsys.readouterr().err).strip()
     assert rc == 2 and str(exr) in err and "\n" not in err and "plugin" not in err
     assert not (tmp_path / "out").exists()  # no training, no folder left behind
+
+
+def test_segment_refuses_a_run_model_with_another_dataset(finished, data, tmp_path, capsys):
+    """A run's stage-1 model segmented with another dataset's views: exit 2 naming both,
+    nothing written; a PLY from elsewhere (no manifest lists it) is taken as it is."""
+    out = tmp_path / "seg"
+    argv = ["segment", str(finished), "--data", str(data[1]), "--out", str(out), "--quiet"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{finished / 'geometry' / 'model.ply'}: was fitted to the dataset" in err
+    assert f"not to --data {data[1]}" in err and not out.exists()
+    loose = tmp_path / "model.ply"
+    shutil.copy(finished / "geometry" / "model.ply", loose)
+    assert cli.main(["segment", str(loose), *argv[2:]]) == 0
+
+
+def test_run_with_material_masks_checks_them_before_stage_1(data, tmp_path, capsys,
+                                                            monkeypatch):
+    """`run --masks material` on a dataset without material ids stops before stage 1 trains,
+    naming the view, not after it."""
+    bad = _broken_copy(data[0], tmp_path)
+    for png in (bad / "train").glob("*_material.png"):
+        png.unlink()
+    monkeypatch.setattr(geometry_train, "train_geometry",
+                        lambda *a, **k: pytest.fail("stage 1 trained"))
+    assert cli.main(["run", str(bad), "--out", str(tmp_path / "run"), "--masks", "material",
+                     "--no-progress"]) == 2
+    assert "has no material-id map (*_material.png)" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 def test_run_checks_the_ground_truth_it_evaluates_against_first(data, tmp_path, capsys):

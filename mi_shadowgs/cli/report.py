@@ -26,7 +26,9 @@ def run(args) -> int:
     from pathlib import Path
 
     from mi_shadowgs.pipeline import refresh_speed_error
+    from mi_shadowgs.stages.common import check_run_stages
 
+    check_run_stages(args.run)  # a summary of stages made from another stage's files
     refresh_speed_error(Path(args.run))  # plots that validation.speed_error added since
     page = write_report(args.run)
     print(f"wrote {page}")

@@ -27,6 +27,43 @@ from mi_shadowgs.io.provenance import Output
 MIN_TRAIN_VIEWS = 16
 
 
+# A run's stage folders and the earlier stage's file each was made from (`mi-shadowgs run`'s
+# layout; each records the file's digest as its input "model").
+RUN_STAGE_INPUTS = (("segmentation", "geometry/model.ply"),
+                    ("material/*", "segmentation/model.ply"))
+
+
+def check_run_stages(run: str | Path) -> None:
+    """ProvenanceError when a stage of the run folder ``run`` was made from another file of
+    an earlier stage than the one there now: a stage made again in a finished run (``train
+    --overwrite`` or ``segment --overwrite`` into it) leaves the later stages, its summary
+    and its report made from the old one. Readers of a run (``report``, ``relight``,
+    ``view``, ``export``) refuse such a mix instead of using it."""
+    from mi_shadowgs.io.provenance import (
+        MANIFEST_NAME,
+        ProvenanceError,
+        file_digest,
+        read_manifest,
+    )
+
+    run = Path(run)
+    for pattern, source in RUN_STAGE_INPUTS:
+        for folder in sorted(run.glob(pattern)):
+            manifest = read_manifest(folder) if folder.is_dir() else None
+            made_from = ((manifest or {}).get("inputs") or {}).get("model") or {}
+            if "digest" not in made_from:  # not a stage of the run, or from before the record
+                continue
+            current = run / source
+            if not current.is_file() or file_digest(current) != made_from["digest"]:
+                stage = folder.relative_to(run).as_posix()
+                raise ProvenanceError(
+                    f"{run}: its stages do not belong together: {stage} was made from "
+                    f"another {source} than the one there now (made again after it, e.g. by "
+                    f"`train` or `segment --overwrite`; see {folder / MANIFEST_NAME}). Make "
+                    f"the later stages again: `mi-shadowgs run DATA --out {run}` "
+                    "(`--overwrite` where it asks)")
+
+
 def warn(message: str) -> None:
     """One line on stderr."""
     print(f"mi-shadowgs: warning: {message}", file=sys.stderr)

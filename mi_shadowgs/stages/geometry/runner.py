@@ -94,9 +94,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     """
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.checkpoint import has_checkpoint, load_checkpoint
-    from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.io.ply import load_ply, save_ply
     from mi_shadowgs.stages.geometry.train import Callbacks, TrainState, train_geometry
-    from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
 
     if resume and overwrite:
         raise ValueError("--resume continues the stage's files and --overwrite removes them: "
@@ -123,7 +122,15 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,
                      inputs=[data], continue_flag="--resume") as out:
         if reuse and out.complete:
-            return StageRun(folder, False, 0.0, "")
+            if not evaluate or (folder / "metrics.json").is_file():
+                return StageRun(folder, False, 0.0, "")
+            # Trained without its evaluation (`train --no-eval`): evaluated now, so that a
+            # run's summary and report have stage 1.
+            out.claim("metrics.json")
+            line = _write_metrics(folder, load_ply(folder / "model.ply"), test, config,
+                                  on_test_view)
+            out.finish()
+            return StageRun(folder, False, 0.0, line)
         state = None
         ckpt_dir = folder / "checkpoint"
         if out.reused and has_checkpoint(ckpt_dir):
@@ -141,13 +148,18 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
                        on_checkpoint=writer.on_checkpoint)
         surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
         save_ply(folder / "model.ply", surfels)
-        line = ""
-        if evaluate:
-            m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view)
-            m["surfels"] = surfels.count
-            write_json(folder / "metrics.json", m)
-            line = geometry_line(m)
+        line = _write_metrics(folder, surfels, test, config, on_test_view) if evaluate else ""
         out.finish()
     return StageRun(folder, True, time.perf_counter() - t0, line)
+
+
+def _write_metrics(folder: Path, surfels, test, config, on_test_view) -> str:
+    """The model's test metrics into ``folder/metrics.json`` (claimed); their summary line."""
+    from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
+
+    m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view)
+    m["surfels"] = surfels.count
+    write_json(folder / "metrics.json", m)
+    return geometry_line(m)
 
 

@@ -315,6 +315,7 @@ def stage4_inputs(run: Path) -> tuple[Path, Path]:
     """(model.ply, light.json) of the run's finished stage 4, or ExportError naming what is
     missing."""
     from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
+    from mi_shadowgs.stages.common import check_run_stages
 
     if not run.is_dir():
         raise FileNotFoundError(f"run folder not found: {run}")
@@ -332,6 +333,7 @@ def stage4_inputs(run: Path) -> tuple[Path, Path]:
     if stage is None or not stage.get("complete"):
         raise ExportError(f"{run}: stage 4 ({MATERIAL_FOLDER}) is unfinished (its manifest "
                           "is not complete): finish the run (`mi-shadowgs run`) first")
+    check_run_stages(run)
     return model, light
 
 

@@ -172,6 +172,7 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
     used (its training cameras and ``bounds_quantile``; ``fallback_cameras`` where the
     dataset is no longer there)."""
     from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
+    from mi_shadowgs.stages.common import check_run_stages
     from mi_shadowgs.stages.material.runner import occluder_bounds
 
     run = Path(run)
@@ -179,6 +180,7 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
     if not (folder / "model.ply").is_file():
         raise FileNotFoundError(f"{folder / 'model.ply'}: no stage-4 model (is {run} a "
                                 "finished `mi-shadowgs run`?)")
+    check_run_stages(run)
     manifest = read_manifest(folder) or {}
     settings = manifest.get("settings") or {}
     preset = run_preset(run)

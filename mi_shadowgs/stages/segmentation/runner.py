@@ -47,6 +47,22 @@ def overlay(image, seg_map, colors, alpha: float = 0.5):
     return np.where(fg, (1 - alpha) * base + alpha * col, base).round().astype(np.uint8)
 
 
+def _check_model_dataset(model: Path, data, dataset: dict) -> None:
+    """ProvenanceError when ``model`` is a stage output (its folder's manifest lists it) made
+    from another dataset than ``data``: its segments would be trained on views of another
+    scene or capture. A PLY from elsewhere is taken as it is."""
+    from mi_shadowgs.io.provenance import MANIFEST_NAME, ProvenanceError, read_manifest
+
+    made = read_manifest(model.parent)
+    if not made or model.name not in made["files"] or not made.get("dataset"):
+        return
+    if made["dataset"].get("fingerprint") != dataset["fingerprint"]:
+        raise ProvenanceError(
+            f"{model}: was fitted to the dataset {made['dataset'].get('path')} (see "
+            f"{model.parent / MANIFEST_NAME}), not to --data {data}: their fingerprints "
+            "differ; segment it with its own dataset")
+
+
 def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, config, *,
                      masks: str, preset: str, split: str = "test", overwrite: bool = False,
                      reuse: bool = False, progress: bool = True, train=None,
@@ -80,6 +96,7 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
         settings["mask_config"] = settings_dict(mask_config)
     provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(model)},
                             settings=settings)
+    _check_model_dataset(model, data, provenance.dataset)
     out = Output.open(folder, "segment", provenance, overwrite=overwrite, reuse=reuse,
                       inputs=[model, data], continue_flag="--resume")
     if out.complete:
