@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
 
 import mitsuba as mi
 import numpy as np
@@ -179,8 +181,71 @@ def test_relight_command_orbit_video_and_test_views(tiny_run, tiny_presets, tmp_
                      "30,45,3", "--no-progress"]) == 0
     info = json.loads((tmp_path / "test" / "relight.json").read_text())
     assert info["views"] == ["test_000", "test_001"]
-    # A second relight into the same folder needs --overwrite.
+    # Another relight into the same folder needs --overwrite.
     assert cli.main(["relight", str(run), "--out", str(out), "--light", "30,45,3"]) == 2
+
+
+def test_interrupted_relight_continues_with_the_missing_views(tiny_run, tiny_presets, one_thread,
+                                                              tmp_path, capsys, monkeypatch):
+    from mi_shadowgs.io import images
+
+    run = tiny_run / "run"
+
+    def relight_to(out, *extra):
+        return cli.main(["relight", str(run), "--out", str(out), "--light", "30,45,3",
+                         "--orbit", "5", "--video", "--no-progress", *extra])
+
+    assert relight_to(tmp_path / "whole") == 0
+    out = tmp_path / "out"
+    real_png, pngs = images.write_png, []
+
+    def ctrl_c_at_the_third_png(*args, **kwargs):  # view 2's PNG, after its EXR
+        pngs.append(1)
+        if len(pngs) == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_png(*args, **kwargs)
+
+    with monkeypatch.context() as mp:
+        mp.setattr(images, "write_png", ctrl_c_at_the_third_png)
+        assert relight_to(out) == 130
+    assert "interrupted by SIGINT; run the same command again to continue" in \
+        capsys.readouterr().err
+    assert (out / "orbit_002.exr").is_file() and not (out / "orbit_002.png").exists()
+    real_view, frames = relight.relight_view, []
+    monkeypatch.setattr(relight, "relight_view",
+                        lambda *a, **k: frames.append(1) or real_view(*a, **k))
+    assert relight_to(out) == 0
+    assert len(frames) == 3  # views 2, 3 and 4
+    assert "the other 2 were there from an earlier call" in capsys.readouterr().out
+    info = json.loads((out / "relight.json").read_text())
+    assert info["rendered_views"] == ["orbit_002", "orbit_003", "orbit_004"]
+    assert len(info["frame_seconds"]) == 3 and info["video"] == \
+        json.loads((tmp_path / "whole" / "relight.json").read_text())["video"]
+    # Every view and the video (made from the views' files) as an uninterrupted relight's.
+    names = sorted(p.name for p in (tmp_path / "whole").iterdir())
+    assert sorted(p.name for p in out.iterdir()) == names and info["video"] in names
+    for name in names:
+        if name not in (".mi_shadowgs_manifest.json", "relight.json"):
+            assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+    # Finished: the same command renders nothing; other settings are refused by name.
+    assert relight_to(out) == 0
+    assert len(frames) == 3 and "already holds these 5 relit view(s)" in \
+        capsys.readouterr().out
+    assert relight_to(out, "--fps", "6") == 2
+    err = capsys.readouterr().err
+    assert "fps: 12.0 there, 6.0 now" in err and "--overwrite" in err
+    # Shadow maps over other bounds (the run's dataset moved or changed) are other views.
+    from mi_shadowgs.stages.material import runner as material_runner
+
+    real_bounds = material_runner.occluder_bounds
+
+    def wider_bounds(*args):
+        bounds = real_bounds(*args)
+        return dataclasses.replace(bounds, radius=1.01 * bounds.radius)
+
+    monkeypatch.setattr(material_runner, "occluder_bounds", wider_bounds)
+    assert relight_to(out) == 2
+    assert "shadow_bounds.radius" in capsys.readouterr().err and len(frames) == 3
 
 
 def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_presets, tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 
 import numpy as np
 import pytest
@@ -141,8 +142,8 @@ def test_renders_never_mix_and_overwrite_removes_only_renders(setup, tmp_path, c
     one.write_text(json.dumps({"camera_angle_x": 0.8, "w": W, "h": H, "world_up": "+y",
                                "frames": [cams[0].to_frame_json("./test/other")]}))
     assert _render(root, out, cameras=one) == 2
-    assert "already holds an output of `mi-shadowgs render`: pass --overwrite" in \
-        capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "its input cameras differs" in err and "Pass --overwrite to start over" in err
     assert _render(root, out, "--overwrite", cameras=one) == 0
     assert sorted(p.name for p in out.iterdir() if p.name[0] != ".") == \
         ["notes.txt", "other.exr", "other.png"]
@@ -159,6 +160,82 @@ def test_a_failed_render_leaves_no_folder(setup, tmp_path, monkeypatch):
     with pytest.raises(RuntimeError):
         _render(root, tmp_path / "a" / "out")
     assert not (tmp_path / "a").exists()
+
+
+def _interrupt_at(monkeypatch, module, name: str, call: int) -> None:
+    """SIGINT this process when ``module.name`` is called the ``call``-th time (before it
+    runs), as a Ctrl-C there would."""
+    real, calls = getattr(module, name), []
+
+    def cut(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, cut)
+
+
+def _counted(monkeypatch, module, name: str) -> list:
+    """Count the calls of ``module.name`` (one entry each)."""
+    real, calls = getattr(module, name), []
+    monkeypatch.setattr(module, name, lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls
+
+
+def test_interrupted_render_continues_with_the_missing_views(setup, tmp_path, capsys,
+                                                             monkeypatch):
+    from mi_shadowgs.core import render as surfel_render
+    from mi_shadowgs.io import images
+
+    root, cams = setup
+    many = tmp_path / "many.json"
+    views = [Camera.look_at((2.5 * np.cos(a), 0.6, 2.5 * np.sin(a)), (0, 0, 0), width=W,
+                            height=H, fov_x=0.8) for a in np.linspace(0, 5, 5)]
+    many.write_text(json.dumps({"camera_angle_x": 0.8, "w": W, "h": H, "world_up": "+y",
+                                "frames": [c.to_frame_json(f"./v_{i}")
+                                           for i, c in enumerate(views)]}))
+    assert _render(root, tmp_path / "whole", "--aov", "depth", cameras=many) == 0
+    out = tmp_path / "out"
+    with monkeypatch.context() as mp:
+        # Two PNGs per view: the 5th call is view 2's own PNG, after its EXR. Views 0 and 1
+        # are whole; view 2 is cut between its files.
+        _interrupt_at(mp, images, "write_png", 5)
+        assert _render(root, out, "--aov", "depth", cameras=many) == 130
+    assert "interrupted by SIGINT; run the same command again to continue" in \
+        capsys.readouterr().err
+    assert (out / "v_2.exr").is_file() and not (out / "v_2.png").exists()
+    rendered = _counted(monkeypatch, surfel_render, "render_surfels")
+    assert _render(root, out, "--aov", "depth", cameras=many) == 0
+    assert len(rendered) == 3  # views 2, 3 and 4
+    assert "the other 2 were there from an earlier call" in capsys.readouterr().out
+    _same_views(out, tmp_path / "whole")
+    # Finished: the same command renders nothing; other settings are refused by name.
+    assert _render(root, out, "--aov", "depth", cameras=many) == 0
+    assert len(rendered) == 3
+    assert "already holds these 5 view(s)" in capsys.readouterr().out
+    assert _render(root, out, "--aov", "normal", cameras=many) == 2
+    err = capsys.readouterr().err
+    assert 'aovs: ["depth"] there, ["normal"] now' in err and "--overwrite" in err
+    # An --overwrite cut short continues without the flag (with it, it would start over).
+    with monkeypatch.context() as mp:
+        _interrupt_at(mp, images, "write_png", 3)  # view 1's own PNG
+        assert _render(root, out, "--aov", "depth", "--overwrite", cameras=many) == 130
+    assert "interrupted by SIGINT; run it again without --overwrite to continue" in \
+        capsys.readouterr().err
+    assert len(rendered) == 5 and not (out / "v_1.png").exists()
+    assert _render(root, out, "--aov", "depth", cameras=many) == 0
+    assert len(rendered) == 9  # views 1 to 4 again
+    _same_views(out, tmp_path / "whole")
+
+
+def _same_views(got, whole) -> None:
+    """``got`` holds the files of ``whole`` (5 views, 4 files each), byte for byte."""
+    names = sorted(p.name for p in whole.iterdir())
+    assert sorted(p.name for p in got.iterdir()) == names and len(names) == 21
+    for name in names:
+        if name != ".mi_shadowgs_manifest.json":
+            assert (got / name).read_bytes() == (whole / name).read_bytes(), name
 
 
 def _umask() -> int:

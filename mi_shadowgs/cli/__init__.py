@@ -54,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
 # What an interrupted command says about continuing (default: run it again).
 RESUME_HINTS = {"train": "run it again with --resume to continue",
                 "segment": "run it again with --resume to continue"}
+# Commands whose --overwrite would remove the views an interrupted call wrote: the same
+# command again would start over, so the hint drops the flag.
+OVERWRITE_RESTARTS = ("render", "relight")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,5 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except Interrupted as exc:
         hint = RESUME_HINTS.get(args.command, "run the same command again to continue")
+        if args.command in OVERWRITE_RESTARTS and args.overwrite:
+            hint = "run it again without --overwrite to continue"
         print(f"mi-shadowgs {args.command}: interrupted by {exc}; {hint}", file=sys.stderr)
         return exc.exit_code

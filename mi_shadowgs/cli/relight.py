@@ -4,11 +4,13 @@ Lights (together, in one light set): ``--light AZ,EL,IRRADIANCE`` (repeatable; d
 W/m^2, or ``AZ,EL,R,G,B``), ``--envmap FILE [--rotate DEG] [--envmap-scale S]``, ``--scene
 XML`` (its directional and infinite emitters). Views: ``--cameras transforms.json``,
 ``--orbit N`` (a circle about the object at the run's camera distance), else the run's test
-views. Writes ``NAME.exr`` (linear RGBA) and ``NAME.png`` (sRGB) per view,
-``relight.json`` (lights, views, per-frame times) and, with ``--video``, a turntable
-(MP4, or GIF where no H.264 encoder is installed, said on the terminal). Shadow maps are
-rendered once per light direction and reused by every frame. DIR is new or holds an
-earlier relight (``--overwrite`` removes only its files).
+views. Writes ``NAME.exr`` (linear RGBA) and ``NAME.png`` (sRGB) per view, ``relight.json``
+(lights, views, the per-frame times of the views this call rendered) and, with ``--video``,
+a turntable (MP4, or GIF where no H.264 encoder is installed, said on the terminal). Shadow
+maps are rendered once per light direction and reused by every frame. DIR is new or holds
+an earlier relight: the same relight again continues it (a killed one renders only its
+missing views) or, finished, is reused; another is refused unless ``--overwrite`` (which
+removes only its files).
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ import argparse
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="a finished run folder (mi-shadowgs run)")
-    parser.add_argument("--out", required=True, help="output folder: new, or an earlier relight")
+    parser.add_argument("--out", required=True,
+                        help="output folder: new, or an earlier relight (the same relight is "
+                             "continued where it stopped)")
     parser.add_argument("--light", action="append", default=[], metavar="AZ,EL,IRRADIANCE",
                         help="directional light: azimuth and elevation (degrees; "
                              "docs/conventions.md) and irradiance (W/m^2, or R,G,B); "
@@ -54,11 +58,17 @@ def run(args) -> int:
                          args.orbit_elevation, args.video, args.fps, args.fit, args.overwrite,
                          progress=not args.no_progress)
     stats = result.stats
-    later = f", later frames {stats['later_median_s']:.3f} s (median)" \
-        if stats["later_median_s"] is not None else ""
-    print(f"relit {result.views} view(s) under {result.light_directions} light direction(s) "
-          f"into {result.folder}: first frame {stats['first_s']:.2f} s (shadow maps "
-          f"included){later}")
+    earlier = result.views - result.rendered
+    if result.rendered == 0:
+        print(f"{result.folder} already holds these {result.views} relit view(s) (same run, "
+              "lights, views and settings); nothing to render")
+    else:
+        later = f", later frames {stats['later_median_s']:.3f} s (median)" \
+            if stats["later_median_s"] is not None else ""
+        print(f"relit {result.rendered} view(s) under {result.light_directions} light "
+              f"direction(s) into {result.folder}: first frame {stats['first_s']:.2f} s "
+              f"(shadow maps included){later}"
+              + (f"; the other {earlier} were there from an earlier call" if earlier else ""))
     if result.video_note:
         print(f"video: {result.video_note}")
     if result.video:

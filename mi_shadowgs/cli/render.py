@@ -11,7 +11,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cameras", required=True,
                         help="NeRF-synthetic transforms_*.json with the views to render")
     parser.add_argument("--out", required=True,
-                        help="output folder: new, or holding an earlier render")
+                        help="output folder: new, or holding an earlier render (the same "
+                             "render is continued where it stopped)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an earlier render there (only its files)")
     parser.add_argument("--aov", action="append", default=[], metavar="NAME",
@@ -34,5 +35,11 @@ def run(args) -> int:
 
     result = render_views(args.model, args.cameras, args.out, args.aov, args.background,
                           args.color_channel, args.memory_budget, args.overwrite)
-    print(f"rendered {result.views} view(s) of {result.surfels} surfels to {result.folder}")
+    if result.rendered == 0:
+        print(f"{result.folder} already holds these {result.views} view(s) (same model, "
+              "cameras and settings); nothing to render")
+        return 0
+    earlier = result.views - result.rendered
+    print(f"rendered {result.rendered} view(s) of {result.surfels} surfels to {result.folder}"
+          + (f"; the other {earlier} were there from an earlier call" if earlier else ""))
     return 0

@@ -4,9 +4,11 @@ one way every command writes a premultiplied RGBA frame (EXR and PNG).
 Per view (named after the frame's ``file_path``): ``NAME.exr`` linear RGBA (colour
 premultiplied over black, or composited over ``background``), ``NAME.png`` an sRGB preview,
 and for each AOV: ``NAME_AOV.exr`` plus a normalised ``NAME_AOV.png`` preview. The output
-folder is new, or holds an earlier render: ``overwrite`` removes the files its manifest
-lists (``mi_shadowgs.io.provenance``) so that old and new renders never mix. It is never a
-dataset folder or inside one.
+folder is new, or holds an earlier render: of the same model, cameras and settings it is
+continued (a killed render keeps its finished views and renders only the missing ones; a
+finished one is reused), of others it is refused unless ``overwrite``, which removes the
+files its manifest lists (``mi_shadowgs.io.provenance``) so that old and new renders never
+mix. It is never a dataset folder or inside one.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ class RenderResult:
     folder: Path
     views: int
     surfels: int
+    rendered: int  # views this call rendered; the others were written by an earlier call
 
 
 def write_rgba(folder: Path, name: str, rgb: np.ndarray, alpha: np.ndarray,
@@ -112,26 +115,40 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
     provenance = Provenance(
         inputs={"model": input_ref(model), "cameras": input_ref(cameras)},
         settings={"aovs": aovs, "background": background, "color_channel": color_channel})
-    with Output.open(out, "render", provenance, overwrite=overwrite,
+    suffixes = [".exr", ".png"] + [f"_{a}{ext}" for a in aovs for ext in (".exr", ".png")]
+    with Output.open(out, "render", provenance, overwrite=overwrite, reuse=True,
                      inputs=[model, cameras]) as output:
-        output.claim(*(f"{stem}{suffix}" for stem in stems for suffix in
-                       [".exr", ".png"] + [f"_{a}{ext}" for a in aovs
-                                           for ext in (".exr", ".png")]))
-        _render(output.folder, surfels, [c for _, c in views], stems, aovs, background,
-                color_channel, raster, progress)
+        if output.complete:
+            return RenderResult(output.folder, len(views), surfels.count, 0)
+        output.claim(*(f"{stem}{suffix}" for stem in stems for suffix in suffixes))
+        todo = missing_views(output.folder, stems, suffixes)
+        _render(output.folder, surfels, [(stems[i], views[i][1]) for i in todo], len(stems),
+                aovs, background, color_channel, raster, progress)
         output.finish()
-    return RenderResult(output.folder, len(views), surfels.count)
+    return RenderResult(output.folder, len(views), surfels.count, len(todo))
 
 
-def _render(folder: Path, surfels, cameras, stems, aovs, background, color_channel, raster,
-            progress: bool) -> None:
+def missing_views(folder: Path, stems, suffixes) -> list[int]:
+    """Indices of the views that lack one of their files ``STEM + suffix`` in ``folder``.
+
+    Only a continued output (its provenance matched) holds any: each file is written
+    atomically, so one that exists is whole and made from these inputs and settings; a view
+    a kill cut short between its files is rendered again, to the same bytes."""
+    return [i for i, stem in enumerate(stems)
+            if not all((folder / f"{stem}{suffix}").is_file() for suffix in suffixes)]
+
+
+def _render(folder: Path, surfels, views, total: int, aovs, background, color_channel,
+            raster, progress: bool) -> None:
+    """Render and write ``views`` ((stem, camera) pairs): the missing ones of the output's
+    ``total``."""
     from tqdm import tqdm
 
     from mi_shadowgs.core.render import render_surfels
     from mi_shadowgs.io.images import write_exr, write_png
 
-    for stem, camera in tqdm(list(zip(stems, cameras, strict=True)), desc="render",
-                             unit="view", disable=not progress):
+    for stem, camera in tqdm(views, desc="render", unit="view", total=total,
+                             initial=total - len(views), disable=not progress):
         images = render_surfels(surfels, camera, color_channel=color_channel, aovs=aovs,
                                 background=background, config=raster)
         arrays = {k: np.asarray(v.numpy(), dtype=np.float32) for k, v in images.items()}

@@ -298,6 +298,7 @@ class RelightResult:
     stats: dict  # frame_stats
     video: Path | None
     video_note: str | None  # why the video is not an MP4
+    rendered: int  # views this call rendered; the others were written by an earlier call
 
 
 def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None = None,
@@ -308,14 +309,17 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
                 progress: bool = True) -> RelightResult:
     """The fit ``material/<fit>`` of the finished run ``run`` under new lights (module
     docstring), into the folder ``out``: ``NAME.exr`` / ``NAME.png`` per view,
-    ``relight.json`` (lights, views, per-frame times) and, with ``video``, a turntable. Views:
-    ``cameras`` (a transforms.json), an ``orbit`` of N views, else the run's test views.
-    Every argument is checked before the run is read; ``out`` is new or an earlier relight
-    (``overwrite`` removes only its files)."""
+    ``relight.json`` (lights, views, the per-frame times of the views this call rendered)
+    and, with ``video``, a turntable. Views: ``cameras`` (a transforms.json), an ``orbit``
+    of N views, else the run's test views. Every argument is checked before the run is
+    read; ``out`` is new or an earlier relight: the same relight is continued (a killed one
+    renders only its missing views) or reused when finished, another is refused unless
+    ``overwrite`` (which removes only its files)."""
     from mi_shadowgs.dataset.loader import load_cameras
-    from mi_shadowgs.io.images import linear_to_srgb, to_uint8
+    from mi_shadowgs.io.images import linear_to_srgb, read_exr, to_uint8
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
-    from mi_shadowgs.stages.relight.images import view_stems, write_rgba
+    from mi_shadowgs.stages.common import settings_dict
+    from mi_shadowgs.stages.relight.images import missing_views, view_stems, write_rgba
 
     if not lights and envmap is None and scene is None:
         raise ValueError("no light: give --light AZ,EL,IRRADIANCE, --envmap FILE or --scene XML")
@@ -339,36 +343,55 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
     names = view_stems(n for n, _ in named)
     inputs = [run_dir / "material" / fit / n for n in ("model.ply", "light.json")]
     extra = [Path(p) for p in (envmap, scene, cameras) if p]
+    bounds = run_fit.bounds
     provenance = Provenance(
         inputs={p.name: input_ref(p) for p in inputs + extra},
         settings={"lights": list(lights), "envmap": envmap, "rotate": rotate_deg,
                   "envmap_scale": envmap_scale, "scene": scene, "orbit": orbit,
                   "orbit_elevation": orbit_elevation, "fit": fit, "video": video,
-                  "fps": fps})
-    seconds, frames = [], []
-    with Output.open(out, "relight", provenance, overwrite=overwrite,
+                  "fps": fps,
+                  # What else a view depends on, read from the run and its dataset: a
+                  # continued relight must not mix views of other maps or bounds.
+                  "preset": run_fit.preset, "visibility": settings_dict(run_fit.vis_config),
+                  "shadow_bounds": {"center": [float(c) for c in bounds.center],
+                                    "radius": float(bounds.radius),
+                                    "mean_camera_distance": float(bounds.mean_camera_distance)}})
+    suffixes = (".exr", ".png")
+    with Output.open(out, "relight", provenance, overwrite=overwrite, reuse=True,
                      inputs=inputs + extra + ([run_fit.dataset] if run_fit.dataset else [])
                      ) as output:
-        output.claim(*(f"{n}{x}" for n in names for x in (".exr", ".png")), "relight.json")
-        for i, img, secs in relight_frames(run_fit, [c for _, c in named], light_set, cache,
-                                           progress=progress):
-            rgb = img["rgb"]
-            write_rgba(output.folder, names[i], rgb, img["alpha"][..., None])
+        if output.complete:
+            summary = output.folder / "relight.json"
+            info = json.loads(summary.read_text()) if summary.is_file() else {}
+            movie = output.folder / info["video"] if info.get("video") else None
+            return RelightResult(output.folder, len(names), light_set.count, frame_stats([]),
+                                 movie, info.get("video_note"), 0)
+        output.claim(*(f"{n}{x}" for n in names for x in suffixes), "relight.json")
+        todo = missing_views(output.folder, names, suffixes)
+        seconds = []
+        for j, img, secs in relight_frames(run_fit, [named[i][1] for i in todo], light_set,
+                                           cache, progress=progress):
+            write_rgba(output.folder, names[todo[j]], img["rgb"], img["alpha"][..., None])
             seconds.append(secs)
-            if video:
-                frames.append(to_uint8(linear_to_srgb(np.clip(rgb, 0, 1)), srgb=False))
         movie, why = None, None
         if video:
             output.claim("turntable.mp4", "turntable.gif")
+            # From the views' files, which an earlier (killed) call may have written: the
+            # EXR holds the float32 colour exactly, so the video is the same either way.
+            frames = []
+            for name in names:
+                rgb = read_exr(output.folder / f"{name}.exr")[..., :3]
+                frames.append(to_uint8(linear_to_srgb(np.clip(rgb, 0, 1)), srgb=False))
             movie, why = write_video(output.folder / "turntable", frames, fps)
         stats = frame_stats(seconds)
         summary_json(output.path("relight.json"), {
             "run": str(run_dir.resolve()), "fit": fit, "views": names,
             "light_directions": light_set.count, "shadow_maps_rendered": cache.rendered,
-            "frame_seconds": seconds, **stats,
+            "rendered_views": [names[i] for i in todo], "frame_seconds": seconds, **stats,
             "video": movie.name if movie else None, "video_note": why})
         output.finish()
-    return RelightResult(output.folder, len(names), light_set.count, stats, movie, why)
+    return RelightResult(output.folder, len(names), light_set.count, stats, movie, why,
+                         len(todo))
 
 
 def _default_views(run_dir: Path, fit: RunFit, orbit: int | None,
