@@ -185,3 +185,25 @@ def test_copy_without_masks_loads_without_masks(generated, tmp_path):
         assert vb.has_mask
     with pytest.raises(FileExistsError):
         unmasked_copy(out, tmp_path / "nomask")
+
+
+@pytest.mark.parametrize("name, field, value, message", [
+    ("lights.json", "training", 5, "field 'training' must be an object, got 5"),
+    ("lights.json", "training", {"lights": {"a": 1}}, "field 'training.lights' must be a list"),
+    ("lights.json", "relightings", [3], "field 'relightings' must be a list of objects"),
+    ("dataset.json", "materials", 5, "field 'materials' must be a list of objects, got 5"),
+])
+def test_a_field_of_the_wrong_kind_names_its_file_and_field(generated, tmp_path, name, field,
+                                                             value, message):
+    """A number where an object or a list belongs, in a field the loader or the stages read
+    by name: a DatasetError naming it at load time (it was a TypeError or AttributeError,
+    the materials' only after stages 1 and 2 had trained)."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(generated[0], data)
+    doc = json.loads((data / name).read_text())
+    doc[field] = value
+    (data / name).write_text(json.dumps(doc))
+    with pytest.raises(DatasetError, match=f"{name}: {message}"):
+        load_dataset(data, "train")

@@ -102,6 +102,28 @@ def _read_json(path: Path) -> dict:
     return data
 
 
+def _check_fields_read(root: Path, info: dict | None, lights: dict | None) -> None:
+    """The kinds of the dataset.json and lights.json fields that the loader and the stages
+    read by name (a DatasetError naming the file and field): a number where an object or a
+    list belongs failed later with a TypeError, some after training."""
+    def kind(path: Path, doc: dict | None, field: str, want: type, items: type | None = None,
+             name: str | None = None):
+        value = (doc or {}).get(field)
+        if value is None:
+            return
+        if not isinstance(value, want) or \
+                (items is not None and not all(isinstance(v, items) for v in value)):
+            what = {dict: "an object", list: "a list"}[want] + \
+                ("" if items is None else " of objects")
+            raise DatasetError(f"{path}: field {name or repr(field)} must be {what}, got {value!r}")
+
+    kind(root / layout.DATASET_JSON, info, "materials", list, dict)
+    kind(root / layout.LIGHTS_JSON, lights, "training", dict)
+    kind(root / layout.LIGHTS_JSON, lights, "relightings", list, dict)
+    training = (lights or {}).get("training") or {}
+    kind(root / layout.LIGHTS_JSON, training, "lights", list, dict, "'training.lights'")
+
+
 def _number(path: Path, field: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or \
             not math.isfinite(float(value)):
@@ -376,6 +398,7 @@ def load_dataset(root: str | Path, split: str = "train", require_mask: bool = Tr
         else None
     lights = _read_json(root / layout.LIGHTS_JSON) if (root / layout.LIGHTS_JSON).is_file() \
         else None
+    _check_fields_read(root, info, lights)
     n_lights = len(lights.get("training", {}).get("lights", [])) if lights else 0
     relit_names = [r.get("name") for r in lights.get("relightings", [])] if lights else []
     # An import without masks says so ("masks": false): its opaque PNGs carry no mask.
