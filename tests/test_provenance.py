@@ -189,6 +189,109 @@ def test_dataset_fingerprint_reads_each_file_once_per_process(tmp_path, monkeypa
     assert reads == [a / "train" / "r_2.png"]  # only the file whose stat changed
 
 
+POSE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]
+
+
+def _frames_dataset(root, images="train", file_path="./train/r_{i}"):
+    """A dataset whose two frames name ``file_path`` (formatted with the index), their images
+    (with an object mask and a training light's irradiance each) in the folder ``images``,
+    and a ``lights.json`` with an env-map relighting ``sky.exr``. The loader reads only
+    whether the files are there: bytes stand in for the images."""
+    root.mkdir(parents=True, exist_ok=True)
+    frames = [{"file_path": file_path.format(i=i), "transform_matrix": POSE} for i in range(2)]
+    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.69,
+                                                            "frames": frames}))
+    (root / "lights.json").write_text(json.dumps({
+        "training": {"lights": [{"name": "l0"}]},
+        "relightings": [{"name": "env", "type": "envmap", "path": "sky.exr"}]}))
+    (root / "sky.exr").write_bytes(b"sky" * 50)
+    folder = root / images
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(2):
+        (folder / f"r_{i}.png").write_bytes(bytes([i]) * 300)
+        (folder / f"r_{i}_mask.png").write_bytes(bytes([i + 7]) * 30)
+        (folder / f"r_{i}_irradiance_0.exr").write_bytes(bytes([i + 9]) * 30)
+    return root
+
+
+def test_an_ordinary_dataset_keeps_the_fingerprint_its_runs_recorded(tmp_path):
+    """Every file under the folder, no links: the walk alone, as before ``files_read``."""
+    assert provenance.dataset_fingerprint(_frames_dataset(tmp_path / "a")) == \
+        "2ad3fd796babac0a73fed4158a0cfaa3"
+
+
+def _changes_fingerprint(root, path, data=b"changed") -> bool:
+    before = provenance.dataset_fingerprint(root)
+    path.write_bytes(data)
+    return provenance.dataset_fingerprint(root) != before
+
+
+def test_dataset_fingerprint_covers_the_sfm_points(tmp_path):
+    """Stage 1 starts from ``points3d.ply`` in a dataset without masks."""
+    a = _frames_dataset(tmp_path / "a")
+    assert _changes_fingerprint(a, a / "points3d.ply", b"ply points")
+    assert _changes_fingerprint(a, a / "points3d.ply", b"ply other points")
+
+
+def test_dataset_fingerprint_covers_images_outside_the_folder(tmp_path):
+    """A frame's ``file_path`` may leave the dataset folder: its image and the view's
+    buffers are read from there."""
+    a = _frames_dataset(tmp_path / "a", images="../imgs_train", file_path="../imgs_train/r_{i}")
+    outside = tmp_path / "imgs_train"
+    for name in ("r_1.png", "r_0_mask.png", "r_1_irradiance_0.exr"):
+        assert _changes_fingerprint(a, outside / name), name
+    (outside / "r_0.png").unlink()
+    (outside / "notes.png").write_bytes(b"not read by the loader")
+    before = provenance.dataset_fingerprint(a)
+    (outside / "notes.png").write_bytes(b"still not read")
+    assert provenance.dataset_fingerprint(a) == before
+
+
+def test_dataset_fingerprint_follows_linked_split_folders(tmp_path):
+    """A linked split folder's images count as if the folder were there: a copy of the
+    dataset with the folder itself has the same fingerprint."""
+    a = _frames_dataset(tmp_path / "a", images="../elsewhere/train")
+    (a / "train").symlink_to(tmp_path / "elsewhere" / "train", target_is_directory=True)
+    copy = tmp_path / "copy"
+    shutil.copytree(a, copy, symlinks=False)
+    assert provenance.dataset_fingerprint(a) == provenance.dataset_fingerprint(copy)
+    for name in ("r_0.png", "r_1_mask.png", "r_0_irradiance_0.exr"):
+        assert _changes_fingerprint(a, tmp_path / "elsewhere" / "train" / name), name
+
+
+def test_dataset_fingerprint_covers_an_env_map_given_by_absolute_path(tmp_path):
+    a = _frames_dataset(tmp_path / "a")
+    sky = tmp_path / "maps" / "sky.exr"
+    sky.parent.mkdir()
+    sky.write_bytes(b"sky" * 50)
+    lights = json.loads((a / "lights.json").read_text())
+    lights["relightings"][0]["path"] = str(sky)
+    (a / "lights.json").write_text(json.dumps(lights))
+    assert _changes_fingerprint(a, sky)
+
+
+def test_dataset_fingerprint_follows_linked_tensoir_folders(tmp_path):
+    a = tmp_path / "a"
+    a.mkdir()
+    view = tmp_path / "elsewhere" / "train_000"
+    view.mkdir(parents=True)
+    for name in ("metadata.json", "rgba.png", "normal.png", "rgba_sunset.png"):
+        (view / name).write_bytes(name.encode())
+    (a / "train_000").symlink_to(view, target_is_directory=True)
+    for name in ("metadata.json", "rgba.png", "normal.png", "rgba_sunset.png"):
+        assert _changes_fingerprint(a, view / name), name
+
+
+def test_a_malformed_dataset_still_has_a_fingerprint(tmp_path):
+    """Loading names the fault; the fingerprint covers what it can (the file's bytes)."""
+    a = _frames_dataset(tmp_path / "a")
+    for text in ("{not json", '{"frames": 3}', '{"frames": [3, {"file_path": 4}]}'):
+        assert _changes_fingerprint(a, a / "transforms_train.json", text.encode())
+    for text in ('{"relightings": 3}', '{"relightings": [{"type": "envmap", "path": 5}]}',
+                 '{"training": []}'):
+        assert _changes_fingerprint(a, a / "lights.json", text.encode())
+
+
 def _prov(ds, **settings):
     return provenance.Provenance(dataset=provenance.dataset_ref(ds),
                                  settings={"iterations": 100, **settings})

@@ -327,6 +327,23 @@ def test_train_resume_against_another_dataset_changes_nothing(data, tmp_path, ca
     assert cfg["data"] == str(data[1])
 
 
+def test_sfm_points_added_to_a_dataset_without_masks_are_a_dataset_change(
+        data, tmp_path, capsys):
+    """Stage 1 of a dataset without masks starts from its ``points3d.ply`` when it has one:
+    a stage 1 made before the file was added is not the one the file gives."""
+    from validation.without_masks import unmasked_copy
+
+    nomask = unmasked_copy(data[0], tmp_path / "nomask")
+    run = tmp_path / "run"
+    argv = ["train", str(nomask), "--out", str(run), "--no-eval", "--no-progress"]
+    assert cli.main(argv) == 0
+    before = _snapshot(run)
+    (nomask / "points3d.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\n")
+    assert cli.main([*argv, "--resume"]) == 2
+    assert f"the dataset {nomask} changed since" in capsys.readouterr().err
+    assert _snapshot(run) == before
+
+
 def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(
     finished, data, tmp_path, capsys
 ):

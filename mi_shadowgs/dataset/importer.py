@@ -594,7 +594,7 @@ def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, co
                                             src_cams[name], cam)
             views.append(v)
         split = write_views(tmp, views, config)
-        _write_points_ply(tmp / "points3d.ply", sim.points(xyz), rgb)
+        _write_points_ply(tmp / layout.POINTS_PLY, sim.points(xyz), rgb)
         timings["write_s"] = time.perf_counter() - t
         steps.update(1)
         timings["total_s"] = time.perf_counter() - t_start
@@ -686,7 +686,7 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
                           "mask": None if mask is None else mask[..., 0]})
         split = write_views(tmp, views, config)
         if len(points):
-            _write_points_ply(tmp / "points3d.ply", sim.points(points),
+            _write_points_ply(tmp / layout.POINTS_PLY, sim.points(points),
                               np.full((len(points), 3), 128, np.uint8))
         record = {"format_version": 1, "source": str(path.resolve()), "mode": "nerfstudio",
                   "similarity": sim.to_json(), "world_frame": frame_report,

@@ -9,6 +9,7 @@ from __future__ import annotations
 SPLITS = ("train", "test")
 DATASET_JSON = "dataset.json"
 LIGHTS_JSON = "lights.json"
+POINTS_PLY = "points3d.ply"  # an import's SfM points, in our frame
 SKY_ENVMAP = "sky_envmap.exr"  # the procedural sky of the env-map relit test views
 ENVMAP_DIR = "envmaps"  # copies of the other env maps the relit test views were rendered with
 FORMAT_VERSION = 1

@@ -307,9 +307,21 @@ def _check_size(path: Path, arr: np.ndarray, cam: Camera) -> np.ndarray:
     return arr
 
 
-def _optional(root: Path, stem: str, suffix: str) -> Path | None:
-    p = root / (stem + suffix)
-    return p if p.is_file() else None
+def _view_stem(file_path: str) -> str:
+    """A frame's ``file_path`` without its image's extension: what its buffers' names extend."""
+    stem = str(Path(file_path).with_suffix("")) if Path(file_path).suffix.lower() in \
+        (".png", ".exr") else file_path
+    return stem[2:] if stem.startswith("./") else stem
+
+
+def _view_buffers(root: Path, stem: str, n_lights: int, relit_names) -> dict[str, Path]:
+    """suffix -> file of each per-view buffer (``layout``'s suffixes) the view has: every
+    file besides its image that ``_load_nerf_view`` reads."""
+    suffixes = (layout.MASK, layout.ALBEDO, layout.NORMAL, layout.DEPTH, layout.MATERIAL,
+                layout.VISIBILITY, *(layout.IRRADIANCE.format(k=k) for k in range(n_lights)),
+                *(layout.RELIT.format(name=name) for name in relit_names))
+    found = {s: root / (stem + s) for s in suffixes}
+    return {s: p for s, p in found.items() if p.is_file()}
 
 
 def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
@@ -320,9 +332,8 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
     if img_path is None:
         raise DatasetError(f"{tpath}: the image of frame {index} ({file_path!r}) is missing "
                            f"under {root}")
-    stem = str(Path(file_path).with_suffix("")) if Path(file_path).suffix.lower() in \
-        (".png", ".exr") else file_path
-    stem = stem[2:] if stem.startswith("./") else stem
+    stem = _view_stem(file_path)
+    buffers = _view_buffers(root, stem, n_lights, relit_names)
     rgba = _check_size(img_path, _read_image(img_path), cam)
     has_mask = rgba.shape[-1] == 4 and not no_masks
     if rgba.shape[-1] != 4:
@@ -331,7 +342,7 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
         # Pixels that map outside the photo get alpha 0: nothing was seen there.
         rgba, _ = undistort(rgba, cam, distortion)
         extra = [s for s in (layout.ALBEDO, layout.NORMAL, layout.DEPTH, layout.MATERIAL,
-                             layout.VISIBILITY) if _optional(root, stem, s) is not None]
+                             layout.VISIBILITY) if s in buffers]
         if extra:
             raise DatasetError(f"{tpath}: frame {index} has lens distortion (k1..k4, p1, p2) "
                                f"and ground-truth buffers ({', '.join(extra)}) that cannot be "
@@ -342,22 +353,22 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
     if require_mask and not mask.any():
         raise DatasetError(f"{img_path}: the mask (alpha) is empty: the view sees nothing")
     view = View(name=stem, camera=cam, image=image, mask=mask, has_mask=has_mask)
-    if (p := _optional(root, stem, layout.MASK)) is not None:
+    if (p := buffers.get(layout.MASK)) is not None:
         m = _check_size(p, read_png(p), cam)[..., :1].astype(np.float32)
         if distortion is not None:
             m, _ = undistort(m, cam, distortion)
         view.object_mask = m[..., 0] > 127
-    if (p := _optional(root, stem, layout.ALBEDO)) is not None:
+    if (p := buffers.get(layout.ALBEDO)) is not None:
         view.albedo = _check_size(p, read_exr(p), cam)[..., :3]
-    if (p := _optional(root, stem, layout.NORMAL)) is not None:
+    if (p := buffers.get(layout.NORMAL)) is not None:
         view.normal = _check_size(p, read_exr(p), cam)[..., :3]
         if to_ours is not None:  # world-space normals of a Blender-frame dataset
             view.normal = (view.normal @ to_ours.T).astype(np.float32)
-    if (p := _optional(root, stem, layout.DEPTH)) is not None:
+    if (p := buffers.get(layout.DEPTH)) is not None:
         view.depth = _check_size(p, read_exr(p), cam)[..., 0]
-    if (p := _optional(root, stem, layout.MATERIAL)) is not None:
+    if (p := buffers.get(layout.MATERIAL)) is not None:
         view.material = _check_size(p, read_png(p), cam)[..., 0].astype(np.int32)
-    if (p := _optional(root, stem, layout.VISIBILITY)) is not None:
+    if (p := buffers.get(layout.VISIBILITY)) is not None:
         vis = _check_size(p, read_exr(p), cam)
         if n_lights and vis.shape[-1] != n_lights:
             raise DatasetError(f"{p}: {vis.shape[-1]} visibility channels for {n_lights} "
@@ -365,7 +376,7 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
         view.visibility = vis
     irr = []
     for k in range(n_lights):
-        p = _optional(root, stem, layout.IRRADIANCE.format(k=k))
+        p = buffers.get(layout.IRRADIANCE.format(k=k))
         if p is not None:
             irr.append(_check_size(p, read_exr(p), cam)[..., :3])
     if irr:
@@ -374,10 +385,67 @@ def _load_nerf_view(root: Path, file_path: str, cam: Camera, n_lights: int,
                                f"{n_lights} lights")
         view.irradiance = np.stack(irr, axis=2)
     for name in relit_names:
-        p = _optional(root, stem, layout.RELIT.format(name=name))
+        p = buffers.get(layout.RELIT.format(name=name))
         if p is not None:
             view.relit[name] = _check_size(p, read_exr(p), cam)[..., :3]
     return view
+
+
+def _light_buffers(lights: dict | None) -> tuple[int, list[str]]:
+    """(number of training lights, names of the relightings) of ``lights.json``: which
+    irradiance and relit buffers a view may have."""
+    if not lights:
+        return 0, []
+    names = [r.get("name") for r in lights.get("relightings", [])]
+    return len(lights.get("training", {}).get("lights", [])), [n for n in names if n]
+
+
+def envmap_path(entry: dict, root: Path) -> Path:
+    """The env-map file a ``lights.json`` relighting's ``path`` names: absolute, or relative
+    to the dataset folder ``root``."""
+    path = Path(entry["path"])
+    return path if path.is_absolute() else root / path
+
+
+def files_read(root: str | Path) -> list[Path]:
+    """Every file the loader reads from the dataset ``root``, for any split, found by the
+    loader's own rules: the JSON files, ``points3d.ply``, each frame's image and buffers and
+    each env map of ``lights.json``, wherever they lie (a frame's ``file_path`` may leave the
+    folder, ``../images/r_000``, or pass through a linked folder; an env map's path may be
+    absolute). Each is ``root`` joined with the path the dataset gives. A JSON file that
+    does not parse names nothing here: loading it fails, naming it. The dataset fingerprint
+    (``io.provenance``) covers these files."""
+    root = Path(root)
+    files = [root / n for n in (layout.DATASET_JSON, layout.LIGHTS_JSON, layout.POINTS_PLY)]
+    lights = _json_or_none(root / layout.LIGHTS_JSON)
+    # A malformed lights.json names nothing more: loading (or its check) names the field.
+    try:
+        n_lights, relit_names = _light_buffers(lights)
+    except (AttributeError, TypeError):
+        n_lights, relit_names = 0, []
+    try:
+        files += [envmap_path(e, root) for e in (lights or {}).get("relightings", [])
+                  if e.get("type") == "envmap" and e.get("path")]
+    except (AttributeError, TypeError):
+        pass
+    for tpath in sorted(root.glob(layout.transforms_name("*"))):
+        files.append(tpath)
+        frames = (_json_or_none(tpath) or {}).get("frames")
+        for fr in frames if isinstance(frames, list) else []:
+            if isinstance(fr, dict) and isinstance(fr.get("file_path"), str):
+                files.append(_image_file(root, fr["file_path"]))
+                stem = _view_stem(fr["file_path"])
+                files += _view_buffers(root, stem, n_lights, relit_names).values()
+    for meta in sorted(root.glob("*_*/metadata.json")):
+        files += _tensoir_files(meta.parent)
+    return [p for p in files if p is not None and p.is_file()]
+
+
+def _json_or_none(path: Path) -> dict | None:
+    try:
+        return _read_json(path)
+    except DatasetError:
+        return None
 
 
 def load_dataset(root: str | Path, split: str = "train", require_mask: bool = True) -> Dataset:
@@ -399,15 +467,13 @@ def load_dataset(root: str | Path, split: str = "train", require_mask: bool = Tr
     lights = _read_json(root / layout.LIGHTS_JSON) if (root / layout.LIGHTS_JSON).is_file() \
         else None
     _check_fields_read(root, info, lights)
-    n_lights = len(lights.get("training", {}).get("lights", [])) if lights else 0
-    relit_names = [r.get("name") for r in lights.get("relightings", [])] if lights else []
+    n_lights, relit_names = _light_buffers(lights)
     # An import without masks says so ("masks": false): its opaque PNGs carry no mask.
     no_masks = _read_json(tpath).get("masks", True) is False
-    views = [_load_nerf_view(root, f.file_path, f.camera, n_lights,
-                             [n for n in relit_names if n], tpath, i, require_mask, f.distortion,
-                             f.to_ours, no_masks)
+    views = [_load_nerf_view(root, f.file_path, f.camera, n_lights, relit_names, tpath, i,
+                             require_mask, f.distortion, f.to_ours, no_masks)
              for i, f in enumerate(load_frames(tpath))]
-    points = root / "points3d.ply"
+    points = root / layout.POINTS_PLY
     return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf",
                    points=points if points.is_file() else None)
 
@@ -434,6 +500,15 @@ def _tensoir_camera(meta_path: Path, meta: dict) -> Camera:
 def _tensoir_index(path: Path) -> int:
     m = re.search(r"(\d+)$", path.name)
     return int(m.group(1)) if m else -1
+
+
+TENSOIR_FILES = ("metadata.json", "rgba.png", "albedo.png", "normal.png")
+
+
+def _tensoir_files(folder: Path) -> list[Path]:
+    """The files ``load_tensoir`` reads from one view's folder, where present."""
+    files = [folder / name for name in TENSOIR_FILES] + sorted(folder.glob("rgba_*.png"))
+    return [p for p in files if p.is_file()]
 
 
 def load_tensoir(root: str | Path, split: str = "train", require_mask: bool = True) -> Dataset:

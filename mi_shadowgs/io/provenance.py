@@ -31,8 +31,9 @@ from mi_shadowgs.io.atomic import remove_stale, write_json
 
 MANIFEST_NAME = ".mi_shadowgs_manifest.json"
 FORMAT_VERSION = 1
-# What the dataset fingerprint covers: every file the loader may read (images, transforms,
-# dataset.json, lights.json, TensoIR metadata), not other files such as a writer's manifest.
+# What the dataset fingerprint covers: the folder's images and loader JSON files (transforms,
+# dataset.json, lights.json, TensoIR metadata), not other files such as a writer's manifest;
+# then every other file the loader reads (``loader.files_read``).
 IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg", ".hdr")  # .hdr: env maps
 DATASET_JSON = re.compile(r"transforms_.*\.json|dataset\.json|lights\.json|metadata\.json")
 _CHUNK = 1 << 20
@@ -54,6 +55,16 @@ def file_digest(path: str | os.PathLike) -> str:
 
 
 def _dataset_files(root: Path) -> list[tuple[str, os.stat_result]]:
+    """(name, stat) of each file the fingerprint covers; ``root / name`` is the file.
+
+    The walk of the folder (the whole fingerprint before ``files_read``, so an ordinary
+    dataset keeps the fingerprint its runs recorded), and the files the loader reads that
+    the walk does not see: ``points3d.ply``, and files outside the folder or behind a linked
+    folder, named as the dataset names them (``../images/r_000.png``, ``train/r_000.png``
+    through a linked ``train``, as in a copy without the link; an absolute env map's path).
+    """
+    from mi_shadowgs.dataset.loader import files_read
+
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
@@ -62,6 +73,13 @@ def _dataset_files(root: Path) -> list[tuple[str, os.stat_result]]:
                                              DATASET_JSON.fullmatch(name)):
                 p = Path(dirpath) / name
                 found.append((p.relative_to(root).as_posix(), p.stat()))
+    seen = {(st.st_dev, st.st_ino) for _, st in found}
+    for p in files_read(root):
+        st = p.stat()
+        if (st.st_dev, st.st_ino) not in seen:
+            seen.add((st.st_dev, st.st_ino))
+            name = p.relative_to(root) if p.is_relative_to(root) else p  # absolute: as given
+            found.append((name.as_posix(), st))
     return sorted(found, key=lambda item: item[0])
 
 
@@ -71,7 +89,8 @@ _DIGESTS: dict[tuple, str] = {}
 
 
 def dataset_fingerprint(root: str | os.PathLike) -> str:
-    """blake2b-128 over (relative path, size, content digest) of the dataset's files.
+    """blake2b-128 over (relative path, size, content digest) of the dataset's files: those
+    in its folder and every other file the loader reads (``_dataset_files``).
 
     Contents, not modification times, decide: a copied dataset has the fingerprint of its
     original; an edited image changes it. The cpu-small dataset (1060 files, 21 MB) takes

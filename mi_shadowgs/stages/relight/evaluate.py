@@ -358,13 +358,12 @@ RELIGHT_TYPES = ("directional", "envmap")
 def envmap_file(entry: dict, root: Path) -> Path:
     """The env-map file of a ``lights.json`` relighting (absolute, or relative to the
     dataset); DatasetError naming it when it is missing."""
-    from mi_shadowgs.dataset.loader import DatasetError
+    from mi_shadowgs.dataset.loader import DatasetError, envmap_path
 
     if not entry.get("path"):
         raise DatasetError(f"{root / 'lights.json'}: env-map relighting {entry.get('name')!r} "
                            "has no 'path'")
-    path = Path(entry["path"])
-    path = path if path.is_absolute() else root / path
+    path = envmap_path(entry, root)
     if not path.is_file():
         raise DatasetError(f"{path}: env map of relighting {entry.get('name')!r} not found "
                            f"({root / 'lights.json'})")
