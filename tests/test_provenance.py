@@ -311,6 +311,48 @@ def test_output_claims_a_folder_lazily_and_lists_every_file(tmp_path):
     assert m["dataset"]["fingerprint"] == provenance.dataset_fingerprint(ds)
 
 
+def test_an_output_folder_that_is_or_lies_under_a_file_is_refused(tmp_path):
+    """It could never be made: refused by name before any work (it was a NotADirectoryError
+    at the first file written)."""
+    ds = _dataset(tmp_path / "ds")
+    (tmp_path / "afile").write_text("mine")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub" / "stage"):
+        with pytest.raises(provenance.ProvenanceError, match=f"^{out}: .*a file, not a folder"):
+            provenance.Output.open(out, "train", _prov(ds))
+        with pytest.raises(provenance.ProvenanceError, match=f"under {tmp_path / 'afile'}, "
+                           if out != tmp_path / "afile" else "is a file"):
+            provenance.check_output_location(out, writes_dataset=True)
+    assert (tmp_path / "afile").read_text() == "mine"
+
+
+@pytest.mark.parametrize("error", [PermissionError(13, "Permission denied", "/x/out"),
+                                   NotADirectoryError(20, "Not a directory", "/x/afile/out"),
+                                   IsADirectoryError(21, "Is a directory", "/x/folder")])
+def test_an_os_error_on_a_path_exits_2_naming_it(error, monkeypatch, capsys):
+    from mi_shadowgs import cli
+    from mi_shadowgs.cli import report
+
+    def fail(args):
+        raise error
+
+    monkeypatch.setattr(report, "run", fail)
+    assert cli.main(["report", "RUN"]) == 2
+    assert capsys.readouterr().err == \
+        f"mi-shadowgs report: error: {error.filename}: {error.strerror}\n"
+
+
+def test_an_os_error_without_a_path_is_not_taken_for_a_user_error(monkeypatch):
+    from mi_shadowgs import cli
+    from mi_shadowgs.cli import report
+
+    def fail(args):
+        raise PermissionError("no path: a fault of the code, shown with its traceback")
+
+    monkeypatch.setattr(report, "run", fail)
+    with pytest.raises(PermissionError):
+        cli.main(["report", "RUN"])
+
+
 def test_a_failed_command_leaves_no_folder(tmp_path):
     ds = _dataset(tmp_path / "ds")
     with (

@@ -132,6 +132,17 @@ def test_render_never_writes_into_a_dataset_or_over_its_input(setup, tmp_path, c
     assert rc == 2 and "holds the input" in capsys.readouterr().err
 
 
+def test_an_out_under_a_file_exits_2_naming_it(setup, tmp_path, capsys):
+    root, _ = setup
+    (tmp_path / "afile").write_text("mine")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
+        rc = cli.main(["render", str(root / "model.ply"), "--cameras",
+                       str(root / "data" / "transforms_test.json"), "--out", str(out)])
+        assert rc == 2
+        assert f"error: {out}: " in capsys.readouterr().err
+    assert (tmp_path / "afile").read_text() == "mine"
+
+
 def test_renders_never_mix_and_overwrite_removes_only_renders(setup, tmp_path, capsys):
     root, cams = setup
     out = tmp_path / "out"

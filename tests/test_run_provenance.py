@@ -344,6 +344,16 @@ def test_sfm_points_added_to_a_dataset_without_masks_are_a_dataset_change(
     assert _snapshot(run) == before
 
 
+@pytest.mark.parametrize("command", ["train", "run"])
+def test_an_out_under_a_file_exits_2_naming_it(data, tmp_path, capsys, command):
+    (tmp_path / "afile").write_text("mine")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
+        assert cli.main([command, str(data[0]), "--out", str(out), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert f"{tmp_path / 'afile'}" in err and "a file, not a folder" in err, err
+    assert (tmp_path / "afile").read_text() == "mine"
+
+
 def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(
     finished, data, tmp_path, capsys
 ):

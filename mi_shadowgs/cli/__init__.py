@@ -73,6 +73,14 @@ def main(argv: list[str] | None = None) -> int:
             ValueError) as exc:
         print(f"mi-shadowgs {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except (PermissionError, IsADirectoryError, NotADirectoryError) as exc:
+        # A path given (or one under it) that this user may not use, or a folder where a
+        # file should be: the OS names it. Without a path it is no user's input: traceback.
+        if exc.filename is None:
+            raise
+        print(f"mi-shadowgs {args.command}: error: {exc.filename}: {exc.strerror}",
+              file=sys.stderr)
+        return 2
     except Interrupted as exc:
         hint = RESUME_HINTS.get(args.command, "run the same command again to continue")
         if args.command in OVERWRITE_RESTARTS and args.overwrite:

@@ -234,10 +234,15 @@ def is_dataset_folder(path: str | os.PathLike) -> bool:
 
 def check_output_location(folder: str | os.PathLike, inputs=(),
                           writes_dataset: bool = False) -> None:
-    """Refuse an output folder inside a dataset folder, or one that holds an input.
-    ``writes_dataset``: the output is a dataset (``generate``), so ``folder`` itself may be
-    one; its ancestors still may not."""
+    """Refuse an output folder that is a file or lies under one (it could never be made),
+    one inside a dataset folder, or one that holds an input. ``writes_dataset``: the output
+    is a dataset (``generate``), so ``folder`` itself may be one; its ancestors still may not.
+    """
     folder = Path(folder).resolve()
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if not existing.is_dir():
+        where = "is" if existing == folder else f"lies under {existing}, which is"
+        raise ProvenanceError(f"{folder}: {where} a file, not a folder: choose another folder")
     for p in (folder.parents if writes_dataset else (folder, *folder.parents)):
         if is_dataset_folder(p):
             where = "is" if p == folder else "is inside"
@@ -345,8 +350,6 @@ class Output:
         """
         folder = Path(folder)
         check_output_location(folder, inputs, writes_dataset)
-        if folder.exists() and not folder.is_dir():
-            raise ProvenanceError(f"{folder}: exists and is not a folder")
         manifest = read_manifest(folder) if folder.exists() else None
         if manifest is None and folder.exists():
             foreign = _foreign_entries(folder, tuple(parts))
