@@ -75,9 +75,10 @@ def export_ply(path: str | Path, surfels) -> None:
 
 
 def export_asset(run_folder: str | Path, out: str | Path, fmt: str = "mesh",
-                 color: str = "sh", preset: str = "cpu-small", overwrite: bool = False):
+                 color: str = "sh", preset: str | None = None, overwrite: bool = False):
     """A finished run's stage-4 model as ``fmt`` ("3dgs-ply", "2dgs-ply" or "mesh": a mesh
-    with per-vertex materials and a Mitsuba ``scene.xml``) in the folder ``out``."""
+    with per-vertex materials and a Mitsuba ``scene.xml``) in the folder ``out``, at
+    ``preset``'s export settings (default: the run's preset)."""
     from mi_shadowgs.stages.relight.export import export_run
 
     return export_run(run_folder, out, fmt, color=color, preset=preset, overwrite=overwrite)

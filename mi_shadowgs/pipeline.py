@@ -111,8 +111,12 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     if name == "full" and config.preview_envmaps:  # the previews of the full fit use them
         # (only when given: a run made before they existed keeps its settings and is reused)
         settings["preview_envmaps"] = list(config.preview_envmaps)
-    provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(seg_model)},
-                            settings=settings)
+    inputs = {"model": input_ref(seg_model)}
+    if "preview_envmaps" in settings:  # by content: a file edited, or one added to a folder,
+        # makes the previews again (the dataset's own env maps are in its fingerprint)
+        inputs.update({f"preview_envmap_{i}": input_ref(f)
+                       for i, f in enumerate(_user_envmap_files(config))})
+    provenance = Provenance(dataset=dataset_ref(data), inputs=inputs, settings=settings)
     top.add_part(f"material/{name}")
     with Output.open(folder, "run", provenance, overwrite=overwrite, reuse=True,
                      inputs=[data, seg_model]) as out:
@@ -176,12 +180,17 @@ def _preview_envmaps(config: RunConfig, train) -> list[tuple[str, Path, float]]:
 
     out = [(e["name"], envmap_file(e, train.root), float(e.get("scale", 1.0)))
            for e in (train.lights or {}).get("relightings", []) if e.get("type") == "envmap"]
+    return out + [(f.stem, f, 1.0) for f in _user_envmap_files(config)]
+
+
+def _user_envmap_files(config: RunConfig) -> list[Path]:
+    """The files of ``config.preview_envmaps`` (files, or folders of .exr files), in order."""
+    files = []
     for entry in config.preview_envmaps:
         path = Path(entry)
-        files = sorted(path.glob("*.exr")) if path.is_dir() else [path] if path.is_file() \
+        files += sorted(path.glob("*.exr")) if path.is_dir() else [path] if path.is_file() \
             else []
-        out += [(f.stem, f, 1.0) for f in files]
-    return out
+    return files
 
 
 def _timed(fn):
@@ -594,9 +603,11 @@ def speed_error_stage(run: Path) -> dict:
 def refresh_speed_error(run: Path) -> bool:
     """Bring ``RUN/summary.json``'s speed-against-error section up to date with the files
     in ``RUN/speed_error/`` (plots added after the run); True when it changed."""
+    from mi_shadowgs.io.report import read_summary
+
     path = Path(run) / "summary.json"
     try:
-        summary = json.loads(path.read_text())
+        summary = read_summary(path)
     except (OSError, ValueError):
         return False  # write_report names the missing or malformed file
     stages = summary.setdefault("stages", [])

@@ -133,10 +133,16 @@ def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,
         with Output.open(geo, "run", Provenance(dataset=dataset_ref(data))) as out:
             write_ply_model(out.path("model.ply"), model)
             out.finish()
+        top.add_part("segmentation")  # stage 4 reads segmentation/model.ply, as in a run
+        seg = run / "segmentation"
+        with Output.open(seg, "segment", Provenance(
+                dataset=dataset_ref(data), inputs={"model": input_ref(geo / "model.ply")})) as out:
+            write_ply_model(out.path("model.ply"), model)
+            out.finish()
         if stage4:
             top.add_part("material/full")
             prov = Provenance(dataset=dataset_ref(data),
-                              inputs={"model": input_ref(geo / "model.ply")})
+                              inputs={"model": input_ref(seg / "model.ply")})
             with Output.open(run / "material" / "full", "run", prov) as out:
                 write_ply_model(out.path("model.ply"), model)
                 dirs = np.array([d for d, _ in lights], np.float64)

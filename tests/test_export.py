@@ -216,7 +216,8 @@ def _run_digests(run):
 
 @pytest.mark.parametrize("case", ["no-stage-4", "unknown-format", "unknown-color",
                                   "out-is-run", "out-in-stage", "foreign-folder", "no-run",
-                                  "moved-dataset", "not-a-run", "out-names-a-file"])
+                                  "moved-dataset", "not-a-run", "out-names-a-file",
+                                  "data-for-a-splat"])
 def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
     run, data = syn.fake_run(tmp_path / "r", stage4=case != "no-stage-4")
     original = run
@@ -242,6 +243,8 @@ def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
         run = data
     elif case == "out-names-a-file":
         out = tmp_path / "model.ply"
+    elif case == "data-for-a-splat":  # it was ignored without a word
+        fmt, extra = "2dgs-ply", ["--data", data]
     code = export(run, "--format", fmt, "--out", out, *extra)
     err = capsys.readouterr().err.strip()
     assert code == 2, err
@@ -251,7 +254,8 @@ def test_bad_input_exits_2_naming_it(tmp_path, capsys, case):
               "out-in-stage": "material", "foreign-folder": "notes.txt",
               "no-run": "run folder not found", "moved-dataset": "--data",
               "not-a-run": "not a run folder",
-              "out-names-a-file": "names a .ply file, but --out is a folder"}[case]
+              "out-names-a-file": "names a .ply file, but --out is a folder",
+              "data-for-a-splat": "--data is read by --format mesh only"}[case]
     assert expect in err
     assert _run_digests(original) == before  # nothing in the run changed
     if case == "foreign-folder":
@@ -320,3 +324,23 @@ def test_model_bsdf_renders_our_cook_torrance(tmp_path, roughness, metallic):
     assert err["model"] < 0.01, err
     if metallic == 0.0 and roughness >= 0.5:  # Disney's retro-reflection grows with both
         assert err["principled"] > 0.05, err
+
+
+def test_the_export_takes_the_runs_preset_by_default(tmp_path):
+    """Without --preset the export's settings are the run's preset's (the mesh grid of a
+    `paper` run is `paper`'s), as relight takes them; they were cpu-small's for any run."""
+    import json
+
+    from mi_shadowgs.io.provenance import MANIFEST_NAME
+
+    run, _ = syn.fake_run(tmp_path / "r")
+    manifest = json.loads((run / MANIFEST_NAME).read_text())
+    manifest["settings"] = {**(manifest.get("settings") or {}), "preset": "cpu-medium"}
+    (run / MANIFEST_NAME).write_text(json.dumps(manifest))
+    assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "a") == 0
+    made = json.loads((tmp_path / "a" / MANIFEST_NAME).read_text())
+    assert made["settings"]["preset"] == "cpu-medium"
+    assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "b", "--preset",
+                  "cpu-small") == 0
+    assert json.loads((tmp_path / "b" / MANIFEST_NAME).read_text())["settings"]["preset"] \
+        == "cpu-small"

@@ -56,6 +56,9 @@ def test_bad_light_exits_2_naming_the_field(tmp_path, capsys, text, field):
     (["--envmap", "ENV", "--rotate", "inf"], "--rotate must be finite"),
     (["--scene", "missing.xml"], "--scene missing.xml: file not found"),
     ([], "no light"),
+    (["--light", "0,45,1", "--orbit", "4", "--orbit-elevation", "nan"],
+     "--orbit-elevation must be a finite angle in (-90, 90) degrees, got nan"),
+    (["--light", "0,45,1", "--orbit-elevation", "30"], "give --orbit N with it"),
 ])
 def test_bad_envmap_or_scene_arguments_exit_2(tmp_path, capsys, argv, message):
     env = tmp_path / "sky.exr"

@@ -9,6 +9,7 @@ import pytest
 
 from mi_shadowgs.io.images import write_png
 from mi_shadowgs.io.report import render_html, write_report
+from mi_shadowgs.pipeline import refresh_speed_error
 
 
 def test_report_shows_tables_grid_and_stage_figures(tmp_path):
@@ -36,3 +37,8 @@ def test_report_errors_name_the_file(tmp_path):
     (tmp_path / "summary.json").write_text("{not json")
     with pytest.raises(ValueError, match="summary.json: malformed JSON"):
         write_report(tmp_path)
+    for summary, field in (({"stages": 5}, "stages"), ({"tables": [3]}, "tables")):
+        (tmp_path / "summary.json").write_text(json.dumps(summary))
+        assert not refresh_speed_error(tmp_path)  # leaves it for write_report to name
+        with pytest.raises(ValueError, match=f"summary.json: field '{field}' must be a list"):
+            write_report(tmp_path)

@@ -355,6 +355,11 @@ def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatc
     report = json.loads((tmp_path / "seg" / "segmentation.json").read_text())
     assert report["seconds_train"] > 1000.0
     assert report["seconds_stage"] > report["seconds_train"] + report["seconds_masks"]
+    capsys.readouterr()
+    assert cli.main([*seg_argv, "--resume"]) == 0  # finished: says so (it printed nothing)
+    assert "is finished, with the same dataset, model and settings" in capsys.readouterr().out
+    assert cli.main([*seg_argv, "--resume", "--overwrite"]) == 2  # as train refuses the pair
+    assert "pass one of them" in capsys.readouterr().err
 
 
 def test_a_log_row_cut_short_is_dropped_on_resume(tmp_path):

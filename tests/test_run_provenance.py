@@ -426,6 +426,30 @@ def test_segment_refuses_a_run_model_with_another_dataset(finished, data, tmp_pa
     assert cli.main(["segment", str(loose), *argv[2:]]) == 0
 
 
+def test_preview_env_maps_are_recorded_by_content(data, tmp_path, capsys, monkeypatch):
+    """The report's preview env maps (--preview-envmap, $MI_SHADOWGS_ENVMAPS) are inputs of
+    stage 4 by content: one edited after the run makes the rerun exit 2 naming it (its
+    previews were reused as they were); a missing one names where it was given."""
+    import numpy as np
+
+    from mi_shadowgs.io.images import write_exr
+
+    envmap = tmp_path / "pe.exr"
+    write_exr(envmap, np.full((8, 16, 3), 0.5, np.float32))
+    run = tmp_path / "run"
+    argv = ["run", str(data[0]), "--out", str(run), "--preview-envmap", str(envmap),
+            "--no-progress"]
+    assert cli.main(argv) == 0
+    assert cli.main(argv) == 0  # the same env map: reused
+    write_exr(envmap, np.full((8, 16, 3), 0.9, np.float32))
+    assert cli.main(argv) == 2
+    assert "preview_envmap_0" in capsys.readouterr().err
+    monkeypatch.setenv("MI_SHADOWGS_ENVMAPS", str(tmp_path / "gone.exr"))
+    assert cli.main(["run", str(data[0]), "--out", str(tmp_path / "other")]) == 2
+    assert f"$MI_SHADOWGS_ENVMAPS: {tmp_path / 'gone.exr'}: not found" in \
+        capsys.readouterr().err
+
+
 def test_run_with_material_masks_checks_them_before_stage_1(data, tmp_path, capsys,
                                                             monkeypatch):
     """`run --masks material` on a dataset without material ids stops before stage 1 trains,

@@ -23,6 +23,7 @@ def presets() -> list[tuple[dict, object]]:
     from mi_shadowgs.stages.geometry import train as geometry_train
     from mi_shadowgs.stages.geometry.densify import DensifyConfig
     from mi_shadowgs.stages.material import fit as material_fit
+    from mi_shadowgs.stages.relight import export
     from mi_shadowgs.stages.relight import render as relight
     from mi_shadowgs.stages.segmentation import features as segmentation
     from mi_shadowgs.stages.segmentation import masks
@@ -49,6 +50,7 @@ def presets() -> list[tuple[dict, object]]:
         (visibility.PRESETS, dataclasses.replace(visibility.get_config("cpu-small"),
                                                  resolution=64)),
         (relight.PRESETS, relight.get_config("cpu-small")),
+        (export.PRESETS, export.get_config("cpu-small")),
         (masks.PRESETS, masks.get_config("cpu-small")),
         (pipeline.PRESETS, dataclasses.replace(pipeline.get_config("cpu-small"), preset=TINY,
                                                figure_views=1)),

@@ -26,8 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="splat PLY colour: sh (view-dependent, default) or albedo")
     parser.add_argument("--data", default=None,
                         help="the run's dataset, when it moved (mesh: training cameras)")
-    parser.add_argument("--preset", default="cpu-small",
-                        help=f"{', '.join(PRESET_NAMES)} (default cpu-small)")
+    parser.add_argument("--preset", default=None,
+                        help=f"{', '.join(PRESET_NAMES)} (default: the run's preset)")
     parser.add_argument("--bsdf", default=None, choices=("model", "principled"),
                         help="mesh: scene.xml's BSDF: model (the fitted Cook-Torrance out of "
                              "Mitsuba's diffuse/roughconductor/blendbsdf; default) or "
@@ -41,12 +41,14 @@ def run(args) -> int:
     import dataclasses
 
     from mi_shadowgs.stages.relight.export import export_run, get_config
+    from mi_shadowgs.stages.relight.runner import run_preset
 
-    config = get_config(args.preset)
+    preset = args.preset or run_preset(args.run)
+    config = get_config(preset)
     if args.bsdf is not None:
         config = dataclasses.replace(config, bsdf=args.bsdf)
     result = export_run(args.run, args.out, args.fmt, color=args.color, data=args.data,
-                        config=config, preset=args.preset, overwrite=args.overwrite,
+                        config=config, preset=preset, overwrite=args.overwrite,
                         progress=not args.no_progress)
     print(result.summary)
     return 0

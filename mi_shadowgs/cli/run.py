@@ -60,11 +60,13 @@ def run(args) -> int:
     if args.seed is not None:
         overrides["seed"] = args.seed
     envmaps = args.preview_envmap
+    source = "--preview-envmap"
     if envmaps is None and os.environ.get("MI_SHADOWGS_ENVMAPS"):
         envmaps = [e for e in os.environ["MI_SHADOWGS_ENVMAPS"].split(os.pathsep) if e]
+        source = "$MI_SHADOWGS_ENVMAPS"
     for e in envmaps or []:
         if not os.path.exists(e):
-            raise FileNotFoundError(f"--preview-envmap: {e}: not found")
+            raise FileNotFoundError(f"{source}: {e}: not found")
     if envmaps:
         overrides["preview_envmaps"] = tuple(str(Path(e).resolve()) for e in envmaps)
     config = with_overrides(config, overrides, "run")

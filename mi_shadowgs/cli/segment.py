@@ -65,6 +65,9 @@ def run(args) -> int:
     from mi_shadowgs.stages.segmentation import run_segmentation, segmentation_config
     from mi_shadowgs.stages.segmentation.features import SegmentationConfig
 
+    if args.resume and args.overwrite:  # as `train` refuses them
+        raise ValueError("--resume continues the stage's files and --overwrite removes them: "
+                         "pass one of them")
     overrides = parse_settings(SegmentationConfig, args.set, "segmentation")
     if args.k is not None:
         overrides["n_segments"] = args.k

@@ -139,16 +139,29 @@ def render_html(summary: dict, run: Path) -> str:
     return "".join(out)
 
 
+def read_summary(path: Path) -> dict:
+    """``RUN/summary.json``: a ValueError naming the file and field where it is not the
+    object the page is made from (its ``stages`` and ``tables``, lists of objects)."""
+    try:
+        summary = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: malformed JSON: {exc}") from None
+    if not isinstance(summary, dict):
+        raise ValueError(f"{path}: expected a JSON object at the top level")
+    for field in ("stages", "tables"):
+        value = summary.get(field, [])
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            raise ValueError(f"{path}: field {field!r} must be a list of objects")
+    return summary
+
+
 def write_report(run: str | os.PathLike) -> Path:
     """Write ``RUN/report.html`` from ``RUN/summary.json``; returns the page's path."""
     run = Path(run)
     path = run / "summary.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no run summary (run `mi-shadowgs run` first)")
-    try:
-        summary = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: malformed JSON: {exc}") from None
+    summary = read_summary(path)
     page = run / "report.html"
     write_text(page, render_html(summary, run))
     return page

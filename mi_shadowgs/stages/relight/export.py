@@ -389,9 +389,11 @@ def base_known(data: Path) -> bool:
 
 def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
                data: str | Path | None = None, config: ExportConfig | None = None,
-               preset: str = "cpu-small", overwrite: bool = False, progress: bool = False):
+               preset: str | None = None, overwrite: bool = False, progress: bool = False):
     """Export the run's stage-4 model as ``fmt`` into the folder ``out``; returns a
-    ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs)."""
+    ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs).
+    ``preset``: the export's settings (the mesh's grid); default the run's own, as
+    ``relight`` takes it. ``data`` (the run's dataset, when it moved) only for a mesh."""
     from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
     from mi_shadowgs.io.ply import read_ply_model, write_ply_model, write_ply_vertices
     from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
@@ -406,6 +408,13 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     if fmt == "mesh" and color != "sh":
         raise ExportError("--color applies to the splat PLYs; a mesh always carries the "
                           "albedo, roughness and metallic")
+    if data is not None and fmt != "mesh":
+        raise ExportError(f"--data is read by --format mesh only (its training cameras); "
+                          f"--format {fmt} takes the model alone")
+    if preset is None:
+        from mi_shadowgs.stages.relight.runner import run_preset
+
+        preset = run_preset(run)
     config = get_config(preset) if config is None else config
     run, out = Path(run), Path(out)
     model_path, light_path = stage4_inputs(run)

@@ -326,6 +326,13 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
     check_light_args(lights, envmap, rotate_deg, envmap_scale, scene)
     if not (fps > 0 and math.isfinite(fps)):
         raise ValueError(f"--fps must be > 0, got {fps:g}")
+    if orbit_elevation is not None:
+        if orbit is None:  # it would be dropped without a word
+            raise ValueError("--orbit-elevation sets the elevation of --orbit N's views: give "
+                             "--orbit N with it")
+        if not (math.isfinite(orbit_elevation) and -90.0 < orbit_elevation < 90.0):
+            raise ValueError(f"--orbit-elevation must be a finite angle in (-90, 90) degrees, "
+                             f"got {orbit_elevation:g}")
     run_dir = Path(run)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder not found: {run_dir}")

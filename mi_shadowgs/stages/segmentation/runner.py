@@ -100,7 +100,8 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     out = Output.open(folder, "segment", provenance, overwrite=overwrite, reuse=reuse,
                       inputs=[model, data], continue_flag="--resume")
     if out.complete:
-        return StageRun(folder, False, 0.0, "")
+        return StageRun(folder, False, 0.0, f"segment: {folder} is finished, with the same "
+                        "dataset, model and settings; nothing to do")
     t0 = time.perf_counter()
     label_maps = masks_mod.masks_for(train, masks, mask_config)
     t_masks = time.perf_counter() - t0
