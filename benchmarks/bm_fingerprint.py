@@ -1,4 +1,4 @@
-"""What the dataset fingerprint of run provenance costs (``mi_shadowgs.io.provenance``).
+"""What the dataset fingerprint of run provenance costs (``mi_shadowgs.dataset.fingerprint``).
 
 Every ``train`` / ``segment`` / ``run`` hashes the dataset's files once per process. This
 times that hash on the cpu-small dataset layout (128^2, 64 + 32 views, every ground-truth
@@ -36,25 +36,25 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
 
 
 def _measure(out: Path, data: Path, log) -> dict:
+    from mi_shadowgs.dataset import fingerprint
     from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.dataset.writer import write_dataset
-    from mi_shadowgs.io import provenance
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.scenes import scene_path
 
     write_dataset(scene_path("default"), data, dataclasses.replace(get_config("cpu-small"),
                                                                   spp=SPP, envmaps="sky"),
                   "cpu-small", seed=0, progress=False)
-    files = provenance._dataset_files(data.resolve())
+    files = fingerprint._dataset_files(data.resolve())
     megabytes = sum(st.st_size for _, st in files) / 1e6
 
     def fresh():
-        provenance._DIGESTS.clear()  # white box: time the hash, not the in-process cache
-        provenance.dataset_fingerprint(data)
+        fingerprint._DIGESTS.clear()  # white box: time the hash, not the in-process cache
+        fingerprint.dataset_fingerprint(data)
 
     hashed = _median_seconds(fresh)
-    cached = _median_seconds(lambda: provenance.dataset_fingerprint(data))
+    cached = _median_seconds(lambda: fingerprint.dataset_fingerprint(data))
     loaded = _median_seconds(lambda: (load_dataset(data, "train"), load_dataset(data, "test")),
                              rounds=3)
     row = {"files": len(files), "megabytes": megabytes, "hash_s": hashed, "cached_s": cached,

@@ -96,8 +96,9 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     """Stages 3-5 of one variant into ``material/<name>`` of the run ``top`` (an Output);
     returns (metrics, fit seconds), the seconds None when a finished output of the same
     provenance is reused."""
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.ply import save_ply
-    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
+    from mi_shadowgs.io.provenance import Output, Provenance, input_ref
     from mi_shadowgs.stages.common import checkpoint_hooks
 
     folder = top.folder / "material" / name
@@ -210,9 +211,10 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     anything else exits with a ProvenanceError naming what differs, unless ``overwrite``
     removes the run's files first. ``log`` takes the stages' one-line summaries.
     """
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.ply import load_ply
-    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref
+    from mi_shadowgs.io.provenance import Output, Provenance
     from mi_shadowgs.io.report import write_report
     from mi_shadowgs.stages.common import load_training_views
 

@@ -114,8 +114,9 @@ def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,
     """(run, data): a dataset folder with camera files and a ``dataset.json`` naming a base,
     and a run folder whose manifests are those of a finished `mi-shadowgs run` (stage 4 in
     ``material/full`` when ``stage4``) holding ``model``."""
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.ply import write_ply_model
-    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
+    from mi_shadowgs.io.provenance import Output, Provenance, input_ref
 
     data, run = root / "data", root / "run"
     data.mkdir(parents=True)

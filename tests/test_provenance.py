@@ -13,6 +13,7 @@ import sys
 import numpy as np
 import pytest
 
+from mi_shadowgs.dataset import fingerprint
 from mi_shadowgs.io import atomic, provenance
 from mi_shadowgs.io.images import ImageReadError, read_exr, read_png, write_exr, write_png
 
@@ -157,35 +158,35 @@ def _dataset(root):
 
 def test_dataset_fingerprint_follows_contents_not_times_or_hidden_files(tmp_path):
     a = _dataset(tmp_path / "a")
-    fp = provenance.dataset_fingerprint(a)
+    fp = fingerprint.dataset_fingerprint(a)
     b = tmp_path / "b"
     shutil.copytree(a, b)  # another path, other times, same contents
-    assert provenance.dataset_fingerprint(b) == fp
+    assert fingerprint.dataset_fingerprint(b) == fp
     os.utime(b / "train" / "r_0.png", (1, 1))
     (b / ".mi_shadowgs_manifest.json").write_text("{}")
     (b / "notes.txt").write_text("not a dataset file")
     (b / "manifest.json").write_text("{}")  # a writer's list of files, not the loader's
-    assert provenance.dataset_fingerprint(b) == fp
+    assert fingerprint.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 999 + b"\x07")  # one byte, same size
-    assert provenance.dataset_fingerprint(b) != fp
+    assert fingerprint.dataset_fingerprint(b) != fp
     (b / "train" / "r_1.png").write_bytes(bytes([1]) * 1000)
-    assert provenance.dataset_fingerprint(b) == fp
+    assert fingerprint.dataset_fingerprint(b) == fp
     (b / "train" / "r_1.png").rename(b / "train" / "r_9.png")
-    assert provenance.dataset_fingerprint(b) != fp
+    assert fingerprint.dataset_fingerprint(b) != fp
     (b / "train" / "r_9.png").rename(b / "train" / "r_1.png")
     (b / "transforms_train.json").write_text(json.dumps({"frames": [None]}))
-    assert provenance.dataset_fingerprint(b) != fp
+    assert fingerprint.dataset_fingerprint(b) != fp
 
 
 def test_dataset_fingerprint_reads_each_file_once_per_process(tmp_path, monkeypatch):
     a = _dataset(tmp_path / "a")
-    provenance.dataset_fingerprint(a)
+    fingerprint.dataset_fingerprint(a)
     reads = []
     monkeypatch.setattr(provenance, "file_digest", lambda p: reads.append(p) or "x")
-    provenance.dataset_fingerprint(a)
+    fingerprint.dataset_fingerprint(a)
     assert reads == []
     (a / "train" / "r_2.png").write_bytes(b"changed")
-    provenance.dataset_fingerprint(a)
+    fingerprint.dataset_fingerprint(a)
     assert reads == [a / "train" / "r_2.png"]  # only the file whose stat changed
 
 
@@ -216,14 +217,14 @@ def _frames_dataset(root, images="train", file_path="./train/r_{i}"):
 
 def test_an_ordinary_dataset_keeps_the_fingerprint_its_runs_recorded(tmp_path):
     """Every file under the folder, no links: the walk alone, as before ``files_read``."""
-    assert provenance.dataset_fingerprint(_frames_dataset(tmp_path / "a")) == \
+    assert fingerprint.dataset_fingerprint(_frames_dataset(tmp_path / "a")) == \
         "2ad3fd796babac0a73fed4158a0cfaa3"
 
 
 def _changes_fingerprint(root, path, data=b"changed") -> bool:
-    before = provenance.dataset_fingerprint(root)
+    before = fingerprint.dataset_fingerprint(root)
     path.write_bytes(data)
-    return provenance.dataset_fingerprint(root) != before
+    return fingerprint.dataset_fingerprint(root) != before
 
 
 def test_dataset_fingerprint_covers_the_sfm_points(tmp_path):
@@ -242,9 +243,9 @@ def test_dataset_fingerprint_covers_images_outside_the_folder(tmp_path):
         assert _changes_fingerprint(a, outside / name), name
     (outside / "r_0.png").unlink()
     (outside / "notes.png").write_bytes(b"not read by the loader")
-    before = provenance.dataset_fingerprint(a)
+    before = fingerprint.dataset_fingerprint(a)
     (outside / "notes.png").write_bytes(b"still not read")
-    assert provenance.dataset_fingerprint(a) == before
+    assert fingerprint.dataset_fingerprint(a) == before
 
 
 def test_dataset_fingerprint_follows_linked_split_folders(tmp_path):
@@ -254,7 +255,7 @@ def test_dataset_fingerprint_follows_linked_split_folders(tmp_path):
     (a / "train").symlink_to(tmp_path / "elsewhere" / "train", target_is_directory=True)
     copy = tmp_path / "copy"
     shutil.copytree(a, copy, symlinks=False)
-    assert provenance.dataset_fingerprint(a) == provenance.dataset_fingerprint(copy)
+    assert fingerprint.dataset_fingerprint(a) == fingerprint.dataset_fingerprint(copy)
     for name in ("r_0.png", "r_1_mask.png", "r_0_irradiance_0.exr"):
         assert _changes_fingerprint(a, tmp_path / "elsewhere" / "train" / name), name
 
@@ -293,7 +294,7 @@ def test_a_malformed_dataset_still_has_a_fingerprint(tmp_path):
 
 
 def _prov(ds, **settings):
-    return provenance.Provenance(dataset=provenance.dataset_ref(ds),
+    return provenance.Provenance(dataset=fingerprint.dataset_ref(ds),
                                  settings={"iterations": 100, **settings})
 
 
@@ -308,7 +309,7 @@ def test_output_claims_a_folder_lazily_and_lists_every_file(tmp_path):
     m = provenance.read_manifest(folder)
     assert m["command"] == "train" and m["complete"] and m["settings"] == {"iterations": 100}
     assert m["files"] == ["model.ply", "previews/a.png"]
-    assert m["dataset"]["fingerprint"] == provenance.dataset_fingerprint(ds)
+    assert m["dataset"]["fingerprint"] == fingerprint.dataset_fingerprint(ds)
 
 
 def test_an_output_folder_that_is_or_lies_under_a_file_is_refused(tmp_path):
@@ -426,7 +427,7 @@ def test_reuse_only_with_the_same_dataset_inputs_and_settings(tmp_path):
     model = tmp_path / "model.ply"
     model.write_text("geometry A")
     prov = provenance.Provenance(
-        dataset=provenance.dataset_ref(ds),
+        dataset=fingerprint.dataset_ref(ds),
         inputs={"model": provenance.input_ref(model)},
         settings={"iterations": 60, "densify": {"start": 5}, "k": (1, 2)},
     )
@@ -444,7 +445,7 @@ def test_reuse_only_with_the_same_dataset_inputs_and_settings(tmp_path):
 
     msg = err(
         provenance.Provenance(
-            dataset=provenance.dataset_ref(other), inputs=prov.inputs, settings=prov.settings
+            dataset=fingerprint.dataset_ref(other), inputs=prov.inputs, settings=prov.settings
         )
     )
     assert f"made from dataset {ds}" in msg and str(other) in msg
@@ -473,7 +474,7 @@ def test_reuse_only_with_the_same_dataset_inputs_and_settings(tmp_path):
     msg = err(dataclasses_replace(prov, inputs={"model": provenance.input_ref(model)}))
     assert "input model differs" in msg
     (ds / "train" / "r_1.png").write_bytes(b"edited")
-    msg = err(dataclasses_replace(prov, dataset=provenance.dataset_ref(ds)))
+    msg = err(dataclasses_replace(prov, dataset=fingerprint.dataset_ref(ds)))
     assert f"the dataset {ds} changed since" in msg
     # The run folder compares only the dataset; its stages compare the rest.
     provenance.Output.open(

@@ -241,8 +241,9 @@ def _export_files(scene_xml: Path) -> dict:
 
 def validate(run: Path, data: Path, out: Path, spp: int = 64, progress: bool = True,
              overwrite: bool = False) -> dict:
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.dataset.loader import DatasetError, load_dataset
-    from mi_shadowgs.io.provenance import Provenance, ProvenanceError, dataset_ref, input_ref
+    from mi_shadowgs.io.provenance import Provenance, ProvenanceError, input_ref
     from mi_shadowgs.stages.relight import evaluation
     from mi_shadowgs.stages.relight.export import ExportError, export_run
 

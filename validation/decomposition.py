@@ -29,12 +29,13 @@ import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
 from mi_shadowgs import pipeline
 from mi_shadowgs.config import ConfigError, with_overrides
 from mi_shadowgs.core.directions import map_to_blocks
+from mi_shadowgs.dataset.fingerprint import dataset_ref
 from mi_shadowgs.dataset.loader import DatasetError, load_dataset
 from mi_shadowgs.dataset.scene import SceneError, dataset_scene
 from mi_shadowgs.dataset.standin import standin_surfels
 from mi_shadowgs.io.atomic import write_bytes, write_json
 from mi_shadowgs.io.images import write_png
-from mi_shadowgs.io.provenance import Provenance, dataset_ref
+from mi_shadowgs.io.provenance import Provenance
 from mi_shadowgs.stages import material, relight
 from mi_shadowgs.stages.common import checkpoint_hooks
 from mi_shadowgs.stages.material import fit as material_fit

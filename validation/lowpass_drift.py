@@ -123,10 +123,11 @@ def run_drift(data: Path, cfg: DriftConfig, out: Path, overwrite: bool = False,
               quick: bool = False) -> list[dict]:
     """One row per k of ``cfg.ks``, each the unit ``OUT/units/k_<k>`` (a smoke run's:
     ``smoke_name``)."""
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.dataset.layout import DATASET_JSON
     from mi_shadowgs.dataset.loader import DatasetError, load_dataset
     from mi_shadowgs.dataset.scene import SceneError, dataset_scene
-    from mi_shadowgs.io.provenance import Provenance, dataset_ref
+    from mi_shadowgs.io.provenance import Provenance
     from mi_shadowgs.stages.common import settings_dict
     from mi_shadowgs.stages.geometry import train as G
 

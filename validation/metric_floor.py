@@ -184,8 +184,9 @@ def run(out_dir: Path, datas: list[Path], sizes: list[int] | None = None,
     at the end. Returns {"rows", "markdown"}."""
     from tqdm import tqdm
 
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.atomic import write_json, write_text
-    from mi_shadowgs.io.provenance import Provenance, dataset_ref
+    from mi_shadowgs.io.provenance import Provenance
     from validation import claim_out, fail
     from validation.units import run_unit, settings_of, unit_name
 

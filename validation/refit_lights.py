@@ -146,8 +146,9 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.atomic import write_json, write_text
-    from mi_shadowgs.io.provenance import Provenance, dataset_ref, input_ref
+    from mi_shadowgs.io.provenance import Provenance, input_ref
     from validation.units import run_unit, settings_of
 
     ap = argparse.ArgumentParser(description="Re-run stages 3-5 of a finished run with "

@@ -411,7 +411,8 @@ def analysis_provenance(run: Path, data: Path, variant: str, views: int | None,
     """What a part of the analysis of ``run`` is made from: the dataset, the run's files it
     reads, the visibility settings the run's stage 4 ran with, the views scored, and the
     part's own options ``part_settings``."""
-    from mi_shadowgs.io.provenance import Provenance, dataset_ref, input_ref
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
+    from mi_shadowgs.io.provenance import Provenance, input_ref
     from validation.units import settings_of
 
     preset, vcfg, quantile = run_visibility(run, variant)

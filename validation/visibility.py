@@ -58,6 +58,7 @@ from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.sampling import sample_surface
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.dataset.cameras import test_cameras
+from mi_shadowgs.dataset.fingerprint import dataset_ref
 from mi_shadowgs.dataset.generate import (
     box_filtered_ground_truth,
     facing_lights,
@@ -66,7 +67,7 @@ from mi_shadowgs.dataset.generate import (
 from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, dataset_scene, load_scene
 from mi_shadowgs.io.atomic import write_json, write_text
-from mi_shadowgs.io.provenance import Provenance, dataset_ref, device_name, input_ref
+from mi_shadowgs.io.provenance import Provenance, device_name, input_ref
 from mi_shadowgs.stages.visibility.baselines import (
     GaussianTraceConfig,
     VoxelConfig,

@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_shadowgs.dataset.fingerprint import dataset_ref
 from mi_shadowgs.io.atomic import write_json, write_text
-from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref
+from mi_shadowgs.io.provenance import Output, Provenance
 from mi_shadowgs.stages.common import StageRun, load_training_views, settings_dict, warn
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",

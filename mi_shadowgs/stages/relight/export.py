@@ -358,7 +358,8 @@ def _check_out(out: Path, run: Path) -> None:
 
 def _dataset_of(run: Path, data: str | Path | None) -> Path:
     """The run's dataset (``data`` or the manifest's), checked against its fingerprint."""
-    from mi_shadowgs.io.provenance import ProvenanceError, dataset_fingerprint, read_manifest
+    from mi_shadowgs.dataset.fingerprint import dataset_fingerprint
+    from mi_shadowgs.io.provenance import ProvenanceError, read_manifest
 
     ref = (read_manifest(run) or {}).get("dataset") or {}
     path = Path(data) if data is not None else Path(ref.get("path") or "")
@@ -394,9 +395,10 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs).
     ``preset``: the export's settings (the mesh's grid); default the run's own, as
     ``relight`` takes it. ``data`` (the run's dataset, when it moved) only for a mesh."""
+    from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
     from mi_shadowgs.io.ply import read_ply_model, write_ply_model, write_ply_vertices
-    from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
+    from mi_shadowgs.io.provenance import Output, Provenance, input_ref
     from mi_shadowgs.stages.common import StageRun, settings_dict
 
     t0 = time.perf_counter()

@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.config import to_dict, with_overrides
+from mi_shadowgs.dataset.fingerprint import dataset_ref
 from mi_shadowgs.io.atomic import write_json
-from mi_shadowgs.io.provenance import Output, Provenance, dataset_ref, input_ref
+from mi_shadowgs.io.provenance import Output, Provenance, input_ref
 from mi_shadowgs.stages.common import (
     StageRun,
     checkpoint_hooks,
