@@ -390,6 +390,10 @@ def test_overwrite_removes_only_what_generate_wrote(tmp_path, capsys):
     msg = _assert_error(["default", "--out", str(out), "--seed", "2", "--overwrite", *TINY],
                         capsys, tmp_path, "notes.txt")
     assert "not written by mi-shadowgs generate" in msg
+    # Without --overwrite the same: it used to say "pass --overwrite", which then refused.
+    msg = _assert_error(["default", "--out", str(out), "--seed", "2", *TINY], capsys,
+                        tmp_path, "notes.txt")
+    assert "not written by mi-shadowgs generate" in msg and "pass --overwrite" not in msg
     assert json.loads((out / "dataset.json").read_text())["seed"] == 1
     (out / "train" / "notes.txt").unlink()
     (out / "extra").mkdir()  # a folder of someone else's, even empty, is not ours either

@@ -102,12 +102,13 @@ def _check_output(out: Path, fp: str, overwrite: bool) -> bool:
     if not any(out.iterdir()):  # an empty folder is free to use
         out.rmdir()
         return False
+    # Files generate did not write are refused, with or without --overwrite: naming the flag
+    # there sent the user to a second refusal.
+    _check_only_ours(out)
     if overwrite:
-        _check_only_ours(out)
         return False
-    what = "a different dataset" if info_path.is_file() else "other files"
-    raise OutputExistsError(f"output folder {out} already holds {what}; pass --overwrite to "
-                            "replace it")
+    raise OutputExistsError(f"output folder {out} already holds a different dataset; pass "
+                            "--overwrite to replace it")
 
 
 # -- the manifest: what --overwrite may remove ------------------------------------------------
