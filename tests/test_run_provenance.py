@@ -520,3 +520,19 @@ def test_a_gpu_preset_on_the_cpu_warns_before_anything_runs(data, tmp_path, caps
                 "llvm_ad_rgb its run takes hours" in err) == warned, (preset, err)
         assert "lights.json" in err and not (tmp_path / "run").exists()
     assert slow_preset_warning("gpu-large", "cuda_ad_rgb") is None
+
+
+@pytest.mark.parametrize("flag, want", [([], True), (["--no-ablations"], False),
+                                        (["--ablations"], True)])
+def test_the_paper_presets_ablations_can_be_turned_off(data, tmp_path, monkeypatch, flag,
+                                                       want):
+    """`run --preset paper` fits the two ablations (hours more on a CPU); `--no-ablations`
+    turns them off (before, only `--ablations` existed, which could only turn them on)."""
+    from mi_shadowgs import pipeline
+
+    seen = []
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda data, out, config, **kw: seen.append(
+        config) or {"tables": [{"rows": [], "columns": []}], "total_seconds": 0.0})
+    assert cli.main(["run", str(data[0]), "--out", str(tmp_path / "run"), "--preset",
+                     "paper", *flag]) == 0
+    assert seen[0].preset == "paper" and seen[0].ablations is want

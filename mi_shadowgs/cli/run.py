@@ -29,8 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--segments", type=int, default=None, metavar="K",
                         help="number of material segments (default: the number of material "
                              "ids, or without ids the number of colour labels)")
-    parser.add_argument("--ablations", action="store_true", default=None,
-                        help="also fit the w/o visibility and w/o segmentation variants")
+    parser.add_argument("--ablations", action=argparse.BooleanOptionalAction, default=None,
+                        help="also fit the w/o visibility and w/o segmentation variants "
+                             "(default: the preset's: paper does, the others do not)")
     parser.add_argument("--seed", type=int, default=None,
                         help="seed of every stage's random draws (default 0); a run at "
                              "another seed shows how far its figures move by chance")
@@ -53,8 +54,8 @@ def run(args) -> int:
         overrides["masks"] = args.masks
     if args.segments is not None:
         overrides["segments"] = args.segments
-    if args.ablations:
-        overrides["ablations"] = True
+    if args.ablations is not None:
+        overrides["ablations"] = args.ablations
     if args.material_iterations is not None:
         overrides["material_iterations"] = args.material_iterations
     if args.seed is not None:
