@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -225,3 +226,106 @@ def test_previews_while_changes_come_then_one_full_frame():
         worker.close()
     assert calls[0] == (True, True) and calls[-1][0] is False
     assert [p for p, _ in calls].count(False) == 1
+
+
+def test_run_without_stage_4_is_checked_for_stages_that_do_not_belong_together(runs, tmp_path,
+                                                                                capsys):
+    from mi_shadowgs.io.provenance import ProvenanceError
+
+    run = tmp_path / "mixed"
+    shutil.copytree(runs[1], run)
+    view_fixtures.add_segmentation(run, "0" * 32)  # made from another geometry/model.ply
+    with pytest.raises(ProvenanceError, match="segmentation was made from another geometry"):
+        viewer.ViewerSession(run)
+    assert cli.main(["view", str(run), "--port", "0"]) == 2
+    assert "its stages do not belong together" in capsys.readouterr().err
+
+
+def test_view_refuses_what_it_cannot_show_as_given(runs, capsys):
+    assert cli.main(["view", str(runs[0]), "--fit", "typo"]) == 2
+    err = capsys.readouterr().err
+    assert "--fit 'typo'" in err and "material/typo/model.ply is missing" in err
+    assert "the run's fits: full" in err
+    assert cli.main(["view", str(runs[0]), "--light", "30,45,1,0,0"]) == 2
+    assert "the viewer's lights are white" in capsys.readouterr().err
+    report = runs[0] / "report.html"
+    report.write_text("<html></html>")
+    try:
+        assert cli.main(["view", str(report)]) == 2
+        assert f"{report} is a file; give the run folder" in capsys.readouterr().err
+    finally:
+        report.unlink()
+    assert cli.main(["view", str(runs[0]), "--host", "no.such.host.invalid"]) == 2
+    err = capsys.readouterr().err
+    assert "--host no.such.host.invalid: cannot resolve" in err and "--port" not in err
+
+
+def test_view_starts_with_the_lights_given_exactly(session):
+    from mi_shadowgs.stages.relight.viewer_server import ViewerServer
+
+    given = [viewer.DirectionalLight(30.25, 0.5, 50.0), viewer.DirectionalLight(200.0, 45.5, 3.33)]
+    server = ViewerServer(session, port=0, resolution=16, initial_lights=given).start()
+    try:
+        assert server.light_state().directional == tuple(given)
+        (_, _, el, irr), (_, _, _, irr2) = server.lights
+        assert el.min == 0.5 and irr.max == 50.0  # the sliders' ranges hold the values
+        assert irr2.max == 10.0  # and are the usual ones where they do
+    finally:
+        server.stop()
+
+
+def test_values_a_browser_sends_are_kept_to_the_sliders(session, capsys):
+    import asyncio
+
+    import msgspec
+    import viser
+    import websockets
+
+    from mi_shadowgs.stages.relight.viewer_server import ViewerServer
+
+    server = ViewerServer(session, port=0, resolution=16).start()
+    _, az, el, irr = server.lights[0]
+    sent = [(el, -1e300), (irr, 1e308), (server.exposure, None), (server.exposure, "nan"),
+            (irr, float("nan")), (server.mode, [1]), (server.shadows, "false"), (az, 200)]
+
+    async def send():
+        async with websockets.connect(f"ws://127.0.0.1:{server.port}", max_size=None,
+                                      subprotocols=[f"viser-v{viser.__version__}"]) as ws:
+            for handle, value in sent:
+                await ws.send(msgspec.msgpack.encode({
+                    "type": "GuiUpdateMessage", "uuid": handle._impl.uuid,
+                    "updates": {"value": value}}))
+            deadline = time.monotonic() + 20
+            while az.value != 200 and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+
+    try:
+        asyncio.run(send())
+        lights = server.light_state().directional[0]
+        assert (lights.azimuth_deg, lights.elevation_deg, lights.irradiance) == (200, 1, 10)
+        assert server.exposure.value == 1.0 and server.mode.value == "relit"
+        assert server.shadows.value is True
+    finally:
+        server.stop()
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[:2] == [
+        "mi-shadowgs view: elevation = -1e+300 from the browser: outside the slider's "
+        "[1, 90]; using 1",
+        "mi-shadowgs view: intensity = 1e+308 from the browser: outside the slider's "
+        "[0, 10]; using 10"]
+    assert len(lines) == len(sent) - 1 and all("ignored" in x for x in lines[2:])
+    # The clamped light renders.
+    frame = session.render(session.default_camera(16, 16), server.light_state())
+    assert frame.image.max() > 0
+
+
+def test_a_signal_stops_view_without_a_resume_hint(runs, monkeypatch, capsys):
+    from mi_shadowgs.io.interrupt import Interrupted
+
+    def interrupted(*_args, **_kwargs):
+        raise Interrupted(signal.SIGTERM)  # a SIGTERM while the model loads
+
+    monkeypatch.setattr(viewer, "ViewerSession", interrupted)
+    assert cli.main(["view", str(runs[0]), "--port", "0"]) == 0
+    out, err = capsys.readouterr()
+    assert out.strip() == "mi-shadowgs view: stopped" and err == ""

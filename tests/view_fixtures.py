@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import mitsuba as mi
@@ -32,10 +33,21 @@ def _surfels(n: int):
     return surf
 
 
-def _manifest(folder: Path, files: list[str], settings: dict) -> None:
+def _manifest(folder: Path, files: list[str], settings: dict, inputs: dict | None = None
+              ) -> None:
     (folder / MANIFEST_NAME).write_text(json.dumps(
         {"format": FORMAT_VERSION, "command": "test", "complete": True, "files": files,
-         "settings": settings}))
+         "settings": settings, "inputs": inputs or {}}))
+
+
+def add_segmentation(run: Path, made_from_digest: str) -> None:
+    """``run/segmentation``, a copy of its geometry recorded as made from the geometry
+    model of digest ``made_from_digest`` (another one: the run's stages do not belong
+    together)."""
+    folder = run / "segmentation"
+    folder.mkdir()
+    shutil.copyfile(run / "geometry" / "model.ply", folder / "model.ply")
+    _manifest(folder, ["model.ply"], {}, {"model": {"digest": made_from_digest}})
 
 
 def make_run(root: Path, n: int = 4000) -> tuple[Path, Path]:

@@ -57,6 +57,8 @@ RESUME_HINTS = {"train": "run it again with --resume to continue",
 # Commands whose --overwrite would remove the views an interrupted call wrote: the same
 # command again would start over, so the hint drops the flag.
 OVERWRITE_RESTARTS = ("render", "relight")
+# Commands that serve until stopped: a signal is how they end, with nothing to continue.
+STOPPED_BY_SIGNAL = ("view",)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -82,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     except Interrupted as exc:
+        if args.command in STOPPED_BY_SIGNAL:
+            print(f"mi-shadowgs {args.command}: stopped", flush=True)
+            return 0
         hint = RESUME_HINTS.get(args.command, "run the same command again to continue")
         if args.command in OVERWRITE_RESTARTS and args.overwrite:
             hint = "run it again without --overwrite to continue"

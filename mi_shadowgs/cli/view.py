@@ -23,8 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resolution", type=int, default=256, metavar="N",
                         help="frames of about N x N pixels (default 256); previews at N/2")
     parser.add_argument("--light", action="append", default=[], metavar="AZ,EL,IRRADIANCE",
-                        help="start with this directional light (degrees, W/m^2; up to two); "
-                             "default: the strongest fitted lights")
+                        help="start with this white directional light (degrees, W/m^2; up to "
+                             "two); default: the strongest fitted lights")
     parser.add_argument("--fit", default="full", help="which fit of the run (material/NAME)")
 
 
@@ -33,7 +33,6 @@ def run(args) -> int:
     from pathlib import Path
 
     from mi_shadowgs.cli import CLIError
-    from mi_shadowgs.io.interrupt import Interrupted
     from mi_shadowgs.stages.relight import runner, viewer, viewer_server
 
     if not 0 <= args.port <= 65535:
@@ -48,14 +47,21 @@ def run(args) -> int:
         if not 0 < el <= 90:
             raise CLIError(f"--light {text!r}: field elevation must be in (0, 90] degrees "
                            f"for the viewer's slider, got {el:g}")
-        lights.append(viewer.DirectionalLight(az % 360.0, el, float(rgb.mean())))
+        if rgb.max() > rgb.min():  # one intensity slider per light: the viewer's lights are white
+            raise CLIError(f"--light {text!r}: the viewer's lights are white (one intensity "
+                           "slider); give AZ,EL,IRRADIANCE (or R = G = B); `mi-shadowgs relight "
+                           "--light` renders coloured lights")
+        lights.append(viewer.DirectionalLight(az % 360.0, el, float(rgb[0])))
     run_dir = Path(args.run)
+    if run_dir.is_file():
+        raise CLIError(f"{run_dir} is a file; give the run folder (mi-shadowgs run --out)")
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder not found: {run_dir}")
-    # A busy port fails before the (slow) model load.
+    check_fit(run_dir, args.fit)
+    # A busy port or an unknown host fails before the (slow) model load.
     try:
         viewer_server.check_port(args.host, args.port)
-    except viewer_server.PortInUse as exc:
+    except viewer_server.AddressUnusable as exc:
         raise CLIError(str(exc)) from None
     session = viewer.ViewerSession(run_dir, args.fit)
     if session.relight_off:
@@ -64,14 +70,23 @@ def run(args) -> int:
                                         initial_lights=lights)
     try:
         server.start()
-    except viewer_server.PortInUse as exc:
+    except viewer_server.AddressUnusable as exc:
         raise CLIError(str(exc)) from None
     print(f"mi-shadowgs view: {run_dir} at {server.url} (Ctrl-C to stop)", flush=True)
+    # Ctrl-C or SIGTERM ends it: the CLI says "stopped" (cli.STOPPED_BY_SIGNAL).
     try:
         while True:
             time.sleep(3600)
-    except Interrupted:
-        print("mi-shadowgs view: stopped")
     finally:
         server.stop()
-    return 0
+
+
+def check_fit(run_dir, fit: str) -> None:
+    """CLIError naming --fit when the run has stage-4 fits and ``fit`` is not one of them; a
+    run with none is viewed without relighting (the page says why)."""
+    from mi_shadowgs.cli import CLIError
+
+    fits = sorted(p.parent.name for p in run_dir.glob("material/*/model.ply"))
+    if fits and fit not in fits:
+        raise CLIError(f"--fit {fit!r}: {run_dir / 'material' / fit / 'model.ply'} is "
+                       f"missing; the run's fits: {', '.join(fits)}")

@@ -155,6 +155,7 @@ class ViewerSession:
     def __init__(self, run: str | Path, fit: str = "full", *, max_shadow_maps: int = 192):
         from mi_shadowgs.io.ply import load_ply
         from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
+        from mi_shadowgs.stages.common import check_run_stages
         from mi_shadowgs.stages.relight import runner
 
         self.run = Path(run)
@@ -175,6 +176,9 @@ class ViewerSession:
             self.surfels = self.fit.model.surfels
             self.bounds = self.fit.bounds
         else:
+            # load_run checks this for a run with stage 4; without it a segmentation made
+            # from another geometry would be shown as this run's.
+            check_run_stages(self.run)
             self.relight_off = (f"relighting is off: {material / 'model.ply'} is missing (the "
                                 "run has no stage-4 model); showing geometry and segments")
             model = next((p for p in (self.run / "segmentation" / "model.ply",

@@ -15,6 +15,8 @@ thread per browser tab; renders take turns (one lock: Dr.Jit and the caches are 
 from __future__ import annotations
 
 import dataclasses
+import errno
+import math
 import socket
 import sys
 import threading
@@ -30,21 +32,38 @@ NO_ENVMAP = "none"
 ARROW_FITTED = (255, 150, 30)  # orange: the lights stage 4 fitted
 ARROW_NEW = (90, 170, 255)  # blue: the lights of the sliders
 BACKGROUND_DEPTH = 150.0  # viser's depth images reach 167.77 units; "far" for the arrows
+ELEVATION_MIN = 1.0  # the elevation slider's low end (a --light below it lowers it)
+INTENSITY_MAX = 10.0  # the intensity slider's high end (a --light above it raises it)
 
 
-class PortInUse(OSError):
+class AddressUnusable(OSError):
+    """The viewer cannot serve on ``--host``/``--port``; the message names which."""
+
+
+class PortInUse(AddressUnusable):
+    pass
+
+
+class UnknownHost(AddressUnusable):
     pass
 
 
 def check_port(host: str, port: int) -> None:
-    """PortInUse naming ``--port`` when something listens on (host, port) already; viser
-    itself would quietly move to the next free port."""
+    """PortInUse naming ``--port`` when something listens on (host, port) already (viser
+    itself would quietly move to the next free port); UnknownHost naming ``--host`` when
+    it does not resolve or is no address of this machine."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         # As the server will bind: a port left in TIME_WAIT is free, a listening one not.
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
+        except socket.gaierror as exc:
+            raise UnknownHost(f"--host {host}: cannot resolve this address ({exc.strerror}); "
+                              "give a name or IP address of this machine") from None
         except OSError as exc:
+            if exc.errno == errno.EADDRNOTAVAIL:
+                raise UnknownHost(f"--host {host}: not an address of this machine "
+                                  f"({exc.strerror})") from None
             raise PortInUse(f"--port {port}: cannot listen on {host}:{port} "
                             f"({exc.strerror or exc}); is another viewer running? "
                             "choose another --port") from None
@@ -108,6 +127,7 @@ class ViewerServer:
         init.position = tuple(pos)
         init.look_at = tuple(self.session.bounds.center)
         self._build_gui()
+        self._screen_browser_updates()
         self._draw_arrows()
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
@@ -150,22 +170,24 @@ class ViewerServer:
         self.lights = []
         starts = list(self.initial_lights)
         for d, e in sorted(fitted, key=lambda f: -f[1])[len(starts):2]:
+            # Fitted lights start the sliders rounded (the arrows show them exactly); the
+            # --light values are kept as given, the sliders' range widened to hold them.
             az, el = angles_from_direction(d)
-            starts.append(viewer.DirectionalLight(az % 360.0, el, round(e, 2)))
+            starts.append(viewer.DirectionalLight(float(round(az)) % 360.0,
+                                                  float(min(90, max(ELEVATION_MIN, round(el)))),
+                                                  round(e, 2)))
         while len(starts) < 2:
             starts.append(viewer.DirectionalLight(30.0 + 180.0 * len(starts), 45.0, 3.0))
         for i, lt in enumerate(starts[:2]):
             with gui.add_folder(f"light {i + 1}"):
                 on = gui.add_checkbox("on", i == 0 or len(self.initial_lights) > 1,
                                       disabled=not s.can_relight)
-                az = gui.add_slider("azimuth", 0.0, 360.0, 1.0, float(round(lt.azimuth_deg)) %
-                                    360.0, disabled=not s.can_relight)
-                el = gui.add_slider("elevation", 1.0, 90.0, 1.0,
-                                    float(min(90.0, max(1.0, round(lt.elevation_deg)))),
+                az = gui.add_slider("azimuth", 0.0, 360.0, 1.0, float(lt.azimuth_deg),
                                     disabled=not s.can_relight)
-                irr = gui.add_slider("intensity", 0.0, 10.0, 0.05,
-                                     float(min(10.0, lt.irradiance)),
-                                     disabled=not s.can_relight)
+                el = gui.add_slider("elevation", min(ELEVATION_MIN, lt.elevation_deg), 90.0,
+                                    1.0, float(lt.elevation_deg), disabled=not s.can_relight)
+                irr = gui.add_slider("intensity", 0.0, max(INTENSITY_MAX, lt.irradiance), 0.05,
+                                     float(lt.irradiance), disabled=not s.can_relight)
             self.lights.append((on, az, el, irr))
         envs = s.envmaps()
         self._envmaps = {k: str(v) for k, v in envs.items()}
@@ -183,6 +205,35 @@ class ViewerServer:
             h.on_update(lambda _event: self._changed())
         for h in (self.show_fitted, self.show_new):
             h.on_update(lambda _event: self._draw_arrows())
+        self._inputs = {h._impl.uuid: h for h in (*handles, self.show_fitted, self.show_new)}
+
+    # -- what the browser sends ----------------------------------------------------------
+    def _screen_browser_updates(self) -> None:
+        """Every GUI value a browser sends passes ``screen_value`` before viser applies it:
+        the page's sliders keep to their ranges, but any websocket client can send a value
+        (an elevation below the horizon, an intensity of 1e308 that fails every later frame,
+        null, which viser's own cast raises on)."""
+        from viser._messages import GuiUpdateMessage
+
+        api = self.server.gui
+        apply = api._handle_gui_updates
+
+        async def screened(client_id, message) -> None:
+            handle = self._inputs.get(message.uuid)
+            if handle is not None and "value" in message.updates:
+                value, why = screen_value(handle, message.updates["value"])
+                if why:
+                    sent = repr(message.updates["value"])
+                    sent = sent if len(sent) <= 40 else sent[:37] + "..."
+                    print(f"mi-shadowgs view: {handle.label} = {sent} from the browser: {why}",
+                          file=sys.stderr, flush=True)
+                if value is None:
+                    return
+                message.updates["value"] = value
+            await apply(client_id, message)
+
+        api._websock_interface.unregister_handler(GuiUpdateMessage, apply)
+        api._websock_interface.register_handler(GuiUpdateMessage, screened)
 
     def light_state(self) -> viewer.LightState:
         """The lights the GUI says."""
@@ -266,6 +317,31 @@ class ViewerServer:
             f"{1000 * sec['lights']:.0f}, shading {1000 * sec['shading']:.0f}); "
             f"{frame.shadow_maps_rendered} new shadow map(s) of {min(maps_res, full_maps)}^2")
         return shown
+
+
+def screen_value(handle, value) -> tuple[object, str]:
+    """(the value to apply, or None to ignore it; why it was changed or ignored, or "") for
+    ``value`` sent for the GUI input ``handle``: a slider's value a finite number (clamped
+    to its range), a dropdown's one of its options, a checkbox's a boolean."""
+    import viser
+
+    if isinstance(handle, viser.GuiSliderHandle):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return None, "not a number; ignored"
+        if not math.isfinite(value):
+            return None, "not finite; ignored"
+        if not handle.min <= value <= handle.max:
+            clamped = float(min(handle.max, max(handle.min, value)))
+            return clamped, f"outside the slider's [{handle.min:g}, {handle.max:g}]; " \
+                            f"using {clamped:g}"
+        return value, ""
+    if isinstance(handle, viser.GuiDropdownHandle):
+        if not isinstance(value, str) or value not in handle.options:
+            return None, f"not one of {', '.join(handle.options)}; ignored"
+        return value, ""
+    if isinstance(handle, viser.GuiCheckboxHandle) and not isinstance(value, bool):
+        return None, "not true or false; ignored"
+    return value, ""
 
 
 class _ClientWorker:
