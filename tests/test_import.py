@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -201,6 +202,8 @@ def test_bad_photo_folders_exit_2_and_write_nothing(tmp_path, capsys):
     _jpegs(tmp_path / "two", 2)
     code, err = _cli(capsys, tmp_path / "two", "--out", out)
     assert code == 2 and "2 photos" in err and "at least 3" in err
+    code, err = _cli(capsys, tmp_path / "two" / "p0.jpg", "--out", out)  # not "not found"
+    assert code == 2 and "p0.jpg: a file" in err and "folder of photos" in err
     _jpegs(tmp_path / "bad", 3)
     (tmp_path / "bad" / "p1.jpg").write_bytes(b"not a jpeg")
     code, err = _cli(capsys, tmp_path / "bad", "--out", out)
@@ -231,6 +234,108 @@ def test_bad_colmap_and_masks_exit_2(photos, tmp_path, capsys):
     code, err = _cli(capsys, photos / "photos", "--out", out, "--masks", masks)
     assert code == 2 and "no mask for" in err and "test_000.jpg" in err
     assert not out.exists()
+
+
+def _model_copy(model, folder, text=False):
+    """The COLMAP model ``model`` copied to ``folder`` (as text: ``text``)."""
+    import pycolmap
+
+    folder.mkdir()
+    rec = pycolmap.Reconstruction(str(model))
+    rec.write_text(str(folder)) if text else rec.write(str(folder))
+    return folder
+
+
+def test_broken_colmap_models_exit_2_naming_them(imported, photos, tmp_path, capsys):
+    """Each made pycolmap hang (an empty points3D.bin: without end, its memory growing),
+    abort the process (cameras of another size than the photos) or raise a traceback (a
+    truncated images.bin); a text model without images was said not to register in SfM."""
+    model = imported[0] / "colmap" / "sparse" / "0"
+    out = tmp_path / "out"
+
+    def refused(folder, *words):
+        code, err = _cli(capsys, photos / "photos", "--out", out, "--colmap", folder)
+        assert code == 2 and all(w in err for w in words), err
+
+    empty = _model_copy(model, tmp_path / "empty")
+    (empty / "points3D.bin").write_bytes(b"")
+    refused(empty, str(empty), "points3D.bin is empty")
+    cut = _model_copy(model, tmp_path / "cut")
+    data = (cut / "images.bin").read_bytes()
+    (cut / "images.bin").write_bytes(data[:len(data) // 2])
+    refused(cut, str(cut), "unreadable COLMAP model")
+    mixed = _model_copy(model, tmp_path / "mixed", text=True)
+    _model_copy(model, tmp_path / "binary")
+    shutil.copy(tmp_path / "binary" / "cameras.bin", mixed)
+    (mixed / "cameras.txt").unlink()
+    refused(mixed, "mixes binary and text", "cameras.bin", "images.txt")
+    bare = _model_copy(model, tmp_path / "bare", text=True)
+    for name in ("images", "frames", "points3D"):
+        (bare / f"{name}.txt").write_text("# none\n")
+    refused(bare, str(bare), "has no images")
+    # photos downscaled after COLMAP ran: the model's camera is twice their size
+    big = _model_copy(model, tmp_path / "big", text=True)
+    lines = (big / "cameras.txt").read_text().splitlines()
+    cam = lines[-1].split()
+    lines[-1] = " ".join(cam[:2] + ["512", "512"] + cam[4:])
+    (big / "cameras.txt").write_text("\n".join(lines) + "\n")
+    refused(big, str(big / "cameras.txt"), f"camera {cam[0]} is 512x512", "256x256")
+    assert not out.exists()
+
+
+def test_mask_modes_and_exif_turned_photos_with_a_colmap_model(photos, imported, tmp_path):
+    """Masks as a palette (indices 0/1 were read as 0 and 1/255: empty masks), 16-bit grey
+    (clipped to 1 everywhere) and grey with alpha give the object; a photo stored with an
+    EXIF turn, undistorted with the COLMAP model of its pixels as stored (not its upright
+    copy, which the model does not describe), gives the image and mask of the photo as it
+    was modelled; its mask is given upright, as the photo is shown."""
+    data, rec = imported
+    turned_name = rec["registered"][1]  # a training view (every 6th from the first: test)
+    src = tmp_path / "photos"
+    shutil.copytree(photos / "photos", src)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # shown turned 90 degrees: upright = stored.transpose(ROTATE_270)
+    with Image.open(photos / "photos" / turned_name) as im:
+        im.save(src / turned_name, exif=exif, quality=98)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    truth = {}
+    for k, name in enumerate(sorted(p.name for p in src.iterdir())):
+        split, idx = name[:-8], int(name[-7:-4])
+        m = np.asarray(Image.open(photos / split / f"r_{idx:03d}_mask.png"))
+        truth[name] = (m if m.ndim == 2 else m[..., 0]) > 127
+        upright = Image.fromarray(truth[name].astype(np.uint8))
+        if name == turned_name:
+            upright = upright.transpose(Image.Transpose.ROTATE_270)
+        fg = np.asarray(upright).astype(bool)
+        if k % 3 == 0:  # a two-colour palette
+            mask = Image.frombytes("P", upright.size, fg.astype(np.uint8).tobytes())
+            mask.putpalette([0, 0, 0, 255, 255, 255])
+        elif k % 3 == 1:  # 16-bit grey
+            mask = Image.fromarray(fg.astype(np.uint16) * 65535)
+        else:  # black, the object in the alpha
+            mask = Image.fromarray(np.dstack([np.zeros_like(fg, np.uint8), fg * 255]).astype(
+                np.uint8))
+        mask.save(masks / (Path(name).stem + ".png"))
+    out = tmp_path / "masked"
+    import_capture(src, out, CONFIG, colmap=data / "colmap" / "sparse" / "0", masks=masks,
+                   progress=False)
+    for split in ("train", "test"):
+        frames = json.loads((out / f"transforms_{split}.json").read_text())["frames"]
+        for fr, view in zip(frames, load_dataset(out, split).views, strict=True):
+            want = np.asarray(Image.fromarray(truth[fr["source_image"]]).resize(
+                view.mask.shape[::-1], Image.Resampling.NEAREST))
+            iou = (view.mask & want).sum() / (view.mask | want).sum()
+            assert iou > 0.9, (fr["source_image"], iou)
+    # the turned photo's image is the plain import's (a re-saved JPEG, not turned)
+    frames = json.loads((out / "transforms_train.json").read_text())["frames"]
+    stem = next(fr["file_path"] for fr in frames if fr["source_image"] == turned_name)
+    assert stem == next(fr["file_path"] for fr in json.loads(
+        (data / "transforms_train.json").read_text())["frames"]
+        if fr["source_image"] == turned_name)
+    got = np.asarray(Image.open(out / stem).convert("RGB"), np.float32)
+    plain = np.asarray(Image.open(data / stem).convert("RGB"), np.float32)
+    assert np.abs(got - plain).mean() < 3.0, np.abs(got - plain).mean()
 
 
 # -- stage 1 without masks ----------------------------------------------------------------------

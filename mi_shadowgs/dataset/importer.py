@@ -100,6 +100,9 @@ def _read_photo(path: Path):
 
 
 def list_photos(folder: Path) -> list[Path]:
+    if folder.is_file():
+        raise CaptureError(f"{folder}: a file; import takes a folder of photos (or a "
+                           "transforms .json)")
     if not folder.is_dir():
         raise FileNotFoundError(f"{folder}: photo folder not found")
     photos = sorted(p for p in folder.iterdir()
@@ -127,6 +130,33 @@ def check_photos(photos: list[Path]) -> tuple[tuple[int, int], list[Path]]:
     return next(iter(sizes)), turned
 
 
+def read_mask(path: Path) -> np.ndarray:
+    """A mask image as [h, w] in [0, 1], upright by its EXIF orientation: its alpha where it
+    has one that is not opaque, else its grey value (a palette's colours, not its indices;
+    16-bit grey scaled by its own maximum)."""
+    im, _ = _read_photo(path)
+    if im.mode == "P":  # palette indices are no grey values: their colours (and alpha)
+        im = im.convert("RGBA" if "transparency" in im.info else "RGB")
+    if "A" in im.getbands():
+        alpha = np.asarray(im.getchannel("A"))
+        if alpha.min() < 255:
+            return alpha / 255.0
+    if im.mode.startswith("I;16") or im.mode == "I":  # 16-bit grey (PIL's "I" for PNG too)
+        return np.clip(np.asarray(im, np.float64) / 65535.0, 0.0, 1.0)
+    if im.mode == "F":
+        return np.clip(np.asarray(im, np.float64), 0.0, 1.0)
+    return np.asarray(im.convert("L")) / 255.0
+
+
+def check_mask_size(mask: Path, photo: str, size: tuple[int, int], where: str = "") -> None:
+    """The mask (upright) is the size of its photo ``photo`` (upright ``size``); ``where``
+    says which input named the mask, before the message."""
+    im, _ = _read_photo(mask)
+    if im.size != size:
+        raise CaptureError(f"{where}{mask}: mask is {im.size[0]}x{im.size[1]}, its photo "
+                           f"{photo} is {size[0]}x{size[1]}")
+
+
 def check_masks(masks: Path, photos: list[Path], size: tuple[int, int]) -> dict[str, Path]:
     """The mask of each photo (same stem, PNG/JPEG) in ``masks``, of the photo's size."""
     if not masks.is_dir():
@@ -138,10 +168,7 @@ def check_masks(masks: Path, photos: list[Path], size: tuple[int, int]) -> dict[
         if m is None:
             missing.append(p.name)
             continue
-        im, _ = _read_photo(m)
-        if im.size != size:
-            raise CaptureError(f"{m}: mask is {im.size[0]}x{im.size[1]}, its photo "
-                               f"{p.name} is {size[0]}x{size[1]}")
+        check_mask_size(m, p.name, size)
         found[p.name] = m
     if missing:
         raise CaptureError(f"{masks}: no mask for {', '.join(missing[:8])}"
@@ -149,12 +176,80 @@ def check_masks(masks: Path, photos: list[Path], size: tuple[int, int]) -> dict[
     return found
 
 
+_MODEL_FILES = ("cameras", "images", "points3D")
+
+
 def check_colmap(model: Path) -> None:
+    """The model folder holds cameras, images and points3D, all binary or all text, none
+    empty (pycolmap reads an empty points3D.bin without end, growing its memory)."""
+    if model.is_file():
+        raise CaptureError(f"{model}: a file; --colmap takes the model's folder (e.g. sparse/0)")
     if not model.is_dir():
         raise FileNotFoundError(f"{model}: COLMAP model folder not found (--colmap)")
-    for name in ("cameras", "images", "points3D"):
-        if not any((model / f"{name}{ext}").is_file() for ext in (".bin", ".txt")):
+    kinds = {name: [ext for ext in (".bin", ".txt") if (model / f"{name}{ext}").is_file()]
+             for name in _MODEL_FILES}
+    for name, exts in kinds.items():
+        if not exts:
             raise CaptureError(f"{model}: the COLMAP model has no {name}.bin or {name}.txt")
+    ext = next((e for e in (".bin", ".txt") if all(e in x for x in kinds.values())), None)
+    if ext is None:  # COLMAP reads one kind only: it would say the files do not exist
+        found = ", ".join(f"{name}{x[0]}" for name, x in kinds.items())
+        raise CaptureError(f"{model}: the COLMAP model mixes binary and text files ({found}); "
+                           "it must be all .bin or all .txt (colmap model_converter)")
+    empty = [name + ext for name in _MODEL_FILES if (model / f"{name}{ext}").stat().st_size == 0]
+    if empty:
+        raise CaptureError(f"{model}: the COLMAP model's {', '.join(empty)} "
+                           f"{'is' if len(empty) == 1 else 'are'} empty (0 bytes)")
+
+
+def read_colmap(model: Path, photos: list[Path]):
+    """The user's COLMAP model of ``photos`` (``check_colmap`` first), checked against them:
+    every image of the model is a photo, every posed image's camera is its photo's size as
+    stored (COLMAP reads pixels as stored, whatever their EXIF orientation)."""
+    import pycolmap
+    from PIL import Image
+
+    try:
+        rec = pycolmap.Reconstruction(str(model))
+    except Exception as exc:  # pycolmap's: IndexError, RuntimeError, ValueError, ...
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CaptureError(f"{model}: unreadable COLMAP model ({first})") from None
+    by_name = {p.name: p for p in photos}
+    unknown = [im.name for im in rec.images.values() if im.name not in by_name]
+    if unknown:
+        raise CaptureError(f"{model}: the model's images {', '.join(unknown[:8])} are not in "
+                           f"{photos[0].parent}")
+    posed = [im for im in rec.images.values() if im.has_pose]
+    if len(posed) < 3:
+        what = "no images" if not rec.images else f"{len(posed)} posed images"
+        raise CaptureError(f"{model}: the COLMAP model has {what}; import needs at least 3")
+    cameras = model / ("cameras.bin" if (model / "cameras.bin").is_file() else "cameras.txt")
+    for im in sorted(posed, key=lambda im: im.name):
+        cam = rec.cameras[im.camera_id]
+        with Image.open(by_name[im.name]) as photo:
+            stored = photo.size
+        if (cam.width, cam.height) != stored:  # pycolmap's undistortion would abort
+            raise CaptureError(f"{cameras}: camera {im.camera_id} is {cam.width}x{cam.height}, "
+                               f"but its image {im.name} is {stored[0]}x{stored[1]} (photos "
+                               "resized after COLMAP?)")
+    return rec
+
+
+def _as_stored(upright: np.ndarray, photo: Path) -> np.ndarray:
+    """An image [h, w] of the upright ``photo`` turned back to how its pixels are stored
+    (undoing ``ImageOps.exif_transpose``)."""
+    from PIL import Image
+
+    with Image.open(photo) as im:
+        orientation = im.getexif().get(0x0112, 1)
+    turn = Image.Transpose
+    # exif_transpose's turn per orientation, inverted (the flips are their own inverses)
+    undo = {2: turn.FLIP_LEFT_RIGHT, 3: turn.ROTATE_180, 4: turn.FLIP_TOP_BOTTOM,
+            5: turn.TRANSPOSE, 6: turn.ROTATE_90, 7: turn.TRANSVERSE,
+            8: turn.ROTATE_270}.get(orientation)
+    if undo is None:
+        return upright
+    return np.asarray(Image.fromarray(upright.astype(np.float32), "F").transpose(undo))
 
 
 # -- SfM ----------------------------------------------------------------------------------------
@@ -488,8 +583,10 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
     photos = list_photos(source)
     size, turned = check_photos(photos)
     mask_files = check_masks(Path(masks), photos, size) if masks is not None else {}
+    model = None
     if colmap is not None:
         check_colmap(Path(colmap))
+        model = read_colmap(Path(colmap), photos)
     if config.test_every < 2:
         raise CaptureError(f"--test-every must be >= 2, got {config.test_every}")
     if out.exists():
@@ -501,8 +598,8 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
     sfm_work = sfm_work_folder(out) if colmap is None else None
     sfm_state = open_sfm_work(sfm_work, sfm_key(photos, config)) if sfm_work else None
     try:
-        record = _import_photos(source, out, photos, size, turned, mask_files, colmap, masks,
-                                config, sfm_work, sfm_state, timings, t_start, cpu_start,
+        record = _import_photos(source, out, photos, size, turned, mask_files, colmap, model,
+                                masks, config, sfm_work, sfm_state, timings, t_start, cpu_start,
                                 progress)
     except KeyboardInterrupt:  # (io.interrupt.Interrupted too: SIGTERM)
         raise  # the SfM work stays for the rerun to continue
@@ -515,12 +612,11 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
     return record
 
 
-def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, colmap, masks,
-                   config: ImportConfig, sfm_work: Path | None, sfm_state: dict | None,
+def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, colmap, model,
+                   masks, config: ImportConfig, sfm_work: Path | None, sfm_state: dict | None,
                    timings: dict, t_start: float, cpu_start: float, progress: bool) -> dict:
     """``import_capture``'s work once every input is checked (its docstring)."""
     import pycolmap
-    from PIL import Image
     from tqdm import tqdm
 
     from mi_shadowgs.io.atomic import atomic_dir
@@ -531,7 +627,9 @@ def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, co
             atomic_dir(out) as tmp:
         image_dir = source
         names = [p.name for p in photos]
-        if turned:  # SfM reads pixels as stored: give it upright copies
+        # SfM reads pixels as stored: give ours upright copies. A user's model describes the
+        # pixels as stored: undistorted as they are (their masks turned back to them).
+        if turned and colmap is None:
             image_dir = (sfm_work or Path(work_s)) / "upright"
             image_dir.mkdir(exist_ok=True)
             for p in photos:
@@ -543,12 +641,7 @@ def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, co
                           progress)
             mode = "photos"
         else:
-            rec = pycolmap.Reconstruction(str(colmap))
-            mode = "colmap"
-            unknown = [im.name for im in rec.images.values() if im.name not in names]
-            if unknown:
-                raise CaptureError(f"{colmap}: the model's images {', '.join(unknown[:8])} are "
-                                   f"not in {source}")
+            rec, mode = model, "colmap"  # read and checked by read_colmap
         steps.update(1)
         registered = sorted(im.name for im in rec.images.values() if im.has_pose)
         rejected = sorted(set(names) - set(registered))
@@ -585,13 +678,10 @@ def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, co
             v = {"name": name, "camera": _pinhole(cam, sim.c2w(c2w)),
                  "image": undist / "images" / name}
             if name in mask_files:
-                with Image.open(mask_files[name]) as m:
-                    arr = np.asarray(m)
-                if arr.ndim == 3:  # RGBA: the alpha, unless opaque (then the grey value)
-                    has_alpha = arr.shape[-1] in (2, 4) and arr[..., -1].min() < 255
-                    arr = arr[..., -1] if has_alpha else arr[..., 0]
-                v["mask"] = _undistort_mask(arr / 255.0 if arr.dtype == np.uint8 else arr,
-                                            src_cams[name], cam)
+                mask = read_mask(mask_files[name])  # upright, as its photo is shown
+                if image_dir == source:  # the photos as stored were undistorted
+                    mask = _as_stored(mask, source / name)
+                v["mask"] = _undistort_mask(mask, src_cams[name], cam)
             views.append(v)
         split = write_views(tmp, views, config)
         _write_points_ply(tmp / layout.POINTS_PLY, sim.points(xyz), rgb)
