@@ -338,6 +338,57 @@ def test_mask_modes_and_exif_turned_photos_with_a_colmap_model(photos, imported,
     assert np.abs(got - plain).mean() < 3.0, np.abs(got - plain).mean()
 
 
+def _transforms_capture(folder, mask_size=(64, 48)):
+    """Four 64x48 photos under ``folder`` (cameras about the origin, looking at it) and a
+    transforms.json with a mask per frame of ``mask_size``: the file's path and content."""
+    from mi_shadowgs.core.camera import Camera
+
+    _jpegs(folder / "images", 4)
+    (folder / "masks").mkdir(exist_ok=True)
+    frames = []
+    for i in range(4):
+        mask = np.zeros(mask_size[::-1], np.uint8)
+        mask[mask_size[1] // 4:-mask_size[1] // 4, mask_size[0] // 4:-mask_size[0] // 4] = 255
+        Image.fromarray(mask).save(folder / "masks" / f"p{i}.png")
+        c2w = Camera.look_at(3 * np.array([np.cos(i), 0.8, np.sin(i)]), [0, 0, 0], fov_x=0.8,
+                             width=64, height=48).c2w
+        frames.append({"file_path": f"images/p{i}.jpg", "mask_path": f"masks/p{i}.png",
+                       "transform_matrix": c2w.tolist()})
+    meta = {"w": 64, "h": 48, "fl_x": 60.0, "fl_y": 60.0, "cx": 32.0, "cy": 24.0,
+            "frames": frames}
+    return folder / "transforms.json", meta
+
+
+@pytest.mark.parametrize("k1", [None, 0.05])
+def test_transforms_masks_of_another_size_and_fields_of_another_type_exit_2(tmp_path, capsys,
+                                                                           k1):
+    """A frame's mask of another size than its photo was stretched to it (with k1 set: a
+    numpy reshape error naming nothing); a mask_path or ply_file_path that is no string fell
+    to a TypeError traceback."""
+    tf, meta = _transforms_capture(tmp_path)
+    if k1 is not None:
+        meta["k1"] = k1
+    tf.write_text(json.dumps(meta))  # masks of the photos' size: imported
+    code, err = _cli(capsys, tf, "--out", tmp_path / "good", "--test-every", "2")
+    assert code == 0 and load_dataset(tmp_path / "good", "train").has_masks, err
+    _transforms_capture(tmp_path / "half", mask_size=(32, 24))
+    for i, fr in enumerate(meta["frames"]):
+        fr["mask_path"] = f"half/masks/p{i}.png"
+    out = tmp_path / "out"
+    tf.write_text(json.dumps(meta))
+    code, err = _cli(capsys, tf, "--out", out, "--test-every", "2")
+    assert code == 2 and "frames[0].mask_path" in err and "p0.png" in err, err
+    assert "32x24" in err and "64x48" in err
+    meta["frames"][1]["mask_path"] = 5
+    tf.write_text(json.dumps(meta))
+    code, err = _cli(capsys, tf, "--out", out)
+    assert code == 2 and "field 'frames[1].mask_path' must be a string" in err, err
+    tf.write_text(json.dumps({**meta, "ply_file_path": 3}))
+    code, err = _cli(capsys, tf, "--out", out)
+    assert code == 2 and "field 'ply_file_path' must be a string" in err, err
+    assert not out.exists()
+
+
 # -- stage 1 without masks ----------------------------------------------------------------------
 def test_stage1_without_masks_starts_from_the_sfm_points(imported, capsys):
     import dataclasses

@@ -731,6 +731,15 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
     meta = _read_json(path)
     frames = load_frames(path, as_stored=True)
     raw_frames = meta["frames"]
+    # the fields only import reads (load_frames checks the rest), in the loader's words
+    ply = meta.get("ply_file_path")
+    if ply is not None and not isinstance(ply, str):
+        raise CaptureError(f"{path}: field 'ply_file_path' must be a string, got {ply!r}")
+    for i, fr in enumerate(raw_frames):
+        mp = fr.get("mask_path")
+        if mp is not None and not isinstance(mp, str):
+            raise CaptureError(f"{path}: field 'frames[{i}].mask_path' must be a string, got "
+                               f"{mp!r}")
     for i, f in enumerate(frames):
         img_path = path.parent / f.file_path
         if not img_path.is_file():
@@ -744,9 +753,12 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
         if mp is not None and not (path.parent / mp).is_file():
             raise CaptureError(f"{path}: the mask of frame {i} ({mp!r}, field 'mask_path') is "
                                "missing")
+        if mp is not None:  # write_views would stretch it to the photo's size
+            check_mask_size(path.parent / mp, img_path.name, im.size,
+                            where=f"{path}: frame {i} (field 'frames[{i}].mask_path'): ")
     points = np.zeros((0, 3))
-    if meta.get("ply_file_path"):
-        v = read_ply_vertices(path.parent / meta["ply_file_path"])
+    if ply:
+        v = read_ply_vertices(path.parent / ply)
         points = np.stack([v["x"], v["y"], v["z"]], axis=-1)
     if out.exists():
         raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
@@ -763,8 +775,8 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
             rgb = np.asarray(im.convert("RGB"), np.float32)
             mask = None
             if raw_frames[i].get("mask_path"):
-                m, _ = _read_photo(path.parent / raw_frames[i]["mask_path"])
-                mask = np.asarray(m.convert("L"), np.float32)[..., None] / 255.0
+                mask = read_mask(path.parent / raw_frames[i]["mask_path"])
+                mask = mask.astype(np.float32)[..., None]
             if f.distortion is not None:
                 rgb, _ = undistort(rgb, f.camera, f.distortion)
                 if mask is not None:
