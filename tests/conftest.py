@@ -110,3 +110,20 @@ def untouched(folder) -> bool:
     """``someone_elses_folder`` as it was made."""
     return [p.name for p in folder.iterdir()] == ["todo.txt"] and \
         (folder / "todo.txt").read_text() == "mine"
+
+
+def signal_on_call(monkeypatch, module, name: str, call: int, signum: int) -> None:
+    """Send this process ``signum`` when ``module.name`` is called the ``call``-th time
+    (before it runs), as a Ctrl-C (SIGINT) or a ``kill`` (SIGTERM) there would."""
+    import os
+
+    real, calls = getattr(module, name), []
+
+    def sending(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            os.kill(os.getpid(), signum)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, sending)
+

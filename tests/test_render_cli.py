@@ -15,6 +15,7 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.render import render_surfels
 from mi_shadowgs.io import ply
 from mi_shadowgs.io.images import read_exr, read_png
+from tests.conftest import signal_on_call
 
 W, H = 20, 16
 
@@ -173,20 +174,6 @@ def test_a_failed_render_leaves_no_folder(setup, tmp_path, monkeypatch):
     assert not (tmp_path / "a").exists()
 
 
-def _interrupt_at(monkeypatch, module, name: str, call: int) -> None:
-    """SIGINT this process when ``module.name`` is called the ``call``-th time (before it
-    runs), as a Ctrl-C there would."""
-    real, calls = getattr(module, name), []
-
-    def cut(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == call:
-            os.kill(os.getpid(), signal.SIGINT)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(module, name, cut)
-
-
 def _counted(monkeypatch, module, name: str) -> list:
     """Count the calls of ``module.name`` (one entry each)."""
     real, calls = getattr(module, name), []
@@ -211,7 +198,7 @@ def test_interrupted_render_continues_with_the_missing_views(setup, tmp_path, ca
     with monkeypatch.context() as mp:
         # Two PNGs per view: the 5th call is view 2's own PNG, after its EXR. Views 0 and 1
         # are whole; view 2 is cut between its files.
-        _interrupt_at(mp, images, "write_png", 5)
+        signal_on_call(mp, images, "write_png", 5, signal.SIGINT)
         assert _render(root, out, "--aov", "depth", cameras=many) == 130
     assert "interrupted by SIGINT; run the same command again to continue" in \
         capsys.readouterr().err
@@ -230,7 +217,7 @@ def test_interrupted_render_continues_with_the_missing_views(setup, tmp_path, ca
     assert 'aovs: ["depth"] there, ["normal"] now' in err and "--overwrite" in err
     # An --overwrite cut short continues without the flag (with it, it would start over).
     with monkeypatch.context() as mp:
-        _interrupt_at(mp, images, "write_png", 3)  # view 1's own PNG
+        signal_on_call(mp, images, "write_png", 3, signal.SIGINT)  # view 1's own PNG
         assert _render(root, out, "--aov", "depth", "--overwrite", cameras=many) == 130
     assert "interrupted by SIGINT; run it again without --overwrite to continue" in \
         capsys.readouterr().err

@@ -32,7 +32,7 @@ from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.segmentation import features as seg
 from mi_shadowgs.stages.segmentation.masks import material_masks
 from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
-from tests.conftest import without_few_views_warning
+from tests.conftest import signal_on_call, without_few_views_warning
 
 TINY = tiny_cli.TINY
 
@@ -244,19 +244,6 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
         assert resumed.light_log == straight.light_log
 
 
-def _sigterm_on_call(monkeypatch, module, name: str, call: int) -> None:
-    """Make the ``call``-th call of ``module.name`` send this process SIGTERM first."""
-    original, calls = getattr(module, name), []
-
-    def sending(*a, **kw):
-        calls.append(1)
-        if len(calls) == call:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return original(*a, **kw)
-
-    monkeypatch.setattr(module, name, sending)
-
-
 def _files(folder):
     return {
         p.relative_to(folder).as_posix(): p.read_bytes()
@@ -269,7 +256,7 @@ def test_sigterm_checkpoints_and_resume_continues(data, tmp_path, capsys, monkey
     assert cli.main([*argv, "--out", str(tmp_path / "ref")]) == 0
     run = tmp_path / "run"
     with monkeypatch.context() as mp:
-        _sigterm_on_call(mp, geometry_train, "geometry_loss", 33)
+        signal_on_call(mp, geometry_train, "geometry_loss", 33, signal.SIGTERM)
         assert cli.main([*argv, "--out", str(run)]) == 143
     err = without_few_views_warning(capsys.readouterr().err).strip().splitlines()
     assert (
@@ -322,7 +309,7 @@ def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatc
     argv = ["run", str(data), "--preset", TINY, "--no-progress"]
     assert cli.main([*argv, "--out", str(ref)]) == 0
     with monkeypatch.context() as mp:
-        _sigterm_on_call(mp, material_fit, "view_loss", 27)
+        signal_on_call(mp, material_fit, "view_loss", 27, signal.SIGTERM)
         assert cli.main([*argv, "--out", str(run)]) == 143
     assert "stage 4 stopped at step 27 of 90" in capsys.readouterr().err  # 60 + 30 normal steps
     assert cli.main([*argv, "--out", str(run)]) == 0
@@ -340,7 +327,7 @@ def test_interrupted_segment_and_run_continue(data, tmp_path, capsys, monkeypatc
         str(tmp_path / "seg"),
     ]
     with monkeypatch.context() as mp:
-        _sigterm_on_call(mp, seg, "segmentation_loss", 9)
+        signal_on_call(mp, seg, "segmentation_loss", 9, signal.SIGTERM)
         assert cli.main(seg_argv) == 143
     assert "run it again with --resume" in capsys.readouterr().err
     # The killed call's training is counted in the stage's time as in the training's: made
