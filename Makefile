@@ -6,9 +6,9 @@ PRESET ?= cpu-small
 SCENE ?= mi_shadowgs/scenes/default.xml
 DEMO_DIR ?= runs/demo
 
-.PHONY: install install-dev demo test bench validate lint clean
+.PHONY: install install-dev demo test bench validate lint lock clean
 
-$(VENV)/.installed: pyproject.toml scripts/setup.sh
+$(VENV)/.installed: pyproject.toml $(wildcard constraints.txt) scripts/setup.sh
 	bash scripts/setup.sh
 
 # The test tools and JAX (tests/test_lpips.py): only what make test and make lint need.
@@ -47,6 +47,11 @@ VALIDATE_ARGS ?=
 validate: install
 	@bash scripts/setup.sh --chromium
 	$(PY) -m validation.run_all --out validation-out $(VALIDATE_ARGS)
+
+# constraints.txt from the venv's versions (scripts/lock.py): after a version change that
+# `make test` from zero passed with.
+lock: install-dev
+	$(PY) scripts/lock.py
 
 lint: install-dev
 	$(VENV)/bin/ruff check .

@@ -72,7 +72,9 @@ if [ "${1:-}" = "--dev" ]; then
     echo "setup: --dev adds to the venv that scripts/setup.sh makes; run that first" >&2
     exit 1
   fi
-  .venv/bin/python -m pip install -q --no-compile -e '.[dev,eval]'
+  CONSTRAINTS=()
+  [ -f constraints.txt ] && CONSTRAINTS=(-c constraints.txt)  # pip skips other Pythons' lines
+  .venv/bin/python -m pip install -q --no-compile "${CONSTRAINTS[@]}" -e '.[dev,eval]'
   touch .venv/.installed-dev
   exit 0
 fi
@@ -125,10 +127,23 @@ if [ -n "$LPIPS_SPEC" ]; then
   "${PIP[@]}" download -q --no-deps -d "$sdist_dir" "$LPIPS_SPEC" &
   download=$!
 fi
+# The versions the suite passed with (constraints.txt, scripts/lock.py), for the Python they
+# were tested on; another Python gets the newest that pyproject.toml allows, and is told so.
+# Without the file (moving to newer versions: delete it, make test, make lock) the same.
+CONSTRAINTS=()
+minor=$(.venv/bin/python -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+if [ ! -f constraints.txt ]; then
+  echo "setup: no constraints.txt; installing the newest versions pyproject.toml allows" >&2
+elif ! grep -q "python_version == \"$minor\"" constraints.txt; then
+  echo "setup: constraints.txt holds the versions tested on another Python than $minor;" \
+       "installing the newest that pyproject.toml allows (untested)" >&2
+else
+  CONSTRAINTS=(-c constraints.txt)
+fi
 # No pip upgrade: pip 22+ installs a pyproject package in editable mode.
 # --no-compile: pip would byte-compile every installed module (scipy, ...: 33 s -> 18 s
 # here); Python compiles the few it imports on first use.
-INSTALL=(-e . "${EXTRA[@]}")
+INSTALL=("${CONSTRAINTS[@]}" -e . "${EXTRA[@]}")
 [ "${PIP[0]}" = "$PYTHON" ] && INSTALL=(pip "${INSTALL[@]}")
 "${PIP[@]}" install -q --no-compile "${INSTALL[@]}"
 if [ -n "$LPIPS_SPEC" ]; then

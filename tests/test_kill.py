@@ -31,7 +31,7 @@ from mi_shadowgs.io.checkpoint import CHECKPOINT_NAME, load_checkpoint
 
 pytestmark = pytest.mark.kill
 ROOT = Path(__file__).resolve().parents[1]
-KILLS = {"generate": 3, "train": 3, "run": 4}  # 10 in all
+KILLS = {"generate": 3, "train": 3, "run": 4}  # 10 in all, chained per command
 GENERATE = ["--preset", "test-tiny", "--width", "48", "--height", "48", "--spp", "256",
             "--n-train", "16", "--n-test", "4"]  # ~2.5 s: long enough to be cut in the middle
 
@@ -118,6 +118,12 @@ def work(tmp_path_factory):
 
 @pytest.mark.parametrize("command", list(KILLS))
 def test_a_killed_command_rerun_ends_as_an_unkilled_one(command, work):
+    """The kills come one after another on the same output: each run after the first
+    continues what the kills before left (a checkpoint, a partial file, a stage without
+    its successor), so the one comparison at the end checks every kill's recovery, and
+    recoveries from recoveries. The kills are drawn as moments of the unkilled run; each
+    rerun is killed after the time a rerun takes to start plus the gap to the next moment,
+    so it lands at or before that moment (less the work redone since its checkpoint)."""
     data, out, ref = work / "data", work / command / "out", work / command / "ref"
     argv = {"generate": _cli("generate", "default", "--out", str(out), *GENERATE),
             "train": _cli("train", str(data), "--out", str(out), "--preset", "test-tiny"),
@@ -126,12 +132,20 @@ def test_a_killed_command_rerun_ends_as_an_unkilled_one(command, work):
     out.parent.mkdir()
     # The same folder for the reference and the killed runs: the outputs hold its path.
     seconds = _run(argv)
+    startup = _run(again)  # a finished command's rerun: the time a rerun takes to start
     out.rename(ref)
     rng = np.random.default_rng(sorted(KILLS).index(command))
-    for at in rng.uniform(0.1, 0.95, KILLS[command]) * seconds:
-        _fresh(out)
-        while not _kill_at(argv, at):  # it finished first (a quicker run than the first)
-            _fresh(out)
-            at /= 2
-        _run(again)
-        _compare(out, ref)
+    work_seconds = max(seconds - startup, seconds / 2)  # the part past the start
+    moments = np.sort(rng.uniform(0.1, 0.95, KILLS[command])) * work_seconds
+    killed = 0
+    for gap in np.diff(moments, prepend=0.0):
+        while not _kill_at(again if killed else argv, startup + gap):
+            if killed or gap < 1e-3:  # it finished: nothing is left to cut
+                break
+            _fresh(out)  # a quicker first run than the reference: start it again
+            gap /= 2
+        else:
+            killed += 1
+    assert killed >= 2, f"only {killed} of {len(moments)} kills cut the command short"
+    _run(again)
+    _compare(out, ref)

