@@ -146,3 +146,18 @@ def test_run_scores_every_envmap(shared, tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     speed = [t for t in summary["tables"] if t["title"].startswith("Render speed")][0]
     assert {"env_a_noon", "env_b_dusk", "env_sky_envmap"} <= {r[0] for r in speed["rows"]}
+
+
+def test_an_integer_envmap_is_used_with_a_warning_of_its_clipped_highlights(tmp_path, capsys):
+    import imageio.v3 as iio
+
+    from mi_shadowgs.core.envmap import low_dynamic_range
+
+    png = tmp_path / "phone_pano.png"
+    iio.imwrite(png, np.full((8, 16, 3), 200, np.uint8))
+    exr = _envmap(tmp_path / "noon.exr", 0.9)
+    assert low_dynamic_range(str(png)) and not low_dynamic_range(str(exr))
+    cfg = dataclasses.replace(get_config("cpu-small"), envmaps=(str(png), str(exr)))
+    assert _names(resolve_envmaps(cfg)) == ["env_phone_pano", "env_noon"]
+    err = capsys.readouterr().err
+    assert f"--envmap {png} stores integers (low dynamic range)" in err and "noon" not in err

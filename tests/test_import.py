@@ -280,6 +280,13 @@ def test_broken_colmap_models_exit_2_naming_them(imported, photos, tmp_path, cap
     lines[-1] = " ".join(cam[:2] + ["512", "512"] + cam[4:])
     (big / "cameras.txt").write_text("\n".join(lines) + "\n")
     refused(big, str(big / "cameras.txt"), f"camera {cam[0]} is 512x512", "256x256")
+    # a focal length of 0 (a hand-edited model) was refused only by our camera, unnamed
+    flat = _model_copy(model, tmp_path / "flat", text=True)
+    lines = (flat / "cameras.txt").read_text().splitlines()
+    cam = lines[-1].split()
+    lines[-1] = " ".join(cam[:4] + ["0"] + cam[5:])
+    (flat / "cameras.txt").write_text("\n".join(lines) + "\n")
+    refused(flat, str(flat / "cameras.txt"), f"camera {cam[0]} (of ", "focal length 0")
     assert not out.exists()
 
 
@@ -386,6 +393,13 @@ def test_transforms_masks_of_another_size_and_fields_of_another_type_exit_2(tmp_
     tf.write_text(json.dumps({**meta, "ply_file_path": 3}))
     code, err = _cli(capsys, tf, "--out", out)
     assert code == 2 and "field 'ply_file_path' must be a string" in err, err
+    # a point cloud that is missing or no PLY gave a message without the field
+    tf, meta = _transforms_capture(tmp_path / "cloud")
+    (tf.parent / "bad.ply").write_text("not a ply\n")
+    for ply, words in (("gone.ply", "is missing"), ("bad.ply", "is not a point cloud PLY")):
+        tf.write_text(json.dumps({**meta, "ply_file_path": ply}))
+        code, err = _cli(capsys, tf, "--out", out)
+        assert code == 2 and f"{ply!r} (field 'ply_file_path') {words}" in err, err
     assert not out.exists()
 
 

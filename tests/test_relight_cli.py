@@ -10,6 +10,7 @@ import json
 import os
 import signal
 
+import imageio.v3 as iio
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -251,7 +252,8 @@ def test_interrupted_relight_continues_with_the_missing_views(tiny_run, tiny_pre
     assert "shadow_bounds.radius" in capsys.readouterr().err and len(frames) == 3
 
 
-def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_presets, tmp_path):
+def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_presets, tmp_path,
+                                                             capsys):
     run = tiny_run / "run"
     d = direction_from_angles(30.0, 45.0)
     xml = tmp_path / "lights.xml"
@@ -270,6 +272,11 @@ def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_pres
     bad.write_bytes(b"not an exr")
     with pytest.raises(ValueError, match="--envmap .*bad.exr: not a readable env map"):
         runner.build_lights(envmap=str(bad))
+    # An 8-bit map is used (Mitsuba takes sRGB to linear), with a warning of its clipping.
+    png = tmp_path / "pano.png"
+    iio.imwrite(png, np.full((8, 16, 3), 200, np.uint8))
+    runner.build_lights(envmap=str(png))
+    assert f"--envmap {png} stores integers" in capsys.readouterr().err
 
 
 def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkeypatch):

@@ -23,3 +23,16 @@ def load_envmap(filename: str, scale: float = 1.0):
         return mi.load_dict(desc)
     finally:
         dr.set_thread_count(threads)
+
+
+def low_dynamic_range(filename: str) -> bool:
+    """Whether the image stores integers (an 8- or 16-bit PNG, JPEG, ...): Mitsuba takes its
+    sRGB values to linear radiance, but whatever was brighter than white when it was saved
+    (the sun, lamps) is clipped, so the light it casts is too weak and its shadows too soft."""
+    fmt = mi.Bitmap(str(filename)).component_format()
+    return fmt in (mi.Struct.Type.UInt8, mi.Struct.Type.UInt16, mi.Struct.Type.UInt32)
+
+
+LOW_DYNAMIC_RANGE_NOTE = ("stores integers (low dynamic range): its brightest parts (the sun, "
+                          "lamps) are clipped at white, so it lights the scene too weakly and "
+                          "casts soft shadows; an EXR or HDR map keeps them")

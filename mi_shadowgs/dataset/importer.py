@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 import tempfile
 import time
@@ -232,6 +233,10 @@ def read_colmap(model: Path, photos: list[Path]):
             raise CaptureError(f"{cameras}: camera {im.camera_id} is {cam.width}x{cam.height}, "
                                f"but its image {im.name} is {stored[0]}x{stored[1]} (photos "
                                "resized after COLMAP?)")
+        focal = (float(cam.focal_length_x), float(cam.focal_length_y))
+        if not all(math.isfinite(f) and f > 0 for f in focal):
+            raise CaptureError(f"{cameras}: camera {im.camera_id} (of {im.name}) has focal "
+                               f"length {focal[0]:g} x {focal[1]:g} px; it must be > 0")
     return rec
 
 
@@ -724,7 +729,7 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
     from mi_shadowgs.dataset.distortion import undistort
     from mi_shadowgs.dataset.loader import _read_json, load_frames
     from mi_shadowgs.io.atomic import atomic_dir
-    from mi_shadowgs.io.ply import read_ply_vertices
+    from mi_shadowgs.io.ply import PlyError, read_ply_vertices
     from mi_shadowgs.io.provenance import Output, Provenance, check_output_location
 
     t_start = time.perf_counter()
@@ -758,8 +763,14 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
                             where=f"{path}: frame {i} (field 'frames[{i}].mask_path'): ")
     points = np.zeros((0, 3))
     if ply:
-        v = read_ply_vertices(path.parent / ply)
-        points = np.stack([v["x"], v["y"], v["z"]], axis=-1)
+        where = f"{path}: the point cloud {ply!r} (field 'ply_file_path')"
+        if not (path.parent / ply).is_file():
+            raise CaptureError(f"{where} is missing")
+        try:
+            v = read_ply_vertices(path.parent / ply)
+            points = np.stack([v["x"], v["y"], v["z"]], axis=-1)
+        except (PlyError, KeyError, ValueError) as exc:
+            raise CaptureError(f"{where} is not a point cloud PLY: {exc}") from None
     if out.exists():
         raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
     check_output_location(out, [path.parent])

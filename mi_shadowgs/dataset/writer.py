@@ -20,6 +20,7 @@ import json
 import os
 import re
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -245,6 +246,11 @@ def resolve_envmaps(config: GenerateConfig) -> list[EnvMap]:
             path = Path(entry).resolve()
             if not path.is_file():
                 raise FileNotFoundError(f"environment map not found: {path} (--envmap)")
+            from mi_shadowgs.core.envmap import LOW_DYNAMIC_RANGE_NOTE, low_dynamic_range
+
+            if path.suffix.lower() not in ENVMAP_SUFFIXES and low_dynamic_range(path):
+                print(f"mi-shadowgs: warning: --envmap {path} {LOW_DYNAMIC_RANGE_NOTE}",
+                      file=sys.stderr)
             sources.append(path)
         else:
             raise ValueError(f"envmaps entry {entry!r}: expected an env-map file "
