@@ -448,6 +448,18 @@ def test_preview_env_maps_are_recorded_by_content(data, tmp_path, capsys, monkey
     assert cli.main(["run", str(data[0]), "--out", str(tmp_path / "other")]) == 2
     assert f"$MI_SHADOWGS_ENVMAPS: {tmp_path / 'gone.exr'}: not found" in \
         capsys.readouterr().err
+    # an 8-bit map: used (its run not made here), with a warning of its clipped highlights
+    import imageio.v3 as iio
+
+    import mi_shadowgs.pipeline
+
+    png = tmp_path / "pano.png"
+    iio.imwrite(png, np.full((8, 16, 3), 200, np.uint8))
+    monkeypatch.setenv("MI_SHADOWGS_ENVMAPS", str(png))
+    monkeypatch.setattr(mi_shadowgs.pipeline, "run_pipeline",
+                        lambda *a, **k: (_ for _ in ()).throw(FileNotFoundError("stub")))
+    assert cli.main(["run", str(data[0]), "--out", str(tmp_path / "other")]) == 2
+    assert f"$MI_SHADOWGS_ENVMAPS {png} stores integers" in capsys.readouterr().err
 
 
 def test_run_with_material_masks_checks_them_before_stage_1(data, tmp_path, capsys,

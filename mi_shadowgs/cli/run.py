@@ -68,6 +68,12 @@ def run(args) -> int:
     for e in envmaps or []:
         if not os.path.exists(e):
             raise FileNotFoundError(f"{source}: {e}: not found")
+        if os.path.isfile(e):
+            from mi_shadowgs.core.envmap import LOW_DYNAMIC_RANGE_NOTE, low_dynamic_range
+            from mi_shadowgs.stages.common import warn
+
+            if low_dynamic_range(e):
+                warn(f"{source} {e} {LOW_DYNAMIC_RANGE_NOTE}")
     if envmaps:
         overrides["preview_envmaps"] = tuple(str(Path(e).resolve()) for e in envmaps)
     config = with_overrides(config, overrides, "run")
