@@ -29,7 +29,7 @@ demo: install
 
 # The viewer's browser test needs chromium and chromium-driver (installed here when root).
 # The test files run on one process per core, at most TEST_WORKERS (pytest-xdist; a file's
-# tests stay on one process, so its fixtures are made once): 13:00 -> 9:15 on 2 cores.
+# tests stay on one process, so its fixtures are made once): from zero on 2 cores, 18:23 -> 12:09.
 TEST_WORKERS ?= 4
 test: install-dev
 	@bash scripts/setup.sh --chromium
