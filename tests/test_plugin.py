@@ -263,3 +263,44 @@ def test_relative_filename_and_grey_background(tmp_path):
     empty = img[..., 3] == 0
     assert empty.any()
     np.testing.assert_array_equal(img[empty][:, :3], 0.5)
+
+
+def test_sensors_and_settings_it_cannot_honour_are_refused(model_path):
+    """A thinlens sensor was drawn as a pinhole (no depth of field), an alpha_min at or above
+    alpha_max drew an empty image, and a colour channel of another width failed at render
+    time only; each is now an error naming it."""
+    thinlens = _scene_xml(model_path).replace(
+        '<sensor type="perspective">',
+        '<sensor type="thinlens"><float name="aperture_radius" value="0.3"/>'
+        '<float name="focus_distance" value="1"/>')
+    with pytest.raises(Exception) as err:  # mi.render chains the plugin's error
+        mi.render(mi.load_string(thinlens))
+    assert "unsupported sensor ThinLensCamera" in str(err.value.__cause__ or err.value)
+    with pytest.raises(Exception, match="'alpha_min' .* must be below 'alpha_max'"):
+        mi.load_string(_scene_xml(model_path, extra='<float name="alpha_min" value="0.995"/>'))
+    path = model_path.with_name("wide.ply")
+    model = _write_model(path)
+    model.channels["feature"] = np.zeros((model.count, 5), np.float32)
+    ply.write_ply_model(path, model)
+    with pytest.raises(Exception, match="colour channel 'feature' has 5 columns"):
+        mi.load_string(_scene_xml(path, extra='<string name="color_channel" value="feature"/>'))
+
+
+def test_params_update_to_a_model_it_cannot_draw_is_named(model_path):
+    """After params.update(), a model of 0 surfels failed inside the rasterizer ('Point3f
+    .__sub__(): nested operation failed') and an SH channel of another width inside eval_sh;
+    both are refused at the update, naming the parameter."""
+    scene = mi.load_string(_scene_xml(model_path))
+    params = mi.traverse(scene)
+    params["surf.channels.sh"] = mi.TensorXf(np.zeros((40, 5), np.float32))
+    with pytest.raises(ValueError, match=r"'channels.sh'.* 5 columns"):
+        params.update()
+    scene = mi.load_string(_scene_xml(model_path))
+    params = mi.traverse(scene)
+    for key in params.keys():
+        if key.startswith("surf."):
+            value = params[key]
+            params[key] = mi.TensorXf(np.zeros((0, value.shape[1]), np.float32)) \
+                if isinstance(value, mi.TensorXf) else dr.zeros(type(value), 0)
+    with pytest.raises(ValueError, match="'position' has 0 entries"):
+        params.update()

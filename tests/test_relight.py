@@ -186,3 +186,22 @@ def test_surfel_relight_plugin_matches_library(tmp_path):
         bad = surfels_on_surface(list(scene.shapes()), 100)
         save_ply(tmp_path / "bad.ply", bad)
         mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "bad.ply")})
+
+
+def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(tmp_path):
+    """<string name="specular" value="false"/> was bool("false"): the lobe stayed on."""
+    scene = _scene(_directional())
+    surf = surfels_on_surface(list(scene.shapes()), 200)
+    n = surf.count
+    surf.channels["roughness"] = mi.TensorXf(np.full((n, 1), 0.5, np.float32))
+    surf.channels["metallic"] = mi.TensorXf(np.zeros((n, 1), np.float32))
+    from mi_shadowgs.io.ply import save_ply
+
+    save_ply(tmp_path / "model.ply", surf)
+    for name in ("specular", "visibility"):
+        with pytest.raises(Exception, match=f"'{name}' must be a boolean"):
+            mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
+                          name: "false"})
+    integ = mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
+                          "specular": False})
+    assert integ.specular is False

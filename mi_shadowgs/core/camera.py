@@ -248,14 +248,17 @@ class Camera:
                 (width, height) != tuple(int(v) for v in film.size()):
             raise ValueError("Camera.from_mitsuba: cropped films are not supported")
         to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
-        kind = sensor.class_().name() if hasattr(sensor, "class_") else type(sensor).__name__
+        # By class, not by its parameters: a thinlens sensor has an x_fov too, and was drawn
+        # as a pinhole without its depth of field.
+        kind = sensor.class_name() if hasattr(sensor, "class_name") else str(sensor)
+        kind = kind.split("[")[0]
         near = float(params["near_clip"]) if "near_clip" in params else 0.01
         far = float(params["far_clip"]) if "far_clip" in params else 1.0e4
-        if "x_fov" in params:  # perspective
+        if kind == "PerspectiveCamera":
             fov_x = math.radians(float(np.asarray(params["x_fov"]).ravel()[0]))
             return Camera(c2w=to_world @ _GL_TO_MI, width=width, height=height, fov_x=fov_x,
                           near=near, far=far)
-        if "orthographic" in str(sensor).lower() or "ortho" in str(kind).lower():
+        if kind == "OrthographicCamera":
             sx = np.linalg.norm(to_world[:3, 0])
             sy = np.linalg.norm(to_world[:3, 1])
             rot = to_world.copy()
@@ -265,7 +268,8 @@ class Camera:
             half = sx / max(1.0, height / width)
             return Camera(c2w=rot @ _GL_TO_MI, width=width, height=height,
                           ortho_width=2.0 * half, near=near, far=far)
-        raise ValueError(f"Camera.from_mitsuba: unsupported sensor {kind}")
+        raise ValueError(f"Camera.from_mitsuba: unsupported sensor {kind}; use a perspective "
+                         "or orthographic sensor")
 
     # -- dataset JSON -----------------------------------------------------------------
     def to_frame_json(self, file_path: str) -> dict:

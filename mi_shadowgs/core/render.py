@@ -71,25 +71,40 @@ def parse_background(value, what: str = "background") -> tuple[float, float, flo
     return (rgb[0], rgb[1], rgb[2])
 
 
-def surfel_colors(surfels, camera: Camera, color_channel: str = DEFAULT_COLOR_CHANNEL):
-    """Per-surfel RGB [N, 3] (TensorXf): SH seen from the camera, or a stored channel."""
+def check_color_channel(surfels, color_channel: str) -> None:
+    """RenderError unless ``color_channel`` can colour ``surfels``: ``sh`` of 3(d+1)^2
+    columns, or another channel of 1 or 3."""
     if color_channel not in surfels.channels:
         raise RenderError(f"colour channel {color_channel!r} is not in the model "
                           f"(channels: {sorted(surfels.channels)})")
+    width = int(surfels.channels[color_channel].shape[1])
+    if color_channel == "sh":
+        from mi_shadowgs.core.surfels import sh_degree
+
+        try:
+            sh_degree(width // 3 if width % 3 == 0 else 0)
+        except ValueError:
+            raise RenderError(f"colour channel 'sh' has {width} columns; need 3(d+1)^2 "
+                              "(3, 12, 27 or 48)") from None
+    elif width not in (1, 3):
+        raise RenderError(f"colour channel {color_channel!r} has {width} columns; need 1 or 3")
+
+
+def surfel_colors(surfels, camera: Camera, color_channel: str = DEFAULT_COLOR_CHANNEL):
+    """Per-surfel RGB [N, 3] (TensorXf): SH seen from the camera, or a stored channel."""
+    check_color_channel(surfels, color_channel)
     if color_channel == "sh":
         from mi_shadowgs.core.surfels import sh_colors
 
         return sh_colors(surfels, camera_origin_for_sh(camera))
     values = surfels.channels[color_channel]
-    width = int(values.shape[1])
-    if width == 3:
+    if int(values.shape[1]) == 3:
         return values
-    if width == 1:  # grey: repeat the one column
-        import drjit as dr
+    # grey: repeat the one column
+    import drjit as dr
 
-        idx = dr.arange(mi.UInt32, surfels.count * 3) // 3
-        return mi.TensorXf(dr.gather(mi.Float, values.array, idx), (surfels.count, 3))
-    raise RenderError(f"colour channel {color_channel!r} has {width} columns; need 1 or 3")
+    idx = dr.arange(mi.UInt32, surfels.count * 3) // 3
+    return mi.TensorXf(dr.gather(mi.Float, values.array, idx), (surfels.count, 3))
 
 
 def camera_origin_for_sh(camera: Camera):

@@ -19,7 +19,8 @@ standard Mitsuba `perspective` or `orthographic` sensor with an `hdrfilm`. Sourc
   film's `A` channel stays coverage.
 - `alpha_min`, `alpha_max`, `transmittance_min`, `cutoff_sigma`, `lowpass_inv_var`, `near` |
   float | `RasterConfig` defaults (1/255, 0.99, 1e-4, 3, 12, 0.2) | | Rasterizer settings
-  (`mi_shadowgs.core.raster.RasterConfig`); each must be positive, `alpha_max` below 1.
+  (`mi_shadowgs.core.raster.RasterConfig`); each must be positive, `alpha_max` below 1 and
+  `alpha_min` below `alpha_max`.
 - `position` | Point3f [N] | from file | differentiable | Surfel centres (world space).
 - `log_scale` | Point2f [N] | from file | differentiable | Log of the two tangent standard
   deviations.
@@ -41,9 +42,12 @@ as Mitsuba's `aov` integrator does: `depth.T`, `median_depth.T`, `distortion.T`,
 `count.T`, `alpha.T`, `normal.X/Y/Z`, a 3-column channel `albedo.R/G/B`, a 1-column one
 `roughness.T`, wider ones `feature.0..15`. `film.bitmap()` carries the same names.
 
-**Not used:** the sampler, samples per pixel and seeds (the render is deterministic), and
-the film's reconstruction filter (each pixel is evaluated at its centre). Sensors with a
-principal-point offset or a crop window are refused with an error.
+**Not used:** the sampler, samples per pixel and seeds (the render is deterministic), the
+film's reconstruction filter (each pixel is evaluated at its centre), and the sensor's
+`near_clip` and `far_clip` (the `near` property culls splats nearer than it; none is culled
+for being far). Sensors with a principal-point offset or a crop window, and other sensor
+types (`thinlens`, ...), are refused with an error. A colour channel of another width
+(`color_channel`, or after `params.update()`) and a model of 0 surfels are refused by name.
 
 ### Example
 
@@ -129,10 +133,7 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
                 bg = list(bg)  # an rgb property (ScalarColor3d)
             self.background = core_render.parse_background(bg, "'background'")
             core_render.aov_layout(self.aovs, self.surfels)
-            if self.color_channel not in self.surfels.channels:
-                raise core_render.RenderError(f"colour channel {self.color_channel!r} is not in "
-                                     f"{self.filename} (channels: "
-                                     f"{sorted(self.surfels.channels)})")
+            core_render.check_color_channel(self.surfels, self.color_channel)
             known = {f.name for f in dataclasses.fields(RasterConfig)}
             overrides = {k: float(props.get(k)) for k in _CONFIG_PROPS
                          if k in known and k in props}
@@ -141,6 +142,12 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
                     raise core_render.RenderError(f"property {k!r} must be a positive finite number"
                                          f"{' below 1' if k == 'alpha_max' else ''}, got {v}")
             self.config = with_overrides(RasterConfig(), overrides, "surfel_raster")
+            # Every splat's alpha is clamped to alpha_max, then dropped below alpha_min: an
+            # alpha_min at or above alpha_max rendered an empty image.
+            if not self.config.alpha_min < self.config.alpha_max:
+                raise core_render.RenderError(
+                    f"property 'alpha_min' ({self.config.alpha_min}) must be below "
+                    f"'alpha_max' ({self.config.alpha_max})")
         except (core_render.RenderError, ConfigError) as exc:
             raise ValueError(f"surfel_raster ({self.filename}): {exc}") from None
 
@@ -151,11 +158,19 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
 
     def parameters_changed(self, keys):
         n = self.surfels.count
+        if n == 0:  # the rasterizer has nothing to draw and fails without a name
+            raise ValueError("surfel_raster: parameter 'position' has 0 entries; a model needs "
+                             "at least one surfel")
         for key, value in self.surfels.params().items():
             rows = value.shape[0] if isinstance(value, mi.TensorXf) else dr.width(value)
             if rows != n:
                 raise ValueError(f"surfel_raster: parameter {key!r} has {rows} entries, "
                                  f"position has {n}")
+        try:
+            core_render.check_color_channel(self.surfels, self.color_channel)
+        except core_render.RenderError as exc:
+            raise ValueError(f"surfel_raster: parameter 'channels.{self.color_channel}': "
+                             f"{exc}") from None
 
     def aov_names(self):
         return [c for _, names in core_render.aov_layout(self.aovs, self.surfels) for c in names]

@@ -9,9 +9,9 @@ with shadows recomputed from shadow maps of the surfels
   channels; resolved like any Mitsuba file. A model without `albedo`/`roughness`/`metallic`
   is refused with an error naming the missing channels.
 - `specular` | boolean | `true` | | Model the Cook-Torrance GGX lobe (`false`: diffuse
-  `(1 - m) a / pi` only, no GGX work).
+  `(1 - m) a / pi` only, no GGX work). A `<boolean>`; any other type is an error.
 - `visibility` | boolean | `true` | | Shadows from shadow maps (`false`: V = 1, the paper's
-  "w/o visibility" ablation).
+  "w/o visibility" ablation). A `<boolean>`; any other type is an error.
 - `indirect` | string | `"none"` | | `"none"` or `"keep"` (add the fitted `indirect_sh`
   unchanged). The training light is not known to the plugin, so the library's default
   `"scaled"` mode is not offered.
@@ -43,8 +43,10 @@ time the direction is seen and kept with the integrator: a later `mi.render` of 
 emitters (any sensor at the same distance) reuses the maps and the env map's grid radiance
 (re-integrated only when the env map's parameters change).
 
-**Not used:** sampler, spp and seeds (deterministic); not differentiable (`render_forward`
-and `render_backward` are not implemented). The film gets `R, G, B` (and `A` = coverage).
+**Not used:** sampler, spp and seeds (deterministic); the sensor's `near_clip` and
+`far_clip`; not differentiable (`render_forward` and `render_backward` are not
+implemented). The film gets `R, G, B` (and `A` = coverage). Sensors as for `surfel_raster`:
+`perspective` or `orthographic`, without a principal-point offset or crop window.
 
 ```xml
 <scene version="3.0.0">
@@ -77,7 +79,12 @@ from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, VisibilityCon
 
 
 def _bool(props, name, default):
-    return bool(props.get(name, default))
+    # A <string name="specular" value="false"/> was bool("false"), i.e. True.
+    value = props.get(name, default)
+    if not isinstance(value, bool):
+        raise ValueError(f"surfel_relight: {name!r} must be a boolean (<boolean name="
+                         f"\"{name}\" value=\"false\"/>), got {value!r}")
+    return value
 
 
 class SurfelRelightIntegrator(mi.SamplingIntegrator):
