@@ -18,7 +18,6 @@ functions.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 from mi_shadowgs import backend, stages
@@ -59,8 +58,15 @@ def run(data: str | Path, out: str | Path, preset: str = "cpu-small", progress: 
         overwrite: bool = False, **settings) -> dict:
     """The whole method (stages 1-5, evaluation, report) on dataset ``data`` into run folder
     ``out`` (``mi-shadowgs run``); ``settings`` override fields of ``RunConfig`` (``masks``,
-    ``ablations``, ``material_iterations``, ...). Returns the run's summary."""
-    config = dataclasses.replace(get_config(preset), **settings)
+    ``ablations``, ``material_iterations``, ``preview_envmaps``: a list, ...), each checked
+    by name and type as the command line's are. Returns the run's summary."""
+    from mi_shadowgs.config import with_overrides
+    from mi_shadowgs.pipeline import check_preview_envmaps
+
+    # dataclasses.replace took ablations="false" as True and missing env maps without a word.
+    if "preview_envmaps" in settings:
+        settings["preview_envmaps"] = check_preview_envmaps(settings["preview_envmaps"])
+    config = with_overrides(get_config(preset), settings, "run")
     return run_pipeline(data, out, config, progress=progress, overwrite=overwrite)
 
 

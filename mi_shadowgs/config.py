@@ -48,8 +48,12 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
     if unknown:
         raise ConfigError(f"unknown {what} setting(s) {unknown}; known: {sorted(names)}")
     values = dict(overrides)
+    kinds = {f.name: str(f.type) for f in dataclasses.fields(config)}
     for name, value in overrides.items():
         current = getattr(config, name)
+        if current is None and value is not None:  # an optional field: judged by its type
+            current = {"int": 0, "float": 0.0, "bool": False}.get(
+                kinds[name].split("|")[0].strip())
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
             if isinstance(value, dict):
                 values[name] = with_overrides(current, value, f"{what}.{name}")

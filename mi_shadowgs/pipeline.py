@@ -64,7 +64,8 @@ class RunConfig:
     # seeds measure how far a figure moves by chance alone (validation.pipeline --seed).
     seed: int = 0
     # Env maps (files, or folders of .exr) of the report's relit previews, beside the
-    # dataset's own; e.g. ../shared/data/envmaps. Missing entries are left out.
+    # dataset's own; e.g. ../shared/data/envmaps. The CLI and ``api.run`` refuse a missing
+    # one (``check_preview_envmaps``); run_pipeline leaves out one that has gone since.
     preview_envmaps: tuple[str, ...] = ()
 
     def __post_init__(self):
@@ -182,6 +183,25 @@ def _preview_envmaps(config: RunConfig, train) -> list[tuple[str, Path, float]]:
     out = [(e["name"], envmap_file(e, train.root), float(e.get("scale", 1.0)))
            for e in (train.lights or {}).get("relightings", []) if e.get("type") == "envmap"]
     return out + [(f.stem, f, 1.0) for f in _user_envmap_files(config)]
+
+
+def check_preview_envmaps(entries, source: str = "preview_envmaps") -> tuple[str, ...]:
+    """``entries`` (env map files, or folders of .exr files) as absolute paths, for
+    ``RunConfig.preview_envmaps``. A bare path is a TypeError (it would be read letter by
+    letter) and a missing entry a FileNotFoundError, both naming ``source``; an integer
+    (clipped) env map file gets a warning."""
+    import os
+
+    from mi_shadowgs.core.envmap import LOW_DYNAMIC_RANGE_NOTE, low_dynamic_range
+
+    if isinstance(entries, str | os.PathLike) or not isinstance(entries, list | tuple):
+        raise TypeError(f"{source} takes a list of env map files or folders, got {entries!r}")
+    for e in entries:
+        if not os.path.exists(e):
+            raise FileNotFoundError(f"{source}: {e}: not found")
+        if os.path.isfile(e) and low_dynamic_range(e):
+            warn(f"{source} {e} {LOW_DYNAMIC_RANGE_NOTE}")
+    return tuple(str(Path(e).resolve()) for e in entries)
 
 
 def _user_envmap_files(config: RunConfig) -> list[Path]:

@@ -39,3 +39,18 @@ def test_script_the_method(tiny_presets, tmp_path):
     assert np.isfinite(images["depth"].numpy()).all()
     msg.export_ply(tmp_path / "copy.ply", model)
     assert msg.load_model(tmp_path / "copy.ply").count == model.count
+
+
+@pytest.mark.parametrize("settings, error, match", [
+    ({"ablations": "false"}, ValueError, "'ablations' takes True or False"),  # was True
+    ({"material_iterations": "10"}, ValueError, "'material_iterations' takes a number"),
+    ({"segmnets": 3}, ValueError, r"unknown run setting\(s\) \['segmnets'\]"),
+    ({"preview_envmaps": "sky.exr"}, TypeError, "preview_envmaps takes a list"),
+    ({"preview_envmaps": ["missing.exr"]}, FileNotFoundError,
+     "preview_envmaps: missing.exr: not found"),  # was left out without a word
+])
+def test_run_settings_are_checked_by_name_before_any_work(tmp_path, settings, error, match):
+    with pytest.raises(error, match=match):
+        msg.run(tmp_path / "no-data", tmp_path / "run", **settings)
+    assert not (tmp_path / "run").exists()
+

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 
 from mi_shadowgs.config import PRESET_NAMES
 
@@ -46,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from mi_shadowgs.config import with_overrides
-    from mi_shadowgs.pipeline import get_config, run_pipeline
+    from mi_shadowgs.pipeline import check_preview_envmaps, get_config, run_pipeline
 
     config = get_config(args.preset)
     overrides = {}
@@ -65,17 +64,8 @@ def run(args) -> int:
     if envmaps is None and os.environ.get("MI_SHADOWGS_ENVMAPS"):
         envmaps = [e for e in os.environ["MI_SHADOWGS_ENVMAPS"].split(os.pathsep) if e]
         source = "$MI_SHADOWGS_ENVMAPS"
-    for e in envmaps or []:
-        if not os.path.exists(e):
-            raise FileNotFoundError(f"{source}: {e}: not found")
-        if os.path.isfile(e):
-            from mi_shadowgs.core.envmap import LOW_DYNAMIC_RANGE_NOTE, low_dynamic_range
-            from mi_shadowgs.stages.common import warn
-
-            if low_dynamic_range(e):
-                warn(f"{source} {e} {LOW_DYNAMIC_RANGE_NOTE}")
     if envmaps:
-        overrides["preview_envmaps"] = tuple(str(Path(e).resolve()) for e in envmaps)
+        overrides["preview_envmaps"] = check_preview_envmaps(envmaps, source)
     config = with_overrides(config, overrides, "run")
     summary = run_pipeline(args.data, args.out, config, progress=not args.no_progress,
                            overwrite=args.overwrite)
