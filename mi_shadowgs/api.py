@@ -18,6 +18,7 @@ functions.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from mi_shadowgs import backend, stages
@@ -90,21 +91,73 @@ def export_asset(run_folder: str | Path, out: str | Path, fmt: str = "mesh",
     return export_run(run_folder, out, fmt, color=color, preset=preset, overwrite=overwrite)
 
 
+def _model(surfels, what: str):
+    """A Surfels model, or the one the PLY at ``surfels`` holds; TypeError naming ``what``."""
+    from mi_shadowgs.core.surfels import Surfels
+
+    if isinstance(surfels, str | os.PathLike):
+        return load_ply(surfels)
+    if not isinstance(surfels, Surfels):
+        raise TypeError(f"{what}: 'surfels' must be a surfel model (load_model) or the path "
+                        f"of its PLY, got {type(surfels).__name__}")
+    return surfels
+
+
 def render(surfels, camera: Camera, aovs=(), background=None) -> dict:
-    """Rasterize a surfel model from ``camera``: {"rgb", "alpha", AOV...} as [H, W, C]
-    Mitsuba tensors (the ``surfel_raster`` plugin renders the same)."""
+    """Rasterize a surfel model (or the PLY at that path) from one ``camera``: {"rgb",
+    "alpha", AOV...} as [H, W, C] Mitsuba tensors (the ``surfel_raster`` plugin renders the
+    same). ``aovs`` is a sequence of names, e.g. ``("depth", "normal")``."""
+    surfels = _model(surfels, "render")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"render: 'camera' must be one Camera (render each of a list in "
+                        f"turn), got {type(camera).__name__}")
     return render_surfels(surfels, camera, aovs=aovs, background=background)
 
 
-def relight(surfels, cameras, lights, bounds, specular: bool = True, preset: str = "cpu-small"):
-    """Render a fitted model (stage 4's PLY) under ``lights`` (``directional_light_set`` or
-    ``lights_from_json``) with shadows recomputed from the surfels; returns (views, seconds)."""
-    from mi_shadowgs.stages.relight import get_config as relight_config
-    from mi_shadowgs.stages.visibility import get_config as visibility_config
+def relight(surfels, cameras, lights, bounds=None, specular: bool = True,
+            preset: str | None = None):
+    """Render a fitted model (stage 4's: a ``Surfels`` or its PLY's path) from each of
+    ``cameras`` (a list of Camera) under ``lights`` (``directional_light_set`` or
+    ``lights_from_json``) with shadows recomputed from the surfels; returns (views,
+    seconds), a view being ``relight_view``'s dict of numpy images.
 
-    vis_config = visibility_config(preset)
-    model = RelightModel(surfels, specular, True, receiver_band=vis_config.receiver_band)
-    return relight_views(model, cameras, lights, bounds, relight_config(preset), vis_config)
+    The shadow maps and receivers are ``preset``'s (``VisibilityConfig``); without one,
+    those a PLY given by path records (the ones it was fitted with, as the
+    ``surfel_relight`` plugin reads them), else cpu-small's. ``bounds`` (a ``SceneBounds``)
+    is the sphere the maps cover; default: the surfels' bounding sphere, as the plugin's.
+    The fitted indirect light (``indirect_sh``) is added unchanged: the training light it
+    would be scaled by is not known here (``run_relight`` scales it)."""
+    import dataclasses
+
+    import numpy as np
+
+    from mi_shadowgs.core.shading import LightSet
+    from mi_shadowgs.stages.relight import get_config as relight_config
+    from mi_shadowgs.stages.relight.render import recorded_visibility
+    from mi_shadowgs.stages.visibility import get_config as visibility_config
+    from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
+
+    recorded = None
+    if preset is None and isinstance(surfels, str | os.PathLike):
+        recorded = recorded_visibility(surfels)
+    model_surfels = _model(surfels, "relight")
+    if isinstance(cameras, Camera) or not isinstance(cameras, list | tuple) or \
+            not all(isinstance(c, Camera) for c in cameras):
+        raise TypeError(f"relight: 'cameras' must be a list of Camera, got "
+                        f"{type(cameras).__name__}")
+    if not isinstance(lights, LightSet):
+        raise TypeError(f"relight: 'lights' must be a LightSet (directional_light_set, "
+                        f"lights_from_json), got {type(lights).__name__}")
+    if bounds is None:
+        pos = np.stack([np.asarray(model_surfels.position[k]) for k in range(3)], -1)
+        bounds = SceneBounds.from_points(pos, cameras)
+    elif not isinstance(bounds, SceneBounds):
+        raise TypeError(f"relight: 'bounds' must be a SceneBounds or None, got "
+                        f"{type(bounds).__name__}")
+    vis_config = recorded or visibility_config(preset or "cpu-small")
+    config = dataclasses.replace(relight_config(preset or "cpu-small"), indirect="keep")
+    model = RelightModel(model_surfels, specular, True, receiver_band=vis_config.receiver_band)
+    return relight_views(model, cameras, lights, bounds, config, vis_config)
 
 
 __all__ = [

@@ -35,6 +35,9 @@ def channel_suffixes(width: int) -> list[str]:
 
 def aov_layout(aovs: Sequence[str], surfels) -> list[tuple[str, list[str]]]:
     """[(aov, film channel names)] for the requested AOVs, checked against the model."""
+    if isinstance(aovs, str):  # read letter by letter it gave "unknown AOV 'd'"
+        raise TypeError(f"aovs must be a sequence of names, e.g. ({aovs!r},), got the string "
+                        f"{aovs!r}")
     out = []
     for name in aovs:
         if name in RASTER_AOVS:
