@@ -205,3 +205,22 @@ def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(tmp_path):
     integ = mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
                           "specular": False})
     assert integ.specular is False
+
+
+def test_surfel_relight_refuses_a_count_that_is_not_an_integer(tmp_path):
+    """<float name="shadow_resolution" value="64.9"/> was cut to 64 without a word."""
+    scene = _scene(_directional())
+    surf = surfels_on_surface(list(scene.shapes()), 200)
+    n = surf.count
+    surf.channels["roughness"] = mi.TensorXf(np.full((n, 1), 0.5, np.float32))
+    surf.channels["metallic"] = mi.TensorXf(np.zeros((n, 1), np.float32))
+    from mi_shadowgs.io.ply import save_ply
+
+    save_ply(tmp_path / "model.ply", surf)
+    for name in ("shadow_resolution", "env_samples"):
+        with pytest.raises(Exception, match=f"'{name}' must be an integer"):
+            mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
+                          name: 64.9})
+    integ = mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
+                          "shadow_resolution": 64})
+    assert integ.vis_config.resolution == 64

@@ -17,9 +17,9 @@ with shadows recomputed from shadow maps of the surfels
   `"scaled"` mode is not offered.
 - `shadow_resolution` | integer | the model's | | Shadow-map width = height (texels); the map
   covers the surfels' bounding sphere. By default the resolution the model was fitted with
-  (below); `512` for another tool's PLY.
+  (below); `512` for another tool's PLY. An `<integer>`; any other type is an error.
 - `env_samples` | integer | `64` | | Samples per grid direction when integrating an
-  infinite emitter over the 128-direction grid.
+  infinite emitter over the 128-direction grid. An `<integer>`, as `shadow_resolution`.
 - `receiver_band` | float | the model's | | Which surface of a pixel is shaded: `0` the
   alpha-blended depth and normal (the paper's), > 0 the pixel's median surface, the splats
   within this many pixel footprints of its median depth. By default the value the model
@@ -87,6 +87,15 @@ def _bool(props, name, default):
     return value
 
 
+def _int(props, name, default):
+    # A <float name="shadow_resolution" value="64.9"/> was cut to 64 without a word.
+    value = props.get(name, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"surfel_relight: {name!r} must be an integer (<integer name="
+                         f"\"{name}\" .../>), got {value!r}")
+    return value
+
+
 class SurfelRelightIntegrator(mi.SamplingIntegrator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -105,8 +114,8 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
             raise ValueError(f"surfel_relight: 'indirect' must be 'none' or 'keep', got "
                              f"{self.indirect!r}")
         fitted = relight.recorded_visibility(self.filename) or VisibilityConfig()
-        res = int(props.get("shadow_resolution", fitted.resolution))
-        env = int(props.get("env_samples", 64))
+        res = _int(props, "shadow_resolution", fitted.resolution)
+        env = _int(props, "env_samples", 64)
         if res < 1 or env < 1:
             raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
         self.receiver_band = float(props.get("receiver_band", fitted.receiver_band))
