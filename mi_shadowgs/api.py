@@ -114,7 +114,7 @@ def render(surfels, camera: Camera, aovs=(), background=None) -> dict:
     return render_surfels(surfels, camera, aovs=aovs, background=background)
 
 
-def relight(surfels, cameras, lights, bounds=None, specular: bool = True,
+def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
             preset: str | None = None):
     """Render a fitted model (stage 4's: a ``Surfels`` or its PLY's path) from each of
     ``cameras`` (a list of Camera) under ``lights`` (``directional_light_set`` or
@@ -123,7 +123,9 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool = True,
 
     The shadow maps and receivers are ``preset``'s (``VisibilityConfig``); without one,
     those a PLY given by path records (the ones it was fitted with, as the
-    ``surfel_relight`` plugin reads them), else cpu-small's. ``bounds`` (a ``SceneBounds``)
+    ``surfel_relight`` plugin reads them), else cpu-small's. ``specular`` (the GGX lobe):
+    by default whether a PLY given by path was fitted with it (``cpu-*`` fits without it),
+    else on. ``bounds`` (a ``SceneBounds``)
     is the sphere the maps cover; default: the surfels' bounding sphere, as the plugin's.
     The fitted indirect light (``indirect_sh``) is added unchanged: the training light it
     would be scaled by is not known here (``run_relight`` scales it)."""
@@ -133,13 +135,16 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool = True,
 
     from mi_shadowgs.core.shading import LightSet
     from mi_shadowgs.stages.relight import get_config as relight_config
-    from mi_shadowgs.stages.relight.render import recorded_visibility
+    from mi_shadowgs.stages.relight.render import recorded_specular, recorded_visibility
     from mi_shadowgs.stages.visibility import get_config as visibility_config
     from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
 
     recorded = None
     if preset is None and isinstance(surfels, str | os.PathLike):
         recorded = recorded_visibility(surfels)
+    if specular is None:
+        found = recorded_specular(surfels) if isinstance(surfels, str | os.PathLike) else None
+        specular = True if found is None else found
     model_surfels = _model(surfels, "relight")
     if isinstance(cameras, Camera) or not isinstance(cameras, list | tuple) or \
             not all(isinstance(c, Camera) for c in cameras):

@@ -135,7 +135,8 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
             res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds,
                                                   overrides, progress, **checkpoints))
-            save_ply(out.path("model.ply"), res.surfels, relight.model_metadata(vis_config))
+            save_ply(out.path("model.ply"), res.surfels,
+                     relight.model_metadata(vis_config, res.specular))
             write_json(out.path("light.json"), light_json(res))
             write_text(out.path("history.csv"), "step,loss\n" + "".join(
                 f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))

@@ -108,7 +108,7 @@ def test_relight_of_a_ply_uses_the_shadow_maps_it_records(tmp_path):
                                 "roughness": np.full((2 * n, 1), 0.5),
                                 "metallic": np.zeros((2 * n, 1))})
     fitted = dataclasses.replace(get_config("cpu-small"), resolution=48, receiver_band=0.0)
-    save_ply(tmp_path / "model.ply", model, metadata=model_metadata(fitted))
+    save_ply(tmp_path / "model.ply", model, metadata=model_metadata(fitted, True))
     camera = msg.Camera.look_at(np.array([0.0, 2.5, 2.5]), np.zeros(3), fov_x=0.9, width=24,
                                 height=24)
     lights = msg.directional_light_set([[0.5, 0.8, 0.2]], [3.0])

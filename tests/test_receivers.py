@@ -145,9 +145,9 @@ def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(tmp_
     cpu = dataclasses.replace(shadow_maps.get_config("cpu-small"), resolution=128)
     assert cpu.projection != paper.projection  # else the cpu case below would prove nothing
     fitted, plain, ortho = tmp_path / "fitted.ply", tmp_path / "plain.ply", tmp_path / "o.ply"
-    save_ply(fitted, s, relight.model_metadata(paper))
+    save_ply(fitted, s, relight.model_metadata(paper, False))
     save_ply(plain, s)  # as before the record, or from another tool: the paper's blend
-    save_ply(ortho, s, relight.model_metadata(cpu))
+    save_ply(ortho, s, relight.model_metadata(cpu, False))
     # A model saved with the band alone (sessions 31-36): the paper's maps, its band.
     banded = tmp_path / "banded.ply"
     save_ply(banded, s, {relight.BAND_METADATA_KEY: "0.5"})

@@ -310,3 +310,56 @@ def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkey
     assert [f.name[len("preview_0_turntable_"):-4] for f in frames] == \
         [f"az{a:03d}_el45" for a in range(0, 360, 45)]
     assert (tmp_path / "preview_0_envmap_sky.png").is_file()
+
+
+def test_the_plugin_and_api_relight_take_the_lobe_the_model_was_fitted_with(tiny_run,
+                                                                           tiny_presets,
+                                                                           tmp_path):
+    """A `cpu-*` model is fitted without the GGX lobe, so its roughness and metallic were
+    never fitted; the `surfel_relight` plugin and `api.relight` turned the lobe on for it
+    unless told (their default was true). Stage 4's PLY now records the lobe; a model saved
+    before that takes it from the run's light.json beside it; another tool's keeps it on."""
+    import shutil
+
+    import mi_shadowgs.api as msg
+    from mi_shadowgs.io.ply import PlyError, load_ply, read_ply_metadata, save_ply
+
+    full = tiny_run / "run" / "material" / "full"
+    fitted = json.loads((full / "light.json").read_text())["specular"]
+    key = relight.SPECULAR_METADATA_KEY
+    assert read_ply_metadata(full / "model.ply")[key] == ("true" if fitted else "false")
+
+    def lobe(path, **props):
+        scene = mi.load_dict({"type": "scene", "integrator": {
+            "type": "surfel_relight", "filename": str(path), **props}})
+        return scene.integrator().specular
+
+    assert lobe(full / "model.ply") is fitted
+    assert lobe(full / "model.ply", specular=not fitted) is (not fitted)
+    model = load_ply(full / "model.ply")
+    header = read_ply_metadata(full / "model.ply")
+    diffuse = tmp_path / "diffuse.ply"
+    save_ply(diffuse, model, {**header, key: "false"})
+    assert lobe(diffuse) is False
+    # api.relight of the path: the lobe it records (the same views as the lobe given)
+    from mi_shadowgs.dataset.loader import load_dataset
+
+    camera = load_dataset(tiny_run / "data", "test").cameras[0]
+    lights = msg.directional_light_set([[0.3, 0.8, 0.5]], [2.0])
+    (got,), _ = msg.relight(diffuse, [camera], lights)
+    (off,), _ = msg.relight(diffuse, [camera], lights, specular=False)
+    (on,), _ = msg.relight(diffuse, [camera], lights, specular=True)
+    np.testing.assert_array_equal(got["rgb"], off["rgb"])
+    assert np.abs(on["rgb"] - off["rgb"]).max() > 1e-4  # else the case proves nothing
+    # saved before the record: the run's light.json beside it, which the manifest lists
+    old = tmp_path / "full"
+    shutil.copytree(full, old)
+    save_ply(old / "model.ply", model, {k: v for k, v in header.items() if k != key})
+    assert relight.recorded_specular(old / "model.ply") is fitted
+    other = tmp_path / "other.ply"  # another tool's: the lobe on, as before
+    save_ply(other, model)
+    assert relight.recorded_specular(other) is None and lobe(other) is True
+    bad = tmp_path / "bad.ply"
+    save_ply(bad, model, {key: "maybe"})
+    with pytest.raises(PlyError, match=f"{bad}: header comment specular 'maybe'"):
+        relight.recorded_specular(bad)

@@ -8,8 +8,11 @@ with shadows recomputed from shadow maps of the surfels
 - `filename` | string | (required) | | PLY model in the 2DGS layout with the material
   channels; resolved like any Mitsuba file. A model without `albedo`/`roughness`/`metallic`
   is refused with an error naming the missing channels.
-- `specular` | boolean | `true` | | Model the Cook-Torrance GGX lobe (`false`: diffuse
-  `(1 - m) a / pi` only, no GGX work). A `<boolean>`; any other type is an error.
+- `specular` | boolean | the model's | | Model the Cook-Torrance GGX lobe (`false`:
+  diffuse `(1 - m) a / pi` only, no GGX work). By default as the model was fitted (the
+  PLY's header, or the run's `light.json` beside it; a `cpu-*` model fits without the lobe,
+  so its roughness and metallic were never fitted); `true` for another tool's PLY. A
+  `<boolean>`; any other type is an error.
 - `visibility` | boolean | `true` | | Shadows from shadow maps (`false`: V = 1, the paper's
   "w/o visibility" ablation). A `<boolean>`; any other type is an error.
 - `indirect` | string | `"none"` | | `"none"` or `"keep"` (add the fitted `indirect_sh`
@@ -107,7 +110,8 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         if missing:
             raise ValueError(f"surfel_relight ({self.filename}): the model lacks channel(s) "
                              f"{missing}; it needs albedo, roughness and metallic (stage 4)")
-        self.specular = _bool(props, "specular", True)
+        recorded = relight.recorded_specular(self.filename)
+        self.specular = _bool(props, "specular", True if recorded is None else recorded)
         self.visibility = _bool(props, "visibility", True)
         self.indirect = str(props.get("indirect", "none"))
         if self.indirect not in ("none", "keep"):

@@ -88,16 +88,52 @@ class RelightModel:
 # (the ``surfel_relight`` plugin) shades it as ``relight`` shades the run.
 BAND_METADATA_KEY = "receiver_band"
 VISIBILITY_METADATA_KEY = "visibility"
+# Whether the fit modelled the GGX lobe: a model fitted without it (cpu-*) has roughness and
+# metallic channels the fit never moved, so a reader that turns the lobe on draws highlights
+# from untrained values.
+SPECULAR_METADATA_KEY = "specular"
 
 
-def model_metadata(vis_config: VisibilityConfig) -> dict[str, str]:
+def model_metadata(vis_config: VisibilityConfig, specular: bool) -> dict[str, str]:
     """What a stage-4 model's PLY records for its readers (``ply.save_ply``'s metadata)."""
     import json
 
     from mi_shadowgs.config import to_dict
 
     return {BAND_METADATA_KEY: repr(float(vis_config.receiver_band)),
-            VISIBILITY_METADATA_KEY: json.dumps(to_dict(vis_config), separators=(",", ":"))}
+            VISIBILITY_METADATA_KEY: json.dumps(to_dict(vis_config), separators=(",", ":")),
+            SPECULAR_METADATA_KEY: "true" if specular else "false"}
+
+
+def recorded_specular(path) -> bool | None:
+    """Whether a stage-4 PLY was fitted with the specular lobe: its header's record; else
+    the ``specular`` field of the ``light.json`` beside it when the run's manifest there lists
+    both (models saved before the record); None for a model with neither (another tool's).
+    A malformed record is an error naming the file."""
+    import json
+
+    from mi_shadowgs.io.ply import PlyError, read_ply_metadata
+    from mi_shadowgs.io.provenance import read_manifest
+
+    path = Path(path)
+    text = read_ply_metadata(path).get(SPECULAR_METADATA_KEY)
+    if text is not None:
+        if text not in ("true", "false"):
+            raise PlyError(f"{path}: header comment {SPECULAR_METADATA_KEY} {text!r} is not "
+                           "true or false")
+        return text == "true"
+    manifest = read_manifest(path.parent)
+    light = path.parent / "light.json"
+    if not (manifest and path.name in manifest["files"] and "light.json" in manifest["files"]
+            and light.is_file()):
+        return None
+    try:
+        value = json.loads(light.read_text())["specular"]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"{light}: missing or malformed field 'specular' ({exc})") from None
+    if not isinstance(value, bool):
+        raise ValueError(f"{light}: field 'specular' must be true or false, got {value!r}")
+    return value
 
 
 def recorded_visibility(path) -> VisibilityConfig | None:
