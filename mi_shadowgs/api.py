@@ -78,6 +78,11 @@ def load_model(path: str | Path):
 
 def export_ply(path: str | Path, surfels) -> None:
     """Write ``surfels`` as a PLY (atomically; the 2DGS layout plus named channels)."""
+    from mi_shadowgs.core.surfels import Surfels
+
+    if not isinstance(surfels, Surfels):  # a list or arrays failed inside the writer
+        raise TypeError(f"export_ply: 'surfels' must be a surfel model (load_model, "
+                        f"Surfels.from_numpy), got {type(surfels).__name__}")
     save_ply(path, surfels)
 
 

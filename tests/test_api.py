@@ -76,6 +76,9 @@ def test_render_and_relight_name_an_argument_of_the_wrong_kind(tmp_path):
         msg.render(model, camera, aovs="depth")
     with pytest.raises(TypeError, match="'camera' must be one Camera"):
         msg.render(model, [camera])
+    with pytest.raises(TypeError, match="export_ply: 'surfels' must be a surfel model"):
+        msg.export_ply(tmp_path / "list.ply", [model])  # an AttributeError in the writer
+    assert not (tmp_path / "list.ply").exists()
     msg.export_ply(tmp_path / "model.ply", model)
     by_path = msg.render(tmp_path / "model.ply", camera, aovs=("depth",))
     assert by_path["depth"].shape == (12, 16, 1)

@@ -224,3 +224,7 @@ def test_surfel_relight_refuses_a_count_that_is_not_an_integer(tmp_path):
     integ = mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
                           "shadow_resolution": 64})
     assert integ.vis_config.resolution == 64
+    # an infinite receiver band was taken (every splat within it: no median surface)
+    with pytest.raises(Exception, match="'receiver_band' must be finite and >= 0, got inf"):
+        mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
+                      "receiver_band": float("inf")})

@@ -123,8 +123,8 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         if res < 1 or env < 1:
             raise ValueError("surfel_relight: 'shadow_resolution' and 'env_samples' must be >= 1")
         self.receiver_band = float(props.get("receiver_band", fitted.receiver_band))
-        if not self.receiver_band >= 0:
-            raise ValueError(f"surfel_relight: 'receiver_band' must be >= 0, got "
+        if not 0 <= self.receiver_band < float("inf"):
+            raise ValueError(f"surfel_relight: 'receiver_band' must be finite and >= 0, got "
                              f"{self.receiver_band}")
         self.vis_config = dataclasses.replace(fitted, resolution=res,
                                               receiver_band=self.receiver_band)
