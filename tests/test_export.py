@@ -344,3 +344,21 @@ def test_the_export_takes_the_runs_preset_by_default(tmp_path):
                   "cpu-small") == 0
     assert json.loads((tmp_path / "b" / MANIFEST_NAME).read_text())["settings"]["preset"] \
         == "cpu-small"
+
+
+def test_2dgs_ply_keeps_the_fits_header_records(tmp_path):
+    """The 2DGS PLY carries albedo/roughness/metallic for relighting; the stage-4 model's
+    header records (receiver band, shadow maps, whether the GGX lobe was fitted) must come
+    along, or a relight of it (api.relight, surfel_relight) takes another tool's defaults:
+    the specular lobe on for a cpu-* model fitted without it (the export dropped them)."""
+    from mi_shadowgs.io.ply import read_ply_metadata, write_ply_model
+    from mi_shadowgs.stages.relight.render import recorded_specular
+
+    run, _ = syn.fake_run(tmp_path / "r", model=syn.sphere_on_plane(300, 300))
+    model_path = run / "material" / "full" / "model.ply"
+    meta = {"receiver_band": "0.5", "specular": "false"}
+    write_ply_model(model_path, read_ply_model(model_path), meta)
+    assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "e") == 0
+    out = tmp_path / "e" / "point_cloud.ply"
+    assert read_ply_metadata(out) == meta
+    assert recorded_specular(out) is False

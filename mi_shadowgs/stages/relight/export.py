@@ -9,7 +9,9 @@ Formats (``--out`` is a folder; it gets a provenance manifest like every output)
   ``thickness`` times the smaller tangent scale, so each surfel is a flat 3D Gaussian with
   its thin axis along its normal (the quaternion's third column).
 - ``2dgs-ply`` -> ``point_cloud.ply``: 2DGS's layout (two scales), SH padded to degree 3,
-  then our extra channels (albedo_0..2, roughness, metallic, segment, ...; linear).
+  then our extra channels (albedo_0..2, roughness, metallic, segment, ...; linear), and the
+  stage-4 model's header records (``comment mi_shadowgs ...``: receiver band, shadow maps,
+  specular), so that relighting this file gives the run's relit views.
 - ``mesh`` -> ``object.ply``/``object.obj`` (+ ``base.ply``/``base.obj`` when the base is
   known), ``scene.xml``, ``export.json``: see ``mi_shadowgs.stages.relight.mesh``. The PLYs
   carry per-vertex ``albedo_r/g/b``, ``roughness_0``, ``metallic_0`` and ``ggxalpha_0``
@@ -397,7 +399,12 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     ``relight`` takes it. ``data`` (the run's dataset, when it moved) only for a mesh."""
     from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
-    from mi_shadowgs.io.ply import read_ply_model, write_ply_model, write_ply_vertices
+    from mi_shadowgs.io.ply import (
+        read_ply_metadata,
+        read_ply_model,
+        write_ply_model,
+        write_ply_vertices,
+    )
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
     from mi_shadowgs.stages.common import StageRun, settings_dict
 
@@ -439,7 +446,12 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
                                                                             config))
             summary = f"wrote {out / 'point_cloud.ply'} (3DGS layout, {model.count} splats)"
         elif fmt == "2dgs-ply":
-            write_ply_model(output.path("point_cloud.ply"), gs2d_model(model, color))
+            # The header's settings of the fit (receiver band, shadow maps, whether the GGX
+            # lobe was fitted) travel too: without them a relight of this PLY (api.relight,
+            # the surfel_relight plugin) takes another tool's defaults and adds highlights
+            # and shadows the fit never had.
+            write_ply_model(output.path("point_cloud.ply"), gs2d_model(model, color),
+                            read_ply_metadata(model_path))
             summary = f"wrote {out / 'point_cloud.ply'} (2DGS layout, {model.count} surfels)"
         else:
             summary = _export_mesh(output, model, light_path, data_path, config, progress,
