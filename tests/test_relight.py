@@ -188,16 +188,22 @@ def test_surfel_relight_plugin_matches_library(tmp_path):
         mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "bad.ply")})
 
 
-def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(tmp_path):
-    """<string name="specular" value="false"/> was bool("false"): the lobe stayed on."""
+def _material_ply(folder):
+    """A stage-4-like PLY (surfels on the test scene, with material channels) in ``folder``."""
+    from mi_shadowgs.io.ply import save_ply
+
     scene = _scene(_directional())
     surf = surfels_on_surface(list(scene.shapes()), 200)
     n = surf.count
     surf.channels["roughness"] = mi.TensorXf(np.full((n, 1), 0.5, np.float32))
     surf.channels["metallic"] = mi.TensorXf(np.zeros((n, 1), np.float32))
-    from mi_shadowgs.io.ply import save_ply
+    save_ply(folder / "model.ply", surf)
+    return folder / "model.ply"
 
-    save_ply(tmp_path / "model.ply", surf)
+
+def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(tmp_path):
+    """<string name="specular" value="false"/> was bool("false"): the lobe stayed on."""
+    _material_ply(tmp_path)
     for name in ("specular", "visibility"):
         with pytest.raises(Exception, match=f"'{name}' must be a boolean"):
             mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
@@ -209,14 +215,7 @@ def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(tmp_path):
 
 def test_surfel_relight_refuses_a_count_that_is_not_an_integer(tmp_path):
     """<float name="shadow_resolution" value="64.9"/> was cut to 64 without a word."""
-    scene = _scene(_directional())
-    surf = surfels_on_surface(list(scene.shapes()), 200)
-    n = surf.count
-    surf.channels["roughness"] = mi.TensorXf(np.full((n, 1), 0.5, np.float32))
-    surf.channels["metallic"] = mi.TensorXf(np.zeros((n, 1), np.float32))
-    from mi_shadowgs.io.ply import save_ply
-
-    save_ply(tmp_path / "model.ply", surf)
+    _material_ply(tmp_path)
     for name in ("shadow_resolution", "env_samples"):
         with pytest.raises(Exception, match=f"'{name}' must be an integer"):
             mi.load_dict({"type": "surfel_relight", "filename": str(tmp_path / "model.ply"),
