@@ -136,19 +136,17 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
     would be scaled by is not known here (``run_relight`` scales it)."""
     import dataclasses
 
-    import numpy as np
-
     from mi_shadowgs.core.shading import LightSet
+    from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.relight import get_config as relight_config
     from mi_shadowgs.stages.relight.render import recorded_specular, recorded_visibility
     from mi_shadowgs.stages.visibility import get_config as visibility_config
     from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
 
-    recorded = None
-    if preset is None and isinstance(surfels, str | os.PathLike):
-        recorded = recorded_visibility(surfels)
+    by_path = isinstance(surfels, str | os.PathLike)
+    recorded = recorded_visibility(surfels) if by_path and preset is None else None
     if specular is None:
-        found = recorded_specular(surfels) if isinstance(surfels, str | os.PathLike) else None
+        found = recorded_specular(surfels) if by_path else None
         specular = True if found is None else found
     model_surfels = _model(surfels, "relight")
     if isinstance(cameras, Camera) or not isinstance(cameras, list | tuple) or \
@@ -159,8 +157,7 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
         raise TypeError(f"relight: 'lights' must be a LightSet (directional_light_set, "
                         f"lights_from_json), got {type(lights).__name__}")
     if bounds is None:
-        pos = np.stack([np.asarray(model_surfels.position[k]) for k in range(3)], -1)
-        bounds = SceneBounds.from_points(pos, cameras)
+        bounds = occluder_bounds(model_surfels, cameras, quantile=1.0)
     elif not isinstance(bounds, SceneBounds):
         raise TypeError(f"relight: 'bounds' must be a SceneBounds or None, got "
                         f"{type(bounds).__name__}")

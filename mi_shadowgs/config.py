@@ -48,12 +48,11 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
     if unknown:
         raise ConfigError(f"unknown {what} setting(s) {unknown}; known: {sorted(names)}")
     values = dict(overrides)
-    kinds = {f.name: str(f.type) for f in dataclasses.fields(config)}
+    kinds = _field_kinds(config)
     for name, value in overrides.items():
         current = getattr(config, name)
         if current is None and value is not None:  # an optional field: judged by its type
-            current = {"int": 0, "float": 0.0, "bool": False}.get(
-                kinds[name].split("|")[0].strip())
+            current = {"int": 0, "float": 0.0, "bool": False}.get(kinds[name][0])
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
             if isinstance(value, dict):
                 values[name] = with_overrides(current, value, f"{what}.{name}")
@@ -78,7 +77,7 @@ def parse_settings(cls, items, what: str) -> dict[str, Any]:
     each read as its field's annotated type (bool, int, float, str; ``none`` for an optional
     one). A malformed item, an unknown key or a value of the wrong type is a ConfigError
     naming the setting."""
-    kinds = {f.name: str(f.type) for f in dataclasses.fields(cls)}
+    kinds = _field_kinds(cls)
     readers = {"bool": _read_bool, "int": int, "float": float, "str": str}
     out = {}
     for item in items:
@@ -87,8 +86,8 @@ def parse_settings(cls, items, what: str) -> dict[str, Any]:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
         if key not in kinds:
             raise ConfigError(f"--set: unknown {what} setting {key!r}; known: {sorted(kinds)}")
-        kind = kinds[key]
-        options = [k.strip() for k in kind.split("|")]
+        options = kinds[key]
+        kind = " | ".join(options)
         if text.lower() == "none" and "None" in options:
             out[key] = None
             continue
@@ -102,6 +101,12 @@ def parse_settings(cls, items, what: str) -> dict[str, Any]:
             raise ConfigError(f"--set {key}={text!r}: {what} setting {key!r} takes {kind}") \
                 from err
     return out
+
+
+def _field_kinds(cls) -> dict[str, list[str]]:
+    """Each field's annotated types by name, in order (``int | None`` -> ["int", "None"]);
+    the annotations are text (``from __future__ import annotations``)."""
+    return {f.name: [k.strip() for k in str(f.type).split("|")] for f in dataclasses.fields(cls)}
 
 
 def _read_bool(text: str) -> bool:

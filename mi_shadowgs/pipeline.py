@@ -193,15 +193,15 @@ def check_preview_envmaps(entries, source: str = "preview_envmaps") -> tuple[str
     (clipped) env map file gets a warning."""
     import os
 
-    from mi_shadowgs.core.envmap import LOW_DYNAMIC_RANGE_NOTE, low_dynamic_range
+    from mi_shadowgs.core.envmap import low_dynamic_range_warning
 
     if isinstance(entries, str | os.PathLike) or not isinstance(entries, list | tuple):
         raise TypeError(f"{source} takes a list of env map files or folders, got {entries!r}")
     for e in entries:
         if not os.path.exists(e):
             raise FileNotFoundError(f"{source}: {e}: not found")
-        if os.path.isfile(e) and low_dynamic_range(e):
-            warn(f"{source} {e} {LOW_DYNAMIC_RANGE_NOTE}")
+        if os.path.isfile(e) and (note := low_dynamic_range_warning(e, source)) is not None:
+            warn(note)
     return tuple(str(Path(e).resolve()) for e in entries)
 
 

@@ -8,6 +8,8 @@ threads, and the count put back; rendering afterwards is unaffected.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import drjit as dr
 import mitsuba as mi
 
@@ -29,10 +31,17 @@ def low_dynamic_range(filename: str) -> bool:
     """Whether the image stores integers (an 8- or 16-bit PNG, JPEG, ...): Mitsuba takes its
     sRGB values to linear radiance, but whatever was brighter than white when it was saved
     (the sun, lamps) is clipped, so the light it casts is too weak and its shadows too soft."""
+    if Path(filename).suffix.lower() in (".exr", ".hdr"):  # floats: not read to find out
+        return False
     fmt = mi.Bitmap(str(filename)).component_format()
     return fmt in (mi.Struct.Type.UInt8, mi.Struct.Type.UInt16, mi.Struct.Type.UInt32)
 
 
-LOW_DYNAMIC_RANGE_NOTE = ("stores integers (low dynamic range): its brightest parts (the sun, "
-                          "lamps) are clipped at white, so it lights the scene too weakly and "
-                          "casts soft shadows; an EXR or HDR map keeps them")
+def low_dynamic_range_warning(filename, given_as: str) -> str | None:
+    """The warning for an env map ``filename`` given as ``given_as`` (an option) that stores
+    integers (``low_dynamic_range``), else None; the caller prints it."""
+    if not low_dynamic_range(filename):
+        return None
+    return (f"{given_as} {filename} stores integers (low dynamic range): its brightest parts "
+            "(the sun, lamps) are clipped at white, so it lights the scene too weakly and "
+            "casts soft shadows; an EXR or HDR map keeps them")

@@ -180,9 +180,10 @@ def check_masks(masks: Path, photos: list[Path], size: tuple[int, int]) -> dict[
 _MODEL_FILES = ("cameras", "images", "points3D")
 
 
-def check_colmap(model: Path) -> None:
+def check_colmap(model: Path) -> str:
     """The model folder holds cameras, images and points3D, all binary or all text, none
-    empty (pycolmap reads an empty points3D.bin without end, growing its memory)."""
+    empty (pycolmap reads an empty points3D.bin without end, growing its memory); returns
+    their extension (".bin" or ".txt")."""
     if model.is_file():
         raise CaptureError(f"{model}: a file; --colmap takes the model's folder (e.g. sparse/0)")
     if not model.is_dir():
@@ -201,15 +202,17 @@ def check_colmap(model: Path) -> None:
     if empty:
         raise CaptureError(f"{model}: the COLMAP model's {', '.join(empty)} "
                            f"{'is' if len(empty) == 1 else 'are'} empty (0 bytes)")
+    return ext
 
 
 def read_colmap(model: Path, photos: list[Path]):
-    """The user's COLMAP model of ``photos`` (``check_colmap`` first), checked against them:
-    every image of the model is a photo, every posed image's camera is its photo's size as
-    stored (COLMAP reads pixels as stored, whatever their EXIF orientation)."""
+    """The user's COLMAP model of ``photos``, checked (``check_colmap``) and checked against
+    them: every image of the model is a photo, every posed image's camera is its photo's size
+    as stored (COLMAP reads pixels as stored, whatever their EXIF orientation)."""
     import pycolmap
     from PIL import Image
 
+    cameras = model / f"cameras{check_colmap(model)}"
     try:
         rec = pycolmap.Reconstruction(str(model))
     except Exception as exc:  # pycolmap's: IndexError, RuntimeError, ValueError, ...
@@ -224,7 +227,6 @@ def read_colmap(model: Path, photos: list[Path]):
     if len(posed) < 3:
         what = "no images" if not rec.images else f"{len(posed)} posed images"
         raise CaptureError(f"{model}: the COLMAP model has {what}; import needs at least 3")
-    cameras = model / ("cameras.bin" if (model / "cameras.bin").is_file() else "cameras.txt")
     for im in sorted(posed, key=lambda im: im.name):
         cam = rec.cameras[im.camera_id]
         with Image.open(by_name[im.name]) as photo:
@@ -590,7 +592,6 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
     mask_files = check_masks(Path(masks), photos, size) if masks is not None else {}
     model = None
     if colmap is not None:
-        check_colmap(Path(colmap))
         model = read_colmap(Path(colmap), photos)
     if config.test_every < 2:
         raise CaptureError(f"--test-every must be >= 2, got {config.test_every}")
@@ -755,10 +756,11 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
                                f"{f.camera.height}, but {img_path.name} is {im.size[0]}x"
                                f"{im.size[1]}")
         mp = raw_frames[i].get("mask_path")
-        if mp is not None and not (path.parent / mp).is_file():
-            raise CaptureError(f"{path}: the mask of frame {i} ({mp!r}, field 'mask_path') is "
-                               "missing")
-        if mp is not None:  # write_views would stretch it to the photo's size
+        if mp is not None:
+            if not (path.parent / mp).is_file():
+                raise CaptureError(f"{path}: the mask of frame {i} ({mp!r}, field "
+                                   "'mask_path') is missing")
+            # write_views would stretch it to the photo's size
             check_mask_size(path.parent / mp, img_path.name, im.size,
                             where=f"{path}: frame {i} (field 'frames[{i}].mask_path'): ")
     points = np.zeros((0, 3))

@@ -246,11 +246,10 @@ def resolve_envmaps(config: GenerateConfig) -> list[EnvMap]:
             path = Path(entry).resolve()
             if not path.is_file():
                 raise FileNotFoundError(f"environment map not found: {path} (--envmap)")
-            from mi_shadowgs.core.envmap import LOW_DYNAMIC_RANGE_NOTE, low_dynamic_range
+            from mi_shadowgs.core.envmap import low_dynamic_range_warning
 
-            if path.suffix.lower() not in ENVMAP_SUFFIXES and low_dynamic_range(path):
-                print(f"mi-shadowgs: warning: --envmap {path} {LOW_DYNAMIC_RANGE_NOTE}",
-                      file=sys.stderr)
+            if (note := low_dynamic_range_warning(path, "--envmap")) is not None:
+                print(f"mi-shadowgs: warning: {note}", file=sys.stderr)
             sources.append(path)
         else:
             raise ValueError(f"envmaps entry {entry!r}: expected an env-map file "

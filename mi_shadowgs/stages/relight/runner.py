@@ -83,7 +83,7 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
     (positive: from +X toward -Z, the way azimuth turns); errors name the option."""
     import mitsuba as mi
 
-    from mi_shadowgs.core.envmap import LOW_DYNAMIC_RANGE_NOTE, load_envmap, low_dynamic_range
+    from mi_shadowgs.core.envmap import load_envmap, low_dynamic_range_warning
 
     path = Path(path)
     if not path.is_file():
@@ -98,8 +98,8 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
     except RuntimeError as exc:  # Mitsuba's message names the file; keep its first line
         raise ValueError(f"--envmap {path}: not a readable env map: "
                          f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
-    if low_dynamic_range(str(path)):
-        warn(f"--envmap {path} {LOW_DYNAMIC_RANGE_NOTE}")
+    if (note := low_dynamic_range_warning(path, "--envmap")) is not None:
+        warn(note)
     if rotate_deg:
         params = mi.traverse(emitter)
         params["to_world"] = mi.Transform4f().rotate([0, 1, 0], float(rotate_deg))
