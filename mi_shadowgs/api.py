@@ -71,9 +71,12 @@ def run(data: str | Path, out: str | Path, preset: str = "cpu-small", progress: 
     return run_pipeline(data, out, config, progress=progress, overwrite=overwrite)
 
 
-def load_model(path: str | Path):
-    """A surfel model (``Surfels``) from a PLY a stage wrote (2DGS layout plus channels)."""
-    return load_ply(path)
+def load_model(path: str | Path, sh_space: str | None = None):
+    """A surfel model (``Surfels``) from a PLY in the 2DGS layout plus channels (a stage's,
+    an export's or another tool's). Its SH come out linear: ``sh_space`` ("linear" or
+    "srgb") says what the file holds; by default its header record, else linear, so give
+    "srgb" for another tool's 3DGS/2DGS PLY (``mi_shadowgs.io.ply``)."""
+    return load_ply(path, sh_space)
 
 
 def export_ply(path: str | Path, surfels) -> None:
@@ -108,15 +111,21 @@ def _model(surfels, what: str):
     return surfels
 
 
-def render(surfels, camera: Camera, aovs=(), background=None) -> dict:
+def render(surfels, camera: Camera, aovs=(), background=None,
+           color_channel: str = "sh") -> dict:
     """Rasterize a surfel model (or the PLY at that path) from one ``camera``: {"rgb",
     "alpha", AOV...} as [H, W, C] Mitsuba tensors (the ``surfel_raster`` plugin renders the
-    same). ``aovs`` is a sequence of names, e.g. ``("depth", "normal")``."""
+    same). ``aovs`` is a sequence of names, e.g. ``("depth", "normal")``; ``color_channel``
+    gives "rgb": "sh" seen from the camera, or a channel of 1 or 3 columns (e.g. "albedo")."""
     surfels = _model(surfels, "render")
     if not isinstance(camera, Camera):
         raise TypeError(f"render: 'camera' must be one Camera (render each of a list in "
                         f"turn), got {type(camera).__name__}")
-    return render_surfels(surfels, camera, aovs=aovs, background=background)
+    if not isinstance(color_channel, str):
+        raise TypeError(f"render: 'color_channel' must be a channel's name, got "
+                        f"{type(color_channel).__name__}")
+    return render_surfels(surfels, camera, aovs=aovs, background=background,
+                          color_channel=color_channel)
 
 
 def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,

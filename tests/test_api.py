@@ -82,6 +82,13 @@ def test_render_and_relight_name_an_argument_of_the_wrong_kind(tmp_path):
     msg.export_ply(tmp_path / "model.ply", model)
     by_path = msg.render(tmp_path / "model.ply", camera, aovs=("depth",))
     assert by_path["depth"].shape == (12, 16, 1)
+    # The colour channel, as the CLI's --color-channel and the plugin's property take it.
+    albedo = msg.render(model, camera, aovs=("albedo",), color_channel="albedo")
+    np.testing.assert_array_equal(albedo["rgb"].numpy(), albedo["albedo"].numpy())
+    with pytest.raises(ValueError, match="colour channel 'nope' is not in the model"):
+        msg.render(model, camera, color_channel="nope")
+    with pytest.raises(TypeError, match="'color_channel' must be a channel's name"):
+        msg.render(model, camera, color_channel=["albedo"])
     lights = msg.directional_light_set([[0.3, 0.9, 0.2]], [3.0])
     with pytest.raises(TypeError, match="'cameras' must be a list of Camera"):
         msg.relight(model, camera, lights)

@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 
 from mi_shadowgs import cli
-from mi_shadowgs.io.ply import read_ply_model
+from mi_shadowgs.io.ply import SH_C0, read_ply_model
 from mi_shadowgs.io.provenance import MANIFEST_NAME, file_digest
-from mi_shadowgs.stages.relight.export import SH_C0
 from tests import synthetic_asset as syn
 
 # What splat viewers demand (SuperSplat/PlayCanvas splat-transform and three.js viewers
@@ -115,6 +114,26 @@ def test_2dgs_ply_keeps_our_channels(run_data, tmp_path):
     assert back.channels["sh"].shape == (model.count, 48)
     for name in ("albedo", "roughness", "metallic", "segment"):
         np.testing.assert_array_equal(back.channels[name], model.channels[name])
+    # The display SH (sRGB, for viewers) carry `sh_space srgb`, so our reader gives back
+    # the model's linear SH (where the view-mean colour is inside [0, 1]) and renders the
+    # run's colours; read as linear they rendered washed out.
+    k = model.channels["sh"].shape[1]
+    inside = np.all(np.abs(SH_C0 * model.channels["sh"][:, :3]) < 0.5, axis=1)
+    assert inside.mean() > 0.9
+    np.testing.assert_allclose(back.channels["sh"][inside, :k], model.channels["sh"][inside],
+                               rtol=1e-4, atol=1e-5)
+    assert np.all(back.channels["sh"][:, k:] == 0)
+    from mi_shadowgs import api
+    from mi_shadowgs.dataset.loader import load_cameras
+
+    camera = load_cameras(run_data[1] / "transforms_test.json")[0][1]
+    ours = api.render(run / "material" / "full" / "model.ply", camera)["rgb"].numpy()
+    exported = api.render(tmp_path / "point_cloud.ply", camera)["rgb"].numpy()
+    assert ours.max() > 0.05
+    np.testing.assert_allclose(exported, ours, atol=2e-3)
+    albedo = api.render(tmp_path / "point_cloud.ply", camera, color_channel="albedo")["rgb"]
+    np.testing.assert_allclose(albedo.numpy(), api.render(run / "material" / "full" / "model.ply",
+                               camera, color_channel="albedo")["rgb"].numpy(), atol=1e-6)
 
 
 def _render_plain_mitsuba(scene: str, out_npy: str, size: int = 32) -> None:
@@ -360,5 +379,5 @@ def test_2dgs_ply_keeps_the_fits_header_records(tmp_path):
     write_ply_model(model_path, read_ply_model(model_path), meta)
     assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "e") == 0
     out = tmp_path / "e" / "point_cloud.ply"
-    assert read_ply_metadata(out) == meta
+    assert read_ply_metadata(out) == {**meta, "sh_space": "srgb"}  # + its SH's colour space
     assert recorded_specular(out) is False

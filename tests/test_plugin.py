@@ -304,3 +304,29 @@ def test_params_update_to_a_model_it_cannot_draw_is_named(model_path):
                 if isinstance(value, mi.TensorXf) else dr.zeros(type(value), 0)
     with pytest.raises(ValueError, match="'position' has 0 entries"):
         params.update()
+
+
+def test_sh_space_turns_display_sh_linear(tmp_path):
+    """`sh_space` (default: the PLY's record, else linear): another tool's display SH given
+    `srgb` render as the linear SH they came from; an export's record does it unasked; a
+    value that is no colour space is named."""
+    model = _write_model(tmp_path / "linear.ply")
+    model.channels["sh"][:, :3] *= 0.5  # view-mean colours inside [0, 1]: exact round trip
+    ply.write_ply_model(tmp_path / "linear.ply", model)
+    display = ply.PlyModel(model.position, model.log_scale, model.rotation, model.opacity_logit,
+                           {"sh": ply.sh_to_srgb(model.channels["sh"])})
+    ply.write_ply_model(tmp_path / "foreign.ply", display)
+    ply.write_ply_model(tmp_path / "exported.ply", display, {"sh_space": "srgb"})
+
+    def rgb(name, extra=""):
+        scene = mi.load_string(_scene_xml(tmp_path / name, extra=extra))
+        return np.asarray(mi.render(scene))[..., :3]
+
+    truth = rgb("linear.ply")
+    assert truth.max() > 0.1
+    told = rgb("foreign.ply", '<string name="sh_space" value="srgb"/>')
+    np.testing.assert_allclose(told, truth, atol=1e-4)
+    np.testing.assert_allclose(rgb("exported.ply"), truth, atol=1e-4)
+    assert np.abs(rgb("foreign.ply") - truth).max() > 0.05  # read as linear: washed out
+    with pytest.raises(Exception, match="property 'sh_space' must be one of linear, srgb"):
+        rgb("foreign.ply", '<string name="sh_space" value="gamma"/>')

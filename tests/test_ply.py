@@ -198,3 +198,70 @@ def test_metadata_that_cannot_be_a_comment_is_refused(tmp_path, key, value):
     with pytest.raises(ply.PlyError, match="cannot be a PLY comment"):
         ply.write_ply_model(tmp_path / "m.ply", _model(3, 0), {key: value})
     assert not (tmp_path / "m.ply").exists()
+
+
+def _srgb_curve(x):
+    """IEC 61966-2-1, restated here so that the test does not lean on io.images."""
+    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
+def _sh_rgb(sh, d):
+    """Colour + 0.5 of degree-1 SH [N, 12] (coefficient-major) along unit ``d`` [3], float64:
+    3DGS's real basis, C1 = sqrt(3 / (4 pi)), -y, z, -x."""
+    c = sh.reshape(len(sh), 4, 3).astype(np.float64)
+    c1 = np.sqrt(3.0 / (4.0 * np.pi))
+    basis = [ply.SH_C0, -c1 * d[1], c1 * d[2], -c1 * d[0]]
+    return sum(b * c[:, k] for k, b in enumerate(basis)) + 0.5
+
+
+def test_display_sh_round_trip_and_first_order_colours():
+    """``sh_from_srgb`` undoes ``sh_to_srgb`` (view-mean colours inside [0, 1]); the display
+    SH's DC colour is the sRGB of the linear one exactly, and along any direction the
+    colours agree to first order in the higher bands.
+
+    Tolerance: the bands move a colour by at most 0.02 C1 = 0.0098 along an axis; the
+    second-order term 0.5 |f''| 0.0098^2 of the sRGB curve f is 4.7e-4 at a colour of 0.1,
+    so 1e-3 (darker colours bend more: 6e-3 at 0.02)."""
+    rng = np.random.default_rng(5)
+    n = 200
+    sh = np.zeros((n, 12), np.float32)
+    dc_colour = rng.uniform(0.1, 0.98, size=(n, 3))
+    sh[:, :3] = (dc_colour - 0.5) / ply.SH_C0
+    sh[:, 3:] = rng.uniform(-0.02, 0.02, size=(n, 9))
+    display = ply.sh_to_srgb(sh)
+    np.testing.assert_allclose(ply.sh_from_srgb(display), sh, rtol=1e-5, atol=2e-6)
+    np.testing.assert_allclose(ply.SH_C0 * display[:, :3] + 0.5, _srgb_curve(dc_colour),
+                               atol=2e-6)
+    for d in np.eye(3):
+        shown = _sh_rgb(display, d)
+        np.testing.assert_allclose(shown, _srgb_curve(_sh_rgb(sh, d)), atol=1e-3)
+
+
+def test_a_display_sh_record_is_read_as_linear_and_bad_spaces_are_named(tmp_path):
+    """A PLY recording ``sh_space srgb`` (our export's) comes back with the linear SH it was
+    made from; without the record it is read as linear unless ``sh_space`` says otherwise;
+    an unknown record or argument is refused by name."""
+    m = _model(n=9, degree=1, extra=False)
+    m.channels["sh"][:, :3] = 0.1 * m.channels["sh"][:, :3]  # DC colours inside [0, 1]
+    m.channels["sh"][:, 3:] = 0.01 * m.channels["sh"][:, 3:]
+    display = ply.PlyModel(m.position, m.log_scale, m.rotation, m.opacity_logit,
+                           {"sh": ply.sh_to_srgb(m.channels["sh"])})
+    ply.write_ply_model(tmp_path / "display.ply", display, {"sh_space": "srgb"})
+    back = ply.read_ply_model(tmp_path / "display.ply")
+    np.testing.assert_allclose(back.channels["sh"], m.channels["sh"], rtol=1e-5, atol=2e-6)
+    raw = ply.read_ply_model(tmp_path / "display.ply", sh_space="linear")
+    np.testing.assert_array_equal(raw.channels["sh"], display.channels["sh"])
+
+    ply.write_ply_model(tmp_path / "foreign.ply", display)  # another tool's: no record
+    assert ply.sh_space_of(tmp_path / "foreign.ply") == "linear"
+    np.testing.assert_array_equal(ply.read_ply_model(tmp_path / "foreign.ply").channels["sh"],
+                                  display.channels["sh"])
+    told = ply.read_ply_model(tmp_path / "foreign.ply", sh_space="srgb")
+    np.testing.assert_allclose(told.channels["sh"], m.channels["sh"], rtol=1e-5, atol=2e-6)
+
+    ply.write_ply_model(tmp_path / "bad.ply", m, {"sh_space": "rec2020"})
+    with pytest.raises(ply.PlyError, match=r"bad\.ply.*'sh_space' is 'rec2020'"):
+        ply.read_ply_model(tmp_path / "bad.ply")
+    with pytest.raises(ply.PlyError, match=r"sh_space must be one of linear, srgb, got 'sRGB'"):
+        ply.load_ply(tmp_path / "foreign.ply", sh_space="sRGB")

@@ -15,6 +15,7 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.render import render_surfels
 from mi_shadowgs.io import ply
 from mi_shadowgs.io.images import read_exr, read_png
+from mi_shadowgs.io.provenance import MANIFEST_NAME
 from tests.conftest import signal_on_call
 
 W, H = 20, 16
@@ -88,6 +89,30 @@ def test_background_composites(setup):
     # float32 rounding of rgb + bg * (1 - alpha) in a different order.
     np.testing.assert_allclose(rgba[..., :3], expect, atol=1e-6)
     assert read_png(out / "r_0.png").shape == (H, W, 3)
+
+
+def test_sh_space_is_a_setting_of_the_render(setup, tmp_path):
+    """`--sh-space srgb` renders display SH (another tool's PLY) as the linear SH they came
+    from, and is part of the render's settings: the same folder is not reused for a render
+    read the other way."""
+    root, cams = setup
+    model = ply.read_ply_model(root / "model.ply")
+    model.channels["sh"] = ply.sh_to_srgb(model.channels["sh"])
+    ply.write_ply_model(tmp_path / "display.ply", model)  # no record, as another tool's
+    cameras = str(root / "data" / "transforms_test.json")
+
+    def render(out, *extra):
+        return cli.main(["render", str(tmp_path / "display.ply"), "--cameras", cameras,
+                         "--out", str(tmp_path / out), *extra])
+
+    assert render("srgb", "--sh-space", "srgb") == 0
+    ref = render_surfels(ply.load_ply(tmp_path / "display.ply", "srgb"), cams[0])
+    np.testing.assert_array_equal(read_exr(tmp_path / "srgb" / "r_0.exr")[..., :3],
+                                  np.asarray(ref["rgb"]))
+    manifest = json.loads((tmp_path / "srgb" / MANIFEST_NAME).read_text())
+    assert manifest["settings"]["sh_space"] == "srgb"
+    assert render("srgb") == 2  # read as linear: another render, not this folder's
+    assert render("srgb", "--sh-space", "srgb") == 0  # the same: reused
 
 
 def test_errors_name_the_input(setup, tmp_path, capsys):

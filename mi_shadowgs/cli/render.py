@@ -24,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--color-channel", default="sh",
                         help="channel giving RGB: 'sh' (view-dependent, default) or e.g. "
                              "'albedo'")
+    parser.add_argument("--sh-space", choices=("linear", "srgb"), default=None,
+                        help="what the PLY's SH colours are: 'linear' (our models) or "
+                             "'srgb' (display values, as 3DGS/2DGS and splat viewers store "
+                             "them); default: the PLY's header record, else linear")
     parser.add_argument("--memory-budget", default=None, metavar="SIZE",
                         help="most memory this process may hold while rendering, e.g. 4G "
                              "(default: what it holds plus half of the available memory); "
@@ -34,7 +38,8 @@ def run(args) -> int:
     from mi_shadowgs.stages.relight.images import render_views
 
     result = render_views(args.model, args.cameras, args.out, args.aov, args.background,
-                          args.color_channel, args.memory_budget, args.overwrite)
+                          args.color_channel, args.memory_budget, args.overwrite,
+                          sh_space=args.sh_space)
     if result.rendered == 0:
         print(f"{result.folder} already holds these {result.views} view(s) (same model, "
               "cameras and settings); nothing to render")

@@ -20,6 +20,13 @@ Metadata: settings a reader of the model needs (stage 4's ``receiver_band``) are
 comments, ``comment mi_shadowgs KEY VALUE``; other PLY readers skip them
 (``read_ply_metadata``).
 
+SH colour space (record ``sh_space``): our models' SH give linear RGB, as our renders are
+linear. Splat viewers and 3DGS/2DGS, which train on sRGB photos, take them as sRGB display
+values, so ``mi-shadowgs export`` writes display SH and records ``sh_space srgb``.
+``read_ply_model`` turns such SH back into linear ones (``sh_from_srgb``): the DC term
+exactly, the higher bands to first order. A PLY without the record is read as linear (our
+own models); for another tool's PLY, which holds display values, pass ``sh_space="srgb"``.
+
 The reader handles ascii and binary (either byte order) PLY files with scalar vertex
 properties of any PLY type; the writer is atomic (``mi_shadowgs.io.atomic``).
 """
@@ -59,6 +66,9 @@ _RESERVED = re.compile(r"^(x|y|z|nx|ny|nz|opacity)$|^(rot|scale_|f_dc_|f_rest_)"
 _SUFFIX = re.compile(r"^(.+)_(\d+)$")
 _CHANNEL_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 MAX_SH_DEGREE = 3
+SH_C0 = 0.28209479177387814  # Y_0^0: 3DGS's colour = C0 f_dc + 0.5 for the DC band
+SH_SPACE_KEY = "sh_space"  # header record: the colour space of f_dc/f_rest (docstring)
+SH_SPACES = ("linear", "srgb")
 METADATA_PREFIX = "mi_shadowgs"  # comment lines of the header that hold metadata
 _METADATA_KEY = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
@@ -139,6 +149,39 @@ def dc_rest_to_sh(f_dc: np.ndarray, f_rest: np.ndarray) -> np.ndarray:
     n = f_dc.shape[0]
     rest = f_rest.reshape(n, 3, f_rest.shape[1] // 3).transpose(0, 2, 1)  # [N, K-1, 3]
     return np.concatenate([f_dc[:, None, :], rest], axis=1).reshape(n, 3 + f_rest.shape[1])
+
+
+def _srgb_slope(linear: np.ndarray) -> np.ndarray:
+    """d sRGB / d linear at ``linear`` (finite at 0: the curve's linear segment, 12.92)."""
+    return np.where(linear <= 0.0031308, 12.92,
+                    1.055 / 2.4 * np.power(np.maximum(linear, 0.0031308), 1.0 / 2.4 - 1.0))
+
+
+def sh_to_srgb(sh: np.ndarray) -> np.ndarray:
+    """Linear SH [N, K*3] (coefficient-major, colour = SH + 0.5) -> display SH whose colour
+    is sRGB: the DC term's view-mean colour through the sRGB curve exactly, the higher bands
+    scaled by the curve's slope there (first order)."""
+    from mi_shadowgs.io.images import linear_to_srgb
+
+    n, kc = sh.shape
+    c = sh.reshape(n, kc // 3, 3).astype(np.float64)  # [N, K, 3]
+    linear = np.clip(SH_C0 * c[:, 0] + 0.5, 0.0, 1.0)  # [N, 3] view-mean colour
+    out = c * _srgb_slope(linear)[:, None, :]
+    out[:, 0] = (linear_to_srgb(linear) - 0.5) / SH_C0
+    return out.reshape(n, kc).astype(np.float32)
+
+
+def sh_from_srgb(sh: np.ndarray) -> np.ndarray:
+    """Inverse of ``sh_to_srgb``: display SH [N, K*3] -> linear SH. Exact on what
+    ``sh_to_srgb`` wrote wherever the view-mean colour lies inside [0, 1]."""
+    from mi_shadowgs.io.images import srgb_to_linear
+
+    n, kc = sh.shape
+    c = sh.reshape(n, kc // 3, 3).astype(np.float64)  # [N, K, 3]
+    linear = srgb_to_linear(np.clip(SH_C0 * c[:, 0] + 0.5, 0.0, 1.0))  # [N, 3]
+    out = c / _srgb_slope(linear)[:, None, :]
+    out[:, 0] = (linear - 0.5) / SH_C0
+    return out.reshape(n, kc).astype(np.float32)
 
 
 def _check_sh_width(kc: int, where: str) -> None:
@@ -280,13 +323,17 @@ def write_ply_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray],
 
 
 # -- surfel models ------------------------------------------------------------------------
-def read_ply_model(path: str | os.PathLike) -> PlyModel:
+def read_ply_model(path: str | os.PathLike, sh_space: str | None = None) -> PlyModel:
     """Read a 2DGS-layout PLY as raw float32 parameters (PlyError names file and property).
 
     Refuses (``mi_shadowgs.core.surfel_checks``) an empty model, non-finite values in any
     property, log-scales whose exp is zero in float32 or above 1e12, and zero quaternions,
     naming the property, the first bad vertex and the number of bad vertices.
+
+    The "sh" channel is returned linear: ``sh_space`` ("linear" or "srgb") says what the
+    file's SH hold; by default its ``sh_space`` record, else linear (module docstring).
     """
+    space = sh_space_of(path, sh_space)
     props = read_ply_vertices(path)
     missing = [name for name in REQUIRED if name not in props]
     if missing:
@@ -312,6 +359,8 @@ def read_ply_model(path: str | os.PathLike) -> PlyModel:
         _check_sh_width(3 + len(rest), f"{path}: f_dc/f_rest")
         channels["sh"] = dc_rest_to_sh(stack(dc), stack(rest) if rest else
                                        np.zeros((len(props["x"]), 0), np.float32))
+        if space == "srgb":
+            channels["sh"] = sh_from_srgb(channels["sh"])
     elif rest:
         raise PlyError(f"{path}: f_rest_* without f_dc_0..2")
     taken = set(_GEOMETRY) | set(dc) | set(rest)
@@ -333,6 +382,21 @@ def read_ply_model(path: str | os.PathLike) -> PlyModel:
                     log_scale=stack(["scale_0", "scale_1"]),
                     rotation=stack([f"rot_{i}" for i in range(4)]),
                     opacity_logit=props["opacity"].astype(np.float32), channels=channels)
+
+
+def sh_space_of(path: str | os.PathLike, sh_space: str | None = None) -> str:
+    """The colour space of the SH in the PLY at ``path``: ``sh_space`` when given, else the
+    file's ``sh_space`` record, else "linear". PlyError names a value that is neither."""
+    if sh_space is not None:
+        if sh_space not in SH_SPACES:
+            raise PlyError(f"{path}: sh_space must be one of {', '.join(SH_SPACES)}, got "
+                           f"{sh_space!r}")
+        return sh_space
+    recorded = read_ply_metadata(path).get(SH_SPACE_KEY, "linear")
+    if recorded not in SH_SPACES:
+        raise PlyError(f"{path}: the header record '{SH_SPACE_KEY}' is {recorded!r}; expected "
+                       f"one of {', '.join(SH_SPACES)}")
+    return recorded
 
 
 def _numbered(props: dict, base: str) -> list[str]:
@@ -394,9 +458,10 @@ def write_ply_model(path: str | os.PathLike, model: PlyModel,
     write_ply_vertices(path, cols, metadata)
 
 
-def load_ply(path: str | os.PathLike):
-    """Load a PLY surfel model as ``mi_shadowgs.core.surfels.Surfels``."""
-    return read_ply_model(path).to_surfels()
+def load_ply(path: str | os.PathLike, sh_space: str | None = None):
+    """Load a PLY surfel model as ``mi_shadowgs.core.surfels.Surfels`` (``sh_space`` as
+    ``read_ply_model``: the SH come out linear)."""
+    return read_ply_model(path, sh_space).to_surfels()
 
 
 def save_ply(path: str | os.PathLike, surfels, metadata: dict | None = None) -> None:

@@ -14,6 +14,11 @@ standard Mitsuba `perspective` or `orthographic` sensor with an `hdrfilm`. Sourc
 - `color_channel` | string | `"sh"` | | Channel giving RGB: `sh` is evaluated from the
   sensor position (for an orthographic sensor, along its axis); any other channel with 1 or
   3 columns is used as is.
+- `sh_space` | string | the file's | | What the file's SH colours are: `linear` (our
+  models) or `srgb` (display values: 3DGS/2DGS and splat viewers, which train on sRGB
+  photos; `mi-shadowgs export` writes them). `srgb` SH are turned linear on loading
+  (`mi_shadowgs.io.ply.sh_from_srgb`). By default the PLY's `sh_space` header record, else
+  `linear`: give `srgb` for another tool's PLY, or it renders washed out.
 - `background` | rgb | none | | Composited under the colour:
   `rgb + background * (1 - alpha)`. Without it the colour is premultiplied over black. The
   film's `A` channel stays coverage.
@@ -123,7 +128,12 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
         name = str(props.get("filename"))
         path = mi.file_resolver().resolve(name)
         self.filename = str(path)
-        self.surfels = ply.load_ply(self.filename)
+        sh_space = props.get("sh_space", None)
+        if sh_space is not None and (not isinstance(sh_space, str)
+                                     or sh_space not in ply.SH_SPACES):
+            raise ValueError(f"surfel_raster ({self.filename}): property 'sh_space' must be "
+                             f"one of {', '.join(ply.SH_SPACES)}, got {sh_space!r}")
+        self.surfels = ply.load_ply(self.filename, sh_space)
         self.color_channel = str(props.get("color_channel", core_render.DEFAULT_COLOR_CHANNEL))
         aovs = str(props.get("aovs", ""))
         self.aovs = tuple(a.strip() for a in aovs.split(",") if a.strip())

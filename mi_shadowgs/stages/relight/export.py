@@ -37,10 +37,13 @@ The BSDF (``ExportConfig.bsdf``):
   views and lights it differs from the fitted model by up to ~2x (retro-reflection).
 
 Colours in the splat PLYs are what splat viewers display: sRGB values (3DGS trains on sRGB
-images). ``--color sh`` converts the model's linear SH: the DC term exactly (its view-mean
-colour through the sRGB curve), the higher bands to first order (scaled by the curve's
-slope at the DC colour). ``--color albedo`` writes the shadow-free albedo, in sRGB, as the
-DC term with the higher bands zero, so a viewer shows the relightable albedo.
+images). ``--color sh`` converts the model's linear SH (``io.ply.sh_to_srgb``): the DC term
+exactly (its view-mean colour through the sRGB curve), the higher bands to first order
+(scaled by the curve's slope at the DC colour). ``--color albedo`` writes the shadow-free
+albedo, in sRGB, as the DC term with the higher bands zero, so a viewer shows the
+relightable albedo. Both PLYs record ``sh_space srgb`` in their header, so that our own
+reader (``surfel_raster``, ``mi-shadowgs render``, ``api.load_model``) turns the SH back
+into linear ones instead of showing them washed out.
 """
 
 from __future__ import annotations
@@ -53,12 +56,12 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.config import get_preset
+from mi_shadowgs.io.ply import SH_C0, SH_SPACE_KEY, sh_to_srgb
 from mi_shadowgs.stages.relight import mesh as mesh_mod
 
 FORMATS = ("3dgs-ply", "2dgs-ply", "mesh")
 BSDFS = ("model", "principled")
 COLORS = ("sh", "albedo")
-SH_C0 = 0.28209479177387814  # Y_0^0: 3DGS's colour = C0 f_dc + 0.5 for the DC band
 PLY_SH_DEGREE = 3  # what 3DGS/2DGS's load_ply expect (max_sh_degree default)
 MATERIAL_FOLDER = "material/full"
 
@@ -94,22 +97,6 @@ class ExportError(ValueError):
 
 
 # -- splat PLYs --------------------------------------------------------------------------
-def _srgb_sh(sh: np.ndarray) -> np.ndarray:
-    """Linear SH [N, K*3] (coefficient-major, colour = SH + 0.5) -> display SH (docstring)."""
-    from mi_shadowgs.io.images import linear_to_srgb
-
-    n, kc = sh.shape
-    c = sh.reshape(n, kc // 3, 3).astype(np.float64)
-    lin = np.clip(SH_C0 * c[:, 0] + 0.5, 0.0, 1.0)  # [N, 3] view-mean colour
-    srgb = linear_to_srgb(lin)
-    # Slope of the sRGB curve at lin (finite at 0: the linear segment's 12.92).
-    slope = np.where(lin <= 0.0031308, 12.92,
-                     1.055 / 2.4 * np.power(np.maximum(lin, 0.0031308), 1.0 / 2.4 - 1.0))
-    out = c * slope[:, None, :]
-    out[:, 0] = (srgb - 0.5) / SH_C0
-    return out.reshape(n, kc).astype(np.float32)
-
-
 def _albedo_sh(albedo: np.ndarray, k: int) -> np.ndarray:
     """SH [N, K*3] whose colour is sRGB(albedo) from every direction."""
     from mi_shadowgs.io.images import linear_to_srgb
@@ -134,7 +121,7 @@ def display_sh(model, color: str) -> np.ndarray:
         return _albedo_sh(model.channels["albedo"], (PLY_SH_DEGREE + 1) ** 2)
     if "sh" not in model.channels:
         raise ExportError("--color sh: the model has no 'sh' channel; use --color albedo")
-    return _srgb_sh(_pad_sh(model.channels["sh"]))
+    return sh_to_srgb(_pad_sh(model.channels["sh"]))
 
 
 def gs3d_columns(model, color: str, config: ExportConfig) -> dict[str, np.ndarray]:
@@ -443,7 +430,8 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
         model = read_ply_model(model_path)
         if fmt == "3dgs-ply":
             write_ply_vertices(output.path("point_cloud.ply"), gs3d_columns(model, color,
-                                                                            config))
+                                                                            config),
+                               {SH_SPACE_KEY: "srgb"})
             summary = f"wrote {out / 'point_cloud.ply'} (3DGS layout, {model.count} splats)"
         elif fmt == "2dgs-ply":
             # The header's settings of the fit (receiver band, shadow maps, whether the GGX
@@ -451,7 +439,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
             # the surfel_relight plugin) takes another tool's defaults and adds highlights
             # and shadows the fit never had.
             write_ply_model(output.path("point_cloud.ply"), gs2d_model(model, color),
-                            read_ply_metadata(model_path))
+                            {**read_ply_metadata(model_path), SH_SPACE_KEY: "srgb"})
             summary = f"wrote {out / 'point_cloud.ply'} (2DGS layout, {model.count} surfels)"
         else:
             summary = _export_mesh(output, model, light_path, data_path, config, progress,

@@ -84,16 +84,17 @@ def view_stems(names) -> list[str]:
 def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(),
                  background=None, color_channel: str = "sh",
                  memory_budget: str | None = None, overwrite: bool = False,
-                 progress: bool = True) -> RenderResult:
+                 progress: bool = True, sh_space: str | None = None) -> RenderResult:
     """Render the surfel PLY ``model`` from every view of the NeRF-synthetic ``cameras``
     file into the folder ``out`` (module docstring). Every argument is checked before any
     rendering: a missing file, an unknown AOV or colour channel, a bad background or
-    budget raise an error naming it."""
+    budget raise an error naming it. ``sh_space``: what the PLY's SH hold ("linear" or
+    "srgb"; default its header record, else linear: ``mi_shadowgs.io.ply``)."""
     from mi_shadowgs.core.memory import parse_bytes
     from mi_shadowgs.core.raster import RasterConfig
     from mi_shadowgs.core.render import aov_layout, parse_background
     from mi_shadowgs.dataset.loader import load_cameras
-    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.io.ply import load_ply, sh_space_of
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
 
     model = Path(model)
@@ -101,7 +102,8 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
         raise FileNotFoundError(f"model file not found: {model}")
     if not Path(cameras).is_file():
         raise FileNotFoundError(f"cameras file not found: {cameras}")
-    surfels = load_ply(model)
+    sh_space = sh_space_of(model, sh_space)
+    surfels = load_ply(model, sh_space)
     aovs = list(dict.fromkeys(aovs))
     aov_layout(aovs, surfels)  # unknown names fail before any rendering
     background = parse_background(background, "--background")
@@ -114,7 +116,8 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
     stems = view_stems(name for name, _ in views)
     provenance = Provenance(
         inputs={"model": input_ref(model), "cameras": input_ref(cameras)},
-        settings={"aovs": aovs, "background": background, "color_channel": color_channel})
+        settings={"aovs": aovs, "background": background, "color_channel": color_channel,
+                  "sh_space": sh_space})
     suffixes = [".exr", ".png"] + [f"_{a}{ext}" for a in aovs for ext in (".exr", ".png")]
     with Output.open(out, "render", provenance, overwrite=overwrite, reuse=True,
                      inputs=[model, cameras]) as output:
