@@ -227,6 +227,14 @@ def test_rerun_reuses_and_other_settings_are_refused(run_data, tmp_path, capsys)
     assert len(err.splitlines()) == 1 and "color" in err
     assert export(run, "--format", "3dgs-ply", "--out", out, "--color", "albedo",
                   "--overwrite") == 0
+    # An export made before the splat PLYs carried their header records (no `layout` in
+    # its settings) is not reused as if it were this one: it lacks `sh_space`.
+    manifest = json.loads((out / MANIFEST_NAME).read_text())
+    del manifest["settings"]["layout"]
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest))
+    capsys.readouterr()
+    assert export(run, "--format", "3dgs-ply", "--out", out, "--color", "albedo") == 2
+    assert "layout: null there, 2 now" in capsys.readouterr().err
 
 
 def _run_digests(run):

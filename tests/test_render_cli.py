@@ -113,6 +113,12 @@ def test_sh_space_is_a_setting_of_the_render(setup, tmp_path):
     assert manifest["settings"]["sh_space"] == "srgb"
     assert render("srgb") == 2  # read as linear: another render, not this folder's
     assert render("srgb", "--sh-space", "srgb") == 0  # the same: reused
+    # A render made before the setting existed read every PLY as linear: reused as that.
+    assert render("old") == 0
+    manifest = json.loads((tmp_path / "old" / MANIFEST_NAME).read_text())
+    del manifest["settings"]["sh_space"]
+    (tmp_path / "old" / MANIFEST_NAME).write_text(json.dumps(manifest))
+    assert render("old") == 0 and render("old", "--sh-space", "srgb") == 2
 
 
 def test_errors_name_the_input(setup, tmp_path, capsys):

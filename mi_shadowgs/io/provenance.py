@@ -100,7 +100,8 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "prototype_share": 0.25,  # stage 2: the label prototypes' last iterations
                   "outline_weld": 0.25, "sliver_area": 1e-3,  # export: the mesh's welds
                   "min_points": 10,  # import: the SfM points below which cameras set the frame
-                  "lambda_ind_floor": 0.0}  # stage 4: no pull on negative indirect light
+                  "lambda_ind_floor": 0.0,  # stage 4: no pull on negative indirect light
+                  "sh_space": "linear"}  # render: a PLY's SH read as linear
 # An ADDED_SETTINGS entry of None is unused while its sibling setting here has the value that
 # does what the older code did: then any value of it counts as before.
 USED_ONLY_WITH = {"silhouette_samples": "k_select", "lr_normal": "normal_steps",

@@ -63,6 +63,9 @@ FORMATS = ("3dgs-ply", "2dgs-ply", "mesh")
 BSDFS = ("model", "principled")
 COLORS = ("sh", "albedo")
 PLY_SH_DEGREE = 3  # what 3DGS/2DGS's load_ply expect (max_sh_degree default)
+# What the splat PLYs hold, a setting of their provenance so that an older export is not
+# reused as this one: 2 = with the header records (the fit's, ``sh_space``; session 39).
+SPLAT_LAYOUT = 2
 MATERIAL_FOLDER = "material/full"
 
 
@@ -420,6 +423,8 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     if fmt == "mesh":
         inputs["light"] = input_ref(light_path)
     settings = {"format": fmt, "color": color, "preset": preset, **settings_dict(config)}
+    if fmt != "mesh":
+        settings["layout"] = SPLAT_LAYOUT
     provenance = Provenance(dataset=dataset_ref(data_path) if data_path else None,
                             inputs=inputs, settings=settings)
     guard = [model_path, light_path] + ([data_path] if data_path else [])
