@@ -551,6 +551,35 @@ def test_albedo_errors_against_float64_least_squares():
     assert abs(got_e[0] - 1.7) < 0.01 * 1.7, got_e
 
 
+def test_albedo_errors_without_other_lights_do_not_hang_on_round_off():
+    """With no other light's shading (X = 0: one light) the albedo absorbs E and the
+    error is flat in E. The search's argmin over E then followed the sums' last bits (E
+    0.39 or 1.51 of scale 2 as one sum moved by one ulp, on either side of
+    ALBEDO_MIN_SHARE's 0.5), and so did _candidate_scores' choice of score: E is inf, the
+    error that of the E-free fit, tt - tB^2 / bb per segment and channel."""
+    rng = np.random.default_rng(5)
+    p, c, n_seg = 600, 4, 3
+    seg = rng.integers(0, n_seg, p)
+    b = rng.uniform(0.0, 1.0, (p, c))
+    albedo = rng.uniform(0.1, 0.9, (n_seg, 3))
+    t = albedo[seg] * 1.7 * b[:, :1] + rng.normal(0.0, 0.01, (p, 3))
+    m = [seg == s for s in range(n_seg)]
+    tt = np.stack([(t[ms] ** 2).sum(0) for ms in m])
+    tb = np.stack([np.stack([(t[ms] * b[ms, k:k + 1]).sum(0) for ms in m]) for k in range(c)])
+    bb = np.stack([np.stack([(b[ms, k] ** 2).sum() for ms in m]) for k in range(c)])
+    zero = np.zeros((n_seg, 3))
+    free = (tt[None] - np.maximum(tb, 0.0) ** 2 / bb[:, :, None]).sum((1, 2))
+    for i in range(12):  # the sums as another order of float additions would leave them
+        tb_i = tb.copy()
+        if i:
+            j = np.unravel_index(rng.integers(tb.size), tb.shape)
+            tb_i[j] = np.nextafter(tb_i[j], np.inf if i % 2 else -np.inf)
+        err, e = material_fit.albedo_errors(tt, zero, zero, tb_i, np.zeros_like(tb), bb, 2.0)
+        assert np.all(e == np.inf), (i, e)
+        np.testing.assert_allclose(err, free, rtol=1e-12)
+    assert np.argmin(err) == 0
+
+
 def test_albedo_score_finds_the_light_whatever_the_fitted_albedo(scene):
     """``refine_score`` "albedo" re-fits each segment's albedo per channel with the
     candidate: the albedo fitted so far (here wrong by up to 2x per segment and channel,

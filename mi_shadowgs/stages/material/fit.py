@@ -1081,7 +1081,8 @@ ALBEDO_SEARCH = (241, 41, 1e-3, 1e3)
 # 1.07, and the "albedo" score alone moved it 11 deg away; the two merged 5.8 deg off
 # (tests/test_light_fit.py, the grid-cell boundary). The "segment" score, with the fitted
 # albedo, has that half's energy left to place. On the sweep's s6 the weak light's best E
-# was ~0.9 of its own.
+# was ~0.9 of its own. Without other lights' shading (X = 0) nothing else explains the views
+# and E is inf (``albedo_errors``): the albedo score holds.
 ALBEDO_MIN_SHARE = 0.25
 
 
@@ -1092,7 +1093,10 @@ def albedo_errors(tt: np.ndarray, tx: np.ndarray, xx: np.ndarray, tb: np.ndarray
     channel c takes its own albedo a_sc >= 0 in t ~ a_sc (X_c + E B) (``refine_score``
     "albedo"): per (s, c) the least-squares a_sc leaves tt - (tX + E tB)^2 / |X + E B|^2,
     summed; E >= 0, one per candidate, is searched on ``ALBEDO_SEARCH``'s grids around
-    ``scale``. Sums as ``_AlbedoSums.read``."""
+    ``scale``. Sums as ``_AlbedoSums.read``.
+
+    Where X is 0 on every supervised pixel (one light, or the others dark) the albedo
+    absorbs E: the error is the same at every E, and E is inf (unbounded) for all."""
     def err(e: np.ndarray) -> np.ndarray:  # e [C, G] -> [C, G]
         e4 = e[:, :, None, None]
         num = tx[None, None] + e4 * tb[:, None]
@@ -1100,6 +1104,11 @@ def albedo_errors(tt: np.ndarray, tx: np.ndarray, xx: np.ndarray, tb: np.ndarray
         gain = np.where(den > 0, np.maximum(num, 0.0) ** 2 / np.where(den > 0, den, 1.0), 0.0)
         return (tt[None, None] - gain).sum((2, 3))
 
+    if not (np.any(tx) or np.any(xx) or np.any(xb)):
+        # t ~ a_sc E B: flat in E up to round-off. The search's argmin was round-off's
+        # choice (0.18 or 164 of a one-light test's 1.5 as a float atomic's order on two
+        # threads changed one pixel's last bit), and with it ALBEDO_MIN_SHARE's branch.
+        return err(np.full((len(tb), 1), float(scale)))[:, 0], np.full(len(tb), np.inf)
     n_coarse, n_fine, lo_e, hi_e = ALBEDO_SEARCH
     grid = scale * np.geomspace(lo_e, hi_e, n_coarse)
     coarse = err(np.broadcast_to(grid, (len(tb), n_coarse)))
