@@ -16,7 +16,7 @@ from pathlib import Path
 from mi_shadowgs.backend import ensure_variant
 from mi_shadowgs.config import check_fields, get_preset, slow_preset_warning
 from mi_shadowgs.core.directions import angles_from_direction
-from mi_shadowgs.io.atomic import atomic_dir, write_json, write_text
+from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
 from mi_shadowgs.stages.material import fit as material_fit
@@ -146,13 +146,12 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
                                                  cache=cache)
         metrics["fit_s"] = fit_s
         segments = _segment_maps(top.folder / "segmentation" / "segments", test)
-        with atomic_dir(folder / "figures", overwrite=True) as tmp:
+        with out.staged("figures") as tmp:  # beside any file of the user's there
             grid = write_figures(tmp, test, images, config.figure_views, segments)
             if name == "full":  # relit previews under standard lights (no ground truth)
                 grid["previews"] = write_previews(
                     tmp, res, [test.cameras[i] for i in _figure_picks(len(test), 1)], bounds,
                     config.preset, _preview_envmaps(config, train), cache)
-            out.claim(*(f"figures/{p.name}" for p in sorted(tmp.iterdir())))
         write_json(out.path("grid.json"), grid)
         write_json(out.path("metrics.json"), metrics)
         out.finish()
@@ -300,9 +299,8 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
                                                   overwrite, progress)
             if fit_s is not None:
                 stages.append((f"material ({name})", fit_s))
-        with atomic_dir(run / "report", overwrite=True) as tmp:
+        with top.staged("report") as tmp:  # beside any file of the user's there
             write_report_figures(tmp, run, data)
-            top.claim(*(f"report/{p.name}" for p in sorted(tmp.iterdir())))
         summary = build_summary(run, data, config, results, stages,
                                 time.perf_counter() - t_start, available)
         write_json(top.path("summary.json"), summary)
@@ -394,7 +392,7 @@ def write_report_figures(folder: Path, run: Path, data: Path) -> None:
                                      ("surfels", "surfels")) if key in log]
         curves_png(folder / "geometry_curves.png", panels, title="Stage 1: geometry")
     lines = []
-    for hist in sorted((run / "material").glob("*/history.csv")):
+    for hist in [v / "history.csv" for v in _variant_folders(run)]:
         h = _csv_columns(hist)
         if h.get("step"):
             lines.append({"x": h["step"], "y": h["loss"], "label": hist.parent.name})
@@ -470,7 +468,7 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     if seg:
         m = dict(seg.get("metrics", {}))
         m.update({"K": seg.get("k"), "masks": seg.get("masks")})
-        segs = sorted((run / "segmentation" / "segments").glob("*_overlay.png"))[:4]
+        segs = _listed(run / "segmentation", "segments/", "_overlay.png")[:4]
         summary["stages"].append({
             "name": "Stage 2: material segmentation", "seconds": secs.get("segmentation"),
             "metrics": m, "figures": [{"title": p.stem, "path": str(p.relative_to(run))}
@@ -727,7 +725,7 @@ def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
            {"name": "preset", "value": config.preset}]
     links = [run / "geometry" / "config.json"]
     links += [run / part / MANIFEST_NAME for part in ("", "geometry", "segmentation")]
-    links += sorted((run / "material").glob(f"*/{MANIFEST_NAME}"))
+    links += [v / MANIFEST_NAME for v in _variant_folders(run)]
     for path in links:
         if path.is_file():
             rel = path.relative_to(run).as_posix()
@@ -735,7 +733,26 @@ def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
     return out
 
 
+def _listed(folder: Path, prefix: str, suffix: str) -> list[Path]:
+    """The files of ``folder``'s manifest named ``prefix...suffix`` that are there, sorted:
+    a file put beside them by hand is not shown as the run's."""
+    from mi_shadowgs.io.provenance import read_manifest
+
+    files = (read_manifest(folder) or {}).get("files") or []
+    return sorted(folder / n for n in files if n.startswith(prefix) and n.endswith(suffix)
+                  and (folder / n).is_file())
+
+
+def _variant_folders(run: Path) -> list[Path]:
+    """The run's stage-4 fits (``material/<name>``, parts of its manifest), sorted: a folder
+    put under ``material/`` by hand is not read as a fit."""
+    from mi_shadowgs.io.provenance import read_manifest
+
+    parts = (read_manifest(run) or {}).get("parts") or []
+    return sorted(run / p for p in parts if p.startswith("material/") and (run / p).is_dir())
+
+
 def _previews(run: Path) -> list[dict]:
-    prev = sorted((run / "geometry" / "previews").glob("*.png"))
+    prev = _listed(run / "geometry", "previews/", ".png")
     return [{"title": f"training preview {p.stem}", "path": str(p.relative_to(run))}
             for p in prev[-1:]]

@@ -417,7 +417,8 @@ def test_overwrite_removes_only_listed_files_of_the_same_command(tmp_path):
     ):
         provenance.Output.open(folder, "segment", _prov(ds), overwrite=True)
     new = provenance.Output.open(folder, "render", _prov(ds, iterations=5), overwrite=True)
-    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt"]
+    assert sorted(p.name for p in folder.iterdir()) == [provenance.MANIFEST_NAME, "notes.txt"]
+    assert provenance.read_manifest(folder)["files"] == []  # emptied: still render's folder
     assert not new.reused and new.files == []
 
 
@@ -502,11 +503,51 @@ def test_overwrite_clears_parts_and_a_run_may_adopt_stage_folders(tmp_path):
     top.add_part("geometry")
     top.path("summary.json").write_text("{}")
     (run / "geometry" / "mine.txt").write_text("mine")
-    provenance.Output.open(run, "run", _prov(ds), overwrite=True, parts=("geometry",))
+    top = provenance.Output.open(run, "run", _prov(ds), overwrite=True, parts=("geometry",))
+    # The user's file stays, and with it an emptied manifest in each folder that keeps one:
+    # the stage is made again there (`run --overwrite` exited 2 after removing the run: the
+    # stage's folder held a file and no manifest, so it was taken for someone else's).
     assert sorted(p.relative_to(run).as_posix() for p in run.rglob("*")) == [
+        provenance.MANIFEST_NAME,
         "geometry",
+        f"geometry/{provenance.MANIFEST_NAME}",
         "geometry/mine.txt",
     ]
+    assert provenance.read_manifest(run / "geometry")["files"] == []
+    top.add_part("geometry")
+    with provenance.Output.open(run / "geometry", "train", _prov(ds, iterations=7),
+                                reuse=True) as geo:  # no earlier settings to differ from
+        assert not geo.reused
+        geo.path("model.ply").write_text("m2")
+        geo.finish()
+    assert (run / "geometry" / "mine.txt").read_text() == "mine"
+
+
+def test_a_staged_sub_folder_replaces_only_its_own_files(tmp_path):
+    """A run's `report/` and a fit's `figures/` were replaced whole on every call, taking a
+    user's notes there with them: now each file made replaces ours of its name, ours not made
+    again go, and someone else's stay; one of someone else's with a name made is refused."""
+    ds = _dataset(tmp_path / "ds")
+    run = tmp_path / "run"
+    out = provenance.Output.open(run, "run", _prov(ds))
+    with out.staged("report") as tmp:
+        (tmp / "a.png").write_text("1")
+        (tmp / "b.png").write_text("1")
+    (run / "report" / "notes.txt").write_text("mine")
+    with out.staged("report") as tmp:
+        (tmp / "a.png").write_text("2")
+    assert sorted(p.name for p in (run / "report").iterdir()) == ["a.png", "notes.txt"]
+    assert (run / "report" / "a.png").read_text() == "2"
+    assert "report/a.png" in out.files and "report/notes.txt" not in out.files
+    (run / "report" / "c.png").write_text("mine too")
+    with pytest.raises(provenance.ProvenanceError, match=r"c.png: exists and mi-shadowgs did "
+                                                         "not write it"):
+        with out.staged("report") as tmp:
+            (tmp / "a.png").write_text("3")
+            (tmp / "c.png").write_text("ours")
+    assert (run / "report" / "c.png").read_text() == "mine too"
+    assert (run / "report" / "a.png").read_text() == "2"  # refused before anything moved
+    assert not [p for p in run.iterdir() if p.name.startswith(".report.")]  # no temporaries
 
 
 def test_a_dataset_writer_may_rewrite_its_own_dataset_but_not_nest_one(tmp_path):

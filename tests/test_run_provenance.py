@@ -387,6 +387,51 @@ def test_segment_never_writes_over_its_input_or_an_earlier_segmentation(
     assert not (data[0] / "segments").exists()
 
 
+# A user's files in a run's folders (notes beside the figures, a PLY of their own).
+USER_FILES = ("notes.txt", "report/notes.txt", "geometry/notes.ply",
+              "geometry/checkpoint/notes.txt", "segmentation/notes.txt", "material/notes.txt",
+              "material/full/extra.exr", "material/full/figures/mine.png")
+
+
+def test_a_users_files_in_a_run_stay_and_are_never_read_as_the_runs(
+        finished, data, tmp_path, capsys, monkeypatch):
+    """A resume replaced `report/` whole (the user's notes in it went too), and the report
+    showed a PNG put into `geometry/previews/` or `segmentation/segments/` as the run's own
+    and plotted a `material/NAME/history.csv` as a fit; `run --overwrite` removed the run's
+    files, then exited 2 because a stage folder held a file but no manifest. Now a call
+    touches only the files its manifests list, reads only those, and `--overwrite` makes
+    the run again beside the user's files."""
+    from mi_shadowgs.io import plots
+
+    run = _copy(finished, tmp_path)
+    for name in USER_FILES:
+        (run / name).write_text("mine")
+    shutil.copy(run / "geometry" / "previews" / "iter_000020.png",
+                run / "geometry" / "previews" / "zzz_mine.png")
+    shutil.copy(run / "segmentation" / "segments" / "r_000_overlay.png",
+                run / "segmentation" / "segments" / "zzz_overlay.png")
+    (run / "material" / "mine").mkdir()
+    (run / "material" / "mine" / "history.csv").write_text("step,loss\n0,1\n10,0.5\n")
+    plotted = []
+    real = plots.curves_png
+    monkeypatch.setattr(plots, "curves_png", lambda path, panels, **kw: (
+        plotted.extend(ln.get("label") for p in panels for ln in p["lines"]),
+        real(path, panels, **kw))[1])
+    for extra in ([], ["--overwrite"]):
+        plotted.clear()
+        rc = cli.main(["run", str(data[0]), "--out", str(run), "--no-progress", *extra])
+        assert rc == 0, capsys.readouterr().err
+        for name in USER_FILES:
+            assert (run / name).read_text() == "mine", (extra, name)
+        assert (run / "material" / "mine" / "history.csv").is_file()
+        page = (run / "summary.json").read_text() + (run / "report.html").read_text()
+        assert "zzz" not in page and "material/mine" not in page, extra
+        assert "full" in plotted and "mine" not in plotted, plotted
+        assert cli.main(["report", str(run)]) == 0
+    assert (run / "geometry" / "previews" / "zzz_mine.png").is_file()
+    assert (run / "segmentation" / "segments" / "zzz_overlay.png").is_file()
+
+
 def test_report_writes_only_into_a_run_folder(tmp_path, capsys):
     (tmp_path / "summary.json").write_text(json.dumps({"stages": []}))
     assert cli.main(["report", str(tmp_path)]) == 2

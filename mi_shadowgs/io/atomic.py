@@ -148,6 +148,26 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
     back before anything else, so ``path`` is never lost and never a mix.
     """
     path = Path(path)
+    old = path.with_name(f".{path.name}.old")
+    with staged_dir(path) as tmp:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~_umask())
+        if path.exists():
+            if not overwrite:
+                raise FileExistsError(f"{path} already exists")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old)
+        else:
+            os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def staged_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary sibling of the folder ``path``, named and cleaned up as ``atomic_dir``'s
+    (which moves it into place whole); removed after the block, whatever the block moved
+    out of it. A ``.NAME.old`` that a killed ``atomic_dir`` left is put back first."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     old = path.with_name(f".{path.name}.old")
     if old.exists():
@@ -160,15 +180,6 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
     _IN_FLIGHT.add(_key(tmp))
     try:
         yield tmp
-        os.chmod(tmp, 0o777 & ~_umask())
-        if path.exists():
-            if not overwrite:
-                raise FileExistsError(f"{path} already exists")
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old)
-        else:
-            os.replace(tmp, path)
     finally:
         _IN_FLIGHT.discard(_key(tmp))
         if tmp.exists():

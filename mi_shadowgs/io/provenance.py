@@ -15,18 +15,22 @@ Every folder a command writes (a run, a stage, renders, a dataset) holds a manif
   settings all match (``ProvenanceError`` names what differs otherwise).
 - ``--overwrite`` removes only the files (and the ``parts``: sub-folders with their own
   manifests) that the manifest lists; ``files`` is written *before* each file, so it covers
-  everything a killed command left behind.
+  everything a killed command left behind. Other files stay, and a folder that keeps them
+  keeps an emptied manifest (``clear``); a sub-folder made whole again (a run's
+  ``report/``) replaces only its listed files (``Output.staged``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
-from mi_shadowgs.io.atomic import remove_stale, write_json
+from mi_shadowgs.io.atomic import remove_stale, staged_dir, write_json
 
 MANIFEST_NAME = ".mi_shadowgs_manifest.json"
 FORMAT_VERSION = 1
@@ -225,15 +229,20 @@ def _prune_empty(folder: Path, below: Path) -> None:
         folder = folder.parent
 
 
-def clear(folder: str | os.PathLike, manifest: dict | None = None) -> None:
+def clear(folder: str | os.PathLike, manifest: dict | None = None,
+          keep_mark: bool = False) -> None:
     """Remove what the manifest lists (files, their stale temporaries, parts) and itself;
-    folders left empty go too. Files the manifest does not list stay."""
+    folders left empty go too. Files the manifest does not list stay. With ``keep_mark``
+    (every part) a folder that keeps such files keeps an emptied manifest (no files, no
+    provenance): the folder is still its command's to write into (``run --overwrite`` makes
+    a run's stages again beside a user's notes there), which a folder of someone else's
+    files without one is not."""
     folder = Path(folder)
     manifest = read_manifest(folder) if manifest is None else manifest
     if manifest is None:
         return
-    for part in manifest.get("parts", []):
-        clear(_inside(folder, part))
+    for sub in manifest.get("parts", []):
+        clear(_inside(folder, sub), keep_mark=True)
     dirs = set()
     for name in manifest["files"]:
         path = _inside(folder, name)
@@ -246,8 +255,12 @@ def clear(folder: str | os.PathLike, manifest: dict | None = None) -> None:
         if d != folder.resolve():
             remove_stale(d)  # e.g. a killed atomic_dir of figures/
         _prune_empty(d, folder)
-    for part in manifest.get("parts", []):
-        _prune_empty(_inside(folder, part), folder)
+    for sub in manifest.get("parts", []):
+        _prune_empty(_inside(folder, sub), folder)
+    if keep_mark and folder.is_dir() and _foreign_entries(folder, ()):
+        write_json(folder / MANIFEST_NAME, {
+            "format": FORMAT_VERSION, "command": manifest.get("command"), "complete": False,
+            "dataset": None, "inputs": {}, "settings": {}, "files": [], "parts": []})
 
 
 def _foreign_entries(folder: Path, parts: tuple[str, ...]) -> list[str]:
@@ -272,6 +285,7 @@ class Output:
                                       "complete": False, **provenance.to_json(),
                                       "files": [], "parts": []}
         self._existing_root = next(p for p in (folder, *folder.parents) if p.exists())
+        self._keep_mark = False
 
     @classmethod
     def open(cls, folder: str | os.PathLike, command: str, provenance: Provenance, *,
@@ -299,9 +313,13 @@ class Output:
             raise ProvenanceError(f"{folder}: holds the output of `mi-shadowgs "
                                   f"{manifest.get('command')}`, not of `mi-shadowgs {command}`;"
                                   " choose another folder")
+        emptied = manifest is not None and not manifest["files"] and \
+            not manifest.get("parts")
+        if emptied:
+            manifest = None  # nothing written yet, or emptied by ``clear``: a new output
         if manifest is not None and overwrite:
-            clear(folder, manifest)
-            manifest = None
+            clear(folder, manifest, keep_mark=True)  # a kill now: still ours beside the rest
+            manifest, emptied = None, True
         if manifest is not None and not reuse:
             hint = f"{continue_flag} to continue it or " if continue_flag else ""
             raise ProvenanceError(f"{folder}: already holds an output of `mi-shadowgs "
@@ -312,7 +330,9 @@ class Output:
                 raise ProvenanceError(f"{folder}: " + "; ".join(diff) +
                                       ". Pass --overwrite to start over (it removes only the "
                                       "files mi-shadowgs listed there)")
-        return cls(folder, command, provenance, manifest)
+        out = cls(folder, command, provenance, manifest)
+        out._keep_mark = emptied  # a failure before any file leaves the folder as it found it
+        return out
 
     @property
     def complete(self) -> bool:
@@ -346,6 +366,34 @@ class Output:
             self._manifest["complete"] = False
         self._save()
 
+    @contextlib.contextmanager
+    def staged(self, name: str) -> Iterator[Path]:
+        """Make the files of the sub-folder ``name`` (a run's ``report/``, a fit's
+        ``figures/``) in a temporary folder, then move them in: each is listed first and
+        replaces the earlier file of that name, and the earlier files listed there that were
+        not made again go. Files there that the manifest does not list stay (a user's notes:
+        the folder was replaced whole before); one of them with the name of a file made is
+        refused by name, before anything is moved."""
+        dest = self.folder / name
+        earlier = {n for n in self._manifest["files"] if n.startswith(f"{name}/")}
+        with staged_dir(dest) as tmp:
+            yield tmp
+            made = sorted(p.relative_to(tmp).as_posix() for p in tmp.rglob("*")
+                          if p.is_file())
+            names = [f"{name}/{m}" for m in made]
+            for n in names:
+                if n not in earlier and (self.folder / n).exists():
+                    raise ProvenanceError(
+                        f"{self.folder / n}: exists and mi-shadowgs did not write it (its "
+                        f"{self.folder / MANIFEST_NAME} does not list it); not writing over "
+                        "it: move it away")
+            self.claim(*names)
+            for m in made:
+                (dest / m).parent.mkdir(parents=True, exist_ok=True)
+                os.replace(tmp / m, dest / m)
+            for n in sorted(earlier - set(names)):
+                (self.folder / n).unlink(missing_ok=True)
+
     def finish(self) -> None:
         """Mark the output complete: every listed file is written. A reused output takes
         this call's provenance only now (e.g. a run's new ablations, where only its dataset
@@ -365,7 +413,7 @@ class Output:
         if any(_inside(self.folder, n).exists() for n in self._manifest["files"]):
             return  # partial work stays for a rerun (resume) or --overwrite
         # Parts keep their own manifests (a stage written before the failure stays usable).
-        clear(self.folder, {**self._manifest, "parts": []})
+        clear(self.folder, {**self._manifest, "parts": []}, keep_mark=self._keep_mark)
         _prune_empty(self.folder, self._existing_root)
 
 
