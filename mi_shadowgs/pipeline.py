@@ -121,7 +121,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     provenance = Provenance(dataset=dataset_ref(data), inputs=inputs, settings=settings)
     top.add_part(f"material/{name}")
     with Output.open(folder, "run", provenance, overwrite=overwrite, reuse=True,
-                     inputs=[data, seg_model]) as out:
+                     inputs=[data, seg_model], part_of=top.folder) as out:
         if out.complete:
             return json.loads((folder / "metrics.json").read_text()), None
         # The fitted model is saved before any evaluation: a run that fails in evaluation

@@ -550,6 +550,35 @@ def test_a_staged_sub_folder_replaces_only_its_own_files(tmp_path):
     assert not [p for p in run.iterdir() if p.name.startswith(".report.")]  # no temporaries
 
 
+def test_an_output_never_goes_inside_another_outputs_folders(tmp_path):
+    """`run --out RUN/material/full` was taken as a run (stage 4's manifest names `run`
+    too): it rewrote stage 4's manifest and nested a run there. An output inside a folder
+    that an enclosing output lists as its own is refused; a run's stages, written as its
+    parts (or by `train`/`segment`), and new folders beside its files are not."""
+    ds = _dataset(tmp_path / "ds")
+    run = tmp_path / "run"
+    top = provenance.Output.open(run, "run", _prov(ds), parts=("geometry", "material"))
+    top.add_part("geometry")
+    top.add_part("material/full")
+    top.path("report/a.png").write_text("a")
+    provenance.Output.open(run / "geometry", "train", _prov(ds)).path("model.ply").write_text("m")
+    provenance.Output.open(run / "material" / "full", "run", _prov(ds), part_of=run).path(
+        "model.ply").write_text("m")
+    for folder, command in ((run / "material" / "full", "run"),
+                            (run / "material" / "x", "render"),
+                            (run / "material" / "full" / "relit", "relight"),
+                            (run / "report" / "x", "render"),
+                            (run / "geometry" / "x", "train")):
+        with pytest.raises(provenance.ProvenanceError, match="lies inside .* which `mi-shadowgs "
+                                                             "run` wrote"):
+            provenance.Output.open(folder, command, provenance.Provenance())
+    with pytest.raises(provenance.ProvenanceError, match="lies inside"):
+        provenance.check_output_location(run / "material" / "data", command="generate",
+                                         writes_dataset=True)
+    assert provenance.read_manifest(run / "material" / "full")["files"] == ["model.ply"]
+    provenance.Output.open(run / "relit", "relight", provenance.Provenance())  # beside: free
+
+
 def test_a_dataset_writer_may_rewrite_its_own_dataset_but_not_nest_one(tmp_path):
     ds = _dataset(tmp_path / "ds")
     with pytest.raises(provenance.ProvenanceError, match="did not write"):  # no manifest: not ours

@@ -432,6 +432,33 @@ def test_a_users_files_in_a_run_stay_and_are_never_read_as_the_runs(
     assert (run / "segmentation" / "segments" / "zzz_overlay.png").is_file()
 
 
+def test_no_output_goes_inside_a_runs_folders(finished, data, tmp_path, capsys):
+    """`run --out RUN/material/full` was taken as a run (stage 4's manifest names `run`
+    too): it rewrote stage 4's manifest and nested a run there, and RUN's next call exited 2
+    on stage 4's "other settings"; other commands wrote into new folders under
+    `RUN/material/` or `RUN/report/`, which the run's report then listed. Every command
+    refuses an output inside a folder that a run wrote, as `export` did; a folder beside
+    them is free."""
+    run = _copy(finished, tmp_path)
+    before = _snapshot(run)
+    model = run / "material" / "full" / "model.ply"
+    cams = data[0] / "transforms_test.json"
+    for argv in (["run", str(data[0]), "--out", str(run / "material" / "full"), "--no-progress"],
+                 ["train", str(data[0]), "--out", str(run / "material" / "full"),
+                  "--no-progress"],
+                 ["render", str(model), "--cameras", str(cams), "--out",
+                  str(run / "material" / "renders")],
+                 ["relight", str(run), "--out", str(run / "report" / "relit"), "--light",
+                  "30,45,3", "--no-progress"]):
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "which `mi-shadowgs run` wrote" in err, err
+    assert _snapshot(run) == before
+    assert cli.main(["render", str(model), "--cameras", str(cams), "--out",
+                     str(run / "renders")]) == 0
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 0
+
+
 def test_report_writes_only_into_a_run_folder(tmp_path, capsys):
     (tmp_path / "summary.json").write_text(json.dumps({"stages": []}))
     assert cli.main(["report", str(tmp_path)]) == 2

@@ -597,7 +597,8 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig,
         raise CaptureError(f"--test-every must be >= 2, got {config.test_every}")
     if out.exists():
         raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
-    check_output_location(out, [source] + ([Path(colmap)] if colmap else []))
+    check_output_location(out, [source] + ([Path(colmap)] if colmap else []),
+                          command="import")
     timings = {}
     # Our SfM's work (features, matches, models) outlives a kill, beside OUT; a COLMAP model
     # given needs none.
@@ -775,7 +776,7 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
             raise CaptureError(f"{where} is not a point cloud PLY: {exc}") from None
     if out.exists():
         raise FileExistsError(f"{out} already exists; import writes a new dataset folder")
-    check_output_location(out, [path.parent])
+    check_output_location(out, [path.parent], command="import")
     sim, frame_report = world_frame(points, np.stack([f.camera.c2w for f in frames]),
                                     config.frame)
     with tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s, \

@@ -335,7 +335,8 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     for env in envmaps:
         if env.source is not None:
             inputs[f"envmap {env.name}"] = input_ref(env.source)
-    check_output_location(out, [i["path"] for i in inputs.values()], writes_dataset=True)
+    check_output_location(out, [i["path"] for i in inputs.values()], writes_dataset=True,
+                          command="generate")
     _finish_swap(out)
     if _check_output(out, fp, overwrite):
         return out, False

@@ -10,7 +10,8 @@ Every folder a command writes (a run, a stage, renders, a dataset) holds a manif
      "files": ["model.ply", "previews/iter_000100.png", ...], "parts": ["geometry", ...]}
 
 - A command writes only into a new (or empty) folder or one whose manifest names the same
-  command (``Output.open``), never into a dataset folder or over its own inputs.
+  command (``Output.open``), never into a dataset folder, over its own inputs or inside a
+  folder that another output lists as its own (``RUN/material/x``).
 - An output is reused or continued only when its dataset fingerprint, input digests and
   settings all match (``ProvenanceError`` names what differs otherwise).
 - ``--overwrite`` removes only the files (and the ``parts``: sub-folders with their own
@@ -175,10 +176,13 @@ def is_dataset_folder(path: str | os.PathLike) -> bool:
 
 
 def check_output_location(folder: str | os.PathLike, inputs=(),
-                          writes_dataset: bool = False) -> None:
+                          writes_dataset: bool = False, command: str | None = None,
+                          part_of: str | os.PathLike | None = None) -> None:
     """Refuse an output folder that is a file or lies under one (it could never be made),
-    one inside a dataset folder, or one that holds an input. ``writes_dataset``: the output
-    is a dataset (``generate``), so ``folder`` itself may be one; its ancestors still may not.
+    one inside a dataset folder, one that holds an input, or one inside what another output
+    wrote (``_check_not_inside_an_output``). ``writes_dataset``: the output is a dataset
+    (``generate``), so ``folder`` itself may be one; its ancestors still may not.
+    ``command`` writes it; ``part_of``: the output whose part it is (a run's stage 4).
     """
     folder = Path(folder).resolve()
     existing = next(p for p in (folder, *folder.parents) if p.exists())
@@ -195,6 +199,36 @@ def check_output_location(folder: str | os.PathLike, inputs=(),
         if item == folder or folder in item.parents:
             raise ProvenanceError(f"{folder}: the output folder holds the input {item}, which "
                                   "the output would overwrite: choose another folder")
+    _check_not_inside_an_output(folder, command, part_of)
+
+
+def _check_not_inside_an_output(folder: Path, command: str | None, part_of) -> None:
+    """Refuse ``folder`` when it lies inside a folder that an enclosing output's manifest
+    lists as its own (the first folder of a listed file or part: ``RUN/material/x``,
+    ``RUN/report/x``): the output's later calls would remove it (``--overwrite``) or read it
+    as their own. A listed part itself (``RUN/geometry``) is written by its own command
+    (``train``, ``segment``), or by the enclosing command only as that output's part
+    (``part_of``): a run's stage 4, ``RUN/material/full``, is not a run of its own. A new
+    folder beside an output's files (``RUN/relit``) is free."""
+    part_of = Path(part_of).resolve() if part_of is not None else None
+    for above in folder.parents:
+        try:
+            manifest = read_manifest(above)
+        except (OSError, ProvenanceError):
+            manifest = None  # not ours to judge; the command that reads it will say so
+        if manifest is None:
+            continue
+        rel = folder.relative_to(above)
+        listed = [str(n) for n in manifest["files"] + list(manifest.get("parts") or [])]
+        if rel.parts[0] not in {Path(n).parts[0] for n in listed if Path(n).parts}:
+            continue
+        if rel.as_posix() in (manifest.get("parts") or []) and command is not None and (
+                command != manifest.get("command") or part_of == above):
+            continue
+        raise ProvenanceError(
+            f"{folder}: lies inside {above / rel.parts[0]}, which `mi-shadowgs "
+            f"{manifest.get('command')}` wrote ({above / MANIFEST_NAME} lists it); outputs "
+            "never go inside another output: choose another folder")
 
 
 def read_manifest(folder: str | os.PathLike) -> dict | None:
@@ -291,17 +325,18 @@ class Output:
     def open(cls, folder: str | os.PathLike, command: str, provenance: Provenance, *,
              overwrite: bool = False, reuse: bool = False, inputs=(), parts=(),
              compare: tuple[str, ...] = ("dataset", "inputs", "settings"),
-             continue_flag: str | None = None, writes_dataset: bool = False) -> Output:
+             continue_flag: str | None = None, writes_dataset: bool = False,
+             part_of: str | os.PathLike | None = None) -> Output:
         """Claim ``folder`` for ``command``.
 
         A previous output of the same command is removed (``overwrite``), reused when its
         provenance matches on ``compare`` (``reuse``; ProvenanceError naming what differs
         otherwise), or refused. ``inputs`` are files the output must not overwrite;
         ``parts`` are sub-folders other commands may have written first (a run's stages);
-        ``writes_dataset``: see ``check_output_location``.
+        ``writes_dataset``, ``part_of``: see ``check_output_location``.
         """
         folder = Path(folder)
-        check_output_location(folder, inputs, writes_dataset)
+        check_output_location(folder, inputs, writes_dataset, command, part_of)
         manifest = read_manifest(folder) if folder.exists() else None
         if manifest is None and folder.exists():
             foreign = _foreign_entries(folder, tuple(parts))
