@@ -352,6 +352,39 @@ def test_tiles_grow_when_their_pairs_do_not_fit():
         assert_outputs_equal(got, want)
 
 
+def test_tiles_grown_for_a_tight_budget_render_the_same_bytes(monkeypatch):
+    # A forward render over its memory budget (`render --memory-budget`, or the default's
+    # share of MemAvailable, which no manifest records) takes larger tiles: a render
+    # continued or reused under another budget must be the same bytes, not only close to
+    # the pair list. Each pixel composites the same surfels in the same order whatever its
+    # tile. (Gradient sums do change with the tiles, at float32 rounding: 2.8e-7 relative
+    # on the demo's stage-1 model at 8x8 against 4x4.) max_pairs forces the sizes as a
+    # budget would, without depending on this process's memory.
+    from mi_shadowgs.core import raster_tiles
+
+    sizes = []
+    real = raster_tiles._bin
+
+    def spy(*args, **kw):
+        bins = real(*args, **kw)
+        sizes.append(bins.size)
+        return bins
+
+    monkeypatch.setattr(raster_tiles, "_bin", spy)
+    cam = cameras(64, 48)["perspective"]
+    raw = random_scene(300, 4)  # 10016 surfel-tile pairs at 4x4, 3328 at 8x8, 1348, 751, 300
+    want, _ = render(to_surfels(raw), cam, TILES, AOVS, BACKGROUND)
+    grown = []
+    for max_pairs in (5000, 2000, 1000, 500):
+        sizes.clear()
+        got, _ = render(to_surfels(raw), cam, dataclasses.replace(TILES, max_pairs=max_pairs),
+                        AOVS, BACKGROUND)
+        grown.append(sizes[-1])
+        for k in want:
+            np.testing.assert_array_equal(got[k], want[k], err_msg=f"{k} at {sizes[-1]}^2")
+    assert grown == [8, 16, 32, 64]  # every size a budget can take
+
+
 @pytest.mark.parametrize("which", ["channels", "geometry"])
 def test_gradients_of_part_of_the_inputs(which):
     # Only the channels (fixed geometry, as the material stage) or only the geometry need

@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--memory-budget", default=None, metavar="SIZE",
                         help="most memory this process may hold while rendering, e.g. 4G "
                              "(default: what it holds plus half of the available memory); "
-                             "larger renders are drawn in bands of rows")
+                             "a render over it takes larger tiles (the same bytes), or exits "
+                             "2 naming it")
 
 
 def run(args) -> int:
