@@ -131,7 +131,7 @@ def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,
                      parts=("geometry", "segmentation", "material")) as top:
         top.add_part("geometry")
         geo = run / "geometry"
-        with Output.open(geo, "run", Provenance(dataset=dataset_ref(data))) as out:
+        with Output.open(geo, "train", Provenance(dataset=dataset_ref(data))) as out:
             write_ply_model(out.path("model.ply"), model)
             out.finish()
         top.add_part("segmentation")  # stage 4 reads segmentation/model.ply, as in a run
@@ -144,7 +144,7 @@ def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,
             top.add_part("material/full")
             prov = Provenance(dataset=dataset_ref(data),
                               inputs={"model": input_ref(seg / "model.ply")})
-            with Output.open(run / "material" / "full", "run", prov) as out:
+            with Output.open(run / "material" / "full", "run", prov, part_of=run) as out:
                 write_ply_model(out.path("model.ply"), model)
                 dirs = np.array([d for d, _ in lights], np.float64)
                 dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
