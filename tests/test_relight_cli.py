@@ -189,6 +189,24 @@ def test_relight_command_orbit_video_and_test_views(tiny_run, tiny_presets, tmp_
     assert cli.main(["relight", str(run), "--out", str(out), "--light", "30,45,3"]) == 2
 
 
+def test_a_fit_the_run_did_not_make_is_not_relit(tiny_run, tiny_presets, tmp_path, capsys):
+    """A folder put under RUN/material/ by hand (a copy of a fit, another tool's model) is
+    not one of the run's fits: `relight --fit` names the fits the run lists instead of
+    relighting it as the run's."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run / "run", run)
+    shutil.copytree(run / "material" / "full", run / "material" / "mine")
+    capsys.readouterr()
+    assert cli.main(["relight", str(run), "--out", str(tmp_path / "r"), "--fit", "mine",
+                     "--light", "30,45,3", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "material/mine: not a stage-4 fit of the run" in err and "lists" in err
+    assert "full" in err.split("lists", 1)[1]
+    assert not (tmp_path / "r").exists()
+
+
 def test_interrupted_relight_continues_with_the_missing_views(tiny_run, tiny_presets, one_thread,
                                                               tmp_path, capsys, monkeypatch):
     from mi_shadowgs.io import images

@@ -183,6 +183,11 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
     if not (folder / "model.ply").is_file():
         raise FileNotFoundError(f"{folder / 'model.ply'}: no stage-4 model (is {run} a "
                                 "finished `mi-shadowgs run`?)")
+    fits = [p.split("/", 1)[1] for p in (read_manifest(run) or {}).get("parts") or []
+            if p.startswith("material/")]
+    if variant not in fits:  # a folder put under material/ by hand is no fit of the run
+        raise FileNotFoundError(f"{folder}: not a stage-4 fit of the run ({run / MANIFEST_NAME}"
+                                f" lists {', '.join(sorted(fits)) or 'none'})")
     check_run_stages(run)
     manifest = read_manifest(folder) or {}
     settings = manifest.get("settings") or {}
