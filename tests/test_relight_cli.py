@@ -205,6 +205,9 @@ def test_a_fit_the_run_did_not_make_is_not_relit(tiny_run, tiny_presets, tmp_pat
     assert "material/mine: not a stage-4 fit of the run" in err and "lists" in err
     assert "full" in err.split("lists", 1)[1]
     assert not (tmp_path / "r").exists()
+    assert cli.main(["view", str(run), "--fit", "mine", "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "material/mine/model.ply is not one of the run's fits; the run's fits: " in err
 
 
 def test_interrupted_relight_continues_with_the_missing_views(tiny_run, tiny_presets, one_thread,

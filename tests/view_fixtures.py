@@ -64,6 +64,11 @@ def make_run(root: Path, n: int = 4000) -> tuple[Path, Path]:
          "irradiance": [e], "angles_deg": [[az, el]], "specular": False,
          "use_visibility": True}))
     _manifest(material, ["model.ply", "light.json"], {"visibility": VISIBILITY})
+    # The run's own manifest lists its fits, as a run's does (a fit it does not list is
+    # none of its own).
+    (run / MANIFEST_NAME).write_text(json.dumps(
+        {"format": FORMAT_VERSION, "command": "run", "complete": True, "files": [],
+         "parts": ["material/full"], "settings": {}, "inputs": {}}))
     geometry_only = root / "geometry_only"
     (geometry_only / "geometry").mkdir(parents=True)
     plain = dataclasses.replace(surf, channels={"segment": surf.channels["segment"]})

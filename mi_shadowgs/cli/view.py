@@ -85,8 +85,10 @@ def check_fit(run_dir, fit: str) -> None:
     """CLIError naming --fit when the run has stage-4 fits and ``fit`` is not one of them; a
     run with none is viewed without relighting (the page says why)."""
     from mi_shadowgs.cli import CLIError
+    from mi_shadowgs.stages.relight.runner import run_fits
 
-    fits = sorted(p.parent.name for p in run_dir.glob("material/*/model.ply"))
+    fits = run_fits(run_dir)
+    model = run_dir / "material" / fit / "model.ply"
     if fits and fit not in fits:
-        raise CLIError(f"--fit {fit!r}: {run_dir / 'material' / fit / 'model.ply'} is "
-                       f"missing; the run's fits: {', '.join(fits)}")
+        why = "is not one of the run's fits" if model.is_file() else "is missing"
+        raise CLIError(f"--fit {fit!r}: {model} {why}; the run's fits: {', '.join(fits)}")

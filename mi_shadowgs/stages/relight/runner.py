@@ -170,6 +170,17 @@ def run_preset(run: str | Path) -> str:
     return (read_manifest(run) or {}).get("settings", {}).get("preset", "cpu-small")
 
 
+def run_fits(run: str | Path) -> list[str]:
+    """The names of the run's stage-4 fits, sorted: the ``material/<name>`` parts its
+    manifest lists (a folder put there by hand is none) that hold a model."""
+    from mi_shadowgs.io.provenance import read_manifest
+
+    run = Path(run)
+    parts = (read_manifest(run) or {}).get("parts") or []
+    return sorted(p.split("/", 1)[1] for p in parts
+                  if p.startswith("material/") and (run / p / "model.ply").is_file())
+
+
 def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> RunFit:
     """The fitted model of ``RUN/material/<variant>``, with the shadow-map bounds the run
     used (its training cameras and ``bounds_quantile``; ``fallback_cameras`` where the
@@ -183,11 +194,10 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
     if not (folder / "model.ply").is_file():
         raise FileNotFoundError(f"{folder / 'model.ply'}: no stage-4 model (is {run} a "
                                 "finished `mi-shadowgs run`?)")
-    fits = [p.split("/", 1)[1] for p in (read_manifest(run) or {}).get("parts") or []
-            if p.startswith("material/")]
+    fits = run_fits(run)
     if variant not in fits:  # a folder put under material/ by hand is no fit of the run
         raise FileNotFoundError(f"{folder}: not a stage-4 fit of the run ({run / MANIFEST_NAME}"
-                                f" lists {', '.join(sorted(fits)) or 'none'})")
+                                f" lists {', '.join(fits) or 'none'})")
     check_run_stages(run)
     manifest = read_manifest(folder) or {}
     settings = manifest.get("settings") or {}
