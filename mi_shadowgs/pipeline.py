@@ -744,12 +744,11 @@ def _listed(folder: Path, prefix: str, suffix: str) -> list[Path]:
 
 
 def _variant_folders(run: Path) -> list[Path]:
-    """The run's stage-4 fits (``material/<name>``, parts of its manifest), sorted: a folder
-    put under ``material/`` by hand is not read as a fit."""
-    from mi_shadowgs.io.provenance import read_manifest
+    """The folders of the run's stage-4 fits (``run_fits``: a folder put under
+    ``material/`` by hand is not read as a fit)."""
+    from mi_shadowgs.stages.relight.runner import run_fits
 
-    parts = (read_manifest(run) or {}).get("parts") or []
-    return sorted(run / p for p in parts if p.startswith("material/") and (run / p).is_dir())
+    return [run / "material" / name for name in run_fits(run)]
 
 
 def _previews(run: Path) -> list[dict]:
