@@ -136,6 +136,14 @@ def test_errors_name_the_input(setup, tmp_path, capsys):
     rc = cli.main(["render", str(root / "model.ply"), "--cameras", cams, "--out",
                    str(tmp_path / "o"), "--background", "1,2"])
     assert rc == 2 and "--background" in capsys.readouterr().err
+    # A colour channel of another width is named before any view (it failed at the first).
+    wide = ply.read_ply_model(root / "model.ply")
+    wide.channels["feature"] = np.zeros((wide.count, 16), np.float32)
+    ply.write_ply_model(tmp_path / "wide.ply", wide)
+    rc = cli.main(["render", str(tmp_path / "wide.ply"), "--cameras", cams, "--out",
+                   str(tmp_path / "o"), "--color-channel", "feature"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--color-channel: colour channel 'feature' has 16 columns" in err, err
     assert not (tmp_path / "o").exists()  # nothing written on bad input
 
 

@@ -92,7 +92,12 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
     "srgb"; default its header record, else linear: ``mi_shadowgs.io.ply``)."""
     from mi_shadowgs.core.memory import parse_bytes
     from mi_shadowgs.core.raster import RasterConfig
-    from mi_shadowgs.core.render import aov_layout, parse_background
+    from mi_shadowgs.core.render import (
+        RenderError,
+        aov_layout,
+        check_color_channel,
+        parse_background,
+    )
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.io.ply import load_ply, sh_space_of
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
@@ -109,9 +114,10 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
     background = parse_background(background, "--background")
     raster = RasterConfig() if memory_budget is None else \
         RasterConfig(memory_budget_bytes=parse_bytes(memory_budget, "--memory-budget"))
-    if color_channel not in surfels.channels:
-        raise ValueError(f"{model}: no channel {color_channel!r} for --color-channel "
-                         f"(channels: {sorted(surfels.channels)})")
+    try:  # a channel of another width than 1, 3 (sh: 3(d+1)^2) too, not at the first view
+        check_color_channel(surfels, color_channel)
+    except RenderError as exc:
+        raise RenderError(f"{model}: --color-channel: {exc}") from None
     views = load_cameras(cameras)
     stems = view_stems(name for name, _ in views)
     provenance = Provenance(
