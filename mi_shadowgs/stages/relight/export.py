@@ -330,19 +330,11 @@ def stage4_inputs(run: Path) -> tuple[Path, Path]:
 
 
 def _check_out(out: Path, run: Path) -> None:
-    """``out`` may be a new folder inside the run, never one of the run's own files/parts."""
-    from mi_shadowgs.io.provenance import read_manifest
-
+    """``out`` may be a new folder inside the run, never the run itself (one inside the
+    run's own files or parts is refused by ``Output.open``, as for every command)."""
     out, run = out.resolve(), run.resolve()
     if out == run:
         raise ExportError(f"{out}: is the run folder; export writes into a folder of its own")
-    if run in out.parents:
-        first = out.relative_to(run).parts[0]
-        manifest = read_manifest(run) or {}
-        owned = {Path(n).parts[0] for n in manifest.get("files", []) + manifest.get("parts", [])}
-        if first in owned:
-            raise ExportError(f"{out}: is inside {run / first}, which `mi-shadowgs run` wrote; "
-                              "choose another folder")
     if out.suffix.lower() in (".ply", ".obj", ".xml"):
         raise ExportError(f"--out {out}: names a {out.suffix} file, but --out is a folder (the "
                           "files get standard names inside): give a folder name")
