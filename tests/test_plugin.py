@@ -306,6 +306,92 @@ def test_params_update_to_a_model_it_cannot_draw_is_named(model_path):
         params.update()
 
 
+
+def _with(value, row, col, x):
+    """``value`` (a traversed parameter) with entry [row, col] set to ``x``."""
+    a = np.array(value)
+    if isinstance(value, mi.TensorXf) or a.ndim == 1:
+        a.reshape(a.shape[0], -1)[row, col] = x
+    else:  # a Point3f etc. is [3, N]
+        a[col, row] = x
+    return type(value)(a)
+
+
+def _zero_quaternion(value, row, scale):
+    a = np.array(value)
+    a[:, row] = scale
+    return type(value)(a)
+
+
+@pytest.mark.parametrize("key, change, match", [
+    pytest.param("position", lambda v: _with(v, 7, 1, np.nan),
+                 r"'position' holds NaN at vertex 7 \(1 of", id="nan-position"),
+    pytest.param("log_scale", lambda v: _with(v, 3, 0, np.inf),
+                 r"'log_scale' holds Inf at vertex 3 \(1 of", id="inf-log_scale"),
+    pytest.param("opacity_logit", lambda v: _with(v, 0, 0, -np.inf),
+                 r"'opacity_logit' holds Inf at vertex 0", id="inf-opacity"),
+    pytest.param("rotation", lambda v: _with(v, 5, 2, np.nan),
+                 r"'rotation' holds NaN at vertex 5", id="nan-rotation"),
+    pytest.param("channels.sh", lambda v: _with(v, 11, 4, np.nan),
+                 r"'channels.sh' holds NaN at vertex 11", id="nan-sh"),
+    pytest.param("channels.albedo", lambda v: _with(v, 2, 1, np.inf),
+                 r"'channels.albedo' holds Inf at vertex 2", id="inf-albedo"),
+    pytest.param("rotation", lambda v: _zero_quaternion(v, 9, 0.0),
+                 r"rotation \(w, x, y, z\) hold a zero quaternion .* at vertex 9 \(1 of",
+                 id="zero-quaternion"),
+    # |q|^2 = 4e-60 underflows float32: the kernels drew it as the identity, like a zero.
+    pytest.param("rotation", lambda v: _zero_quaternion(v, 9, 1e-30),
+                 r"zero quaternion .* at vertex 9", id="1e-30-quaternion"),
+])
+@pytest.mark.parametrize("traversed", ["scene", "integrator"])
+def test_params_update_refuses_nan_inf_and_zero_quaternions(model_path, key, change, match,
+                                                            traversed):
+    """A NaN or Inf set through mi.traverse (a diverged optimiser step) rendered silently:
+    NaN/Inf geometry or opacity dropped the surfel, a NaN quaternion or a zero one drew it
+    with the identity orientation, a non-finite channel gave NaN pixels. params.update() now
+    refuses each, naming the plugin, the parameter and the first bad row, as the PLY
+    reader does. Inside a scene Mitsuba names a changed channel by its last part ('sh');
+    traversed alone, by its whole key ('channels.sh'): both are checked."""
+    scene = mi.load_string(_scene_xml(model_path, aovs="albedo"))
+    params = mi.traverse(scene if traversed == "scene" else scene.integrator())
+    prefix = "surf." if traversed == "scene" else ""
+    params[prefix + key] = change(params[prefix + key])
+    with pytest.raises(ValueError, match=r"^surfel_raster: params.update\(\): .*" + match):
+        params.update()
+
+
+def test_a_finite_params_update_renders_and_differentiates(model_path):
+    """The check of params.update() runs with gradients suspended: values set with their
+    gradients enabled (as mi.ad.Adam's are) stay attached, and mi.render(scene, params)
+    renders the new values and differentiates them as rasterize does."""
+    scene = mi.load_string(_scene_xml(model_path, aovs="depth"))
+    params = mi.traverse(scene)
+    params.keep(r"surf\..*")
+    rng = np.random.default_rng(4)
+    for k in params.keys():  # every parameter changed, finite, grad enabled before update
+        a = np.array(params[k])
+        value = type(params[k])(a + (0.02 * rng.normal(size=a.shape)).astype(np.float32))
+        dr.enable_grad(value)
+        params[k] = value
+    params.update()
+    assert all(dr.grad_enabled(params[k]) for k in params.keys())
+    weights = mi.TensorXf(rng.normal(size=(H, W, 5)).astype(np.float32))
+    img = mi.render(scene, params)
+    dr.backward(dr.sum(img * weights, axis=None))
+    got = {k[len("surf."):]: np.asarray(dr.grad(params[k])).copy() for k in params.keys()}
+    for k in params.keys():
+        dr.disable_grad(params[k])
+    ref_img = _direct(scene, aovs=("alpha", "depth"))
+    np.testing.assert_array_equal(np.asarray(img), np.concatenate(
+        [np.asarray(ref_img[c]) for c in ("rgb", "alpha", "depth")], axis=-1))
+    ref = _grads_direct(scene, weights)
+    for k in ref:
+        scale = np.abs(ref[k]).max()
+        assert (scale > 0) == (k not in ("channels.albedo", "channels.roughness")), k
+        # Same AD graph; only the order of float atomic adds may differ.
+        np.testing.assert_allclose(got[k], ref[k], rtol=0, atol=1e-5 * max(scale, 1e-12),
+                                   err_msg=k)
+
 def test_sh_space_turns_display_sh_linear(tmp_path):
     """`sh_space` (default: the PLY's record, else linear): another tool's display SH given
     `srgb` render as the linear SH they came from; an export's record does it unasked; a

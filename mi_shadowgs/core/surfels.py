@@ -17,6 +17,7 @@ import numpy as np
 
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.surfel_checks import (
+    QUAT_NORM_MIN,
     check_finite,
     check_log_scale,
     check_nonempty,
@@ -134,6 +135,54 @@ class Surfels:
                 self.channels[name] = _tensor_nc(value, n, f"Surfels.set_params {key!r}")
             else:
                 raise KeyError(f"Surfels.set_params: unknown parameter {key!r}")
+
+    def check_params(self, where: str, keys=None) -> None:
+        """Refuse non-finite values in the raw parameters ``keys`` (names of :meth:`params`;
+        default all) and zero quaternions, as a PLY's are refused on reading
+        (``mi_shadowgs.core.surfel_checks``): a ValueError from ``where`` naming the
+        parameter, the first bad row and the number of bad rows.
+
+        For parameters set from outside (``mi.traverse`` and an optimiser step): the kernels
+        draw a NaN surfel as nothing and a zero quaternion as the identity, silently. While
+        all is well this costs one reduction for the geometry, one per channel and one host
+        read; the values are copied to NumPy only to name a bad one. Runs with gradients
+        suspended, so it adds nothing to an AD graph.
+        """
+        params = self.params()
+        names = [k for k in params if keys is None or k in keys]
+        if not names:
+            return
+        with dr.suspend_grad():
+            # One mask over the [N] geometry arrays, so one reduction for all of them; each
+            # channel ([N * C] entries) gets its own.
+            row_bad, bad = mi.Bool(False), mi.Bool(False)
+            for k in names:
+                v = params[k]
+                if isinstance(v, mi.TensorXf):
+                    bad |= dr.any(~dr.isfinite(v.array), axis=None)
+                else:
+                    m = ~dr.isfinite(v)
+                    row_bad |= dr.any(m, axis=0) if dr.depth_v(m) > 1 else m  # any component
+            if "rotation" in names:
+                # float32 |q|^2 of |q| = 1e-12 is 1e-24, a normal number: the same test
+                # as the float64 one below to rounding.
+                row_bad |= dr.squared_norm(self.rotation) < QUAT_NORM_MIN ** 2
+            bad |= dr.any(row_bad, axis=None)
+            if not bad[0]:
+                return
+        # The float64 NumPy checks name the value; where they find nothing (|q| within
+        # rounding of the threshold) the parameters stand.
+        for k in names:
+            check_finite(where, k, self._rows(params[k]))
+        if "rotation" in names:
+            check_quaternion(where, "rotation (w, x, y, z)", self._rows(self.rotation))
+
+    def _rows(self, value) -> np.ndarray:
+        """A parameter as a numpy array of one row per surfel ([N] or [N, C])."""
+        a = np.asarray(value)
+        if isinstance(value, mi.TensorXf) or a.ndim == 1:
+            return a
+        return a.reshape(a.shape[0], -1).T  # a Point3f etc. is [3, N]
 
     # -- numpy exchange ---------------------------------------------------------------
     @staticmethod

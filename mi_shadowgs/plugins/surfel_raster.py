@@ -176,6 +176,12 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
             if rows != n:
                 raise ValueError(f"surfel_raster: parameter {key!r} has {rows} entries, "
                                  f"position has {n}")
+        # NaN/Inf (a diverged optimiser step) and zero quaternions were drawn silently: a
+        # NaN surfel as nothing, a zero quaternion as the identity. Only the changed keys
+        # are read (all when Mitsuba names none). Mitsuba names a key by its last part
+        # when the integrator is traversed inside a scene ('sh' for 'surf.channels.sh').
+        changed = [k for k in self.surfels.params() if k in keys or k.rsplit(".", 1)[-1] in keys]
+        self.surfels.check_params("surfel_raster: params.update()", changed if keys else None)
         try:
             core_render.check_color_channel(self.surfels, self.color_channel)
         except core_render.RenderError as exc:
