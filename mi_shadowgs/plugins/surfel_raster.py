@@ -30,7 +30,7 @@ standard Mitsuba `perspective` or `orthographic` sensor with an `hdrfilm`. Sourc
 - `log_scale` | Point2f [N] | from file | differentiable | Log of the two tangent standard
   deviations.
 - `rotation` | Vector4f [N] | from file | differentiable | Quaternion (w, x, y, z),
-  unnormalised.
+  unnormalised, not zero.
 - `opacity_logit` | Float [N] | from file | differentiable | Logit of the opacity.
 - `channels.<name>` | TensorXf [N, C] | from file | differentiable | Each per-surfel channel
   of the model (`channels.sh` [N, 3(d+1)^2] coefficient-major, `channels.albedo`, ...).
@@ -39,7 +39,14 @@ The last five rows are not XML properties: they are the parameters that `mi.trav
 exposes (prefixed by the integrator's `id`, e.g. `surf.position`, when traversing the
 scene), and `mi.render(scene, params)` differentiates through them (`render_forward` and
 `render_backward` re-run the differentiable rasterizer). After changing their number
-(`N`), set all of them before `params.update()`.
+(`N`), set all of them before `params.update()`. `params.update()` refuses a NaN or Inf in
+any parameter it is given and a zero quaternion (`|q| < 1e-12`), as the PLY reader does: a
+`ValueError` naming the parameter and its first bad row (`surfel_raster: params.update():
+field 'position' holds NaN at vertex 7 (1 of 40 vertices)`). Unchecked, the rasterizer
+drew most such surfels as nothing, a NaN or zero quaternion as the identity, and a +Inf SH
+coefficient or a non-finite AOV channel as NaN pixels, without a word. The check reads
+only the changed parameters, outside the AD graph, and waits for one value from the device
+per update.
 
 **Film channels.** `mi.render` returns `[H, W, C]`: the film's base channels (`R, G, B` and
 `A` with `pixel_format="rgba"`, or `Y`/`Y, A` for luminance formats), then the AOVs named

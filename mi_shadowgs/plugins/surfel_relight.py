@@ -48,8 +48,10 @@ emitters (any sensor at the same distance) reuses the maps and the env map's gri
 
 **Not used:** sampler, spp and seeds (deterministic); the sensor's `near_clip` and
 `far_clip`; not differentiable (`render_forward` and `render_backward` are not
-implemented). The film gets `R, G, B` (and `A` = coverage). Sensors as for `surfel_raster`:
-`perspective` or `orthographic`, without a principal-point offset or crop window.
+implemented), and `mi.traverse` exposes none of its surfels' parameters: the model is the
+file's, checked as it is read. The film gets `R, G, B` (and `A` = coverage). Sensors as for
+`surfel_raster`: `perspective` or `orthographic`, without a principal-point offset or crop
+window.
 
 ```xml
 <scene version="3.0.0">
