@@ -312,6 +312,40 @@ def test_output_claims_a_folder_lazily_and_lists_every_file(tmp_path):
     assert m["dataset"]["fingerprint"] == fingerprint.dataset_fingerprint(ds)
 
 
+def test_a_manifest_records_its_backend_which_no_reuse_compares(tmp_path):
+    """Each manifest records the backend that made it (``made_with``: variant, device,
+    threads, commit); a folder continued on another backend records both, one from before
+    the record stays without one, and neither is ever a reason to refuse a reuse (the two
+    backends' results differ at round-off level, as two thread counts do)."""
+    import drjit as dr
+
+    ds = _dataset(tmp_path / "ds")
+    out = provenance.Output.open(tmp_path / "o", "train", _prov(ds))
+    out.path("a").write_text("a")
+    made = provenance.read_manifest(tmp_path / "o")["made_with"]
+    assert made == [provenance.made_with()]
+    assert made[0]["variant"] == "llvm_ad_rgb" and made[0]["threads"] == dr.thread_count()
+    assert made[0]["device"] == provenance.device_name("llvm_ad_rgb")
+    assert made[0]["mi_shadowgs"] == provenance.git_commit()
+    assert provenance.read_manifest(tmp_path / "o")["settings"] == _prov(ds).settings
+    path = tmp_path / "o" / provenance.MANIFEST_NAME
+    cuda = {"variant": "cuda_ad_rgb", "device": "NVIDIA H200", "mi_shadowgs": "abc"}
+    for record, after in (([cuda], [cuda, provenance.made_with()]), (None, None)):
+        manifest = json.loads(path.read_text())
+        manifest.pop("made_with")
+        if record is not None:  # made on a GPU ...
+            manifest["made_with"] = record
+        path.write_text(json.dumps(manifest))  # ... or before the record
+        assert provenance.differences(manifest, _prov(ds)) == []
+        again = provenance.Output.open(tmp_path / "o", "train", _prov(ds), reuse=True)
+        assert again.reused and again.made_before == (record or [])
+        again.path("b").write_text("b")  # continued here
+        assert provenance.read_manifest(tmp_path / "o").get("made_with") == after
+    assert provenance.recorded_variants({"made_with": [cuda, made[0], cuda]}) == [
+        "cuda_ad_rgb", "llvm_ad_rgb"]
+    assert provenance.recorded_variants({"made_with": "junk"}) == []
+
+
 def test_an_output_folder_that_is_or_lies_under_a_file_is_refused(tmp_path):
     """It could never be made: refused by name before any work (it was a NotADirectoryError
     at the first file written)."""

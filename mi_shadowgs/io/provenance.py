@@ -7,7 +7,9 @@ Every folder a command writes (a run, a stage, renders, a dataset) holds a manif
      "dataset": {"path": "/abs/DATA", "fingerprint": "<blake2b>"},
      "inputs": {"model": {"path": "/abs/model.ply", "digest": "<blake2b>"}},
      "settings": {...the stage's resolved settings...},
-     "files": ["model.ply", "previews/iter_000100.png", ...], "parts": ["geometry", ...]}
+     "files": ["model.ply", "previews/iter_000100.png", ...], "parts": ["geometry", ...],
+     "made_with": [{"variant": "llvm_ad_rgb", "device": "<CPU model> (2 cores)",
+                    "threads": 2, "mi_shadowgs": "<git commit>"}]}
 
 - A command writes only into a new (or empty) folder or one whose manifest names the same
   command (``Output.open``), never into a dataset folder, over its own inputs or inside a
@@ -19,12 +21,19 @@ Every folder a command writes (a run, a stage, renders, a dataset) holds a manif
   everything a killed command left behind. Other files stay, and a folder that keeps them
   keeps an emptied manifest (``clear``); a sub-folder made whole again (a run's
   ``report/``) replaces only its listed files (``Output.staged``).
+- ``made_with`` says how the folder's files were made (``made_with()``): one entry per
+  backend (Mitsuba variant, device, Dr.Jit threads, mi_shadowgs's commit) that wrote into
+  it, in order; a stage begun on ``cuda_ad_rgb`` and resumed on ``llvm_ad_rgb`` has two.
+  It is a record, not provenance: the two backends' results differ at round-off level, as
+  two thread counts do, so it is never compared (``differences``), and an output from before
+  the record (no key) is reused as it is, and continued without one.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -35,6 +44,7 @@ from mi_shadowgs.io.atomic import remove_stale, staged_dir, write_json
 
 MANIFEST_NAME = ".mi_shadowgs_manifest.json"
 FORMAT_VERSION = 1
+MADE_WITH = "made_with"  # the manifest's record of the backends that wrote the folder
 _CHUNK = 1 << 20
 _MAX_LISTED = 8  # differing settings named in one message
 
@@ -320,6 +330,10 @@ class Output:
                                       "files": [], "parts": []}
         self._existing_root = next(p for p in (folder, *folder.parents) if p.exists())
         self._keep_mark = False
+        # The backends that wrote the folder before this call (none: a new output, or one
+        # from before the record); this call's joins them at its first write (``_save``).
+        self.made_before = recorded_backends(self._manifest) if self.reused else []
+        self._recorded = False
 
     @classmethod
     def open(cls, folder: str | os.PathLike, command: str, provenance: Provenance, *,
@@ -378,7 +392,20 @@ class Output:
         return list(self._manifest["files"])
 
     def _save(self) -> None:
+        if not self._recorded:
+            self._recorded = True
+            self._record_backend()
         write_json(self.folder / MANIFEST_NAME, self._manifest)
+
+    def _record_backend(self) -> None:
+        """Add this process's backend (``made_with()``) to the record when it differs from
+        the last entry: a new output starts the record; an output continued from before the
+        record (no key) stays without one, which says nothing rather than something false."""
+        now = made_with()
+        if not self.reused:
+            self._manifest[MADE_WITH] = [now]
+        elif self.made_before and self.made_before[-1] != now:
+            self._manifest[MADE_WITH] = [*self.made_before, now]
 
     def claim(self, *names: str) -> None:
         """List files (paths relative to the folder) before writing them."""
@@ -511,3 +538,54 @@ def device_name(variant: str) -> str:
     except OSError:
         pass
     return f"{model} ({os.cpu_count()} cores)"
+
+
+@functools.cache
+def _made_with(variant: str | None, threads: int | None) -> tuple:
+    from mi_shadowgs import __version__
+
+    commit = git_commit()
+    entry = {"variant": variant}
+    if variant is not None:
+        entry["device"] = device_name(variant)
+    if threads is not None:
+        entry["threads"] = threads
+    entry["mi_shadowgs"] = commit if commit != "unknown" else f"version {__version__}"
+    return tuple(entry.items())
+
+
+def made_with() -> dict:
+    """How this process makes outputs (a manifest's ``made_with`` entry): the active
+    Mitsuba variant, its device (``device_name``), Dr.Jit's thread count on LLVM, and
+    mi_shadowgs's commit (``git_commit``; its version outside a checkout). The device and
+    commit are read once per process."""
+    import mitsuba as mi
+
+    variant = mi.variant()
+    threads = None
+    if variant is not None and variant.startswith("llvm"):
+        import drjit as dr
+
+        threads = int(dr.thread_count())
+    return dict(_made_with(variant, threads))
+
+
+def recorded_backends(manifest: dict | None) -> list[dict]:
+    """The entries of a manifest's ``made_with`` record, oldest first; [] for a manifest
+    from before the record (or one whose record is not a list of objects)."""
+    record = (manifest or {}).get(MADE_WITH)
+    if isinstance(record, dict):
+        record = [record]
+    if not isinstance(record, list) or not all(isinstance(e, dict) for e in record):
+        return []
+    return [dict(e) for e in record]
+
+
+def recorded_variants(manifest: dict | None) -> list[str]:
+    """The distinct variants of a manifest's record, in the order they first wrote."""
+    out = []
+    for entry in recorded_backends(manifest):
+        v = entry.get("variant")
+        if isinstance(v, str) and v not in out:
+            out.append(v)
+    return out
