@@ -100,7 +100,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.ply import save_ply
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
-    from mi_shadowgs.stages.common import checkpoint_hooks
+    from mi_shadowgs.stages.common import checkpoint_hooks, warn_other_backend
 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
@@ -124,6 +124,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
                      inputs=[data, seg_model], part_of=top.folder) as out:
         if out.complete:
             return json.loads((folder / "metrics.json").read_text()), None
+        warn_other_backend(out, made_from=seg_model)
         # The fitted model is saved before any evaluation: a run that fails in evaluation
         # keeps it, and a rerun evaluates it again instead of fitting again (fit.json, the
         # last file of the fit, marks it finished).
@@ -491,6 +492,9 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     if speed:
         summary["tables"].append(speed)
     summary["provenance"] = _provenance(run, config, mi.variant())
+    # the backend(s) that made the stages, as the provenance names them
+    summary["variant"] = next(p["value"] for p in summary["provenance"]
+                              if p["name"] == "variant")
     full = run / "material" / "full"
     if (full / "grid.json").is_file():
         grid = json.loads((full / "grid.json").read_text())
@@ -706,7 +710,9 @@ def _speed_table(metrics: dict, dataset: dict) -> dict | None:
 
 def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
     """Commit, versions, variant, device and settings of the run, with links to the
-    stages' resolved settings (manifests, config files)."""
+    stages' resolved settings (manifests, config files). Variant, device and Dr.Jit threads
+    are this call's, unless the stages' manifests record others (``made_with``: a stage made
+    or resumed on another backend): then each value names the stages it made."""
     import platform
 
     import drjit as dr
@@ -714,14 +720,17 @@ def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
 
     from mi_shadowgs.io.provenance import MANIFEST_NAME, device_name, git_commit
 
+    made = _stage_backends(run)
+    threads = dr.thread_count() if variant.startswith("llvm") else None
+    backend = [{"name": name, "value": _per_stage(made, key, now)}
+               for name, key, now in (("variant", "variant", variant),
+                                      ("device", "device", device_name(variant)),
+                                      ("Dr.Jit threads", "threads", threads))]
     out = [{"name": "commit", "value": git_commit()},
            {"name": "Mitsuba", "value": mi.__version__},
            {"name": "Dr.Jit", "value": dr.__version__},
            {"name": "Python", "value": platform.python_version()},
-           {"name": "variant", "value": variant},
-           {"name": "device", "value": device_name(variant)},
-           *([{"name": "Dr.Jit threads", "value": dr.thread_count()}]
-             if variant.startswith("llvm") else []),
+           *[row for row in backend if row["value"] is not None],
            {"name": "preset", "value": config.preset}]
     links = [run / "geometry" / "config.json"]
     links += [run / part / MANIFEST_NAME for part in ("", "geometry", "segmentation")]
@@ -731,6 +740,38 @@ def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
             rel = path.relative_to(run).as_posix()
             out.append({"name": "settings", "value": rel, "href": rel})
     return out
+
+
+def _stage_backends(run: Path) -> list[tuple[str, list[dict]]]:
+    """(stage, its manifest's ``made_with`` entries) of the run's stages: geometry,
+    segmentation and each stage-4 fit; stages from before the record have none."""
+    from mi_shadowgs.io.provenance import ProvenanceError, read_manifest, recorded_backends
+
+    out = []
+    for stage in ("geometry", "segmentation",
+                  *(f"material/{v.name}" for v in _variant_folders(run))):
+        try:
+            manifest = read_manifest(run / stage)
+        except (OSError, ProvenanceError):
+            manifest = None
+        out.append((stage, recorded_backends(manifest)))
+    return out
+
+
+def _per_stage(made: list[tuple[str, list[dict]]], key: str, now):
+    """The report's value of ``key`` (variant, device, threads): ``now`` (this call's) when
+    every stage's record agrees with it or none has one, else each recorded value with the
+    stages it made: "cuda_ad_rgb (geometry), llvm_ad_rgb (segmentation, material/full)"."""
+    seen: dict = {}
+    for stage, entries in made:
+        for entry in entries:
+            if isinstance(entry.get(key), str | int | float):
+                stages = seen.setdefault(entry[key], [])
+                if stage not in stages:
+                    stages.append(stage)
+    if not seen or set(seen) == {now}:
+        return now
+    return ", ".join(f"{value} ({', '.join(stages)})" for value, stages in seen.items())
 
 
 def _listed(folder: Path, prefix: str, suffix: str) -> list[Path]:

@@ -261,6 +261,108 @@ def test_a_stage_made_again_in_a_finished_run_is_not_read_with_the_later_ones(
         capsys.readouterr().err
 
 
+STAGES = ("geometry", "segmentation", "material/full")
+
+
+def _edit_manifest(folder, **changes):
+    """Set (or, with None, remove) top-level keys of ``folder``'s manifest."""
+    path = folder / MANIFEST_NAME
+    manifest = json.loads(path.read_text())
+    for key, value in changes.items():
+        manifest.pop(key, None) if value is None else manifest.update({key: value})
+    path.write_text(json.dumps(manifest))
+
+
+def _report_provenance(run):
+    return {p["name"]: p["value"]
+            for p in json.loads((run / "summary.json").read_text())["provenance"]}
+
+
+def test_a_run_from_before_the_backend_record_is_reused_as_it_was(finished, data, tmp_path,
+                                                                   capsys):
+    """Every manifest of a run records the backend that made it (``made_with``); a run made
+    before the record (its manifests without it) is reused as it was: exit 0, no warning,
+    nothing made again, no record added, and the report's provenance reads as before."""
+    import drjit as dr
+
+    from mi_shadowgs.io.provenance import device_name
+
+    for stage in ("", *STAGES):
+        made = json.loads((finished / stage / MANIFEST_NAME).read_text())["made_with"]
+        assert [e["variant"] for e in made] == ["llvm_ad_rgb"], stage
+    run = _copy(finished, tmp_path)
+    for stage in ("", *STAGES):
+        _edit_manifest(run / stage, made_with=None)
+    before = _snapshot(run / "material")
+    capsys.readouterr()
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 0
+    err = without_few_views_warning(capsys.readouterr().err)
+    assert "warning" not in err, err
+    assert _snapshot(run / "material") == before
+    for stage in ("", *STAGES):
+        assert "made_with" not in json.loads((run / stage / MANIFEST_NAME).read_text())
+    prov = _report_provenance(run)
+    assert prov["variant"] == "llvm_ad_rgb" and prov["Dr.Jit threads"] == dr.thread_count()
+    assert prov["device"] == device_name("llvm_ad_rgb")
+
+
+def test_a_stage_resumed_or_made_on_another_backend_warns_and_the_report_names_each(
+        finished, data, tmp_path, capsys):
+    """A run whose stage 1 was made on cuda_ad_rgb and whose stage 2 was begun there
+    (simulated: their records edited; no GPU here) goes on on llvm_ad_rgb: one warning line
+    naming both variants and the folder, stage 2's record keeps both backends, and the
+    report names each stage's backend instead of showing the last call's as everyone's."""
+    from mi_shadowgs.io.provenance import device_name
+
+    run = _copy(finished, tmp_path)
+    gpu = {"variant": "cuda_ad_rgb", "device": "NVIDIA H200", "mi_shadowgs": "abc"}
+    _edit_manifest(run / "geometry", made_with=[gpu])
+    _edit_manifest(run / "segmentation", made_with=[gpu], complete=False)  # killed there
+    shutil.rmtree(run / "material" / "full")  # not made yet
+    capsys.readouterr()
+    assert cli.main(["run", str(data[0]), "--out", str(run), "--no-progress"]) == 0
+    err = without_few_views_warning(capsys.readouterr().err)
+    warnings = [ln for ln in err.splitlines() if "warning" in ln]
+    assert len(warnings) == 1, err
+    assert f"{run / 'segmentation'}: continued on llvm_ad_rgb from work that cuda_ad_rgb " \
+        "made" in warnings[0]
+    assert f"made on llvm_ad_rgb from {run / 'geometry' / 'model.ply'}, which cuda_ad_rgb " \
+        "made" in warnings[0]
+    made = {stage: json.loads((run / stage / MANIFEST_NAME).read_text())["made_with"]
+            for stage in STAGES}
+    assert [e["variant"] for e in made["segmentation"]] == ["cuda_ad_rgb", "llvm_ad_rgb"]
+    assert [e["variant"] for e in made["material/full"]] == ["llvm_ad_rgb"]
+    prov = _report_provenance(run)
+    assert prov["variant"] == ("cuda_ad_rgb (geometry, segmentation), "
+                               "llvm_ad_rgb (segmentation, material/full)")
+    assert prov["device"] == ("NVIDIA H200 (geometry, segmentation), "
+                              f"{device_name('llvm_ad_rgb')} (segmentation, material/full)")
+    assert json.loads((run / "summary.json").read_text())["variant"] == prov["variant"]
+    assert cli.main(["report", str(run)]) == 0
+    assert "cuda_ad_rgb (geometry, segmentation)" in (run / "report.html").read_text()
+
+
+def test_train_resumed_on_another_backend_warns_and_records_both(data, tmp_path, capsys):
+    """`train --resume` of a stage 1 begun on cuda_ad_rgb (simulated), here on llvm_ad_rgb:
+    it goes on from the checkpoint with one warning line naming both variants and the
+    folder, and the manifest records both backends."""
+    run = tmp_path / "run"
+    argv = ["train", str(data[0]), "--out", str(run), "--no-eval", "--no-progress"]
+    assert cli.main(argv) == 0
+    gpu = {"variant": "cuda_ad_rgb", "device": "NVIDIA H200", "mi_shadowgs": "abc"}
+    _edit_manifest(run / "geometry", made_with=[gpu], complete=False)
+    capsys.readouterr()
+    assert cli.main([*argv, "--resume"]) == 0
+    err = without_few_views_warning(capsys.readouterr().err)
+    warnings = [ln for ln in err.splitlines() if "warning" in ln]
+    assert warnings == [f"mi-shadowgs: warning: {run / 'geometry'}: continued on llvm_ad_rgb "
+                        "from work that cuda_ad_rgb made (its checkpoint and files so far); its "
+                        "manifest records both (results of the two backends differ at "
+                        "round-off level)"], err
+    made = json.loads((run / "geometry" / MANIFEST_NAME).read_text())["made_with"]
+    assert [e["variant"] for e in made] == ["cuda_ad_rgb", "llvm_ad_rgb"]
+
+
 def test_a_stage_1_trained_without_its_evaluation_is_evaluated_by_run(data, tmp_path):
     """`train --no-eval` then `run` into the same folder: stage 1 is reused and evaluated
     then, so the run's summary and report have stage 1."""

@@ -69,6 +69,40 @@ def warn(message: str) -> None:
     print(f"mi-shadowgs: warning: {message}", file=sys.stderr)
 
 
+def warn_other_backend(out: Output, made_from: str | Path | None = None) -> None:
+    """One warning line when ``out`` is made now on another Mitsuba variant than what it
+    goes on from: its own files so far (a stage resumed from a checkpoint made on
+    ``cuda_ad_rgb``, now on ``llvm_ad_rgb``), or the earlier stage's file ``made_from`` (a
+    run's stage 2 made on another backend than its stage 1). The backends' results differ at
+    round-off level, as two Dr.Jit thread counts do, so the work goes on; the manifests
+    record each backend (``made_with``) and the run's report names them. Outputs from before
+    the record say nothing. Call it once the output is to be written, not when reused."""
+    import mitsuba as mi
+
+    from mi_shadowgs.io.provenance import read_manifest, recorded_variants
+
+    now = mi.variant()
+    said = []
+    before = recorded_variants({"made_with": out.made_before})
+    if before and before[-1] != now:
+        said.append(f"continued on {now} from work that {before[-1]} made (its checkpoint "
+                    "and files so far); its manifest records both")
+    if made_from is not None:
+        made_from = Path(made_from)
+        try:
+            earlier = read_manifest(made_from.parent)
+        except (OSError, ValueError):
+            earlier = None  # not ours to judge here; the stage's own checks say so
+        if earlier and made_from.name in earlier["files"]:
+            variants = recorded_variants(earlier)
+            if variants and now not in variants:
+                said.append(f"made on {now} from {made_from}, which {' and '.join(variants)} "
+                            "made")
+    if said:
+        warn(f"{out.folder}: " + "; ".join(said) + " (results of the two backends differ at "
+             "round-off level)")
+
+
 def load_training_views(data: str | Path):
     """The training split, with a warning when it has fewer views than the method needs."""
     from mi_shadowgs.dataset.loader import load_dataset

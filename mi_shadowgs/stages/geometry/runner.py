@@ -16,7 +16,13 @@ import numpy as np
 from mi_shadowgs.dataset.fingerprint import dataset_ref
 from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.io.provenance import Output, Provenance
-from mi_shadowgs.stages.common import StageRun, load_training_views, settings_dict, warn
+from mi_shadowgs.stages.common import (
+    StageRun,
+    load_training_views,
+    settings_dict,
+    warn,
+    warn_other_backend,
+)
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
               "surfels", "time")
@@ -125,6 +131,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
         if reuse and out.complete:
             if not evaluate or (folder / "metrics.json").is_file():
                 return StageRun(folder, False, 0.0, "")
+            warn_other_backend(out)
             # Trained without its evaluation (`train --no-eval`): evaluated now, so that a
             # run's summary and report have stage 1.
             out.claim("metrics.json")
@@ -132,6 +139,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
                                   on_test_view)
             out.finish()
             return StageRun(folder, False, 0.0, line)
+        warn_other_backend(out)
         state = None
         ckpt_dir = folder / "checkpoint"
         if out.reused and has_checkpoint(ckpt_dir):

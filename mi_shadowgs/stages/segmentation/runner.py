@@ -21,6 +21,7 @@ from mi_shadowgs.stages.common import (
     checkpoint_hooks,
     load_training_views,
     settings_dict,
+    warn_other_backend,
 )
 
 # Chromaticity masks: labels below this share of the labelled pixels do not count for K
@@ -103,6 +104,7 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     if out.complete:
         return StageRun(folder, False, 0.0, f"segment: {folder} is finished, with the same "
                         "dataset, model and settings; nothing to do")
+    warn_other_backend(out, made_from=model)
     t0 = time.perf_counter()
     label_maps = masks_mod.masks_for(train, masks, mask_config)
     t_masks = time.perf_counter() - t0
