@@ -492,9 +492,6 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     if speed:
         summary["tables"].append(speed)
     summary["provenance"] = _provenance(run, config, mi.variant())
-    # the backend(s) that made the stages, as the provenance names them
-    summary["variant"] = next(p["value"] for p in summary["provenance"]
-                              if p["name"] == "variant")
     full = run / "material" / "full"
     if (full / "grid.json").is_file():
         grid = json.loads((full / "grid.json").read_text())
