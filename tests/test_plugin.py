@@ -306,7 +306,6 @@ def test_params_update_to_a_model_it_cannot_draw_is_named(model_path):
         params.update()
 
 
-
 def _with(value, row, col, x):
     """``value`` (a traversed parameter) with entry [row, col] set to ``x``."""
     a = np.array(value)
