@@ -341,6 +341,14 @@ def _zero_quaternion(value, row, scale):
     # |q|^2 = 4e-60 underflows float32: the kernels drew it as the identity, like a zero.
     pytest.param("rotation", lambda v: _zero_quaternion(v, 9, 1e-30),
                  r"zero quaternion .* at vertex 9", id="1e-30-quaternion"),
+    # exp(-100) is 0 in float32 (a surfel of no extent), exp(30) is over 1e12: the PLY
+    # reader refuses both.
+    pytest.param("log_scale", lambda v: _with(v, 6, 1, -100.0),
+                 r"'log_scale\[:, 1\]' holds a log-scale whose exp is zero .* at vertex 6",
+                 id="log_scale-under"),
+    pytest.param("log_scale", lambda v: _with(v, 4, 0, 30.0),
+                 r"'log_scale\[:, 0\]' holds a log-scale above 27.63 .* at vertex 4",
+                 id="log_scale-over"),
 ])
 @pytest.mark.parametrize("traversed", ["scene", "integrator"])
 def test_params_update_refuses_nan_inf_and_zero_quaternions(model_path, key, change, match,
@@ -390,6 +398,36 @@ def test_a_finite_params_update_renders_and_differentiates(model_path):
         # Same AD graph; only the order of float atomic adds may differ.
         np.testing.assert_allclose(got[k], ref[k], rtol=0, atol=1e-5 * max(scale, 1e-12),
                                    err_msg=k)
+
+
+def test_a_refused_params_update_leaves_the_accepted_values(model_path):
+    """Mitsuba writes the new values into the parameters before parameters_changed sees
+    them: a refused update used to leave the NaN in the integrator, drawn at the next
+    render. Now the values of the last accepted update stand, and the next good update is
+    taken."""
+    scene = mi.load_string(_scene_xml(model_path))
+    params = mi.traverse(scene)
+    before = np.asarray(mi.render(scene)).copy()
+    original = {k: np.array(params[k]) for k in params.keys() if k.startswith("surf.")}
+    moved = _with(params["surf.position"], 3, 0, 0.05 + original["surf.position"][0, 3])
+    params["surf.position"] = moved
+    params.update()
+    accepted = np.asarray(mi.render(scene)).copy()
+    assert not np.array_equal(accepted, before)
+    params["surf.position"] = _with(params["surf.position"], 7, 1, np.nan)
+    params["surf.channels.sh"] = mi.TensorXf(np.zeros((40, 5), np.float32))
+    with pytest.raises(ValueError, match="'position' holds NaN at vertex 7"):
+        params.update()
+    np.testing.assert_array_equal(np.array(params["surf.position"]), np.array(moved))
+    assert params["surf.channels.sh"].shape == tuple(original["surf.channels.sh"].shape)
+    np.testing.assert_array_equal(np.asarray(mi.render(scene)), accepted)
+    # The next update that is good is taken, from the accepted values.
+    params["surf.opacity_logit"] = mi.Float(np.full(40, -2.0, np.float32))
+    params.update()
+    np.testing.assert_array_equal(np.array(params["surf.position"]), np.array(moved))
+    after = np.asarray(mi.render(scene))
+    assert np.abs(after - accepted).max() > 1e-3
+
 
 def test_sh_space_turns_display_sh_linear(tmp_path):
     """`sh_space` (default: the PLY's record, else linear): another tool's display SH given

@@ -17,6 +17,8 @@ import numpy as np
 
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.surfel_checks import (
+    LOG_SCALE_MAX,
+    LOG_SCALE_MIN,
     QUAT_NORM_MIN,
     check_finite,
     check_log_scale,
@@ -96,6 +98,19 @@ class Surfels:
         replacing) this one's; this set is left as it is."""
         return dataclasses.replace(self, channels={**self.channels, **channels})
 
+    def subset(self, keep: np.ndarray) -> Surfels:
+        """A new set of the surfels where ``keep`` [N] (bool) is True, in their order."""
+        keep = np.asarray(keep, bool).reshape(-1)
+        if len(keep) != self.count:
+            raise ValueError(f"Surfels.subset: keep has {len(keep)} entries for "
+                             f"{self.count} surfels")
+        rows = np.flatnonzero(keep)
+        index = mi.UInt32(rows.astype(np.uint32))
+        geometry = {k: dr.gather(type(v), v, index) for k, v in self.params().items()
+                    if not k.startswith("channels.")}
+        channels = {k: mi.TensorXf(np.asarray(t)[rows]) for k, t in self.channels.items()}
+        return Surfels(**geometry, channels=channels)
+
     # -- activations ------------------------------------------------------------------
     def scale(self) -> mi.Point2f:
         """Activated tangent standard deviations [N] (exp of log_scale)."""
@@ -138,7 +153,8 @@ class Surfels:
 
     def check_params(self, where: str, keys=None) -> None:
         """Refuse non-finite values in the raw parameters ``keys`` (names of :meth:`params`;
-        default all) and zero quaternions, as a PLY's are refused on reading
+        default all), log-scales out of float32's range and zero quaternions, as a PLY's are
+        refused on reading
         (``mi_shadowgs.core.surfel_checks``): a ValueError from ``where`` naming the
         parameter, the first bad row and the number of bad rows.
 
@@ -163,6 +179,9 @@ class Surfels:
                 else:
                     m = ~dr.isfinite(v)
                     row_bad |= dr.any(m, axis=0) if dr.depth_v(m) > 1 else m  # any component
+            if "log_scale" in names:
+                ls = self.log_scale
+                row_bad |= dr.any((ls < LOG_SCALE_MIN) | (ls > LOG_SCALE_MAX), axis=0)
             if "rotation" in names:
                 # float32 |q|^2 of |q| = 1e-12 is 1e-24, a normal number: the same test
                 # as the float64 one below to rounding.
@@ -174,6 +193,10 @@ class Surfels:
         # rounding of the threshold) the parameters stand.
         for k in names:
             check_finite(where, k, self._rows(params[k]))
+        if "log_scale" in names:
+            rows = self._rows(self.log_scale)
+            for i in range(2):
+                check_log_scale(where, f"log_scale[:, {i}]", rows[:, i])
         if "rotation" in names:
             check_quaternion(where, "rotation (w, x, y, z)", self._rows(self.rotation))
 

@@ -42,11 +42,13 @@ scene), and `mi.render(scene, params)` differentiates through them (`render_forw
 (`N`), set all of them before `params.update()`. `params.update()` refuses a NaN or Inf in
 any parameter it is given and a zero quaternion (`|q| < 1e-12`), as the PLY reader does: a
 `ValueError` naming the parameter and its first bad row (`surfel_raster: params.update():
-field 'position' holds NaN at vertex 7 (1 of 40 vertices)`). Unchecked, the rasterizer
-drew most such surfels as nothing, a NaN or zero quaternion as the identity, and a +Inf SH
-coefficient or a non-finite AOV channel as NaN pixels, without a word. The check reads
-only the changed parameters, outside the AD graph, and waits for one value from the device
-per update.
+field 'position' holds NaN at vertex 7 (1 of 40 vertices)`), and puts back the values of
+the last accepted update (or the file's), so the integrator goes on drawing those. It also
+refuses a log-scale whose exp is zero or above 1e12 in float32, as the reader does.
+Unchecked, the rasterizer drew most such surfels as nothing, a NaN or zero quaternion as
+the identity, and a +Inf SH coefficient or a non-finite AOV channel as NaN pixels, without
+a word. The check reads only the changed parameters, outside the AD graph, and waits for
+one value from the device per update.
 
 **Film channels.** `mi.render` returns `[H, W, C]`: the film's base channels (`R, G, B` and
 `A` with `pixel_format="rgba"`, or `Y`/`Y, A` for luminance formats), then the AOVs named
@@ -141,6 +143,7 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
             raise ValueError(f"surfel_raster ({self.filename}): property 'sh_space' must be "
                              f"one of {', '.join(ply.SH_SPACES)}, got {sh_space!r}")
         self.surfels = ply.load_ply(self.filename, sh_space)
+        self._accept_params()
         self.color_channel = str(props.get("color_channel", core_render.DEFAULT_COLOR_CHANNEL))
         aovs = str(props.get("aovs", ""))
         self.aovs = tuple(a.strip() for a in aovs.split(",") if a.strip())
@@ -173,7 +176,25 @@ class SurfelRasterIntegrator(mi.SamplingIntegrator):
         for key, value in self.surfels.params().items():
             callback.put(key, value, mi.ParamFlags.Differentiable)
 
+    def _accept_params(self) -> None:
+        """Keep references to the parameters as they are now, the values a refused update
+        goes back to. No copy: an update replaces the arrays' variables, it does not write
+        into them."""
+        self._accepted = {k: type(v)(v) for k, v in self.surfels.params().items()}
+
     def parameters_changed(self, keys):
+        try:
+            self._check_params(keys)
+        except ValueError:
+            # Mitsuba has already written the new values into the parameters: put the
+            # accepted ones back, so that the integrator draws what it drew before.
+            current = self.surfels.params()
+            for key, value in self._accepted.items():
+                mi.set_property(current[key], value)
+            raise
+        self._accept_params()
+
+    def _check_params(self, keys) -> None:
         n = self.surfels.count
         if n == 0:  # the rasterizer has nothing to draw and fails without a name
             raise ValueError("surfel_raster: parameter 'position' has 0 entries; a model needs "
