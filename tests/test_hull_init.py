@@ -1,5 +1,6 @@
-"""Stage 1's visual-hull initialisation (stages/geometry/train.py): the cube every view
-sees (``view_radius``) against a float64 reference, and no hull point that no view sees."""
+"""Stage 1's visual hull (stages/geometry/train.py): the initialisation's cube every view
+sees (``view_radius``) against a float64 reference, no hull point that no view sees, and the
+prune after training (``prune_outside_masks``) against the sphere's exact silhouettes."""
 
 from __future__ import annotations
 
@@ -98,3 +99,105 @@ def test_points_without_points_names_what_is_missing():
     config = dataclasses.replace(train.get_config("cpu-small"), init="points")
     with pytest.raises(ValueError, match="init 'points' needs the dataset's SfM points"):
         train.init_params(views, config)
+
+
+# -- the prune after training ---------------------------------------------------------------
+def _miss_distances(views, points: np.ndarray) -> np.ndarray:
+    """[V, M] float64: the distance from the origin of the line from each view's camera
+    through each point: the point is in the sphere's silhouette when it is < SPHERE_RADIUS."""
+    out = []
+    for v in views:
+        d = points - v.camera.origin[None]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        t = -(v.camera.origin[None] * d).sum(1)
+        out.append(np.linalg.norm(v.camera.origin[None] + t[:, None] * d, axis=1))
+    return np.array(out)
+
+
+def _surfels_at(points: np.ndarray):
+    from mi_shadowgs.core.surfels import Surfels
+
+    n = len(points)
+    rng = np.random.default_rng(3)
+    return Surfels.from_numpy(points, np.full((n, 2), 0.01), rng.normal(size=(n, 4)),
+                              np.full(n, 0.5), {"rgb": rng.random((n, 3))})
+
+
+def test_outside_mask_votes_follow_the_silhouettes():
+    """Each view's vote against the exact silhouette of the sphere: a point whose line of
+    sight misses the sphere by more than 3 px (at the sphere's depth) must get the vote of
+    the 1-px dilated mask, and one that passes within it by 1 px must not; the pixels in
+    between are the rasterised edge's, where either answer is right."""
+    views = _ring_views()
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-1.2, 1.2, (3000, 3))
+    px = 5.0 * 0.6 / 48  # a pixel's width at the sphere's distance (small-angle)
+    miss = _miss_distances(views, pts)  # [V, M]
+    seen = np.array([v.camera.pixel_of(pts)[2] for v in views])  # [V, M]
+    must = (miss > SPHERE_RADIUS + 3 * px) & seen
+    may = (miss > SPHERE_RADIUS - 1 * px) & seen
+    got = train.outside_mask_votes(views, pts, dilate=1)
+    assert np.all(got >= must.sum(0)) and np.all(got <= may.sum(0))
+    assert np.mean(may & ~must) < 0.25  # most pairs are decided (measured: 0.18 are not)
+    assert got.max() >= 20 and (got == 0).sum() > 100  # both kinds are in the draw
+    # Without dilation a vote can only be added, and a view without a mask never votes.
+    assert np.all(train.outside_mask_votes(views, pts, dilate=0) >= got)
+    blind = [dataclasses.replace(v, mask=np.zeros_like(v.mask), has_mask=False) for v in views]
+    assert not train.outside_mask_votes(blind, pts, dilate=1).any()
+
+
+def test_prune_outside_masks_removes_floaters_and_keeps_the_object():
+    views = _ring_views()
+    rng = np.random.default_rng(2)
+    inner = rng.normal(size=(200, 3))
+    inner *= 0.4 / np.linalg.norm(inner, axis=1, keepdims=True)  # on a sphere inside
+    floaters = np.array([[0.0, 0.0, 1.0], [0.9, 0.2, 0.0], [-0.6, -0.7, 0.3]])
+    pts = np.concatenate([inner[:100], floaters, inner[100:]])
+    surfels = _surfels_at(pts)
+    config = dataclasses.replace(train.get_config("cpu-small"), hull_prune_views=2)
+    pruned, removed = train.prune_outside_masks(surfels, views, config)
+    assert removed == 3 and pruned.count == 200
+    got = pruned.to_numpy()
+    want = surfels.to_numpy()
+    keep = np.ones(len(pts), bool)
+    keep[100:103] = False
+    for key in ("position", "scale", "rotation", "opacity", "rgb"):
+        np.testing.assert_allclose(got[key], want[key][keep], rtol=0, atol=1e-7)
+    # Off (the paper): the very same set back.
+    off, n = train.prune_outside_masks(surfels, views, train.get_config("paper"))
+    assert off is surfels and n == 0
+    # One view whose mask lost its left half votes against the object's surfels there:
+    # two views are needed to remove one, so they stay at 2 and go at 1.
+    half = views[0].mask.copy()
+    half[:, :24] = False
+    clipped = [dataclasses.replace(views[0], mask=half)] + views[1:]
+    assert train.prune_outside_masks(surfels, clipped, config)[1] == 3
+    one = dataclasses.replace(config, hull_prune_views=1)
+    xi, _, seen = views[0].camera.pixel_of(pts)
+    left = seen & (xi < 24 - 1)  # the dilation gives the cut edge's column back
+    left[100:103] = True
+    assert 3 < left.sum() < len(pts) and \
+        train.prune_outside_masks(surfels, clipped, one)[1] == int(left.sum())
+    # Masks that nothing agrees with: refused, naming the setting.
+    empty = [dataclasses.replace(v, mask=np.zeros_like(v.mask)) for v in views]
+    with pytest.raises(ValueError, match="GeometryConfig.hull_prune_views 2: every surfel"):
+        train.prune_outside_masks(surfels, empty, config)
+
+
+def test_surfels_subset_keeps_the_rows_asked_for():
+    pts = np.random.default_rng(4).normal(size=(7, 3))
+    surfels = _surfels_at(pts)
+    keep = np.array([1, 0, 0, 1, 1, 0, 1], bool)
+    got, want = surfels.subset(keep).to_numpy(), surfels.to_numpy()
+    for key, value in want.items():
+        np.testing.assert_array_equal(got[key], value[keep])
+    with pytest.raises(ValueError, match="keep has 6 entries for 7 surfels"):
+        surfels.subset(keep[:6])
+
+
+@pytest.mark.parametrize("field, value", [("hull_prune_views", -1), ("hull_prune_dilate", -1)])
+def test_a_prune_setting_below_zero_is_refused(field, value):
+    from mi_shadowgs.config import ConfigError
+
+    with pytest.raises(ConfigError, match=f"GeometryConfig.{field} must be >= 0"):
+        dataclasses.replace(train.get_config("cpu-small"), **{field: value})

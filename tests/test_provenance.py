@@ -654,6 +654,9 @@ def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
     # ... and before the dark-alpha term: off (it acts on views without masks only)
     assert diff(lambda_dark_alpha=0.0, dark_max=1.0 / 255.0) == []
     assert "lambda_dark_alpha" in diff(lambda_dark_alpha=0.1)[0]
+    # ... and before the prune outside the masks: none; its dilation unused then
+    assert diff(hull_prune_views=0, hull_prune_dilate=1) == []
+    assert "hull_prune_views" in diff(hull_prune_views=2, hull_prune_dilate=1)[0]
     # ... and before the choice of depth-normal differences: 2DGS's central ones
     assert diff(normal_depth_differences="central") == []
     assert "normal_depth_differences" in diff(normal_depth_differences="same_plane")[0]

@@ -231,3 +231,51 @@ def test_unmasked_dark_alpha_term_pushes_floaters_over_black_to_transparency():
     assert g - g0 > 1e-4
     terms, gm = _dark_alpha_grad(0.1, has_mask=True)
     assert "dark_alpha" not in terms and gm == pytest.approx(g0, abs=1e-7)
+
+
+def test_the_hull_prune_removes_planted_floaters_and_says_so(tiny, tmp_path, capsys,
+                                                             monkeypatch):
+    """The runner applies ``hull_prune_views`` to the trained model before it saves and
+    evaluates it, records the count in metrics.json and warns when it is over a tenth."""
+    from mi_shadowgs.core.surfels import Surfels
+    from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.stages.geometry.runner import run_geometry
+
+    train = load_dataset(tiny, "train")
+    grid = np.stack(np.meshgrid(*[np.linspace(-3, 3, 17)] * 3), -1).reshape(-1, 3)
+    votes = geometry_train.outside_mask_votes(train.views, grid, dilate=1)
+    floaters = grid[votes >= len(train.views) // 2]  # outside the masks in half the views
+    assert len(floaters) > 10
+    trained = {}
+    train_geometry = geometry_train.train_geometry
+
+    def with_floaters(*args, **kwargs):
+        s = train_geometry(*args, **kwargs)
+        planted = Surfels.from_numpy(floaters, np.full((len(floaters), 2), 0.05),
+                                     np.tile([1.0, 0, 0, 0], (len(floaters), 1)),
+                                     np.full(len(floaters), 0.9),
+                                     {"sh": np.zeros((len(floaters), 3))}).to_numpy()
+        mine = s.to_numpy()
+        trained["n"] = s.count
+        both = {k: np.concatenate([mine[k], planted[k]]) for k in mine}
+        return Surfels.from_numpy(both["position"], both["scale"], both["rotation"],
+                                  both["opacity"], {"sh": both["sh"]})
+
+    monkeypatch.setattr(geometry_train, "train_geometry", with_floaters)
+    config = dataclasses.replace(TINY, iterations=20, hull_prune_views=2)
+    run = run_geometry(tiny, tmp_path / "g", config, preset="cpu-small", progress=False)
+    model = load_ply(tmp_path / "g" / "model.ply").to_numpy()
+    pruned = json.loads((tmp_path / "g" / "metrics.json").read_text())["hull_pruned"]
+    assert len(model["position"]) == trained["n"] + len(floaters) - pruned
+    assert pruned >= len(floaters)  # all of them, and any trained surfel outside too
+    gap = np.linalg.norm(model["position"][:, None] - floaters[None], axis=-1).min()
+    assert gap > 1e-3
+    assert f"{pruned} pruned outside the masks" in run.summary
+    assert len(floaters) > 0.1 * trained["n"]  # ... so it warns
+    assert "more than a tenth" in capsys.readouterr().err
+    # Off, the paper's setting: nothing removed, and no count recorded.
+    run_geometry(tiny, tmp_path / "g0", dataclasses.replace(config, hull_prune_views=0),
+                 preset="cpu-small", progress=False)
+    assert "hull_pruned" not in json.loads((tmp_path / "g0" / "metrics.json").read_text())
+    assert len(load_ply(tmp_path / "g0" / "model.ply").to_numpy()["position"]) == \
+        trained["n"] + len(floaters)

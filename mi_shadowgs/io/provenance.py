@@ -116,11 +116,14 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "outline_weld": 0.25, "sliver_area": 1e-3,  # export: the mesh's welds
                   "min_points": 10,  # import: the SfM points below which cameras set the frame
                   "lambda_ind_floor": 0.0,  # stage 4: no pull on negative indirect light
-                  "sh_space": "linear"}  # render: a PLY's SH read as linear
+                  "sh_space": "linear",  # render: a PLY's SH read as linear
+                  "hull_prune_views": 0,  # stage 1: no prune outside the masks
+                  "hull_prune_dilate": None}  # used only by that prune
 # An ADDED_SETTINGS entry of None is unused while its sibling setting here has the value that
 # does what the older code did: then any value of it counts as before.
 USED_ONLY_WITH = {"silhouette_samples": "k_select", "lr_normal": "normal_steps",
-                  "lambda_normal_prior": "normal_steps", "normal_hold_planar": "normal_steps"}
+                  "lambda_normal_prior": "normal_steps", "normal_hold_planar": "normal_steps",
+                  "hull_prune_dilate": "hull_prune_views"}
 
 
 def _added_as_before(key: str, old: dict, new: dict) -> bool:

@@ -82,7 +82,9 @@ def geometry_line(metrics: dict) -> str:
     return (f"geometry: {metrics['surfels']} surfels; test PSNR {metrics['psnr']:.2f} dB, SSIM "
             f"{metrics['ssim']:.4f}, median normal error {normal}, mask IoU "
             + ("n/a (no masks)" if metrics.get("mask_iou") is None
-               else f"{metrics['mask_iou']:.4f}"))
+               else f"{metrics['mask_iou']:.4f}")
+            + (f"; {metrics['hull_pruned']} pruned outside the masks"
+               if "hull_pruned" in metrics else ""))
 
 
 def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
@@ -102,7 +104,12 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.checkpoint import has_checkpoint, load_checkpoint
     from mi_shadowgs.io.ply import load_ply, save_ply
-    from mi_shadowgs.stages.geometry.train import Callbacks, TrainState, train_geometry
+    from mi_shadowgs.stages.geometry.train import (
+        Callbacks,
+        TrainState,
+        prune_outside_masks,
+        train_geometry,
+    )
 
     if resume and overwrite:
         raise ValueError("--resume continues the stage's files and --overwrite removes them: "
@@ -156,18 +163,29 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
         cb = Callbacks(on_log=writer.on_log, on_preview=writer.on_preview,
                        on_checkpoint=writer.on_checkpoint)
         surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
+        surfels, pruned = prune_outside_masks(surfels, train.views, config)
+        if pruned > 0.1 * (surfels.count + pruned):
+            warn(f"GeometryConfig.hull_prune_views {config.hull_prune_views}: removed "
+                 f"{pruned} of {surfels.count + pruned} surfels, more than a tenth, as "
+                 f"outside the training masks of {data} (do the masks and cameras agree?)")
         save_ply(folder / "model.ply", surfels)
-        line = _write_metrics(folder, surfels, test, config, on_test_view) if evaluate else ""
+        line = _write_metrics(folder, surfels, test, config, on_test_view,
+                              pruned if config.hull_prune_views else None) if evaluate else ""
         out.finish()
     return StageRun(folder, True, time.perf_counter() - t0, line)
 
 
-def _write_metrics(folder: Path, surfels, test, config, on_test_view) -> str:
-    """The model's test metrics into ``folder/metrics.json`` (claimed); their summary line."""
+def _write_metrics(folder: Path, surfels, test, config, on_test_view,
+                   pruned: int | None = None) -> str:
+    """The model's test metrics into ``folder/metrics.json`` (claimed); their summary line.
+    ``pruned``: the surfels ``hull_prune_views`` removed (None: the prune was off, or this
+    is a finished model evaluated later)."""
     from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
 
     m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view)
     m["surfels"] = surfels.count
+    if pruned is not None:
+        m["hull_pruned"] = pruned
     write_json(folder / "metrics.json", m)
     return geometry_line(m)
 

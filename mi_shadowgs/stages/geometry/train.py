@@ -107,6 +107,15 @@ class GeometryConfig:
     # 0.01 left a floater alpha of 0.1 on dark pixels at step 1000 (32.0 / 0.82 at 1056, 0.1:
     # 33.2 / 0.995 at 1276). BENCHMARKS.md, "Without masks" (issue 16).
     unmasked_lambda_dark_alpha: float = 0.1
+    # After training: remove the surfels whose centre projects outside the training masks,
+    # each dilated by ``hull_prune_dilate`` px, in at least ``hull_prune_views`` views
+    # (``prune_outside_masks``); 0 keeps them all, as the paper does. Floaters outside every
+    # mask survive the weak mask loss (0.01) where the base is textured: they covered 2.4%
+    # of the masks' area on the default object on a textured mat and drew bright streaks
+    # in relit views; the prune took them to 0.27% (BENCHMARKS.md, "Session 40: a textured
+    # base's texture goes into the indirect light"). Views without masks do not vote.
+    hull_prune_views: int = 0
+    hull_prune_dilate: int = 1
     # Reporting (the loop reads losses back only at these intervals).
     log_every: int = 100
     preview_every: int = 2000
@@ -135,6 +144,8 @@ class GeometryConfig:
             ("init_consistent_fraction", 0 <= self.init_consistent_fraction <= 1, "in [0, 1]"),
             ("init_consistent_top", 0 < self.init_consistent_top <= 1, "in (0, 1]"),
             ("init_scale_factor", self.init_scale_factor > 0, "> 0"),
+            ("hull_prune_views", self.hull_prune_views >= 0, ">= 0 (0: no prune)"),
+            ("hull_prune_dilate", self.hull_prune_dilate >= 0, ">= 0 (pixels)"),
             ("log_every", self.log_every >= 1, ">= 1"),
             ("preview_every", self.preview_every >= 1, ">= 1"),
             ("checkpoint_every", self.checkpoint_every >= 1, ">= 1"),
@@ -706,6 +717,46 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
                 cb.on_step(state.step)
     final = model_surfels({k: dr.detach(v) for k, v in opt.params.items()})
     return final
+
+
+# -- after training ----------------------------------------------------------------------------
+def outside_mask_votes(views, points: np.ndarray, dilate: int) -> np.ndarray:
+    """[M] int: for points [M, 3], the number of masked views that see each point (in front,
+    inside the image) at a pixel outside the view's mask dilated by ``dilate`` px (a square
+    structuring element, so the mask's edge pixels and their neighbours count as in)."""
+    from scipy.ndimage import binary_dilation
+
+    votes = np.zeros(len(points), np.int64)
+    for view in views:
+        if not getattr(view, "has_mask", True):
+            continue
+        mask = np.asarray(view.mask, bool)
+        if dilate:
+            mask = binary_dilation(mask, np.ones((3, 3), bool), iterations=dilate)
+        xi, yi, inside = view.camera.pixel_of(points)
+        votes[inside] += ~mask[yi[inside], xi[inside]]
+    return votes
+
+
+def prune_outside_masks(surfels: Surfels, views, config: GeometryConfig
+                        ) -> tuple[Surfels, int]:
+    """(the surfels whose centre falls outside the masks in fewer than
+    ``config.hull_prune_views`` views, the number removed). A no-op when that is 0.
+
+    A surfel no mask covers has no support in any photo: the mask loss pushes it towards
+    transparency, but at its weight (0.01) some stay, where the base around them is
+    textured, as floaters along the masks' outline. Two views, not one, so that a
+    surfel on the object that one view's mask clips by a pixel stays."""
+    if config.hull_prune_views == 0:
+        return surfels, 0
+    pos = np.asarray(surfels.position, np.float64).reshape(3, -1).T  # [N, 3]
+    keep = outside_mask_votes(views, pos, config.hull_prune_dilate) < config.hull_prune_views
+    removed = int(len(keep) - keep.sum())
+    if not keep.any():
+        raise ValueError(f"GeometryConfig.hull_prune_views {config.hull_prune_views}: every "
+                         "surfel falls outside the training masks in that many views (do "
+                         "the masks and cameras agree?); set it to 0 to keep them")
+    return (surfels.subset(keep) if removed else surfels), removed
 
 
 # -- evaluation ---------------------------------------------------------------------------------
