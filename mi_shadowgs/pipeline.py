@@ -707,15 +707,16 @@ def _speed_table(metrics: dict, dataset: dict) -> dict | None:
 
 def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
     """Commit, versions, variant, device and settings of the run, with links to the
-    stages' resolved settings (manifests, config files). Variant, device and Dr.Jit threads
-    are this call's, unless the stages' manifests record others (``made_with``: a stage made
-    or resumed on another backend): then each value names the stages it made."""
+    stages' resolved settings (manifests, config files). Commit, variant, device and Dr.Jit
+    threads are this call's, unless the stages' manifests record others (``made_with``: a
+    stage made or resumed on another backend or by another commit): then each value names
+    the stages it made."""
     import platform
 
     import drjit as dr
     import mitsuba as mi
 
-    from mi_shadowgs.io.provenance import MANIFEST_NAME, device_name, git_commit
+    from mi_shadowgs.io.provenance import MANIFEST_NAME, device_name, made_with
 
     made = _stage_backends(run)
     threads = dr.thread_count() if variant.startswith("llvm") else None
@@ -723,7 +724,8 @@ def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
                for name, key, now in (("variant", "variant", variant),
                                       ("device", "device", device_name(variant)),
                                       ("Dr.Jit threads", "threads", threads))]
-    out = [{"name": "commit", "value": git_commit()},
+    commit = _per_stage(made, "mi_shadowgs", made_with()["mi_shadowgs"])
+    out = [{"name": "commit", "value": commit},
            {"name": "Mitsuba", "value": mi.__version__},
            {"name": "Dr.Jit", "value": dr.__version__},
            {"name": "Python", "value": platform.python_version()},
@@ -756,9 +758,10 @@ def _stage_backends(run: Path) -> list[tuple[str, list[dict]]]:
 
 
 def _per_stage(made: list[tuple[str, list[dict]]], key: str, now):
-    """The report's value of ``key`` (variant, device, threads): ``now`` (this call's) when
-    every stage's record agrees with it or none has one, else each recorded value with the
-    stages it made: "cuda_ad_rgb (geometry), llvm_ad_rgb (segmentation, material/full)"."""
+    """The report's value of ``key`` (variant, device, threads, mi_shadowgs's commit):
+    ``now`` (this call's) when every stage's record agrees with it or none has one, else
+    each recorded value with the stages it made: "cuda_ad_rgb (geometry), llvm_ad_rgb
+    (segmentation, material/full)"."""
     seen: dict = {}
     for stage, entries in made:
         for entry in entries:

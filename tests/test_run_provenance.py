@@ -312,7 +312,7 @@ def test_a_stage_resumed_or_made_on_another_backend_warns_and_the_report_names_e
     (simulated: their records edited; no GPU here) goes on on llvm_ad_rgb: one warning line
     naming both variants and the folder, stage 2's record keeps both backends, and the
     report names each stage's backend instead of showing the last call's as everyone's."""
-    from mi_shadowgs.io.provenance import device_name
+    from mi_shadowgs.io.provenance import device_name, made_with
 
     run = _copy(finished, tmp_path)
     gpu = {"variant": "cuda_ad_rgb", "device": "NVIDIA H200", "mi_shadowgs": "abc"}
@@ -337,6 +337,9 @@ def test_a_stage_resumed_or_made_on_another_backend_warns_and_the_report_names_e
                                "llvm_ad_rgb (segmentation, material/full)")
     assert prov["device"] == ("NVIDIA H200 (geometry, segmentation), "
                               f"{device_name('llvm_ad_rgb')} (segmentation, material/full)")
+    # ... and the commit that made each (the report showed this call's as everyone's)
+    assert prov["commit"] == (f"abc (geometry, segmentation), {made_with()['mi_shadowgs']} "
+                              "(segmentation, material/full)")
     # summary.json's "variant" stays this call's, a name other tools can read
     assert json.loads((run / "summary.json").read_text())["variant"] == "llvm_ad_rgb"
     assert cli.main(["report", str(run)]) == 0
