@@ -236,12 +236,21 @@ def test_interrupted_relight_continues_with_the_missing_views(tiny_run, tiny_pre
     assert "interrupted by SIGINT; run the same command again to continue" in \
         capsys.readouterr().err
     assert (out / "orbit_002.exr").is_file() and not (out / "orbit_002.png").exists()
+    # The first call ran on cuda_ad_rgb (simulated: its record edited; no GPU here): its
+    # views stay, and one warning line says the folder mixes two backends.
+    from mi_shadowgs.io.provenance import MANIFEST_NAME
+
+    manifest = json.loads((out / MANIFEST_NAME).read_text())
+    manifest["made_with"] = [{"variant": "cuda_ad_rgb", "device": "NVIDIA H200"}]
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest))
     real_view, frames = relight.relight_view, []
     monkeypatch.setattr(relight, "relight_view",
                         lambda *a, **k: frames.append(1) or real_view(*a, **k))
     assert relight_to(out) == 0
     assert len(frames) == 3  # views 2, 3 and 4
-    assert "the other 2 were there from an earlier call" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "the other 2 were there from an earlier call" in captured.out
+    assert f"{out}: continued on llvm_ad_rgb from work that cuda_ad_rgb made" in captured.err
     info = json.loads((out / "relight.json").read_text())
     assert info["rendered_views"] == ["orbit_002", "orbit_003", "orbit_004"]
     assert len(info["frame_seconds"]) == 3 and info["video"] == \

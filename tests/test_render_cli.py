@@ -242,10 +242,17 @@ def test_interrupted_render_continues_with_the_missing_views(setup, tmp_path, ca
     assert "interrupted by SIGINT; run the same command again to continue" in \
         capsys.readouterr().err
     assert (out / "v_2.exr").is_file() and not (out / "v_2.png").exists()
+    # The first call ran on cuda_ad_rgb (simulated: its record edited; no GPU here): the
+    # views it left stay, and one warning line says the folder mixes two backends.
+    manifest = json.loads((out / MANIFEST_NAME).read_text())
+    manifest["made_with"] = [{"variant": "cuda_ad_rgb", "device": "NVIDIA H200"}]
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest))
     rendered = _counted(monkeypatch, surfel_render, "render_surfels")
     assert _render(root, out, "--aov", "depth", cameras=many) == 0
     assert len(rendered) == 3  # views 2, 3 and 4
-    assert "the other 2 were there from an earlier call" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "the other 2 were there from an earlier call" in captured.out
+    assert f"{out}: continued on llvm_ad_rgb from work that cuda_ad_rgb made" in captured.err
     _same_views(out, tmp_path / "whole")
     # Finished: the same command renders nothing; other settings are refused by name.
     assert _render(root, out, "--aov", "depth", cameras=many) == 0

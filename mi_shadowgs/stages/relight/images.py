@@ -101,6 +101,7 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
     from mi_shadowgs.dataset.loader import load_cameras
     from mi_shadowgs.io.ply import load_ply, sh_space_of
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
+    from mi_shadowgs.stages.common import warn_other_backend
 
     model = Path(model)
     if not model.is_file():
@@ -130,6 +131,7 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
         if output.complete:
             return RenderResult(output.folder, len(views), surfels.count, 0)
         output.claim(*(f"{stem}{suffix}" for stem in stems for suffix in suffixes))
+        warn_other_backend(output)  # views of an earlier call on another backend stay
         todo = missing_views(output.folder, stems, suffixes)
         _render(output.folder, surfels, [(stems[i], views[i][1]) for i in todo], len(stems),
                 aovs, background, color_channel, raster, progress)

@@ -21,7 +21,7 @@ import numpy as np
 from mi_shadowgs.config import recorded_config
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
-from mi_shadowgs.stages.common import warn
+from mi_shadowgs.stages.common import warn, warn_other_backend
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.relight.evaluate import fit_from_files
 from mi_shadowgs.stages.visibility import shadow_maps
@@ -392,6 +392,7 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
             return RelightResult(output.folder, len(names), light_set.count, frame_stats([]),
                                  movie, info.get("video_note"), 0)
         output.claim(*(f"{n}{x}" for n in names for x in suffixes), "relight.json")
+        warn_other_backend(output)  # views of an earlier call on another backend stay
         todo = missing_views(output.folder, names, suffixes)
         seconds = []
         for j, img, secs in relight_frames(run_fit, [named[i][1] for i in todo], light_set,
