@@ -58,6 +58,9 @@ class RunConfig:
     bounds_quantile: float = 0.98  # shadow-map bound: this quantile of surfel distances
     figure_views: int = 4  # test views shown in the report's figure grid
     material_iterations: int | None = None  # override of the stage-4 preset
+    # Override of stage 1's hull_prune_views (None: the preset's, 0 in every preset): remove
+    # the surfels outside the training masks in this many views after stage 1.
+    prune_outside_masks: int | None = None
     segments: int | None = None  # stage 2's K; None: the segmentation settings choose it
     # The seed of every stage's random draws: stage 1's initial points, view order and
     # densification, stage 2's features and K-means, stage 4's view order. Runs at other
@@ -76,7 +79,9 @@ class RunConfig:
                             ("bounds_quantile", 0 < self.bounds_quantile <= 1, "in (0, 1]"),
                             ("figure_views", self.figure_views >= 1, ">= 1"),
                             ("material_iterations", self.material_iterations is None
-                             or self.material_iterations >= 0, ">= 0 or None")))
+                             or self.material_iterations >= 0, ">= 0 or None"),
+                            ("prune_outside_masks", self.prune_outside_masks is None
+                             or self.prune_outside_masks >= 0, ">= 0 or None")))
 
 
 PRESETS = {
@@ -268,9 +273,12 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
                      compare=("dataset",), inputs=[data],
                      parts=("geometry", "segmentation", "material")) as top:
         top.add_part("geometry")
+        geo_overrides = {"seed": config.seed}
+        if config.prune_outside_masks is not None:
+            geo_overrides["hull_prune_views"] = config.prune_outside_masks
         geo = geometry.run_geometry(data, run / "geometry",
                                     dataclasses.replace(geometry.get_config(config.preset),
-                                                        seed=config.seed),
+                                                        **geo_overrides),
                                     preset=config.preset, reuse=True, overwrite=overwrite,
                                     progress=progress, train=train, test=test)
         done("geometry", geo)

@@ -279,3 +279,42 @@ def test_the_hull_prune_removes_planted_floaters_and_says_so(tiny, tmp_path, cap
     assert "hull_pruned" not in json.loads((tmp_path / "g0" / "metrics.json").read_text())
     assert len(load_ply(tmp_path / "g0" / "model.ply").to_numpy()["position"]) == \
         trained["n"] + len(floaters)
+
+
+def test_prune_outside_masks_reaches_stage_1_from_train_and_run(tiny, tmp_path, capsys,
+                                                                monkeypatch):
+    """`train --prune-outside-masks N` and `run --prune-outside-masks N` (and api.run's
+    prune_outside_masks) set stage 1's hull_prune_views; a value below 0 exits 2 naming
+    the setting before anything is trained."""
+    monkeypatch.setitem(geometry_train.PRESETS, "cpu-small",
+                        dataclasses.replace(TINY, iterations=20))
+    run = tmp_path / "run"
+    argv = ["train", str(tiny), "--out", str(run), "--no-progress"]
+    assert cli.main([*argv, "--prune-outside-masks", "2"]) == 0
+    config = json.loads((run / "geometry" / "config.json").read_text())["config"]
+    assert config["hull_prune_views"] == 2
+    assert "hull_pruned" in json.loads((run / "geometry" / "metrics.json").read_text())
+    assert "pruned outside the masks" in capsys.readouterr().out
+    assert cli.main([*argv[:3], str(tmp_path / "r2"), "--prune-outside-masks", "-1"]) == 2
+    assert "GeometryConfig.hull_prune_views must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "r2").exists()
+    # run: the override goes into stage 1's config (the stage is stopped there).
+    from mi_shadowgs import api
+    from mi_shadowgs.stages import geometry as geometry_stage
+
+    seen = []
+
+    def stop(data, folder, config, **kwargs):
+        seen.append(config)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(geometry_stage, "run_geometry", stop)
+    with pytest.raises(KeyboardInterrupt):
+        api.run(tiny, tmp_path / "r3", prune_outside_masks=3)
+    assert seen[-1].hull_prune_views == 3 and seen[-1].hull_prune_dilate == 1
+    with pytest.raises(KeyboardInterrupt):
+        cli.main(["run", str(tiny), "--out", str(tmp_path / "r4"), "--no-progress"])
+    assert seen[-1].hull_prune_views == 0  # the preset's
+    assert cli.main(["run", str(tiny), "--out", str(tmp_path / "r5"), "--no-progress",
+                     "--prune-outside-masks", "-2"]) == 2
+    assert "RunConfig.prune_outside_masks must be >= 0 or None" in capsys.readouterr().err

@@ -36,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "another seed shows how far its figures move by chance")
     parser.add_argument("--material-iterations", type=int, default=None,
                         help="override the stage-4 iteration count")
+    parser.add_argument("--prune-outside-masks", type=int, default=None, metavar="N",
+                        help="after stage 1, remove the surfels whose centre falls outside "
+                             "the training masks (dilated 1 px) in at least N views: floaters "
+                             "along a textured base's outline (default: the preset's, 0: off)")
     parser.add_argument("--preview-envmap", action="append", default=None, metavar="PATH",
                         help="env map (.exr, or a folder of them) for the report's relit "
                              "previews, beside the dataset's own (repeatable; default: "
@@ -59,6 +63,8 @@ def run(args) -> int:
         overrides["material_iterations"] = args.material_iterations
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.prune_outside_masks is not None:
+        overrides["prune_outside_masks"] = args.prune_outside_masks
     envmaps = args.preview_envmap
     source = "--preview-envmap"
     if envmaps is None and os.environ.get("MI_SHADOWGS_ENVMAPS"):

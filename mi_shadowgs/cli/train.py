@@ -24,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="cpu-small",
                         help=f"stage 1's preset: {', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--iterations", type=int, default=None, help="override the preset")
+    parser.add_argument("--prune-outside-masks", type=int, default=None, metavar="N",
+                        help="after stage 1, remove the surfels whose centre falls outside "
+                             "the training masks (dilated 1 px) in at least N views: floaters "
+                             "along a textured base's outline (default: the preset's, 0: off)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the stage's last checkpoint (from step 0 when "
                              "it was stopped before its first)")
@@ -39,8 +43,12 @@ def run(args) -> int:
     from mi_shadowgs.stages.geometry.train import get_config
 
     config = get_config(args.preset)
+    overrides = {}
     if args.iterations is not None:
-        config = with_overrides(config, {"iterations": args.iterations}, "geometry")
+        overrides["iterations"] = args.iterations
+    if args.prune_outside_masks is not None:
+        overrides["hull_prune_views"] = args.prune_outside_masks
+    config = with_overrides(config, overrides, "geometry")
     result = run_geometry(args.data, Path(args.out) / GEOMETRY_FOLDER, config, preset=args.preset,
                           resume=args.resume, overwrite=args.overwrite,
                           evaluate=not args.no_eval, progress=not args.no_progress)
