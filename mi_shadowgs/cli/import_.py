@@ -16,8 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--colmap", default=None, metavar="SPARSE",
                         help="an existing COLMAP model of these photos (e.g. sparse/0): no SfM")
     parser.add_argument("--masks", default=None, metavar="DIR",
-                        help="object masks, one per photo with the photo's name (PNG; alpha "
-                             "or grey)")
+                        help="masks of the object and the ground its shadows fall on (the "
+                             "base is a shadow receiver, so stage 1 must keep it), one per "
+                             "photo with the photo's name (PNG; alpha or grey)")
     parser.add_argument("--preset", default="cpu-small",
                         help=f"import preset: {', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--test-every", type=int, default=None,
