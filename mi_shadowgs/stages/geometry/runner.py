@@ -167,7 +167,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
         if pruned > 0.1 * (surfels.count + pruned):
             warn(f"GeometryConfig.hull_prune_views {config.hull_prune_views}: removed "
                  f"{pruned} of {surfels.count + pruned} surfels, more than a tenth, as "
-                 f"outside the training masks of {data} (do the masks and cameras agree?)")
+                 f"outside the training masks of {data} (do the masks and cameras agree, "
+                 "and do the masks cover the ground the object stands on?)")
         save_ply(folder / "model.ply", surfels)
         line = _write_metrics(folder, surfels, test, config, on_test_view,
                               pruned if config.hull_prune_views else None) if evaluate else ""
