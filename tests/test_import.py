@@ -467,6 +467,13 @@ def test_stage1_runner_trains_unmasked_views_with_the_dark_alpha_prior(imported,
                  progress=False)
     used = json.loads((tmp_path / "geometry2" / "config.json").read_text())["config"]
     assert used["lambda_dist"] == 0.0 and used["lambda_normal"] == cfg.lambda_normal
+    # the prune outside the masks has none to prune by: said, and nothing removed
+    capsys.readouterr()
+    cfg3 = dataclasses.replace(cfg, hull_prune_views=2)
+    run_geometry(data, tmp_path / "geometry3", cfg3, preset="cpu-small", progress=False)
+    assert "hull_prune_views 2 (--prune-outside-masks) has no mask to prune by" in \
+        capsys.readouterr().err
+    assert json.loads((tmp_path / "geometry3" / "metrics.json").read_text())["hull_pruned"] == 0
 
 
 def test_random_init_lies_where_training_views_see(imported):

@@ -130,7 +130,9 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
              + f", skips the mask loss and the mask IoU, and trains with lambda_dist "
                f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g}, "
                f"lambda_dark_alpha {config.lambda_dark_alpha:g} and "
-             + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset")
+             + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset"
+             + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
+                "no mask to prune by and removes nothing" if config.hull_prune_views else ""))
     cfg_dict = settings_dict(config)
     provenance = Provenance(dataset=dataset_ref(data), settings=cfg_dict)
     with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,
