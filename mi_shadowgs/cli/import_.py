@@ -17,8 +17,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="an existing COLMAP model of these photos (e.g. sparse/0): no SfM")
     parser.add_argument("--masks", default=None, metavar="DIR",
                         help="masks of the object and the ground its shadows fall on (the "
-                             "base is a shadow receiver, so stage 1 must keep it), one per "
-                             "photo with the photo's name (PNG; alpha or grey)")
+                             "ground is the shadows' receiver), one per photo with the "
+                             "photo's name (PNG; alpha or grey)")
     parser.add_argument("--preset", default="cpu-small",
                         help=f"import preset: {', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--test-every", type=int, default=None,
