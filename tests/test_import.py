@@ -325,8 +325,10 @@ def test_mask_modes_and_exif_turned_photos_with_a_colmap_model(photos, imported,
                 np.uint8))
         mask.save(masks / (Path(name).stem + ".png"))
     out = tmp_path / "masked"
-    import_capture(src, out, CONFIG, colmap=data / "colmap" / "sparse" / "0", masks=masks,
-                   progress=False)
+    rec = import_capture(src, out, CONFIG, colmap=data / "colmap" / "sparse" / "0",
+                         masks=masks, progress=False)
+    # These are the object's masks alone: the mat's points near it fall outside them.
+    assert rec["ground_outside_masks"] > 0.5, rec["ground_outside_masks"]  # measured: 0.99
     for split in ("train", "test"):
         frames = json.loads((out / f"transforms_{split}.json").read_text())["frames"]
         for fr, view in zip(frames, load_dataset(out, split).views, strict=True):
@@ -714,3 +716,34 @@ def test_sfm_work_of_other_photos_is_not_resumed_and_a_stranger_folder_is_refuse
     with pytest.raises(importer.CaptureError, match="did not write"):
         importer.open_sfm_work(stranger, "key-a")
     assert (stranger / "notes.txt").read_text() == "mine"
+
+
+def test_masks_that_cover_the_ground_are_not_taken_for_object_masks(photos, imported,
+                                                                   tmp_path, capsys):
+    """`import --masks` records the share of the SfM points on the ground near the object
+    that the masks leave out, and warns above half: masks of the object alone (the test
+    above: over half) pull against the shadows' receiver in stage 1. Masks of the object and
+    its ground, as the generator's alpha, leave out few of them and say nothing."""
+    data, rec = imported
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for p in sorted((photos / "photos").iterdir()):
+        split, idx = p.name[:-8], int(p.name[-7:-4])
+        alpha = np.asarray(Image.open(photos / split / f"r_{idx:03d}.png"))[..., 3]
+        Image.fromarray(alpha).save(masks / (p.stem + ".png"))
+    out = tmp_path / "masked"
+    assert main(["import", str(photos / "photos"), "--out", str(out), "--colmap",
+                     str(data / "colmap" / "sparse" / "0"), "--masks", str(masks),
+                     "--no-progress"]) == 0
+    share = json.loads((out / "import.json").read_text())["ground_outside_masks"]
+    assert share is not None and share < 0.2, share  # measured: 0.007
+    assert "leave out" not in capsys.readouterr().err
+    # The object's own masks: the warning names the folder and what to give instead.
+    for p in sorted((photos / "photos").iterdir()):
+        split, idx = p.name[:-8], int(p.name[-7:-4])
+        shutil.copy(photos / split / f"r_{idx:03d}_mask.png", masks / (p.stem + ".png"))
+    assert main(["import", str(photos / "photos"), "--out", str(tmp_path / "obj"),
+                     "--colmap", str(data / "colmap" / "sparse" / "0"), "--masks", str(masks),
+                     "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert f"{masks}: the masks leave out" in err and "the ground its shadows fall on" in err

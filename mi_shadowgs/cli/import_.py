@@ -50,4 +50,12 @@ def run(args: argparse.Namespace) -> int:
           f"{rec['points']} points"
           + ("" if err is None else f", {err:.2f} px reprojection error")
           + f", {rec['timings']['total_s']:.1f} s")
+    ground = rec.get("ground_outside_masks")
+    if ground is not None and ground > 0.5:
+        from mi_shadowgs.stages.common import warn
+
+        warn(f"{args.masks}: the masks leave out {ground:.0%} of the SfM points on the ground "
+             "near the object; masks should cover the object and the ground its shadows fall "
+             "on (the shadows' receiver): with the object's alone stage 1's normals were 3x "
+             "worse (BENCHMARKS.md, \"Session 41\")")
     return 0
