@@ -115,8 +115,8 @@ class GeometryConfig:
     # in relit views; the prune took them to 0.27% (BENCHMARKS.md, "Session 40: a textured
     # base's texture goes into the indirect light"). Views without masks do not vote. Off in
     # every preset: the metrics do not see the slivers (outside the true masks), and on the
-    # plain default scene over four seeds the prune moved albedo +0.29 dB, relight -0.13 dB
-    # and shadow IoU -0.003, within what four seeds resolve; the dilation keeps the ficus's
+    # plain default scene over six seeds the prune moved albedo +0.43 dB, relight +0.11 dB
+    # and shadow IoU +0.002, within the runs' spread; the dilation keeps the ficus's
     # leaves (61 surfels removed, no mask pixel lost; 4,153 without it). BENCHMARKS.md,
     # "Session 41: the prune outside the masks".
     hull_prune_views: int = 0
