@@ -33,7 +33,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mi_shadowgs.config import with_overrides
-    from mi_shadowgs.dataset.importer import get_config, import_capture
+    from mi_shadowgs.dataset.importer import (
+        get_config,
+        ground_outside_masks_warning,
+        import_capture,
+    )
 
     config = get_config(args.preset)
     over = {k: v for k, v in (("test_every", args.test_every), ("max_size", args.max_size),
@@ -50,12 +54,8 @@ def run(args: argparse.Namespace) -> int:
           f"{rec['points']} points"
           + ("" if err is None else f", {err:.2f} px reprojection error")
           + f", {rec['timings']['total_s']:.1f} s")
-    ground = rec.get("ground_outside_masks")
-    if ground is not None and ground > 0.5:
+    if (note := ground_outside_masks_warning(rec)) is not None:
         from mi_shadowgs.stages.common import warn
 
-        warn(f"{args.masks}: the masks leave out {ground:.0%} of the SfM points on the ground "
-             "near the object; masks should cover the object and the ground its shadows fall "
-             "on (the shadows' receiver): with the object's alone stage 1's normals were 3x "
-             "worse (BENCHMARKS.md, \"Session 41\")")
+        warn(note)
     return 0

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from mi_shadowgs.cli.train import PRUNE_HELP
 from mi_shadowgs.config import PRESET_NAMES
 
 
@@ -37,9 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--material-iterations", type=int, default=None,
                         help="override the stage-4 iteration count")
     parser.add_argument("--prune-outside-masks", type=int, default=None, metavar="N",
-                        help="after stage 1, remove the surfels whose centre falls outside "
-                             "the training masks (dilated 1 px) in at least N views: floaters "
-                             "along a textured base's outline (default: the preset's, 0: off)")
+                        help=PRUNE_HELP)
     parser.add_argument("--preview-envmap", action="append", default=None, metavar="PATH",
                         help="env map (.exr, or a folder of them) for the report's relit "
                              "previews, beside the dataset's own (repeatable; default: "

@@ -16,6 +16,9 @@ from pathlib import Path
 from mi_shadowgs.config import PRESET_NAMES
 
 GEOMETRY_FOLDER = "geometry"  # the stage's subfolder of the run, as `mi-shadowgs run` has it
+PRUNE_HELP = ("after stage 1, remove the surfels whose centre falls outside the training masks "
+              "(dilated 1 px) in at least N views: floaters along a textured base's outline "
+              "(default: the preset's, 0: off)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,9 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"stage 1's preset: {', '.join(PRESET_NAMES)} (default cpu-small)")
     parser.add_argument("--iterations", type=int, default=None, help="override the preset")
     parser.add_argument("--prune-outside-masks", type=int, default=None, metavar="N",
-                        help="after stage 1, remove the surfels whose centre falls outside "
-                             "the training masks (dilated 1 px) in at least N views: floaters "
-                             "along a textured base's outline (default: the preset's, 0: off)")
+                        help=PRUNE_HELP)
     parser.add_argument("--resume", action="store_true",
                         help="continue from the stage's last checkpoint (from step 0 when "
                              "it was stopped before its first)")

@@ -499,6 +499,23 @@ def ground_outside_masks(views: list[dict], points: np.ndarray, tolerance: float
     return float(np.mean(out[counted] > 0.5 * seen[counted]))
 
 
+# Above this share of the ground's SfM points left out, the masks are taken for the object's
+# alone: 0.99 for those on the tests' capture, 0.007 for masks of the object and its ground.
+GROUND_OUTSIDE_MASKS_MAX = 0.5
+
+
+def ground_outside_masks_warning(record: dict) -> str | None:
+    """The warning for an import ``record`` whose masks leave out most of the ground near the
+    object (``ground_outside_masks`` over ``GROUND_OUTSIDE_MASKS_MAX``), or None."""
+    share = record.get("ground_outside_masks")
+    if share is None or share <= GROUND_OUTSIDE_MASKS_MAX:
+        return None
+    return (f"{record['masks']}: the masks leave out {share:.0%} of the SfM points on the "
+            "ground near the object; masks should cover the object and the ground its shadows "
+            "fall on (the shadows' receiver): with the object's alone stage 1's normals were "
+            "3x worse (BENCHMARKS.md, \"Session 41\")")
+
+
 def _pinhole(camera, c2w_src: np.ndarray) -> Camera:
     fx, fy = float(camera.focal_length_x), float(camera.focal_length_y)
     cx, cy = float(camera.principal_point_x), float(camera.principal_point_y)
