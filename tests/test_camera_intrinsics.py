@@ -110,6 +110,37 @@ def test_project_unproject_use_the_intrinsics():
     np.testing.assert_allclose(uv[0], [CX, CY], atol=1e-12)
 
 
+def test_lookup_reads_the_pixel_each_point_falls_in():
+    """``Camera.lookup`` against the pinhole written out here: a point at pixel (x + fx_, y +
+    fy_) (fractions in [0, 1)) reads image[y, x]; points behind the camera or off the image
+    read zero and are not inside."""
+    cam = _camera()
+    origin = np.array([0.1, -0.05, 3.0])
+    rng = np.random.default_rng(1)
+    image = rng.uniform(0.1, 1.0, size=(H, W, 3))  # [H, W, 3], no zero in it
+    xs, ys = rng.integers(0, W, 40), rng.integers(0, H, 40)
+    frac = rng.uniform(0.05, 0.95, size=(40, 2))  # away from the pixels' edges
+    u, v = xs + frac[:, 0], ys + frac[:, 1]
+    depth = rng.uniform(0.5, 5.0, 40)
+    # CV pixel -> world for a camera at ``origin`` looking down world -Z (as _reference)
+    on_image = origin + depth[:, None] * np.stack([(u - CX) / FX, -(v - CY) / FY,
+                                                   -np.ones(40)], -1)
+    behind = origin + np.array([[0.0, 0.0, 1.0], [0.2, 0.1, 2.0]])
+    off_image = origin + 2.0 * np.array([[(W + 3 - CX) / FX, 0.0, -1.0],
+                                         [0.0, -(-4 - CY) / FY, -1.0]])
+    pts = np.concatenate([on_image, behind, off_image])  # [44, 3]
+    values, inside = cam.lookup(image, pts)
+    assert values.shape == (44, 3) and values.dtype == image.dtype
+    np.testing.assert_array_equal(inside, [True] * 40 + [False] * 4)
+    np.testing.assert_array_equal(values[:40], image[ys, xs])
+    assert not values[40:].any()
+    mask = image[..., 0] > 0.5  # [H, W] bool: a bool mask reads as bool
+    hit, inside = cam.lookup(mask, pts)
+    assert hit.dtype == bool
+    np.testing.assert_array_equal(hit[:40], mask[ys, xs])
+    assert not hit[40:].any()
+
+
 def test_with_size_scales_intrinsics_and_refusals():
     cam = _camera().with_size(2 * W, 2 * H)
     assert cam.focal_xy == pytest.approx((2 * FX, 2 * FY))

@@ -272,11 +272,24 @@ def test_the_hull_prune_removes_planted_floaters_and_says_so(tiny, tmp_path, cap
     assert gap > 1e-3
     assert f"{pruned} pruned outside the masks" in run.summary
     assert len(floaters) > 0.1 * trained["n"]  # ... so it warns
-    assert "more than a tenth" in capsys.readouterr().err
+    assert "more than 10%" in capsys.readouterr().err
+    # Trained without its evaluation (`train --no-eval`) and evaluated later (`run`): the
+    # count is the one the prune made, kept beside the model.
+    run_geometry(tiny, tmp_path / "g2", config, preset="cpu-small", progress=False,
+                 evaluate=False)
+    assert not (tmp_path / "g2" / "metrics.json").exists()
+    kept = json.loads((tmp_path / "g2" / "prune.json").read_text())
+    assert kept["hull_pruned"] >= len(floaters)
+    later = run_geometry(tiny, tmp_path / "g2", config, preset="cpu-small", progress=False,
+                         reuse=True)
+    assert json.loads((tmp_path / "g2" / "metrics.json").read_text())["hull_pruned"] == \
+        kept["hull_pruned"]
+    assert f"{kept['hull_pruned']} pruned outside the masks" in later.summary
     # Off, the paper's setting: nothing removed, and no count recorded.
     run_geometry(tiny, tmp_path / "g0", dataclasses.replace(config, hull_prune_views=0),
                  preset="cpu-small", progress=False)
     assert "hull_pruned" not in json.loads((tmp_path / "g0" / "metrics.json").read_text())
+    assert not (tmp_path / "g0" / "prune.json").exists()
     assert len(load_ply(tmp_path / "g0" / "model.ply").to_numpy()["position"]) == \
         trained["n"] + len(floaters)
 

@@ -163,6 +163,16 @@ class Camera:
             (yi < self.height)
         return xi, yi, inside
 
+    def lookup(self, image: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(values [M, ...], inside [M] bool): ``image`` [H, W, ...] at the pixels holding
+        world points [M, 3] (``pixel_of``: the pixel the point falls in), zero (False) where
+        not inside. The votes of masks over views (stage 1's hull and prune, the mesh
+        base's outline, the import's ground check) read the masks through this."""
+        xi, yi, inside = self.pixel_of(points)
+        values = np.zeros((len(points),) + image.shape[2:], image.dtype)
+        values[inside] = image[yi[inside], xi[inside]]
+        return values, inside
+
     def pixel_grid(self) -> np.ndarray:
         """Pixel-centre coordinates [H*W, 2] in row-major order."""
         ys, xs = np.mgrid[0 : self.height, 0 : self.width]

@@ -490,9 +490,9 @@ def ground_outside_masks(views: list[dict], points: np.ndarray, tolerance: float
     for v in views:
         if v.get("mask") is None:
             continue
-        xi, yi, inside = v["camera"].pixel_of(pts)
+        covered, inside = v["camera"].lookup(v["mask"] >= 0.5, pts)
         seen += inside
-        out[inside] += v["mask"][yi[inside], xi[inside]] < 0.5
+        out += inside & ~covered
     counted = seen > 0
     if counted.sum() < 20:
         return None

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import time
 from pathlib import Path
 
@@ -26,6 +27,9 @@ from mi_shadowgs.stages.common import (
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
               "surfels", "time")
+# With ``hull_prune_views`` on: what the prune removed, beside the model it made, so that an
+# evaluation after ``train --no-eval`` reports it as one straight after training does.
+PRUNE_RECORD = "prune.json"
 
 
 class GeometryWriter:
@@ -94,7 +98,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     """Stage 1 on dataset ``data`` into ``folder`` (a run's ``geometry/``).
 
     Writes ``model.ply``, ``checkpoint/checkpoint.npz``, ``log.csv``, ``previews/``,
-    ``config.json`` and, with ``evaluate``, ``metrics.json`` (test views). An existing output
+    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD`` and, with ``evaluate``,
+    ``metrics.json`` (test views). An existing output
     is replaced (``overwrite``), continued from its checkpoint (``resume``), returned as it
     is when finished or else continued (``reuse``, as ``run`` does), or refused; it is
     continued or reused only when its dataset fingerprint and settings match.
@@ -108,6 +113,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
         Callbacks,
         TrainState,
         prune_outside_masks,
+        prune_warning,
         train_geometry,
     )
 
@@ -166,29 +172,27 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
                        on_checkpoint=writer.on_checkpoint)
         surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
         surfels, pruned = prune_outside_masks(surfels, train.views, config)
-        if pruned > 0.1 * (surfels.count + pruned):
-            warn(f"GeometryConfig.hull_prune_views {config.hull_prune_views}: removed "
-                 f"{pruned} of {surfels.count + pruned} surfels, more than a tenth, as "
-                 f"outside the training masks of {data} (do the masks and cameras agree, "
-                 "and do the masks cover the ground the object stands on?)")
+        if (note := prune_warning(pruned, surfels.count + pruned, config, data)) is not None:
+            warn(note)
+        if config.hull_prune_views:  # kept for an evaluation after `train --no-eval`
+            out.claim(PRUNE_RECORD)
+            write_json(folder / PRUNE_RECORD, {"hull_pruned": pruned,
+                                               "surfels_before": surfels.count + pruned})
         save_ply(folder / "model.ply", surfels)
-        line = _write_metrics(folder, surfels, test, config, on_test_view,
-                              pruned if config.hull_prune_views else None) if evaluate else ""
+        line = _write_metrics(folder, surfels, test, config, on_test_view) if evaluate else ""
         out.finish()
     return StageRun(folder, True, time.perf_counter() - t0, line)
 
 
-def _write_metrics(folder: Path, surfels, test, config, on_test_view,
-                   pruned: int | None = None) -> str:
+def _write_metrics(folder: Path, surfels, test, config, on_test_view) -> str:
     """The model's test metrics into ``folder/metrics.json`` (claimed); their summary line.
-    ``pruned``: the surfels ``hull_prune_views`` removed (None: the prune was off, or this
-    is a finished model evaluated later)."""
+    With ``hull_prune_views`` on, ``hull_pruned`` is the count of ``PRUNE_RECORD``."""
     from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
 
     m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view)
     m["surfels"] = surfels.count
-    if pruned is not None:
-        m["hull_pruned"] = pruned
+    if config.hull_prune_views and (folder / PRUNE_RECORD).is_file():
+        m["hull_pruned"] = json.loads((folder / PRUNE_RECORD).read_text())["hull_pruned"]
     write_json(folder / "metrics.json", m)
     return geometry_line(m)
 

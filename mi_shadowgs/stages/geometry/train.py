@@ -303,9 +303,7 @@ def visual_hull_points(views, centre, radius: float, count: int, resolution: int
     keep = np.ones(len(pts), bool)
     seen = np.zeros(len(pts), bool)
     for view in views:
-        xi, yi, inside = view.camera.pixel_of(pts)
-        hit = np.zeros(len(pts), bool)
-        hit[inside] = view.mask[yi[inside], xi[inside]]
+        hit, inside = view.camera.lookup(view.mask, pts)
         keep &= hit | ~inside
         seen |= inside
     cells = pts[keep & seen]
@@ -738,8 +736,8 @@ def outside_mask_votes(views, points: np.ndarray, dilate: int) -> np.ndarray:
         mask = np.asarray(view.mask, bool)
         if dilate:
             mask = binary_dilation(mask, np.ones((3, 3), bool), iterations=dilate)
-        xi, yi, inside = view.camera.pixel_of(points)
-        votes[inside] += ~mask[yi[inside], xi[inside]]
+        covered, inside = view.camera.lookup(mask, points)
+        votes += inside & ~covered
     return votes
 
 
@@ -762,6 +760,23 @@ def prune_outside_masks(surfels: Surfels, views, config: GeometryConfig
                          "surfel falls outside the training masks in that many views (do "
                          "the masks and cameras agree?); set it to 0 to keep them")
     return (surfels.subset(keep) if removed else surfels), removed
+
+
+# Above this share of the surfels removed, the prune says so: on the scenes measured it
+# removes 0.02-0.2% (floaters), and 44% where the masks left out the ground (BENCHMARKS.md,
+# "Session 41"), so a large share points at the masks or the cameras, not at floaters.
+PRUNE_WARN_SHARE = 0.1
+
+
+def prune_warning(removed: int, total: int, config: GeometryConfig, data) -> str | None:
+    """The warning when ``prune_outside_masks`` removed more than ``PRUNE_WARN_SHARE`` of
+    ``total`` surfels, the training masks being those of dataset ``data``; else None."""
+    if removed <= PRUNE_WARN_SHARE * total:
+        return None
+    return (f"GeometryConfig.hull_prune_views {config.hull_prune_views}: removed {removed} of "
+            f"{total} surfels, more than {PRUNE_WARN_SHARE:.0%}, as outside the training masks "
+            f"of {data} (do the masks and cameras agree, and do the masks cover the ground the "
+            "object stands on?)")
 
 
 # -- evaluation ---------------------------------------------------------------------------------

@@ -327,9 +327,7 @@ def plane_hull(views: list[tuple[Camera, np.ndarray]], lo: np.ndarray, hi: np.nd
     votes = np.zeros(len(pts))
     seen = np.zeros(len(pts))
     for cam, mask in views:
-        xi, yi, inside = cam.pixel_of(pts)
-        hit = np.zeros(len(pts), bool)
-        hit[inside] = mask[yi[inside], xi[inside]]
+        hit, inside = cam.lookup(np.asarray(mask, bool), pts)
         votes += hit
         seen += inside
     occ = (seen > 0) & (votes >= vote * seen)
