@@ -763,7 +763,7 @@ def prune_outside_masks(surfels: Surfels, views, config: GeometryConfig
 
 
 # Above this share of the surfels removed, the prune says so: on the scenes measured it
-# removes 0.02-0.2% (floaters), and 44% where the masks left out the ground (BENCHMARKS.md,
+# removes 0-0.2% (floaters), and 44% where the masks left out the ground (BENCHMARKS.md,
 # "Session 41"), so a large share points at the masks or the cameras, not at floaters.
 PRUNE_WARN_SHARE = 0.1
 
