@@ -586,8 +586,14 @@ def recorded_backends(manifest: dict | None) -> list[dict]:
 
 def recorded_variants(manifest: dict | None) -> list[str]:
     """The distinct variants of a manifest's record, in the order they first wrote."""
+    return variants_of(recorded_backends(manifest))
+
+
+def variants_of(entries: list[dict]) -> list[str]:
+    """The distinct variants of ``made_with`` entries (``recorded_backends``, or an
+    ``Output``'s ``made_before``), in the order they first wrote."""
     out = []
-    for entry in recorded_backends(manifest):
+    for entry in entries:
         v = entry.get("variant")
         if isinstance(v, str) and v not in out:
             out.append(v)

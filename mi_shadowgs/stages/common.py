@@ -79,11 +79,11 @@ def warn_other_backend(out: Output, made_from: str | Path | None = None) -> None
     the record say nothing. Call it once the output is to be written, not when reused."""
     import mitsuba as mi
 
-    from mi_shadowgs.io.provenance import read_manifest, recorded_variants
+    from mi_shadowgs.io.provenance import read_manifest, recorded_variants, variants_of
 
     now = mi.variant()
     said = []
-    before = recorded_variants({"made_with": out.made_before})
+    before = variants_of(out.made_before)
     if before and before[-1] != now:
         said.append(f"continued on {now} from work that {before[-1]} made (its checkpoint "
                     "and files so far); its manifest records both")
