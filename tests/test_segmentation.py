@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import drjit as dr
@@ -299,6 +300,37 @@ def test_kmeans_iterations_drift_from_the_prototypes_into_a_spread_surface():
         taken[steps] = int(np.sum((truth == 0) & (lab == lab[2000])))  # arc labelled as cap
     assert taken[1] < taken[2] < taken[5] <= taken[50], taken
     assert taken[50] > 1.3 * taken[1], taken
+
+
+def test_prototype_iterations_only_from_the_prototypes(monkeypatch):
+    """``prototype_iterations`` sets K-means' steps when it starts from the label
+    prototypes; with more segments than labels (no seed for some) it starts from k-means++
+    and runs ``kmeans_iterations``, as one step from random seeds would leave them where
+    they fell."""
+    g = np.linspace(-1.0, 1.0, 12)
+    xx, yy = np.meshgrid(g, g)
+    pos = np.stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)], -1)
+    n = len(pos)
+    surf = Surfels.from_numpy(pos, np.full((n, 2), 0.12), np.tile([1.0, 0, 0, 0], (n, 1)),
+                              np.full(n, 0.95))
+    c2w = np.eye(4)
+    c2w[2, 3] = 3.0
+    cam = Camera(c2w, 24, 24, fov_x=math.radians(40.0))
+    label_map = np.where(np.arange(24)[None, :] < 12, 1, 2).repeat(24, 0)  # [24, 24]
+    calls = []
+    real = seg.kmeans_segments
+
+    def recording(features, k, seen=None, seed=0, restarts=5, iterations=50, init=None):
+        calls.append((k, iterations, init is not None))
+        return real(features, k, seen, seed, restarts, iterations, init)
+
+    monkeypatch.setattr(seg, "kmeans_segments", recording)
+    cfg = seg.SegmentationConfig(iterations=8, lr=0.02, n_samples=128, feature_dim=4,
+                                 kmeans_iterations=7, prototype_iterations=1)
+    seg.segment_surfels(surf, [cam], [label_map], cfg, progress=False)
+    seg.segment_surfels(surf, [cam], [label_map], dataclasses.replace(cfg, n_segments=3),
+                        progress=False)
+    assert calls == [(2, 1, True), (3, 7, False)]
 
 
 def test_auto_k_counts_labels_with_enough_pixels():

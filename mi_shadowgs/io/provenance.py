@@ -118,7 +118,8 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "lambda_ind_floor": 0.0,  # stage 4: no pull on negative indirect light
                   "sh_space": "linear",  # render: a PLY's SH read as linear
                   "hull_prune_views": 0,  # stage 1: no prune outside the masks
-                  "hull_prune_dilate": None}  # used only by that prune
+                  "hull_prune_dilate": None,  # used only by that prune
+                  "prototype_iterations": 50}  # stage 2: K-means' steps from the prototypes
 # An ADDED_SETTINGS entry of None is unused while its sibling setting here has the value that
 # does what the older code did: then any value of it counts as before.
 USED_ONLY_WITH = {"silhouette_samples": "k_select", "lr_normal": "normal_steps",

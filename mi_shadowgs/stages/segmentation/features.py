@@ -79,9 +79,11 @@ class SegmentationConfig:
     # the hotdog go down to 0.11 %, hence 0 by default).
     min_label_fraction: float = 0.0
     kmeans_restarts: int = 5
-    # Lloyd steps after the seeding; from the label prototypes each step lets the centres
-    # leave what the labels taught (``PRESETS``' cpu-small takes one)
-    kmeans_iterations: int = 50
+    kmeans_iterations: int = 50  # Lloyd steps after k-means++ seeding
+    # ... and after seeding with the label prototypes (``prototype_seeds``; k-means++ when
+    # fewer than K labels have one). From the prototypes each step lets the centres leave
+    # what the labels taught (``PRESETS``' cpu-small takes one).
+    prototype_iterations: int = 50
     min_coverage: float = 0.5  # surfels with less summed splat weight (pixels) are "unseen"
     segment_alpha: float = 0.5  # rendered segment maps: background where alpha is lower
     # Initial features N(0, init_std^2 / D) per coordinate: small, so that the trained
@@ -103,7 +105,8 @@ class SegmentationConfig:
         check_fields(self, (
             *((name, getattr(self, name) >= 1, ">= 1") for name in (
                 "feature_dim", "iterations", "silhouette_samples", "kmeans_restarts",
-                "kmeans_iterations", "log_every", "checkpoint_every")),
+                "kmeans_iterations", "prototype_iterations", "log_every",
+                "checkpoint_every")),
             ("n_samples", self.n_samples >= 4, ">= 4 (two halves of pairs)"),
             ("lr", self.lr > 0, "> 0"), ("temperature", self.temperature > 0, "> 0"),
             *((name, getattr(self, name) >= 0, ">= 0") for name in (
@@ -130,7 +133,8 @@ PRESETS = {
     # 0.63 on the hotdog, 0.37 to 0.45 on the ficus and 0.951 to 0.962 on the textured mat
     # (four each; BENCHMARKS.md, "Session 42").
     "cpu-small": SegmentationConfig(iterations=300, lr=0.02, n_samples=2048,
-                                    kmeans_iterations=1, planes=PlaneConfig(enabled=True)),
+                                    prototype_iterations=1,
+                                    planes=PlaneConfig(enabled=True)),
 }
 PRESETS["cpu-medium"] = PRESETS["gpu-large"] = PRESETS["cpu-small"]  # of the surfels, not pixels
 
@@ -639,9 +643,10 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
     scores = None
     if config.n_segments is None and config.k_select == "silhouette":
         k, scores = choose_k(tr.features, k, seen, config)
-    seg, _ = kmeans_segments(tr.features, k, seen, config.seed,
-                             config.kmeans_restarts, config.kmeans_iterations,
-                             prototype_seeds(tr.prototypes, labels, k))
+    seeds = prototype_seeds(tr.prototypes, labels, k)  # None: k-means++ seeding
+    seg, _ = kmeans_segments(tr.features, k, seen, config.seed, config.kmeans_restarts,
+                             config.kmeans_iterations if seeds is None
+                             else config.prototype_iterations, seeds)
     out = surfels.with_channels({FEATURE: mi.TensorXf(tr.features),
                                  SEGMENT: mi.TensorXf(seg.astype(np.float32)[:, None])})
     out, planes = planar_shading_normals(out, seg, config.planes)
