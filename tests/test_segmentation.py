@@ -307,12 +307,7 @@ def test_prototype_iterations_only_from_the_prototypes(monkeypatch):
     prototypes; with more segments than labels (no seed for some) it starts from k-means++
     and runs ``kmeans_iterations``, as one step from random seeds would leave them where
     they fell."""
-    g = np.linspace(-1.0, 1.0, 12)
-    xx, yy = np.meshgrid(g, g)
-    pos = np.stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)], -1)
-    n = len(pos)
-    surf = Surfels.from_numpy(pos, np.full((n, 2), 0.12), np.tile([1.0, 0, 0, 0], (n, 1)),
-                              np.full(n, 0.95))
+    surf, _ = _plane(12, 0.12)
     c2w = np.eye(4)
     c2w[2, 3] = 3.0
     cam = Camera(c2w, 24, 24, fov_x=math.radians(40.0))
@@ -425,13 +420,19 @@ def test_presets():
 
 
 # -- the stage end to end on a synthetic two-material plane ---------------------------------
-def test_two_material_plane_is_segmented():
-    g = np.linspace(-1.0, 1.0, 24)
+def _plane(side: int, scale: float):
+    """(surfels on a side x side grid over [-1, 1]^2 at z = 0, facing +Z; positions [N, 3])."""
+    g = np.linspace(-1.0, 1.0, side)
     xx, yy = np.meshgrid(g, g)
     pos = np.stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)], -1)
     n = len(pos)
-    surf = Surfels.from_numpy(pos, np.full((n, 2), 0.06), np.tile([1.0, 0, 0, 0], (n, 1)),
-                              np.full(n, 0.95))
+    return Surfels.from_numpy(pos, np.full((n, 2), scale), np.tile([1.0, 0, 0, 0], (n, 1)),
+                              np.full(n, 0.95)), pos
+
+
+def test_two_material_plane_is_segmented():
+    surf, pos = _plane(24, 0.06)
+    n = len(pos)
     cams = []
     for ang in (-0.3, 0.0, 0.3):
         c2w = np.eye(4)
