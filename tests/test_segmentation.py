@@ -276,7 +276,7 @@ def test_kmeans_from_prototypes_one_lloyd_step_against_numpy():
     np.testing.assert_array_equal(lab, nearest(centres))
 
 
-def test_kmeans_iterations_drift_from_the_prototypes_into_a_spread_surface():
+def test_kmeans_steps_from_the_prototypes_drift_into_a_spread_surface():
     """Why ``cpu-small`` takes one K-means step from the label prototypes: a small part (40
     surfels, the default scene's pillar cap) just past the end of a spread surface (an arc
     of 60 deg, the pillar's side in shade and light) takes more of the surface's end at
