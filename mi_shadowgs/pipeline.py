@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 
@@ -61,6 +62,9 @@ class RunConfig:
     # Override of stage 1's hull_prune_views (None: the preset's, 0 in every preset): remove
     # the surfels outside the training masks in this many views after stage 1.
     prune_outside_masks: int | None = None
+    # Override of stage 4's detail_prior (None: the preset's, 0 = off in every preset): a
+    # per-surfel albedo detail within each segment, for textured surfaces (a capture's mat).
+    albedo_detail: float | None = None
     segments: int | None = None  # stage 2's K; None: the segmentation settings choose it
     # The seed of every stage's random draws: stage 1's initial points, view order and
     # densification, stage 2's features and K-means, stage 4's view order. Runs at other
@@ -81,7 +85,9 @@ class RunConfig:
                             ("material_iterations", self.material_iterations is None
                              or self.material_iterations >= 0, ">= 0 or None"),
                             ("prune_outside_masks", self.prune_outside_masks is None
-                             or self.prune_outside_masks >= 0, ">= 0 or None")))
+                             or self.prune_outside_masks >= 0, ">= 0 or None"),
+                            ("albedo_detail", self.albedo_detail is None
+                             or 0 <= self.albedo_detail < math.inf, "finite, >= 0 or None")))
 
 
 PRESETS = {
@@ -298,6 +304,8 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         overrides = {"seed": config.seed}
         if config.material_iterations is not None:
             overrides["iterations"] = config.material_iterations
+        if config.albedo_detail is not None:
+            overrides["detail_prior"] = config.albedo_detail
 
         # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
         variants = VARIANTS if config.ablations else {"full": VARIANTS["full"]}

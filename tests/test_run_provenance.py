@@ -8,6 +8,7 @@ import dataclasses
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from mi_shadowgs import cli
@@ -55,6 +56,7 @@ TINY = [
             warmup=5,
             refine_passes=(),
             refine_views=2,
+            detail_edge_px=0,  # at 32^2 nearly every pixel is near a shadow's edge
         ),
     ),
     (vis.PRESETS, dataclasses.replace(vis.get_config("cpu-small"), resolution=64)),
@@ -214,6 +216,40 @@ def test_a_seed_reaches_every_stage_and_a_run_of_another_seed_is_not_reused(
     assert seed0.position.shape != seed1.position.shape or (seed0.position != seed1.position).any()
     assert cli.main(["run", str(data[0]), "--out", str(other), "--seed", "-1"]) == 2
     assert "seed must be >= 0" in capsys.readouterr().err
+
+
+def test_albedo_detail_reaches_stage_4_and_a_run_without_it_is_not_reused(
+    finished, data, tmp_path, capsys
+):
+    """`run --albedo-detail W` sets stage 4's detail_prior (the albedo then varies within a
+    segment); into a run fitted without it, stage 4 is refused naming the setting, and
+    nothing there changes. Stages 1-2 do not depend on it and are reused."""
+    run = _copy(finished, tmp_path)
+    before = _snapshot(run)
+    capsys.readouterr()
+    argv = ["run", str(data[0]), "--no-progress", "--albedo-detail"]
+    assert cli.main([*argv, "0.3", "--out", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "material" in err and "detail_prior: 0.0 there, 0.3 now" in err, err
+    assert _snapshot(run) == before
+    other = tmp_path / "detail"
+    shutil.copytree(finished / "geometry", other / "geometry")
+    shutil.copytree(finished / "segmentation", other / "segmentation")
+    assert cli.main([*argv, "0.3", "--out", str(other)]) == 0
+    assert "geometry:" not in capsys.readouterr().out  # stage 1 reused
+    settings = json.loads((other / "material" / "full" / MANIFEST_NAME).read_text())["settings"]
+    assert settings["material"]["detail_prior"] == 0.3
+    fitted = ply.read_ply_model(other / "material" / "full" / "model.ply")
+    albedo, seg = fitted.channels["albedo"], fitted.channels["segment"][:, 0]
+    assert max(np.ptp(albedo[seg == k], axis=0).max() for k in np.unique(seg)) > 0
+    plain = ply.read_ply_model(finished / "material" / "full" / "model.ply")
+    assert max(np.ptp(plain.channels["albedo"][seg == k], axis=0).max()
+               for k in np.unique(seg)) == 0
+    for bad in ("-1", "inf", "nan"):
+        assert cli.main([*argv, bad, "--out", str(tmp_path / "bad")]) == 2
+        assert "RunConfig.albedo_detail must be finite, >= 0 or None" in \
+            capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()
 
 
 def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data, tmp_path, capsys):

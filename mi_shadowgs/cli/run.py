@@ -39,6 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override the stage-4 iteration count")
     parser.add_argument("--prune-outside-masks", type=int, default=None, metavar="N",
                         help=PRUNE_HELP)
+    parser.add_argument("--albedo-detail", type=float, default=None, metavar="W",
+                        help="let each surfel's albedo vary within its segment, pulled to "
+                             "the segment's by weight W (0.1 suits a textured mat; default 0, "
+                             "off: the paper's one albedo per segment)")
     parser.add_argument("--preview-envmap", action="append", default=None, metavar="PATH",
                         help="env map (.exr, or a folder of them) for the report's relit "
                              "previews, beside the dataset's own (repeatable; default: "
@@ -64,6 +68,8 @@ def run(args) -> int:
         overrides["seed"] = args.seed
     if args.prune_outside_masks is not None:
         overrides["prune_outside_masks"] = args.prune_outside_masks
+    if args.albedo_detail is not None:
+        overrides["albedo_detail"] = args.albedo_detail
     envmaps = args.preview_envmap
     source = "--preview-envmap"
     if envmaps is None and os.environ.get("MI_SHADOWGS_ENVMAPS"):

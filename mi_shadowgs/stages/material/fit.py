@@ -47,6 +47,11 @@ With ``normal_steps`` > 0 a last phase holds everything fitted and moves each su
 shading normal to explain the views' shading, pulled toward stage 2's normal
 (``normal_step``); relighting and evaluation shade with them.
 
+Where a segment is textured (not in the paper; off in every preset): with ``detail_prior``
+> 0 each surfel's albedo is its segment's times a bounded per-surfel factor, fitted from the
+second refinement on, away from the fitted shadows' edges (``start_detail``); the result's
+albedo channel holds the product.
+
 Pure functions over Dr.Jit arrays plus one loop (``fit_material``); no I/O here.
 """
 
@@ -74,6 +79,9 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
 )
 
 SPECULAR_MODES = ("auto", "on", "off")
+# The per-surfel albedo detail, log factor [N, 3] (``MaterialConfig.detail_prior``); only
+# while fitting: the result carries the detailed albedo in its "albedo" channel.
+DETAIL_CHANNEL = "albedo_detail"
 DEFAULT_RASTER = RasterConfig()
 DEFAULT_VISIBILITY = VisibilityConfig()
 
@@ -286,6 +294,23 @@ class MaterialConfig:
     # ask of them, and the phase would spend the base's one-light regions on explaining
     # what the normals cannot (indirect light, aliasing).
     normal_hold_planar: bool = True
+    # A per-surfel albedo detail (not in the paper): from the main phase's second
+    # refinement on, each surfel's albedo is its segment's times exp(d), d [N, 3] held
+    # zero-mean within the segment and within +-detail_max, pulled to 0 by detail_prior x
+    # the mean over supervised pixels of |splat(d)|^2. The segment-constant albedo cannot
+    # hold a textured base's print, which then went into the per-surfel indirect light
+    # (BENCHMARKS.md, "Session 40"). With detail_edge_px > 0 the pixels within that many
+    # pixels of a fitted shadow's edge do not move d: the shading's errors are largest
+    # there, and they are not texture (1 px: the plain scene's albedo +1.0 dB over none,
+    # where 2 px closed the whole of a thin occluder's shadow). 0: off (the paper's hard
+    # constraint), in every preset: on the default scene on a textured mat 0.1 took
+    # relighting 19.0 -> 25.8 dB and albedo 13.9 -> 18.1 dB, but on the plain default
+    # scene it cost 3.2 dB of albedo for +0.2 dB of relighting (BENCHMARKS.md, "Session
+    # 43"); ``run --albedo-detail W`` sets it.
+    detail_prior: float = 0.0
+    detail_max: float = 1.0
+    lr_detail: float = 0.01
+    detail_edge_px: int = 1
     specular: str = "auto"  # "auto" | "on" | "off"
     auto_metallic_max: float = 0.1
     auto_roughness_min: float = 0.6
@@ -349,6 +374,12 @@ class MaterialConfig:
                              f"albedo_scale_quantile in (0, 1], albedo_scale_every >= 1: "
                              f"{self.albedo_scale}, {self.albedo_scale_quantile}, "
                              f"{self.albedo_scale_every}")
+        if not (0 <= self.detail_prior < math.inf and 0 < self.detail_max < math.inf and
+                0 < self.lr_detail < math.inf and self.detail_edge_px >= 0):
+            raise ValueError(f"MaterialConfig: detail_prior >= 0 (0 = off), detail_max > 0, "
+                             f"lr_detail > 0, all finite, detail_edge_px >= 0: "
+                             f"{self.detail_prior}, "
+                             f"{self.detail_max}, {self.lr_detail}, {self.detail_edge_px}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")
@@ -466,6 +497,9 @@ class MaterialState:
     # A light lost on the way shows where (issue 15: the low pair's weaker light was gone
     # at the warm-up's pruning, before any refinement or settling saw it).
     light_log: list = dataclasses.field(default_factory=list)
+    # The lights' directions [K, 3] when the albedo detail joined, whose shadows' edges its
+    # gates follow (``detail_gates``); None before.
+    detail_directions: np.ndarray | None = None
 
     def log_lights(self, event: str, dw: float) -> None:
         """Record the current lights (directions, irradiance L_dir dw) after ``event``."""
@@ -483,6 +517,8 @@ class MaterialState:
                        for k, v in self.channels.items()})
         arrays["directions"] = np.asarray(self.directions, np.float64)
         arrays["loss_sum"] = np.asarray(self.loss_sum.numpy(), np.float32)
+        if self.detail_directions is not None:
+            arrays["detail/directions"] = self.detail_directions
         if self.refine is not None:
             arrays.update({"refine/dirs": self.refine.dirs,
                            "refine/irradiance": self.refine.irradiance,
@@ -512,7 +548,8 @@ class MaterialState:
         return MaterialState(int(meta["step"]), opt, channels, arrays["directions"],
                              bool(meta["specular"]), rng, mi.Float(arrays["loss_sum"]),
                              [(int(i), float(x)) for i, x in meta["history"]],
-                             dict(meta["timings"]), refine, list(meta.get("light_log", [])))
+                             dict(meta["timings"]), refine, list(meta.get("light_log", [])),
+                             arrays.get("detail/directions"))
 
 
 def init_channels(surfels: Surfels, config: MaterialConfig) -> dict[str, mi.TensorXf]:
@@ -573,6 +610,8 @@ class TrainView:
     n_segments: int
     # [N] each surfel's normal facing this view's camera: where its indirect SH is evaluated
     surfel_normal: mi.Vector3f
+    # [H * W] 1 where the albedo detail takes gradients (``detail_gates``); None: everywhere
+    detail_gate: mi.Float | None = None
 
 
 def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.ndarray,
@@ -616,8 +655,28 @@ def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
     return mi.UInt32(np.where(pure, top, n_seg).astype(np.uint32)), n_seg
 
 
+def detailed_albedo(albedo: mi.TensorXf, detail: mi.TensorXf) -> mi.TensorXf:
+    """The albedo [N, 3] times exp(detail) [N, 3], in [0, 1]."""
+    return mi.TensorXf(dr.clip(albedo.array * dr.exp(detail.array), 0.0, 1.0), albedo.shape)
+
+
+def _albedo_image(pairs: shading.SplatPairs, channels: dict, gate: mi.Float | None):
+    """The blended albedo [H * W * 3], with the detail where ``channels`` has it; the detail
+    takes gradients only where ``gate`` [H * W] is 1."""
+    if DETAIL_CHANNEL not in channels:
+        return shading.splat(pairs, channels["albedo"])
+    d = channels[DETAIL_CHANNEL]
+    a = shading.splat(pairs, detailed_albedo(channels["albedo"], d))
+    if gate is None:
+        return a
+    held = shading.splat(pairs, detailed_albedo(channels["albedo"],
+                                                mi.TensorXf(dr.detach(d.array), d.shape)))
+    return dr.select(dr.repeat(gate, 3) > 0, a, held)
+
+
 def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf],
-              surfel_normal: mi.Vector3f, with_specular: bool = True):
+              surfel_normal: mi.Vector3f, with_specular: bool = True,
+              detail_gate: mi.Float | None = None):
     """Per-pixel albedo [Color3f], roughness, metallic and indirect radiance of a view (the
     indirect SH, of the degree its channel holds, evaluated per surfel at ``surfel_normal``
     [N] (``shading.facing_normals``), then blended). The albedo is blended (it carries the
@@ -625,7 +684,7 @@ def view_maps(pairs: shading.SplatPairs, channels: dict[str, mi.TensorXf],
     indirect irradiance are the covering surface's own (``shading.per_surface``). Without
     the specular lobe the metallic channel is held at 0 and the diffuse shading never reads
     the roughness: both are zero images, not splats."""
-    a = shading.splat(pairs, channels["albedo"])
+    a = _albedo_image(pairs, channels, detail_gate)
     albedo = mi.Color3f(*(shading.channel(a, 3, c) for c in range(3)))
     cover = pairs.coverage
     if with_specular:
@@ -669,7 +728,7 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
     ``view_maps`` of ``channels`` when already made (the normal phase holds them)."""
     h, w = view.pairs.height, view.pairs.width
     albedo, rough, metal, ind = maps if maps is not None else \
-        view_maps(view.pairs, channels, view.surfel_normal, with_specular)
+        view_maps(view.pairs, channels, view.surfel_normal, with_specular, view.detail_gate)
     rgb = shading.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
     wgt = view.weight
     inv = view.inv_count
@@ -682,6 +741,10 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
             loss += config.lambda_ind_floor * indirect_floor_penalty(
                 channels[shading.INDIRECT_CHANNEL], view.surfel_normal)
         loss += config.lambda_tv * sum(_tv(ind[c], wgt, h, w) for c in range(3)) * (inv / 3.0)
+    if DETAIL_CHANNEL in channels and maps is None and config.detail_prior > 0:
+        d = shading.splat(view.pairs, channels[DETAIL_CHANNEL])  # [H * W * 3]
+        loss += config.detail_prior * dr.sum(
+            sum(dr.square(shading.channel(d, 3, c)) for c in range(3)) * wgt) * (inv / 3.0)
     tv_mat = mi.Float(0.0)
     if config.albedo_tv_with_segments or not config.segment_average:
         tv_mat += sum(_tv(albedo[c], wgt, h, w) for c in range(3)) / 3.0
@@ -712,6 +775,11 @@ def _clamp_channels(ch: dict, seg, n_seg: int, config: MaterialConfig, with_spec
     if config.segment_average:
         a = segment_average(a, seg, n_seg)
     ch["albedo"] = a
+    if DETAIL_CHANNEL in ch:  # zero-mean per segment: the segment's albedo keeps its scale
+        d = ch[DETAIL_CHANNEL]
+        d = mi.TensorXf(d.array - segment_average(d, seg, n_seg).array, d.shape)
+        ch[DETAIL_CHANNEL] = mi.TensorXf(dr.clip(d.array, -config.detail_max,
+                                                 config.detail_max), d.shape)
     if with_specular:
         ch["roughness"] = mi.TensorXf(dr.clip(ch["roughness"].array, ROUGHNESS_MIN, 1.0),
                                       ch["roughness"].shape)
@@ -1429,6 +1497,8 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
     warmup_res = min(config.warmup_map_resolution, vis_config.resolution)
     fit.maps = fit.shadow_maps(state.directions, warmup_res if state.step < config.warmup or (
         state.step == config.warmup and state.refine is None) else None)
+    if DETAIL_CHANNEL in state.channels:  # resumed after the detail joined
+        detail_gates(fit, state)
     return fit, state
 
 
@@ -1526,6 +1596,46 @@ def _count_step(state: MaterialState, config: MaterialConfig, total: mi.Float) -
     state.history.append((state.step, mean))
     state.loss_sum = mi.Float(0.0)
     return mean
+
+
+def detail_step(config: MaterialConfig) -> int:
+    """The step the albedo detail joins (after the second refinement, else the warm-up's
+    end); -1: never (``detail_prior`` 0)."""
+    if config.detail_prior <= 0:
+        return -1
+    again = refine_step(config)
+    return again if again >= 0 else config.warmup
+
+
+def detail_gates(fit: MaterialFit, state: MaterialState) -> None:
+    """Each view's ``detail_gate``: its pixels farther than ``detail_edge_px`` from where a
+    light's shadow begins (its visibility crosses 0.5), for the lights the detail joined
+    with (``state.detail_directions``: a fit resumed after a light was pruned makes the
+    same gates; one host read a view). None (every pixel) without visibility."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    if fit.config.detail_edge_px <= 0 or fit.maps is None:
+        return
+    dirs = state.detail_directions
+    maps = fit.maps if np.array_equal(dirs, state.directions) else fit.shadow_maps(dirs)
+    size = (2 * fit.config.detail_edge_px + 1,) * 2 + (1,)
+    for k, v in enumerate(fit.views):
+        with dr.suspend_grad():
+            vis = maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+        lit = vis.numpy().reshape(v.pairs.height, v.pairs.width, -1) > 0.5  # [H, W, L]
+        edge = np.any(maximum_filter(lit, size) != minimum_filter(lit, size), axis=2)
+        fit.views[k] = dataclasses.replace(
+            v, detail_gate=mi.Float((~edge).reshape(-1).astype(np.float32)))
+
+
+def start_detail(fit: MaterialFit, state: MaterialState) -> None:
+    """At ``detail_step``: the albedo detail joins Adam at 0, and the views' gates."""
+    n = fit.surfels.count
+    state.channels[DETAIL_CHANNEL] = mi.TensorXf(dr.zeros(mi.Float, n * 3), (n, 3))
+    state.opt[DETAIL_CHANNEL] = state.channels[DETAIL_CHANNEL]
+    state.opt.set_learning_rate({DETAIL_CHANNEL: fit.config.lr_detail})
+    state.detail_directions = np.array(state.directions, np.float64)
+    detail_gates(fit, state)
 
 
 def start_normal_phase(fit: MaterialFit, state: MaterialState) -> None:
@@ -1641,6 +1751,9 @@ def fit_result(fit: MaterialFit, state: MaterialState) -> MaterialResult:
     out = surfels.with_channels({k: mi.TensorXf(dr.detach(ch[k].array), ch[k].shape)
                                  for k in ("albedo", "roughness", "metallic",
                                            shading.INDIRECT_CHANNEL)})
+    if DETAIL_CHANNEL in ch:  # the detailed albedo, which relighting and export read
+        a = detailed_albedo(ch["albedo"], ch[DETAIL_CHANNEL])
+        out = out.with_channels({"albedo": mi.TensorXf(dr.detach(a.array), a.shape)})
     if shading.SHADING_NORMAL_CHANNEL in ch:  # the normal phase's, as unit vectors
         start, held = _start_normals(fit)
         free = shading.unit_rows(ch[shading.SHADING_NORMAL_CHANNEL])
@@ -1719,6 +1832,8 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
                         state.log_lights("prune", solid_angle(config.n_directions))
                 if it == refine_again:
                     refine_lights(fit, state, refined_one)
+            if it == detail_step(config) and DETAIL_CHANNEL not in state.channels:
+                start_detail(fit, state)
             if it < config.iterations:
                 mean = fit_step(fit, state)
             if mean is not None:
