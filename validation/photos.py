@@ -20,7 +20,10 @@ For one scene (``validation.pipeline.SCENES``) under one light pair, on the text
    rotation).
 
     python -m validation.photos --scene NAME --out OUT [--lights tuned] [--preset cpu-small]
-        [--photo-size 512] [--threads N]
+        [--photo-size 512] [--threads N] [--albedo-detail W]
+
+``--albedo-detail W`` runs both fits with ``run --albedo-detail W`` (the mat's print in the
+albedo); a folder's runs made without it are refused by ``run``, so give it another OUT.
 
 Each step is reused when its output is complete. Writes ``OUT/photos.json`` and ``.md``.
 """
@@ -144,16 +147,18 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
                        for n, r in metrics["relighting"].items()}}
 
 
-def _timed_run(data: Path, out: Path, preset: str, times: Path) -> float:
-    """Stages 1-5 on ``data``; the seconds of the call that made the run. A finished run is
-    reused and its time read back from ``times`` (JSON: run folder name -> seconds)."""
+def _timed_run(data: Path, out: Path, preset: str, times: Path,
+               albedo_detail: float | None = None) -> float:
+    """Stages 1-5 on ``data`` (``RunConfig.albedo_detail``: ``albedo_detail``); the seconds
+    of the call that made the run. A finished run is reused and its time read back from
+    ``times`` (JSON: run folder name -> seconds)."""
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.pipeline import get_config, run_pipeline
 
     known = json.loads(times.read_text()) if times.is_file() else {}
     finished = (out / "summary.json").is_file()
-    seconds = float(run_pipeline(data, out, get_config(preset), progress=True)
-                    ["total_seconds"])
+    config = dataclasses.replace(get_config(preset), albedo_detail=albedo_detail)
+    seconds = float(run_pipeline(data, out, config, progress=True)["total_seconds"])
     if finished and out.name in known:
         return float(known[out.name])
     write_json(times, {**known, out.name: seconds})
@@ -197,7 +202,11 @@ def main(argv=None) -> int:
     ap.add_argument("--photo-size", type=int, default=512,
                     help="photo size in pixels (SfM registers every view at 512)")
     ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
+    ap.add_argument("--albedo-detail", type=float, default=None, metavar="W",
+                    help="both runs with `run --albedo-detail W` (default: the preset's, off)")
     args = ap.parse_args(argv)
+    if args.albedo_detail is not None and not 0 <= args.albedo_detail < float("inf"):
+        fail(f"--albedo-detail must be finite and >= 0, got {args.albedo_detail}")
     claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr
 
@@ -228,8 +237,9 @@ def main(argv=None) -> int:
     else:
         import_s = json.loads((imported / "import.json").read_text())["timings"]["total_s"]
     times = out / "wall_seconds.json"
-    photos_s = import_s + _timed_run(imported, out / "run-photos", args.preset, times)
-    gt_s = _timed_run(gt_data, out / "run-gt", args.preset, times)
+    photos_s = import_s + _timed_run(imported, out / "run-photos", args.preset, times,
+                                     args.albedo_detail)
+    gt_s = _timed_run(gt_data, out / "run-gt", args.preset, times, args.albedo_detail)
 
     quantile = run_config(args.preset).bounds_quantile
     train, test = load_dataset(gt_data, "train"), load_dataset(gt_data, "test")
@@ -241,6 +251,7 @@ def main(argv=None) -> int:
                              mapped_split(test, sim, lights), args.preset, quantile)
     diff = {k: photo_scores[k] - gt_scores[k] for k in FIGURES}
     rec = {"scene": args.scene, "lights": args.lights, "preset": args.preset,
+           "albedo_detail": args.albedo_detail,
            "photo_size": args.photo_size, "training_size": size,
            "photos_imported": len(list(photos.iterdir())),
            "similarity": sim.to_json(), "frame": frame, "import_s": import_s,
