@@ -161,3 +161,16 @@ def test_photos_albedo_detail_is_checked_first_and_reaches_the_runs(tmp_path, mo
     photos._timed_run(tmp_path, tmp_path / "run", "cpu-small", tmp_path / "t.json", 0.1)
     photos._timed_run(tmp_path, tmp_path / "run2", "cpu-small", tmp_path / "t.json")
     assert [c.albedo_detail for c in seen] == [0.1, None]
+    # A study folder whose runs were made with another W: exit 2 naming the setting.
+    from mi_shadowgs.io.provenance import ProvenanceError
+
+    def refuse(data, out, config, **kw):
+        raise ProvenanceError(f"{out}: other settings (material.detail_prior: 0.0 there, "
+                              "0.1 now)")
+
+    monkeypatch.setattr(pipeline, "run_pipeline", refuse)
+    with pytest.raises(SystemExit) as exc:
+        photos._timed_run(tmp_path, tmp_path / "run", "cpu-small", tmp_path / "t.json", 0.1)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "detail_prior: 0.0 there, 0.1 now" in err
+    assert "give another --out" in err

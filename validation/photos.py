@@ -23,7 +23,8 @@ For one scene (``validation.pipeline.SCENES``) under one light pair, on the text
         [--photo-size 512] [--threads N] [--albedo-detail W]
 
 ``--albedo-detail W`` runs both fits with ``run --albedo-detail W`` (the mat's print in the
-albedo); a folder's runs made without it are refused by ``run``, so give it another OUT.
+albedo); an OUT whose runs were made without it (or with another W) exits 2, naming the
+setting: give another OUT.
 
 Each step is reused when its output is complete. Writes ``OUT/photos.json`` and ``.md``.
 """
@@ -157,8 +158,13 @@ def _timed_run(data: Path, out: Path, preset: str, times: Path,
 
     known = json.loads(times.read_text()) if times.is_file() else {}
     finished = (out / "summary.json").is_file()
+    from mi_shadowgs.io.provenance import ProvenanceError
+
     config = dataclasses.replace(get_config(preset), albedo_detail=albedo_detail)
-    seconds = float(run_pipeline(data, out, config, progress=True)["total_seconds"])
+    try:
+        seconds = float(run_pipeline(data, out, config, progress=True)["total_seconds"])
+    except ProvenanceError as exc:  # e.g. another --albedo-detail into the same OUT
+        fail(f"{exc}; validation.photos has no --overwrite: give another --out")
     if finished and out.name in known:
         return float(known[out.name])
     write_json(times, {**known, out.name: seconds})
