@@ -211,8 +211,14 @@ def main(argv=None) -> int:
     ap.add_argument("--albedo-detail", type=float, default=None, metavar="W",
                     help="both runs with `run --albedo-detail W` (default: the preset's, off)")
     args = ap.parse_args(argv)
-    if args.albedo_detail is not None and not 0 <= args.albedo_detail < float("inf"):
-        fail(f"--albedo-detail must be finite and >= 0, got {args.albedo_detail}")
+    from mi_shadowgs.config import ConfigError
+    from mi_shadowgs.pipeline import get_config as run_config
+
+    base = run_config(args.preset)
+    try:  # RunConfig's own check, before any data is made
+        dataclasses.replace(base, albedo_detail=args.albedo_detail)
+    except ConfigError as exc:
+        fail(f"--albedo-detail must be finite and >= 0: {exc}")
     claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr
 
@@ -221,7 +227,6 @@ def main(argv=None) -> int:
     from mi_shadowgs.dataset.importer import import_capture
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.atomic import write_json, write_text
-    from mi_shadowgs.pipeline import get_config as run_config
     from validation.import_sfm import cameras_by_photo, truth
 
     if args.threads:
@@ -247,7 +252,7 @@ def main(argv=None) -> int:
                                      args.albedo_detail)
     gt_s = _timed_run(gt_data, out / "run-gt", args.preset, times, args.albedo_detail)
 
-    quantile = run_config(args.preset).bounds_quantile
+    quantile = base.bounds_quantile
     train, test = load_dataset(gt_data, "train"), load_dataset(gt_data, "test")
     sim, frame = fit_frame(cameras_by_photo(imported), truth(photoset))
     lights = mapped_lights(train.lights, sim.rotation)

@@ -1497,8 +1497,8 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
     warmup_res = min(config.warmup_map_resolution, vis_config.resolution)
     fit.maps = fit.shadow_maps(state.directions, warmup_res if state.step < config.warmup or (
         state.step == config.warmup and state.refine is None) else None)
-    if DETAIL_CHANNEL in state.channels:  # resumed after the detail joined
-        detail_gates(fit, state)
+    if DETAIL_CHANNEL in state.channels and state.step < config.iterations:
+        detail_gates(fit, state)  # resumed while the detail fits (the normal phase holds it)
     return fit, state
 
 
