@@ -306,6 +306,12 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
             overrides["iterations"] = config.material_iterations
         if config.albedo_detail is not None:
             overrides["detail_prior"] = config.albedo_detail
+        changed = material_fit.label_source_overrides(
+            material_config(config.preset, overrides), masks)
+        if changed and log:
+            log(f"stage 4 on segments from {masks}: " + ", ".join(
+                f"{k} {v}" for k, v in changed.items()) + " (MaterialConfig.chromaticity_*)")
+        overrides.update(changed)
 
         # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
         variants = VARIANTS if config.ablations else {"full": VARIANTS["full"]}

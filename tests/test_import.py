@@ -462,6 +462,7 @@ def test_stage1_runner_trains_unmasked_views_with_the_dark_alpha_prior(imported,
     assert used["lambda_normal"] == cfg.lambda_normal
     assert used["lambda_dark_alpha"] == cfg.unmasked_lambda_dark_alpha > 0
     assert used["densify"]["opacity_reset_interval"] == 0
+    assert used["densify"]["max_surfels"] == cfg.unmasked_max_surfels != cfg.densify.max_surfels
     assert f"lambda_dist {cfg.lambda_dist:g}" in capsys.readouterr().err
     # an explicit unmasked weight replaces the masked one
     cfg2 = dataclasses.replace(cfg, unmasked_lambda_dist=0.0)

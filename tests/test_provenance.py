@@ -651,6 +651,10 @@ def test_settings_added_later_keep_older_outputs_when_they_change_nothing():
     assert diff(unmasked_lambda_dist=0.0, unmasked_lambda_normal=0.0,
                 unmasked_opacity_reset=False, unmasked_lambda_dark_alpha=0.1) == []
     assert diff(unmasked_lambda_dist=None, unmasked_lambda_normal=None) == []
+    assert diff(unmasked_max_surfels=40000) == []  # ... and densify.max_surfels
+    # stage 4 before its chromaticity settings: they act through normal_steps and
+    # refine_score (compared)
+    assert diff(chromaticity_normal_steps=0, chromaticity_refine_score="segment") == []
     # ... and before the dark-alpha term: off (it acts on views without masks only)
     assert diff(lambda_dark_alpha=0.0, dark_max=1.0 / 255.0) == []
     assert "lambda_dark_alpha" in diff(lambda_dark_alpha=0.1)[0]

@@ -252,6 +252,52 @@ def test_albedo_detail_reaches_stage_4_and_a_run_without_it_is_not_reused(
         assert not (tmp_path / "bad").exists()
 
 
+def test_chromaticity_segments_get_stage_4s_chromaticity_settings(finished, data, tmp_path,
+                                                                  capsys):
+    """Stage 4's normal phase and "albedo" refinement score read each segment's albedo as
+    right; on segments from chromaticity (which can mix materials) its chromaticity_*
+    settings take their place, recorded as the values that ran and said once. With
+    material ids the preset's run. A run fitted before on chromaticity segments is
+    refused naming the setting."""
+    preset = material_fit.get_config("cpu-small")
+    # else the test would not tell the two apart
+    assert preset.normal_steps != preset.chromaticity_normal_steps
+    assert preset.refine_score != preset.chromaticity_refine_score
+    recorded = json.loads((finished / "material" / "full" / MANIFEST_NAME).read_text())
+    assert recorded["settings"]["material"]["normal_steps"] == preset.normal_steps
+    assert recorded["settings"]["material"]["refine_score"] == preset.refine_score
+    other = tmp_path / "chroma"
+    shutil.copytree(finished / "geometry", other / "geometry")
+    capsys.readouterr()
+    argv = ["run", str(data[0]), "--no-progress", "--masks", "chromaticity", "--out"]
+    assert cli.main([*argv, str(other)]) == 0
+    out = capsys.readouterr().out
+    assert "geometry:" not in out  # stage 1 reused
+    assert (f"stage 4 on segments from chromaticity: normal_steps "
+            f"{preset.chromaticity_normal_steps}, refine_score "
+            f"{preset.chromaticity_refine_score}") in out, out
+    manifest = other / "material" / "full" / MANIFEST_NAME
+    settings = json.loads(manifest.read_text())["settings"]["material"]
+    assert settings["normal_steps"] == preset.chromaticity_normal_steps
+    assert settings["refine_score"] == preset.chromaticity_refine_score
+    # A stage 4 fitted on chromaticity segments with the preset's own settings (before
+    # these existed) is not taken as one made with them.
+    old = json.loads(manifest.read_text())
+    for key in ("chromaticity_normal_steps", "chromaticity_refine_score"):
+        del old["settings"]["material"][key]
+    old["settings"]["material"].update(normal_steps=preset.normal_steps,
+                                       refine_score=preset.refine_score)
+    manifest.write_text(json.dumps(old))
+    before = _snapshot(other)
+    assert cli.main([*argv, str(other)]) == 2
+    err = capsys.readouterr().err
+    assert f"normal_steps: {preset.normal_steps} there, " \
+        f"{preset.chromaticity_normal_steps} now" in err, err
+    assert _snapshot(other) == before
+    with pytest.raises(ValueError, match="chromaticity_refine_score must be one of"):
+        dataclasses.replace(preset, chromaticity_refine_score="lucky")
+
+
 def test_a_changed_stage_1_model_is_not_segmented_as_the_old_one(finished, data, tmp_path, capsys):
     run = _copy(finished, tmp_path)
     model = ply.read_ply_model(run / "geometry" / "model.ply")

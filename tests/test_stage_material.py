@@ -894,3 +894,23 @@ def test_albedo_detail_gates_follow_the_lights_it_joined_with():
     material_fit.detail_gates(fit, state)
     for g, v in zip(first, fit.views, strict=True):
         np.testing.assert_array_equal(v.detail_gate.numpy(), g)
+
+
+def test_label_source_overrides_change_only_chromaticity_fits():
+    """Material-id segments keep the preset; chromaticity ones take its chromaticity_*
+    settings (only those that differ); an unknown source is refused by name."""
+    cfg = material_fit.get_config("cpu-small")
+    assert material_fit.label_source_overrides(cfg, "material") == {}
+    assert material_fit.label_source_overrides(cfg, "chromaticity") == {
+        "normal_steps": cfg.chromaticity_normal_steps,
+        "refine_score": cfg.chromaticity_refine_score}
+    same = dataclasses.replace(cfg, normal_steps=cfg.chromaticity_normal_steps)
+    assert material_fit.label_source_overrides(same, "chromaticity") == {
+        "refine_score": cfg.chromaticity_refine_score}
+    with pytest.raises(ValueError, match="label source must be one of"):
+        material_fit.label_source_overrides(cfg, "auto")
+    with pytest.raises(ValueError, match="chromaticity_normal_steps must be >= 0"):
+        dataclasses.replace(cfg, chromaticity_normal_steps=-1)
+    with pytest.raises(ValueError, match="chromaticity_refine_score 'albedo' needs specular"):
+        dataclasses.replace(cfg, refine_score="segment", chromaticity_refine_score="albedo",
+                            specular="on")

@@ -99,7 +99,12 @@ RESULT_NEUTRAL_SETTINGS = ("checkpoint_every", "checkpoint_seconds",
                            # lambda_dist, lambda_normal and the opacity reset, which are
                            # compared: their effect is recorded there
                            "unmasked_lambda_dist", "unmasked_lambda_normal",
-                           "unmasked_opacity_reset", "unmasked_lambda_dark_alpha")
+                           "unmasked_opacity_reset", "unmasked_lambda_dark_alpha",
+                           # ... and this through densify.max_surfels
+                           "unmasked_max_surfels",
+                           # stage 4 applies these to segments from chromaticity through
+                           # normal_steps and refine_score, which are compared
+                           "chromaticity_normal_steps", "chromaticity_refine_score")
 # Settings added after outputs were made, with the value that does what the code did before
 # they existed: absent from an older manifest, they count as equal to that value, so an
 # older run is still reused (or resumed) when nothing it computed would change.

@@ -294,6 +294,20 @@ class MaterialConfig:
     # ask of them, and the phase would spend the base's one-light regions on explaining
     # what the normals cannot (indirect light, aliasing).
     normal_hold_planar: bool = True
+    # On segments from chromaticity (stage 2 without material ids, as for a capture), these
+    # replace ``normal_steps`` and ``refine_score`` (``label_source_overrides``). Such a
+    # segment can hold several materials, or split a printed mat by its print, so its one
+    # albedo is wrong in places; both settings read it as right. The normal phase turned the
+    # error into tilted normals (speckled false shadows on a textured mat, a false shadow
+    # over a sphere's lit cap), and the "albedo" score, which re-fits each segment's albedo
+    # with the candidate, set the weak light 7-12 deg off. The default scene on a textured
+    # mat, shadow IoU: from photos only 0.738 (normal phase, "albedo") -> 0.771 (no phase)
+    # -> 0.812 (no phase, "segment"); from ground-truth cameras with chromaticity segments
+    # 0.780 -> 0.851 (no phase). The plain default scene with chromaticity segments: 0.908
+    # -> 0.911 (no phase). Material-id segments (the table's) keep both. BENCHMARKS.md,
+    # "Session 44: the photo path back inside issue 17's bound".
+    chromaticity_normal_steps: int = 0
+    chromaticity_refine_score: str = "segment"
     # A per-surfel albedo detail (not in the paper): from the main phase's second
     # refinement on, each surfel's albedo is its segment's times exp(d), d [N, 3] held
     # zero-mean within the segment and within +-detail_max, pulled to 0 by detail_prior x
@@ -360,14 +374,18 @@ class MaterialConfig:
         if self.settle_score not in SETTLE_SCORES:
             raise ValueError(f"MaterialConfig.settle_score must be one of {SETTLE_SCORES}, got "
                              f"{self.settle_score!r}")
-        if self.refine_score not in REFINE_SCORES:
-            raise ValueError(f"MaterialConfig.refine_score must be one of {REFINE_SCORES}, got "
-                             f"{self.refine_score!r}")
-        if self.refine_score == "albedo" and self.specular != "off":
-            # the lobe's dielectric part does not scale with the albedo
-            raise ValueError(f"MaterialConfig.refine_score 'albedo' needs specular 'off', got "
-                             f"{self.specular!r}: with the lobe set refine_score 'segment' "
-                             f"too")
+        for name in ("refine_score", "chromaticity_refine_score"):
+            score = getattr(self, name)
+            if score not in REFINE_SCORES:
+                raise ValueError(f"MaterialConfig.{name} must be one of {REFINE_SCORES}, got "
+                                 f"{score!r}")
+            if score == "albedo" and self.specular != "off":
+                # the lobe's dielectric part does not scale with the albedo
+                raise ValueError(f"MaterialConfig.{name} 'albedo' needs specular 'off', got "
+                                 f"{self.specular!r}: with the lobe set {name} 'segment' too")
+        if self.chromaticity_normal_steps < 0:
+            raise ValueError(f"MaterialConfig.chromaticity_normal_steps must be >= 0, got "
+                             f"{self.chromaticity_normal_steps}")
         if not 0.0 <= self.albedo_scale <= 1.0 or not 0.0 < self.albedo_scale_quantile <= 1.0 \
                 or self.albedo_scale_every < 1:
             raise ValueError(f"MaterialConfig: albedo_scale in [0, 1] (0 = off), "
@@ -431,6 +449,22 @@ PRESETS["cpu-medium"] = PRESETS["gpu-large"] = PRESETS["cpu-small"]
 
 def get_config(name: str) -> MaterialConfig:
     return get_preset(PRESETS, name, "material")
+
+
+LABEL_SOURCES = ("material", "chromaticity")  # where stage 2's segment labels came from
+
+
+def label_source_overrides(config: MaterialConfig, source: str) -> dict:
+    """The settings that change ``config`` for segments labelled from ``source`` (one of
+    ``LABEL_SOURCES``): on chromaticity ones its ``chromaticity_*`` settings (see them), as
+    {field: value} with only the values that differ."""
+    if source not in LABEL_SOURCES:
+        raise ValueError(f"label source must be one of {LABEL_SOURCES}, got {source!r}")
+    if source == "material":
+        return {}
+    wanted = {"normal_steps": config.chromaticity_normal_steps,
+              "refine_score": config.chromaticity_refine_score}
+    return {k: v for k, v in wanted.items() if getattr(config, k) != v}
 
 
 # -- model ---------------------------------------------------------------------------------
