@@ -59,3 +59,23 @@ def test_a_killed_refit_continues_from_its_checkpoint(tiny_run, tiny_presets, tm
                            str(someone_elses_folder)])
     assert exc.value.code == 2 and "did not write" in capsys.readouterr().err
     assert untouched(someone_elses_folder)
+
+
+def test_a_refit_takes_the_settings_its_runs_segments_were_fitted_with(tmp_path):
+    """A run whose segments came from chromaticity was fitted with stage 4's chromaticity_*
+    settings in place of normal_steps and refine_score; its refit takes them too (a --set
+    still wins), and a run of material-id segments keeps the preset's."""
+    from mi_shadowgs.stages.material.fit import get_config
+    from validation.refit_lights import with_label_source
+
+    preset = get_config("cpu-small")
+    run = tmp_path / "run"
+    (run / "segmentation").mkdir(parents=True)
+    record = run / "segmentation" / "segmentation.json"
+    record.write_text(json.dumps({"masks": "chromaticity"}))
+    assert with_label_source(run, "cpu-small", {"iterations": 5}) == {
+        "iterations": 5, "normal_steps": preset.chromaticity_normal_steps,
+        "refine_score": preset.chromaticity_refine_score}
+    assert with_label_source(run, "cpu-small", {"normal_steps": 7})["normal_steps"] == 7
+    record.write_text(json.dumps({"masks": "material"}))
+    assert with_label_source(run, "cpu-small", {"iterations": 5}) == {"iterations": 5}

@@ -37,6 +37,21 @@ def _value(text: str):
         return text
 
 
+def with_label_source(run: Path, preset: str, overrides: dict) -> dict:
+    """``overrides`` with the stage-4 settings that ``run`` fitted with for the source of its
+    segments' labels (stage 2's ``masks`` in ``segmentation.json``: on chromaticity ones
+    ``MaterialConfig.chromaticity_*``, as ``run`` applies them); a setting in ``overrides``
+    wins."""
+    from mi_shadowgs.stages.material.fit import label_source_overrides
+    from mi_shadowgs.stages.material.runner import material_config
+
+    record = run / "segmentation" / "segmentation.json"
+    source = json.loads(record.read_text()).get("masks") if record.is_file() else None
+    if source is None:  # no record of it: the preset's, as before these settings
+        return overrides
+    return {**label_source_overrides(material_config(preset, overrides), source), **overrides}
+
+
 def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
           before: bool = True, checkpoints: dict | None = None) -> dict:
     """Stages 3-5 of ``run`` again on ``data``; ``checkpoints``: ``state`` and
@@ -197,6 +212,7 @@ def main(argv=None) -> int:
 
     try:  # before any work: a setting the config refuses exits 2 naming it
         material_config(run_preset(args.run), overrides)
+        overrides = with_label_source(args.run, run_preset(args.run), overrides)
     except (ConfigError, ValueError) as e:
         fail(f"--set: {e}")
     model = args.run / "segmentation" / "model.ply"
