@@ -111,8 +111,8 @@ class GeometryConfig:
     # keeps it. Without masks stage 1 also fits the ground out to the photos' edges, and
     # cpu-small's 30k (set for masked views, with the hull on the object) held a capture's
     # fit back: the default scene on a textured mat from photos only, 30k -> 40k, test PSNR
-    # 32.3 -> 33.6 dB and stage-5 shadow IoU 0.816 -> 0.849 / 0.869 at two seeds
-    # (BENCHMARKS.md, "Session 44: the photo path back inside issue 17's bound").
+    # 32.3 -> 33.6 dB and stage-5 shadow IoU 0.816 -> 0.849 (seed 0), 0.816 -> 0.869 (seed
+    # 1) (BENCHMARKS.md, "Session 44: the photo path back inside issue 17's bound").
     unmasked_max_surfels: int | None = None
     # After training: remove the surfels whose centre projects outside the training masks,
     # each dilated by ``hull_prune_dilate`` px, in at least ``hull_prune_views`` views
