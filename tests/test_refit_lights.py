@@ -79,3 +79,6 @@ def test_a_refit_takes_the_settings_its_runs_segments_were_fitted_with(tmp_path)
     assert with_label_source(run, "cpu-small", {"normal_steps": 7})["normal_steps"] == 7
     record.write_text(json.dumps({"masks": "material"}))
     assert with_label_source(run, "cpu-small", {"iterations": 5}) == {"iterations": 5}
+    record.write_text(json.dumps({"masks": "auto"}))  # a record no run writes: named
+    with pytest.raises(ValueError, match="segmentation.json: field 'masks'"):
+        with_label_source(run, "cpu-small", {})

@@ -46,10 +46,14 @@ def with_label_source(run: Path, preset: str, overrides: dict) -> dict:
     from mi_shadowgs.stages.material.runner import material_config
 
     record = run / "segmentation" / "segmentation.json"
-    source = json.loads(record.read_text()).get("masks") if record.is_file() else None
-    if source is None:  # no record of it: the preset's, as before these settings
-        return overrides
-    return {**label_source_overrides(material_config(preset, overrides), source), **overrides}
+    try:
+        source = json.loads(record.read_text()).get("masks") if record.is_file() else None
+        if source is None:  # no record of it: the preset's, as before these settings
+            return overrides
+        changed = label_source_overrides(material_config(preset, overrides), source)
+    except (ValueError, AttributeError) as e:  # unreadable JSON, not a dict, unknown source
+        raise ValueError(f"{record}: field 'masks': {e}") from e
+    return {**changed, **overrides}
 
 
 def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
@@ -210,11 +214,15 @@ def main(argv=None) -> int:
     from mi_shadowgs.stages.material.runner import material_config
     from mi_shadowgs.stages.relight.runner import run_preset
 
+    preset = run_preset(args.run)
     try:  # before any work: a setting the config refuses exits 2 naming it
-        material_config(run_preset(args.run), overrides)
-        overrides = with_label_source(args.run, run_preset(args.run), overrides)
+        material_config(preset, overrides)
     except (ConfigError, ValueError) as e:
         fail(f"--set: {e}")
+    try:
+        overrides = with_label_source(args.run, preset, overrides)
+    except ValueError as e:
+        fail(str(e))
     model = args.run / "segmentation" / "model.ply"
     if not model.is_file():
         fail(f"{model}: not found (--run takes a finished run)")
@@ -231,7 +239,7 @@ def main(argv=None) -> int:
                      checkpoint_hooks(unit, MaterialState.from_checkpoint))
 
     provenance = Provenance(dataset_ref(args.data), {"model": input_ref(model)},
-                            settings_of(preset=run_preset(args.run), overrides=overrides,
+                            settings_of(preset=preset, overrides=overrides,
                                         other_data=args.other_data))
     res = run_unit(args.out, "refit", "validation.refit_lights", provenance, fit,
                    inputs=(args.run, args.data))
