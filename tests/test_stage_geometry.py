@@ -94,11 +94,17 @@ def test_resume_after_interruption_continues_the_run(tiny, tmp_path):
     resumed = geometry_train.train_geometry(train, cfg, state=state, progress=False)
     straight = geometry_train.train_geometry(train, cfg, progress=False)
     a, b = resumed.to_numpy(), straight.to_numpy()
+    # The densification at step 50 decides the surfel count: every resume fault tried
+    # (Adam's moments zeroed or halved, its step or the schedule's step off) changed it
+    # (2026-11-29, 2979-2998 surfels against 2994).
     assert a["position"].shape == b["position"].shape
-    # Same schedule, views and densification; float atomics in the rasterizer's scatter may
-    # reorder sums, so positions agree to ~1e-4 rather than bit for bit.
-    np.testing.assert_allclose(a["position"], b["position"], atol=1e-3)
-    np.testing.assert_allclose(a["opacity"], b["opacity"], atol=1e-3)
+    # Float atomics in the rasterizer's scatter reorder sums, so the runs agree to ~1e-5
+    # (two comparisons: all surfels within 5e-6 in position, 4e-5 in opacity), not bit for
+    # bit; Adam's normalised step can carry one surfel whose gradient is near zero further
+    # (1.4e-3 in opacity, once, in CI), so the check bounds the share that differs.
+    for name in ("position", "opacity"):
+        differ = np.abs(a[name] - b[name]).reshape(len(a[name]), -1).max(axis=1) > 1e-4
+        assert np.isfinite(a[name]).all() and differ.mean() <= 0.01, (name, differ.sum())
 
 
 def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
