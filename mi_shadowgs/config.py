@@ -19,6 +19,9 @@ PRESET_NAMES = ("cpu-small", "cpu-medium", "gpu-large", "paper")
 # 4.5-4.8 min on an H100; its stage 1 alone took 30 min on one Xeon thread, and the paper's
 # 40k steps at 800^2 take hours on 2 cores (BENCHMARKS.md, "Session 26").
 GPU_PRESETS = ("gpu-large", "paper")
+# Where stage 2's label maps come from (segmentation.masks): here, so the CLI names them
+# without importing the stages.
+LABEL_MAP_SOURCES = ("material", "chromaticity")
 
 
 class ConfigError(ValueError):

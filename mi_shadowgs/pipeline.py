@@ -15,7 +15,12 @@ import time
 from pathlib import Path
 
 from mi_shadowgs.backend import ensure_variant
-from mi_shadowgs.config import check_fields, get_preset, slow_preset_warning
+from mi_shadowgs.config import (
+    LABEL_MAP_SOURCES,
+    check_fields,
+    get_preset,
+    slow_preset_warning,
+)
 from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
@@ -38,7 +43,7 @@ VARIANTS = {
     "no_visibility": {"use_visibility": False},  # paper Table 3, "w/o visibility"
     "no_segmentation": {"segment_average": False},  # "w/o segmentation"
 }
-MASK_SOURCES = ("auto", "material", "chromaticity")
+MASK_SOURCES = ("auto", *LABEL_MAP_SOURCES)  # "auto": material ids where the views have them
 # The ground truth of the stage-1 and stage-2 metrics (stage 5's: relight.METRIC_NEEDS); a
 # metric whose ground truth the dataset lacks is not computed, and the summary says so.
 STAGE_METRIC_NEEDS = {

@@ -13,7 +13,7 @@ import argparse
 import os
 
 from mi_shadowgs.cli.train import PRUNE_HELP
-from mi_shadowgs.config import PRESET_NAMES
+from mi_shadowgs.config import LABEL_MAP_SOURCES, PRESET_NAMES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "those)")
     parser.add_argument("--preset", default="cpu-small",
                         help=f"{', '.join(PRESET_NAMES)} (default cpu-small)")
-    parser.add_argument("--masks", default=None, choices=("auto", "material", "chromaticity"),
+    parser.add_argument("--masks", default=None, choices=("auto", *LABEL_MAP_SOURCES),
                         help="segmentation labels (default: material ids when present)")
     parser.add_argument("--segments", type=int, default=None, metavar="K",
                         help="number of material segments (default: the number of material "

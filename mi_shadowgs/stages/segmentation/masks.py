@@ -32,7 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mi_shadowgs.config import get_preset
+from mi_shadowgs.config import LABEL_MAP_SOURCES, get_preset
 
 
 class MaskError(ValueError):
@@ -169,7 +169,7 @@ def chromaticity_masks(dataset, config: ChromaticityConfig = ChromaticityConfig(
 
 
 def label_map_sources() -> tuple[str, ...]:
-    return ("material", "chromaticity")
+    return LABEL_MAP_SOURCES
 
 
 def masks_for(dataset, source: str, config: ChromaticityConfig = ChromaticityConfig()
