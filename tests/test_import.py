@@ -184,9 +184,10 @@ def test_masks_go_through_the_undistortion(photos, imported, tmp_path):
 
 
 # -- bad input: exit 2, name it, write nothing ----------------------------------------------------
-def _cli(capsys, *argv):
+def _cli(capsys, *argv, stdout=False):
     code = main(["import", *map(str, argv), "--no-progress"])
-    return code, capsys.readouterr().err
+    out = capsys.readouterr()
+    return (code, out.err, out.out) if stdout else (code, out.err)
 
 
 def _jpegs(folder, n, size=(64, 48), seed=0):
@@ -378,8 +379,12 @@ def test_transforms_masks_of_another_size_and_fields_of_another_type_exit_2(tmp_
     if k1 is not None:
         meta["k1"] = k1
     tf.write_text(json.dumps(meta))  # masks of the photos' size: imported
-    code, err = _cli(capsys, tf, "--out", tmp_path / "good", "--test-every", "2")
+    code, err, said = _cli(capsys, tf, "--out", tmp_path / "good", "--test-every", "2",
+                           stdout=True)
     assert code == 0 and load_dataset(tmp_path / "good", "train").has_masks, err
+    # the next command, with the setting a photographed ground needs
+    assert f"next: mi-shadowgs run {tmp_path / 'good'} --out RUN" in said, said
+    assert "--albedo-detail 0.1" in said, said
     _transforms_capture(tmp_path / "half", mask_size=(32, 24))
     for i, fr in enumerate(meta["frames"]):
         fr["mask_path"] = f"half/masks/p{i}.png"

@@ -54,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
           f"{rec['points']} points"
           + ("" if err is None else f", {err:.2f} px reprojection error")
           + f", {rec['timings']['total_s']:.1f} s")
+    # the next step, and the one setting a photographed ground needs (README, "Your own photos")
+    print(f"next: mi-shadowgs run {args.out} --out RUN   (a printed or textured ground: add "
+          "--albedo-detail 0.1)")
     if (note := ground_outside_masks_warning(rec)) is not None:
         from mi_shadowgs.stages.common import warn
 
