@@ -601,3 +601,26 @@ def test_a_full_run_after_a_smoke_run_in_the_same_folder(exact_model, tmp_path, 
     units = sorted(p.name for p in (out / "units").iterdir())
     quick = [n for n in units if n.startswith("quick-")]
     assert len(quick) == 4 and len(units) == 8  # one row per method, each run its own
+
+
+def test_lights_of_ones_own_replace_the_eight_and_key_the_results(tmp_path, capsys):
+    """``--lights AZ,EL ...`` scores a model at chosen directions (a fitted light's own);
+    the lights are a case setting, so units made under other lights are not reused; a
+    malformed or sub-horizon pair exits 2 naming --lights before any work."""
+    import validation.visibility as vv
+
+    assert vv.checked_lights([("35", "50"), (215, 35.5)]) == ((35.0, 50.0), (215.0, 35.5))
+    assert "lights" in vv.CASE_FIELDS
+    cfg = vv.ValidationConfig()
+    assert vv.case_settings(cfg) != vv.case_settings(
+        dataclasses.replace(cfg, lights=vv.checked_lights([("35", "50")])))
+    data = tmp_path / "d"
+    model = tmp_path / "run" / "geometry" / "model.ply"
+    for bad, said in ((["35"], "not an AZ,EL pair"), (["35,0"], "elevation in (0, 90]"),
+                      (["x,40"], "not an AZ,EL pair"), (["35,91"], "elevation in (0, 90]")):
+        with pytest.raises(SystemExit) as e:
+            vv.main(["--out", str(tmp_path / "out"), "--model", str(model), "--data",
+                     str(data), "--models-only", "--lights", *bad, "--quiet"])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and "--lights" in err and said in err, err
+        assert not (tmp_path / "out").exists()

@@ -20,11 +20,12 @@ slack) and its receiver band: the method as a run at P has it.
 ``--factors`` also splits each stage-1 model's IoU (``model_factors``): its receivers and
 occluders swapped for the truth's, the method on exact geometry, and what the pixel area
 allows; ``--models-only`` leaves out the ground-truth scenes, the sweep and the timing
-(about a minute per model instead of five).
+(about a minute per model instead of five). ``--lights`` replaces the 8 directions, e.g. by
+a fitted light's own.
 
     python -m validation.visibility --out validation-out/visibility [--quick]
         [--model RUN/geometry/model.ply --data DATASET ...] [--factors] [--models-only]
-        [--receiver-band B] [--preset P] [--overwrite]
+        [--receiver-band B] [--preset P] [--lights AZ,EL ...] [--overwrite]
 
 Writes ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``, ``sweep.md``,
 ``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``), each atomically, from
@@ -174,6 +175,25 @@ def scene_surfels(setup, cfg: ValidationConfig, seed: int = 0) -> Surfels:
     sig = np.concatenate([s for _, _, s in parts])
     return Surfels.from_numpy(pos, np.stack([sig, sig], 1), frame_to_quaternion(nrm),
                               np.full(len(pos), 0.99))
+
+
+def checked_lights(angles) -> tuple:
+    """``angles`` as a tuple of (azimuth, elevation) float pairs in degrees, elevation in
+    (0, 90]; a ValueError names ``--lights`` and the bad entry."""
+    out = []
+    for entry in angles:
+        try:
+            az, el = (float(x) for x in entry)
+        except (TypeError, ValueError):
+            raise ValueError(f"--lights: {entry!r} is not an AZ,EL pair of numbers "
+                             "(degrees)") from None
+        if not (math.isfinite(az) and 0.0 < el <= 90.0):
+            raise ValueError(f"--lights: ({az}, {el}): the azimuth must be finite and the "
+                             "elevation in (0, 90] degrees")
+        out.append((az, el))
+    if not out:
+        raise ValueError("--lights: give at least one AZ,EL pair")
+    return tuple(out)
 
 
 def make_lights(angles) -> tuple[list[Light], np.ndarray]:
@@ -715,7 +735,7 @@ def _progress(quiet: bool):
 def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False,
         factors: bool = False, factor_samples: int = 4, factor_surfels: int | None = None,
         models_only: bool = False, receiver_band: float | None = None,
-        preset: str | None = None, overwrite: bool = False) -> dict:
+        preset: str | None = None, overwrite: bool = False, lights=None) -> dict:
     """Everything above; writes into ``out_dir`` (new, or this validation's: ``claim_out``):
     each case's row of each method, each model's factor split, each setting of the sweep
     and of the timing is a unit (``validation.units``), so that a rerun after a kill redoes
@@ -728,8 +748,9 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
     models' rows alone (no ground-truth scenes, sweep or timing); ``preset``: the pixel
     method's maps at that preset's visibility settings (``shadow_maps.PRESETS``) instead of
     the paper's, and its receiver band; ``receiver_band``: the models' receivers
-    (``rendered_receivers``; None: the preset's band, 0 without a preset). Returns a
-    summary dict with a ``markdown`` entry."""
+    (``rendered_receivers``; None: the preset's band, 0 without a preset); ``lights``:
+    (azimuth, elevation) pairs in degrees in place of ``LIGHTS`` (a fitted light's own
+    direction, say). Returns a summary dict with a ``markdown`` entry."""
     models = [model] if isinstance(model, str | Path) else list(model or [])
     datas = [data] if isinstance(data, str | Path) else list(data or [])
     if len(models) != len(datas):
@@ -752,6 +773,8 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
                          "and --data")
     case_names = model_case_names([Path(m) for m in models], [Path(d) for d in datas])
     cfg = QUICK if quick else ValidationConfig()
+    if lights is not None:
+        cfg = dataclasses.replace(cfg, lights=checked_lights(lights))
     receiver_band = base.receiver_band if receiver_band is None else receiver_band
     progress = _progress(quiet)
     scenes, notes = [], []
@@ -942,15 +965,21 @@ def main(argv=None) -> int:
                          "splats within this many pixel footprints of it, as stages 4-5 of "
                          "the cpu presets do (default: the preset's; 0 without --preset: "
                          "the paper's median depth and blended normals)")
+    ap.add_argument("--lights", nargs="+", default=None, metavar="AZ,EL",
+                    help="light directions, azimuth and elevation in degrees "
+                         "(docs/conventions.md), in place of the 8 fixed ones; e.g. a fitted "
+                         "light's own direction")
     ap.add_argument("--overwrite", action="store_true",
                     help="make this call's units again (those made from other inputs or "
                          "settings exit 2 otherwise)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
+    lights = None if args.lights is None else [a.split(",") for a in args.lights]
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,
                       args.factors, args.factor_samples, args.factor_surfels,
-                      args.models_only, args.receiver_band, args.preset, args.overwrite)
+                      args.models_only, args.receiver_band, args.preset, args.overwrite,
+                      lights)
     except (ValueError, FileNotFoundError, FileExistsError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])
