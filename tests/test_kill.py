@@ -114,15 +114,24 @@ def _save_siblings(out: Path, snapshot: Path) -> None:
     shutil.rmtree(snapshot, ignore_errors=True)
     snapshot.mkdir()
     for p in _siblings(out):
-        shutil.copytree(p, snapshot / p.name) if p.is_dir() else shutil.copy2(p, snapshot)
+        _copy(p, snapshot / p.name)
 
 
 def _restore_siblings(snapshot: Path, out: Path) -> None:
     for p in _siblings(out):
-        shutil.rmtree(p) if p.is_dir() else p.unlink()
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
     for p in snapshot.iterdir():
-        target = out.parent / p.name
-        shutil.copytree(p, target) if p.is_dir() else shutil.copy2(p, target)
+        _copy(p, out.parent / p.name)
+
+
+def _copy(src: Path, dst: Path) -> None:
+    if src.is_dir():
+        shutil.copytree(src, dst)
+    else:
+        shutil.copy2(src, dst)
 
 
 @pytest.fixture(scope="module")

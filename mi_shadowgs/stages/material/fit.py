@@ -65,14 +65,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import get_preset
+from mi_shadowgs.config import LABEL_MAP_SOURCES, get_preset
 from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.brdf import ROUGHNESS_MIN
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
 from mi_shadowgs.core.raster import RasterConfig
 from mi_shadowgs.core.surfels import SH_C0, Surfels, eval_sh
-from mi_shadowgs.stages.segmentation.masks import label_map_sources
 from mi_shadowgs.stages.visibility.shadow_maps import (
     MapCache,
     SceneBounds,
@@ -453,12 +452,11 @@ def get_config(name: str) -> MaterialConfig:
 
 
 def label_source_overrides(config: MaterialConfig, source: str) -> dict:
-    """The settings that change ``config`` for segments labelled from ``source`` (stage 2's
-    ``label_map_sources``): on chromaticity ones its ``chromaticity_*`` settings (see them),
-    as {field: value} with only the values that differ."""
-    sources = label_map_sources()
-    if source not in sources:
-        raise ValueError(f"label source must be one of {sources}, got {source!r}")
+    """The settings that change ``config`` for segments labelled from ``source`` (one of
+    stage 2's ``LABEL_MAP_SOURCES``): on chromaticity ones its ``chromaticity_*`` settings
+    (see them), as {field: value} with only the values that differ."""
+    if source not in LABEL_MAP_SOURCES:
+        raise ValueError(f"label source must be one of {LABEL_MAP_SOURCES}, got {source!r}")
     if source == "material":
         return {}
     wanted = {"normal_steps": config.chromaticity_normal_steps,

@@ -168,10 +168,6 @@ def chromaticity_masks(dataset, config: ChromaticityConfig = ChromaticityConfig(
     return merge_regions(images, regions, config)
 
 
-def label_map_sources() -> tuple[str, ...]:
-    return LABEL_MAP_SOURCES
-
-
 def masks_for(dataset, source: str, config: ChromaticityConfig = ChromaticityConfig()
               ) -> list[np.ndarray]:
     """Label maps of ``dataset`` from ``source`` ("material" or "chromaticity")."""
@@ -179,4 +175,4 @@ def masks_for(dataset, source: str, config: ChromaticityConfig = ChromaticityCon
         return material_masks(dataset)
     if source == "chromaticity":
         return chromaticity_masks(dataset, config)
-    raise MaskError(f"unknown mask source {source!r}; choose from {label_map_sources()}")
+    raise MaskError(f"unknown mask source {source!r}; choose from {LABEL_MAP_SOURCES}")
