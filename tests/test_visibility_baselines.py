@@ -609,15 +609,17 @@ def test_lights_of_ones_own_replace_the_eight_and_key_the_results(tmp_path, caps
     malformed or sub-horizon pair exits 2 naming --lights before any work."""
     import validation.visibility as vv
 
-    assert vv.checked_lights([("35", "50"), (215, 35.5)]) == ((35.0, 50.0), (215.0, 35.5))
+    assert vv.checked_lights(["35,50", (215, 35.5)]) == ((35.0, 50.0), (215.0, 35.5))
     assert "lights" in vv.CASE_FIELDS
     cfg = vv.ValidationConfig()
     assert vv.case_settings(cfg) != vv.case_settings(
-        dataclasses.replace(cfg, lights=vv.checked_lights([("35", "50")])))
+        dataclasses.replace(cfg, lights=vv.checked_lights(["35,50"])))
     data = tmp_path / "d"
     model = tmp_path / "run" / "geometry" / "model.ply"
-    for bad, said in ((["35"], "not an AZ,EL pair"), (["35,0"], "elevation in (0, 90]"),
-                      (["x,40"], "not an AZ,EL pair"), (["35,91"], "elevation in (0, 90]")):
+    for bad, said in ((["35"], "expected AZ,EL"), (["35,0"], "elevation must be in (0, 90]"),
+                      (["x,40"], "field azimuth must be a number"),
+                      (["35,91"], "elevation must be in (0, 90]"),
+                      (["35,inf"], "field elevation must be finite")):
         with pytest.raises(SystemExit) as e:
             vv.main(["--out", str(tmp_path / "out"), "--model", str(model), "--data",
                      str(data), "--models-only", "--lights", *bad, "--quiet"])

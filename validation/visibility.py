@@ -54,7 +54,7 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
-from mi_shadowgs.core.directions import direction_from_angles, light_grid
+from mi_shadowgs.core.directions import direction_from_angles, light_grid, parse_angle_fields
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.sampling import sample_surface
 from mi_shadowgs.core.surfels import Surfels
@@ -178,22 +178,15 @@ def scene_surfels(setup, cfg: ValidationConfig, seed: int = 0) -> Surfels:
 
 
 def checked_lights(angles) -> tuple:
-    """``angles`` as a tuple of (azimuth, elevation) float pairs in degrees, elevation in
-    (0, 90]; a ValueError names ``--lights`` and the bad entry."""
-    out = []
-    for entry in angles:
-        try:
-            az, el = (float(x) for x in entry)
-        except (TypeError, ValueError):
-            raise ValueError(f"--lights: {entry!r} is not an AZ,EL pair of numbers "
-                             "(degrees)") from None
-        if not (math.isfinite(az) and 0.0 < el <= 90.0):
-            raise ValueError(f"--lights: ({az}, {el}): the azimuth must be finite and the "
-                             "elevation in (0, 90] degrees")
-        out.append((az, el))
+    """``angles`` (``AZ,EL`` strings or pairs of numbers, degrees) as a tuple of (azimuth,
+    elevation) float pairs, elevation in (0, 90]: a shadow map needs the light above the
+    horizon. A ValueError names ``--lights`` and the bad entry."""
+    out = tuple(tuple(parse_angle_fields(entry, "--lights", "AZ,EL (degrees)",
+                                         {2: ("azimuth", "elevation")}, (0.0, 90.0, False)))
+                for entry in angles)
     if not out:
         raise ValueError("--lights: give at least one AZ,EL pair")
-    return tuple(out)
+    return out
 
 
 def make_lights(angles) -> tuple[list[Light], np.ndarray]:
@@ -974,12 +967,11 @@ def main(argv=None) -> int:
                          "settings exit 2 otherwise)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
-    lights = None if args.lights is None else [a.split(",") for a in args.lights]
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,
                       args.factors, args.factor_samples, args.factor_surfels,
                       args.models_only, args.receiver_band, args.preset, args.overwrite,
-                      lights)
+                      args.lights)
     except (ValueError, FileNotFoundError, FileExistsError) as e:  # names the file or option
         fail(str(e))
     print(summary["markdown"])

@@ -43,10 +43,8 @@ def run(args) -> int:
         raise CLIError(f"--light: the viewer has two light sliders, got {len(args.light)}")
     lights = []
     for text in args.light:
-        az, el, rgb = runner.parse_light(text)
-        if not 0 < el <= 90:
-            raise CLIError(f"--light {text!r}: field elevation must be in (0, 90] degrees "
-                           f"for the viewer's slider, got {el:g}")
+        # the viewer's elevation slider spans (0, 90]
+        az, el, rgb = runner.parse_light(text, elevation=(0.0, 90.0, False))
         if rgb.max() > rgb.min():  # one intensity slider per light: the viewer's lights are white
             raise CLIError(f"--light {text!r}: the viewer's lights are white (one intensity "
                            "slider); give AZ,EL,IRRADIANCE (or R = G = B); `mi-shadowgs relight "

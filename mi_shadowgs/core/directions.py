@@ -44,6 +44,40 @@ def direction_from_angles(azimuth_deg: float, elevation_deg: float) -> np.ndarra
     return np.array([math.cos(el) * math.cos(az), math.sin(el), -math.cos(el) * math.sin(az)])
 
 
+def parse_angle_fields(text, option: str, usage: str, layouts: dict[int, tuple[str, ...]],
+                       elevation: tuple[float, float, bool] = (-90.0, 90.0, True)
+                       ) -> list[float]:
+    """The numbers of a light given as ``AZ,EL[,...]`` (a string, or a sequence of numbers)
+    to ``option``: ``layouts`` maps each allowed count of fields to the fields' names, the
+    first two azimuth and elevation in degrees; ``usage`` is the form the message shows.
+    Every field is finite; the elevation lies in [lo, hi] with ``elevation = (lo, hi,
+    True)``, in (lo, hi] with ``(lo, hi, False)``. ValueError naming ``option``, the value
+    and the field at fault."""
+    parts = ([p.strip() for p in text.split(",")] if isinstance(text, str)
+             else [str(p).strip() for p in text])
+    shown = ",".join(parts)
+    names = layouts.get(len(parts))
+    if names is None:
+        raise ValueError(f"{option} {shown!r}: expected {usage}, got {len(parts)} field(s)")
+    values = []
+    for name, part in zip(names, parts, strict=True):
+        try:
+            value = float(part)
+        except ValueError:
+            raise ValueError(f"{option} {shown!r}: field {name} must be a number, got "
+                             f"{part!r}") from None
+        if not math.isfinite(value):
+            raise ValueError(f"{option} {shown!r}: field {name} must be finite, got {part!r}")
+        values.append(value)
+    lo, hi, closed = elevation
+    el = values[1]
+    if not ((lo <= el if closed else lo < el) and el <= hi):
+        span = f"{'[' if closed else '('}{lo:g}, {hi:g}]"
+        raise ValueError(f"{option} {shown!r}: field elevation must be in {span} degrees, "
+                         f"got {el:g}")
+    return values
+
+
 def angles_from_direction(direction) -> tuple[float, float]:
     """(azimuth in [0, 360), elevation) in degrees of a direction [3]: the inverse of
     ``direction_from_angles``."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from mi_shadowgs.config import recorded_config
 from mi_shadowgs.core.camera import Camera
-from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.core.directions import direction_from_angles, parse_angle_fields
 from mi_shadowgs.stages.common import warn, warn_other_backend
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.relight.evaluate import fit_from_files
@@ -29,29 +29,17 @@ from mi_shadowgs.stages.visibility import shadow_maps
 DEFAULT_QUANTILE = 0.98  # the run's bounds_quantile when its manifest does not say
 
 
-def parse_light(text: str, option: str = "--light") -> tuple[float, float, np.ndarray]:
+def parse_light(text: str, option: str = "--light",
+                elevation: tuple[float, float, bool] = (-90.0, 90.0, True)
+                ) -> tuple[float, float, np.ndarray]:
     """``AZ,EL,E`` or ``AZ,EL,R,G,B`` (degrees, W/m^2) -> (azimuth, elevation, RGB [3]);
-    ValueError naming the option and the field at fault."""
-    parts = [p.strip() for p in str(text).split(",")]
-    if len(parts) not in (3, 5):
-        raise ValueError(f"{option} {text!r}: expected AZ,EL,IRRADIANCE or AZ,EL,R,G,B "
-                         f"(degrees, W/m^2), got {len(parts)} field(s)")
-    names = ["azimuth", "elevation"] + (["irradiance"] if len(parts) == 3 else
-                                        ["irradiance R", "irradiance G", "irradiance B"])
-    values = []
-    for name, p in zip(names, parts, strict=True):
-        try:
-            v = float(p)
-        except ValueError:
-            raise ValueError(f"{option} {text!r}: field {name} must be a number, got "
-                             f"{p!r}") from None
-        if not math.isfinite(v):
-            raise ValueError(f"{option} {text!r}: field {name} must be finite, got {p!r}")
-        values.append(v)
-    az, el, *irr = values
-    if not -90.0 <= el <= 90.0:
-        raise ValueError(f"{option} {text!r}: field elevation must be in [-90, 90] degrees, "
-                         f"got {el:g}")
+    ValueError naming the option and the field at fault. A relit light may lie below the
+    horizon; ``elevation`` is ``parse_angle_fields``' range."""
+    az, el, *irr = parse_angle_fields(
+        str(text), option, "AZ,EL,IRRADIANCE or AZ,EL,R,G,B (degrees, W/m^2)",
+        {3: ("azimuth", "elevation", "irradiance"),
+         5: ("azimuth", "elevation", "irradiance R", "irradiance G", "irradiance B")},
+        elevation)
     if any(e < 0 for e in irr):
         raise ValueError(f"{option} {text!r}: field irradiance must be >= 0, got "
                          f"{','.join(f'{e:g}' for e in irr)}")
