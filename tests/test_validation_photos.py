@@ -174,3 +174,46 @@ def test_photos_albedo_detail_is_checked_first_and_reaches_the_runs(tmp_path, mo
     err = capsys.readouterr().err
     assert exc.value.code == 2 and "detail_prior: 0.0 there, 0.1 now" in err
     assert "give another --out" in err
+
+
+def test_a_resumed_run_adds_its_reused_stages_recorded_seconds_and_says_so(tmp_path,
+                                                                         monkeypatch):
+    """A study run interrupted in stage 5 and resumed: the call's own seconds (the last
+    stage) would report a whole run as 2 s. Its time adds what the reused stages 1, 2 and 4
+    recorded, the table marks it resumed, and a finished run reads both back."""
+    import json
+
+    import mi_shadowgs.pipeline as pipeline
+    from validation import photos
+
+    stages = ["Stage 1: geometry", "Stage 2: material segmentation",
+              "Stages 3-5: visibility, decomposition, relighting"]
+    fresh = {"total_seconds": 300.0, "stages": [{"name": n, "seconds": 100.0} for n in stages]}
+    resumed = {"total_seconds": 2.0, "stages": [{"name": n, "seconds": None} for n in stages]}
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda data, out, config, **kw: fresh)
+    times = tmp_path / "t.json"
+    assert photos._timed_run(tmp_path, tmp_path / "whole", "cpu-small", times) == (300.0, False)
+
+    run = tmp_path / "cut"
+    (run / "geometry").mkdir(parents=True)
+    (run / "geometry" / "log.csv").write_text("iteration,loss,time\n25,0.2,1.5\n2500,0.06,198.5\n")
+    (run / "segmentation").mkdir()
+    (run / "segmentation" / "segmentation.json").write_text(json.dumps({"seconds_stage": 15.0}))
+    (run / "material" / "full").mkdir(parents=True)
+    (run / "material" / "full" / "metrics.json").write_text(json.dumps({"fit_s": 57.0}))
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda data, out, config, **kw: resumed)
+    assert photos._timed_run(tmp_path, run, "cpu-small", times) == (272.5, True)
+    (run / "summary.json").write_text("{}")  # finished: read back, not measured again
+    assert photos._timed_run(tmp_path, run, "cpu-small", times) == (272.5, True)
+    assert json.loads(times.read_text()) == {"whole": [300.0, False], "cut": [272.5, True]}
+
+    scores = {"albedo_psnr": 30.0, "albedo_ssim": 0.9, "object_albedo_psnr": 31.0,
+              "shadow_iou": 0.88, "relight_psnr": 20.0, "light_cosine": 0.99,
+              "light_angular_errors_deg": [0.2, 0.5], "fitted_lights": 2}
+    rec = {"gt": {"wall_s": 300.0, "resumed": False, "scores": scores},
+           "photos": {"wall_s": 361.0, "resumed": True, "scores": scores},
+           "differences": {"albedo_psnr": 0.0, "shadow_iou": 0.0, "relight_psnr": 0.0},
+           "within_bounds": True, "import_s": 89.0, "photos_imported": 64,
+           "frame": {"photos": 64, "centre_rms_pct": 0.1, "rotation_rms_deg": 0.05}}
+    md = photos.markdown(rec)
+    assert "| 361 (resumed) |" in md and "| 300 |" in md and "interrupted and resumed" in md

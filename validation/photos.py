@@ -149,26 +149,39 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
 
 
 def _timed_run(data: Path, out: Path, preset: str, times: Path,
-               albedo_detail: float | None = None) -> float:
-    """Stages 1-5 on ``data`` (``RunConfig.albedo_detail``: ``albedo_detail``); the seconds
-    of the call that made the run. A finished run is reused and its time read back from
-    ``times`` (JSON: run folder name -> seconds)."""
+               albedo_detail: float | None = None) -> tuple[float, bool]:
+    """Stages 1-5 on ``data`` (``RunConfig.albedo_detail``: ``albedo_detail``); (seconds,
+    resumed). A run made whole by this call takes the call's seconds. A run resumed after an
+    interruption adds the seconds its reused stages 1, 2 and 4 recorded in their own files
+    (``validation.pipeline.stage_seconds``), and is marked resumed: what the interrupted call
+    spent on other stages is not known. A finished run is reused and its time read back
+    from ``times`` (JSON: run folder name -> [seconds, resumed])."""
     from mi_shadowgs.io.atomic import write_json
+    from mi_shadowgs.io.provenance import ProvenanceError
     from mi_shadowgs.pipeline import get_config, run_pipeline
+    from validation.pipeline import STAGE_KEYS, stage_seconds
 
     known = json.loads(times.read_text()) if times.is_file() else {}
     finished = (out / "summary.json").is_file()
-    from mi_shadowgs.io.provenance import ProvenanceError
-
+    started = out.exists()
     config = dataclasses.replace(get_config(preset), albedo_detail=albedo_detail)
     try:
-        seconds = float(run_pipeline(data, out, config, progress=True)["total_seconds"])
+        summary = run_pipeline(data, out, config, progress=True)
     except ProvenanceError as exc:  # e.g. another --albedo-detail into the same OUT
         fail(f"{exc}; validation.photos has no --overwrite: give another --out")
     if finished and out.name in known:
-        return float(known[out.name])
-    write_json(times, {**known, out.name: seconds})
-    return seconds
+        entry = known[out.name]  # a bare number: written before the resumed flag
+        seconds, resumed = (entry, False) if isinstance(entry, int | float) else entry
+        return float(seconds), bool(resumed)
+    seconds, resumed = float(summary["total_seconds"]), False
+    own = {st["name"]: st.get("seconds") for st in summary.get("stages", [])}
+    if started and any(own.get(name) is None for name in STAGE_KEYS.values()):
+        recorded = stage_seconds(own, out)
+        seconds += sum(recorded[k] or 0.0 for k, name in STAGE_KEYS.items()
+                       if own.get(name) is None)
+        resumed = True
+    write_json(times, {**known, out.name: [seconds, resumed]})
+    return seconds, resumed
 
 
 def markdown(rec: dict) -> str:
@@ -182,7 +195,7 @@ def markdown(rec: dict) -> str:
                      f"{s['object_albedo_psnr']:.2f} | {s['shadow_iou']:.3f} | "
                      f"{s['relight_psnr']:.2f} | "
                      f"{s['light_cosine']:.4f} | {err} | {s['fitted_lights']} | "
-                     f"{r['wall_s']:.0f} |")
+                     f"{r['wall_s']:.0f}{' (resumed)' if r.get('resumed') else ''} |")
     d = rec["differences"]
     f = rec["frame"]
     lines += ["", f"Photo run minus ground-truth run: albedo PSNR {d['albedo_psnr']:+.2f} dB "
@@ -194,6 +207,10 @@ def markdown(rec: dict) -> str:
               "deg RMS after the similarity.",
               f"Photo-only wall time (import + stages 1-5): {rec['photos']['wall_s']:.0f} s "
               f"(import {rec['import_s']:.0f} s)."]
+    if any(r.get("resumed") for _, r in rows):
+        lines.append("(resumed): the run was interrupted and resumed; its time adds the "
+                     "seconds its reused stages 1, 2 and 4 recorded, and leaves out what the "
+                     "interrupted call spent on stages 3 and 5.")
     return "\n".join(lines) + "\n"
 
 
@@ -248,9 +265,11 @@ def main(argv=None) -> int:
     else:
         import_s = json.loads((imported / "import.json").read_text())["timings"]["total_s"]
     times = out / "wall_seconds.json"
-    photos_s = import_s + _timed_run(imported, out / "run-photos", args.preset, times,
-                                     args.albedo_detail)
-    gt_s = _timed_run(gt_data, out / "run-gt", args.preset, times, args.albedo_detail)
+    run_s, photos_resumed = _timed_run(imported, out / "run-photos", args.preset, times,
+                                       args.albedo_detail)
+    photos_s = import_s + run_s
+    gt_s, gt_resumed = _timed_run(gt_data, out / "run-gt", args.preset, times,
+                                  args.albedo_detail)
 
     quantile = base.bounds_quantile
     train, test = load_dataset(gt_data, "train"), load_dataset(gt_data, "test")
@@ -266,8 +285,8 @@ def main(argv=None) -> int:
            "photo_size": args.photo_size, "training_size": size,
            "photos_imported": len(list(photos.iterdir())),
            "similarity": sim.to_json(), "frame": frame, "import_s": import_s,
-           "gt": {"wall_s": gt_s, "scores": gt_scores},
-           "photos": {"wall_s": photos_s, "scores": photo_scores},
+           "gt": {"wall_s": gt_s, "resumed": gt_resumed, "scores": gt_scores},
+           "photos": {"wall_s": photos_s, "resumed": photos_resumed, "scores": photo_scores},
            "differences": diff,
            "within_bounds": bool(diff["albedo_psnr"] >= -ALBEDO_PSNR_TOLERANCE_DB and
                                  diff["shadow_iou"] >= -SHADOW_IOU_TOLERANCE)}
