@@ -272,13 +272,15 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
 
         material_masks(train)
     provenance = Provenance(dataset=dataset_ref(data), settings=dataclasses.asdict(config))
-    stages = []
+    stages, reused = [], []  # (name, seconds) of the stages this call ran; names of the rest
 
     def done(name: str, stage) -> None:
         if stage.ran:
             stages.append((name, stage.seconds))
             if stage.summary and log:
                 log(stage.summary)
+        else:
+            reused.append(name)
 
     with Output.open(run, "run", provenance, overwrite=overwrite, reuse=True,
                      compare=("dataset",), inputs=[data],
@@ -327,10 +329,12 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
                                                   overwrite, progress)
             if fit_s is not None:
                 stages.append((f"material ({name})", fit_s))
+            else:
+                reused.append(f"material ({name})")
         with top.staged("report") as tmp:  # beside any file of the user's there
             write_report_figures(tmp, run, data)
         summary = build_summary(run, data, config, results, stages,
-                                time.perf_counter() - t_start, available)
+                                time.perf_counter() - t_start, available, reused)
         write_json(top.path("summary.json"), summary)
         top.claim("report.html")
         write_report(run)
@@ -456,10 +460,13 @@ def skipped_table(results: dict, available: dict | None) -> dict | None:
 
 
 def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stages: list,
-                  seconds: float, available: dict | None = None) -> dict:
+                  seconds: float, available: dict | None = None,
+                  reused: list[str] | None = None) -> dict:
     """The report's ``summary.json`` (see ``mi_shadowgs.io.report``) from the run's files;
     ``available``: the dataset's ground truth (``relight.evaluate.ground_truth``), for the
-    table of skipped metrics."""
+    table of skipped metrics. ``seconds`` are this call's; ``reused`` names the stages an
+    earlier call made (their seconds are not in it: a resumed run's figure is not the
+    run's)."""
     import mitsuba as mi
 
     geo = _json_or_empty(run / "geometry" / "metrics.json")
@@ -480,6 +487,7 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
         "title": f"mi_shadowgs run: {scene} ({data.name})",
         "dataset": str(data.resolve()), "preset": config.preset, "variant": mi.variant(),
         "date": time.strftime("%Y-%m-%d %H:%M"), "total_seconds": seconds,
+        "reused_stages": list(reused or []),
         "tables": [{"title": "Decomposition and relighting (paper Tables 1 and 3)",
                     "columns": cols, "rows": rows,
                     "note": "Albedo: per-channel median scale per material region; relit "

@@ -8,8 +8,9 @@ that depends on thread scheduling: two unkilled runs on 2 threads differ in the 
 a different number of lights. On one thread every command is bit-deterministic across
 processes, so the commands here run with ``--threads 1`` and every file must be
 byte-identical, except wall-clock figures: ``log.csv``'s time column, JSON fields holding
-seconds or the date, the elapsed time inside checkpoints, and ``report.html`` (which shows
-those; ``summary.json`` behind it is compared).
+seconds or the date, the elapsed time inside checkpoints, ``summary.json``'s stages that an
+earlier call made, and ``report.html`` (which shows those; ``summary.json`` behind it is
+compared).
 """
 
 from __future__ import annotations
@@ -64,7 +65,8 @@ def _kill_at(argv: list[str], seconds: float) -> float | None:
 
 # -- comparing output folders ---------------------------------------------------------------
 def _timeless(obj):
-    """A JSON value without its wall-clock fields (seconds, dates, elapsed times)."""
+    """A JSON value without its wall-clock fields (seconds, dates, elapsed times) and the
+    stages a call found made by an earlier one (a rerun after a kill reuses those)."""
     if isinstance(obj, dict):
         if "columns" in obj and all(isinstance(r, list) for r in obj.get("rows", [{}])):
             # a table of summary.json: without its time columns
@@ -72,7 +74,8 @@ def _timeless(obj):
             obj = {**obj, "columns": [obj["columns"][i] for i in keep],
                    "rows": [[r[i] for i in keep] for r in obj["rows"]]}
         return {k: _timeless(v) for k, v in obj.items()
-                if not (k in ("time", "date", "seconds", "total_seconds", "elapsed", "timings")
+                if not (k in ("time", "date", "seconds", "total_seconds", "elapsed", "timings",
+                              "reused_stages")
                         or k.endswith("_s") or k.startswith("seconds_"))}
     if isinstance(obj, list):
         return [_timeless(v) for v in obj]

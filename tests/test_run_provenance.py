@@ -149,6 +149,11 @@ def test_run_writes_every_stage_and_a_rerun_reuses_them(finished, data, capsys):
     assert cli.main(["run", str(data[0]), "--out", str(finished), "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "geometry:" not in out and "segmented" not in out  # nothing ran again
+    # ... and its seconds are this call's, so the report says which stages it did not make
+    reused = ["geometry", "segmentation", "material (full)"]
+    assert f"made by an earlier call: {', '.join(reused)})" in out
+    assert json.loads((finished / "summary.json").read_text())["reused_stages"] == reused
+    assert "stages made by an earlier call" in (finished / "report.html").read_text()
     assert _snapshot(finished / "material") == before
     assert cli.main(["report", str(finished)]) == 0
 

@@ -87,5 +87,7 @@ def run(args) -> int:
                         for c, v in zip(table["columns"], row, strict=True)))
     for item in summary.get("skipped_metrics", []):
         print(f"not computed: {item['metric']} (needs {item['needs']}: {item['why']})")
-    print(f"report: {args.out}/report.html ({summary['total_seconds']:.0f} s)")
+    reused = summary.get("reused_stages") or []
+    print(f"report: {args.out}/report.html ({summary['total_seconds']:.0f} s"
+          + (f"; made by an earlier call: {', '.join(reused)}" if reused else "") + ")")
     return 0

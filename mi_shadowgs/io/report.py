@@ -2,7 +2,8 @@
 
 The pipeline records what each stage produced in ``RUN/summary.json``::
 
-    {"title": ..., "dataset": ..., "preset": ..., "variant": ...,
+    {"title": ..., "dataset": ..., "preset": ..., "variant": ..., "date": ...,
+     "total_seconds": ..., "reused_stages": [...names of stages an earlier call made...],
      "stages": [{"name": ..., "seconds": ..., "metrics": {...},
                  "figures": [{"title": ..., "path": "relative/to/RUN.png"}]}],
      "tables": [{"title": ..., "columns": [...], "rows": [[...], ...], "note": ...}],
@@ -88,13 +89,19 @@ def _grid_html(grid: dict, run: Path) -> list[str]:
     return out
 
 
+# The header's rows: summary key -> label. A resumed run's seconds are its last call's.
+_INFO_LABELS = {"dataset": "dataset", "preset": "preset", "variant": "variant", "date": "date",
+                "total_seconds": "seconds (this call)",
+                "reused_stages": "stages made by an earlier call"}
+
+
 def render_html(summary: dict, run: Path) -> str:
     """The report page for ``summary`` (see module docstring); image paths relative to run."""
     title = summary.get("title", "mi_shadowgs run")
     out = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}"
            f"</title><style>{_CSS}</style></head><body><h1>{html.escape(title)}</h1>"]
-    info = {k: summary[k] for k in ("dataset", "preset", "variant", "date", "total_seconds")
-            if k in summary}
+    info = {label: summary[k] for k, label in _INFO_LABELS.items() if summary.get(k) not in
+            (None, [])}
     if info:
         out.append("<table>" + "".join(f"<tr><th>{html.escape(k)}</th><td>{_fmt(v)}</td></tr>"
                                        for k, v in info.items()) + "</table>")
