@@ -142,10 +142,11 @@ def test_the_light_sweep_spans_the_hemisphere_and_judges_lights_by_their_share()
     assert not sweep_row(row([0.5, None]))["within"]  # a lost light
 
 
-def test_photos_albedo_detail_is_checked_first_and_reaches_the_runs(tmp_path, monkeypatch,
-                                                                   capsys):
-    """`validation.photos --albedo-detail W` runs both fits with `run --albedo-detail W`;
-    a value `run` would refuse exits 2 before any data is made."""
+def test_photos_albedo_detail_and_seed_are_checked_first_and_reach_the_runs(
+        tmp_path, monkeypatch, capsys):
+    """`validation.photos --albedo-detail W --seed N` runs both fits with `run
+    --albedo-detail W --seed N`; a value `run` would refuse exits 2 before any data is
+    made."""
     import pytest
 
     import mi_shadowgs.pipeline as pipeline
@@ -154,13 +155,16 @@ def test_photos_albedo_detail_is_checked_first_and_reaches_the_runs(tmp_path, mo
     with pytest.raises(SystemExit) as exc:
         photos.main(["--out", str(tmp_path / "p"), "--albedo-detail", "-1"])
     assert exc.value.code == 2 and "--albedo-detail must be finite" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        photos.main(["--out", str(tmp_path / "p"), "--seed", "-1"])
+    assert exc.value.code == 2 and "--seed must be >= 0" in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
     seen = []
     monkeypatch.setattr(pipeline, "run_pipeline", lambda data, out, config, **kw: seen.append(
         config) or {"total_seconds": 1.0})
     photos._timed_run(tmp_path, tmp_path / "run", "cpu-small", tmp_path / "t.json", 0.1)
-    photos._timed_run(tmp_path, tmp_path / "run2", "cpu-small", tmp_path / "t.json")
-    assert [c.albedo_detail for c in seen] == [0.1, None]
+    photos._timed_run(tmp_path, tmp_path / "run2", "cpu-small", tmp_path / "t.json", seed=3)
+    assert [(c.albedo_detail, c.seed) for c in seen] == [(0.1, 0), (None, 3)]
     # A study folder whose runs were made with another W: exit 2 naming the setting.
     from mi_shadowgs.io.provenance import ProvenanceError
 

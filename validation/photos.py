@@ -20,11 +20,13 @@ For one scene (``validation.pipeline.SCENES``) under one light pair, on the text
    rotation).
 
     python -m validation.photos --scene NAME --out OUT [--lights tuned] [--preset cpu-small]
-        [--photo-size 512] [--threads N] [--albedo-detail W]
+        [--photo-size 512] [--threads N] [--albedo-detail W] [--seed N]
 
 ``--albedo-detail W`` runs both fits with ``run --albedo-detail W`` (the mat's print in the
-albedo); an OUT whose runs were made without it (or with another W) exits 2, naming the
-setting: give another OUT.
+albedo); ``--seed N`` runs both at seed N of every stage's random draws (``RunConfig.seed``;
+the photos, their import and the cameras stay the same), so that a difference can be told
+from a seed's chance. An OUT whose runs were made with other settings exits 2, naming the
+setting: give another OUT (the photos and the import may be copied in; they are reused).
 
 Each step is reused when its output is complete. Writes ``OUT/photos.json`` and ``.md``.
 """
@@ -149,8 +151,8 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
 
 
 def _timed_run(data: Path, out: Path, preset: str, times: Path,
-               albedo_detail: float | None = None) -> tuple[float, bool]:
-    """Stages 1-5 on ``data`` (``RunConfig.albedo_detail``: ``albedo_detail``); (seconds,
+               albedo_detail: float | None = None, seed: int = 0) -> tuple[float, bool]:
+    """Stages 1-5 on ``data`` (``RunConfig.albedo_detail``, ``RunConfig.seed``); (seconds,
     resumed). A run made whole by this call takes the call's seconds. A run resumed after an
     interruption adds the seconds its reused stages 1, 2 and 4 recorded in their own files
     (``validation.pipeline.stage_seconds``), and is marked resumed: what the interrupted call
@@ -164,10 +166,10 @@ def _timed_run(data: Path, out: Path, preset: str, times: Path,
     known = json.loads(times.read_text()) if times.is_file() else {}
     finished = (out / "summary.json").is_file()
     started = out.exists()
-    config = dataclasses.replace(get_config(preset), albedo_detail=albedo_detail)
+    config = dataclasses.replace(get_config(preset), albedo_detail=albedo_detail, seed=seed)
     try:
         summary = run_pipeline(data, out, config, progress=True)
-    except ProvenanceError as exc:  # e.g. another --albedo-detail into the same OUT
+    except ProvenanceError as exc:  # e.g. another --albedo-detail or --seed into the same OUT
         fail(f"{exc}; validation.photos has no --overwrite: give another --out")
     if finished and out.name in known:
         entry = known[out.name]  # a bare number: written before the resumed flag
@@ -227,6 +229,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
     ap.add_argument("--albedo-detail", type=float, default=None, metavar="W",
                     help="both runs with `run --albedo-detail W` (default: the preset's, off)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="both runs at this seed of the stages' random draws (`run --seed`)")
     args = ap.parse_args(argv)
     from mi_shadowgs.config import ConfigError
     from mi_shadowgs.pipeline import get_config as run_config
@@ -236,6 +240,8 @@ def main(argv=None) -> int:
         dataclasses.replace(base, albedo_detail=args.albedo_detail)
     except ConfigError as exc:
         fail(f"--albedo-detail must be finite and >= 0: {exc}")
+    if args.seed < 0:
+        fail(f"--seed must be >= 0, got {args.seed}")
     claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr
 
@@ -266,10 +272,10 @@ def main(argv=None) -> int:
         import_s = json.loads((imported / "import.json").read_text())["timings"]["total_s"]
     times = out / "wall_seconds.json"
     run_s, photos_resumed = _timed_run(imported, out / "run-photos", args.preset, times,
-                                       args.albedo_detail)
+                                       args.albedo_detail, args.seed)
     photos_s = import_s + run_s
     gt_s, gt_resumed = _timed_run(gt_data, out / "run-gt", args.preset, times,
-                                  args.albedo_detail)
+                                  args.albedo_detail, args.seed)
 
     quantile = base.bounds_quantile
     train, test = load_dataset(gt_data, "train"), load_dataset(gt_data, "test")
@@ -281,7 +287,7 @@ def main(argv=None) -> int:
                              mapped_split(test, sim, lights), args.preset, quantile)
     diff = {k: photo_scores[k] - gt_scores[k] for k in FIGURES}
     rec = {"scene": args.scene, "lights": args.lights, "preset": args.preset,
-           "albedo_detail": args.albedo_detail,
+           "albedo_detail": args.albedo_detail, "seed": args.seed,
            "photo_size": args.photo_size, "training_size": size,
            "photos_imported": len(list(photos.iterdir())),
            "similarity": sim.to_json(), "frame": frame, "import_s": import_s,
