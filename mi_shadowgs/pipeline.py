@@ -469,15 +469,17 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     run's)."""
     import mitsuba as mi
 
+    from mi_shadowgs.stages.relight.evaluation import SHADOW_UNDECIDED_BAND
+
     geo = _json_or_empty(run / "geometry" / "metrics.json")
     seg = _json_or_empty(run / "segmentation" / "segmentation.json")
     cols = ["variant", "albedo PSNR", "albedo PSNR (one scale)", "albedo SSIM", "albedo LPIPS",
-            "light cosine", "shadow IoU", "relight PSNR", "relight SSIM", "relight LPIPS",
-            "relight time (s)"]
+            "light cosine", "shadow IoU", "shadow IoU (decided)", "relight PSNR", "relight SSIM",
+            "relight LPIPS", "relight time (s)"]
     rows = [[name, r.get("albedo_psnr"), r.get("albedo_psnr_global"), r.get("albedo_ssim"),
              r.get("albedo_lpips"), r.get("light_cosine"), r.get("shadow_iou"),
-             r.get("relight_psnr"), r.get("relight_ssim"), r.get("relight_lpips"),
-             r.get("relight_render_s")]
+             r.get("shadow_iou_decided"), r.get("relight_psnr"), r.get("relight_ssim"),
+             r.get("relight_lpips"), r.get("relight_render_s")]
             for name, r in results.items()]
     skipped = sorted({r["lpips_skipped"] for r in results.values() if r.get("lpips_skipped")})
     secs = {name: s for name, s in stages}
@@ -492,7 +494,10 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
                     "columns": cols, "rows": rows,
                     "note": "Albedo: per-channel median scale per material region; relit "
                             "views: one global per-channel albedo scale; shadow IoU: "
-                            "direct irradiance below half the view's median; LPIPS: AlexNet "
+                            "direct irradiance below half the view's median ((decided): "
+                            "without the pixels whose true irradiance is within "
+                            f"{SHADOW_UNDECIDED_BAND:.0%} of that, where round-off decides "
+                            "the truth); LPIPS: AlexNet "
                             "v0.1 on sRGB views, background at 0."
                             + "".join(f" LPIPS not computed: {why}." for why in skipped)}],
         "stages": [],

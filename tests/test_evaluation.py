@@ -178,6 +178,30 @@ def test_shadow_mask_and_iou():
     assert evaluation.shadow_iou(est[None], irr[None], mask[None]) == pytest.approx(1 / 2)
 
 
+def test_a_face_at_the_shadow_threshold_is_left_out_of_the_decided_iou():
+    """The default scene's block face lit by the strong light alone lies at 1.0005 x the
+    threshold: a fit 1% darker there calls the whole face shadow. The decided IoU leaves out
+    the pixels whose true irradiance is within the band of the threshold, with the masks and
+    medians of the whole view, so the face no longer decides the figure; elsewhere it is
+    the plain IoU."""
+    gt = np.full((1, 10, 10), 2.0)  # lit by both lights: the median, threshold 1.0
+    gt[0, :2] = 0.3  # a cast shadow, 20 px
+    gt[0, 2:4] = 1.0005  # the face at the threshold: lit, by 0.05%
+    mask = np.ones_like(gt, bool)
+    est = gt.copy()
+    est[0, 2:4] *= 0.99  # 1% darker: the face turns shadow
+    assert evaluation.shadow_iou(est, gt, mask) == pytest.approx(20 / 40)
+    assert evaluation.shadow_iou(est, gt, mask, undecided_band=0.02) == pytest.approx(1.0)
+    undecided = evaluation.undecided_pixels(gt[0], mask[0])
+    assert undecided.sum() == 20 and undecided[2:4].all()
+    # a true shadow missed outside the band still counts
+    est[0, 0] = 2.0
+    assert evaluation.shadow_iou(est, gt, mask, undecided_band=0.02) == pytest.approx(10 / 20)
+    # a band of 0 is the plain IoU
+    assert evaluation.shadow_iou(est, gt, mask, undecided_band=0.0) == \
+        evaluation.shadow_iou(est, gt, mask)
+
+
 def test_surface_pixels_leave_out_mask_pixels_without_a_ground_truth_surface():
     # A 4x4 view: the photo's mask covers all 16 pixels, but the pixel centre's ray of two
     # silhouette pixels misses (material 0, ground-truth albedo and irradiance 0). A perfect

@@ -212,11 +212,13 @@ def test_a_resumed_run_adds_its_reused_stages_recorded_seconds_and_says_so(tmp_p
     assert json.loads(times.read_text()) == {"whole": [300.0, False], "cut": [272.5, True]}
 
     scores = {"albedo_psnr": 30.0, "albedo_ssim": 0.9, "object_albedo_psnr": 31.0,
-              "shadow_iou": 0.88, "relight_psnr": 20.0, "light_cosine": 0.99,
+              "shadow_iou": 0.88, "shadow_iou_decided": 0.9, "relight_psnr": 20.0,
+              "light_cosine": 0.99,
               "light_angular_errors_deg": [0.2, 0.5], "fitted_lights": 2}
     rec = {"gt": {"wall_s": 300.0, "resumed": False, "scores": scores},
            "photos": {"wall_s": 361.0, "resumed": True, "scores": scores},
-           "differences": {"albedo_psnr": 0.0, "shadow_iou": 0.0, "relight_psnr": 0.0},
+           "differences": {"albedo_psnr": 0.0, "shadow_iou": 0.0, "shadow_iou_decided": 0.0,
+                           "relight_psnr": 0.0},
            "within_bounds": True, "import_s": 89.0, "photos_imported": 64,
            "frame": {"photos": 64, "centre_rms_pct": 0.1, "rotation_rms_deg": 0.05}}
     md = photos.markdown(rec)

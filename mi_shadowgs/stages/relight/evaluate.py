@@ -154,7 +154,9 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
             keys = {"albedo PSNR/SSIM/LPIPS": ("albedo_psnr", "albedo_ssim", "albedo_lpips",
                                                "albedo_psnr_global"),
                     "light cosine and angular errors": ("light_cosine",),
-                    "light-map cosine": ("light_map_cosine",), "shadow IoU": ("shadow_iou",),
+                    "light-map cosine": ("light_map_cosine",),
+                    "shadow IoU": ("shadow_iou", "shadow_iou_decided",
+                                   "shadow_undecided_fraction"),
                     "relighting PSNR/SSIM/LPIPS": ("relight_psnr", "relight_ssim",
                                                    "relight_lpips")}[metric]
             metrics.update(dict.fromkeys(keys))
@@ -187,6 +189,11 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     if "shadow IoU" not in gone:
         gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
         metrics["shadow_iou"] = evaluation.shadow_iou(est_irr, gt_irr, scored)
+        metrics["shadow_iou_decided"] = evaluation.shadow_iou(
+            est_irr, gt_irr, scored, undecided_band=evaluation.SHADOW_UNDECIDED_BAND)
+        metrics["shadow_undecided_fraction"] = float(np.mean([
+            evaluation.undecided_pixels(g, m).sum() / max(int(m.sum()), 1)
+            for g, m in zip(gt_irr, scored, strict=True)]))
         images["gt/irradiance"] = gt_irr
     relit = {}
     if "relighting PSNR/SSIM/LPIPS" not in gone:
