@@ -259,6 +259,16 @@ def test_pipeline_table_names_rows_evaluated_before_each_evaluation_change():
     assert "default" not in no_surface[0]
     md = vpipe.markdown([row("default", current)], "cmd")
     assert "scored as rendered" not in md and "no surface" not in md
+    # a row evaluated before the decided shadow IoU: named, its cell nan; every table line
+    # of the decomposition table has as many cells as its header
+    md = vpipe.markdown([row("default", current), row("bunny", {"shadow_iou_decided": None})],
+                        "cmd")
+    undecided = [line for line in md.splitlines() if "Shadow IoU (decided) of" in line]
+    assert len(undecided) == 1 and "bunny-tuned" in undecided[0]
+    table = [line for line in md.split("Decomposition and relighting per variant")[1]
+             .splitlines() if line.startswith("|")]
+    assert "shadow IoU (decided)" in table[0]
+    assert len({line.count("|") for line in table}) == 1, table
 
 
 def test_pipeline_table_gives_the_median_beside_the_mean():
