@@ -45,7 +45,7 @@ can tell apart at 128^2"). Relit images are scored on the whole mask.
   **shadow IoU (decided)**: the same over the pixels whose true irradiance is not within
   ``SHADOW_UNDECIDED_BAND`` of the threshold. There the truth itself is decided by round-off:
   on the default scene under the tuned pair one face of the block, lit by the strong light
-  alone, lies at 1.0005 x the threshold (2.4% of the scored pixels), and a fit whose
+  alone, lies at 1.0002 x the threshold (2.4% of the scored pixels), and a fit whose
   light ratio is 4% off flips it whole, moving a view's IoU by up to 0.2.
 - **Relighting**: PSNR per view over the mask, SSIM and LPIPS per view with the background
   at 0.
