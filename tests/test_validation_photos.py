@@ -192,8 +192,11 @@ def test_a_resumed_run_adds_its_reused_stages_recorded_seconds_and_says_so(tmp_p
 
     stages = ["Stage 1: geometry", "Stage 2: material segmentation",
               "Stages 3-5: visibility, decomposition, relighting"]
-    fresh = {"total_seconds": 300.0, "stages": [{"name": n, "seconds": 100.0} for n in stages]}
-    resumed = {"total_seconds": 2.0, "stages": [{"name": n, "seconds": None} for n in stages]}
+    fresh = {"total_seconds": 300.0, "reused_stages": [],
+             "stages": [{"name": n, "seconds": 100.0} for n in stages]}
+    resumed = {"total_seconds": 2.0,
+               "reused_stages": ["geometry", "segmentation", "material (full)"],
+               "stages": [{"name": n, "seconds": None} for n in stages]}
     monkeypatch.setattr(pipeline, "run_pipeline", lambda data, out, config, **kw: fresh)
     times = tmp_path / "t.json"
     assert photos._timed_run(tmp_path, tmp_path / "whole", "cpu-small", times) == (300.0, False)

@@ -165,7 +165,6 @@ def _timed_run(data: Path, out: Path, preset: str, times: Path,
 
     known = json.loads(times.read_text()) if times.is_file() else {}
     finished = (out / "summary.json").is_file()
-    started = out.exists()
     config = dataclasses.replace(get_config(preset), albedo_detail=albedo_detail, seed=seed)
     try:
         summary = run_pipeline(data, out, config, progress=True)
@@ -176,8 +175,8 @@ def _timed_run(data: Path, out: Path, preset: str, times: Path,
         seconds, resumed = (entry, False) if isinstance(entry, int | float) else entry
         return float(seconds), bool(resumed)
     seconds, resumed = float(summary["total_seconds"]), False
-    own = {st["name"]: st.get("seconds") for st in summary.get("stages", [])}
-    if started and any(own.get(name) is None for name in STAGE_KEYS.values()):
+    if summary.get("reused_stages"):  # made in part by an earlier, interrupted call
+        own = {st["name"]: st.get("seconds") for st in summary.get("stages", [])}
         recorded = stage_seconds(own, out)
         seconds += sum(recorded[k] or 0.0 for k, name in STAGE_KEYS.items()
                        if own.get(name) is None)
@@ -239,12 +238,13 @@ def main(argv=None) -> int:
     from mi_shadowgs.pipeline import get_config as run_config
 
     base = run_config(args.preset)
-    try:  # RunConfig's own check, before any data is made
-        dataclasses.replace(base, albedo_detail=args.albedo_detail)
-    except ConfigError as exc:
-        fail(f"--albedo-detail must be finite and >= 0: {exc}")
-    if args.seed < 0:
-        fail(f"--seed must be >= 0, got {args.seed}")
+    for option, field, value, rule in (
+            ("--albedo-detail", "albedo_detail", args.albedo_detail, "finite and >= 0"),
+            ("--seed", "seed", args.seed, ">= 0")):
+        try:  # RunConfig's own checks, before any data is made
+            dataclasses.replace(base, **{field: value})
+        except ConfigError as exc:
+            fail(f"{option} must be {rule}: {exc}")
     claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr
 

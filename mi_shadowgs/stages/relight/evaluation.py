@@ -245,26 +245,30 @@ def light_map_cosine(est, gt) -> float:
     return float(e @ g / (ne * ng)) if ne > 0 and ng > 0 else 0.0
 
 
+def _shadow_level(irr: np.ndarray, m: np.ndarray, threshold: float) -> float:
+    """The irradiance under which a pixel of the non-empty mask ``m`` is shadow."""
+    return threshold * float(np.median(irr[m]))
+
+
 def shadow_mask(irradiance, mask, threshold: float = SHADOW_THRESHOLD) -> np.ndarray:
     """Shadow pixels [H, W]: irradiance < threshold x median irradiance over the mask."""
     irr = np.asarray(irradiance, np.float64)
     m = np.asarray(mask, bool)
     if not m.any():
         return np.zeros_like(m)
-    ref = float(np.median(irr[m]))
-    return m & (irr < threshold * ref)
+    return m & (irr < _shadow_level(irr, m, threshold))
 
 
 def undecided_pixels(irradiance, mask, threshold: float = SHADOW_THRESHOLD,
                      band: float = SHADOW_UNDECIDED_BAND) -> np.ndarray:
-    """Pixels [H, W] of ``mask`` whose irradiance lies within ``band`` (relative) of the
-    shadow threshold (``shadow_mask``'s, from the median over the whole mask)."""
+    """Pixels [H, W] of ``mask`` whose irradiance lies within ``band`` (relative) of
+    ``shadow_mask``'s level; none for a band of 0."""
     irr = np.asarray(irradiance, np.float64)
     m = np.asarray(mask, bool)
     if not m.any():
         return np.zeros_like(m)
-    ref = threshold * float(np.median(irr[m]))
-    return m & (np.abs(irr - ref) < band * ref)
+    level = _shadow_level(irr, m, threshold)
+    return m & (np.abs(irr - level) < band * level)
 
 
 def shadow_iou(est_irr, gt_irr, mask, threshold: float = SHADOW_THRESHOLD,
@@ -279,8 +283,7 @@ def shadow_iou(est_irr, gt_irr, mask, threshold: float = SHADOW_THRESHOLD,
     for ee, gg, mm in zip(e, g, m, strict=True):
         if not mm.any():
             continue
-        decided = ~undecided_pixels(gg, mm, threshold, undecided_band) if undecided_band > 0 \
-            else np.ones_like(mm)
+        decided = ~undecided_pixels(gg, mm, threshold, undecided_band)
         ious.append(metrics.mask_iou(shadow_mask(ee, mm, threshold) & decided,
                                      shadow_mask(gg, mm, threshold) & decided))
     return float(np.mean(ious))
