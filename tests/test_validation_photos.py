@@ -119,7 +119,7 @@ def test_spread_views_covers_the_sphere_before_repeating_a_side(tmp_path):
 
 
 def test_the_light_sweep_spans_the_hemisphere_and_judges_lights_by_their_share():
-    from validation.light_sweep import MAX_ERROR_DEG, sweep_pairs, sweep_row
+    from validation.light_sweep import MAX_ERROR_DEG, markdown, sweep_pairs, sweep_row
 
     pairs = sweep_pairs()
     assert len(pairs) >= 8
@@ -140,6 +140,15 @@ def test_the_light_sweep_spans_the_hemisphere_and_judges_lights_by_their_share()
     # the weak light carries a third of the irradiance (>= 25 %): it must be found too
     assert not sweep_row(row([0.5, MAX_ERROR_DEG + 0.1]))["within"]
     assert not sweep_row(row([0.5, None]))["within"]  # a lost light
+    # The decided figure stands beside the shadow IoU; a row evaluated before it says n/a,
+    # and every line of the table has its header's cells.
+    decided = row([0.5, 1.0])
+    decided["variants"]["full"]["shadow_iou_decided"] = 0.93
+    table = markdown([sweep_row(decided), sweep_row(row([0.5, 1.0]))])
+    lines = [ln for ln in table.splitlines() if ln.startswith("|")]
+    assert "shadow IoU (decided)" in lines[0]
+    assert {ln.count("|") for ln in lines} == {lines[0].count("|")}
+    assert "| 0.900 | 0.930 |" in lines[2] and "| 0.900 | n/a |" in lines[3]
 
 
 def test_photos_albedo_detail_and_seed_are_checked_first_and_reach_the_runs(

@@ -64,21 +64,25 @@ def sweep_row(row: dict) -> dict:
             "angular_error_deg": errors, "fitted_lights": full.get("fitted_lights"),
             "spurious_irradiance_fraction": full.get("spurious_irradiance_fraction"),
             "light_cosine": full.get("light_cosine"), "shadow_iou": full.get("shadow_iou"),
+            "shadow_iou_decided": full.get("shadow_iou_decided"),
             "albedo_psnr": full.get("albedo_psnr"), "relight_psnr": full.get("relight_psnr"),
             "within": bool(ok), "wall_s": row.get("wall_s")}
 
 
 def markdown(rows: list[dict]) -> str:
     lines = ["| scene | pair | strong light az/el | weak light az/el | angular error deg "
-             "(strong / weak) | fitted | spurious share | light cos | shadow IoU | within "
-             f"{MAX_ERROR_DEG:g} deg |", "|" + "---|" * 10]
+             "(strong / weak) | fitted | spurious share | light cos | shadow IoU | shadow IoU "
+             f"(decided) | within {MAX_ERROR_DEG:g} deg |", "|" + "---|" * 11]
     for r in rows:
         (a0, e0, _), (a1, e1, _) = r["lights"]
         err = " / ".join("lost" if not np.isfinite(e) else f"{e:.1f}"
                          for e in r["angular_error_deg"])
+        # rows evaluated before the decided figure existed (session 46) have none
+        decided = "n/a" if r.get("shadow_iou_decided") is None else \
+            f"{r['shadow_iou_decided']:.3f}"
         lines.append(f"| {r['scene']} | {r['pair']} | {a0:g}/{e0:g} | {a1:g}/{e1:g} | {err} | "
                      f"{r['fitted_lights']} | {r['spurious_irradiance_fraction']:.2f} | "
-                     f"{r['light_cosine']:.3f} | {r['shadow_iou']:.3f} | "
+                     f"{r['light_cosine']:.3f} | {r['shadow_iou']:.3f} | {decided} | "
                      f"{'yes' if r['within'] else '**no**'} |")
     n_ok = sum(r["within"] for r in rows)
     lines.append(f"\n{n_ok} of {len(rows)} scene/pairs have every light with >= "
