@@ -27,7 +27,8 @@ from mi_shadowgs.core.render import render_surfels
 from mi_shadowgs.dataset.loader import Dataset, load_dataset
 from mi_shadowgs.dataset.scene import dataset_scene
 from mi_shadowgs.io.ply import load_ply, save_ply
-from mi_shadowgs.pipeline import RunConfig, get_config, run_pipeline
+from mi_shadowgs.pipeline import run_pipeline
+from mi_shadowgs.presets import RunConfig, build
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages.geometry import run_geometry
 from mi_shadowgs.stages.relight import (
@@ -56,18 +57,23 @@ def generate_dataset(scene: str | Path, out: str | Path, preset: str = "cpu-smal
 
 
 def run(data: str | Path, out: str | Path, preset: str = "cpu-small", progress: bool = False,
-        overwrite: bool = False, **settings) -> dict:
+        overwrite: bool = False, seed: int | None = None, config: RunConfig | None = None,
+        **settings) -> dict:
     """The whole method (stages 1-5, evaluation, report) on dataset ``data`` into run folder
-    ``out`` (``mi-shadowgs run``); ``settings`` override fields of ``RunConfig`` (``masks``,
-    ``ablations``, ``material_iterations``, ``preview_envmaps``: a list, ...), each checked
-    by name and type as the command line's are. Returns the run's summary."""
-    from mi_shadowgs.config import with_overrides
+    ``out`` (``mi-shadowgs run``). The settings are ``config`` (a ``RunConfig``) or else
+    preset ``preset`` with ``settings`` laid over it: a stage's section as a dict
+    (``material={"iterations": 300}``) or a run option (``masks="chromaticity"``,
+    ``ablations=True``, ``preview_envmaps=[...]``), each checked by name and type as the
+    command line's ``--set`` is; ``seed`` sets every stage's seed. Returns the summary."""
     from mi_shadowgs.pipeline import check_preview_envmaps
+    from mi_shadowgs.presets import build
 
-    # dataclasses.replace took ablations="false" as True and missing env maps without a word.
-    if "preview_envmaps" in settings:
-        settings["preview_envmaps"] = check_preview_envmaps(settings["preview_envmaps"])
-    config = with_overrides(get_config(preset), settings, "run")
+    if config is None:
+        if "preview_envmaps" in settings:
+            settings["preview_envmaps"] = check_preview_envmaps(settings["preview_envmaps"])
+        config = build(preset, settings, seed=seed)
+    elif settings or seed is not None:
+        raise TypeError("api.run: pass either config= or preset/settings/seed, not both")
     return run_pipeline(data, out, config, progress=progress, overwrite=overwrite)
 
 
@@ -179,7 +185,7 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
 __all__ = [
     "Camera", "Dataset", "RunConfig", "dataset_scene", "directional_light_set", "export_asset",
     "export_ply",
-    "generate_dataset", "get_config", "lights_from_json", "load_dataset", "load_model",
+    "build", "generate_dataset", "lights_from_json", "load_dataset", "load_model",
     "relight", "render", "render_views", "run", "run_geometry", "run_pipeline", "run_relight",
     "run_segmentation", "scene_path", "set_variant", "stages",
 ]

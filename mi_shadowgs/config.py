@@ -106,6 +106,28 @@ def parse_settings(cls, items, what: str) -> dict[str, Any]:
     return out
 
 
+def parse_value(key: str, text: str, annotation) -> Any:
+    """Command-line text ``text`` of setting ``key`` as its annotated type (``int``,
+    ``float``, ``bool``, ``str``, ``X | None``; ``none`` for an optional one, a
+    comma-separated list for a tuple of numbers); a ConfigError naming ``key`` otherwise."""
+    options = [k.strip() for k in str(annotation).split("|")]
+    kind = " | ".join(options)
+    if text.lower() == "none" and "None" in options:
+        return None
+    first = options[0]
+    readers = {"bool": _read_bool, "int": int, "float": float, "str": str}
+    try:
+        if first in readers:
+            return readers[first](text)
+        if first.startswith("tuple[") and ("float" in first or "int" in first):
+            cast = float if "float" in first else int
+            return tuple(cast(t) for t in text.split(",") if t.strip())
+    except ValueError as err:
+        raise ConfigError(f"--set {key}={text!r}: takes {kind}") from err
+    raise ConfigError(f"--set {key}: a setting of type {kind} is not set from the command "
+                      "line; use --config with a JSON file")
+
+
 def _field_kinds(cls) -> dict[str, list[str]]:
     """Each field's annotated types by name, in order (``int | None`` -> ["int", "None"]);
     the annotations are text (``from __future__ import annotations``)."""

@@ -2,31 +2,27 @@
 (segmentation), then stages 3-5 per variant (visibility and the material/light
 decomposition, evaluation and relighting), the summary and the report.
 
-``run_pipeline`` calls each stage's library runner; each stage is resumable, and a stage
-whose outputs are complete and were made from the same inputs is not run again.
+``run_pipeline`` takes the run's settings as one ``RunConfig`` tree (``mi_shadowgs.presets``)
+and hands each stage's runner its config object; each stage is resumable, and a stage whose
+outputs are complete and were made from the same inputs is not run again.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from pathlib import Path
 
 from mi_shadowgs.backend import ensure_variant
-from mi_shadowgs.config import (
-    LABEL_MAP_SOURCES,
-    check_fields,
-    get_preset,
-    slow_preset_warning,
-)
-from mi_shadowgs.core.directions import angles_from_direction
+from mi_shadowgs.config import slow_preset_warning
 from mi_shadowgs.io.atomic import write_json, write_text
+from mi_shadowgs.presets import CONFIG_NAME, RunConfig
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
 from mi_shadowgs.stages.material import fit as material_fit
-from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
+from mi_shadowgs.stages.material.fit import MaterialConfig
+from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.relight.evaluate import (
     check_evaluation_inputs,
@@ -37,104 +33,35 @@ from mi_shadowgs.stages.relight.evaluate import (
     write_previews,
 )
 from mi_shadowgs.stages.visibility import shadow_maps
-
-VARIANTS = {
-    "full": {},
-    "no_visibility": {"use_visibility": False},  # paper Table 3, "w/o visibility"
-    "no_segmentation": {"segment_average": False},  # "w/o segmentation"
-}
-MASK_SOURCES = ("auto", *LABEL_MAP_SOURCES)  # "auto": material ids where the views have them
-# The ground truth of the stage-1 and stage-2 metrics (stage 5's: relight.METRIC_NEEDS); a
-# metric whose ground truth the dataset lacks is not computed, and the summary says so.
-STAGE_METRIC_NEEDS = {
-    "geometry normal error": ("test normals",),
-    "geometry depth error": ("test depth",),
-    "segmentation ARI/mIoU": ("test material ids",),
-    "segmentation lit/shadowed base check": ("test material ids", "test visibility"),
-}
+from mi_shadowgs.summary import build_summary, write_report_figures
 
 
-@dataclasses.dataclass(frozen=True)
-class RunConfig:
-    """What ``mi-shadowgs run`` does beyond each stage's own preset."""
-
-    preset: str = "cpu-small"  # the preset of every stage
-    masks: str = "auto"  # segmentation labels: material ids when the dataset has them
-    ablations: bool = False  # also fit the Table 3 variants (two more stage-4 fits)
-    bounds_quantile: float = 0.98  # shadow-map bound: this quantile of surfel distances
-    figure_views: int = 4  # test views shown in the report's figure grid
-    material_iterations: int | None = None  # override of the stage-4 preset
-    # Override of stage 1's hull_prune_views (None: the preset's, 0 in every preset): remove
-    # the surfels outside the training masks in this many views after stage 1.
-    prune_outside_masks: int | None = None
-    # Override of stage 4's detail_prior (None: the preset's, 0 = off in every preset): a
-    # per-surfel albedo detail within each segment, for textured surfaces (a capture's mat).
-    albedo_detail: float | None = None
-    segments: int | None = None  # stage 2's K; None: the segmentation settings choose it
-    # The seed of every stage's random draws: stage 1's initial points, view order and
-    # densification, stage 2's features and K-means, stage 4's view order. Runs at other
-    # seeds measure how far a figure moves by chance alone (validation.pipeline --seed).
-    seed: int = 0
-    # Env maps (files, or folders of .exr) of the report's relit previews, beside the
-    # dataset's own; e.g. ../shared/data/envmaps. The CLI and ``api.run`` refuse a missing
-    # one (``check_preview_envmaps``); run_pipeline leaves out one that has gone since.
-    preview_envmaps: tuple[str, ...] = ()
-
-    def __post_init__(self):
-        check_fields(self, (("masks", self.masks in MASK_SOURCES, f"one of {MASK_SOURCES}"),
-                            ("segments", self.segments is None or self.segments >= 1,
-                             ">= 1 (or None)"),
-                            ("seed", self.seed >= 0, ">= 0"),
-                            ("bounds_quantile", 0 < self.bounds_quantile <= 1, "in (0, 1]"),
-                            ("figure_views", self.figure_views >= 1, ">= 1"),
-                            ("material_iterations", self.material_iterations is None
-                             or self.material_iterations >= 0, ">= 0 or None"),
-                            ("prune_outside_masks", self.prune_outside_masks is None
-                             or self.prune_outside_masks >= 0, ">= 0 or None"),
-                            ("albedo_detail", self.albedo_detail is None
-                             or 0 <= self.albedo_detail < math.inf, "finite, >= 0 or None")))
-
-
-PRESETS = {
-    "cpu-small": RunConfig(),
-    "cpu-medium": RunConfig(preset="cpu-medium"),
-    "gpu-large": RunConfig(preset="gpu-large"),
-    "paper": RunConfig(preset="paper", ablations=True),
-}
-
-
-def get_config(name: str) -> RunConfig:
-    return get_preset(PRESETS, name, "run")
-
-
-def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, test,
-                   bounds: shadow_maps.SceneBounds, config: RunConfig, overwrite: bool,
-                   progress: bool) -> tuple[dict, float | None]:
-    """Stages 3-5 of one variant into ``material/<name>`` of the run ``top`` (an Output);
-    returns (metrics, fit seconds), the seconds None when a finished output of the same
-    provenance is reused."""
-    from mi_shadowgs.dataset.fingerprint import dataset_ref
+def material_stage(top, name: str, material: MaterialConfig, labels: str, dataset: dict,
+                   data: Path, surfels, train, test, bounds: shadow_maps.SceneBounds,
+                   config: RunConfig, overwrite: bool, progress: bool
+                   ) -> tuple[dict, float | None]:
+    """Stages 3-5 of one variant, fitted with ``material``, into ``material/<name>`` of the
+    run ``top`` (an Output); ``labels``: where stage 2's segments came from; ``dataset``: the
+    dataset's fingerprint. Returns (metrics, fit seconds), the seconds None when a finished
+    output of the same provenance is reused."""
     from mi_shadowgs.io.ply import save_ply
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
     from mi_shadowgs.stages.common import checkpoint_hooks, warn_other_backend
 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
-    cfg = material_config(config.preset, overrides)
-    vis_config = shadow_maps.get_config(config.preset)  # what decompose fits with
-    settings = {"variant": name, "material": dataclasses.asdict(cfg),
-                "visibility": dataclasses.asdict(vis_config),
-                "relight": dataclasses.asdict(relight.get_config(config.preset)),
+    settings = {"variant": name, "material": dataclasses.asdict(material), "labels": labels,
+                "visibility": dataclasses.asdict(config.visibility),
+                "relight": dataclasses.asdict(config.relight),
                 "bounds_quantile": config.bounds_quantile, "figure_views": config.figure_views}
     if name == "full" and config.preview_envmaps:  # the previews of the full fit use them
-        # (only when given: a run made before they existed keeps its settings and is reused)
         settings["preview_envmaps"] = list(config.preview_envmaps)
     inputs = {"model": input_ref(seg_model)}
     if "preview_envmaps" in settings:  # by content: a file edited, or one added to a folder,
         # makes the previews again (the dataset's own env maps are in its fingerprint)
         inputs.update({f"preview_envmap_{i}": input_ref(f)
                        for i, f in enumerate(_user_envmap_files(config))})
-    provenance = Provenance(dataset=dataset_ref(data), inputs=inputs, settings=settings)
+    provenance = Provenance(dataset=dataset, inputs=inputs, settings=settings)
     top.add_part(f"material/{name}")
     with Output.open(folder, "run", provenance, overwrite=overwrite, reuse=True,
                      inputs=[data, seg_model], part_of=top.folder) as out:
@@ -146,21 +73,21 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
         # last file of the fit, marks it finished).
         fit_files = [folder / n for n in ("model.ply", "light.json", "history.csv", "fit.json")]
         if out.reused and all(f.is_file() for f in fit_files):
-            res = fit_from_files(*fit_files[:3], use_visibility=cfg.use_visibility)
+            res = fit_from_files(*fit_files[:3], use_visibility=material.use_visibility)
             fit_s = json.loads(fit_files[3].read_text())["fit_s"]
         else:
             checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
-            res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds,
-                                                  overrides, progress, **checkpoints))
+            res, fit_s = _timed(lambda: decompose(surfels, train, material, config.visibility,
+                                                  bounds, labels, progress, **checkpoints))
             save_ply(out.path("model.ply"), res.surfels,
-                     relight.model_metadata(vis_config, res.specular))
+                     relight.model_metadata(config.visibility, res.specular))
             write_json(out.path("light.json"), light_json(res))
             write_text(out.path("history.csv"), "step,loss\n" + "".join(
                 f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
             write_json(out.path("fit.json"), {"fit_s": fit_s, "timings": res.timings})
         cache = relight.RelightCache()  # shadow maps shared by evaluation and previews
-        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset,
-                                                 cache=cache)
+        metrics, images = evaluate_decomposition(res, train, test, bounds, config.visibility,
+                                                 config.relight, cache=cache)
         metrics["fit_s"] = fit_s
         segments = _segment_maps(top.folder / "segmentation" / "segments", test)
         with out.staged("figures") as tmp:  # beside any file of the user's there
@@ -168,7 +95,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             if name == "full":  # relit previews under standard lights (no ground truth)
                 grid["previews"] = write_previews(
                     tmp, res, [test.cameras[i] for i in _figure_picks(len(test), 1)], bounds,
-                    config.preset, _preview_envmaps(config, train), cache)
+                    config.visibility, config.relight, _preview_envmaps(config, train), cache)
         write_json(out.path("grid.json"), grid)
         write_json(out.path("metrics.json"), metrics)
         out.finish()
@@ -263,15 +190,17 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     train = load_training_views(data)
     test = load_dataset(data, "test")
     available = check_evaluation_inputs(train, test)
-    masks = config.masks
-    if masks == "auto":
-        masks = "material" if all(v.material is not None for v in train.views) else \
-            "chromaticity"
-    elif masks == "material":  # checked before stage 1 trains, not when stage 2 starts
+    labels = config.masks
+    if labels == "auto":
+        labels = "material" if all(v.material is not None for v in train.views) \
+            else "chromaticity"
+    elif labels == "material":  # checked before stage 1 trains, not when stage 2 starts
         from mi_shadowgs.stages.segmentation.masks import material_masks
 
         material_masks(train)
-    provenance = Provenance(dataset=dataset_ref(data), settings=dataclasses.asdict(config))
+    dataset = dataset_ref(data)  # fingerprinted once; every stage's manifest records it
+    settings = config.to_dict()
+    provenance = Provenance(dataset=dataset, settings=settings)
     stages, reused = [], []  # (name, seconds) of the stages this call ran; names of the rest
 
     def done(name: str, stage) -> None:
@@ -285,46 +214,31 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     with Output.open(run, "run", provenance, overwrite=overwrite, reuse=True,
                      compare=("dataset",), inputs=[data],
                      parts=("geometry", "segmentation", "material")) as top:
+        write_json(top.path(CONFIG_NAME), settings)
         top.add_part("geometry")
-        geo_overrides = {"seed": config.seed}
-        if config.prune_outside_masks is not None:
-            geo_overrides["hull_prune_views"] = config.prune_outside_masks
-        geo = geometry.run_geometry(data, run / "geometry",
-                                    dataclasses.replace(geometry.get_config(config.preset),
-                                                        **geo_overrides),
-                                    preset=config.preset, reuse=True, overwrite=overwrite,
-                                    progress=progress, train=train, test=test)
+        geo = geometry.run_geometry(data, run / "geometry", config.geometry,
+                                    preset=config.preset, dataset=dataset, reuse=True,
+                                    overwrite=overwrite, progress=progress, train=train,
+                                    test=test)
         done("geometry", geo)
         top.add_part("segmentation")
-        seg_overrides = {"seed": config.seed}
-        if config.segments is not None:
-            seg_overrides["n_segments"] = config.segments
         seg = segmentation.run_segmentation(
-            run / "geometry" / "model.ply", data, run / "segmentation",
-            segmentation.segmentation_config(config.preset, masks, seg_overrides),
-            masks=masks,
-            preset=config.preset, overwrite=overwrite, reuse=True, progress=progress,
-            train=train, views=test)
+            run / "geometry" / "model.ply", data, run / "segmentation", config.segmentation,
+            masks=labels, chromaticity=config.chromaticity, preset=config.preset,
+            dataset=dataset, overwrite=overwrite, reuse=True, progress=progress, train=train,
+            views=test)
         done("segmentation", seg)
         surfels = load_ply(run / "segmentation" / "model.ply")
         bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
-        overrides = {"seed": config.seed}
-        if config.material_iterations is not None:
-            overrides["iterations"] = config.material_iterations
-        if config.albedo_detail is not None:
-            overrides["detail_prior"] = config.albedo_detail
-        changed = material_fit.label_source_overrides(
-            material_config(config.preset, overrides), masks)
+        changed = material_fit.label_source_overrides(config.material, labels)
         if changed and log:
-            log(f"stage 4 on segments from {masks}: " + ", ".join(
+            log(f"stage 4 on segments from {labels}: " + ", ".join(
                 f"{k} {v}" for k, v in changed.items()) + " (MaterialConfig.chromaticity_*)")
-        overrides.update(changed)
 
         # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
-        variants = VARIANTS if config.ablations else {"full": VARIANTS["full"]}
         results = {}
-        for name, ov in variants.items():
-            results[name], fit_s = material_stage(top, name, {**overrides, **ov}, data,
+        for name, material in config.variants().items():
+            results[name], fit_s = material_stage(top, name, material, labels, dataset, data,
                                                   surfels, train, test, bounds, config,
                                                   overwrite, progress)
             if fit_s is not None:
@@ -340,499 +254,3 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         write_report(run)
         top.finish()
     return summary
-
-
-def _csv_columns(path: Path) -> dict[str, list[float]]:
-    """Numeric columns of a CSV file (empty or non-numeric cells: NaN); {} if absent."""
-    import csv
-
-    if not path.is_file():
-        return {}
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-
-    def num(v) -> float:
-        try:
-            return float(v)
-        except (TypeError, ValueError):
-            return float("nan")
-
-    return {k: [num(r.get(k)) for r in rows] for k in (rows[0] if rows else {})}
-
-
-def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
-    """The labelled 22x12 light map of a variant's ``light.json`` beside the dataset's
-    ground truth (``lights.json``); False when the fit has no light.json."""
-    import numpy as np
-
-    from mi_shadowgs.core.directions import map_to_blocks
-    from mi_shadowgs.io.plots import light_map_png
-
-    fit = _json_or_empty(variant / "light.json")
-    if not fit.get("radiance"):
-        return False
-
-    def blocks(radiance) -> np.ndarray:
-        r = np.asarray(radiance, np.float64)
-        return map_to_blocks(r.mean(-1) if r.ndim == 2 else r)
-
-    truth = _json_or_empty(data / "lights.json").get("training", {})
-    gt_map = truth.get("light_map", {}).get("radiance")
-    errors = _json_or_empty(variant / "metrics.json").get("angular_error_deg") or []
-    gt_lights = []
-    for k, lt in enumerate(truth.get("lights", [])):
-        if "azimuth_deg" in lt and "elevation_deg" in lt:
-            az, el = float(lt["azimuth_deg"]), float(lt["elevation_deg"])
-        elif "direction" in lt:
-            az, el = angles_from_direction(lt["direction"])
-        else:
-            continue
-        err = errors[k] if k < len(errors) and errors[k] is not None else None
-        err_text = f", error {err:.1f}\u00b0" if err is not None and err == err else ""
-        gt_lights.append({"azimuth": az % 360.0, "elevation": el, "label":
-                          f"{lt.get('name', f'light {k}')} (az {az:.0f}\u00b0, "
-                          f"el {el:.0f}\u00b0){err_text}"})
-    fitted = []
-    dirs = np.asarray(fit.get("directions") or np.zeros((0, 3)), np.float64).reshape(-1, 3)
-    w = np.asarray(fit.get("irradiance") if fit.get("irradiance") is not None
-                   else np.ones(len(dirs)), np.float64)
-    if w.ndim == 2 and w.shape[0] != len(dirs):
-        w = w.T  # [3, K] -> [K, 3]
-    w = w.mean(-1) if w.ndim == 2 else w
-    for d, weight in zip(dirs, w.reshape(-1) if w.size == len(dirs) else np.ones(len(dirs)),
-                         strict=True):
-        az, el = angles_from_direction(d)
-        fitted.append({"azimuth": az, "elevation": el, "weight": float(weight)})
-    light_map_png(path, blocks(fit["radiance"]), blocks(gt_map) if gt_map else None,
-                  gt_lights, fitted)
-    return True
-
-
-def write_report_figures(folder: Path, run: Path, data: Path) -> None:
-    """The report's plots into ``folder`` from the run's files, each only when its data is
-    there: stage-1 training curves (``geometry/log.csv``), stage-4 loss
-    (``material/*/history.csv``), the labelled light map of the full fit and the colour bar
-    of the error maps."""
-    from mi_shadowgs.io.plots import colorbar_png, curves_png
-
-    log = _csv_columns(run / "geometry" / "log.csv")
-    if log.get("iteration"):
-        it = log["iteration"]
-        panels = [{"ylabel": label, "log": key == "loss",
-                   "lines": [{"x": it, "y": log[key]}]}
-                  for key, label in (("loss", "training loss"), ("psnr", "training PSNR (dB)"),
-                                     ("surfels", "surfels")) if key in log]
-        curves_png(folder / "geometry_curves.png", panels, title="Stage 1: geometry")
-    lines = []
-    for hist in [v / "history.csv" for v in _variant_folders(run)]:
-        h = _csv_columns(hist)
-        if h.get("step"):
-            lines.append({"x": h["step"], "y": h["loss"], "label": hist.parent.name})
-    if lines:
-        curves_png(folder / "material_loss.png",
-                   [{"ylabel": "loss (mean since last entry)", "log": True, "lines": lines}],
-                   xlabel="step", title="Stage 4: material and light")
-    _light_map_figure(folder / "light_map.png", run / "material" / "full", data)
-    if (run / "material" / "full" / "grid.json").is_file():
-        colorbar_png(folder / "error_scale.png")
-
-
-def _json_or_empty(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.is_file() else {}
-
-
-def skipped_table(results: dict, available: dict | None) -> dict | None:
-    """The metrics not computed for want of ground truth: what each needs and why."""
-    rows = []
-    if available is not None:
-        for metric, needs in STAGE_METRIC_NEEDS.items():
-            why = [available[n] for n in needs if available.get(n)]
-            if why:
-                rows.append([metric, ", ".join(needs), "; ".join(why)])
-    for item in (results.get("full") or {}).get("skipped") or []:
-        rows.append([item["metric"], ", ".join(item["needs"]), item["why"]])
-    if not rows:
-        return None
-    return {"title": "Metrics not computed (the dataset lacks their ground truth)",
-            "columns": ["metric", "needs", "why not"], "rows": rows,
-            "note": "n/a in the tables above: not computed. The decomposition and the relit "
-                    "previews below need no ground truth."}
-
-
-def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stages: list,
-                  seconds: float, available: dict | None = None,
-                  reused: list[str] | None = None) -> dict:
-    """The report's ``summary.json`` (see ``mi_shadowgs.io.report``) from the run's files;
-    ``available``: the dataset's ground truth (``relight.evaluate.ground_truth``), for the
-    table of skipped metrics. ``seconds`` are this call's; ``reused`` names the stages an
-    earlier call made (their seconds are not in it: a resumed run's figure is not the
-    run's)."""
-    import mitsuba as mi
-
-    from mi_shadowgs.stages.relight.evaluation import SHADOW_UNDECIDED_BAND
-
-    geo = _json_or_empty(run / "geometry" / "metrics.json")
-    seg = _json_or_empty(run / "segmentation" / "segmentation.json")
-    cols = ["variant", "albedo PSNR", "albedo PSNR (one scale)", "albedo SSIM", "albedo LPIPS",
-            "light cosine", "shadow IoU", "shadow IoU (decided)", "relight PSNR", "relight SSIM",
-            "relight LPIPS", "relight time (s)"]
-    rows = [[name, r.get("albedo_psnr"), r.get("albedo_psnr_global"), r.get("albedo_ssim"),
-             r.get("albedo_lpips"), r.get("light_cosine"), r.get("shadow_iou"),
-             r.get("shadow_iou_decided"), r.get("relight_psnr"), r.get("relight_ssim"),
-             r.get("relight_lpips"), r.get("relight_render_s")]
-            for name, r in results.items()]
-    skipped = sorted({r["lpips_skipped"] for r in results.values() if r.get("lpips_skipped")})
-    secs = {name: s for name, s in stages}
-    info = _json_or_empty(data / "dataset.json")
-    scene = Path(str(info.get("scene", data.name))).stem
-    summary = {
-        "title": f"mi_shadowgs run: {scene} ({data.name})",
-        "dataset": str(data.resolve()), "preset": config.preset, "variant": mi.variant(),
-        "date": time.strftime("%Y-%m-%d %H:%M"), "total_seconds": seconds,
-        "reused_stages": list(reused or []),
-        "tables": [{"title": "Decomposition and relighting (paper Tables 1 and 3)",
-                    "columns": cols, "rows": rows,
-                    "note": "Albedo: per-channel median scale per material region; relit "
-                            "views: one global per-channel albedo scale; shadow IoU: "
-                            "direct irradiance below half the view's median ((decided): "
-                            "without the pixels whose true irradiance is within "
-                            f"{SHADOW_UNDECIDED_BAND:.0%} of that, where round-off decides "
-                            "the truth); LPIPS: AlexNet "
-                            "v0.1 on sRGB views, background at 0."
-                            + "".join(f" LPIPS not computed: {why}." for why in skipped)}],
-        "stages": [],
-    }
-    if geo:
-        scalars = {k: v for k, v in geo.items() if not isinstance(v, (list, dict))}
-        summary["stages"].append({"name": "Stage 1: geometry", "seconds": secs.get("geometry"),
-                                  "metrics": scalars, "figures": _previews(run)})
-    if seg:
-        m = dict(seg.get("metrics", {}))
-        m.update({"K": seg.get("k"), "masks": seg.get("masks")})
-        segs = _listed(run / "segmentation", "segments/", "_overlay.png")[:4]
-        summary["stages"].append({
-            "name": "Stage 2: material segmentation", "seconds": secs.get("segmentation"),
-            "metrics": m, "figures": [{"title": p.stem, "path": str(p.relative_to(run))}
-                                      for p in segs]})
-    if (run / "report" / "geometry_curves.png").is_file() and summary["stages"] and \
-            summary["stages"][0]["name"].startswith("Stage 1"):
-        summary["stages"][0]["figures"].insert(0, {
-            "title": "training curves (geometry/log.csv)", "path": "report/geometry_curves.png",
-            "wide": True})
-    skipped_tab = skipped_table(results, available)
-    if skipped_tab:
-        summary["tables"].insert(1, skipped_tab)
-        summary["skipped_metrics"] = [{"metric": r[0], "needs": r[1], "why": r[2]}
-                                      for r in skipped_tab["rows"]]
-    lights_tab = _fitted_lights_table(run / "material" / "full" / "light.json")
-    if lights_tab:
-        summary["tables"].append(lights_tab)
-    summary["tables"] += _per_view_tables(results.get("full", {}))
-    speed = _speed_table(results.get("full", {}), info)
-    if speed:
-        summary["tables"].append(speed)
-    summary["provenance"] = _provenance(run, config, mi.variant())
-    full = run / "material" / "full"
-    if (full / "grid.json").is_file():
-        grid = json.loads((full / "grid.json").read_text())
-        grid["rows"] = [{"label": r["label"],
-                         "cells": [f"material/full/figures/{c}" for c in r["cells"]]}
-                        for r in grid["rows"]]
-        previews = grid.pop("previews", None)
-        grids = _split_grid(grid)
-        if any(c.endswith(" error") for c in grids[0]["columns"]):
-            grids[0]["note"] = ("error: |estimate - ground truth| as displayed (sRGB, mean "
-                                "over RGB); estimates aligned to ground truth as in the table "
-                                "above")
-            if (run / "report" / "error_scale.png").is_file():
-                grids[0]["legend"] = "report/error_scale.png"
-        summary["grid"] = grids[0]
-        if len(grids) > 1:
-            summary["grids"] = grids[1:]
-        figures = []
-        has_truth = bool(_json_or_empty(data / "lights.json").get("training", {})
-                         .get("light_map"))
-        if (run / "report" / "light_map.png").is_file():
-            figures.append({"title": "light map, 22x12 blocks: estimate | ground truth; "
-                                     "rings: true lights, crosses: fitted" if has_truth else
-                                     "light map, 22x12 blocks over azimuth/elevation: "
-                                     "estimate (no ground truth); crosses: fitted lights",
-                            "path": "report/light_map.png", "wide": True})
-        else:
-            figures.append({"title": "light map 22x12: estimate | ground truth",
-                            "path": "material/full/figures/light_map.png"})
-        for strip in (previews or {}).get("strips", []):
-            figures.append({"title": "relit preview, " + strip["title"] + "; exposure: the "
-                            "fitted light's irradiance on an upward surface",
-                            "path": f"material/full/figures/{strip['file']}", "wide": True})
-        if (run / "report" / "material_loss.png").is_file():
-            figures.append({"title": "stage-4 loss (material/*/history.csv)",
-                            "path": "report/material_loss.png", "wide": True})
-        summary["stages"].append({
-            "name": "Stages 3-5: visibility, decomposition, relighting",
-            "seconds": secs.get("material (full)"),
-            "metrics": {k: v for k, v in results.get("full", {}).items()
-                        if not isinstance(v, (dict, list))},
-            "figures": figures})
-    summary["stages"].append(speed_error_stage(run))
-    return summary
-
-
-# Columns of the decomposition (no ground truth needed) and of the comparison with ground
-# truth; "input" leads both.
-_DECOMPOSITION = ("albedo", "roughness", "metallic", "normal", "irradiance", "visibility",
-                  "segments")
-
-
-def _split_grid(grid: dict) -> list[dict]:
-    """The figures grid as [comparison with ground truth, decomposition] when the dataset
-    has ground truth (the comparison keeps the paper's Fig. 3 layout), else
-    [decomposition]."""
-    cols = grid["columns"]
-
-    def pick(keep, title) -> dict:
-        idx = [i for i, c in enumerate(cols) if c == "input" or keep(c)]
-        return {"title": title, "columns": [cols[i] for i in idx],
-                "rows": [{"label": r["label"], "cells": [r["cells"][i] for i in idx]}
-                         for r in grid["rows"]]}
-
-    decomposition = pick(lambda c: c.startswith(_DECOMPOSITION) and "(GT)" not in c and
-                         not c.endswith(" error"),
-                         "Decomposition of test views: albedo, roughness/metallic, normals, "
-                         "irradiance, visibility of the strongest fitted lights, segments")
-    truth = [c for c in cols if "(GT)" in c]
-    if not truth:
-        return [decomposition]
-    compare = pick(lambda c: c.startswith(("albedo", "irradiance", "relit ")),
-                   "Input, albedo, irradiance and relighting against ground truth "
-                   "(cf. paper Fig. 3)")
-    return [compare, decomposition]
-
-
-def _fitted_lights_table(path: Path) -> dict | None:
-    """The full fit's lights (``light.json``): azimuth, elevation, irradiance, strongest
-    first."""
-    import numpy as np
-
-    fit = _json_or_empty(path)
-    dirs = np.asarray(fit.get("directions") or np.zeros((0, 3)), np.float64).reshape(-1, 3)
-    if not len(dirs):
-        return None
-    w = np.asarray(fit.get("irradiance") if fit.get("irradiance") is not None
-                   else np.full(len(dirs), np.nan), np.float64).reshape(len(dirs), -1).mean(-1)
-    total = np.nansum(w)
-    rows = []
-    for k in np.argsort(-np.nan_to_num(w)):
-        az, el = angles_from_direction(dirs[k])
-        rows.append([int(len(rows) + 1), az, el, float(w[k]),
-                     float(w[k] / total) if total > 0 else None])
-    return {"title": "Fitted lights (material/full/light.json)",
-            "columns": ["light", "azimuth (deg)", "elevation (deg)", "irradiance",
-                        "share of irradiance"], "rows": rows,
-            "note": "Azimuth about +Y from +X toward -Z, elevation above the base "
-                    "(docs/conventions.md); irradiance in the fit's own scale (albedo and "
-                    "light are known only up to a common factor)."}
-
-
-SPEED_ERROR_STAGE = "Speed against error"
-# Where ``validation.speed_error --attach`` says which sweep its plots came from.
-SPEED_ERROR_SOURCE = "speed_error/source.json"
-
-
-def speed_error_stage(run: Path) -> dict:
-    """The report's speed-against-error section: the PNGs in ``RUN/speed_error/`` (which
-    ``python -m validation.speed_error --attach RUN`` puts there), with the sweep they came
-    from, or a note saying how to make them."""
-    plots = sorted((run / "speed_error").glob("*.png"))
-    if not plots:
-        note = ("No speed-against-error plots for this run (`python -m validation.speed_error "
-                "--attach RUN` puts them into RUN/speed_error/).")
-    else:
-        note = ("A study of the method, not a measurement of this run: each plot is a sweep "
-                "of settings around cpu-small on the scene its title names")
-        try:
-            source = json.loads((run / SPEED_ERROR_SOURCE).read_text())
-            note += (f"; attached {source.get('date', '?')} from {source.get('sweep', '?')}"
-                     + (f" (`{source['command']}`)" if source.get("command") else "") + ".")
-        except (OSError, ValueError, AttributeError):
-            note += "; put here by hand (no speed_error/source.json)."
-    return {"name": SPEED_ERROR_STAGE,
-            "figures": [{"title": p.stem, "path": p.relative_to(run).as_posix(), "wide": True}
-                        for p in plots],
-            "note": note}
-
-
-def refresh_speed_error(run: Path) -> bool:
-    """Bring ``RUN/summary.json``'s speed-against-error section up to date with the files
-    in ``RUN/speed_error/`` (plots added after the run); True when it changed."""
-    from mi_shadowgs.io.report import read_summary
-
-    path = Path(run) / "summary.json"
-    try:
-        summary = read_summary(path)
-    except (OSError, ValueError):
-        return False  # write_report names the missing or malformed file
-    stages = summary.setdefault("stages", [])
-    new = speed_error_stage(Path(run))
-    old = [i for i, st in enumerate(stages) if st.get("name") == SPEED_ERROR_STAGE]
-    if old and stages[old[0]] == new:
-        return False
-    if old:
-        stages[old[0]] = new
-    else:
-        stages.append(new)
-    write_json(path, summary)
-    return True
-
-
-PAPER_RENDER_S = 100.0  # paper Sec. V-A4: "Rendering the 200 test views takes ~100 seconds"
-PAPER_VIEWS = 200
-
-
-def _per_view_tables(metrics: dict) -> list[dict]:
-    """PSNR/SSIM/LPIPS of each test view: albedo and every relighting (full fit)."""
-    per = {"albedo": metrics.get("albedo_per_view")}
-    per.update({name: r.get("per_view") for name, r in (metrics.get("relighting") or {}).items()})
-    per = {k: v for k, v in per.items() if isinstance(v, dict) and v.get("psnr")}
-    if not per:
-        return []
-    n = max(len(v["psnr"]) for v in per.values())
-    names = metrics.get("test_views") or [f"view {i}" for i in range(n)]
-    cols, rows = ["view"], [[names[i] if i < len(names) else f"view {i}"] for i in range(n)]
-    for kind, v in per.items():
-        for m in ("psnr", "ssim", "lpips"):
-            cols.append(f"{kind} {m.upper()}")
-            vals = v.get(m) or []
-            for i, row in enumerate(rows):
-                row.append(vals[i] if i < len(vals) else None)
-    return [{"title": "Per test view (full fit)", "columns": cols, "rows": rows,
-             "note": "relit views: albedo scaled by one global per-channel factor; n/a: not "
-                     "computed (see the table above)"}]
-
-
-def _speed_table(metrics: dict, dataset: dict) -> dict | None:
-    """Render time of the test views per relighting and extrapolated to the paper's 200."""
-    rows = []
-    relit = metrics.get("relighting") or {}
-    views = len(metrics.get("test_views") or (metrics.get("albedo_per_view") or {})
-                .get("psnr") or []) or max([r.get("views") or 0 for r in relit.values()],
-                                           default=0)
-    if metrics.get("decomposition_render_s") is not None and views:
-        t = metrics["decomposition_render_s"]
-        rows.append(["decomposition (albedo, irradiance)", "fitted",
-                     metrics.get("active_directions"), views, t, t / views,
-                     PAPER_VIEWS * t / views])
-    for name, r in relit.items():
-        if r.get("render_s") is None or not r.get("views"):
-            continue
-        t, n = r["render_s"], r["views"]
-        rows.append([name, r.get("type"), r.get("light_directions"), n, t, t / n,
-                     PAPER_VIEWS * t / n])
-    if not rows:
-        return None
-    rows.append(["paper (one RTX A6000)", "", 128, PAPER_VIEWS, PAPER_RENDER_S,
-                 PAPER_RENDER_S / PAPER_VIEWS, PAPER_RENDER_S])
-    cfg = dataset.get("config") or {}
-    size = f" of {cfg['width']}x{cfg['height']} px" if "width" in cfg and "height" in cfg else ""
-    return {"title": f"Render speed for {PAPER_VIEWS} test views (paper Sec. V-A4)",
-            "columns": ["render", "lights", "light directions", "views rendered", "time (s)",
-                        "per view (s)", f"{PAPER_VIEWS} views (s)"],
-            "rows": rows,
-            "note": f"Measured on the run's test views{size}; the {PAPER_VIEWS}-view time is "
-                    "extrapolated linearly from the measured time per view, not measured. "
-                    "Shadow maps are rendered once per light and reused for every view, so "
-                    "the extrapolation overestimates. The paper's row is its own figure "
-                    "(its resolution and GPU), not measured here."}
-
-
-def _provenance(run: Path, config: RunConfig, variant: str) -> list[dict]:
-    """Commit, versions, variant, device and settings of the run, with links to the
-    stages' resolved settings (manifests, config files). Commit, variant, device and Dr.Jit
-    threads are this call's, unless the stages' manifests record others (``made_with``: a
-    stage made or resumed on another backend or by another commit): then each value names
-    the stages it made."""
-    import platform
-
-    import drjit as dr
-    import mitsuba as mi
-
-    from mi_shadowgs.io.provenance import MANIFEST_NAME, device_name, made_with
-
-    made = _stage_backends(run)
-    threads = dr.thread_count() if variant.startswith("llvm") else None
-    backend = [{"name": name, "value": _per_stage(made, key, now)}
-               for name, key, now in (("variant", "variant", variant),
-                                      ("device", "device", device_name(variant)),
-                                      ("Dr.Jit threads", "threads", threads))]
-    commit = _per_stage(made, "mi_shadowgs", made_with()["mi_shadowgs"])
-    out = [{"name": "commit", "value": commit},
-           {"name": "Mitsuba", "value": mi.__version__},
-           {"name": "Dr.Jit", "value": dr.__version__},
-           {"name": "Python", "value": platform.python_version()},
-           *[row for row in backend if row["value"] is not None],
-           {"name": "preset", "value": config.preset}]
-    links = [run / "geometry" / "config.json"]
-    links += [run / part / MANIFEST_NAME for part in ("", "geometry", "segmentation")]
-    links += [v / MANIFEST_NAME for v in _variant_folders(run)]
-    for path in links:
-        if path.is_file():
-            rel = path.relative_to(run).as_posix()
-            out.append({"name": "settings", "value": rel, "href": rel})
-    return out
-
-
-def _stage_backends(run: Path) -> list[tuple[str, list[dict]]]:
-    """(stage, its manifest's ``made_with`` entries) of the run's stages: geometry,
-    segmentation and each stage-4 fit; stages from before the record have none."""
-    from mi_shadowgs.io.provenance import ProvenanceError, read_manifest, recorded_backends
-
-    out = []
-    for stage in ("geometry", "segmentation",
-                  *(f"material/{v.name}" for v in _variant_folders(run))):
-        try:
-            manifest = read_manifest(run / stage)
-        except (OSError, ProvenanceError):
-            manifest = None
-        out.append((stage, recorded_backends(manifest)))
-    return out
-
-
-def _per_stage(made: list[tuple[str, list[dict]]], key: str, now):
-    """The report's value of ``key`` (variant, device, threads, mi_shadowgs's commit):
-    ``now`` (this call's) when every stage's record agrees with it or none has one, else
-    each recorded value with the stages it made: "cuda_ad_rgb (geometry), llvm_ad_rgb
-    (segmentation, material/full)"."""
-    seen: dict = {}
-    for stage, entries in made:
-        for entry in entries:
-            if isinstance(entry.get(key), str | int | float):
-                stages = seen.setdefault(entry[key], [])
-                if stage not in stages:
-                    stages.append(stage)
-    if not seen or set(seen) == {now}:
-        return now
-    return ", ".join(f"{value} ({', '.join(stages)})" for value, stages in seen.items())
-
-
-def _listed(folder: Path, prefix: str, suffix: str) -> list[Path]:
-    """The files of ``folder``'s manifest named ``prefix...suffix`` that are there, sorted:
-    a file put beside them by hand is not shown as the run's."""
-    from mi_shadowgs.io.provenance import read_manifest
-
-    files = (read_manifest(folder) or {}).get("files") or []
-    return sorted(folder / n for n in files if n.startswith(prefix) and n.endswith(suffix)
-                  and (folder / n).is_file())
-
-
-def _variant_folders(run: Path) -> list[Path]:
-    """The folders of the run's stage-4 fits (``run_fits``: a folder put under
-    ``material/`` by hand is not read as a fit)."""
-    from mi_shadowgs.stages.relight.runner import run_fits
-
-    return [run / "material" / name for name in run_fits(run)]
-
-
-def _previews(run: Path) -> list[dict]:
-    prev = _listed(run / "geometry", "previews/", ".png")
-    return [{"title": f"training preview {p.stem}", "path": str(p.relative_to(run))}
-            for p in prev[-1:]]

@@ -17,8 +17,16 @@ TINY = "test-tiny"
 
 
 def presets() -> list[tuple[dict, object]]:
+    """(a preset table, its test-tiny settings) for every stage, and last the run's tree
+    (``mi_shadowgs.presets.PRESETS``) made of them."""
+    from mi_shadowgs import presets as run_presets
+
+    stages = stage_presets()
+    return [*stages, (run_presets.PRESETS, run_tree(stages))]
+
+
+def stage_presets() -> list[tuple[dict, object]]:
     """(a stage's PRESETS dict, its test-tiny settings) for every stage."""
-    from mi_shadowgs import pipeline
     from mi_shadowgs.dataset import generate
     from mi_shadowgs.stages.geometry import train as geometry_train
     from mi_shadowgs.stages.geometry.densify import DensifyConfig
@@ -52,9 +60,20 @@ def presets() -> list[tuple[dict, object]]:
         (relight.PRESETS, relight.get_config("cpu-small")),
         (export.PRESETS, export.get_config("cpu-small")),
         (masks.PRESETS, masks.get_config("cpu-small")),
-        (pipeline.PRESETS, dataclasses.replace(pipeline.get_config("cpu-small"), preset=TINY,
-                                               figure_views=1)),
     ]
+
+
+def run_tree(stages: list[tuple[dict, object]]):
+    """The test-tiny ``RunConfig``: every stage's test-tiny settings in one tree."""
+    from mi_shadowgs.presets import RunConfig
+
+    configs = {type(config).__name__: config for _, config in stages}
+    return RunConfig(geometry=configs["GeometryConfig"],
+                     segmentation=configs["SegmentationConfig"],
+                     chromaticity=configs["ChromaticityConfig"],
+                     visibility=configs["VisibilityConfig"], material=configs["MaterialConfig"],
+                     relight=configs["RelightConfig"], export=configs["ExportConfig"],
+                     preset=TINY, figure_views=1)
 
 
 def main(argv: list[str]) -> int:

@@ -91,7 +91,8 @@ def geometry_line(metrics: dict) -> str:
                if "hull_pruned" in metrics else ""))
 
 
-def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
+def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = "",
+                 dataset: dict | None = None,
                  resume: bool = False, overwrite: bool = False, reuse: bool = False,
                  evaluate: bool = True, progress: bool = True, train=None,
                  test=None, on_test_view=None) -> StageRun:
@@ -105,6 +106,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
     continued or reused only when its dataset fingerprint and settings match.
     ``train`` / ``test``: the splits, when the caller has loaded them already.
     ``on_test_view(view, render)``: called on each test view the evaluation renders.
+    ``dataset``: the dataset's fingerprint (``dataset_ref``), when the caller has it; ``preset``:
+    the preset name ``config`` came from, recorded in ``config.json``.
     """
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.checkpoint import has_checkpoint, load_checkpoint
@@ -140,7 +143,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str,
              + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
                 "no mask to prune by and removes nothing" if config.hull_prune_views else ""))
     cfg_dict = settings_dict(config)
-    provenance = Provenance(dataset=dataset_ref(data), settings=cfg_dict)
+    provenance = Provenance(dataset=dataset or dataset_ref(data), settings=cfg_dict)
     with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,
                      inputs=[data], continue_flag="--resume") as out:
         if reuse and out.complete:

@@ -15,7 +15,7 @@ from mi_shadowgs.stages.material.fit import (
     fit_material,
     get_config,
 )
-from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
+from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
 
 __all__ = [
     "MaterialConfig",
@@ -25,6 +25,5 @@ __all__ = [
     "decompose",
     "fit_material",
     "get_config",
-    "material_config",
     "occluder_bounds",
 ]

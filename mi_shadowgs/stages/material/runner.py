@@ -5,7 +5,8 @@ surfel model on a dataset's training views, with visibility from the surfels' sh
 
 from __future__ import annotations
 
-from mi_shadowgs.config import with_overrides
+import dataclasses
+
 from mi_shadowgs.stages.material import fit
 from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -17,16 +18,16 @@ def occluder_bounds(surfels, cameras, quantile: float) -> shadow_maps.SceneBound
     return shadow_maps.SceneBounds.from_points(pos, cameras, quantile)
 
 
-def material_config(preset: str, overrides: dict | None = None) -> fit.MaterialConfig:
-    return with_overrides(fit.get_config(preset), overrides, "material")
-
-
-def decompose(surfels, train, preset: str, bounds: shadow_maps.SceneBounds,
-              overrides: dict | None = None, progress: bool = True,
+def decompose(surfels, train, config: fit.MaterialConfig,
+              visibility: shadow_maps.VisibilityConfig, bounds: shadow_maps.SceneBounds,
+              labels: str = "material", progress: bool = True,
               **checkpoints) -> fit.MaterialResult:
-    """Stage 4 on the training views of ``train`` (a loaded Dataset); ``checkpoints``:
-    ``state`` and ``on_checkpoint`` of ``fit_material``."""
-    cfg = material_config(preset, overrides)
+    """Stage 4 on the training views of ``train`` (a loaded Dataset), on segments labelled
+    from ``labels`` (stage 2's label source); ``checkpoints``: ``state`` and
+    ``on_checkpoint`` of ``fit_material``."""
+    changed = fit.label_source_overrides(config, labels)
+    if changed:
+        config = dataclasses.replace(config, **changed)
     return fit.fit_material(surfels, train.cameras, [v.image for v in train.views],
-                            [v.mask for v in train.views], cfg, bounds,
-                            shadow_maps.get_config(preset), progress=progress, **checkpoints)
+                            [v.mask for v in train.views], config, bounds, visibility,
+                            progress=progress, **checkpoints)

@@ -102,7 +102,8 @@ def skipped_metrics(available: dict[str, str | None]) -> list[dict]:
 
 
 def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
-                           preset: str, figure_lights: int = 3,
+                           vcfg: shadow_maps.VisibilityConfig, rcfg: relight.RelightConfig,
+                           figure_lights: int = 3,
                            cache: relight.RelightCache | None = None) -> tuple[dict, dict]:
     """Paper Sec. V-A3 metrics on the test views, each computed only when the dataset has
     the ground truth it needs (``METRIC_NEEDS``; ``metrics["skipped"]`` lists the others
@@ -113,10 +114,9 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     "visibility" (the ``figure_lights`` strongest fitted lights, with "visibility_lights"
     their (azimuth, elevation)), "relit/<setup>", their ground truth under "gt/...", and the
     light maps. ``cache`` (``render.RelightCache``) keeps the shadow maps for the caller,
-    e.g. for ``write_previews`` of the same fit.
+    e.g. for ``write_previews`` of the same fit. ``vcfg`` / ``rcfg``: the shadow maps' and
+    the relighting's settings.
     """
-    vcfg = shadow_maps.get_config(preset)
-    rcfg = relight.get_config(preset)
     avail = ground_truth(train, test)
     skipped = skipped_metrics(avail)
     gone = {s["metric"] for s in skipped}
@@ -444,8 +444,9 @@ TURNTABLE_LIGHTS = 8  # azimuths of the previews' light turntable
 TURNTABLE_ELEVATION = 45.0
 
 
-def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds, preset: str,
-                   envmaps=(), cache: relight.RelightCache | None = None) -> dict:
+def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds,
+                   vcfg: shadow_maps.VisibilityConfig, rcfg: relight.RelightConfig, envmaps=(),
+                   cache: relight.RelightCache | None = None) -> dict:
     """Relit previews of a fit under standard lights, for data with or without ground truth:
     a turntable of ``TURNTABLE_LIGHTS`` directional lights at ``TURNTABLE_ELEVATION``
     degrees and every env map of ``envmaps`` ((name, file, scale)), for each of ``cameras``.
@@ -459,8 +460,6 @@ def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds, pr
     from mi_shadowgs.core.envmap import load_envmap as load_emitter
     from mi_shadowgs.io.images import write_png
 
-    vcfg = shadow_maps.get_config(preset)
-    rcfg = relight.get_config(preset)
     fitted = result.light.light_set()
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
                                  fitted, vcfg.receiver_band)

@@ -15,7 +15,7 @@ from mi_shadowgs.stages.segmentation.features import (
     segment_surfels,
 )
 from mi_shadowgs.stages.segmentation.masks import masks_for
-from mi_shadowgs.stages.segmentation.runner import run_segmentation, segmentation_config
+from mi_shadowgs.stages.segmentation.runner import label_fraction, run_segmentation
 
 __all__ = [
     "PRESETS",
@@ -25,5 +25,5 @@ __all__ = [
     "masks_for",
     "run_segmentation",
     "segment_surfels",
-    "segmentation_config",
+    "label_fraction",
 ]

@@ -78,6 +78,8 @@ class SegmentationConfig:
     # masks, whose edge and highlight slivers would otherwise each count; material ids of
     # the hotdog go down to 0.11 %, hence 0 by default).
     min_label_fraction: float = 0.0
+    # ... for label maps from chromaticity (``masks`` "chromaticity"), in its place.
+    chromaticity_min_label_fraction: float = 0.005
     kmeans_restarts: int = 5
     kmeans_iterations: int = 50  # Lloyd steps after k-means++ seeding
     # ... and after seeding with the label prototypes (``prototype_seeds``; k-means++ when
@@ -114,6 +116,8 @@ class SegmentationConfig:
             ("n_segments", self.n_segments is None or self.n_segments >= 1, ">= 1 or None"),
             ("k_select", self.k_select in ("labels", "silhouette"), "'labels' or 'silhouette'"),
             ("min_label_fraction", 0 <= self.min_label_fraction < 1, "in [0, 1)"),
+            ("chromaticity_min_label_fraction", 0 <= self.chromaticity_min_label_fraction < 1,
+             "in [0, 1)"),
             ("min_coverage", self.min_coverage >= 0, ">= 0"),
             ("prototype_share", 0 < self.prototype_share <= 1, "in (0, 1]"),
             ("segment_alpha", 0 <= self.segment_alpha <= 1, "in [0, 1]"),
@@ -348,12 +352,16 @@ def prepare_labels(label_maps: Sequence[np.ndarray], cameras: Sequence[Camera],
     return LabelSet(pixels, labels, int(values.size), values, counts)
 
 
-def auto_k(labels: LabelSet, config: SegmentationConfig) -> int:
-    """K: ``config.n_segments``, else the number of labels with enough pixels."""
+def auto_k(labels: LabelSet, config: SegmentationConfig,
+           min_label_fraction: float | None = None) -> int:
+    """K: ``config.n_segments``, else the number of labels with enough pixels (at least
+    ``min_label_pixels`` and ``min_label_fraction`` of them; default: the config's)."""
     if config.n_segments is not None:  # (>= 1: SegmentationConfig checks it)
         return int(config.n_segments)
+    if min_label_fraction is None:
+        min_label_fraction = config.min_label_fraction
     least = max(config.min_label_pixels,
-                config.min_label_fraction * float(labels.pixel_counts.sum()))
+                min_label_fraction * float(labels.pixel_counts.sum()))
     return max(1, int((labels.pixel_counts >= least).sum()))
 
 
@@ -632,11 +640,13 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                     label_maps: Sequence[np.ndarray], config: SegmentationConfig,
                     raster: RasterConfig = _RASTER, progress: bool = True,
                     names: Sequence[str] | None = None, state: FeatureState | None = None,
-                    on_checkpoint=None) -> SegmentationResult:
+                    on_checkpoint=None, min_label_fraction: float | None = None
+                    ) -> SegmentationResult:
     """The whole stage: train features on ``label_maps`` (one per camera), then K-means.
-    ``state`` and ``on_checkpoint``: see ``train_features``."""
+    ``state`` and ``on_checkpoint``: see ``train_features``; ``min_label_fraction``: see
+    ``auto_k``."""
     labels = prepare_labels(label_maps, cameras, names)
-    k = auto_k(labels, config)
+    k = auto_k(labels, config, min_label_fraction)
     tr = train_features(surfels, cameras, labels, config, raster, progress, state,
                         on_checkpoint)
     seen = tr.coverage >= config.min_coverage

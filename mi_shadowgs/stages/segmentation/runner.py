@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.config import to_dict, with_overrides
+from mi_shadowgs.config import to_dict
 from mi_shadowgs.dataset.fingerprint import dataset_ref
 from mi_shadowgs.io.atomic import write_json
 from mi_shadowgs.io.provenance import Output, Provenance, input_ref
@@ -24,19 +24,13 @@ from mi_shadowgs.stages.common import (
     warn_other_backend,
 )
 
-# Chromaticity masks: labels below this share of the labelled pixels do not count for K
-# (their edge and highlight slivers would; SegmentationConfig.min_label_fraction).
-CHROMATICITY_MIN_LABEL_FRACTION = 0.005
 
-
-def segmentation_config(preset: str, masks: str, overrides: dict | None = None):
-    """The segmentation settings for label maps from ``masks``, with ``overrides``."""
-    from mi_shadowgs.stages.segmentation.features import get_config
-
-    overrides = dict(overrides or {})
-    if masks == "chromaticity":  # see SegmentationConfig.min_label_fraction and k_select
-        overrides.setdefault("min_label_fraction", CHROMATICITY_MIN_LABEL_FRACTION)
-    return with_overrides(get_config(preset), overrides, "segmentation")
+def label_fraction(config, masks: str) -> float:
+    """The share of the labelled pixels below which a label does not count for K, for label
+    maps from ``masks``: ``config.chromaticity_min_label_fraction`` for colour labels (their
+    edge and highlight slivers would each count), else ``config.min_label_fraction``."""
+    return config.chromaticity_min_label_fraction if masks == "chromaticity" \
+        else config.min_label_fraction
 
 
 def overlay(image, seg_map, colors, alpha: float = 0.5):
@@ -66,7 +60,8 @@ def _check_model_dataset(model: Path, data, dataset: dict) -> None:
 
 
 def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, config, *,
-                     masks: str, preset: str, split: str = "test", overwrite: bool = False,
+                     masks: str, chromaticity=None, preset: str = "",
+                     dataset: dict | None = None, split: str = "test", overwrite: bool = False,
                      reuse: bool = False, progress: bool = True, train=None,
                      views=None) -> StageRun:
     """Stage 2: segments of the surfel model ``model`` from ``data``'s training label maps.
@@ -76,7 +71,9 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     training's ``checkpoint/checkpoint.npz`` into ``folder``. An existing output is replaced
     (``overwrite``), returned when finished with the same dataset, model and settings or
     else continued from its checkpoint (``reuse``), or refused. ``train`` / ``views``: the
-    training split and ``split``, when the caller has loaded them already.
+    training split and ``split``, when the caller has loaded them already. ``chromaticity``:
+    the ``ChromaticityConfig`` of label maps from colour (``masks`` "chromaticity");
+    ``dataset``: the dataset's fingerprint, when the caller has it; ``preset``: recorded.
     """
     from tqdm import tqdm
 
@@ -92,12 +89,12 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     surfels = load_ply(model)
     train = train if train is not None else load_training_views(data)
     views = views if views is not None else load_dataset(data, split)
-    mask_config = masks_mod.get_config(preset)
+    mask_config = chromaticity if chromaticity is not None else masks_mod.ChromaticityConfig()
     settings = {"config": settings_dict(config), "masks": masks, "split": split}
     if masks == "chromaticity":
         settings["mask_config"] = settings_dict(mask_config)
-    provenance = Provenance(dataset=dataset_ref(data), inputs={"model": input_ref(model)},
-                            settings=settings)
+    provenance = Provenance(dataset=dataset or dataset_ref(data),
+                            inputs={"model": input_ref(model)}, settings=settings)
     _check_model_dataset(model, data, provenance.dataset)
     out = Output.open(folder, "segment", provenance, overwrite=overwrite, reuse=reuse,
                       inputs=[model, data], continue_flag="--resume")
@@ -113,6 +110,7 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     # seconds_train counts it, so a resumed stage reports its whole time.
     trained_before = 0.0 if hooks["state"] is None else hooks["state"].elapsed
     result = seg.segment_surfels(surfels, train.cameras, label_maps, config,
+                                 min_label_fraction=label_fraction(config, masks),
                                  progress=progress, names=[v.name for v in train.views],
                                  **hooks)
     t_stage = time.perf_counter() - t0 + trained_before
