@@ -137,18 +137,21 @@ def build(preset: str = "cpu-small", overrides: dict[str, Any] | None = None,
     return with_overrides(get_config(preset), overrides, "run")
 
 
-def parse_sets(items: list[str], base: RunConfig | None = None) -> dict[str, Any]:
+def parse_sets(items: list[str], section: str | None = None) -> dict[str, Any]:
     """``--set section.field=value`` items (``material.iterations=300``,
     ``visibility.raster.tile=8``, ``masks=chromaticity``) as nested overrides, each value
-    read as its field's type. A malformed item, an unknown name or a bad value is a
+    read as its field's type; with ``section`` (a stage's own command) a bare ``field=value``
+    names a field of that section. A malformed item, an unknown name or a bad value is a
     ConfigError naming it."""
-    base = base or RunConfig()
+    base = RunConfig()
     out: dict[str, Any] = {}
     for item in items:
         key, sep, text = item.partition("=")
         if not sep or not key:
             raise ConfigError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
         path = key.split(".")
+        if section is not None and path[0] not in {f.name for f in dataclasses.fields(base)}:
+            path = [section, *path]
         node, target = base, out
         for depth, name in enumerate(path):
             if not dataclasses.is_dataclass(node) or name not in {

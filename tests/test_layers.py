@@ -39,6 +39,8 @@ def layer(mod: str) -> tuple[int, int]:
     top = parts[1] if len(parts) > 1 else "base"
     if top in ("config", "libllvm", "backend", "scenes"):
         return 0, 0
+    if top in ("presets", "summary"):  # the run's settings tree and report: beside pipeline
+        return LAYERS.index("pipeline"), 0
     if top == "plugins":
         return LAYERS.index("api"), 0
     if top == "stages":

@@ -395,15 +395,17 @@ def test_label_count_keeps_close_materials_apart_where_silhouette_merges_them():
 
 def test_k_selection_settings():
     from mi_shadowgs.cli import build_parser
-    from mi_shadowgs.stages.segmentation import segmentation_config
+    from mi_shadowgs.presets import build
+    from mi_shadowgs.stages.segmentation import label_fraction
 
     # K = the label count for material ids and for masks from images alone (whose checks
     # drop leaky regions and slivers: min_label_fraction); silhouette only when asked.
-    chroma = segmentation_config("cpu-small", "chromaticity")
-    assert chroma.k_select == "labels" and chroma.min_label_fraction == 0.005
-    assert segmentation_config("cpu-small", "material").k_select == "labels"
-    assert segmentation_config("cpu-small", "chromaticity",
-                               {"k_select": "silhouette"}).k_select == "silhouette"
+    config = build("cpu-small").segmentation
+    assert config.k_select == "labels"
+    assert label_fraction(config, "chromaticity") == 0.005
+    assert label_fraction(config, "material") == 0.0
+    assert build("cpu-small", {"segmentation": {"k_select": "silhouette"}}
+                 ).segmentation.k_select == "silhouette"
     args = build_parser().parse_args(["segment", "m.ply", "--data", "d", "--out", "o",
                                       "--segments", "4"])
     assert args.k == 4

@@ -329,7 +329,7 @@ def test_prune_outside_masks_reaches_stage_1_from_train_and_run(tiny, tmp_path, 
 
     monkeypatch.setattr(geometry_stage, "run_geometry", stop)
     with pytest.raises(KeyboardInterrupt):
-        api.run(tiny, tmp_path / "r3", prune_outside_masks=3)
+        api.run(tiny, tmp_path / "r3", geometry={"hull_prune_views": 3})
     assert seen[-1].hull_prune_views == 3 and seen[-1].hull_prune_dilate == 1
     with pytest.raises(KeyboardInterrupt):
         cli.main(["run", str(tiny), "--out", str(tmp_path / "r4"), "--no-progress"])

@@ -120,6 +120,7 @@ def mapped_split(dataset, sim, lights: dict):
 def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     """Stage 5's evaluation of ``run``'s stage-4 fit on ``test`` (cameras and lights in the
     run's frame)."""
+    from mi_shadowgs.presets import get_config
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.relight import evaluation
@@ -134,8 +135,9 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     run_train = load_training_views(Path(json.loads((run / "summary.json").read_text())
                                          ["dataset"]))
     bounds = occluder_bounds(result.surfels, run_train.cameras, quantile)
-    metrics, images = evaluate_decomposition(result, train, test, bounds, preset,
-                                             figure_lights=1)
+    settings = get_config(preset)
+    metrics, images = evaluate_decomposition(result, train, test, bounds, settings.visibility,
+                                             settings.relight, figure_lights=1)
     # The albedo on the object alone: the mat's printed texture is flattened by stage 4's
     # segment averaging (the paper's piecewise-constant albedo), in both runs alike.
     obj = test.stack("object_mask") & scored_pixels(test)
@@ -160,12 +162,14 @@ def _timed_run(data: Path, out: Path, preset: str, times: Path,
     from ``times`` (JSON: run folder name -> [seconds, resumed])."""
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.io.provenance import ProvenanceError
-    from mi_shadowgs.pipeline import get_config, run_pipeline
+    from mi_shadowgs.pipeline import run_pipeline
+    from mi_shadowgs.presets import build
     from validation.pipeline import STAGE_KEYS, stage_seconds
 
     known = json.loads(times.read_text()) if times.is_file() else {}
     finished = (out / "summary.json").is_file()
-    config = dataclasses.replace(get_config(preset), albedo_detail=albedo_detail, seed=seed)
+    config = build(preset, {} if albedo_detail is None else
+                   {"material": {"detail_prior": albedo_detail}}, seed=seed)
     try:
         summary = run_pipeline(data, out, config, progress=True)
     except ProvenanceError as exc:  # e.g. another --albedo-detail or --seed into the same OUT
@@ -235,16 +239,13 @@ def main(argv=None) -> int:
                     help="both runs at this seed of the stages' random draws (`run --seed`)")
     args = ap.parse_args(argv)
     from mi_shadowgs.config import ConfigError
-    from mi_shadowgs.pipeline import get_config as run_config
+    from mi_shadowgs.presets import build
 
-    base = run_config(args.preset)
-    for option, field, value, rule in (
-            ("--albedo-detail", "albedo_detail", args.albedo_detail, "finite and >= 0"),
-            ("--seed", "seed", args.seed, ">= 0")):
-        try:  # RunConfig's own checks, before any data is made
-            dataclasses.replace(base, **{field: value})
-        except ConfigError as exc:
-            fail(f"{option} must be {rule}: {exc}")
+    try:  # the settings' own checks, before any data is made
+        base = build(args.preset, {} if args.albedo_detail is None else
+              {"material": {"detail_prior": args.albedo_detail}}, seed=args.seed)
+    except ConfigError as exc:
+        fail(f"--albedo-detail / --seed: {exc}")
     claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr
 

@@ -175,7 +175,8 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     import mitsuba as mi
 
     from mi_shadowgs.io.atomic import write_json
-    from mi_shadowgs.pipeline import RunConfig, run_pipeline
+    from mi_shadowgs.pipeline import run_pipeline
+    from mi_shadowgs.presets import build
 
     folder = out / row_name(name, lights, seed)
     if (folder / "row.json").is_file():  # finished: its row stands as recorded
@@ -191,7 +192,7 @@ def run_scene(name: str, mesh: Path | None, out: Path, lights: str = "tuned",
     # Table 3's ablations under the tuned pair only: the second pair measures the light fit
     ablations = ablations and lights == "tuned"
     summary = run_pipeline(data, folder / "run",
-                           RunConfig(preset=preset, ablations=ablations, seed=seed),
+                           build(preset, {"ablations": ablations}, seed=seed),
                            progress=True)
     run = folder / "run"
     geo = json.loads((run / "geometry" / "metrics.json").read_text())

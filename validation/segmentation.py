@@ -89,9 +89,9 @@ def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
     from mi_shadowgs.dataset.scene import load_scene
     from mi_shadowgs.io.images import read_png, write_png
     from mi_shadowgs.io.ply import load_ply, save_ply
+    from mi_shadowgs.presets import build
     from mi_shadowgs.scenes import scene_path
     from mi_shadowgs.stages.segmentation import run_segmentation
-    from mi_shadowgs.stages.segmentation.runner import segmentation_config
 
     if model is None:
         name, scene_overrides = SCENES[scene]
@@ -103,11 +103,11 @@ def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
         save_ply(model, surfels)
     else:
         geometry = f"stage-1 model {model} ({load_ply(model).count} surfels)"
-    config = segmentation_config(preset, masks, overrides)
+    config = build(preset, {"segmentation": overrides or {}})
     try:
-        stage = run_segmentation(model, data, out / f"{scene}_{masks}", config, masks=masks,
-                                 preset=preset, overwrite=overwrite, reuse=True,
-                                 progress=False)
+        stage = run_segmentation(model, data, out / f"{scene}_{masks}", config.segmentation,
+                                 masks=masks, chromaticity=config.chromaticity, preset=preset,
+                                 overwrite=overwrite, reuse=True, progress=False)
     except ProvenanceError as exc:
         fail(f"{exc} (validation.segmentation)")
     report = json.loads((stage.folder / "segmentation.json").read_text())
@@ -169,7 +169,7 @@ def run(out_dir: Path, quick: bool = False, data_root: Path | None = None,
         # Its own folders, kept while the dataset code and the scene are the same.
         root = out_dir / "data" if data_root is None else Path(data_root)
         data = _dataset(root / f"seg_val_{scene}", scene, overwrite)
-        for masks in mask_sources:  # chromaticity: see runner.segmentation_config
+        for masks in mask_sources:  # chromaticity: see runner.label_fraction
             r = evaluate(scene, data, (models or {}).get(scene), masks, out_dir,
                          overrides=overrides, overwrite=overwrite)
             print(r, flush=True)

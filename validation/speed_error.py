@@ -164,7 +164,8 @@ def ready(point: str, base: Path, scene: str, base_row: dict | None) -> bool:
 def run_point(scene: str, point: str, out: Path, base: Path, base_row: dict | None) -> dict:
     """Run one sweep point into ``out/<scene>/<point>/`` and write its ``point.json``."""
     from mi_shadowgs.io.atomic import write_json
-    from mi_shadowgs.pipeline import get_config, run_pipeline
+    from mi_shadowgs.pipeline import run_pipeline
+    from mi_shadowgs.presets import build, get_config
 
     spec = POINTS[point]
     folder = out / scene / point
@@ -180,7 +181,7 @@ def run_point(scene: str, point: str, out: Path, base: Path, base_row: dict | No
     if "stage1" in spec:
         config = get_config(register_stage1_preset(spec["stage1"]))
     if "stage4" in spec:
-        config = dataclasses.replace(config, material_iterations=spec["stage4"])
+        config = build(config.preset, {"material": {"iterations": spec["stage4"]}})
         src = base_folder(base, scene) / "run"
         for part in ("geometry", "segmentation"):  # same dataset and settings: reused as is
             if not (run / part).exists():

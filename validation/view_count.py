@@ -120,7 +120,8 @@ def main(argv=None) -> int:
     import drjit as dr
 
     from mi_shadowgs.io.atomic import write_json, write_text
-    from mi_shadowgs.pipeline import get_config, run_pipeline
+    from mi_shadowgs.pipeline import run_pipeline
+    from mi_shadowgs.presets import get_config
 
     if args.threads:
         dr.set_thread_count(args.threads)

@@ -61,19 +61,20 @@ def resolve_model(path: str | Path) -> Path:
 
 
 def run(args) -> int:
-    from mi_shadowgs.config import parse_settings
-    from mi_shadowgs.stages.segmentation import run_segmentation, segmentation_config
-    from mi_shadowgs.stages.segmentation.features import SegmentationConfig
+    from mi_shadowgs.presets import build, merge, parse_sets
+    from mi_shadowgs.stages.segmentation import run_segmentation
 
     if args.resume and args.overwrite:  # as `train` refuses them
         raise ValueError("--resume continues the stage's files and --overwrite removes them: "
                          "pass one of them")
-    overrides = parse_settings(SegmentationConfig, args.set, "segmentation")
+    overrides = parse_sets(args.set, section="segmentation")
     if args.k is not None:
-        overrides["n_segments"] = args.k
-    config = segmentation_config(args.preset, args.masks, overrides)  # before any file
-    result = run_segmentation(resolve_model(args.model), args.data, args.out, config,
-                              masks=args.masks, preset=args.preset, split=args.split,
+        overrides = merge(overrides, {"segmentation": {"n_segments": args.k}})
+    config = build(args.preset, overrides)  # before any file
+    result = run_segmentation(resolve_model(args.model), args.data, args.out,
+                              config.segmentation, masks=args.masks,
+                              chromaticity=config.chromaticity, preset=args.preset,
+                              split=args.split,
                               overwrite=args.overwrite, reuse=args.resume,
                               progress=not args.quiet)
     print(result.summary)

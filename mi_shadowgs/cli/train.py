@@ -34,22 +34,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "it was stopped before its first)")
     parser.add_argument("--overwrite", action="store_true",
                         help="start afresh, removing the files of an earlier train there")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="override a stage-1 setting (GeometryConfig; e.g. "
+                             "lambda_normal=0.2, densify.max_surfels=50000); repeatable")
     parser.add_argument("--no-eval", action="store_true", help="skip the test-view metrics")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
 def run(args) -> int:
-    from mi_shadowgs.config import with_overrides
+    from mi_shadowgs.presets import build, merge, parse_sets
     from mi_shadowgs.stages.geometry import run_geometry
-    from mi_shadowgs.stages.geometry.train import get_config
 
-    config = get_config(args.preset)
-    overrides = {}
-    if args.iterations is not None:
-        overrides["iterations"] = args.iterations
-    if args.prune_outside_masks is not None:
-        overrides["hull_prune_views"] = args.prune_outside_masks
-    config = with_overrides(config, overrides, "geometry")
+    overrides = parse_sets(args.set, section="geometry")
+    for flag, field in (("iterations", "iterations"), ("prune_outside_masks", "hull_prune_views")):
+        if getattr(args, flag) is not None:
+            overrides = merge(overrides, {"geometry": {field: getattr(args, flag)}})
+    config = build(args.preset, overrides).geometry
     result = run_geometry(args.data, Path(args.out) / GEOMETRY_FOLDER, config, preset=args.preset,
                           resume=args.resume, overwrite=args.overwrite,
                           evaluate=not args.no_eval, progress=not args.no_progress)

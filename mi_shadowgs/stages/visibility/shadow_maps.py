@@ -246,8 +246,11 @@ class ShadowMaps:
 
 
 def shadow_camera(direction: np.ndarray, center: np.ndarray, radius: float,
-                  mean_camera_distance: float, config: VisibilityConfig) -> Camera:
-    """The virtual camera that looks at ``center`` from far along ``direction`` [3]."""
+                  mean_camera_distance: float, config: VisibilityConfig,
+                  resolution: int | None = None) -> Camera:
+    """The virtual camera that looks at ``center`` from far along ``direction`` [3], of
+    ``resolution`` texels a side (default ``config.resolution``)."""
+    resolution = resolution or config.resolution
     d = np.asarray(direction, dtype=np.float64)
     d = d / np.linalg.norm(d)
     center = np.asarray(center, dtype=np.float64)
@@ -258,7 +261,7 @@ def shadow_camera(direction: np.ndarray, center: np.ndarray, radius: float,
                          f"bound of radius {reach:.3g}; increase distance_factor")
     # Up vector: any direction not parallel to d (lights at the zenith are common).
     up = np.array([0.0, 1.0, 0.0]) if abs(d[1]) < 0.99 else np.array([0.0, 0.0, -1.0])
-    kw = dict(width=config.resolution, height=config.resolution,
+    kw = dict(width=resolution, height=resolution,
               near=max(1e-4, distance - 2.0 * reach), far=distance + 2.0 * reach)
     if config.projection == "orthographic":
         return Camera.look_at(center + d * distance, center, up, ortho_width=2.0 * reach, **kw)
@@ -267,19 +270,22 @@ def shadow_camera(direction: np.ndarray, center: np.ndarray, radius: float,
 
 
 def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
-                       config: VisibilityConfig = VisibilityConfig()) -> ShadowMaps:
-    """Rasterize the surfels' depth from each of ``directions`` [L, 3] (one map per light)."""
+                       config: VisibilityConfig = VisibilityConfig(),
+                       resolution: int | None = None) -> ShadowMaps:
+    """Rasterize the surfels' depth from each of ``directions`` [L, 3] (one map per light),
+    ``resolution`` texels a side (default ``config.resolution``; stage 4's coarse maps)."""
     from mi_shadowgs.core.raster import rasterize
 
     directions = np.atleast_2d(np.asarray(directions, dtype=np.float64))
     center = np.asarray(bounds.center, dtype=np.float64)
-    cams = [shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance, config)
+    res = resolution or config.resolution
+    cams = [shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance, config, res)
             for d in directions]
     key = "median_depth" if config.depth == "median" else "depth"
     aovs = ("alpha", "median_depth", "depth") if config.layer_bias > 0 else ("alpha", key)
-    texel = map_texel(bounds, config)
+    texel = map_texel(bounds, config, res)
     min_alpha = config.fractional_min_alpha if config.fractional else config.empty_alpha
-    texels = config.resolution * config.resolution
+    texels = res * res
     depth = dr.empty(mi.Float, len(cams) * texels)  # [L * R * R]
     alpha = dr.empty(mi.Float, len(cams) * texels) if config.fractional else None
     local = dr.arange(mi.UInt32, texels)
@@ -292,7 +298,7 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
                 spread = dr.abs(out["depth"].array - out["median_depth"].array)
                 slack = config.layer_bias * spread
                 if config.layer_window > 0:
-                    step = _window_max(dr.select(empty, -dr.inf, d), config.resolution,
+                    step = _window_max(dr.select(empty, -dr.inf, d), res,
                                        config.layer_window) - d
                     slack = dr.maximum(slack, step)
                 d = d + dr.minimum(slack, config.layer_cap_texels * texel)
@@ -305,7 +311,7 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
             if alpha is not None:
                 dr.scatter(alpha, dr.clip(out["alpha"].array, 0.0, 1.0), at)
             dr.eval(depth, *(() if alpha is None else (alpha,)))
-    return ShadowMaps(directions, cams, depth, config.resolution, config, texel, alpha)
+    return ShadowMaps(directions, cams, depth, res, config, texel, alpha)
 
 
 class MapCache:
@@ -327,18 +333,21 @@ class MapCache:
         self.rendered = 0  # maps rendered (not reused), for tests and benchmarks
 
     @staticmethod
-    def _key(config: VisibilityConfig, direction) -> tuple:
-        return config, np.asarray(direction, np.float64).round(12).tobytes()
+    def _key(config: VisibilityConfig, resolution: int, direction) -> tuple:
+        return config, resolution, np.asarray(direction, np.float64).round(12).tobytes()
 
-    def maps(self, directions: np.ndarray, config: VisibilityConfig) -> ShadowMaps:
-        """``render_shadow_maps(surfels, directions, bounds, config)``, reusing held maps."""
+    def maps(self, directions: np.ndarray, config: VisibilityConfig,
+             resolution: int | None = None) -> ShadowMaps:
+        """``render_shadow_maps(surfels, directions, bounds, config, resolution)``, reusing
+        held maps."""
+        resolution = resolution or config.resolution
         dirs = np.atleast_2d(np.asarray(directions, np.float64))
-        keys = [self._key(config, d) for d in dirs]
+        keys = [self._key(config, resolution, d) for d in dirs]
         todo = list(dict.fromkeys(k for k in keys if k not in self._maps))
         if todo:
             first = {k: i for i, k in reversed(list(enumerate(keys)))}
             new = render_shadow_maps(self.surfels, dirs[[first[k] for k in todo]],
-                                     self.bounds, config)
+                                     self.bounds, config, resolution)
             r2 = new.resolution * new.resolution
             for j, k in enumerate(todo):
                 part = dr.arange(mi.UInt32, j * r2, (j + 1) * r2)
@@ -353,7 +362,7 @@ class MapCache:
             self._maps[k] = self._maps.pop(k)
         parts = [self._maps[k] for k in keys]
         maps = ShadowMaps(dirs, [p[0] for p in parts], _joined([p[1] for p in parts]),
-                          config.resolution, config, parts[0][3],
+                          resolution, config, parts[0][3],
                           None if parts[0][2] is None else _joined([p[2] for p in parts]))
         while self._bytes > self.max_bytes and len(self._maps) > len(set(keys)):
             _, depth, alpha, _ = self._maps.pop(next(iter(self._maps)))
@@ -390,18 +399,20 @@ def _window_max(image: mi.Float, resolution: int, radius: int) -> mi.Float:
     return out
 
 
-def map_texel(bounds: SceneBounds, config: VisibilityConfig) -> float:
+def map_texel(bounds: SceneBounds, config: VisibilityConfig,
+              resolution: int | None = None) -> float:
     """One map texel at the scene centre, scene units: the same for every light direction.
     From the map's design (``shadow_camera``'s distance and reach), not from a light's
     camera: the cameras' origins differ in their last bits from direction to direction, so
     a map's texel would depend on the light that came first in its batch (the relight
     cache keeps maps rendered in other batches)."""
+    resolution = resolution or config.resolution
     distance = config.distance_factor * bounds.mean_camera_distance
     reach = bounds.radius * config.margin
     if config.projection == "orthographic":
-        return 2.0 * reach / config.resolution
+        return 2.0 * reach / resolution
     half = min(1.0, reach / distance)  # sin of the half field of view
-    return 2.0 * half / math.sqrt(max(1.0 - half * half, 1e-12)) * distance / config.resolution
+    return 2.0 * half / math.sqrt(max(1.0 - half * half, 1e-12)) * distance / resolution
 
 
 def _camera_rows(cameras: Sequence[Camera]) -> tuple[list[mi.Float], mi.Float, mi.Float]:
