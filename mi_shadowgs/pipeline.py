@@ -25,10 +25,7 @@ from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
-from mi_shadowgs.stages.material import fit as material_fit
-from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
-from mi_shadowgs.stages.relight import render as relight
-from mi_shadowgs.stages.relight.evaluate import (
+from mi_shadowgs.stages.evaluation.evaluate import (
     check_evaluation_inputs,
     evaluate_decomposition,
     fit_from_files,
@@ -36,6 +33,9 @@ from mi_shadowgs.stages.relight.evaluate import (
     write_figures,
     write_previews,
 )
+from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
+from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
 VARIANTS = {
@@ -195,7 +195,7 @@ def _preview_envmaps(config: RunConfig, train) -> list[tuple[str, Path, float]]:
     """(name, file, scale) of the env maps the report's previews relight with: the
     dataset's env-map relightings, then ``config.preview_envmaps`` (files, or folders of
     .exr files) where they exist."""
-    from mi_shadowgs.stages.relight.evaluate import envmap_file
+    from mi_shadowgs.stages.evaluation.evaluate import envmap_file
 
     out = [(e["name"], envmap_file(e, train.root), float(e.get("scale", 1.0)))
            for e in (train.lights or {}).get("relightings", []) if e.get("type") == "envmap"]
@@ -463,13 +463,13 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
                   seconds: float, available: dict | None = None,
                   reused: list[str] | None = None) -> dict:
     """The report's ``summary.json`` (see ``mi_shadowgs.io.report``) from the run's files;
-    ``available``: the dataset's ground truth (``relight.evaluate.ground_truth``), for the
+    ``available``: the dataset's ground truth (``evaluation.evaluate.ground_truth``), for the
     table of skipped metrics. ``seconds`` are this call's; ``reused`` names the stages an
     earlier call made (their seconds are not in it: a resumed run's figure is not the
     run's)."""
     import mitsuba as mi
 
-    from mi_shadowgs.stages.relight.evaluation import SHADOW_UNDECIDED_BAND
+    from mi_shadowgs.stages.evaluation.metrics import SHADOW_UNDECIDED_BAND
 
     geo = _json_or_empty(run / "geometry" / "metrics.json")
     seg = _json_or_empty(run / "segmentation" / "segmentation.json")

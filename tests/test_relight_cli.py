@@ -310,8 +310,8 @@ def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_pres
 
 
 def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkeypatch):
+    from mi_shadowgs.stages.evaluation.evaluate import write_previews
     from mi_shadowgs.stages.material import fit as material_fit
-    from mi_shadowgs.stages.relight.evaluate import write_previews
     from mi_shadowgs.stages.visibility.shadow_maps import get_config as vis_get_config
 
     for table, config in tiny_cli.presets():  # 64^2 shadow maps

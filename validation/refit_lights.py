@@ -64,8 +64,8 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.io.provenance import read_manifest
     from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.evaluation.evaluate import evaluate_decomposition, light_json
     from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
-    from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, light_json
     from mi_shadowgs.stages.relight.runner import run_preset
 
     before_path = run / "material" / "full" / "metrics.json"
@@ -105,9 +105,9 @@ def settle_only(run: Path, data: Path) -> dict:
 
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.evaluation import metrics as evaluation
     from mi_shadowgs.stages.material import fit as mf
     from mi_shadowgs.stages.material.runner import occluder_bounds
-    from mi_shadowgs.stages.relight import evaluation
     from mi_shadowgs.stages.visibility import shadow_maps
 
     folder = run / "material" / "full"

@@ -3,6 +3,16 @@
 (``get_config(preset)``, its maths, its runner); a stage imports only earlier stages.
 """
 
-from mi_shadowgs.stages import geometry, material, relight, segmentation, visibility
+from mi_shadowgs.stages import (
+    evaluation,
+    export,
+    geometry,
+    material,
+    relight,
+    segmentation,
+    viewer,
+    visibility,
+)
 
-__all__ = ["geometry", "segmentation", "visibility", "material", "relight"]
+__all__ = ["geometry", "segmentation", "visibility", "material", "relight", "evaluation",
+           "export", "viewer"]

@@ -8,7 +8,7 @@ figures and light JSON.
 
 from __future__ import annotations
 
-from mi_shadowgs.stages.relight.evaluate import (
+from mi_shadowgs.stages.evaluation.evaluate import (
     check_evaluation_inputs,
     evaluate_decomposition,
     light_json,

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.core.directions import angles_from_direction, map_to_blocks
+from mi_shadowgs.stages.evaluation import metrics as evaluation
 from mi_shadowgs.stages.material import fit
-from mi_shadowgs.stages.relight import evaluation
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
