@@ -25,15 +25,10 @@ from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
-from mi_shadowgs.stages.evaluation.evaluate import (
-    check_evaluation_inputs,
-    evaluate_decomposition,
-    fit_from_files,
-    light_json,
-    write_figures,
-    write_previews,
-)
+from mi_shadowgs.stages.evaluation.evaluate import check_evaluation_inputs
+from mi_shadowgs.stages.evaluation.runner import evaluate_variant
 from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.files import fit_from_files, light_json
 from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
@@ -44,7 +39,7 @@ VARIANTS = {
     "no_segmentation": {"segment_average": False},  # "w/o segmentation"
 }
 MASK_SOURCES = ("auto", *LABEL_MAP_SOURCES)  # "auto": material ids where the views have them
-# The ground truth of the stage-1 and stage-2 metrics (stage 5's: relight.METRIC_NEEDS); a
+# The ground truth of the stage-1 and stage-2 metrics (stage 5's: evaluation.METRIC_NEEDS); a
 # metric whose ground truth the dataset lacks is not computed, and the summary says so.
 STAGE_METRIC_NEEDS = {
     "geometry normal error": ("test normals",),
@@ -158,25 +153,12 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             write_text(out.path("history.csv"), "step,loss\n" + "".join(
                 f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
             write_json(out.path("fit.json"), {"fit_s": fit_s, "timings": res.timings})
-        cache = relight.RelightCache()  # shadow maps shared by evaluation and previews
-        metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset,
-                                                 cache=cache)
-        metrics["fit_s"] = fit_s
-        segments = _segment_maps(top.folder / "segmentation" / "segments", test)
-        with out.staged("figures") as tmp:  # beside any file of the user's there
-            grid = write_figures(tmp, test, images, config.figure_views, segments)
-            if name == "full":  # relit previews under standard lights (no ground truth)
-                grid["previews"] = write_previews(
-                    tmp, res, [test.cameras[i] for i in _figure_picks(len(test), 1)], bounds,
-                    config.preset, _preview_envmaps(config, train), cache)
-        write_json(out.path("grid.json"), grid)
-        write_json(out.path("metrics.json"), metrics)
+        metrics = evaluate_variant(
+            out, res, train, test, bounds, vis_config, relight.get_config(config.preset),
+            config.figure_views, _segment_maps(top.folder / "segmentation" / "segments", test),
+            fit_s, _preview_envmaps(config, train) if name == "full" else None)
         out.finish()
     return metrics, fit_s
-
-
-def _figure_picks(n: int, count: int) -> list[int]:
-    return sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
 
 
 def _segment_maps(folder: Path, test) -> dict:

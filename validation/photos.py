@@ -122,20 +122,20 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     run's frame)."""
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.evaluation import metrics as evaluation
-    from mi_shadowgs.stages.evaluation.evaluate import (
-        evaluate_decomposition,
-        fit_from_files,
-        scored_pixels,
-    )
+    from mi_shadowgs.stages.evaluation.evaluate import evaluate_decomposition, scored_pixels
+    from mi_shadowgs.stages.material.files import fit_from_files
     from mi_shadowgs.stages.material.runner import occluder_bounds
+    from mi_shadowgs.stages.relight import render as relight
+    from mi_shadowgs.stages.visibility import shadow_maps
 
     fit_dir = run / "material" / "full"
     result = fit_from_files(fit_dir / "model.ply", fit_dir / "light.json")
     run_train = load_training_views(Path(json.loads((run / "summary.json").read_text())
                                          ["dataset"]))
     bounds = occluder_bounds(result.surfels, run_train.cameras, quantile)
-    metrics, images = evaluate_decomposition(result, train, test, bounds, preset,
-                                             figure_lights=1)
+    metrics, images = evaluate_decomposition(result, train, test, bounds,
+                                             shadow_maps.get_config(preset),
+                                             relight.get_config(preset), figure_lights=1)
     # The albedo on the object alone: the mat's printed texture is flattened by stage 4's
     # segment averaging (the paper's piecewise-constant albedo), in both runs alike.
     obj = test.stack("object_mask") & scored_pixels(test)
