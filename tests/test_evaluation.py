@@ -1,4 +1,4 @@
-"""Evaluation metrics of stage 5 (mi_shadowgs.stages.relight.evaluation) on hand-computed cases."""
+"""Evaluation metrics of stage 5 (mi_shadowgs.stages.evaluation.metrics) on hand-computed cases."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mi_shadowgs.stages.relight import evaluation
+from mi_shadowgs.stages.evaluation import metrics as evaluation
 
 
 def test_albedo_alignment_per_region_and_channel():
@@ -68,7 +68,7 @@ def test_image_metrics_psnr_hand_case():
 
 
 def test_image_metrics_lpips_per_view_and_when_it_cannot_be_computed():
-    from mi_shadowgs.stages.relight import lpips
+    from mi_shadowgs.stages.evaluation import lpips
 
     try:
         lpips.weights_path()
@@ -240,7 +240,7 @@ def test_albedo_global_cli_exits_2_naming_what_is_missing(tmp_path, capsys):
 
 
 def test_pipeline_table_names_rows_evaluated_before_each_evaluation_change():
-    from mi_shadowgs.stages.relight.evaluate import ALBEDO_ESTIMATE, SCORED_PIXELS
+    from mi_shadowgs.stages.evaluation.evaluate import ALBEDO_ESTIMATE, SCORED_PIXELS
     from validation import pipeline as vpipe
 
     def row(scene, full):

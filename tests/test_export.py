@@ -61,7 +61,7 @@ def small_mesh_grid():
     refusals; tests/test_tsdf.py measures the mesh's accuracy."""
     import dataclasses
 
-    from mi_shadowgs.stages.relight import export as ex
+    from mi_shadowgs.stages.export import export as ex
 
     cfg = ex.get_config("cpu-small")
     with pytest.MonkeyPatch.context() as mp:
@@ -307,8 +307,8 @@ def test_model_bsdf_renders_our_cook_torrance(tmp_path, roughness, metallic):
     import mitsuba as mi
 
     from mi_shadowgs.core.camera import Camera
-    from mi_shadowgs.stages.relight import export as ex
-    from mi_shadowgs.stages.relight.mesh import MeshPart
+    from mi_shadowgs.stages.export import export as ex
+    from mi_shadowgs.stages.export.mesh import MeshPart
     from tests.test_brdf import ref_cook_torrance
 
     verts = 3.0 * np.array([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], np.float32)

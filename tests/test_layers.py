@@ -22,7 +22,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "mi_shadowgs"
 LAYERS = ["base", "core", "io", "dataset", "stages", "pipeline", "api", "cli"]
-STAGES = ["common", "geometry", "segmentation", "visibility", "material", "relight"]
+STAGES = ["common", "render", "geometry", "segmentation", "visibility", "material", "relight",
+          "evaluation", "export", "viewer"]
 # backend.register_plugins (re)imports the plugins after a variant switch: Mitsuba needs them
 # registered for the active variant, and the plugins are thin (they call the library).
 ALLOWED = {("mi_shadowgs.backend", "mi_shadowgs.plugins")}

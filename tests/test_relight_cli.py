@@ -311,7 +311,7 @@ def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_pres
 
 def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkeypatch):
     from mi_shadowgs.stages.material import fit as material_fit
-    from mi_shadowgs.stages.relight.evaluate import write_previews
+    from mi_shadowgs.stages.relight.previews import write_previews
     from mi_shadowgs.stages.visibility.shadow_maps import get_config as vis_get_config
 
     for table, config in tiny_cli.presets():  # 64^2 shadow maps
@@ -332,7 +332,8 @@ def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkey
     other = relight.RelightModel(dataclasses.replace(model.surfels, channels={}), False, True)
     cache.shadow_maps(other, sky_lights, bounds, vis_get_config(TINY))
     before = cache.rendered
-    out = write_previews(tmp_path, result, [cam], bounds, TINY, [("sky", sky, 1.0)], cache)
+    out = write_previews(tmp_path, result, [cam], bounds, vis_get_config(TINY), rcfg,
+                         [("sky", sky, 1.0)], cache)
     assert cache.rendered == before + 8  # only the turntable's 8 directions are new
     assert [s["file"] for s in out["strips"]] == ["preview_0_turntable.png",
                                                   "preview_0_envmap.png"]

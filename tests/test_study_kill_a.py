@@ -181,7 +181,7 @@ def test_asset_keeps_its_finished_parts_and_continues_a_path_trace_from_its_last
     and figure; another --spp exits 2 naming it."""
     import mitsuba as mi
 
-    from mi_shadowgs.stages.relight import export
+    from mi_shadowgs.stages.export import export
     from validation import asset
 
     cfg = export.get_config("cpu-small")  # a coarse grid for speed, as tests/test_export.py

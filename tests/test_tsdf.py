@@ -1,5 +1,5 @@
 """TSDF fusion (``core.tsdf``) against a float64 NumPy reference, and mesh extraction
-(``stages.relight.mesh``) on a surfel model whose true surface is known (issue 19)."""
+(``stages.export.mesh``) on a surfel model whose true surface is known (issue 19)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.tsdf import VoxelGrid, fuse_tsdf
-from mi_shadowgs.stages.relight import mesh
+from mi_shadowgs.stages.export import mesh
 from tests import synthetic_asset as syn
 
 

@@ -81,13 +81,13 @@ def test_a_killed_call_reuses_finished_variants_and_continues_the_one_in_progres
 
     from mi_shadowgs import cli
     from mi_shadowgs.scenes import scene_path
-    from mi_shadowgs.stages import relight
+    from mi_shadowgs.stages import evaluation
     from validation import decomposition
 
     data, out = tmp_path / "data", tmp_path / "out"
     argv = [str(data), "--out", str(out), "--preset", TINY]
     fits, scored = [], []
-    decompose, evaluate = decomposition.material.decompose, relight.evaluate_decomposition
+    decompose, evaluate = decomposition.material.decompose, evaluation.evaluate_decomposition
 
     def counted_fit(*args, **kwargs):
         fits.append(kwargs.get("state") is not None)
@@ -105,7 +105,7 @@ def test_a_killed_call_reuses_finished_variants_and_continues_the_one_in_progres
         assert cli.main(["generate", str(scene_path("default")), "--out", str(data),
                          "--preset", TINY, "--no-progress"]) == 0
         mp.setattr(decomposition.material, "decompose", counted_fit)
-        mp.setattr(relight, "evaluate_decomposition", killed_on_the_second)
+        mp.setattr(evaluation, "evaluate_decomposition", killed_on_the_second)
         with pytest.raises(KeyboardInterrupt):
             decomposition.main(argv)
         assert fits == [False, False] and not (out / "summary.json").exists()

@@ -22,7 +22,7 @@ import view_fixtures
 from mi_shadowgs import cli
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import angles_from_direction, direction_from_angles
-from mi_shadowgs.stages.relight import viewer
+from mi_shadowgs.stages.viewer import viewer
 
 
 @pytest.fixture(scope="module")
@@ -199,7 +199,7 @@ def test_view_benchmark_measures_a_run(runs, monkeypatch):
 def test_previews_while_changes_come_then_one_full_frame():
     import threading
 
-    from mi_shadowgs.stages.relight.viewer_server import _ClientWorker
+    from mi_shadowgs.stages.viewer.server import _ClientWorker
 
     calls, done = [], threading.Event()
 
@@ -261,7 +261,7 @@ def test_view_refuses_what_it_cannot_show_as_given(runs, capsys):
 
 
 def test_view_starts_with_the_lights_given_exactly(session):
-    from mi_shadowgs.stages.relight.viewer_server import ViewerServer
+    from mi_shadowgs.stages.viewer.server import ViewerServer
 
     given = [viewer.DirectionalLight(30.25, 0.5, 50.0), viewer.DirectionalLight(200.0, 45.5, 3.33)]
     server = ViewerServer(session, port=0, resolution=16, initial_lights=given).start()
@@ -281,7 +281,7 @@ def test_values_a_browser_sends_are_kept_to_the_sliders(session, capsys):
     import viser
     import websockets
 
-    from mi_shadowgs.stages.relight.viewer_server import ViewerServer
+    from mi_shadowgs.stages.viewer.server import ViewerServer
 
     server = ViewerServer(session, port=0, resolution=16).start()
     _, az, el, irr = server.lights[0]

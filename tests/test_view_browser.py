@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import view_fixtures
 
-from mi_shadowgs.stages.relight import viewer
+from mi_shadowgs.stages.viewer import viewer
 
 pytestmark = pytest.mark.browser
 
@@ -59,7 +59,7 @@ def browser(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from mi_shadowgs.stages.relight import viewer_server
+    from mi_shadowgs.stages.viewer import server as viewer_server
 
     run, _ = view_fixtures.make_run(tmp_path_factory.mktemp("view_browser"))
     session = viewer.ViewerSession(run)

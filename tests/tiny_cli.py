@@ -28,10 +28,10 @@ def presets() -> list[tuple[dict, object]]:
 def stage_presets() -> list[tuple[dict, object]]:
     """(a stage's PRESETS dict, its test-tiny settings) for every stage."""
     from mi_shadowgs.dataset import generate
+    from mi_shadowgs.stages.export import export
     from mi_shadowgs.stages.geometry import train as geometry_train
     from mi_shadowgs.stages.geometry.densify import DensifyConfig
     from mi_shadowgs.stages.material import fit as material_fit
-    from mi_shadowgs.stages.relight import export
     from mi_shadowgs.stages.relight import render as relight
     from mi_shadowgs.stages.segmentation import features as segmentation
     from mi_shadowgs.stages.segmentation import masks

@@ -52,8 +52,8 @@ def score(row: Path, variant: str = "full") -> dict:
     """Albedo PSNR of ``row``'s stage-4 model on its test views, per-region and global."""
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.ply import load_ply
-    from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight.evaluate import scored_pixels
+    from mi_shadowgs.stages.evaluation import metrics as evaluation
+    from mi_shadowgs.stages.evaluation.evaluate import scored_pixels
 
     model_path = row / "run" / "material" / variant / "model.ply"
     if not model_path.is_file():

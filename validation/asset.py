@@ -179,8 +179,8 @@ def surfel_albedo_scale(run: Path, test) -> np.ndarray:
     """Stage 5's global per-channel albedo factor (``evaluation.global_albedo_scale`` of
     the surfel model's rendered diffuse albedo against the ground truth)."""
     from mi_shadowgs.io.ply import load_ply
-    from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight.evaluate import scored_pixels
+    from mi_shadowgs.stages.evaluation import metrics as evaluation
+    from mi_shadowgs.stages.evaluation.evaluate import scored_pixels
     from validation.albedo_global import diffuse_albedo_views
 
     est = diffuse_albedo_views(load_ply(run / "material" / "full" / "model.ply"), test.cameras)
@@ -244,8 +244,8 @@ def validate(run: Path, data: Path, out: Path, spp: int = 64, progress: bool = T
     from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.dataset.loader import DatasetError, load_dataset
     from mi_shadowgs.io.provenance import Provenance, ProvenanceError, input_ref
-    from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight.export import ExportError, export_run
+    from mi_shadowgs.stages.evaluation import metrics as evaluation
+    from mi_shadowgs.stages.export.export import ExportError, export_run
 
     out.mkdir(parents=True, exist_ok=True)
     load0 = os.getloadavg()

@@ -36,7 +36,7 @@ from mi_shadowgs.dataset.standin import standin_surfels
 from mi_shadowgs.io.atomic import write_bytes, write_json
 from mi_shadowgs.io.images import write_png
 from mi_shadowgs.io.provenance import Provenance
-from mi_shadowgs.stages import material, relight
+from mi_shadowgs.stages import evaluation, material, relight
 from mi_shadowgs.stages.common import checkpoint_hooks
 from mi_shadowgs.stages.material import fit as material_fit
 from mi_shadowgs.stages.visibility import shadow_maps
@@ -65,7 +65,9 @@ def run_variant(name, overrides, surfels, train, test, bounds, preset, extra,
     res = material.decompose(surfels, train, preset, bounds, {**overrides, **extra},
                              **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
-    out, images = relight.evaluate_decomposition(res, train, test, bounds, preset)
+    out, images = evaluation.evaluate_decomposition(res, train, test, bounds,
+                                                    shadow_maps.get_config(preset),
+                                                    relight.get_config(preset))
     out.update(fit_s=fit_s, timings=res.timings, history=res.history)
     cfg = with_overrides(material_fit.get_config(preset), {**overrides, **extra}, "material")
     steps_w = min(cfg.warmup, cfg.iterations)

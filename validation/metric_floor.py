@@ -5,7 +5,7 @@ the hit of its centre ray. The photos, and anything fitted to them, are box-filt
 the pixel. Here the exact scene itself is scored as an estimate: its box-filtered albedo and
 irradiance (``dataset.generate.box_filtered_ground_truth``, ``--samples``^2 rays per pixel,
 Mitsuba ray tracing) against the point-sampled truth, with stage 5's own metrics
-(``stages.relight.evaluation``: shadow IoU of the direct irradiance under the training lights,
+(``stages.evaluation.metrics``: shadow IoU of the direct irradiance under the training lights,
 albedo PSNR with per-region and with one per-channel scale). Where a thin or small part
 spans a few pixels, the two references disagree, and an estimate that resolves the scene to
 the pixel scores about what the filtered truth scores; at larger view sizes (``--sizes``,
@@ -42,7 +42,7 @@ import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
 from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground_truth
-from mi_shadowgs.stages.relight import evaluation
+from mi_shadowgs.stages.evaluation import metrics as evaluation
 
 
 def exact_visibility_config(preset: str, map_resolution: int | None):

@@ -122,13 +122,10 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     run's frame)."""
     from mi_shadowgs.presets import get_config
     from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.evaluation import metrics as evaluation
+    from mi_shadowgs.stages.evaluation.evaluate import evaluate_decomposition, scored_pixels
+    from mi_shadowgs.stages.material.files import fit_from_files
     from mi_shadowgs.stages.material.runner import occluder_bounds
-    from mi_shadowgs.stages.relight import evaluation
-    from mi_shadowgs.stages.relight.evaluate import (
-        evaluate_decomposition,
-        fit_from_files,
-        scored_pixels,
-    )
 
     fit_dir = run / "material" / "full"
     result = fit_from_files(fit_dir / "model.ply", fit_dir / "light.json")

@@ -64,9 +64,12 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.io.provenance import read_manifest
     from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.evaluation.evaluate import evaluate_decomposition
+    from mi_shadowgs.stages.material.files import light_json
     from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
-    from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, light_json
+    from mi_shadowgs.stages.relight import render as relight
     from mi_shadowgs.stages.relight.runner import run_preset
+    from mi_shadowgs.stages.visibility import shadow_maps
 
     before_path = run / "material" / "full" / "metrics.json"
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
@@ -78,7 +81,9 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     t0 = time.perf_counter()
     res = decompose(surfels, train, preset, bounds, overrides, progress, **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
-    metrics, _ = evaluate_decomposition(res, train, test, bounds, preset)
+    metrics, _ = evaluate_decomposition(res, train, test, bounds,
+                                        shadow_maps.get_config(preset),
+                                        relight.get_config(preset))
     metrics["fit_s"] = fit_s
     # Read at the end: the run's own stage 4 may still be running when this starts. With
     # another dataset than the run's (the same scene and cameras under other lights: a
@@ -105,9 +110,9 @@ def settle_only(run: Path, data: Path) -> dict:
 
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.common import load_training_views
+    from mi_shadowgs.stages.evaluation import metrics as evaluation
     from mi_shadowgs.stages.material import fit as mf
     from mi_shadowgs.stages.material.runner import occluder_bounds
-    from mi_shadowgs.stages.relight import evaluation
     from mi_shadowgs.stages.visibility import shadow_maps
 
     folder = run / "material" / "full"

@@ -2,7 +2,7 @@
 
 Stage 5 scores shadows on the test views by the IoU of the masks where the white direct
 irradiance sum_k E_k (n . l_k)^+ V_k falls below half the view's median
-(``stages.relight.evaluation.shadow_iou``). The estimate has three ingredients, each of which
+(``stages.evaluation.metrics.shadow_iou``). The estimate has three ingredients, each of which
 is swapped here for the ground truth of the dataset's scene (reloaded and ray-traced with
 Mitsuba, as ``validation.visibility`` does):
 
@@ -65,7 +65,7 @@ import numpy as np
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 from mi_shadowgs.dataset.scene import Light
-from mi_shadowgs.stages.relight import evaluation
+from mi_shadowgs.stages.evaluation import metrics as evaluation
 from validation import fail
 
 FACTORS = ("lights", "receivers", "occluders")
@@ -141,8 +141,8 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
                 ) -> RunInputs:
     from mi_shadowgs.dataset.loader import load_cameras, load_dataset
     from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.stages.evaluation.evaluate import scored_pixels
     from mi_shadowgs.stages.material.runner import occluder_bounds
-    from mi_shadowgs.stages.relight.evaluate import scored_pixels
 
     folder = run / "material" / variant
     light = _read_json(folder / "light.json")

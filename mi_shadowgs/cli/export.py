@@ -1,5 +1,5 @@
 """``mi-shadowgs export RUN --format {3dgs-ply,2dgs-ply,mesh} --out FOLDER [--color albedo]``:
-the run's stage-4 model as files other tools load (``mi_shadowgs.stages.relight.export``).
+the run's stage-4 model as files other tools load (``mi_shadowgs.stages.export.export``).
 
 ``3dgs-ply``/``2dgs-ply`` write ``FOLDER/point_cloud.ply`` (SH padded to degree 3; colours
 as splat viewers display them, ``--color albedo`` for the shadow-free albedo); ``mesh``
@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import dataclasses
 
-    from mi_shadowgs.stages.relight.export import export_run, get_config
+    from mi_shadowgs.stages.export.export import export_run, get_config
     from mi_shadowgs.stages.relight.runner import run_preset
 
     preset = args.preset or run_preset(args.run)

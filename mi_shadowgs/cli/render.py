@@ -1,5 +1,5 @@
 """``mi-shadowgs render MODEL.ply --cameras transforms.json --out DIR``: render a surfel model
-(``stages.relight.images.render_views``, whose docstring says what is written where)."""
+(``stages.render.render_views``, whose docstring says what is written where)."""
 
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from mi_shadowgs.stages.relight.images import render_views
+    from mi_shadowgs.stages.render import render_views
 
     result = render_views(args.model, args.cameras, args.out, args.aov, args.background,
                           args.color_channel, args.memory_budget, args.overwrite,

@@ -33,7 +33,9 @@ def run(args) -> int:
     from pathlib import Path
 
     from mi_shadowgs.cli import CLIError
-    from mi_shadowgs.stages.relight import runner, viewer, viewer_server
+    from mi_shadowgs.stages.relight import runner
+    from mi_shadowgs.stages.viewer import server as viewer_server
+    from mi_shadowgs.stages.viewer import viewer
 
     if not 0 <= args.port <= 65535:
         raise CLIError(f"--port must be in [0, 65535], got {args.port}")

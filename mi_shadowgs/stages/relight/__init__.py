@@ -1,20 +1,13 @@
-"""Stage 5: relighting and evaluation (Sec. III-E, V-A3): the fitted model rendered under new
-lights with shadows recomputed from the surfels, and measured against ground truth.
+"""Stage 5, relighting (Sec. III-E): the fitted model rendered under new lights, with shadows
+recomputed from the surfels.
 
-``render``: config, light sets and relit views; ``evaluation``: the metrics (albedo, light
-cosine, shadow IoU); ``evaluate``: evaluate a decomposition on a dataset and write its
-figures and light JSON.
+``render``: config, light sets and relit views; ``previews``: relit previews of a fit under
+standard lights (the run's report); ``runner``: ``mi-shadowgs relight`` on a finished run.
 """
 
 from __future__ import annotations
 
-from mi_shadowgs.stages.relight.evaluate import (
-    check_evaluation_inputs,
-    evaluate_decomposition,
-    light_json,
-    light_map_image,
-    write_figures,
-)
+from mi_shadowgs.stages.relight.previews import write_previews
 from mi_shadowgs.stages.relight.render import (
     PRESETS,
     RelightConfig,
@@ -30,14 +23,10 @@ __all__ = [
     "PRESETS",
     "RelightConfig",
     "RelightModel",
-    "check_evaluation_inputs",
     "directional_light_set",
-    "evaluate_decomposition",
     "get_config",
-    "light_json",
-    "light_map_image",
     "lights_from_json",
     "relight_view",
     "relight_views",
-    "write_figures",
+    "write_previews",
 ]

@@ -22,8 +22,8 @@ from mi_shadowgs.config import recorded_config
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, parse_angle_fields
 from mi_shadowgs.stages.common import warn, warn_other_backend
+from mi_shadowgs.stages.material.files import fit_from_files
 from mi_shadowgs.stages.relight import render as relight
-from mi_shadowgs.stages.relight.evaluate import fit_from_files
 from mi_shadowgs.stages.visibility import shadow_maps
 
 DEFAULT_QUANTILE = 0.98  # the run's bounds_quantile when its manifest does not say
@@ -325,7 +325,7 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
     from mi_shadowgs.io.images import linear_to_srgb, read_exr, to_uint8
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
     from mi_shadowgs.stages.common import settings_dict
-    from mi_shadowgs.stages.relight.images import missing_views, view_stems, write_rgba
+    from mi_shadowgs.stages.render import missing_views, view_stems, write_rgba
 
     if not lights and envmap is None and scene is None:
         raise ValueError("no light: give --light AZ,EL,IRRADIANCE, --envmap FILE or --scene XML")

@@ -154,7 +154,7 @@ def image_metrics(est, gt, mask) -> dict:
 
 def _lpips_per_view(est, gt, mask) -> tuple[list[float] | None, str | None]:
     """LPIPS per view, or (None, why not)."""
-    from mi_shadowgs.stages.relight import lpips
+    from mi_shadowgs.stages.evaluation import lpips
 
     if min(est.shape[1:3]) < lpips.MIN_SIZE:
         return None, f"views of {est.shape[2]}x{est.shape[1]} px are below LPIPS's " \

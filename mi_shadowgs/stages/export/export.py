@@ -13,7 +13,7 @@ Formats (``--out`` is a folder; it gets a provenance manifest like every output)
   stage-4 model's header records (``comment mi_shadowgs ...``: receiver band, shadow maps,
   specular), so that relighting this file gives the run's relit views.
 - ``mesh`` -> ``object.ply``/``object.obj`` (+ ``base.ply``/``base.obj`` when the base is
-  known), ``scene.xml``, ``export.json``: see ``mi_shadowgs.stages.relight.mesh``. The PLYs
+  known), ``scene.xml``, ``export.json``: see ``mi_shadowgs.stages.export.mesh``. The PLYs
   carry per-vertex ``albedo_r/g/b``, ``roughness_0``, ``metallic_0`` and ``ggxalpha_0``
   (roughness^2, clamped as in ``core.brdf``; linear; Mitsuba loads them as
   ``vertex_albedo_color``, ``vertex_roughness``, ``vertex_metallic``, ``vertex_ggxalpha``),
@@ -57,7 +57,7 @@ import numpy as np
 
 from mi_shadowgs.config import get_preset
 from mi_shadowgs.io.ply import SH_C0, SH_SPACE_KEY, sh_to_srgb
-from mi_shadowgs.stages.relight import mesh as mesh_mod
+from mi_shadowgs.stages.export import mesh as mesh_mod
 
 FORMATS = ("3dgs-ply", "2dgs-ply", "mesh")
 BSDFS = ("model", "principled")

@@ -1,6 +1,6 @@
-"""Stage 5's evaluation: relight the fitted model, measure it on the test views the way the
-paper does (Sec. V-A3), and write what the report shows (figures, the light map image, the
-light JSON). ``check_evaluation_inputs`` checks what it reads before stage 1 starts.
+"""Evaluation of a fitted model: relight it on the test views and measure it the way the
+paper does (Sec. V-A3), each metric only where the dataset has its ground truth.
+``check_evaluation_inputs`` checks what it reads before stage 1 starts.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.core.directions import angles_from_direction, map_to_blocks
+from mi_shadowgs.core.directions import angles_from_direction
+from mi_shadowgs.stages.evaluation import metrics as evaluation
 from mi_shadowgs.stages.material import fit
-from mi_shadowgs.stages.relight import evaluation
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -102,8 +102,8 @@ def skipped_metrics(available: dict[str, str | None]) -> list[dict]:
 
 
 def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
-                           vcfg: shadow_maps.VisibilityConfig, rcfg: relight.RelightConfig,
-                           figure_lights: int = 3,
+                           vis_config: shadow_maps.VisibilityConfig,
+                           relight_config: relight.RelightConfig, figure_lights: int = 3,
                            cache: relight.RelightCache | None = None) -> tuple[dict, dict]:
     """Paper Sec. V-A3 metrics on the test views, each computed only when the dataset has
     the ground truth it needs (``METRIC_NEEDS``; ``metrics["skipped"]`` lists the others
@@ -114,9 +114,11 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     "visibility" (the ``figure_lights`` strongest fitted lights, with "visibility_lights"
     their (azimuth, elevation)), "relit/<setup>", their ground truth under "gt/...", and the
     light maps. ``cache`` (``render.RelightCache``) keeps the shadow maps for the caller,
-    e.g. for ``write_previews`` of the same fit. ``vcfg`` / ``rcfg``: the shadow maps' and
-    the relighting's settings.
+    e.g. for ``relight.previews.write_previews`` of the same fit. ``vis_config``: the shadow
+    maps stage 4 fitted with (their receiver band too); ``relight_config``: the env-map
+    sampling of the relightings.
     """
+    vcfg, rcfg = vis_config, relight_config
     avail = ground_truth(train, test)
     skipped = skipped_metrics(avail)
     gone = {s["metric"] for s in skipped}
@@ -124,8 +126,8 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
                                  est_light, vcfg.receiver_band)
     t0 = time.perf_counter()
-    maps = relight.shadow_maps_for(model, est_light, bounds, vcfg) if cache is None else \
-        cache.shadow_maps(model, est_light, bounds, vcfg)
+    maps = (relight.shadow_maps_for(model, est_light, bounds, vcfg) if cache is None else
+            cache.shadow_maps(model, est_light, bounds, vcfg))
     factor = relight.indirect_factor(model, est_light, rcfg)
     views = [relight.relight_view(model, cam, est_light, maps, factor, buffers=True)
              for cam in test.cameras]
@@ -228,103 +230,6 @@ def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shad
     return metrics, images
 
 
-def _display(img: np.ndarray, scale: float | None = None) -> np.ndarray:
-    """Linear [H, W] or [H, W, 3] -> [H, W, 3] in [0, 1] (optionally divided by scale)."""
-    a = np.asarray(img, np.float64)
-    if a.ndim == 2:
-        a = np.repeat(a[..., None], 3, axis=-1)
-    if scale:
-        a = a / scale
-    return np.clip(a, 0.0, 1.0)
-
-
-def _error(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Colour-mapped |est - gt| of two linear images, compared as displayed (sRGB)."""
-    from mi_shadowgs.io.images import linear_to_srgb
-    from mi_shadowgs.io.plots import error_colors
-
-    return error_colors(linear_to_srgb(_display(est)), linear_to_srgb(_display(gt)))
-
-
-def light_map_image(radiance: np.ndarray, block: int = 8) -> np.ndarray:
-    """The paper's 22 x 12 block view of a grid light map, normalised, upscaled [H, W, 3]."""
-    blocks = map_to_blocks(np.asarray(radiance, np.float64))  # [12, 22]
-    peak = blocks.max()
-    img = blocks / peak if peak > 0 else blocks
-    img = np.repeat(np.repeat(img, block, 0), block, 1)
-    return np.repeat(img[..., None], 3, axis=-1)
-
-
-def write_figures(folder: Path, test, images: dict, count: int,
-                  segments: dict[str, np.ndarray] | None = None) -> dict:
-    """PNG figures of the first ``count`` test views (spread over the split); returns the
-    report grid (rows of relative paths). The decomposition: input, albedo, roughness,
-    metallic, normals, irradiance, the visibility of the strongest fitted lights and the
-    segments (``segments``: view stem -> sRGB uint8 [H, W, 3], e.g. stage 2's maps); each
-    ground truth the dataset has beside its estimate, with its error map: |estimate -
-    ground truth| as displayed (sRGB), colour-mapped by ``io.plots.error_colors`` (0 to
-    ``io.plots.ERROR_MAX``)."""
-    from mi_shadowgs.io.images import write_png
-
-    n = len(test.views)
-    picks = sorted({int(round(i * n / max(count, 1))) % n for i in range(count)})
-    relits = sorted(k[len("relit/"):] for k in images if k.startswith("relit/"))
-    has_alb, has_irr = "gt/albedo" in images, "gt/irradiance" in images
-    vis_names = [f"visibility az {az:.0f} el {el:.0f}"
-                 for az, el in images.get("visibility_lights", [])]
-    columns = ["input", "albedo"] + (["albedo (GT)", "albedo error"] if has_alb else [])
-    columns += ["roughness", "metallic", "normal", "irradiance"]
-    columns += ["irradiance (GT)"] if has_irr else []
-    columns += vis_names
-    segments = segments or {}
-    if any(Path(test.views[i].name).name in segments for i in picks):
-        columns.append("segments")
-    for name in relits:
-        columns += [f"relit {name}", f"relit {name} (GT)", f"relit {name} error"]
-    # One exposure for estimate and ground truth of a kind, so that they compare.
-    irr_scale = float(np.percentile(images["irradiance"], 99)) or 1.0
-    gt_irr_scale = float(np.percentile(images["gt/irradiance"], 99)) or 1.0 if has_irr \
-        else 1.0
-    linear_cols = ("irradiance", "roughness", "metallic", "normal", "visibility", "segments")
-    rows = []
-    for i in picks:
-        stem = Path(test.views[i].name).name
-        cells = {"input": test.views[i].image, "albedo": images["albedo"][i],
-                 "roughness": images["roughness"][i], "metallic": images["metallic"][i],
-                 "normal": np.where(np.any(images["normal"][i] != 0, -1, keepdims=True),
-                                    images["normal"][i] * 0.5 + 0.5, 0.0),
-                 "irradiance": _display(images["irradiance"][i], irr_scale)}
-        if has_alb:
-            cells["albedo (GT)"] = images["gt/albedo"][i]
-            cells["albedo error"] = _error(images["albedo"][i], images["gt/albedo"][i])
-        if has_irr:
-            cells["irradiance (GT)"] = _display(images["gt/irradiance"][i], gt_irr_scale)
-        for k, col in enumerate(vis_names):
-            cells[col] = images["visibility"][i][..., k]
-        if "segments" in columns:
-            seg = segments.get(stem)
-            cells["segments"] = np.zeros(test.views[i].image.shape) if seg is None else \
-                np.asarray(seg, np.float64)[..., :3] / 255.0
-        for name in relits:
-            cells[f"relit {name}"] = images[f"relit/{name}"][i]
-            cells[f"relit {name} (GT)"] = images[f"gt/relit/{name}"][i]
-            cells[f"relit {name} error"] = _error(images[f"relit/{name}"][i],
-                                                  images[f"gt/relit/{name}"][i])
-        paths = []
-        for col in columns:
-            fname = f"{stem}_{col.replace(' ', '_').replace('(', '').replace(')', '')}.png"
-            srgb = not (col.startswith(linear_cols) or col.endswith(" error"))
-            write_png(folder / fname, _display(cells[col]), srgb=srgb)
-            paths.append(fname)
-        rows.append({"label": stem, "cells": paths})
-    est = light_map_image(images["light_map"])
-    if "gt/light_map" in images:
-        gap = np.ones((est.shape[0], 4, 3))
-        est = np.concatenate([est, gap, light_map_image(images["gt/light_map"])], axis=1)
-    write_png(folder / "light_map.png", est, srgb=False)
-    return {"columns": columns, "rows": rows}
-
-
 def check_evaluation_inputs(train, test) -> dict[str, str | None]:
     """What ``evaluate_decomposition`` reads, checked before stage 1 starts: ground truth
     that is present but malformed is a DatasetError naming the file or field; ground truth
@@ -383,120 +288,3 @@ def load_envmap(entry: dict, root: Path):
     from mi_shadowgs.core.envmap import load_envmap
 
     return load_envmap(envmap_file(entry, root), float(entry.get("scale", 1.0)))
-
-
-def light_json(result: fit.MaterialResult) -> dict:
-    """The fitted light of stage 4 as ``light.json`` holds it: the grid radiance, the active
-    directions, their unit vectors and irradiance, their azimuth/elevation (degrees), the
-    specular and visibility flags, and the lights after each pruning, refinement and
-    settling (``MaterialState.light_log``; "log")."""
-    light = result.light
-    dirs = np.asarray(light.light_set().directions)
-    return {"radiance": light.radiance.tolist(), "active": light.active.tolist(),
-            "directions": dirs.tolist(),
-            "irradiance": light.weights.tolist() if light.weights is not None else None,
-            "angles_deg": [list(angles_from_direction(d)) for d in dirs],
-            "specular": result.specular, "use_visibility": result.use_visibility,
-            "log": result.light_log}
-
-
-def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None = None,
-                   use_visibility: bool = True) -> fit.MaterialResult:
-    """A stage-4 result back from its files (``model.ply``, ``light.json``, optionally
-    ``history.csv``): what a rerun evaluates instead of fitting again, and what ``relight``
-    renders. Errors name the file and field."""
-    import json
-
-    from mi_shadowgs.io.ply import load_ply
-
-    model = load_ply(model_path)
-    missing = [c for c in ("albedo", "roughness", "metallic") if c not in model.channels]
-    if missing:
-        raise ValueError(f"{model_path}: the model lacks channel(s) {missing} (not a stage-4 "
-                         "model)")
-    try:
-        data = json.loads(Path(light_path).read_text())
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{light_path}: file not found (the fitted light)") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{light_path}: malformed JSON: {exc}") from None
-    try:
-        radiance = np.asarray(data["radiance"], np.float64).reshape(-1)
-        active = np.asarray(data["active"], np.int64).reshape(-1)
-        dirs = np.asarray(data["directions"], np.float64).reshape(-1, 3)
-        weights = None if data.get("irradiance") is None else \
-            np.asarray(data["irradiance"], np.float64).reshape(len(dirs))
-        specular = bool(data["specular"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{light_path}: missing or malformed field ({exc})") from None
-    history = []
-    if history_path is not None and Path(history_path).is_file():
-        for line in Path(history_path).read_text().splitlines()[1:]:
-            step, loss = line.split(",")
-            history.append((int(step), float(loss)))
-    light = fit.LightModel(radiance, active, dirs, weights)
-    return fit.MaterialResult(model, light, specular,
-                              bool(data.get("use_visibility", use_visibility)), history, {},
-                              list(data.get("log", [])))
-
-
-TURNTABLE_LIGHTS = 8  # azimuths of the previews' light turntable
-TURNTABLE_ELEVATION = 45.0
-
-
-def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds,
-                   vcfg: shadow_maps.VisibilityConfig, rcfg: relight.RelightConfig, envmaps=(),
-                   cache: relight.RelightCache | None = None) -> dict:
-    """Relit previews of a fit under standard lights, for data with or without ground truth:
-    a turntable of ``TURNTABLE_LIGHTS`` directional lights at ``TURNTABLE_ELEVATION``
-    degrees and every env map of ``envmaps`` ((name, file, scale)), for each of ``cameras``.
-
-    Exposure: each preview light gives an upward-facing surface the irradiance the fitted
-    light gives it (albedo and light are known only up to a common factor, so the fitted
-    light is the only scale there is). ``cache``: shadow maps already rendered (e.g. by the
-    evaluation's env-map relightings). Writes ``preview_<view>_<light>.png`` and one strip
-    per view; returns {"strips": [{"title", "file"}], "lights": [...]} for the report.
-    """
-    from mi_shadowgs.core.envmap import load_envmap as load_emitter
-    from mi_shadowgs.io.images import write_png
-
-    fitted = result.light.light_set()
-    model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
-                                 fitted, vcfg.receiver_band)
-    e_up = relight.upward_irradiance(fitted)
-    setups = []
-    for name, ls in relight.standard_turntable(TURNTABLE_LIGHTS, TURNTABLE_ELEVATION):
-        up = relight.upward_irradiance(ls)
-        setups.append(("turntable", name, relight.scale_light_set(ls, e_up / up)))
-    cache = cache or relight.RelightCache()  # the env maps share the grid's shadow maps
-    for name, path, scale in envmaps:
-        ls = relight.grid_light_set(cache.envmap_radiance(load_emitter(path, scale), rcfg),
-                                    rcfg.n_directions)
-        up = relight.upward_irradiance(ls)
-        if ls.count and up > 0:
-            setups.append(("envmap", name, relight.scale_light_set(ls, e_up / up)))
-    strips, lights = [], []
-    for cam_i, cam in enumerate(cameras):
-        for kind in ("turntable", "envmap"):
-            frames = []
-            for k, name, ls in (x for x in setups if x[0] == kind):
-                maps = cache.shadow_maps(model, ls, bounds, vcfg)
-                img = relight.relight_view(model, cam, ls, maps,
-                                           relight.indirect_factor(model, ls, rcfg),
-                                           only_rgb=True)["rgb"]
-                fname = f"preview_{cam_i}_{kind}_{name}.png"
-                write_png(folder / fname, _display(img))
-                frames.append(_display(img))
-                if cam_i == 0:
-                    lights.append({"kind": k, "name": name, "directions": ls.count})
-            if frames:
-                gap = np.ones((frames[0].shape[0], 2, 3))
-                strip = np.concatenate(sum(([f, gap] for f in frames), [])[:-1], axis=1)
-                fname = f"preview_{cam_i}_{kind}.png"
-                write_png(folder / fname, strip)
-                names = [n for k, n, _ in setups if k == kind]
-                title = (f"light turntable: {TURNTABLE_LIGHTS} azimuths at "
-                         f"{TURNTABLE_ELEVATION:.0f} deg elevation ({', '.join(names)})"
-                         if kind == "turntable" else f"env maps: {', '.join(names)}")
-                strips.append({"title": title, "file": fname})
-    return {"strips": strips, "lights": lights}

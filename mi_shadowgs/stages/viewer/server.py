@@ -26,7 +26,7 @@ import traceback
 import numpy as np
 
 from mi_shadowgs.core.directions import angles_from_direction
-from mi_shadowgs.stages.relight import viewer
+from mi_shadowgs.stages.viewer import viewer
 
 NO_ENVMAP = "none"
 ARROW_FITTED = (255, 150, 30)  # orange: the lights stage 4 fitted
