@@ -110,7 +110,7 @@ def parse_value(key: str, text: str, annotation) -> Any:
     """Command-line text ``text`` of setting ``key`` as its annotated type (``int``,
     ``float``, ``bool``, ``str``, ``X | None``; ``none`` for an optional one, a
     comma-separated list for a tuple of numbers); a ConfigError naming ``key`` otherwise."""
-    options = [k.strip() for k in str(annotation).split("|")]
+    options = _type_names(annotation)
     kind = " | ".join(options)
     if text.lower() == "none" and "None" in options:
         return None
@@ -131,7 +131,14 @@ def parse_value(key: str, text: str, annotation) -> Any:
 def _field_kinds(cls) -> dict[str, list[str]]:
     """Each field's annotated types by name, in order (``int | None`` -> ["int", "None"]);
     the annotations are text (``from __future__ import annotations``)."""
-    return {f.name: [k.strip() for k in str(f.type).split("|")] for f in dataclasses.fields(cls)}
+    return {f.name: _type_names(f.type) for f in dataclasses.fields(cls)}
+
+
+def _type_names(annotation) -> list[str]:
+    """``int | None`` (text, or the type itself once something resolved the annotations)
+    -> ["int", "None"]."""
+    text = annotation.__name__ if isinstance(annotation, type) else str(annotation)
+    return [k.strip().replace("NoneType", "None") for k in text.split("|")]
 
 
 def _read_bool(text: str) -> bool:

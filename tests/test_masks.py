@@ -10,8 +10,8 @@ import pytest
 from segmentation_fixtures import standin_surfels, tiny_dataset
 
 from mi_shadowgs.dataset.loader import load_dataset
-from mi_shadowgs.stages.segmentation import features as seg
 from mi_shadowgs.stages.segmentation import masks
+from mi_shadowgs.stages.segmentation import metrics as seg_metrics
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +106,7 @@ def test_shadow_boundary_on_ground_truth_images(tiny):
 def test_chromaticity_separates_materials(tiny):
     ds = load_dataset(tiny, "train")
     labels = masks.chromaticity_masks(ds)
-    m = seg.evaluate_maps(labels, [v.material for v in ds.views])
+    m = seg_metrics.evaluate_maps(labels, [v.material for v in ds.views])
     # Not perfect (dark and edge pixels, the glossy pillar), but far from chance.
     assert m["ari"] > 0.6
 

@@ -13,6 +13,8 @@ import pytest
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.stages.segmentation import features as seg
+from mi_shadowgs.stages.segmentation import maps as seg_maps
+from mi_shadowgs.stages.segmentation import metrics as seg_metrics
 
 # Float32 kernels against float64 references: sums of a few thousand O(1) terms carry a
 # relative rounding error of ~1e-6; 1e-5 leaves margin without hiding a wrong term.
@@ -23,35 +25,35 @@ RTOL = 1e-5
 def test_ari_hand_cases():
     # a = {0,0,1,1}, b = {0,0,1,2}: index 1, sum_a 2, sum_b 1, C(4,2) = 6 ->
     # (1 - 1/3) / (3/2 - 1/3) = 4/7.
-    assert seg.adjusted_rand_index([0, 0, 1, 1], [0, 0, 1, 2]) == pytest.approx(4 / 7, 1e-12)
+    assert seg_metrics.adjusted_rand_index([0, 0, 1, 1], [0, 0, 1, 2]) == pytest.approx(4 / 7, 1e-12)
     # index 2, sum_a 6, sum_b 3, C(6,2) = 15: (2 - 1.2) / (4.5 - 1.2) = 8/33.
     a, b = [0, 0, 0, 1, 1, 1], [0, 0, 1, 1, 2, 2]
-    assert seg.adjusted_rand_index(a, b) == pytest.approx(8 / 33, 1e-12)
+    assert seg_metrics.adjusted_rand_index(a, b) == pytest.approx(8 / 33, 1e-12)
     # Renaming labels changes nothing; the index is symmetric.
-    assert seg.adjusted_rand_index([3, 3, 7, 7, 9], [1, 1, 0, 0, 5]) == 1.0
-    assert seg.adjusted_rand_index(b, a) == pytest.approx(8 / 33, 1e-12)
+    assert seg_metrics.adjusted_rand_index([3, 3, 7, 7, 9], [1, 1, 0, 0, 5]) == 1.0
+    assert seg_metrics.adjusted_rand_index(b, a) == pytest.approx(8 / 33, 1e-12)
     # Independent labelings score about 0 (expected value 0; |ARI| < 0.01 at n = 20000).
     rng = np.random.default_rng(0)
     x, y = rng.integers(0, 4, 20000), rng.integers(0, 4, 20000)
-    assert abs(seg.adjusted_rand_index(x, y)) < 0.01
+    assert abs(seg_metrics.adjusted_rand_index(x, y)) < 0.01
 
 
 def test_miou_hungarian_hand_cases():
     gt = [1, 1, 1, 2, 2, 3]
     pred = [5, 5, 7, 7, 7, 9]
     # IoU(1,5) = 2/3, IoU(2,7) = 2/3, IoU(3,9) = 1 -> (2/3 + 2/3 + 1) / 3 = 7/9.
-    miou, match = seg.miou_hungarian(pred, gt)
+    miou, match = seg_metrics.miou_hungarian(pred, gt)
     assert miou == pytest.approx(7 / 9, 1e-12)
     assert match == {1: 5, 2: 7, 3: 9}
     # One predicted class for two ground-truth ones: IoU 1/2 matched, the other counts 0.
-    miou, _ = seg.miou_hungarian([0, 0, 0, 0], [1, 1, 2, 2])
+    miou, _ = seg_metrics.miou_hungarian([0, 0, 0, 0], [1, 1, 2, 2])
     assert miou == pytest.approx(0.25, 1e-12)
 
 
 def test_evaluate_maps_excludes_background():
     gt = np.array([[0, 1, 1], [0, 2, 2]])
     pred = np.array([[4, 3, 3], [4, 0, 0]])  # background pixels of gt are ignored
-    m = seg.evaluate_maps([pred], [gt])
+    m = seg_metrics.evaluate_maps([pred], [gt])
     assert m["ari"] == 1.0 and m["miou"] == 1.0 and m["pixels"] == 4
     assert m["pred_background"] == pytest.approx(0.5)
 
@@ -61,15 +63,15 @@ def test_shadow_consistency_counts():
     vis = np.ones((2, 4, 2))
     vis[1, :, 0] = 0.0  # bottom row shadowed from light 0
     pred = np.array([[2, 2, 2, 2], [2, 2, 3, 3]])
-    r = seg.shadow_consistency([pred], [gt], [vis], 5)
+    r = seg_metrics.shadow_consistency([pred], [gt], [vis], 5)
     assert r["segment"] == 2 and r["lit_fraction"] == 1.0 and r["shadow_fraction"] == 0.5
     # No shadowed pixel: its own error, which the stage reports as a fact of the views; a
     # malformed input (maps of other sizes) is another error, not reported as that one.
-    with pytest.raises(seg.NoPixelsToCompare, match="no shadowed pixel"):
-        seg.shadow_consistency([pred], [gt], [np.ones((2, 4, 2))], 5)
+    with pytest.raises(seg_metrics.NoPixelsToCompare, match="no shadowed pixel"):
+        seg_metrics.shadow_consistency([pred], [gt], [np.ones((2, 4, 2))], 5)
     with pytest.raises(ValueError) as err:
-        seg.shadow_consistency([pred], [gt[:1]], [vis], 5)
-    assert not isinstance(err.value, seg.NoPixelsToCompare)
+        seg_metrics.shadow_consistency([pred], [gt[:1]], [vis], 5)
+    assert not isinstance(err.value, seg_metrics.NoPixelsToCompare)
 
 
 # -- loss kernels against float64 NumPy -----------------------------------------------------
@@ -250,7 +252,7 @@ def test_kmeans_prototype_seeds_keep_a_small_cluster():
     truth = np.repeat([0, 1, 2], [3000, 300, 8])
     seeds = np.eye(3)
     lab, _ = seg.kmeans_segments(f, 3, init=seeds)
-    assert seg.adjusted_rand_index(lab, truth) > 0.99
+    assert seg_metrics.adjusted_rand_index(lab, truth) > 0.99
     # Same seed, same answer.
     a, _ = seg.kmeans_segments(f, 3, seed=3)
     b, _ = seg.kmeans_segments(f, 3, seed=3)
@@ -390,7 +392,7 @@ def test_label_count_keeps_close_materials_apart_where_silhouette_merges_them():
     k_sil, _ = seg.choose_k(f, 5, config=cfg)
     assert k_sil < 5  # the silhouette merges the close pair
     lab, _ = seg.kmeans_segments(f, 5, init=centres)
-    assert seg.adjusted_rand_index(lab, truth) > 0.99
+    assert seg_metrics.adjusted_rand_index(lab, truth) > 0.99
 
 
 def test_k_selection_settings():
@@ -461,9 +463,9 @@ def test_two_material_plane_is_segmented():
     # seen by a sliver of one view, get few updates: 0.97 allows ~2 of ~350 to be wrong.
     away = (np.abs(pos[:, 0]) > 0.1) & (res.train.coverage >= cfg.min_coverage)
     assert away.sum() > 300
-    assert seg.adjusted_rand_index(res.segments[away], truth[away]) > 0.97
-    pred = seg.render_segment_map(res.surfels, res.segments, res.k, cams[1])
-    m = seg.evaluate_maps([pred], [maps[1]])
+    assert seg_metrics.adjusted_rand_index(res.segments[away], truth[away]) > 0.97
+    pred = seg_maps.render_segment_map(res.surfels, res.segments, res.k, cams[1])
+    m = seg_metrics.evaluate_maps([pred], [maps[1]])
     assert m["ari"] > 0.9  # only the pixels of the boundary column may differ
     assert res.surfels.channels["segment"].shape == (n, 1)
     assert res.surfels.channels["feature"].shape == (n, 8)

@@ -23,7 +23,7 @@ def score(labels, gt, vis, base: int) -> dict:
     """The figures above for label maps ``labels`` ([H, W] each) against ``gt`` ids."""
     import numpy as np
 
-    from mi_shadowgs.stages.segmentation.features import adjusted_rand_index, evaluate_maps
+    from mi_shadowgs.stages.segmentation.metrics import adjusted_rand_index, evaluate_maps
 
     p = np.concatenate([np.asarray(m).ravel() for m in labels])
     g = np.concatenate([np.asarray(m).ravel() for m in gt])

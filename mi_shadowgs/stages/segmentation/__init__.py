@@ -1,8 +1,9 @@
 """Stage 2: material segmentation (Sec. III-B): contrastive per-surfel features trained on
 2D label maps, then K-means into one segment per surfel.
 
-``features``: config, losses, training, K-means and the segment metrics; ``masks``: the
-label maps (material ids or chromaticity regions); ``runner``: ``run_segmentation``.
+``features``: config, losses, training and K-means; ``maps``: the segment maps of views;
+``metrics``: the segment metrics; ``masks``: the label maps (material ids or chromaticity
+regions); ``runner``: ``run_segmentation``.
 """
 
 from __future__ import annotations

@@ -81,6 +81,7 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     from mi_shadowgs.io.images import write_png
     from mi_shadowgs.io.ply import load_ply, save_ply
     from mi_shadowgs.stages.segmentation import features as seg
+    from mi_shadowgs.stages.segmentation import maps as seg_maps
     from mi_shadowgs.stages.segmentation import masks as masks_mod
 
     folder, model = Path(folder), Path(model)
@@ -119,11 +120,11 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
         out.claim("model.ply", *(f"segments/{s}{x}.png" for s in stems
                                  for x in ("", "_overlay")), "segmentation.json")
         save_ply(folder / "model.ply", result.surfels)
-        colors = seg.segment_colors(result.k)
+        colors = seg_maps.segment_colors(result.k)
         maps = []
         for stem, v in tqdm(list(zip(stems, views.views, strict=True)), desc="segment maps",
                             unit="view", disable=not progress):
-            m = seg.render_segment_map(result.surfels, result.segments, result.k, v.camera,
+            m = seg_maps.render_segment_map(result.surfels, result.segments, result.k, v.camera,
                                        config.segment_alpha)
             maps.append(m)
             write_png(folder / "segments" / f"{stem}.png", colors[m])
@@ -149,18 +150,18 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
 
 def _segmentation_metrics(maps: list, views) -> dict:
     """ARI / mIoU against the material ids, and the lit/shadowed check of the base."""
-    from mi_shadowgs.stages.segmentation import features as seg
+    from mi_shadowgs.stages.segmentation import metrics as seg_metrics
 
     gt = [v.material for v in views.views]
-    out = {"metrics": seg.evaluate_maps(maps, gt)}
+    out = {"metrics": seg_metrics.evaluate_maps(maps, gt)}
     mats = (views.info or {}).get("materials") or []
     base = next((m["id"] for m in mats if m.get("name") == "base"), None)
     if base is None:
         base = int(max(int(g.max()) for g in gt))
     if all(v.visibility is not None for v in views.views):
         try:
-            out["base_shadow"] = seg.shadow_consistency(
+            out["base_shadow"] = seg_metrics.shadow_consistency(
                 maps, gt, [v.visibility for v in views.views], int(base))
-        except seg.NoPixelsToCompare as exc:  # no shadowed base pixel in these views
+        except seg_metrics.NoPixelsToCompare as exc:  # no shadowed base pixel in these views
             out["base_shadow"] = {"error": str(exc)}
     return out

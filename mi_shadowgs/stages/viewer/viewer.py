@@ -364,7 +364,7 @@ class ViewerSession:
         return g
 
     def _segment_color_channel(self) -> mi.TensorXf:
-        from mi_shadowgs.stages.segmentation.features import segment_colors
+        from mi_shadowgs.stages.segmentation.maps import segment_colors
 
         seg = np.asarray(self.surfels.channels[SEGMENT_CHANNEL].numpy()).reshape(-1)
         seg = np.round(seg).astype(np.int64)
