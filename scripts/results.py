@@ -2,13 +2,15 @@
 
 Each ``results/*.json`` records one measurement: its figures (one or more tables), the
 command that produced them, the machine, the commit and the date. This module renders them,
-in their ``order``, into one page. The output depends on the files alone, so running it
-twice gives the same bytes; ``--check`` exits 1 when RESULTS.md is not what the files give.
+in their ``order``, into one page: ``RESULTS.md``, and the same text as the documentation
+site's ``docs/results.md``. The output depends on the files alone, so running it twice gives
+the same bytes; ``--check`` exits 1 when either page is not what the files give.
 
 ``make bench`` and ``make validate`` write files of the same schema with ``--results DIR``
 (``raster_result`` and ``pipeline_result`` below)::
 
-    python -m scripts.results [--results results] [--out RESULTS.md] [--check]
+    python -m scripts.results [--results results] [--out RESULTS.md docs/results.md]
+                              [--check]
 
 Schema of a result file (keys other than ``title`` and ``tables`` are optional)::
 
@@ -167,20 +169,25 @@ def _fmt(value, digits: int) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Write RESULTS.md from results/*.json.")
     ap.add_argument("--results", default=str(ROOT / "results"), help="the result files' folder")
-    ap.add_argument("--out", default=str(ROOT / "RESULTS.md"), help="the page to write")
+    ap.add_argument("--out", nargs="+", default=[str(ROOT / "RESULTS.md"),
+                                                 str(ROOT / "docs" / "results.md")],
+                    help="the pages to write (each gets the same text)")
     ap.add_argument("--check", action="store_true",
                     help="write nothing; exit 1 when the page differs from the files")
     args = ap.parse_args(argv)
     text = render(Path(args.results))
-    out = Path(args.out)
-    if args.check:
+    stale = []
+    for out in map(Path, args.out):
         current = out.read_text(encoding="utf-8") if out.is_file() else None
-        if current != text:
-            print(f"{out} is not current: run make results", file=sys.stderr)
-            return 1
-        return 0
-    out.write_text(text, encoding="utf-8")
-    print(f"wrote {out} from {args.results}")
+        if current == text:
+            continue
+        stale.append(out)
+        if not args.check:
+            out.write_text(text, encoding="utf-8")
+            print(f"wrote {out} from {args.results}")
+    if args.check and stale:
+        print(f"not current: {', '.join(map(str, stale))}: run make results", file=sys.stderr)
+        return 1
     return 0
 
 
