@@ -37,6 +37,12 @@ def test_the_site_builds_strict_with_every_page(tmp_path):
         html = tmp_path / "site" / ("index.html" if page == "index.md"
                                     else page[:-3] + "/index.html")
         assert html.is_file(), page
+        # an image whose markdown did not parse (e.g. alt text over two lines) is no <img>
+        built = html.read_text(encoding="utf-8")
+        for figure in re.findall(r"!\[[^\]]*\]\((figures/[^)]+)\)",
+                                 (ROOT / "docs" / page).read_text(encoding="utf-8")):
+            assert re.search(r'<img [^>]*src="[./]*' + re.escape(figure) + '"', built), \
+                (page, figure)
     api = (tmp_path / "site" / "api" / "index.html").read_text(encoding="utf-8")
     assert "generate_dataset" in api and "load_model" in api  # generated from docstrings
 
