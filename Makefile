@@ -1,4 +1,4 @@
-# Two commands on a fresh machine: `make demo` and `make test` (see README.md).
+# Two commands on a fresh machine: `make demo` and `make test` (README.md).
 VENV := .venv
 PY := $(VENV)/bin/python
 CLI := $(VENV)/bin/mi-shadowgs
@@ -6,7 +6,7 @@ PRESET ?= cpu-small
 SCENE ?= mi_shadowgs/scenes/default.xml
 DEMO_DIR ?= runs/demo
 
-.PHONY: install install-dev demo test bench validate lint lock clean
+.PHONY: install install-dev demo test bench validate results docs lint lock clean
 
 $(VENV)/.installed: pyproject.toml $(wildcard constraints.txt) scripts/setup.sh
 	bash scripts/setup.sh
@@ -29,7 +29,8 @@ demo: install
 
 # The viewer's browser test needs chromium and chromium-driver (installed here when root).
 # The test files run on one process per core, at most TEST_WORKERS (pytest-xdist; a file's
-# tests stay on one process, so its fixtures are made once): from zero on 2 cores, 18:23 -> 12:09.
+# tests stay on one process, so its fixtures are made once): most of a test's time is one
+# thread, so two processes on 2 cores take about two thirds of one's time.
 TEST_WORKERS ?= 4
 test: install-dev
 	@bash scripts/setup.sh --chromium
@@ -37,6 +38,7 @@ test: install-dev
 
 # Each suite is kept once it has run (a killed `make bench` resumes); suites run at another
 # commit, preset or machine exit 2 naming it: BENCH_ARGS=--overwrite runs them again.
+# BENCH_ARGS="--results results" also writes the rasterizer's figures as a result file.
 BENCH_ARGS ?=
 bench: install
 	$(PY) -m benchmarks.run_all --out BENCHMARKS-latest $(BENCH_ARGS)
@@ -46,10 +48,22 @@ bench: install
 #   make validate VALIDATE_ARGS="--scene bunny --lights low --only pipeline"
 # The studies after the table exit 2 on units made from other inputs or settings:
 #   make validate VALIDATE_ARGS=--overwrite
+# VALIDATE_ARGS="--results results" also writes the table as a result file.
 VALIDATE_ARGS ?=
 validate: install
 	@bash scripts/setup.sh --chromium
 	$(PY) -m validation.run_all --out validation-out $(VALIDATE_ARGS)
+
+# RESULTS.md and docs/results.md from the committed result files in results/ (the same
+# bytes every time; tests/test_results.py checks they are current).
+results:
+	python3 -m scripts.results
+
+# The documentation site from docs/ into site/: the CLI page from the parsers first, then
+# mkdocs with --strict (a broken link or a missing page fails).
+docs: install-dev
+	$(PY) -m scripts.cli_docs
+	$(VENV)/bin/mkdocs build --strict
 
 # constraints.txt from the venv's versions (scripts/lock.py): after a version change that
 # `make test` from zero passed with.
@@ -60,4 +74,4 @@ lint: install-dev
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) runs validation-out BENCHMARKS-latest .pytest_cache
+	rm -rf $(VENV) runs validation-out BENCHMARKS-latest site .pytest_cache

@@ -12,7 +12,10 @@ are copied to OUT's top level, then ``machine.json`` and ``README.md`` are writt
 atomically, so a reader never sees a half-written report::
 
     python -m benchmarks.run_all --out BENCHMARKS-latest [--quick] [--only raster]
-                                 [--overwrite]
+                                 [--overwrite] [--results results]
+
+``--results DIR`` also writes the rasterizer's figures as ``DIR/raster_vs_mitsuba.json``,
+the schema ``make results`` renders into RESULTS.md (``scripts/results.py``).
 """
 
 from __future__ import annotations
@@ -146,6 +149,18 @@ def _suite_times(suites: dict) -> str:
                      for name, s in suites.items())
 
 
+def write_raster_result(out: Path, results: Path, info: dict) -> None:
+    """The rasterizer suite's figures (``OUT/raster.json``) as a result file."""
+    import json
+
+    from scripts.results import raster_result, write_result
+
+    summary = json.loads((out / "raster.json").read_text(encoding="utf-8"))
+    path = results / "raster_vs_mitsuba.json"
+    write_result(path, raster_result(summary, info, info["command"]))
+    print(f"benchmarks: wrote {path}")
+
+
 def main(argv=None) -> int:
     suites = discover_suites()
     ap = argparse.ArgumentParser(description="Run the mi_shadowgs benchmarks.")
@@ -158,6 +173,9 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true",
                     help="run this call's suites again, also those that finished (with other "
                          "code, on another machine or preset: those exit 2 otherwise)")
+    ap.add_argument("--results", default=None, metavar="DIR",
+                    help="also write the rasterizer's figures as DIR/raster_vs_mitsuba.json "
+                         "(the committed result files: make results renders them)")
     args = ap.parse_args(argv)
     out = claim_out(args.out, STUDY, ("machine.json",))
     preset = "cpu-small" if args.quick else "paper"
@@ -194,6 +212,8 @@ def main(argv=None) -> int:
         f"Python {info['python']}; code {info['commit']}", "",
     ]
     write_text(out / "README.md", "\n".join(header + sections) + "\n")
+    if args.results and (out / "raster.json").is_file():
+        write_raster_result(out, Path(args.results), info)
     print("\n".join(sections))
     print(f"benchmarks: wrote {args.out} in {(time.perf_counter() - t0) / 60:.1f} min")
     return 0

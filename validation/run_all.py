@@ -134,6 +134,23 @@ def _check_out(out: Path) -> None:
              f"(e.g. {sorted(entries)[0]}); choose a new folder")
 
 
+def write_pipeline_result(table: Path, results: Path, command: str, date: str) -> None:
+    """The pipeline table's rows (``table/pipeline.json``) as one result file per preset."""
+    import platform
+
+    from scripts.results import pipeline_result, write_result
+
+    rows = json.loads((table / "pipeline.json").read_text(encoding="utf-8"))
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+    by_preset: dict[str, list[dict]] = {}
+    for row in rows:
+        by_preset.setdefault(row.get("preset", "cpu-small"), []).append(row)
+    for preset, preset_rows in sorted(by_preset.items()):
+        path = results / f"pipeline_{preset.replace('-', '_')}.json"
+        write_result(path, pipeline_result(preset_rows, command, machine, date[:10]))
+        print(f"validation: wrote {path}", flush=True)
+
+
 def main(argv=None) -> int:
     from . import pipeline
 
@@ -150,6 +167,9 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true",
                     help="make the studies' units again where they were made from other "
                          "inputs or settings (the table's finished rows stand)")
+    ap.add_argument("--results", default=None, metavar="DIR",
+                    help="also write the pipeline table as DIR/pipeline_<preset>.json (the "
+                         "committed result files: make results renders them)")
     args = ap.parse_args(argv)
     if args.threads:
         import drjit as dr
@@ -186,6 +206,8 @@ def main(argv=None) -> int:
             "wall_s": time.perf_counter() - t0, "quick": args.quick,
             "command": command, "failed": failed}
     write_json(out / RUN_JSON, info)
+    if args.results and (out / "pipeline" / "pipeline.json").is_file():
+        write_pipeline_result(out / "pipeline", Path(args.results), command, info["date_utc"])
     header = ["# Validation (latest run)", "", f"- Command: `{info['command']}`",
               f"- Date: {info['date_utc']}; {info['wall_s'] / 60:.1f} min; "
               f"{info['cpu_count']} cores, load {load0[0]:.2f} at start", ""]
