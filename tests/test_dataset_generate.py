@@ -94,7 +94,7 @@ def test_every_stage_has_every_preset():
                  "mi_shadowgs.stages.visibility.shadow_maps",
                  "mi_shadowgs.stages.material.fit", "mi_shadowgs.stages.relight.render",
                  "mi_shadowgs.stages.export.mesh", "mi_shadowgs.stages.export.export",
-                 "mi_shadowgs.pipeline"):
+                 "mi_shadowgs.presets"):
         presets = importlib.import_module(name).PRESETS
         assert set(PRESET_NAMES) <= set(presets), (name, sorted(presets))
     from mi_shadowgs.stages.visibility import baselines

@@ -235,12 +235,9 @@ def _computed_params(root: ET.Element, defaults: dict) -> dict[str, str]:
     return {k: v for k, v in out.items() if k in defaults}
 
 
-def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> SceneSetup:
-    """Load a scene XML with ``overrides`` of its ``<default>`` parameters (see module doc)."""
-    import mitsuba as mi
-
-    path = Path(path)
-    root = _parse_xml(path)
+def _scene_params(path: Path, root, overrides: dict | None) -> tuple[dict[str, str], str]:
+    """(the scene's parameters: its ``<default>`` values with ``overrides``, the base's
+    texture); an unknown or computed parameter is a SceneError naming it."""
     # base_texture is Python's, for every scene: kept out of the XML (and of params unless
     # set), so that plain datasets keep their fingerprints.
     overrides = dict(overrides or {})
@@ -251,22 +248,19 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
     defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
     params = dict(defaults)
     computed = _computed_params(root, defaults)
-    for k, v in (overrides or {}).items():
+    for k, v in overrides.items():
         if k not in defaults:
             raise SceneError(f"{path}: unknown scene parameter {k!r}; known: {sorted(defaults)}")
         if k in computed:  # the loader would overwrite it: refuse rather than ignore
             raise SceneError(f"{path}: scene parameter {k!r} is computed, not set; "
                              f"{computed[k]}")
         params[k] = str(v)
+    return params, texture
 
-    shapes = [s for s in root.findall("shape")]
-    part_elems = [s for s in shapes if (s.get("id") or "").startswith("object_")]
-    if not part_elems:
-        raise SceneError(f"{path}: no object shape (a <shape id=\"object_<part>\">)")
-    if not any(s.get("id") == "base" for s in shapes):
-        raise SceneError(f"{path}: no base shape (a <shape id=\"base\">)")
 
-    # Lights: direction from azimuth/elevation, irradiance as RGB.
+def _scene_lights(path: Path, root, params: dict[str, str]) -> list[Light]:
+    """The scene's lights (direction from azimuth/elevation, irradiance as RGB), in their
+    number's order; writes each one's direction and irradiance into ``params``."""
     lights = []
     for em in root.findall("emitter"):
         m = LIGHT_ID.match(em.get("id") or "")
@@ -290,7 +284,12 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
         params[f"{name}_irradiance"] = _fmt(irr)
         lights.append(Light(name, tuple(l_dir.tolist()), tuple(irr), az, el))
     lights.sort(key=lambda lt: int(LIGHT_ID.match(lt.name).group(1)))
+    return lights
 
+
+def _mesh_and_parts(path: Path, params: dict[str, str]) -> tuple[Path | None, Path | None]:
+    """(the object's mesh file, its parts file), either None; writes the mesh into
+    ``params``."""
     mesh = _resolve_mesh(path, params)
     parts_json = None
     if mesh is not None:
@@ -304,6 +303,24 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
             parts_json = Path(mode)
             if not parts_json.is_file():
                 raise SceneError(f"parts file not found: {mode} (scene parameter 'parts')")
+    return mesh, parts_json
+
+
+def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> SceneSetup:
+    """Load a scene XML with ``overrides`` of its ``<default>`` parameters (see module doc)."""
+    import mitsuba as mi
+
+    path = Path(path)
+    root = _parse_xml(path)
+    params, texture = _scene_params(path, root, overrides)
+    shapes = [s for s in root.findall("shape")]
+    part_elems = [s for s in shapes if (s.get("id") or "").startswith("object_")]
+    if not part_elems:
+        raise SceneError(f"{path}: no object shape (a <shape id=\"object_<part>\">)")
+    if not any(s.get("id") == "base" for s in shapes):
+        raise SceneError(f"{path}: no base shape (a <shape id=\"base\">)")
+    lights = _scene_lights(path, root, params)
+    mesh, parts_json = _mesh_and_parts(path, params)
     normalize = params.get("normalize", "true").strip().lower() not in ("false", "0", "no")
     params["object_to_world"] = _fmt_matrix(np.eye(4))
 

@@ -494,15 +494,7 @@ def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet
     geom = Surfels(dr.detach(surfels.position), dr.detach(surfels.log_scale),
                    dr.detach(surfels.rotation), dr.detach(surfels.opacity_logit))
     if state is None:
-        start = surfels.channels.get(FEATURE)
-        if start is None or start.shape[1] != config.feature_dim:
-            start = init_features(n, config.feature_dim, config.seed, config.init_std)
-        opt = mi.ad.Adam(lr=config.lr)
-        opt[FEATURE] = mi.TensorXf(start)
-        state = FeatureState(0, opt, dr.zeros(mi.Float, n),
-                             [dr.zeros(mi.Float, labels.n_labels + 1)
-                              for _ in range(config.feature_dim)],
-                             np.random.default_rng(config.seed), [], [])
+        state = _initial_state(surfels, labels, config)
     opt, rng, proto = state.opt, state.rng, state.proto
     proto_from = config.iterations - max(1, int(config.iterations * config.prototype_share))
     half = max(1, config.n_samples // 2)
@@ -562,12 +554,35 @@ def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet
             raise_pending(f"segmentation stopped at iteration {state.step} of "
                           f"{config.iterations}" + (", checkpoint written" if on_checkpoint
                                                     else ""))
-    feats = opt[FEATURE]
-    out = np.asarray(feats.numpy(), dtype=np.float32).reshape(n, config.feature_dim)
+    return _train_result(state, n, config, time.perf_counter() - t0)
+
+
+def _initial_state(surfels: Surfels, labels: LabelSet, config: SegmentationConfig
+                   ) -> FeatureState:
+    """The feature training's state before its first step: the model's features where it
+    has them (of ``feature_dim``), else random ones."""
+    n = surfels.count
+    start = surfels.channels.get(FEATURE)
+    if start is None or start.shape[1] != config.feature_dim:
+        start = init_features(n, config.feature_dim, config.seed, config.init_std)
+    opt = mi.ad.Adam(lr=config.lr)
+    opt[FEATURE] = mi.TensorXf(start)
+    return FeatureState(0, opt, dr.zeros(mi.Float, n),
+                        [dr.zeros(mi.Float, labels.n_labels + 1)
+                         for _ in range(config.feature_dim)],
+                        np.random.default_rng(config.seed), [], [])
+
+
+def _train_result(state: FeatureState, n: int, config: SegmentationConfig,
+                  seconds: float) -> TrainResult:
+    """The trained features, coverage and label prototypes as NumPy arrays."""
+    out = np.asarray(state.opt[FEATURE].numpy(), dtype=np.float32).reshape(n,
+                                                                            config.feature_dim)
     cov = np.asarray(state.coverage.numpy(), dtype=np.float64)
-    protos = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in proto], axis=-1)[1:]
+    protos = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in state.proto],
+                      axis=-1)[1:]
     dr.sync_thread()
-    return TrainResult(out, cov, protos, state.history, time.perf_counter() - t0)
+    return TrainResult(out, cov, protos, state.history, seconds)
 
 
 # -- K-means ------------------------------------------------------------------------------
