@@ -67,7 +67,7 @@ def imports_in(source: str, mod: str, is_package: bool = False
             for alias in node.names:  # `from pkg import submodule` names the submodule
                 sub = f"{base}.{alias.name}"
                 is_mod = ((ROOT / Path(*sub.split("."))).with_suffix(".py").is_file() or
-                    (ROOT / Path(*sub.split("."))).is_dir())
+                          (ROOT / Path(*sub.split("."))).is_dir())
                 out.append((sub if is_mod else base, [alias.name], node.lineno))
         elif isinstance(node, ast.Import):
             out += [(a.name, [], node.lineno) for a in node.names
@@ -197,7 +197,7 @@ def test_the_cycle_checker_finds_a_planted_loop():
                              "mi_shadowgs.core.raster_tiles")
     assert a == {"mi_shadowgs.core.raster_tiles"} and b == {"mi_shadowgs.core.raster"}
     assert (import_cycles({"mi_shadowgs.core.raster": a, "mi_shadowgs.core.raster_tiles": b})
-        == [["mi_shadowgs.core.raster", "mi_shadowgs.core.raster_tiles"]])
+            == [["mi_shadowgs.core.raster", "mi_shadowgs.core.raster_tiles"]])
     assert import_cycles({"x": {"y"}, "y": {"z"}}) == []
 
 

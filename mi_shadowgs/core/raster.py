@@ -107,7 +107,7 @@ def _plan_bands(g: Proj, width: int, height: int, config: RasterConfig,
     y0n, bwn, bhn, cn = (np.asarray(v, np.int64) for v in (y0, bw, bh, count))
     w = np.where(cn > 0, bwn, 0).astype(np.float64)
     edges = (np.bincount(np.minimum(y0n, height), w, height + 1)
-        - np.bincount(np.minimum(y0n + bhn, height), w, height + 1))
+             - np.bincount(np.minimum(y0n + bhn, height), w, height + 1))
     per_row = np.cumsum(edges)[:height]  # [H], exact integers in float64
     if per_row.max() > limit:
         raise RasterMemoryError(
@@ -334,7 +334,7 @@ def rasterize(surfels: Surfels, camera: Camera,
                              f"{W}x{H} image, got shape {host.shape}")
         if host.size == 0:  # nothing to composite
             return ({name: dr.zeros(mi.TensorXf, (0, t.shape[1])) for name, t in chans.items()}
-                | {a: dr.zeros(mi.TensorXf, (0, AOV_CHANNELS[a])) for a in aovs})
+                    | {a: dr.zeros(mi.TensorXf, (0, AOV_CHANNELS[a])) for a in aovs})
         pixels = mi.UInt32(host.astype(np.uint32))
 
     g = project(surfels, camera, config)
@@ -343,9 +343,9 @@ def rasterize(surfels: Surfels, camera: Camera,
     dr.eval(*(getattr(g, f.name) for f in dataclasses.fields(g)))
     gd = g.detach()
     grad = (any(dr.grad_enabled(getattr(g, f.name)) for f in dataclasses.fields(g)) or
-        any(dr.grad_enabled(t) for t in chans.values()))
+            any(dr.grad_enabled(t) for t in chans.values()))
     widths = ({name: t.shape[1] for name, t in chans.items()} |
-        {a: AOV_CHANNELS[a] for a in aovs})
+              {a: AOV_CHANNELS[a] for a in aovs})
     if config.method == "tiles":
         from mi_shadowgs.core.raster_tiles import render_tiles
 

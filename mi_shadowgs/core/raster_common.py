@@ -225,7 +225,7 @@ def boxes(g: Proj, width: int, height: int, config: RasterConfig, rows=None):
     ox = dr.select(bounded, ox, 0.0)
     oy = dr.select(bounded, oy, 0.0)
     rf = (config.cutoff_sigma / math.sqrt(config.lowpass_inv_var) if config.lowpass_inv_var > 0
-        else 0.0)
+          else 0.0)
     m = config.box_margin
     xmin = g.xc + dr.minimum(ox - hx, -rf) - m
     xmax = g.xc + dr.maximum(ox + hx, rf) + m
@@ -266,7 +266,7 @@ def memory_budget(config: RasterConfig, need: int) -> tuple[int, int] | None:
         if budget is None and resident is not None:
             avail = memory.available_bytes()
             budget = (None if avail is None else
-                resident + int(config.memory_budget_fraction * avail))
+                      resident + int(config.memory_budget_fraction * avail))
         return None if resident is None or budget is None else (budget, resident)
 
     got = read()
@@ -279,9 +279,9 @@ def memory_budget(config: RasterConfig, need: int) -> tuple[int, int] | None:
 def budget_text(config: RasterConfig, budget: int, resident: int) -> str:
     gib = 1 << 30
     setting = (f"RasterConfig.memory_budget_bytes={config.memory_budget_bytes}"
-        if config.memory_budget_bytes is not None else
-        (f"RasterConfig.memory_budget_bytes=None: {config.memory_budget_fraction:g} of "
-         f"MemAvailable"))
+               if config.memory_budget_bytes is not None else
+               (f"RasterConfig.memory_budget_bytes=None: {config.memory_budget_fraction:g} of "
+                f"MemAvailable"))
     return (f"the memory budget ({setting}) is {budget / gib:.2f} GiB and this process "
             f"already holds {resident / gib:.2f} GiB")
 
@@ -293,7 +293,7 @@ def pair_eval(q: dict, px: mi.Float, py: mi.Float, config: RasterConfig):
     sx = q["t22"] * (dx * q["b1"] - dy * q["a1"])
     sy = q["t22"] * (dy * q["a0"] - dx * q["b0"])
     sz = ((q["a0"] * q["b1"] - q["a1"] * q["b0"]) + dx * (q["t21"] * q["b0"] - q["t20"] * q["b1"])
-        + dy * (q["a1"] * q["t20"] - q["a0"] * q["t21"]))
+          + dy * (q["a1"] * q["t20"] - q["a0"] * q["t21"]))
     # Edge-on: the ray (nearly) parallel to the plane; guard the division so that neither
     # the value nor the gradient sees inf, and let the low-pass filter take over.
     hit = dr.abs(sz) > config.edge_on_eps * (dr.abs(sx) + dr.abs(sy))
@@ -366,7 +366,7 @@ def pair_kept(alpha, rho, depth, config: RasterConfig):
     """Whether a pair contributes at all: alpha above alpha_min, inside the cutoff ellipse,
     in front of the near plane (both renderers drop the others)."""
     return ((alpha >= config.alpha_min) & (rho <= config.cutoff_sigma ** 2) &
-        (depth >= config.near))
+            (depth >= config.near))
 
 
 def distortion_m(depth, config: RasterConfig):

@@ -105,7 +105,7 @@ def _check_tile_budget(tile_pairs: int, lanes: int, config: RasterConfig, grad: 
             f"RasterConfig.max_pairs={config.max_pairs} (surfels too large for the image?)")
     per_lane = config.bytes_per_pixel_grad if grad else config.bytes_per_pixel
     need = (config.reserve_bytes + lanes * (per_lane + 8 * channels) +
-        tile_pairs * (config.bytes_per_tile_pair + 4 * channels))
+            tile_pairs * (config.bytes_per_tile_pair + 4 * channels))
     if grad:
         # The normal's fields counted whether or not it is rendered: an upper bound.
         need += _grad_copy_bytes(_grad_entries(surfels, True, channels), config)
@@ -155,7 +155,7 @@ def _bin(gd: Proj, width: int, height: int, config: RasterConfig, grad: bool,
     w = dr.maximum(dr.gather(mi.UInt32, tw, sid), 1)  # max: see raster_common.expand
     ly = local // w
     tile = ((dr.gather(mi.UInt32, ty0, sid) + ly) * ntx + dr.gather(mi.UInt32, tx0, sid) +
-        (local - ly * w))
+            (local - ly * w))
     order = dr.argsort(tile)
     sid = dr.gather(mi.UInt32, sid, order)
     tile = dr.gather(mi.UInt32, tile, order)
@@ -304,7 +304,7 @@ def _in_box(box: tuple, px: mi.UInt32, py: mi.UInt32) -> mi.Bool:
     pixels)."""
     bx, by = box
     return ((px >= (bx & 0xFFFF)) & (px <= (bx >> 16)) & (py >= (by & 0xFFFF)) &
-        (py <= (by >> 16)))
+            (py <= (by >> 16)))
 
 
 class _TiledOp(dr.CustomOp):
@@ -321,7 +321,7 @@ class _TiledOp(dr.CustomOp):
             name: [dr.gather(mi.Float, arr, bins.sid * c + k) for k in range(c)]
             for (name, arr), c in zip(chans.items(), ctx.widths.values(), strict=True)}
         plan = (_image_plan(bins, ctx.width, ctx.height) if ctx.pixels is None else
-            _sample_plan(bins, ctx.width, ctx.pixels))
+                _sample_plan(bins, ctx.width, ctx.pixels))
         tile, pxs, pys, insides = plan.tile, plan.pxs, plan.pys, plan.insides
         pxf = [mi.Float(px) + 0.5 for px in pxs]
         pyf = [mi.Float(py) + 0.5 for py in pys]
@@ -371,7 +371,7 @@ class _TiledOp(dr.CustomOp):
             for k, p in enumerate(s["pixels"]):
                 alpha, rho, depth = pair_eval(q, pxf[k], pyf[k], config)
                 keep = (~p["done"] & pair_kept(alpha, rho, depth, config) &
-                    _in_box(box, pxs[k], pys[k]))
+                        _in_box(box, pxs[k], pys[k]))
                 a64 = mi.Float64(alpha)
                 t_before = p["T"]
                 t_after = t_before * (1.0 - a64)
@@ -592,7 +592,7 @@ def _tiled_backward(op: _TiledOp) -> None:
             alpha, rho, depth = pair_eval(q, pxf[k], pyf[k], config)
             # Every kept pair before the stop index was composited (T only decreases).
             comp = ((i < own_stop[k]) & insides[k] & pair_kept(alpha, rho, depth, config) &
-                _in_box(box, pxs[k], pys[k]))
+                    _in_box(box, pxs[k], pys[k]))
             # Pairs that are not composited pass through with alpha 0 and a finite depth.
             depth = dr.select(comp, depth, config.near)
             a64 = mi.Float64(dr.select(comp, alpha, 0.0))
