@@ -1,7 +1,8 @@
 """mi_shadowgs: shadow-aware inverse rendering with 2D Gaussian surfels on Mitsuba 3 / Dr.Jit.
 
-Importing the package finds a libLLVM that Dr.Jit can run (before drjit loads), selects the
-default variant when none is active, and registers the Mitsuba plugins for it.
+Importing the package finds a libLLVM that Dr.Jit can run (before drjit loads) and selects the
+default variant when none is active. The Mitsuba plugins (``surfel_raster``,
+``surfel_relight``) register when asked: ``register_plugins()``.
 """
 
 from mi_shadowgs import backend as _backend
@@ -17,4 +18,13 @@ else:
 
 set_variant = _backend.set_variant
 
-__all__ = ["set_variant", "__version__"]
+
+def register_plugins() -> list[str]:
+    """Register mi_shadowgs's Mitsuba plugins for the active variant (and, from then on, for
+    each variant ``set_variant`` switches to); returns their names."""
+    from mi_shadowgs.plugins import register
+
+    return register()
+
+
+__all__ = ["register_plugins", "set_variant", "__version__"]

@@ -7,14 +7,13 @@ kernel (the same check ``scripts/setup.sh`` makes). Where there is none, drjit i
 at no library at all, so that it fails with an error instead of loading a broken LLVM, and
 ``set_variant`` raises ``BackendError`` saying what to install. Variants: ``llvm_ad_rgb``
 (CPU, the default, always available) and ``cuda_ad_rgb`` (asked for explicitly, or through
-``MI_SHADOWGS_VARIANT``).
+``MI_SHADOWGS_VARIANT``). The Mitsuba plugins are not this module's business: they register
+when asked (``mi_shadowgs.plugins.register``).
 """
 
 from __future__ import annotations
 
-import importlib
 import os
-import pkgutil
 import sys
 
 from mi_shadowgs import libllvm
@@ -92,28 +91,17 @@ def variant_available(name: str) -> bool:
     return False
 
 
-def register_plugins() -> list[str]:
-    """(Re)import every module of mi_shadowgs.plugins so it registers for the current variant.
-
-    Plugin classes subclass variant-specific Mitsuba types, so after a variant switch
-    the modules are reloaded rather than reused.
-    """
-    from mi_shadowgs import plugins
-
-    names = []
-    for info in pkgutil.iter_modules(plugins.__path__):
-        if info.name.startswith("_"):
-            continue
-        full = f"{plugins.__name__}.{info.name}"
-        if full in sys.modules:
-            importlib.reload(sys.modules[full])
-        else:
-            importlib.import_module(full)
-        names.append(info.name)
-    return names
+# Called with the new variant's name after each switch (``set_variant``): how the plugins
+# layer (``mi_shadowgs.plugins.register``) follows the variant without the backend
+# importing it.
+_on_switch: list = []
 
 
-_registered_for: str | None = None
+def on_variant_switch(hook) -> None:
+    """Call ``hook(name)`` after every later variant switch of ``set_variant`` (once per
+    hook, however often it is added)."""
+    if hook not in _on_switch:
+        _on_switch.append(hook)
 
 
 def set_variant(name: str | None = None) -> str:
@@ -121,7 +109,6 @@ def set_variant(name: str | None = None) -> str:
 
     Raises BackendError with one clear line when it cannot run here.
     """
-    global _registered_for
     name = name or os.environ.get(VARIANT_ENV) or DEFAULT_VARIANT
     if name not in SUPPORTED_VARIANTS:
         raise BackendError(
@@ -140,9 +127,8 @@ def set_variant(name: str | None = None) -> str:
         )
     if mi.variant() != name:
         mi.set_variant(name)
-    if _registered_for != name:
-        register_plugins()
-        _registered_for = name
+        for hook in _on_switch:
+            hook(name)
     return name
 
 
@@ -151,6 +137,6 @@ def ensure_variant() -> str:
     import mitsuba as mi
 
     current = mi.variant()
-    if current in SUPPORTED_VARIANTS and _registered_for == current:
+    if current in SUPPORTED_VARIANTS:
         return current
     return set_variant(current if current in SUPPORTED_VARIANTS else None)

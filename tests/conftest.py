@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant, registers plugins)
+import mi_shadowgs  # finds libLLVM, selects the variant
 from mi_shadowgs import backend
 
 backend.set_variant("llvm_ad_rgb")
@@ -23,6 +23,13 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "cuda" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture
+def plugins():
+    """mi_shadowgs's Mitsuba plugins registered, for a test that loads a scene naming them
+    (they register when asked, not on import)."""
+    return mi_shadowgs.register_plugins()
 
 
 @pytest.fixture

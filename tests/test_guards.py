@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from mi_shadowgs import cli
-from mi_shadowgs.core import memory, raster
+from mi_shadowgs.core import memory, raster, raster_common
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import AOV_CHANNELS, RasterConfig, RasterMemoryError, rasterize
 from mi_shadowgs.core.surfels import Surfels
@@ -157,7 +157,7 @@ CAM = Camera.look_at([0.3, 0.4, 3.0], [0, 0, 0], width=40, height=30, fov_x=0.8)
 
 
 def _bands(s: Surfels, config: RasterConfig, grad=False):
-    g = raster._project(s, CAM, config).detach()
+    g = raster_common.project(s, CAM, config).detach()
     return raster._plan_bands(g, CAM.width, CAM.height, config, grad)[0]
 
 

@@ -24,9 +24,8 @@ PKG = ROOT / "mi_shadowgs"
 LAYERS = ["base", "core", "io", "dataset", "stages", "pipeline", "api", "cli"]
 STAGES = ["common", "render", "geometry", "segmentation", "visibility", "material", "relight",
           "evaluation", "export", "viewer"]
-# backend.register_plugins (re)imports the plugins after a variant switch: Mitsuba needs them
-# registered for the active variant, and the plugins are thin (they call the library).
-ALLOWED = {("mi_shadowgs.backend", "mi_shadowgs.plugins")}
+# (importer, imported) pairs exempt from the layers: none.
+ALLOWED: set[tuple[str, str]] = set()
 
 
 def module_name(path: Path) -> str:
@@ -69,13 +68,66 @@ def imports_in(source: str, mod: str, is_package: bool = False
                 continue
             for alias in node.names:  # `from pkg import submodule` names the submodule
                 sub = f"{base}.{alias.name}"
-                is_mod = (ROOT / Path(*sub.split("."))).with_suffix(".py").is_file() or \
-                    (ROOT / Path(*sub.split("."))).is_dir()
+                is_mod = ((ROOT / Path(*sub.split("."))).with_suffix(".py").is_file() or
+                          (ROOT / Path(*sub.split("."))).is_dir())
                 out.append((sub if is_mod else base, [alias.name], node.lineno))
         elif isinstance(node, ast.Import):
             out += [(a.name, [], node.lineno) for a in node.names
                     if a.name.split(".")[0] == "mi_shadowgs"]
     return out
+
+
+def module_level_imports(source: str, mod: str, is_package: bool = False) -> set[str]:
+    """The mi_shadowgs modules that ``source`` (module ``mod``) imports when it is imported:
+    its imports outside functions and classes (at the top, or under a top-level ``if`` or
+    ``try``), ``if TYPE_CHECKING:`` blocks left out."""
+    tree = ast.parse(source)
+    body, top = list(tree.body), []
+    while body:
+        node = body.pop(0)
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            top.append(node)
+        elif isinstance(node, ast.If) and not (isinstance(node.test, ast.Name)
+                                               and node.test.id == "TYPE_CHECKING"):
+            body += node.body + node.orelse
+        elif isinstance(node, ast.Try):
+            body += node.body + node.orelse + node.finalbody
+            for handler in node.handlers:
+                body += handler.body
+    text = ast.unparse(ast.Module(body=top, type_ignores=[]))
+    return {target for target, _, _ in imports_in(text, mod, is_package)} - {mod}
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The cycles of a module import graph (module -> modules it imports): each strongly
+    connected component of more than one module, sorted (Tarjan's algorithm)."""
+    index, low, stack, on_stack, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(out)
 
 
 def cli_violations(mod: str, source: str, is_package: bool = False) -> list[str]:
@@ -94,8 +146,8 @@ def layer_violations(mod: str, source: str, is_package: bool = False) -> list[st
     bad = []
     s_layer, s_stage = layer(mod)
     for target, names, line in imports_in(source, mod, is_package):
-        if target == "mi_shadowgs" or (mod, target) in ALLOWED or \
-                any(target.startswith(a + ".") for s, a in ALLOWED if s == mod):
+        if (target == "mi_shadowgs" or (mod, target) in ALLOWED or
+                any(target.startswith(a + ".") for s, a in ALLOWED if s == mod)):
             continue
         t_layer, t_stage = layer(target)
         where = f"{mod}:{line} ({mod} -> {target})"
@@ -129,6 +181,28 @@ def test_layers_go_one_way():
     assert not bad, "\n".join(bad)
 
 
+def test_no_import_cycle():
+    """Importing any module of the package imports a tree of modules, not a loop (imports
+    inside functions are lazy and left out)."""
+    graph = {module_name(p): module_level_imports(p.read_text(), module_name(p),
+                                                  p.name == "__init__.py")
+             for p in package_files()}
+    cycles = import_cycles(graph)
+    assert not cycles, "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_the_cycle_checker_finds_a_planted_loop():
+    a = module_level_imports("from mi_shadowgs.core import raster_tiles\n",
+                             "mi_shadowgs.core.raster")
+    b = module_level_imports("import drjit\nfrom mi_shadowgs.core.raster import x\n"
+                             "def f():\n    from mi_shadowgs.core import shading\n",
+                             "mi_shadowgs.core.raster_tiles")
+    assert a == {"mi_shadowgs.core.raster_tiles"} and b == {"mi_shadowgs.core.raster"}
+    assert (import_cycles({"mi_shadowgs.core.raster": a, "mi_shadowgs.core.raster_tiles": b})
+            == [["mi_shadowgs.core.raster", "mi_shadowgs.core.raster_tiles"]])
+    assert import_cycles({"x": {"y"}, "y": {"z"}}) == []
+
+
 def test_the_layer_order():
     assert layer("mi_shadowgs.core.shading") < layer("mi_shadowgs.stages.visibility.x")
     assert layer("mi_shadowgs.stages.material.fit") > layer("mi_shadowgs.stages.visibility")
@@ -151,11 +225,12 @@ PLANTED = [
      "stages is above core"),
     ("mi_shadowgs.io.ply", "from mi_shadowgs import pipeline\n", "pipeline is above io"),
     ("mi_shadowgs.pipeline", "from mi_shadowgs.cli import run\n", "cli is above pipeline"),
-    # Allowed: lower layers, earlier stages' public names, the backend's plugins.
+    # The backend does not register the plugins (they register when asked).
+    ("mi_shadowgs.backend", "from mi_shadowgs import plugins\n", "api is above base"),
+    # Allowed: lower layers, earlier stages' public names.
     ("mi_shadowgs.stages.material.fit",
      "from mi_shadowgs.core import brdf\nfrom mi_shadowgs.stages.visibility import "
      "shadow_maps\nimport numpy\n", ""),
-    ("mi_shadowgs.backend", "from mi_shadowgs import plugins\n", ""),
 ]
 
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import mi_shadowgs  # noqa: F401  (variant + plugins)
+import mi_shadowgs
+
+mi_shadowgs.register_plugins()  # the sensor renders through surfel_raster
 
 RADIUS = 1.0
 CENTER = np.array([0.2, 1.0, -0.1])

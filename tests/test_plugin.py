@@ -13,6 +13,8 @@ from mi_shadowgs.core.raster import rasterize
 from mi_shadowgs.core.surfels import sh_colors
 from mi_shadowgs.io import ply
 
+pytestmark = pytest.mark.usefixtures("plugins")  # every test loads surfel_raster
+
 W, H = 24, 18
 
 

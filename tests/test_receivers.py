@@ -133,7 +133,7 @@ def _wall_on_base_model() -> Surfels:
         "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))})
 
 
-def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(tmp_path):
+def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(plugins, tmp_path):
     """Stage 4 records its shadow-map and receiver settings in the model's PLY; the
     ``surfel_relight`` plugin, which sees only the file, relights with them, as ``relight``
     does with the run's."""

@@ -141,7 +141,7 @@ def test_indirect_factor_modes():
     assert shading.LightSet is type(ls_new)
 
 
-def test_surfel_relight_plugin_matches_library(tmp_path):
+def test_surfel_relight_plugin_matches_library(plugins, tmp_path):
     """The Mitsuba integrator reads the scene's directional emitter and gives relight_view."""
     from mi_shadowgs.io.ply import load_ply, save_ply
 
@@ -201,7 +201,7 @@ def _material_ply(folder):
     return folder / "model.ply"
 
 
-def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(tmp_path):
+def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(plugins, tmp_path):
     """<string name="specular" value="false"/> was bool("false"): the lobe stayed on."""
     _material_ply(tmp_path)
     for name in ("specular", "visibility"):
@@ -213,7 +213,7 @@ def test_surfel_relight_refuses_a_switch_that_is_not_a_boolean(tmp_path):
     assert integ.specular is False
 
 
-def test_surfel_relight_refuses_a_count_that_is_not_an_integer(tmp_path):
+def test_surfel_relight_refuses_a_count_that_is_not_an_integer(plugins, tmp_path):
     """<float name="shadow_resolution" value="64.9"/> was cut to 64 without a word."""
     _material_ply(tmp_path)
     for name in ("shadow_resolution", "env_samples"):

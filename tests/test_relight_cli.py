@@ -133,7 +133,7 @@ def test_envmap_radiance_is_cached_by_content_and_rotates_with_azimuth(tmp_path,
     assert np.argmax(r1.mean(1)) == np.argmax(grid @ direction_from_angles(30.0, 40.0))
 
 
-def test_plugin_second_render_reuses_its_maps(tmp_path):
+def test_plugin_second_render_reuses_its_maps(plugins, tmp_path):
     from mi_shadowgs.io.ply import save_ply
 
     model = _plane_model()
@@ -343,7 +343,7 @@ def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkey
     assert (tmp_path / "preview_0_envmap_sky.png").is_file()
 
 
-def test_the_plugin_and_api_relight_take_the_lobe_the_model_was_fitted_with(tiny_run,
+def test_the_plugin_and_api_relight_take_the_lobe_the_model_was_fitted_with(plugins, tiny_run,
                                                                            tiny_presets,
                                                                            tmp_path):
     """A `cpu-*` model is fitted without the GGX lobe, so its roughness and metallic were

@@ -1,8 +1,9 @@
 """Tiled 2DGS rasterizer: memory O(pixels + surfels + surfel-tile pairs), forward and backward.
 
 ``RasterConfig(method="tiles")`` selects it in ``raster.rasterize``; the pair-list renderer
-(``raster.py``) stays the reference. Same projection (``_project``), bounds (``_boxes``) and
-per-pair maths (``_pair_eval``), so both composite the same pairs in the same order:
+(``raster.py``) stays the reference. Both use ``raster_common``'s projection (``project``),
+bounds (``boxes``) and per-pair maths (``pair_eval``), so they composite the same pairs in
+the same order:
 
 1. binning (detached): each surfel's pixel box covers a rectangle of screen tiles
    (``RasterConfig.tile_size``); surfel-tile pairs come from a prefix sum over the tile
@@ -19,10 +20,10 @@ per-pair maths (``_pair_eval``), so both composite the same pairs in the same or
    T, its stop index and a few Float64 sums; the backward walks each list back to front
    from the largest stop index of the lane's group, each pixel active below its own,
    recovering T_i = T_{i+1} / (1 - alpha_i) in Float64, and chains the output gradients
-   through alpha and depth to the 13 projected fields by hand (``_pair_eval_grad``); the
+   through alpha and depth to the 13 projected fields by hand (``pair_eval_grad``); the
    lane sums its pixels' gradients and scatter-adds them per surfel. Dr.Jit's AD then
    carries those gradients from the projected fields to the surfel parameters
-   (``_project``).
+   (``raster_common.project``).
 
 Why T is recovered by division rather than recomputed front to back: one pass instead of
 two (the back-to-front sum of w_j g_j over later pairs needs the output gradients, so a
@@ -42,22 +43,22 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_shadowgs.core import jit
-from mi_shadowgs.core.raster import (
-    _PAIR_FIELDS,
-    _RHO_NONE,
+from mi_shadowgs.core.raster_common import (
     AOV_CHANNELS,
+    PAIR_FIELDS,
+    Proj,
     RasterConfig,
     RasterMemoryError,
-    _boxes,
-    _budget_text,
-    _distortion_m,
-    _expand,
-    _memory,
-    _pair_eval,
-    _pair_kept,
-    _Proj,
-    _total,
+    boxes,
+    budget_text,
     depth_key,
+    distortion_m,
+    expand,
+    memory_budget,
+    pair_eval,
+    pair_eval_grad,
+    pair_kept,
+    total_pairs,
 )
 
 # Projected per-surfel fields the compositing loops read: the pair maths plus the normal.
@@ -103,24 +104,24 @@ def _check_tile_budget(tile_pairs: int, lanes: int, config: RasterConfig, grad: 
             f"rasterize (tiles): {tile_pairs} surfel-tile pairs exceed "
             f"RasterConfig.max_pairs={config.max_pairs} (surfels too large for the image?)")
     per_lane = config.bytes_per_pixel_grad if grad else config.bytes_per_pixel
-    need = config.reserve_bytes + lanes * (per_lane + 8 * channels) + \
-        tile_pairs * (config.bytes_per_tile_pair + 4 * channels)
+    need = (config.reserve_bytes + lanes * (per_lane + 8 * channels) +
+            tile_pairs * (config.bytes_per_tile_pair + 4 * channels))
     if grad:
         # The normal's fields counted whether or not it is rendered: an upper bound.
         need += _grad_copy_bytes(_grad_entries(surfels, True, channels), config)
-    mem = _memory(config, need)
+    mem = memory_budget(config, need)
     if mem is not None and mem[1] + need > mem[0]:
         raise RasterMemoryError(
             f"rasterize (tiles): {tile_pairs} surfel-tile pairs and {lanes} pixels need "
-            f"~{need / (1 << 30):.2f} GiB, but {_budget_text(config, *mem)}; a smaller "
+            f"~{need / (1 << 30):.2f} GiB, but {budget_text(config, *mem)}; a smaller "
             f"image lowers it")
 
 
-def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
+def _bin(gd: Proj, width: int, height: int, config: RasterConfig, grad: bool,
          channels: int) -> _Bins | None:
     """Surfel-tile pairs of the detached projected surfels ``gd``; None when there are
     none."""
-    x0, y0, bw, bh, count = _boxes(gd, width, height, config)
+    x0, y0, bw, bh, count = boxes(gd, width, height, config)
     live = count > 0
     # Tiles of config.tile_size pixels; where their pairs would not fit the memory budget
     # (surfels covering much of the image), tiles twice as large, up to MAX_TILE_SIZE:
@@ -134,7 +135,7 @@ def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
         tw = dr.select(live, (x0 + dr.maximum(bw, 1) - 1) // ts - tx0 + 1, 0)
         th = dr.select(live, (y0 + dr.maximum(bh, 1) - 1) // ts - ty0 + 1, 0)
         ntiles = tw * th  # [N]
-        total = _total(ntiles)
+        total = total_pairs(ntiles)
         try:
             _check_tile_budget(total, ntx * nty * ts * ts, config, grad, channels,
                                dr.width(gd.xc))
@@ -149,12 +150,12 @@ def _bin(gd: _Proj, width: int, height: int, config: RasterConfig, grad: bool,
     # their pairs laid out in that order, then a stable sort by tile: two 32-bit sorts
     # (N and TP keys) instead of one of 64-bit (tile, depth) keys over TP.
     by_depth = dr.argsort(depth_key(gd.z2))  # [N]
-    pos, local = _expand(dr.gather(mi.UInt32, ntiles, by_depth), total)  # [TP]
+    pos, local = expand(dr.gather(mi.UInt32, ntiles, by_depth), total)  # [TP]
     sid = dr.gather(mi.UInt32, by_depth, pos)
-    w = dr.maximum(dr.gather(mi.UInt32, tw, sid), 1)  # max: see _expand
+    w = dr.maximum(dr.gather(mi.UInt32, tw, sid), 1)  # max: see raster_common.expand
     ly = local // w
-    tile = (dr.gather(mi.UInt32, ty0, sid) + ly) * ntx + dr.gather(mi.UInt32, tx0, sid) + \
-        (local - ly * w)
+    tile = ((dr.gather(mi.UInt32, ty0, sid) + ly) * ntx + dr.gather(mi.UInt32, tx0, sid) +
+            (local - ly * w))
     order = dr.argsort(tile)
     sid = dr.gather(mi.UInt32, sid, order)
     tile = dr.gather(mi.UInt32, tile, order)
@@ -302,8 +303,8 @@ def _in_box(box: tuple, px: mi.UInt32, py: mi.UInt32) -> mi.Bool:
     """Whether pixel (px, py) lies in a pair's box (the pair list holds exactly the box's
     pixels)."""
     bx, by = box
-    return (px >= (bx & 0xFFFF)) & (px <= (bx >> 16)) & (py >= (by & 0xFFFF)) & \
-        (py <= (by >> 16))
+    return ((px >= (bx & 0xFFFF)) & (px <= (bx >> 16)) & (py >= (by & 0xFFFF)) &
+            (py <= (by >> 16)))
 
 
 class _TiledOp(dr.CustomOp):
@@ -319,8 +320,8 @@ class _TiledOp(dr.CustomOp):
         self.sorted_chans = {
             name: [dr.gather(mi.Float, arr, bins.sid * c + k) for k in range(c)]
             for (name, arr), c in zip(chans.items(), ctx.widths.values(), strict=True)}
-        plan = _image_plan(bins, ctx.width, ctx.height) if ctx.pixels is None else \
-            _sample_plan(bins, ctx.width, ctx.pixels)
+        plan = (_image_plan(bins, ctx.width, ctx.height) if ctx.pixels is None else
+                _sample_plan(bins, ctx.width, ctx.pixels))
         tile, pxs, pys, insides = plan.tile, plan.pxs, plan.pys, plan.insides
         pxf = [mi.Float(px) + 0.5 for px in pxs]
         pyf = [mi.Float(py) + 0.5 for py in pys]
@@ -354,7 +355,7 @@ class _TiledOp(dr.CustomOp):
                 p["count"] = zf
             pixels.append(p)
         state = {"j": first, "pixels": pixels}
-        q_names = _PAIR_FIELDS + (_NORMAL_FIELDS if want_normal else ())
+        q_names = PAIR_FIELDS + (_NORMAL_FIELDS if want_normal else ())
 
         def cond(s):
             return (s["j"] < end) & ~_all_done(s["pixels"])
@@ -368,9 +369,9 @@ class _TiledOp(dr.CustomOp):
                          for name, arrs in self.sorted_chans.items()}
             out_pixels = []
             for k, p in enumerate(s["pixels"]):
-                alpha, rho, depth = _pair_eval(q, pxf[k], pyf[k], config)
-                keep = ~p["done"] & _pair_kept(alpha, rho, depth, config) & \
-                    _in_box(box, pxs[k], pys[k])
+                alpha, rho, depth = pair_eval(q, pxf[k], pyf[k], config)
+                keep = (~p["done"] & pair_kept(alpha, rho, depth, config) &
+                        _in_box(box, pxs[k], pys[k]))
                 a64 = mi.Float64(alpha)
                 t_before = p["T"]
                 t_after = t_before * (1.0 - a64)
@@ -394,7 +395,7 @@ class _TiledOp(dr.CustomOp):
                     o["normal"] = [acc + w * q[f]
                                    for acc, f in zip(p["normal"], _NORMAL_FIELDS, strict=True)]
                 if want_dist:
-                    m = _distortion_m(depth, config)
+                    m = distortion_m(depth, config)
                     wm = dr.select(comp, w64 * m, 0.0)
                     front = 1.0 - t_before  # sum of the weights in front
                     o["dist"] = p["dist"] + dr.select(
@@ -482,63 +483,10 @@ class _TiledCtx:
     pixels: mi.UInt32 | None = None  # [P] only these pixels (``_sample_plan``); None: all
 
 
-def _pair_eval_grad(q: dict, px, py, g_alpha, g_depth, config: RasterConfig) -> dict:
-    """Reverse-mode derivative of ``raster._pair_eval`` by hand: (dL/dalpha, dL/ddepth) of
-    pairs -> dL/d of each of the 13 projected fields (``_PAIR_FIELDS``). Follows the same
-    branches: the alpha_max clamp, the min(rho3d, rho2d) switch and the edge-on guard."""
-    a0, a1, b0, b1 = q["a0"], q["a1"], q["b0"], q["b1"]
-    t20, t21, t22 = q["t20"], q["t21"], q["t22"]
-    dx = px - q["xc"]
-    dy = py - q["yc"]
-    ex = dx * b1 - dy * a1
-    ey = dy * a0 - dx * b0
-    sx = t22 * ex
-    sy = t22 * ey
-    cx = t21 * b0 - t20 * b1
-    cy = a1 * t20 - a0 * t21
-    sz = (a0 * b1 - a1 * b0) + dx * cx + dy * cy
-    hit = dr.abs(sz) > config.edge_on_eps * (dr.abs(sx) + dr.abs(sy))
-    inv_sz = 1.0 / dr.select(hit, sz, 1.0)
-    u = sx * inv_sz
-    v = sy * inv_sz
-    rho3d = dr.select(hit, u * u + v * v, _RHO_NONE)
-    rho2d = config.lowpass_inv_var * (dx * dx + dy * dy)
-    use3d = rho3d <= rho2d
-    rho = dr.minimum(rho3d, rho2d)
-    gauss = dr.exp(-0.5 * rho)
-    raw = q["opacity"] * gauss
-    g_raw = dr.select(raw < config.alpha_max, g_alpha, 0.0)  # the clamp passes nothing
-    g_rho = -0.5 * g_raw * raw
-    # rho and depth through the plane (use3d) or the filter / the centre's depth.
-    g_u = dr.select(use3d, 2.0 * u * g_rho + g_depth * q["z0"], 0.0)
-    g_v = dr.select(use3d, 2.0 * v * g_rho + g_depth * q["z1"], 0.0)
-    g_rho2d = dr.select(use3d, 0.0, g_rho * config.lowpass_inv_var * 2.0)
-    g_sx = g_u * inv_sz
-    g_sy = g_v * inv_sz
-    g_sz = -(g_u * u + g_v * v) * inv_sz
-    g_dx = g_rho2d * dx + g_sx * t22 * b1 - g_sy * t22 * b0 + g_sz * cx
-    g_dy = g_rho2d * dy - g_sx * t22 * a1 + g_sy * t22 * a0 + g_sz * cy
-    return {
-        "xc": -g_dx,
-        "yc": -g_dy,
-        "a0": g_sy * t22 * dy + g_sz * (b1 - dy * t21),
-        "a1": -g_sx * t22 * dy + g_sz * (dy * t20 - b0),
-        "b0": -g_sy * t22 * dx + g_sz * (dx * t21 - a1),
-        "b1": g_sx * t22 * dx + g_sz * (a0 - dx * t20),
-        "t20": g_sz * (dy * a1 - dx * b1),
-        "t21": g_sz * (dx * b0 - dy * a0),
-        "t22": g_sx * ex + g_sy * ey,
-        "z0": dr.select(use3d, g_depth * u, 0.0),
-        "z1": dr.select(use3d, g_depth * v, 0.0),
-        "z2": g_depth,
-        "opacity": g_raw * gauss,
-    }
-
-
 def _grad_entries(surfels: int, normal: bool, channels: int) -> int:
     """Floats of the backward's per-surfel gradient sums: the pair fields, the normal's
     when it is rendered, and every channel."""
-    return surfels * (len(_PAIR_FIELDS) + len(_NORMAL_FIELDS) * normal + channels)
+    return surfels * (len(PAIR_FIELDS) + len(_NORMAL_FIELDS) * normal + channels)
 
 
 def _grad_copy_bytes(entries: int, config: RasterConfig) -> int:
@@ -600,7 +548,7 @@ def _tiled_backward(op: _TiledOp) -> None:
             pk["wsum64"] = 1.0 - op.t_final[k]
         pixel.append(pk)
     normal = "normal" in aovs
-    q_names = _PAIR_FIELDS + (_NORMAL_FIELDS if normal else ())
+    q_names = PAIR_FIELDS + (_NORMAL_FIELDS if normal else ())
     nsurf = ctx.nsurfels
     geometry_grad = ctx.geometry_grad
     acc = {k: dr.zeros(mi.Float, nsurf) for k in q_names} if geometry_grad else {}
@@ -634,17 +582,17 @@ def _tiled_backward(op: _TiledOp) -> None:
         i = j - 1
         # One read of the entry per lane, shared by its pixels.
         q = {k: dr.gather(mi.Float, op.sorted[k], i)
-             for k in (q_names if geometry_grad else _PAIR_FIELDS)}
+             for k in (q_names if geometry_grad else PAIR_FIELDS)}
         box = _box_of(bins, i)
         sid = dr.gather(mi.UInt32, bins.sid, i)
         chan_vals = {name: [dr.gather(mi.Float, arr, i) for arr in arrs]
                      for name, arrs in op.sorted_chans.items()} if geometry_grad else {}
         comps, ws, t_out, s_out, g_fields = [], [], [], [], []
         for k, pk in enumerate(pixel):
-            alpha, rho, depth = _pair_eval(q, pxf[k], pyf[k], config)
+            alpha, rho, depth = pair_eval(q, pxf[k], pyf[k], config)
             # Every kept pair before the stop index was composited (T only decreases).
-            comp = (i < own_stop[k]) & insides[k] & _pair_kept(alpha, rho, depth, config) & \
-                _in_box(box, pxs[k], pys[k])
+            comp = ((i < own_stop[k]) & insides[k] & pair_kept(alpha, rho, depth, config) &
+                    _in_box(box, pxs[k], pys[k]))
             # Pairs that are not composited pass through with alpha 0 and a finite depth.
             depth = dr.select(comp, depth, config.near)
             a64 = mi.Float64(dr.select(comp, alpha, 0.0))
@@ -704,7 +652,7 @@ def _tiled_backward(op: _TiledOp) -> None:
         if "distortion" in aovs:
             # d = W M2 - M1^2 over the pixel's totals (W = sum w, M1 = sum w m, M2 = sum w
             # m^2): dd/dw_i = sum_j w_j (m_i - m_j)^2, dd/dm_i = 2 w_i (W m_i - M1).
-            m = _distortion_m(depth, config)
+            m = distortion_m(depth, config)
             m1, m2, wsum64 = pk["m1"], pk["m2"], pk["wsum64"]
             g64 = g64 + pk["g_dist"] * (m2 + wsum64 * m * m - 2.0 * m1 * m)
             near, far = config.distortion_near, config.distortion_far
@@ -712,7 +660,7 @@ def _tiled_backward(op: _TiledOp) -> None:
             g_z = g_z + mi.Float(pk["g_dist"] * 2.0 * w64 * (wsum64 * m - m1) * dm_dz)
         # dw_i/dalpha_i = T_i; dw_j/dalpha_i = -w_j / (1 - alpha_i) for every later j.
         g_alpha = mi.Float(t_before * g64 - suffix / one_minus)
-        grads.update(_pair_eval_grad(q, px, py, g_alpha, g_z, config))
+        grads.update(pair_eval_grad(q, px, py, g_alpha, g_z, config))
         return g64, grads
 
     dr.while_loop((state,), cond, body, label="raster_tiles_backward")
@@ -723,7 +671,7 @@ def _tiled_backward(op: _TiledOp) -> None:
         op.set_grad_in("chans", acc_chans)
 
 
-def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequence[str],
+def render_tiles(g: Proj, gd: Proj, W: int, H: int, chans: dict, aovs: Sequence[str],
                  bg: dict, config: RasterConfig, grad: bool,
                  pixels: mi.UInt32 | None = None) -> dict[str, mi.Float]:
     """Every output of ``rasterize``, flat ([H * W * C] each), by the tiled renderer; ``g``
@@ -743,8 +691,8 @@ def render_tiles(g: _Proj, gd: _Proj, W: int, H: int, chans: dict, aovs: Sequenc
         for a in aovs:
             out[a] = dr.zeros(mi.Float, npix * AOV_CHANNELS[a])
         return out
-    names = _PAIR_FIELDS + (_NORMAL_FIELDS if "normal" in aovs else ())
-    fields = {k: getattr(g, k) for k in _PAIR_FIELDS}
+    names = PAIR_FIELDS + (_NORMAL_FIELDS if "normal" in aovs else ())
+    fields = {k: getattr(g, k) for k in PAIR_FIELDS}
     if "normal" in aovs:
         fields |= dict(zip(_NORMAL_FIELDS, (g.normal.x, g.normal.y, g.normal.z), strict=True))
     ctx = _TiledCtx(bins, W, H, widths, tuple(aovs), bg, config, names, dr.width(gd.xc),

@@ -6,7 +6,7 @@ A plugin module's docstring is its Markdown section; its parameters are a list w
 read ``- `name` | type | default | flags | description`` (the description may go on over
 indented lines), written out as one table. ``tests/test_plugin_docs.py`` checks that the
 committed ``docs/plugins.md`` is this text. Reads the source files (``ast``): no Mitsuba.
-The leading underscore keeps ``backend.register_plugins`` from importing it as a plugin.
+The leading underscore keeps ``plugins.register`` from importing it as a plugin.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ HEADER = """# Mitsuba plugins
 <!-- Generated from the plugins' docstrings (mi_shadowgs/plugins/*.py); do not edit:
      python -m mi_shadowgs.plugins._docs > docs/plugins.md -->
 
-Importing `mi_shadowgs` selects the variant (`llvm_ad_rgb` by default) and registers every
-plugin in `mi_shadowgs.plugins` for it; after `mi_shadowgs.set_variant(...)` they are
-registered again for the new variant.
+Importing `mi_shadowgs` selects the variant (`llvm_ad_rgb` by default);
+`mi_shadowgs.register_plugins()` registers every plugin in `mi_shadowgs.plugins` for it, and
+after a later `mi_shadowgs.set_variant(...)` they are registered again for the new variant.
 """
 
 TABLE_HEAD = ("| Parameter | Type | Default | Flags | Description |",

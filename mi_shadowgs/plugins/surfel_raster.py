@@ -89,7 +89,9 @@ types (`thinlens`, ...), are refused with an error. A colour channel of another 
 ```python
 import drjit as dr
 import mitsuba as mi
-import mi_shadowgs  # registers surfel_raster
+import mi_shadowgs
+
+mi_shadowgs.register_plugins()  # surfel_raster and surfel_relight, for the variant
 
 scene = mi.load_file("scene.xml")
 img = mi.render(scene)                        # [256, 256, 4 + 1 + 3]

@@ -113,8 +113,8 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
     aovs = list(dict.fromkeys(aovs))
     aov_layout(aovs, surfels)  # unknown names fail before any rendering
     background = parse_background(background, "--background")
-    raster = RasterConfig() if memory_budget is None else \
-        RasterConfig(memory_budget_bytes=parse_bytes(memory_budget, "--memory-budget"))
+    raster = (RasterConfig() if memory_budget is None else
+              RasterConfig(memory_budget_bytes=parse_bytes(memory_budget, "--memory-budget")))
     try:  # a channel of another width than 1, 3 (sh: 3(d+1)^2) too, not at the first view
         check_color_channel(surfels, color_channel)
     except RenderError as exc:

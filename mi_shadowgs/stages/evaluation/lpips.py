@@ -50,7 +50,7 @@ MIN_SIZE = 31  # conv1 (11, stride 4, pad 2) >= 7 px, pool >= 3, conv2, pool >= 
 NORM_EPS = 1e-10  # as lpips.normalize_tensor
 CHUNK_VIEWS = 8  # views per forward: bounds memory (~25 MB of conv1 patches at 128^2)
 # The matmuls are small (<= 16 x 961 rows at 128^2): on a busy 2-core machine OpenBLAS's
-# second thread spins and made one pair 3-15x slower (BENCHMARKS.md). One thread also keeps
+# second thread spins and made one pair 3-15x slower. One thread also keeps
 # the summation order, hence the value, independent of the core count.
 BLAS_THREADS = 1
 
@@ -190,7 +190,7 @@ def _lpips_chunks(a, b, w) -> np.ndarray:
     out = np.empty(len(a), np.float64)
     for s in range(0, len(a), CHUNK_VIEWS):
         n = len(a[s:s + CHUNK_VIEWS])
-        # One forward over both stacks: one per stack is 12% slower (BENCHMARKS.md, "LPIPS").
+        # One forward over both stacks: one per stack is 12% slower.
         feats = _features(np.concatenate([a[s:s + n], b[s:s + n]]), w["convs"])
         total = np.zeros(n, np.float64)
         for f, lin in zip(feats, w["lins"], strict=True):

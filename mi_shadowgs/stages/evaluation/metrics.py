@@ -10,15 +10,15 @@ Albedo and shadows are scored on ``surface_pixels``: the test mask where the gro
 has a surface (material id > 0). The photo's mask is its coverage, while the ground-truth
 buffers hold the hit of the pixel centre's ray, which misses at some silhouette pixels
 (9-40 of ~250k masked pixels on three rows of the six-scene table, 970 on ficus-low). Their
-albedo 0 cost bunny-low 8 dB of a 53.5 dB albedo figure (BENCHMARKS.md, "What the metrics
-can tell apart at 128^2"). Relit images are scored on the whole mask.
+albedo 0 cost bunny-low 8 dB of a 53.5 dB albedo figure. Relit images are scored on the
+whole mask.
 
 - **Albedo**: the estimate is the albedo of the surface each pixel sees
   (``surface_albedo``): the rasterized albedo is alpha-blended, so at a pixel the fit
   covers in part it is the surface's albedo times the coverage, while the ground truth is
   the albedo at the pixel centre's hit, whatever the coverage. Dividing by the pixel's
   alpha compares like with like; compared as rendered, the silhouette's pixels alone cost
-  the bunny 11 dB (BENCHMARKS.md, "The albedo at the silhouette"). It is then aligned to
+  the bunny 11 dB. It is then aligned to
   the ground truth by a per-channel scale per region
   (the paper extends the usual single-object alignment to every object): for each region id
   r > 0 (the dataset's material ids: each object part and the base) and channel c,
@@ -64,7 +64,7 @@ ALPHA_MIN = 0.05
 SHADOW_THRESHOLD = 0.5  # shadow: direct irradiance < 0.5 x the view's median over the mask
 # "Shadow IoU (decided)" leaves out the pixels whose true irradiance is within 2% of the
 # threshold: 2% is below what an albedo x light fit holds (its ratio of two lights moved 4-10%
-# over seeds), above round-off (BENCHMARKS.md, "Session 46: a face at the shadow threshold").
+# over seeds), above round-off.
 SHADOW_UNDECIDED_BAND = 0.02
 
 
@@ -157,8 +157,8 @@ def _lpips_per_view(est, gt, mask) -> tuple[list[float] | None, str | None]:
     from mi_shadowgs.stages.evaluation import lpips
 
     if min(est.shape[1:3]) < lpips.MIN_SIZE:
-        return None, f"views of {est.shape[2]}x{est.shape[1]} px are below LPIPS's " \
-                     f"{lpips.MIN_SIZE} px"
+        return (None, f"views of {est.shape[2]}x{est.shape[1]} px are below LPIPS's "
+                      f"{lpips.MIN_SIZE} px")
     try:
         return lpips.lpips_views(est, gt, mask=mask).tolist(), None
     except lpips.LPIPSUnavailable as exc:

@@ -64,7 +64,7 @@ BSDFS = ("model", "principled")
 COLORS = ("sh", "albedo")
 PLY_SH_DEGREE = 3  # what 3DGS/2DGS's load_ply expect (max_sh_degree default)
 # What the splat PLYs hold, a setting of their provenance so that an older export is not
-# reused as this one: 2 = with the header records (the fit's, ``sh_space``; session 39).
+# reused as this one: 2 = with the header records (the fit's, ``sh_space``).
 SPLAT_LAYOUT = 2
 MATERIAL_FOLDER = "material/full"
 

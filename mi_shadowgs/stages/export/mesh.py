@@ -287,8 +287,8 @@ def project_materials(part: MeshPart, surfels: dict, voxel: float, neighbours: i
     off = part.vertices[:, None, :].astype(np.float64) - pos[idx]  # [V, k, 3]
     local = np.einsum("vkc,vkcd->vkd", off, surfels["frame"][idx])  # tangent, tangent, normal
     s = surfels["scale"][idx]  # [V, k, 2]
-    e = (local[..., 0] / s[..., 0]) ** 2 + (local[..., 1] / s[..., 1]) ** 2 + \
-        (local[..., 2] / voxel) ** 2
+    e = ((local[..., 0] / s[..., 0]) ** 2 + (local[..., 1] / s[..., 1]) ** 2 +
+         (local[..., 2] / voxel) ** 2)
     w = surfels["opacity"][idx] * np.exp(-0.5 * e)  # [V, k]
     total = w.sum(1, keepdims=True)
     nearest = np.zeros_like(w)

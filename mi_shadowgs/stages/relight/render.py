@@ -84,7 +84,7 @@ class RelightModel:
 
 # The stage-4 model's PLY records the shadow maps and receivers it was fitted with under
 # these keys (the whole ``VisibilityConfig`` as one word of JSON, and its band alone, which
-# models saved in sessions 31-36 hold without the rest), so that a reader of the bare file
+# older models hold without the rest), so that a reader of the bare file
 # (the ``surfel_relight`` plugin) shades it as ``relight`` shades the run.
 BAND_METADATA_KEY = "receiver_band"
 VISIBILITY_METADATA_KEY = "visibility"
@@ -363,8 +363,8 @@ def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, 
     h, w = camera.height, camera.width
     geom, albedo, rough, metal, ind = render_buffers(model, camera, raster)
     with dr.suspend_grad():
-        vis = None if maps is None else \
-            maps.evaluate(geom.points, geom.normal, geom.footprint)
+        vis = (None if maps is None else
+               maps.evaluate(geom.points, geom.normal, geom.footprint))
         indirect = ind * factor if ind is not None and factor > 0 else None
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, indirect, model.specular)
         out = {"rgb": color_image(rgb, h, w), "alpha": geom.alpha.numpy().reshape(h, w)}
@@ -382,8 +382,9 @@ def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, 
         out["metallic"] = metal.numpy().reshape(h, w)
         out["normal"] = np.where(covered, color_image(mi.Color3f(geom.normal), h, w), 0.0)
         k = lights.count
-        out["visibility"] = np.ones((h, w, k), np.float32) if vis is None else \
-            np.asarray(vis.numpy(), np.float32).reshape(h, w, k)  # pixel-major [P * K]
+        out["visibility"] = (  # pixel-major [P * K]
+            np.ones((h, w, k), np.float32) if vis is None else
+            np.asarray(vis.numpy(), np.float32).reshape(h, w, k))
     return out
 
 
@@ -406,8 +407,8 @@ def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shadin
 
     dr.sync_thread()
     t0 = time.perf_counter()
-    maps = shadow_maps_for(model, lights, bounds, vis_config) if cache is None else \
-        cache.shadow_maps(model, lights, bounds, vis_config)
+    maps = (shadow_maps_for(model, lights, bounds, vis_config) if cache is None else
+            cache.shadow_maps(model, lights, bounds, vis_config))
     factor = indirect_factor(model, lights, config)
     out = [relight_view(model, cam, lights, maps, factor, raster, only_rgb=only_rgb)
            for cam in tqdm(cameras, desc="relight", disable=not progress)]
@@ -440,8 +441,8 @@ def combine_light_sets(sets: Sequence[shading.LightSet]) -> shading.LightSet:
 
 def light_weights(lights: shading.LightSet) -> np.ndarray:
     """The RGB irradiance of each light as numpy [K, 3]."""
-    return np.stack([np.asarray(lights.weights[k], np.float64) for k in range(3)], -1) \
-        .reshape(-1, 3)
+    return (np.stack([np.asarray(lights.weights[k], np.float64) for k in range(3)], -1)
+            .reshape(-1, 3))
 
 
 def scale_light_set(lights: shading.LightSet, factor: float) -> shading.LightSet:
@@ -467,8 +468,8 @@ def emitter_light_set(emitters, config: RelightConfig = DEFAULT_RELIGHT,
                 -prop / np.linalg.norm(prop),
                 np.asarray(p["irradiance.value"], np.float64).reshape(-1)[:3]))
         elif mi.has_flag(e.flags(), mi.EmitterFlags.Infinite):
-            rad = cache.envmap_radiance(e, config) if cache is not None else \
-                envmap_grid_radiance(e, config)
+            rad = (cache.envmap_radiance(e, config) if cache is not None else
+                   envmap_grid_radiance(e, config))
             ls = grid_light_set(rad, config.n_directions)
             if ls.count:
                 sets.append(ls)
@@ -497,8 +498,9 @@ class RelightCache:
 
     def __init__(self, max_map_bytes: int = 1 << 30, max_envmaps: int = 8,
                  max_sets: int = 16):
-        self.max_map_bytes, self.max_envmaps, self.max_sets = \
-            max_map_bytes, max_envmaps, max_sets
+        self.max_map_bytes = max_map_bytes
+        self.max_envmaps = max_envmaps
+        self.max_sets = max_sets
         self._caches: dict[tuple, MapCache] = {}  # (geometry ids, bounds) -> its maps
         self._sets: dict[tuple, object] = {}  # all keys of a light set -> its ShadowMaps
         self._models: dict[tuple, tuple] = {}

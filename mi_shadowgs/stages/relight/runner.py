@@ -122,9 +122,9 @@ def build_lights(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
         sets.append(relight.directional_light_set(direction_from_angles(az, el)[None],
                                                   rgb[None]))
     if envmap is not None:
-        rad = cache.envmap_radiance(envmap_emitter(envmap, rotate_deg, envmap_scale), config) \
-            if cache is not None else relight.envmap_grid_radiance(
-                envmap_emitter(envmap, rotate_deg, envmap_scale), config)
+        rad = (cache.envmap_radiance(envmap_emitter(envmap, rotate_deg, envmap_scale), config)
+               if cache is not None else relight.envmap_grid_radiance(
+                   envmap_emitter(envmap, rotate_deg, envmap_scale), config))
         ls = relight.grid_light_set(rad, config.n_directions)
         if ls.count == 0:
             raise ValueError(f"--envmap {envmap}: the env map is black above the horizon")
@@ -237,8 +237,8 @@ def orbit_cameras(n: int, template: Camera, center, elevation_deg: float | None 
     c = np.asarray(center, np.float64)
     off = template.origin - c
     dist = float(np.linalg.norm(off))
-    el = math.degrees(math.asin(np.clip(off[1] / dist, -1, 1))) if elevation_deg is None \
-        else elevation_deg
+    el = (math.degrees(math.asin(np.clip(off[1] / dist, -1, 1))) if elevation_deg is None
+          else elevation_deg)
     az0 = math.degrees(math.atan2(-off[2], off[0]))
     return [Camera.look_at(c + dist * direction_from_angles(az0 + 360.0 * i / n, el), c,
                            width=template.width, height=template.height,
@@ -283,8 +283,8 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> tuple[Path,
                             codec="libx264", macro_block_size=1)
             return path.with_suffix(".mp4"), None
         except Exception as exc:  # noqa: BLE001 -- a missing encoder falls back to a GIF
-            why = f"MP4 (H.264) unavailable: {type(exc).__name__}: " + \
-                (str(exc).splitlines()[0] if str(exc) else "")
+            why = (f"MP4 (H.264) unavailable: {type(exc).__name__}: " +
+                   (str(exc).splitlines()[0] if str(exc) else ""))
     with atomic_path(path.with_suffix(".gif")) as tmp:
         iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
     return path.with_suffix(".gif"), why + "; wrote a GIF instead"

@@ -332,8 +332,8 @@ def screen_value(handle, value) -> tuple[object, str]:
             return None, "not finite; ignored"
         if not handle.min <= value <= handle.max:
             clamped = float(min(handle.max, max(handle.min, value)))
-            return clamped, f"outside the slider's [{handle.min:g}, {handle.max:g}]; " \
-                            f"using {clamped:g}"
+            return (clamped, f"outside the slider's [{handle.min:g}, {handle.max:g}]; "
+                             f"using {clamped:g}")
         return value, ""
     if isinstance(handle, viser.GuiDropdownHandle):
         if not isinstance(value, str) or value not in handle.options:
@@ -384,8 +384,8 @@ class _ClientWorker:
                 while not self._closed:
                     if self._camera_known and self._version != done_version:
                         break
-                    if self._camera_known and not full_done and \
-                            time.monotonic() - self._last_change >= settle:
+                    if (self._camera_known and not full_done and
+                            time.monotonic() - self._last_change >= settle):
                         break
                     self._cond.wait(settle if not full_done else None)
                 if self._closed:

@@ -251,10 +251,10 @@ class ViewerSession:
         from mi_shadowgs.stages.relight import runner
 
         data = self._dataset()
-        cams = (runner.dataset_cameras(data, "test") or runner.dataset_cameras(data, "train")) \
-            if data is not None else []
-        template = cams[0] if cams else \
-            self._orbit_template(self.surfels.to_numpy()["position"])
+        cams = ((runner.dataset_cameras(data, "test") or runner.dataset_cameras(data, "train"))
+                if data is not None else [])
+        template = (cams[0] if cams else
+                    self._orbit_template(self.surfels.to_numpy()["position"]))
         return camera_from_pose(*pose_of_camera(template), width, height)
 
     # -- rendering -----------------------------------------------------------------------
@@ -316,19 +316,19 @@ class ViewerSession:
                 ls = self.light_set(lights)
                 maps = None
                 if ls is not None and shadows and mode != "albedo":
-                    cfg = self.vis_config if shadow_resolution is None else \
-                        dataclasses.replace(self.vis_config, resolution=shadow_resolution)
+                    cfg = (self.vis_config if shadow_resolution is None else
+                           dataclasses.replace(self.vis_config, resolution=shadow_resolution))
                     maps = self.maps.shadow_maps(self.fit.model, ls, self.bounds, cfg)
-                vis = None if maps is None else \
-                    maps.evaluate(g.geom.points, g.geom.normal, g.geom.footprint)
+                vis = (None if maps is None else
+                       maps.evaluate(g.geom.points, g.geom.normal, g.geom.footprint))
                 if vis is not None:
                     dr.eval(vis)
                 dr.sync_thread()
                 t2 = time.perf_counter()
                 image = self._shade(g, ls, vis, mode, exposure, h, w)
                 if visibility and ls is not None:
-                    vis_np = np.ones((h, w, ls.count), np.float32) if vis is None else \
-                        np.asarray(vis.numpy(), np.float32).reshape(h, w, ls.count)
+                    vis_np = (np.ones((h, w, ls.count), np.float32) if vis is None else
+                              np.asarray(vis.numpy(), np.float32).reshape(h, w, ls.count))
         alpha = g.geom.alpha.numpy().reshape(h, w)
         depth = np.asarray(g.geom.depth.numpy(), np.float32).reshape(h, w)
         t3 = time.perf_counter()  # numpy read-back: synced
