@@ -25,7 +25,8 @@ RTOL = 1e-5
 def test_ari_hand_cases():
     # a = {0,0,1,1}, b = {0,0,1,2}: index 1, sum_a 2, sum_b 1, C(4,2) = 6 ->
     # (1 - 1/3) / (3/2 - 1/3) = 4/7.
-    assert seg_metrics.adjusted_rand_index([0, 0, 1, 1], [0, 0, 1, 2]) == pytest.approx(4 / 7, 1e-12)
+    assert seg_metrics.adjusted_rand_index([0, 0, 1, 1], [0, 0, 1, 2]) == pytest.approx(4 / 7,
+                                                                                  1e-12)
     # index 2, sum_a 6, sum_b 3, C(6,2) = 15: (2 - 1.2) / (4.5 - 1.2) = 8/33.
     a, b = [0, 0, 0, 1, 1, 1], [0, 0, 1, 1, 2, 2]
     assert seg_metrics.adjusted_rand_index(a, b) == pytest.approx(8 / 33, 1e-12)
