@@ -25,8 +25,9 @@ from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
-from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.config import label_source_overrides
 from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
+from mi_shadowgs.stages.material.state import MaterialState
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.relight.evaluate import (
     check_evaluation_inputs,
@@ -149,7 +150,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
             res = fit_from_files(*fit_files[:3], use_visibility=cfg.use_visibility)
             fit_s = json.loads(fit_files[3].read_text())["fit_s"]
         else:
-            checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
+            checkpoints = checkpoint_hooks(out, MaterialState.from_checkpoint)
             res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds,
                                                   overrides, progress, **checkpoints))
             save_ply(out.path("model.ply"), res.surfels,
@@ -313,7 +314,7 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
             overrides["iterations"] = config.material_iterations
         if config.albedo_detail is not None:
             overrides["detail_prior"] = config.albedo_detail
-        changed = material_fit.label_source_overrides(
+        changed = label_source_overrides(
             material_config(config.preset, overrides), masks)
         if changed and log:
             log(f"stage 4 on segments from {masks}: " + ", ".join(

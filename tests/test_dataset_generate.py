@@ -69,7 +69,7 @@ def test_gpu_large_differs_from_cpu_medium_only_where_the_size_asks():
     import dataclasses
 
     from mi_shadowgs.stages.geometry.train import PRESETS as GEOMETRY
-    from mi_shadowgs.stages.material.fit import PRESETS as MATERIAL
+    from mi_shadowgs.stages.material.config import PRESETS as MATERIAL
     from mi_shadowgs.stages.visibility.shadow_maps import PRESETS as VISIBILITY
 
     large, medium = GEOMETRY["gpu-large"], GEOMETRY["cpu-medium"]
@@ -92,7 +92,7 @@ def test_every_stage_has_every_preset():
                  "mi_shadowgs.stages.segmentation.features",
                  "mi_shadowgs.stages.segmentation.masks",
                  "mi_shadowgs.stages.visibility.shadow_maps",
-                 "mi_shadowgs.stages.material.fit", "mi_shadowgs.stages.relight.render",
+                 "mi_shadowgs.stages.material.config", "mi_shadowgs.stages.relight.render",
                  "mi_shadowgs.stages.relight.mesh", "mi_shadowgs.stages.relight.export",
                  "mi_shadowgs.pipeline"):
         presets = importlib.import_module(name).PRESETS

@@ -246,7 +246,9 @@ def test_one_surface_gives_the_blended_receivers():
 def test_stage_4_and_relighting_shade_the_same_receivers():
     """Stage 4's views (``prepare_view``) and relighting's buffers (``view_buffers``) take
     the receivers from the same setting, so a model is relit as it was fitted."""
-    from mi_shadowgs.stages.material import fit as material_fit
+    from mi_shadowgs.stages.material.config import MaterialConfig
+    from mi_shadowgs.stages.material.normals import with_surfel_normals
+    from mi_shadowgs.stages.material.views import prepare_view
     from mi_shadowgs.stages.relight import render as relight
 
     raw = random_scene(40, 3)
@@ -258,10 +260,10 @@ def test_stage_4_and_relighting_shade_the_same_receivers():
                "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))})
     s = dataclasses.replace(s, channels=ch)
     cam = Camera.look_at([0.4, 0.9, 2.6], [0.0, 0.0, 0.0], width=24, height=20, fov_x=0.8)
-    cfg = material_fit.MaterialConfig()
+    cfg = MaterialConfig()
     for band in (0.0, 0.5):
-        view = material_fit.prepare_view(s, cam, np.zeros((20, 24, 3)), np.ones((20, 24)),
-                                         cfg, receiver_band=band)
+        view = prepare_view(s, cam, np.zeros((20, 24, 3)), np.ones((20, 24)),
+                            cfg, receiver_band=band)
         buf = relight.view_buffers(s, cam, receiver_band=band)
         for k in range(3):
             np.testing.assert_array_equal(np.array(view.geom.normal[k]),
@@ -270,8 +272,8 @@ def test_stage_4_and_relighting_shade_the_same_receivers():
                                           np.array(buf.geom.points[k]))
         # The normal phase blends its trainable normals over the same pairs: from the
         # surfels' own normals it gives back the receivers' normals.
-        pn = material_fit.with_surfel_normals(view, shading.shading_normals(s),
-                                              s.position).geom.normal
+        pn = with_surfel_normals(view, shading.shading_normals(s),
+                                 s.position).geom.normal
         for k in range(3):
             np.testing.assert_allclose(np.array(pn[k]), np.array(view.geom.normal[k]),
                                        atol=2e-6)

@@ -42,7 +42,7 @@ def with_label_source(run: Path, preset: str, overrides: dict) -> dict:
     segments' labels (stage 2's ``masks`` in ``segmentation.json``: on chromaticity ones
     ``MaterialConfig.chromaticity_*``, as ``run`` applies them); a setting in ``overrides``
     wins."""
-    from mi_shadowgs.stages.material.fit import label_source_overrides
+    from mi_shadowgs.stages.material.config import label_source_overrides
     from mi_shadowgs.stages.material.runner import material_config
 
     record = run / "segmentation" / "segmentation.json"
@@ -105,8 +105,10 @@ def settle_only(run: Path, data: Path) -> dict:
 
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.common import load_training_views
-    from mi_shadowgs.stages.material import fit as mf
+    from mi_shadowgs.stages.material.config import get_config
+    from mi_shadowgs.stages.material.lights import settle_lights
     from mi_shadowgs.stages.material.runner import occluder_bounds
+    from mi_shadowgs.stages.material.views import prepare_view
     from mi_shadowgs.stages.relight import evaluation
     from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -114,13 +116,13 @@ def settle_only(run: Path, data: Path) -> dict:
     light = json.loads((folder / "light.json").read_text())
     model = load_ply(folder / "model.ply")
     train = load_training_views(data)
-    cfg, vcfg = mf.get_config("cpu-small"), shadow_maps.get_config("cpu-small")
+    cfg, vcfg = get_config("cpu-small"), shadow_maps.get_config("cpu-small")
     bounds = occluder_bounds(load_ply(run / "segmentation" / "model.ply"), train.cameras, 0.98)
     pick = np.unique(np.linspace(0, len(train.views) - 1, cfg.refine_views).round()
                      .astype(int))
-    views = [mf.prepare_view(model, train.views[i].camera, train.views[i].image,
-                             train.views[i].mask, cfg,
-                             receiver_band=vcfg.receiver_band) for i in pick]
+    views = [prepare_view(model, train.views[i].camera, train.views[i].image,
+                          train.views[i].mask, cfg,
+                          receiver_band=vcfg.receiver_band) for i in pick]
     ch = {k: model.channels[k] for k in ("albedo", "roughness", "metallic", "indirect_sh")}
 
     def render(d, resolution=None):
@@ -131,8 +133,8 @@ def settle_only(run: Path, data: Path) -> dict:
     gt_dirs = np.array([g["direction"] for g in gt])
     gt_w = np.array([np.mean(g["irradiance"]) for g in gt])
     dirs, irr = np.asarray(light["directions"]), np.asarray(light["irradiance"], float)
-    d2, e2, _ = mf.settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
-                                 light["specular"])
+    d2, e2, _ = settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
+                              light["specular"])
     out = {}
     for key, (d, e) in (("run", (dirs, irr)), ("settled", (d2, e2))):
         out[key] = {**evaluation.light_angular_errors(d, e, gt_dirs),
@@ -233,7 +235,7 @@ def main(argv=None) -> int:
 
     def fit(unit) -> dict:
         from mi_shadowgs.stages.common import checkpoint_hooks
-        from mi_shadowgs.stages.material.fit import MaterialState
+        from mi_shadowgs.stages.material.state import MaterialState
 
         return refit(args.run, args.data, overrides, not args.quiet, not args.other_data,
                      checkpoint_hooks(unit, MaterialState.from_checkpoint))

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from mi_shadowgs.config import with_overrides
 from mi_shadowgs.stages.material import fit
+from mi_shadowgs.stages.material.config import MaterialConfig, get_config
+from mi_shadowgs.stages.material.state import MaterialResult
 from mi_shadowgs.stages.visibility import shadow_maps
 
 
@@ -17,13 +19,13 @@ def occluder_bounds(surfels, cameras, quantile: float) -> shadow_maps.SceneBound
     return shadow_maps.SceneBounds.from_points(pos, cameras, quantile)
 
 
-def material_config(preset: str, overrides: dict | None = None) -> fit.MaterialConfig:
-    return with_overrides(fit.get_config(preset), overrides, "material")
+def material_config(preset: str, overrides: dict | None = None) -> MaterialConfig:
+    return with_overrides(get_config(preset), overrides, "material")
 
 
 def decompose(surfels, train, preset: str, bounds: shadow_maps.SceneBounds,
               overrides: dict | None = None, progress: bool = True,
-              **checkpoints) -> fit.MaterialResult:
+              **checkpoints) -> MaterialResult:
     """Stage 4 on the training views of ``train`` (a loaded Dataset); ``checkpoints``:
     ``state`` and ``on_checkpoint`` of ``fit_material``."""
     cfg = material_config(preset, overrides)

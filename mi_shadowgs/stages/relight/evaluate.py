@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.core.directions import angles_from_direction, map_to_blocks
-from mi_shadowgs.stages.material import fit
+from mi_shadowgs.stages.material.state import LightModel, MaterialResult
 from mi_shadowgs.stages.relight import evaluation
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
@@ -101,7 +101,7 @@ def skipped_metrics(available: dict[str, str | None]) -> list[dict]:
     return out
 
 
-def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
+def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
                            preset: str, figure_lights: int = 3,
                            cache: relight.RelightCache | None = None) -> tuple[dict, dict]:
     """Paper Sec. V-A3 metrics on the test views, each computed only when the dataset has
@@ -385,7 +385,7 @@ def load_envmap(entry: dict, root: Path):
     return load_envmap(envmap_file(entry, root), float(entry.get("scale", 1.0)))
 
 
-def light_json(result: fit.MaterialResult) -> dict:
+def light_json(result: MaterialResult) -> dict:
     """The fitted light of stage 4 as ``light.json`` holds it: the grid radiance, the active
     directions, their unit vectors and irradiance, their azimuth/elevation (degrees), the
     specular and visibility flags, and the lights after each pruning, refinement and
@@ -401,7 +401,7 @@ def light_json(result: fit.MaterialResult) -> dict:
 
 
 def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None = None,
-                   use_visibility: bool = True) -> fit.MaterialResult:
+                   use_visibility: bool = True) -> MaterialResult:
     """A stage-4 result back from its files (``model.ply``, ``light.json``, optionally
     ``history.csv``): what a rerun evaluates instead of fitting again, and what ``relight``
     renders. Errors name the file and field."""
@@ -434,17 +434,17 @@ def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None
         for line in Path(history_path).read_text().splitlines()[1:]:
             step, loss = line.split(",")
             history.append((int(step), float(loss)))
-    light = fit.LightModel(radiance, active, dirs, weights)
-    return fit.MaterialResult(model, light, specular,
-                              bool(data.get("use_visibility", use_visibility)), history, {},
-                              list(data.get("log", [])))
+    light = LightModel(radiance, active, dirs, weights)
+    return MaterialResult(model, light, specular,
+                          bool(data.get("use_visibility", use_visibility)), history, {},
+                          list(data.get("log", [])))
 
 
 TURNTABLE_LIGHTS = 8  # azimuths of the previews' light turntable
 TURNTABLE_ELEVATION = 45.0
 
 
-def write_previews(folder: Path, result: fit.MaterialResult, cameras, bounds, preset: str,
+def write_previews(folder: Path, result: MaterialResult, cameras, bounds, preset: str,
                    envmaps=(), cache: relight.RelightCache | None = None) -> dict:
     """Relit previews of a fit under standard lights, for data with or without ground truth:
     a turntable of ``TURNTABLE_LIGHTS`` directional lights at ``TURNTABLE_ELEVATION``
