@@ -23,19 +23,17 @@ shadow maps, no shading for them; their L_dir is 0 from then on), and with
 ``specular="auto"`` the GGX lobe is switched off when the fitted parameters say the scene is
 diffuse (every surfel's metallic below ``auto_metallic_max`` and roughness above
 ``auto_roughness_min`` at the end of the warm-up; the lobe then costs nothing and metallic
-is fixed at 0). ``cpu-small`` and ``cpu-medium`` model no lobe at all (``specular="off"``):
-at their resolution and step count the fitted lobe was noise on every scene (``PRESETS``).
+is fixed at 0). ``cpu-small`` and ``cpu-medium`` model no lobe at all (``specular="off"``).
+Why each default that is not the paper's is what it is: docs/decisions.md.
 
 Where the light is: the grid's neighbouring directions that share a light merge into one at
 their energy-weighted direction (``merge_directions``), which lands a few degrees off, and
 ``refine_directions`` then searches each light's direction on a local grid, scoring a
 candidate by the training views' squared error with its shadow map rendered and its
-irradiance re-fitted in closed form (shadows are the sharpest cue; gradients through
-n . l alone moved the default scene's lights 9 degrees the wrong way); ``refine_score``
+irradiance re-fitted in closed form (shadows are the sharpest cue); ``refine_score``
 says what else is re-fitted with it (cpu-small: each segment's albedo, so that the
 materials fitted under the current lights do not hold a light where they were fitted).
-Measured on the default scene: light directions ~4-6 -> < 1 degree off, shadow IoU 0.71 ->
-0.81. The first refinement can start each light with a global pass over the hemisphere
+The first refinement can start each light with a global pass over the hemisphere
 (``refine_global``, off by default: see there), so a light merged into the wrong cell is
 found again; after each refinement the lights that met merge and those that carry little
 irradiance and explain little of the views are dropped (``settle_lights``: backward

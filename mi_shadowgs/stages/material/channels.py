@@ -38,8 +38,8 @@ def segment_ids(surfels: Surfels) -> mi.UInt32:
         raise ValueError("stage 4: the surfels have no 'segment' channel (run segmentation, "
                          "or give every surfel segment 0)")
     seg = np.asarray(surfels.channels["segment"].numpy()).reshape(-1)
-    if len(seg) != surfels.count or not np.all(np.isfinite(seg)) or np.any(seg < 0) or \
-            np.any(seg != np.round(seg)):
+    if (len(seg) != surfels.count or not np.all(np.isfinite(seg)) or np.any(seg < 0)
+            or np.any(seg != np.round(seg))):
         raise ValueError("stage 4: channel 'segment' must hold one non-negative integer per "
                          "surfel")
     return mi.UInt32(seg.astype(np.uint32))

@@ -116,8 +116,8 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
                                  images, masks, strict=True)]
     if state is None:
         state = _initial_state(surfels, images, views, seg, n_seg, config)
-    state.timings["prepare_s"] = state.timings.get("prepare_s", 0.0) + \
-        time.perf_counter() - t0
+    state.timings["prepare_s"] = (state.timings.get("prepare_s", 0.0)
+                                  + time.perf_counter() - t0)
     fit = MaterialFit(surfels, views, seg, n_seg, config, vis_config, bounds, None)
     # Per-view point/normal lookups are fixed: visibility of all active directions per view
     # is re-evaluated on the fly (cheap gathers) rather than stored (V x H x W x L floats).
@@ -137,8 +137,8 @@ def refine_lights(fit: MaterialFit, state: MaterialState, on_unit=None,
     lights' maps (nothing without refinement passes or visibility), then ``settle_lights``
     (merge the lights that met, drop those that explain little)."""
     # the end of the warm-up (global_pass) or the main phase's second refinement
-    if (fit.config.local_passes(not global_pass) or (global_pass and fit.config.refine_global)) \
-            and fit.maps is not None:
+    if ((fit.config.local_passes(not global_pass) or (global_pass and fit.config.refine_global))
+            and fit.maps is not None):
         state.directions = _refine(fit.views, state, fit.maps, fit.shadow_maps, fit.config,
                                    on_unit, global_pass)
         fit.maps = fit.shadow_maps(state.directions)
@@ -169,14 +169,14 @@ def end_warmup(fit: MaterialFit, state: MaterialState, on_unit=None) -> None:
 
 def prune_due(config: MaterialConfig, step: int) -> bool:
     """Whether the main phase prunes the lights before ``step``."""
-    return config.prune and step > config.warmup and config.prune_every > 0 and \
-        (step - config.warmup) % config.prune_every == 0
+    return (config.prune and step > config.warmup and config.prune_every > 0
+            and (step - config.warmup) % config.prune_every == 0)
 
 
 def refine_step(config: MaterialConfig) -> int:
     """The main phase's second refinement: half way (-1: none)."""
-    return (config.warmup + config.iterations) // 2 \
-        if config.iterations > config.warmup + 1 else -1
+    return ((config.warmup + config.iterations) // 2
+            if config.iterations > config.warmup + 1 else -1)
 
 
 def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
@@ -192,8 +192,8 @@ def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
     total = mi.Float(0.0)
     for _ in range(config.views_per_step):
         v = fit.views[int(state.rng.integers(len(fit.views)))]
-        vis = None if fit.maps is None else \
-            fit.maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+        vis = (None if fit.maps is None
+               else fit.maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint))
         total += view_loss(v, cur, lights, vis, config, state.specular)
     total = total / config.views_per_step
     dr.backward(total)
@@ -202,8 +202,8 @@ def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
         if k not in _LIGHT_KEYS:
             ch[k] = opt[k]
     _clamp_channels(ch, fit.seg, fit.n_seg, config, state.specular)
-    if config.albedo_scale > 0 and not state.specular and \
-            state.step % config.albedo_scale_every == 0:  # a host read
+    if (config.albedo_scale > 0 and not state.specular
+            and state.step % config.albedo_scale_every == 0):  # a host read
         if fit.support is None:
             fit.support = surfel_support(fit.views, fit.surfels.count)
         hold_albedo_scale(ch, opt, albedo_scale_factor(ch["albedo"].numpy(), fit.support,
@@ -361,8 +361,8 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
             raise_pending(f"stage 4 stopped at step {state.step} of {total_steps}"
                           + (", checkpoint written" if on_checkpoint else ""))
     dr.sync_thread()
-    state.timings["normals_s" if config.normal_steps else main_phase] = \
-        time.perf_counter() - t_phase
+    phase = "normals_s" if config.normal_steps else main_phase
+    state.timings[phase] = time.perf_counter() - t_phase
     return fit_result(fit, state)
 
 

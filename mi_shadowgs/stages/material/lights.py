@@ -134,8 +134,8 @@ def candidate_directions(direction: np.ndarray, radius_deg: float, step_deg: flo
     for i in range(-k, k + 1):
         for j in range(-k, k + 1):
             if (i or j) and math.hypot(i, j) * step_deg <= radius_deg + 1e-9:
-                c = d + math.tan(math.radians(i * step_deg)) * t1 + \
-                    math.tan(math.radians(j * step_deg)) * t2
+                c = (d + math.tan(math.radians(i * step_deg)) * t1
+                     + math.tan(math.radians(j * step_deg)) * t2)
                 out.append(c / np.linalg.norm(c))
     out = np.array(out)
     keep = out[:, 1] > 0.0
@@ -192,8 +192,8 @@ class Refinement:
         """(light, radius, step) in order; radius inf: the global pass."""
         # after a global pass the local passes start a grid cell away: the first
         # refinement's, whichever refinement this is
-        passes = ([(math.inf, 0.0)] if self.global_pass else []) + \
-            list(config.local_passes(self.again and not self.global_pass))
+        passes = (([(math.inf, 0.0)] if self.global_pass else [])
+                  + list(config.local_passes(self.again and not self.global_pass)))
         return [(int(k), r, st) for k in self.lights for r, st in passes]
 
     def run(self, views: list[TrainView], channels: dict, maps, render_maps,

@@ -45,8 +45,8 @@ def _start_normals(fit: MaterialFit) -> tuple[mi.Vector3f, mi.Bool]:
         with dr.suspend_grad():
             n0 = shading.shading_normals(fit.surfels)  # unit
             held = dr.zeros(mi.Bool, fit.surfels.count)
-            if fit.config.normal_hold_planar and \
-                    shading.SHADING_NORMAL_CHANNEL in fit.surfels.channels:
+            if (fit.config.normal_hold_planar
+                    and shading.SHADING_NORMAL_CHANNEL in fit.surfels.channels):
                 own = fit.surfels.tangent_frame()[2]
                 held = dr.abs(dr.dot(n0, own)) < math.cos(math.radians(FLATTENED_MIN_DEG))
             dr.eval(n0, held)
@@ -104,8 +104,8 @@ def normal_step(fit: MaterialFit, state: MaterialState) -> float | None:
         k = int(state.rng.integers(len(fit.views)))
         v = fit.views[k]
         # The lookup keeps the view's own normals: its offset is part of the occluder test.
-        vis = None if fit.maps is None else \
-            fit.maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+        vis = (None if fit.maps is None
+               else fit.maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint))
         total += view_loss(with_surfel_normals(v, normals, position), state.channels, lights,
                            vis, config, state.specular, _held_view_maps(fit, state, k))
     total = total / config.views_per_step

@@ -22,8 +22,8 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
     shading per light of ``dirs`` [P * K] pixel-major and that visibility [P * K] (from
     ``maps``; None without)."""
     albedo, rough, metal, ind = view_maps(v.pairs, channels, v.surfel_normal, with_specular)
-    vis = None if maps is None else \
-        maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+    vis = (None if maps is None
+           else maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint))
     per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)
     # [P * K] both, in one kernel: their readers (per channel, per sum, the albedo score's
     # unit-albedo shading) would each recompute the lookups

@@ -40,8 +40,8 @@ class LightModel:
     def light_set(self, n_directions: int | None = None) -> shading.LightSet:
         n = len(self.radiance) if n_directions is None else n_directions
         dirs = light_grid(n)[self.active] if self.directions is None else self.directions
-        w = self.radiance[self.active] * solid_angle(n) if self.weights is None else \
-            self.weights
+        w = (self.radiance[self.active] * solid_angle(n) if self.weights is None
+             else self.weights)
         w = np.asarray(w, np.float32)
         return shading.LightSet(np.asarray(dirs, np.float64), mi.Color3f(w, w, w))
 
@@ -82,8 +82,7 @@ class MaterialState:
     refine: Refinement | None = None
     # The lights after each decision on them, in order: dicts of "step", "event" ("prune",
     # "refine", "settle"), "directions" [K][3] and "irradiance" [K] (JSON; ``log_lights``).
-    # A light lost on the way shows where (issue 15: the low pair's weaker light was gone
-    # at the warm-up's pruning, before any refinement or settling saw it).
+    # A light lost on the way shows at which decision it went.
     light_log: list = dataclasses.field(default_factory=list)
     # The lights' directions [K, 3] when the albedo detail joined, whose shadows' edges its
     # gates follow (``detail_gates``); None before.
@@ -128,11 +127,12 @@ class MaterialState:
         rng.bit_generator.state = meta["rng"]
         channels = {k[len("channel/"):]: mi.TensorXf(a) for k, a in arrays.items()
                     if k.startswith("channel/")}
-        refine = Refinement(arrays["refine/dirs"], arrays["refine/irradiance"],
-                            arrays["refine/lights"], int(arrays["refine/done"][0]),
-                            bool(arrays.get("refine/global", [0])[0]),
-                            bool(arrays.get("refine/again", [0])[0])) \
-            if "refine/dirs" in arrays else None
+        refine = None
+        if "refine/dirs" in arrays:
+            refine = Refinement(arrays["refine/dirs"], arrays["refine/irradiance"],
+                                arrays["refine/lights"], int(arrays["refine/done"][0]),
+                                bool(arrays.get("refine/global", [0])[0]),
+                                bool(arrays.get("refine/again", [0])[0]))
         return MaterialState(int(meta["step"]), opt, channels, arrays["directions"],
                              bool(meta["specular"]), rng, mi.Float(arrays["loss_sum"]),
                              [(int(i), float(x)) for i, x in meta["history"]],
@@ -171,8 +171,8 @@ class MaterialFit:
         """Shadow maps of ``directions`` (at ``resolution``, default the visibility's)."""
         if not self.config.use_visibility:
             return None
-        cfg = self.vis_config if resolution is None else \
-            dataclasses.replace(self.vis_config, resolution=resolution)
+        cfg = (self.vis_config if resolution is None
+               else dataclasses.replace(self.vis_config, resolution=resolution))
         if self.map_cache is None:
             self.map_cache = MapCache(self.surfels, self.bounds, max_bytes=96 << 20)
         return self.map_cache.maps(directions, cfg)

@@ -145,8 +145,8 @@ def view_loss(view: TrainView, channels: dict[str, mi.TensorXf], lights: shading
     """Eq. 18 for one view (means over its supervised pixels); ``maps``: the view's
     ``view_maps`` of ``channels`` when already made (the normal phase holds them)."""
     h, w = view.pairs.height, view.pairs.width
-    albedo, rough, metal, ind = maps if maps is not None else \
-        view_maps(view.pairs, channels, view.surfel_normal, with_specular, view.detail_gate)
+    albedo, rough, metal, ind = (maps if maps is not None else view_maps(
+        view.pairs, channels, view.surfel_normal, with_specular, view.detail_gate))
     rgb = shading.shade(view.geom, albedo, rough, metal, lights, vis, ind, with_specular)
     wgt = view.weight
     inv = view.inv_count
