@@ -22,18 +22,15 @@ from mi_shadowgs.config import (
     slow_preset_warning,
 )
 from mi_shadowgs.core.directions import angles_from_direction
-from mi_shadowgs.io.atomic import write_json, write_text
+from mi_shadowgs.io.atomic import write_json
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
 from mi_shadowgs.stages.material.config import label_source_overrides
-from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
-from mi_shadowgs.stages.material.state import MaterialState
+from mi_shadowgs.stages.material.runner import fit_or_reuse, material_config, occluder_bounds
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.relight.evaluate import (
     check_evaluation_inputs,
     evaluate_decomposition,
-    fit_from_files,
-    light_json,
     write_figures,
     write_previews,
 )
@@ -115,14 +112,13 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
     returns (metrics, fit seconds), the seconds None when a finished output of the same
     provenance is reused."""
     from mi_shadowgs.dataset.fingerprint import dataset_ref
-    from mi_shadowgs.io.ply import save_ply
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
-    from mi_shadowgs.stages.common import checkpoint_hooks, warn_other_backend
+    from mi_shadowgs.stages.common import warn_other_backend
 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
     cfg = material_config(config.preset, overrides)
-    vis_config = shadow_maps.get_config(config.preset)  # what decompose fits with
+    vis_config = shadow_maps.get_config(config.preset)
     settings = {"variant": name, "material": dataclasses.asdict(cfg),
                 "visibility": dataclasses.asdict(vis_config),
                 "relight": dataclasses.asdict(relight.get_config(config.preset)),
@@ -142,23 +138,7 @@ def material_stage(top, name: str, overrides: dict, data: Path, surfels, train, 
         if out.complete:
             return json.loads((folder / "metrics.json").read_text()), None
         warn_other_backend(out, made_from=seg_model)
-        # The fitted model is saved before any evaluation: a run that fails in evaluation
-        # keeps it, and a rerun evaluates it again instead of fitting again (fit.json, the
-        # last file of the fit, marks it finished).
-        fit_files = [folder / n for n in ("model.ply", "light.json", "history.csv", "fit.json")]
-        if out.reused and all(f.is_file() for f in fit_files):
-            res = fit_from_files(*fit_files[:3], use_visibility=cfg.use_visibility)
-            fit_s = json.loads(fit_files[3].read_text())["fit_s"]
-        else:
-            checkpoints = checkpoint_hooks(out, MaterialState.from_checkpoint)
-            res, fit_s = _timed(lambda: decompose(surfels, train, config.preset, bounds,
-                                                  overrides, progress, **checkpoints))
-            save_ply(out.path("model.ply"), res.surfels,
-                     relight.model_metadata(vis_config, res.specular))
-            write_json(out.path("light.json"), light_json(res))
-            write_text(out.path("history.csv"), "step,loss\n" + "".join(
-                f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
-            write_json(out.path("fit.json"), {"fit_s": fit_s, "timings": res.timings})
+        res, fit_s = fit_or_reuse(out, surfels, train, cfg, vis_config, bounds, progress)
         cache = relight.RelightCache()  # shadow maps shared by evaluation and previews
         metrics, images = evaluate_decomposition(res, train, test, bounds, config.preset,
                                                  cache=cache)
@@ -230,12 +210,6 @@ def _user_envmap_files(config: RunConfig) -> list[Path]:
         files += sorted(path.glob("*.exr")) if path.is_dir() else [path] if path.is_file() \
             else []
     return files
-
-
-def _timed(fn):
-    t0 = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t0
 
 
 def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress: bool = True,

@@ -211,7 +211,7 @@ def test_c_image_equals_direct_plus_nonnegative_indirect(default_setup, two_view
 
 def test_two_multijittered_passes_closer_than_256_independent_spp(default_setup, two_views):
     """The presets' samples: two multi-jittered passes of 64 per pixel are closer to a
-    4096-spp reference than 256 independent samples (the sampler of sessions 1-15), so
+    4096-spp reference than 256 independent samples (the earlier sampler), so
     that half the paths lower the images' noise floor."""
     cams, _ = two_views
 
@@ -224,8 +224,8 @@ def test_two_multijittered_passes_closer_than_256_independent_spp(default_setup,
         ref = np.mean([ref_renderer.render(default_setup.scene, cam, 100 + s)[..., :3]
                        for s in range(4)], axis=0)  # its own noise: ~12 dB below 256 spp
         two_passes = psnr(cam, ref, 128, pass_spp=64)
-        # Measured +1.8 dB on average over six 128^2 views of this scene (BENCHMARKS.md,
-        # "Session 16"), every view ahead; 0.5 dB of margin for these 64^2 views' edges.
+        # Measured +1.8 dB on average over six 128^2 views of this scene, every view
+        # ahead; 0.5 dB of margin for these 64^2 views' edges.
         assert two_passes >= psnr(cam, ref, 256, sampler="independent") + 0.5
         # one pass of 64: its noise is that of one stratified set (the passes average)
         assert two_passes >= psnr(cam, ref, 64) + 2.0

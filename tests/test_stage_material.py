@@ -1,4 +1,4 @@
-"""Stage 4 (mi_shadowgs.stages.material.fit, mi_shadowgs.core.shading): kernels and a tiny fit."""
+"""Stage 4 (mi_shadowgs.stages.material, mi_shadowgs.core.shading): kernels and a tiny fit."""
 
 from __future__ import annotations
 
@@ -367,7 +367,7 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     irradiance; the true direction scores ~0 under the "segment" score (the views are
     rendered by it) and near its floor under cpu-small's "albedo" score.
 
-    On two threads this failed 2 runs of 16 (session 38): with one light the albedo score
+    On two threads this failed 2 runs of 16: with one light the albedo score
     is flat in E, and round-off (one pixel's last bit, from a float atomic's order in the
     albedo splat) chose E, and with it the score (``albedo_errors``)."""
     from mi_shadowgs.core.directions import direction_from_angles
@@ -444,7 +444,7 @@ def test_overrides_reach_nested_settings():
 ])
 def test_overrides_of_the_wrong_type_are_refused_by_name(field, value, message):
     """``refine_again_global="false"`` from a command line once replaced the switch with a
-    truthy string, silently keeping it on (session 23's light-sweep refits)."""
+    truthy string, silently keeping it on."""
     with pytest.raises(ConfigError, match=f"{field}.*{message}"):
         with_overrides(get_config("cpu-small"), {field: value}, "material")
     ok = with_overrides(get_config("cpu-small"),
@@ -504,7 +504,7 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
 
 
 def test_albedo_scale_is_not_set_by_a_few_percent_of_the_support_at_the_box():
-    """The ficus at stage-1 seed 1 (session 30), per segment: support share and brightest
+    """The ficus at stage-1 seed 1, per segment: support share and brightest
     albedo channel. Two small segments around the pot, with little direct light in the
     model, ran to the box with 1.65% of the support; the hold must follow the base (91%),
     not them: at the 0.99 quantile they held it and the light ran 7x too bright."""

@@ -63,12 +63,12 @@ def run_variant(name, overrides, surfels, train, test, bounds, preset, extra,
     """Fit one variant on the stand-in and evaluate it (``mi_shadowgs.pipeline``);
     ``checkpoints``: ``state`` and ``on_checkpoint`` of stage 4."""
     t0 = time.perf_counter()
-    res = material.decompose(surfels, train, preset, bounds, {**overrides, **extra},
+    cfg = with_overrides(get_config(preset), {**overrides, **extra}, "material")
+    res = material.decompose(surfels, train, cfg, shadow_maps.get_config(preset), bounds,
                              **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
     out, images = relight.evaluate_decomposition(res, train, test, bounds, preset)
     out.update(fit_s=fit_s, timings=res.timings, history=res.history)
-    cfg = with_overrides(get_config(preset), {**overrides, **extra}, "material")
     steps_w = min(cfg.warmup, cfg.iterations)
     if steps_w and "warmup_total_s" in res.timings:
         out["step_ms_warmup"] = 1e3 * res.timings["warmup_total_s"] / steps_w

@@ -64,9 +64,11 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.io.provenance import read_manifest
     from mi_shadowgs.stages.common import load_training_views
-    from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
-    from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition, light_json
+    from mi_shadowgs.stages.material.outputs import light_json
+    from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
+    from mi_shadowgs.stages.relight.evaluate import evaluate_decomposition
     from mi_shadowgs.stages.relight.runner import run_preset
+    from mi_shadowgs.stages.visibility import shadow_maps
 
     before_path = run / "material" / "full" / "metrics.json"
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
@@ -76,7 +78,8 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     surfels = load_ply(run / "segmentation" / "model.ply")
     bounds = occluder_bounds(surfels, train.cameras, float(settings.get("bounds_quantile", 0.98)))
     t0 = time.perf_counter()
-    res = decompose(surfels, train, preset, bounds, overrides, progress, **(checkpoints or {}))
+    res = decompose(surfels, train, material_config(preset, overrides),
+                    shadow_maps.get_config(preset), bounds, progress, **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
     metrics, _ = evaluate_decomposition(res, train, test, bounds, preset)
     metrics["fit_s"] = fit_s

@@ -53,15 +53,21 @@ albedo channel holds the product.
 Modules, by job: ``config`` (settings, presets), ``channels`` (initial values, projection),
 ``views`` (training views, per-view maps and loss), ``scoring`` (closed-form light scores),
 ``lights`` (merge, prune, refine, settle), ``state`` (light model, state, checkpoint,
-result), ``normals`` (the normal phase), ``fit`` (the loop) and ``runner`` (stage 4 on a
-dataset).
+result), ``normals`` (the normal phase), ``fit`` (the loop), ``outputs`` (the fit's files)
+and ``runner`` (stage 4 on a dataset, fitted or read back).
 """
 
 from __future__ import annotations
 
 from mi_shadowgs.stages.material.config import PRESETS, MaterialConfig, get_config
 from mi_shadowgs.stages.material.fit import fit_material
-from mi_shadowgs.stages.material.runner import decompose, material_config, occluder_bounds
+from mi_shadowgs.stages.material.outputs import fit_from_files, light_json
+from mi_shadowgs.stages.material.runner import (
+    decompose,
+    fit_or_reuse,
+    material_config,
+    occluder_bounds,
+)
 from mi_shadowgs.stages.material.state import MaterialResult, MaterialState
 
 __all__ = [
@@ -70,8 +76,11 @@ __all__ = [
     "MaterialState",
     "PRESETS",
     "decompose",
+    "fit_from_files",
     "fit_material",
+    "fit_or_reuse",
     "get_config",
+    "light_json",
     "material_config",
     "occluder_bounds",
 ]

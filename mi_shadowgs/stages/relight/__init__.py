@@ -11,7 +11,6 @@ from __future__ import annotations
 from mi_shadowgs.stages.relight.evaluate import (
     check_evaluation_inputs,
     evaluate_decomposition,
-    light_json,
     light_map_image,
     write_figures,
 )
@@ -34,7 +33,6 @@ __all__ = [
     "directional_light_set",
     "evaluate_decomposition",
     "get_config",
-    "light_json",
     "light_map_image",
     "lights_from_json",
     "relight_view",
