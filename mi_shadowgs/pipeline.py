@@ -16,17 +16,14 @@ from pathlib import Path
 
 from mi_shadowgs.backend import ensure_variant
 from mi_shadowgs.config import slow_preset_warning
-from mi_shadowgs.io.atomic import write_json, write_text
+from mi_shadowgs.io.atomic import write_json
 from mi_shadowgs.presets import CONFIG_NAME, RunConfig
 from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
 from mi_shadowgs.stages.evaluation.evaluate import check_evaluation_inputs
 from mi_shadowgs.stages.evaluation.runner import evaluate_variant
-from mi_shadowgs.stages.material import fit as material_fit
-from mi_shadowgs.stages.material.files import fit_from_files, light_json
-from mi_shadowgs.stages.material.fit import MaterialConfig
-from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
-from mi_shadowgs.stages.relight import render as relight
+from mi_shadowgs.stages.material.config import MaterialConfig, label_source_overrides
+from mi_shadowgs.stages.material.runner import fit_or_reuse, occluder_bounds
 from mi_shadowgs.stages.visibility import shadow_maps
 from mi_shadowgs.summary import build_summary, write_report_figures
 
@@ -39,9 +36,8 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
     run ``top`` (an Output); ``labels``: where stage 2's segments came from; ``dataset``: the
     dataset's fingerprint. Returns (metrics, fit seconds), the seconds None when a finished
     output of the same provenance is reused."""
-    from mi_shadowgs.io.ply import save_ply
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
-    from mi_shadowgs.stages.common import checkpoint_hooks, warn_other_backend
+    from mi_shadowgs.stages.common import warn_other_backend
 
     folder = top.folder / "material" / name
     seg_model = top.folder / "segmentation" / "model.ply"
@@ -63,23 +59,8 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
         if out.complete:
             return json.loads((folder / "metrics.json").read_text()), None
         warn_other_backend(out, made_from=seg_model)
-        # The fitted model is saved before any evaluation: a run that fails in evaluation
-        # keeps it, and a rerun evaluates it again instead of fitting again (fit.json, the
-        # last file of the fit, marks it finished).
-        fit_files = [folder / n for n in ("model.ply", "light.json", "history.csv", "fit.json")]
-        if out.reused and all(f.is_file() for f in fit_files):
-            res = fit_from_files(*fit_files[:3], use_visibility=material.use_visibility)
-            fit_s = json.loads(fit_files[3].read_text())["fit_s"]
-        else:
-            checkpoints = checkpoint_hooks(out, material_fit.MaterialState.from_checkpoint)
-            res, fit_s = _timed(lambda: decompose(surfels, train, material, config.visibility,
-                                                  bounds, labels, progress, **checkpoints))
-            save_ply(out.path("model.ply"), res.surfels,
-                     relight.model_metadata(config.visibility, res.specular))
-            write_json(out.path("light.json"), light_json(res))
-            write_text(out.path("history.csv"), "step,loss\n" + "".join(
-                f"{int(step)},{float(loss)!r}\n" for step, loss in res.history))
-            write_json(out.path("fit.json"), {"fit_s": fit_s, "timings": res.timings})
+        res, fit_s = fit_or_reuse(out, surfels, train, material, config.visibility, bounds,
+                                  progress)
         metrics = evaluate_variant(
             out, res, train, test, bounds, config.visibility, config.relight,
             config.figure_views, _segment_maps(top.folder / "segmentation" / "segments", test),
@@ -140,12 +121,6 @@ def _user_envmap_files(config: RunConfig) -> list[Path]:
     return files
 
 
-def _timed(fn):
-    t0 = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t0
-
-
 def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress: bool = True,
                  overwrite: bool = False, log=print) -> dict:
     """Stages 1-5 on dataset ``data`` into run folder ``out``; returns the summary.
@@ -166,6 +141,7 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
 
     data, run = Path(data), Path(out)
     t_start = time.perf_counter()
+    settings = config.to_dict()  # as asked; the stages' manifests record what they ran with
     slow = slow_preset_warning(config.preset, ensure_variant())
     if slow:
         warn(slow)
@@ -180,8 +156,14 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         from mi_shadowgs.stages.segmentation.masks import material_masks
 
         material_masks(train)
+    changed = label_source_overrides(config.material, labels)
+    if changed:  # stage 4's settings for segments from colour labels, resolved once here
+        config = dataclasses.replace(config, material=dataclasses.replace(config.material,
+                                                                          **changed))
+        if log:
+            log(f"stage 4 on segments from {labels}: " + ", ".join(
+                f"{k} {v}" for k, v in changed.items()) + " (MaterialConfig.chromaticity_*)")
     dataset = dataset_ref(data)  # fingerprinted once; every stage's manifest records it
-    settings = config.to_dict()
     provenance = Provenance(dataset=dataset, settings=settings)
     stages, reused = [], []  # (name, seconds) of the stages this call ran; names of the rest
 
@@ -212,10 +194,6 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         done("segmentation", seg)
         surfels = load_ply(run / "segmentation" / "model.ply")
         bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
-        changed = material_fit.label_source_overrides(config.material, labels)
-        if changed and log:
-            log(f"stage 4 on segments from {labels}: " + ", ".join(
-                f"{k} {v}" for k, v in changed.items()) + " (MaterialConfig.chromaticity_*)")
 
         # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
         results = {}

@@ -32,8 +32,8 @@ from mi_shadowgs.stages.export.export import PRESETS as EXPORT
 from mi_shadowgs.stages.export.export import ExportConfig
 from mi_shadowgs.stages.geometry.train import PRESETS as GEOMETRY
 from mi_shadowgs.stages.geometry.train import GeometryConfig
-from mi_shadowgs.stages.material.fit import PRESETS as MATERIAL
-from mi_shadowgs.stages.material.fit import MaterialConfig
+from mi_shadowgs.stages.material.config import PRESETS as MATERIAL
+from mi_shadowgs.stages.material.config import MaterialConfig
 from mi_shadowgs.stages.relight.render import PRESETS as RELIGHT
 from mi_shadowgs.stages.relight.render import RelightConfig
 from mi_shadowgs.stages.segmentation.features import PRESETS as SEGMENTATION

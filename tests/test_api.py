@@ -106,7 +106,8 @@ def test_relight_of_a_ply_uses_the_shadow_maps_it_records(tmp_path):
     records (as the surfel_relight plugin and `mi-shadowgs relight` do), not cpu-small's."""
     from mi_shadowgs.core.surfels import Surfels
     from mi_shadowgs.io.ply import save_ply
-    from mi_shadowgs.stages.relight.render import model_metadata, relight_views
+    from mi_shadowgs.stages.material.outputs import model_metadata
+    from mi_shadowgs.stages.relight.render import relight_views
     from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, get_config
 
     rng = np.random.default_rng(1)

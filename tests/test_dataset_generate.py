@@ -69,7 +69,7 @@ def test_gpu_large_differs_from_cpu_medium_only_where_the_size_asks():
     import dataclasses
 
     from mi_shadowgs.stages.geometry.train import PRESETS as GEOMETRY
-    from mi_shadowgs.stages.material.fit import PRESETS as MATERIAL
+    from mi_shadowgs.stages.material.config import PRESETS as MATERIAL
     from mi_shadowgs.stages.visibility.shadow_maps import PRESETS as VISIBILITY
 
     large, medium = GEOMETRY["gpu-large"], GEOMETRY["cpu-medium"]
@@ -92,7 +92,7 @@ def test_every_stage_has_every_preset():
                  "mi_shadowgs.stages.segmentation.features",
                  "mi_shadowgs.stages.segmentation.masks",
                  "mi_shadowgs.stages.visibility.shadow_maps",
-                 "mi_shadowgs.stages.material.fit", "mi_shadowgs.stages.relight.render",
+                 "mi_shadowgs.stages.material.config", "mi_shadowgs.stages.relight.render",
                  "mi_shadowgs.stages.export.mesh", "mi_shadowgs.stages.export.export",
                  "mi_shadowgs.presets"):
         presets = importlib.import_module(name).PRESETS
@@ -211,7 +211,7 @@ def test_c_image_equals_direct_plus_nonnegative_indirect(default_setup, two_view
 
 def test_two_multijittered_passes_closer_than_256_independent_spp(default_setup, two_views):
     """The presets' samples: two multi-jittered passes of 64 per pixel are closer to a
-    4096-spp reference than 256 independent samples (the sampler of sessions 1-15), so
+    4096-spp reference than 256 independent samples (the earlier sampler), so
     that half the paths lower the images' noise floor."""
     cams, _ = two_views
 
@@ -224,8 +224,8 @@ def test_two_multijittered_passes_closer_than_256_independent_spp(default_setup,
         ref = np.mean([ref_renderer.render(default_setup.scene, cam, 100 + s)[..., :3]
                        for s in range(4)], axis=0)  # its own noise: ~12 dB below 256 spp
         two_passes = psnr(cam, ref, 128, pass_spp=64)
-        # Measured +1.8 dB on average over six 128^2 views of this scene (BENCHMARKS.md,
-        # "Session 16"), every view ahead; 0.5 dB of margin for these 64^2 views' edges.
+        # Measured +1.8 dB on average over six 128^2 views of this scene, every view
+        # ahead; 0.5 dB of margin for these 64^2 views' edges.
         assert two_passes >= psnr(cam, ref, 256, sampler="independent") + 0.5
         # one pass of 64: its noise is that of one stratified set (the passes average)
         assert two_passes >= psnr(cam, ref, 64) + 2.0

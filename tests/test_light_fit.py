@@ -19,6 +19,25 @@ from mi_shadowgs.core.directions import direction_from_angles, light_grid, solid
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.config import MaterialConfig, get_config
+from mi_shadowgs.stages.material.fit import _refine, end_warmup, setup_fit
+from mi_shadowgs.stages.material.lights import (
+    Refinement,
+    prune_lights,
+    refine_directions,
+    settle_lights,
+)
+from mi_shadowgs.stages.material.scoring import (
+    _candidate_scores,
+    albedo_errors,
+    drop_unexplained,
+    light_normal_equations,
+    nnls_irradiance,
+    segment_errors,
+    segment_nnls,
+)
+from mi_shadowgs.stages.material.state import MaterialState
+from mi_shadowgs.stages.material.views import prepare_view, view_maps
 from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
     VisibilityConfig,
@@ -65,18 +84,18 @@ def _views(s, cams, bounds, dirs, irradiance):
     ch = {"albedo": s.channels["albedo_gt"],
           "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
           "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))}
-    cfg = material_fit.get_config("cpu-small")
+    cfg = get_config("cpu-small")
     views = []
     for cam in cams:
         geom = shading.pixel_geometry(s, cam)
-        albedo, rough, metal, _ = material_fit.view_maps(shading.splat_pairs(s, cam), ch,
-                                                         shading.facing_normals(s, cam))
+        albedo, rough, metal, _ = view_maps(shading.splat_pairs(s, cam), ch,
+                                            shading.facing_normals(s, cam))
         rgb = shading.shade(geom, albedo, rough, metal, lights,
                             maps.evaluate(geom.points, geom.normal, geom.footprint), None, False)
         img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
         mask = geom.alpha.numpy() > 0.5
-        views.append(material_fit.prepare_view(s, cam, img.reshape(64, 64, 3),
-                                               mask.reshape(64, 64), cfg))
+        views.append(prepare_view(s, cam, img.reshape(64, 64, 3),
+                                  mask.reshape(64, 64), cfg))
     return views, ch
 
 
@@ -91,16 +110,16 @@ def _map_renderer(s, bounds):
 def _fit_lights(s, bounds, views, ch, start_dirs, start_irr, global_pass=True, **over):
     """What stage 4 does at the end of its warm-up with the lights it merged: refine (global
     then local passes), then merge the lights that met and drop those that explain little."""
-    cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=128,
+    cfg = dataclasses.replace(get_config("cpu-small"), refine_global=128,
                               refine_views=len(views),
                               **over)
     render = _map_renderer(s, bounds)
     start_dirs = np.atleast_2d(start_dirs)
-    dirs, irr = material_fit.refine_directions(views, ch, start_dirs, np.asarray(start_irr),
-                                               render(start_dirs), render, cfg, False,
-                                               global_pass)
-    out, e, _ = material_fit.settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
-                                           False)
+    dirs, irr = refine_directions(views, ch, start_dirs, np.asarray(start_irr),
+                                  render(start_dirs), render, cfg, False,
+                                  global_pass)
+    out, e, _ = settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
+                              False)
     return out, e, dirs, irr
 
 
@@ -146,17 +165,17 @@ def test_second_refinement_with_the_global_pass_recovers_a_light_in_another_cell
     dw = solid_angle(128)
 
     def second_refinement(again_global):
-        cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=128,
+        cfg = dataclasses.replace(get_config("cpu-small"), refine_global=128,
                                   refine_views=len(views), refine_again_global=again_global)
-        units = material_fit.Refinement.start(start[None], [1.0], cfg, again_global,
-                                              again=True).units(cfg)
+        units = Refinement.start(start[None], [1.0], cfg, again_global,
+                                 again=True).units(cfg)
         opt = mi.ad.Adam(lr=0.01)
         opt["log_light"] = mi.Float(np.float32(math.log(1.0 / dw)))
-        state = material_fit.MaterialState(cfg.warmup + 1, opt, ch, start[None], False,
-                                           np.random.default_rng(0), mi.Float(0.0), [], {})
+        state = MaterialState(cfg.warmup + 1, opt, ch, start[None], False,
+                              np.random.default_rng(0), mi.Float(0.0), [], {})
         render = _map_renderer(s, bounds)
-        dirs = material_fit._refine(views, state, render(start[None]), render, cfg, None,
-                                    global_pass=False)
+        dirs = _refine(views, state, render(start[None]), render, cfg, None,
+                       global_pass=False)
         return units, dirs[0]
 
     units, fine_only = second_refinement(False)
@@ -227,12 +246,12 @@ def test_drop_unexplained_against_brute_force():
     r = b[:, :3] @ np.array([2.0, 1.0, 0.7]) + 0.01 * rng.standard_normal(200)
     gram, h, rr = b.T @ b, b.T @ r, float(r @ r)
     keep = np.array([True, True, True, False])
-    e, err = material_fit.nnls_irradiance(gram, h, keep)
+    e, err = nnls_irradiance(gram, h, keep)
     ref = np.linalg.lstsq(b[:, :3], r, rcond=None)[0]
     assert np.allclose(e[:3], ref, atol=1e-6) and e[3] == 0
     assert math.isclose(err + rr, float(np.sum((r - b[:, :3] @ ref) ** 2)), rel_tol=1e-6)
-    cfg = material_fit.MaterialConfig(drop_share=0.5, drop_gain=0.05)
-    keep, e = material_fit.drop_unexplained(gram, h, rr, cfg)
+    cfg = MaterialConfig(drop_share=0.5, drop_gain=0.05)
+    keep, e = drop_unexplained(gram, h, rr, cfg)
     assert keep.sum() == 3 and keep[1] and keep[2], keep
 
 
@@ -253,7 +272,7 @@ def test_segment_errors_against_float64_least_squares():
                    for k in range(c)])
     bb = np.stack([np.bincount(seg, np.einsum("pk,pk->p", b[:, k], b[:, k]), n_seg)
                    for k in range(c)])
-    got = material_fit.segment_errors(rr, rb, bb)
+    got = segment_errors(rr, rb, bb)
     want = np.zeros(c)
     for k in range(c):
         for s in range(n_seg):
@@ -281,9 +300,9 @@ def test_segment_score_ignores_each_segments_albedo_scale(scene):
     cand = np.array([direction_from_angles(70.0, e) for e in (16.0, 20.0, 24.0, 30.0)])
 
     def scores(channels, how):
-        cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_score=how)
+        cfg = dataclasses.replace(get_config("cpu-small"), refine_score=how)
         lights = shading.LightSet(true[None], mi.Color3f(2.0))
-        return material_fit._candidate_scores(
+        return _candidate_scores(
             views, channels, lights, render_shadow_maps(s, true[None], bounds, VCFG), 0,
             render_shadow_maps(s, cand, bounds, VCFG), cfg, False)[0]
 
@@ -333,11 +352,11 @@ def test_prune_judges_lights_by_irradiance_not_a_cells_radiance():
     bump = direction_from_angles(240.0, 6.0)
     light = _warmup_map(strong, weak, [(bump, 2.4)])
     grid = light_grid(128)
-    cfg = material_fit.get_config("cpu-small")
+    cfg = get_config("cpu-small")
     near = np.degrees(np.arccos(np.clip(grid @ weak, -1.0, 1.0))) < 25.0
     # The old rule, per cell: nothing of the weak light passes.
     assert not np.any(light[near] >= cfg.prune_threshold * light.max())
-    dirs, kept, idx = material_fit.prune_lights(grid, light, cfg)
+    dirs, kept, idx = prune_lights(grid, light, cfg)
     assert idx is None  # cells merged: new directions
     assert len(dirs) == 2, [(_angle(d, strong), _angle(d, weak), k) for d, k in
                             zip(dirs, kept, strict=True)]
@@ -348,7 +367,7 @@ def test_prune_judges_lights_by_irradiance_not_a_cells_radiance():
     assert 0.15 < kept[order[1]] / kept[order[0]] < 0.3, kept
     assert all(_angle(d, bump) > 30.0 for d in dirs)  # 0.07 of the strongest
     # Without grouping (merge_angle_deg = 0, the paper's fixed grid) it is the cell rule.
-    cells, _, idx = material_fit.prune_lights(
+    cells, _, idx = prune_lights(
         grid, light, dataclasses.replace(cfg, merge_angle_deg=0.0))
     assert idx is not None and len(cells) == 2 and _angle(cells[0], weak) > 60.0
 
@@ -367,11 +386,11 @@ def test_weak_true_light_kept_and_spurious_dropped_from_the_warm_up_map(scene):
     views, ch = _views(s, cams, bounds, np.stack([strong, weak]), [2.0, 1.0])
     spurious = direction_from_angles(60.0, 35.0)
     light = _warmup_map(strong, weak, [(spurious, 9.0)])
-    cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_views=len(views))
+    cfg = dataclasses.replace(get_config("cpu-small"), refine_views=len(views))
     # The per-cell rule keeps the spurious cell and nothing of the weak light.
     cells = grid[light >= cfg.prune_threshold * light.max()]
     assert min(_angle(d, weak) for d in cells) > 30.0, cells
-    dirs, rad, _ = material_fit.prune_lights(grid, light, cfg)
+    dirs, rad, _ = prune_lights(grid, light, cfg)
     assert len(dirs) == 3, dirs
     assert min(_angle(d, weak) for d in dirs) < 6.5 and \
         min(_angle(d, spurious) for d in dirs) < 6.5, dirs
@@ -381,8 +400,8 @@ def test_weak_true_light_kept_and_spurious_dropped_from_the_warm_up_map(scene):
         return render_shadow_maps(s, d, bounds, vc)
 
     dw = solid_angle(128)
-    settled, e, _ = material_fit.settle_lights(views, ch, dirs, rad * dw, render(dirs),
-                                               render, cfg, False)
+    settled, e, _ = settle_lights(views, ch, dirs, rad * dw, render(dirs),
+                                  render, cfg, False)
     assert len(settled) == 2, (settled, e)
     assert all(min(_angle(d, t) for t in (strong, weak)) < 6.5 for d in settled), settled
     out, e, _, _ = _fit_lights(s, bounds, views, ch, settled, e, global_pass=False)
@@ -410,10 +429,10 @@ def test_end_of_warm_up_prunes_then_settles_before_refining(scene):
     light = _warmup_map(strong, weak, [(spurious, 9.0)])
     seen = {}
     for settle in (True, False):
-        cfg = dataclasses.replace(material_fit.get_config("cpu-small"), specular="off",
+        cfg = dataclasses.replace(get_config("cpu-small"), specular="off",
                                   refine_passes=(), settle_warmup=settle)
-        fit, state = material_fit.setup_fit(s, cams, images, masks, cfg, bounds, VCFG,
-                                            progress=False)
+        fit, state = setup_fit(s, cams, images, masks, cfg, bounds, VCFG,
+                               progress=False)
         state.opt["albedo"] = ch["albedo"]
         state.channels["albedo"] = ch["albedo"]
         state.opt["log_light"] = mi.Float(np.log(light).astype(np.float32))
@@ -427,7 +446,7 @@ def test_end_of_warm_up_prunes_then_settles_before_refining(scene):
 
         material_fit.refine_lights = spy
         try:
-            material_fit.end_warmup(fit, state)
+            end_warmup(fit, state)
         finally:
             material_fit.refine_lights = before
         seen[settle] = calls[0], [ev["event"] for ev in state.light_log], state.directions
@@ -464,7 +483,7 @@ def test_segment_nnls_against_a_float64_fit_on_the_pixels():
         return out
 
     for keep in (np.array([True, True, True]), np.array([True, False, True])):
-        e, err = material_fit.segment_nnls(gram, h, keep, iterations=200)
+        e, err = segment_nnls(gram, h, keep, iterations=200)
         assert np.all(e >= 0) and np.all(e[~keep] == 0)
         ref = minimize(lambda x, kp=keep: profile(np.where(kp, x, 0.0)), np.ones(k),
                        bounds=[(0, None)] * k, method="L-BFGS-B", options={"ftol": 1e-15})
@@ -483,15 +502,15 @@ def test_segment_settling_ignores_each_segments_albedo_scale(scene):
     albedo = np.asarray(ch["albedo"].numpy()).reshape(-1, 3)
     scaled = dict(ch, albedo=mi.TensorXf((albedo * np.where(seg == 0, 0.7, 1.3)[:, None])
                                          .astype(np.float32)))
-    cfg = material_fit.get_config("cpu-small")
+    cfg = get_config("cpu-small")
     dirs = np.stack([a, b])
     maps = render_shadow_maps(s, dirs, bounds, VCFG)
     errs = {}
     for name, channels in (("true", ch), ("scaled", scaled)):
         for per_segment in (False, True):
-            g, hh, _ = material_fit.light_normal_equations(views, channels, dirs, maps, cfg,
-                                                           False, per_segment)
-            solve = material_fit.segment_nnls if per_segment else material_fit.nnls_irradiance
+            g, hh, _ = light_normal_equations(views, channels, dirs, maps, cfg,
+                                              False, per_segment)
+            solve = segment_nnls if per_segment else nnls_irradiance
             errs[name, per_segment] = [solve(g, hh, np.array(k))[1]
                                        for k in ([True, False], [False, True])]
     np.testing.assert_allclose(errs["scaled", True], errs["true", True], rtol=1e-4)
@@ -526,7 +545,7 @@ def test_albedo_errors_against_float64_least_squares():
             tb[k, s] = (t[m] * b[m, k:k + 1]).sum(0)
             xb[k, s] = (x[m] * b[m, k:k + 1]).sum(0)
             bb[k, s] = (b[m, k] ** 2).sum()
-    got, got_e = material_fit.albedo_errors(*sums, tb, xb, bb, scale=2.0)
+    got, got_e = albedo_errors(*sums, tb, xb, bb, scale=2.0)
 
     def pixel_error(k, e):
         total = 0.0
@@ -574,7 +593,7 @@ def test_albedo_errors_without_other_lights_do_not_hang_on_round_off():
         if i:
             j = np.unravel_index(rng.integers(tb.size), tb.shape)
             tb_i[j] = np.nextafter(tb_i[j], np.inf if i % 2 else -np.inf)
-        err, e = material_fit.albedo_errors(tt, zero, zero, tb_i, np.zeros_like(tb), bb, 2.0)
+        err, e = albedo_errors(tt, zero, zero, tb_i, np.zeros_like(tb), bb, 2.0)
         assert np.all(e == np.inf), (i, e)
         np.testing.assert_allclose(err, free, rtol=1e-12)
     assert np.argmin(err) == 0
@@ -598,8 +617,8 @@ def test_albedo_score_finds_the_light_whatever_the_fitted_albedo(scene):
     lights = shading.LightSet(true, mi.Color3f(mi.Float([2.0, 1.0])))
 
     def scores(channels, how):
-        cfg = dataclasses.replace(material_fit.get_config("cpu-small"), refine_score=how)
-        return material_fit._candidate_scores(
+        cfg = dataclasses.replace(get_config("cpu-small"), refine_score=how)
+        return _candidate_scores(
             views, channels, lights, render_shadow_maps(s, true, bounds, VCFG), 0,
             render_shadow_maps(s, cand, bounds, VCFG), cfg, False)
 
@@ -621,7 +640,7 @@ def test_albedo_score_needs_the_lobe_off_and_is_not_a_settle_score():
     """The lobe's dielectric part does not scale with the albedo, and the settling has no
     "albedo" form: both are refused by name rather than scored another way."""
     with pytest.raises(ValueError, match="refine_score 'albedo' needs specular 'off'"):
-        material_fit.MaterialConfig(refine_score="albedo", specular="auto")
+        MaterialConfig(refine_score="albedo", specular="auto")
     with pytest.raises(ValueError, match="settle_score must be one of"):
-        material_fit.MaterialConfig(settle_score="albedo", specular="off")
-    material_fit.MaterialConfig(refine_score="albedo", specular="off")  # accepted
+        MaterialConfig(settle_score="albedo", specular="off")
+    MaterialConfig(refine_score="albedo", specular="off")  # accepted

@@ -138,6 +138,7 @@ def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(plug
     ``surfel_relight`` plugin, which sees only the file, relights with them, as ``relight``
     does with the run's."""
     from mi_shadowgs.io.ply import PlyError, save_ply
+    from mi_shadowgs.stages.material import outputs
     from mi_shadowgs.stages.relight import render as relight
 
     s = _wall_on_base_model()
@@ -145,15 +146,15 @@ def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(plug
     cpu = dataclasses.replace(shadow_maps.get_config("cpu-small"), resolution=128)
     assert cpu.projection != paper.projection  # else the cpu case below would prove nothing
     fitted, plain, ortho = tmp_path / "fitted.ply", tmp_path / "plain.ply", tmp_path / "o.ply"
-    save_ply(fitted, s, relight.model_metadata(paper, False))
+    save_ply(fitted, s, outputs.model_metadata(paper, False))
     save_ply(plain, s)  # as before the record, or from another tool: the paper's blend
-    save_ply(ortho, s, relight.model_metadata(cpu, False))
-    # A model saved with the band alone (sessions 31-36): the paper's maps, its band.
+    save_ply(ortho, s, outputs.model_metadata(cpu, False))
+    # A model saved with the band alone (an older format): the paper's maps, its band.
     banded = tmp_path / "banded.ply"
-    save_ply(banded, s, {relight.BAND_METADATA_KEY: "0.5"})
+    save_ply(banded, s, {outputs.BAND_METADATA_KEY: "0.5"})
     bad, bad_json = tmp_path / "bad.ply", tmp_path / "bad_json.ply"
-    save_ply(bad, s, {relight.BAND_METADATA_KEY: "wide"})
-    save_ply(bad_json, s, {relight.VISIBILITY_METADATA_KEY: '{"projection":"fisheye"}'})
+    save_ply(bad, s, {outputs.BAND_METADATA_KEY: "wide"})
+    save_ply(bad_json, s, {outputs.VISIBILITY_METADATA_KEY: '{"projection":"fisheye"}'})
     # 80 x 64: at 40 x 32 no pixel centre lands where the two maps' depth tests differ
     cam = Camera.look_at([0.0, 0.9, 1.4], [0.0, 0.0, -0.3], width=80, height=64, fov_x=0.9)
     light = {"type": "directional", "direction": [0.3, -0.8, 0.5], "irradiance": 2.0}
@@ -204,9 +205,8 @@ def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(plug
     ({"material": {}}, True, None)])  # no visibility settings (a stage-1 folder)
 def test_a_model_saved_before_the_record_takes_its_settings_from_its_manifest(
         tmp_path, settings, lists, band):
-    """Models fitted before the PLY recorded their maps and receivers (session 31's runs)
-    are relit with them too: the stage-4 folder's manifest records the settings it ran
-    with."""
+    """Models fitted before the PLY recorded their maps and receivers are relit with them
+    too: the stage-4 folder's manifest records the settings it ran with."""
     import json
 
     from mi_shadowgs.io.ply import save_ply
@@ -246,7 +246,9 @@ def test_one_surface_gives_the_blended_receivers():
 def test_stage_4_and_relighting_shade_the_same_receivers():
     """Stage 4's views (``prepare_view``) and relighting's buffers (``view_buffers``) take
     the receivers from the same setting, so a model is relit as it was fitted."""
-    from mi_shadowgs.stages.material import fit as material_fit
+    from mi_shadowgs.stages.material.config import MaterialConfig
+    from mi_shadowgs.stages.material.normals import with_surfel_normals
+    from mi_shadowgs.stages.material.views import prepare_view
     from mi_shadowgs.stages.relight import render as relight
 
     raw = random_scene(40, 3)
@@ -258,10 +260,10 @@ def test_stage_4_and_relighting_shade_the_same_receivers():
                "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))})
     s = dataclasses.replace(s, channels=ch)
     cam = Camera.look_at([0.4, 0.9, 2.6], [0.0, 0.0, 0.0], width=24, height=20, fov_x=0.8)
-    cfg = material_fit.MaterialConfig()
+    cfg = MaterialConfig()
     for band in (0.0, 0.5):
-        view = material_fit.prepare_view(s, cam, np.zeros((20, 24, 3)), np.ones((20, 24)),
-                                         cfg, receiver_band=band)
+        view = prepare_view(s, cam, np.zeros((20, 24, 3)), np.ones((20, 24)),
+                            cfg, receiver_band=band)
         buf = relight.view_buffers(s, cam, receiver_band=band)
         for k in range(3):
             np.testing.assert_array_equal(np.array(view.geom.normal[k]),
@@ -270,8 +272,8 @@ def test_stage_4_and_relighting_shade_the_same_receivers():
                                           np.array(buf.geom.points[k]))
         # The normal phase blends its trainable normals over the same pairs: from the
         # surfels' own normals it gives back the receivers' normals.
-        pn = material_fit.with_surfel_normals(view, shading.shading_normals(s),
-                                              s.position).geom.normal
+        pn = with_surfel_normals(view, shading.shading_normals(s),
+                                 s.position).geom.normal
         for k in range(3):
             np.testing.assert_allclose(np.array(pn[k]), np.array(view.geom.normal[k]),
                                        atol=2e-6)

@@ -310,7 +310,7 @@ def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_pres
 
 
 def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkeypatch):
-    from mi_shadowgs.stages.material import fit as material_fit
+    from mi_shadowgs.stages.material.state import LightModel, MaterialResult
     from mi_shadowgs.stages.relight.previews import write_previews
     from mi_shadowgs.stages.visibility.shadow_maps import get_config as vis_get_config
 
@@ -318,8 +318,8 @@ def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkey
         monkeypatch.setitem(table, TINY, config)
     model = _plane_model()
     grid = light_grid(128)
-    light = material_fit.LightModel(np.zeros(128), np.array([5]), grid[[5]], np.array([2.0]))
-    result = material_fit.MaterialResult(model.surfels, light, False, True, [], {})
+    light = LightModel(np.zeros(128), np.array([5]), grid[[5]], np.array([2.0]))
+    result = MaterialResult(model.surfels, light, False, True, [], {})
     cam = Camera.look_at([1.5, 1.5, 1.5], [0, 0.1, 0], fov_x=0.8, width=16, height=16)
     bounds = SceneBounds.from_points(model.surfels.to_numpy()["position"], [cam])
     sky = _sky_file(tmp_path)

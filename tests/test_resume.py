@@ -29,6 +29,9 @@ from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages import common as stage_common
 from mi_shadowgs.stages.geometry import train as geometry_train
 from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.config import get_config
+from mi_shadowgs.stages.material.fit import fit_material
+from mi_shadowgs.stages.material.state import MaterialState
 from mi_shadowgs.stages.segmentation import features as seg
 from mi_shadowgs.stages.segmentation.masks import material_masks
 from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
@@ -196,7 +199,7 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
     # The warm-up ends at 20, pruning every 10 after it, the second refinement at step 40;
     # a checkpoint after every step and every refinement unit.
     config = dataclasses.replace(
-        material_fit.get_config(TINY),
+        get_config(TINY),
         checkpoint_every=1,
         checkpoint_seconds=1e-9,
         specular=specular,
@@ -210,7 +213,7 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
     )
 
     def fit(**kw):
-        return material_fit.fit_material(
+        return fit_material(
             s, cams, imgs, masks, config, bounds, vcfg, progress=False, **kw
         )
 
@@ -235,7 +238,7 @@ def test_stage4_resumes_bit_identically(specular, tmp_path):
 
         with pytest.raises(Stop):
             fit(on_checkpoint=on_checkpoint)
-        resumed = fit(state=material_fit.MaterialState.from_checkpoint(*load_checkpoint(tmp_path)))
+        resumed = fit(state=MaterialState.from_checkpoint(*load_checkpoint(tmp_path)))
         for key in ("albedo", "roughness", "metallic", "indirect_sh", "shading_normal"):
             np.testing.assert_array_equal(
                 resumed.surfels.channels[key].numpy(),

@@ -18,7 +18,7 @@ from mi_shadowgs.io import ply
 from mi_shadowgs.io.provenance import MANIFEST_NAME
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages.geometry import train as geometry_train
-from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.config import PRESETS, get_config
 from mi_shadowgs.stages.segmentation import features as seg
 from mi_shadowgs.stages.visibility import shadow_maps as vis
 from tests.conftest import without_few_views_warning
@@ -49,9 +49,9 @@ TINY = [
     ),
     (seg.PRESETS, dataclasses.replace(seg.get_config("cpu-small"), iterations=20, n_samples=256)),
     (
-        material_fit.PRESETS,
+        PRESETS,
         dataclasses.replace(
-            material_fit.get_config("cpu-small"),
+            get_config("cpu-small"),
             iterations=10,
             warmup=5,
             refine_passes=(),
@@ -264,7 +264,7 @@ def test_chromaticity_segments_get_stage_4s_chromaticity_settings(finished, data
     settings take their place, recorded as the values that ran and said once. With
     material ids the preset's run. A run fitted before on chromaticity segments is
     refused naming the setting."""
-    preset = material_fit.get_config("cpu-small")
+    preset = get_config("cpu-small")
     # else the test would not tell the two apart
     assert preset.normal_steps != preset.chromaticity_normal_steps
     assert preset.refine_score != preset.chromaticity_refine_score

@@ -1,4 +1,4 @@
-"""Stage 4 (mi_shadowgs.stages.material.fit, mi_shadowgs.core.shading): kernels and a tiny fit."""
+"""Stage 4 (mi_shadowgs.stages.material, mi_shadowgs.core.shading): kernels and a tiny fit."""
 
 from __future__ import annotations
 
@@ -17,7 +17,38 @@ from mi_shadowgs.core.directions import light_grid, solid_angle
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.raster import rasterize
 from mi_shadowgs.core.surfels import Surfels, eval_sh
-from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.channels import (
+    DETAIL_CHANNEL,
+    _clamp_channels,
+    albedo_scale_factor,
+    detailed_albedo,
+    hold_albedo_scale,
+    init_channels,
+    segment_average,
+    segment_ids,
+)
+from mi_shadowgs.stages.material.config import MaterialConfig, get_config, label_source_overrides
+from mi_shadowgs.stages.material.fit import (
+    detail_gates,
+    fit_material,
+    fit_result,
+    setup_fit,
+    start_detail,
+)
+from mi_shadowgs.stages.material.lights import (
+    candidate_directions,
+    merge_directions,
+    refine_directions,
+)
+from mi_shadowgs.stages.material.normals import normal_step, start_normal_phase, with_surfel_normals
+from mi_shadowgs.stages.material.scoring import _candidate_scores
+from mi_shadowgs.stages.material.views import (
+    indirect_floor_penalty,
+    prepare_view,
+    surfel_support,
+    view_loss,
+    view_maps,
+)
 from mi_shadowgs.stages.visibility.shadow_maps import (
     SceneBounds,
     VisibilityConfig,
@@ -26,25 +57,25 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
 
 
 def test_presets_and_paper_defaults():
-    p = material_fit.get_config("paper")
+    p = get_config("paper")
     assert (p.iterations, p.lambda_ind2, p.lambda_tv, p.lambda_brdf, p.lambda_reg) == \
         (5000, 0.01, 0.01, 1.0, 0.001)
     assert (p.n_directions, p.sh_degree) == (128, 2)
-    assert material_fit.get_config("cpu-small").iterations < p.iterations
+    assert get_config("cpu-small").iterations < p.iterations
     # Not in the paper: the albedo TV across segments and the albedo scale held.
     assert p.albedo_tv_with_segments and p.albedo_scale == 0.0
     with pytest.raises(ValueError, match="albedo_scale"):
-        material_fit.MaterialConfig(albedo_scale=1.5)
+        MaterialConfig(albedo_scale=1.5)
     with pytest.raises(ConfigError):
-        material_fit.get_config("nope")
+        get_config("nope")
     with pytest.raises(ValueError, match="specular"):
-        material_fit.MaterialConfig(specular="maybe")
+        MaterialConfig(specular="maybe")
     with pytest.raises(ValueError, match="refine_passes"):
-        material_fit.MaterialConfig(refine_passes=((2.0, 4.0),))
+        MaterialConfig(refine_passes=((2.0, 4.0),))
     # cpu-small's second global pass needs the global pass: not silently dropped
     with pytest.raises(ValueError, match="refine_again_global needs the global pass"):
-        dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=0)
-    assert not dataclasses.replace(material_fit.get_config("cpu-small"), refine_global=0,
+        dataclasses.replace(get_config("cpu-small"), refine_global=0)
+    assert not dataclasses.replace(get_config("cpu-small"), refine_global=0,
                                    refine_again_global=False).refine_global
 
 
@@ -54,7 +85,7 @@ def test_segment_average_exact():
     vals = rng.uniform(0, 1, (n, 3)).astype(np.float32)
     seg = rng.integers(0, k, n)
     seg[seg == 4] = 5  # an empty segment id must not break anything
-    out = material_fit.segment_average(
+    out = segment_average(
         mi.TensorXf(vals), mi.UInt32(seg.astype(np.uint32)), k
     ).numpy()
     ref = np.zeros_like(vals, dtype=np.float64)
@@ -63,7 +94,7 @@ def test_segment_average_exact():
     # float32 sums of ~150 values in [0, 1]: a few ulps of the sum.
     np.testing.assert_allclose(out, ref, rtol=0, atol=2e-6)
     # Idempotent: averaging an averaged field changes nothing.
-    again = material_fit.segment_average(
+    again = segment_average(
         mi.TensorXf(out), mi.UInt32(seg.astype(np.uint32)), k
     ).numpy()
     np.testing.assert_allclose(again, out, rtol=0, atol=2e-6)
@@ -73,10 +104,10 @@ def test_segment_channel_errors():
     s = _plane_scene()[0]
     del s.channels["segment"]
     with pytest.raises(ValueError, match="segment"):
-        material_fit.segment_ids(s)
+        segment_ids(s)
     s.channels["segment"] = mi.TensorXf(np.full((s.count, 1), -1.0, np.float32))
     with pytest.raises(ValueError, match="non-negative integer"):
-        material_fit.segment_ids(s)
+        segment_ids(s)
 
 
 # -- a tiny synthetic scene: a floor with an occluding tile above it ------------------------
@@ -200,7 +231,7 @@ def test_tiny_decomposition_recovers_albedo_and_light():
     e_true = 2.0
     imgs, masks = _render_truth(s, cams, bounds, light_grid(128)[k_true], e_true, vcfg)
     cfg = with_overrides(
-        material_fit.get_config("cpu-small"),
+        get_config("cpu-small"),
         {"iterations": 250, "warmup": 80, "specular": "off", "log_every": 50},
         "material",
     )
@@ -209,8 +240,8 @@ def test_tiny_decomposition_recovers_albedo_and_light():
     threads = dr.thread_count()
     dr.set_thread_count(1)
     try:
-        res = material_fit.fit_material(s, cams, imgs, masks, cfg, bounds, vcfg,
-                                        progress=False)
+        res = fit_material(s, cams, imgs, masks, cfg, bounds, vcfg,
+                           progress=False)
     finally:
         dr.set_thread_count(threads)
     # Light: the true direction dominates the fitted map.
@@ -256,19 +287,19 @@ def test_merge_directions_recovers_an_off_grid_light():
     far = grid[np.argmin(cos)]  # the grid direction farthest from the light
     dirs = np.concatenate([grid[near], far[None]])
     energy = np.concatenate([w * 10.0, [1.0]])
-    merged, e = material_fit.merge_directions(dirs, energy, 20.0)
+    merged, e = merge_directions(dirs, energy, 20.0)
     assert len(merged) == 2
     # Weighted mean of unit vectors, renormalised: exact for the least-squares weights.
     assert np.degrees(np.arccos(np.clip(merged[0] @ true, -1, 1))) < 0.01
     assert np.allclose(merged[1], far) and math.isclose(e[1], 1.0)
     assert math.isclose(e.sum(), energy.sum())
     # Nothing merges when the angle is below the grid spacing (~13 degrees).
-    assert len(material_fit.merge_directions(dirs, energy, 5.0)[0]) == len(dirs)
+    assert len(merge_directions(dirs, energy, 5.0)[0]) == len(dirs)
 
 
 def test_candidate_directions_grid():
     d = light_grid(128)[60]
-    cand = material_fit.candidate_directions(d, 8.0, 2.0)
+    cand = candidate_directions(d, 8.0, 2.0)
     assert np.allclose(cand[0], d)  # the current direction is a candidate (ties keep it)
     np.testing.assert_allclose(np.linalg.norm(cand, axis=1), 1.0, atol=1e-12)
     ang = np.degrees(np.arccos(np.clip(cand @ d, -1, 1)))
@@ -279,10 +310,10 @@ def test_candidate_directions_grid():
     )
     assert np.isclose(np.sort(ang)[1], 2.0)
     # A light at the horizon keeps only the candidates above it.
-    low = material_fit.candidate_directions(np.array([1.0, 0.01, 0.0]), 8.0, 2.0)
+    low = candidate_directions(np.array([1.0, 0.01, 0.0]), 8.0, 2.0)
     assert (low[:, 1] > 0).all() and 0 < len(low) < len(cand)
     # ...and one exactly on it keeps at least itself.
-    flat = material_fit.candidate_directions(np.array([1.0, 0.0, 0.0]), 8.0, 2.0)
+    flat = candidate_directions(np.array([1.0, 0.0, 0.0]), 8.0, 2.0)
     assert np.allclose(flat[0], [1.0, 0.0, 0.0]) and (flat[1:, 1] > 0).all()
 
 
@@ -299,11 +330,11 @@ def _one_light_views(s, cams, bounds, direction, irradiance, vcfg):
         "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
         "metallic": mi.TensorXf(np.zeros((n, 1), np.float32)),
     }
-    cfg = material_fit.get_config("cpu-small")
+    cfg = get_config("cpu-small")
     views = []
     for cam in cams:
         geom = shading.pixel_geometry(s, cam)
-        albedo, rough, metal, _ = material_fit.view_maps(
+        albedo, rough, metal, _ = view_maps(
             shading.splat_pairs(s, cam), ch, shading.facing_normals(s, cam)
         )
         rgb = shading.shade(
@@ -319,7 +350,7 @@ def _one_light_views(s, cams, bounds, direction, irradiance, vcfg):
         img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
         mask = geom.alpha.numpy() > 0.5
         views.append(
-            material_fit.prepare_view(
+            prepare_view(
                 s,
                 cam,
                 img.reshape(cam.height, cam.width, 3),
@@ -336,7 +367,7 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     irradiance; the true direction scores ~0 under the "segment" score (the views are
     rendered by it) and near its floor under cpu-small's "albedo" score.
 
-    On two threads this failed 2 runs of 16 (session 38): with one light the albedo score
+    On two threads this failed 2 runs of 16: with one light the albedo score
     is flat in E, and round-off (one pixel's last bit, from a float atomic's order in the
     albedo splat) chose E, and with it the score (``albedo_errors``)."""
     from mi_shadowgs.core.directions import direction_from_angles
@@ -361,13 +392,13 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     def render(dirs):
         return render_shadow_maps(s, dirs, bounds, vcfg)
 
-    cfg = material_fit.get_config("cpu-small")
+    cfg = get_config("cpu-small")
     assert cfg.refine_score == "albedo"
     lights = shading.LightSet(start[None], mi.Color3f(1.5))
     maps, cand = render(start[None]), render(np.stack([true, start]))
 
     def scores(config):
-        return material_fit._candidate_scores(views, ch, lights, maps, 0, cand, config, False)
+        return _candidate_scores(views, ch, lights, maps, 0, cand, config, False)
 
     # "segment" (the fitted albedo, here the true one): round-off only, float32 sums per
     # view; the error s_rr - 2 E s_rb + E^2 s_bb cancels to ~1e-6 of s_rr.
@@ -378,7 +409,7 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     # 0.9-0.99: they blend the two segments' albedos (5e-5 at purity 0.99).
     err, fit = scores(cfg)
     assert 5e-4 * err[1] < err[0] < 2e-3 * err[1] and abs(fit[0] - 2.0) < 1e-3, (err, fit)
-    dirs, irr = material_fit.refine_directions(
+    dirs, irr = refine_directions(
         views, ch, start[None], np.array([1.5]), render(start[None]), render, cfg, False
     )
     ang = np.degrees(np.arccos(np.clip(dirs[0] @ true, -1, 1)))
@@ -413,10 +444,10 @@ def test_overrides_reach_nested_settings():
 ])
 def test_overrides_of_the_wrong_type_are_refused_by_name(field, value, message):
     """``refine_again_global="false"`` from a command line once replaced the switch with a
-    truthy string, silently keeping it on (session 23's light-sweep refits)."""
+    truthy string, silently keeping it on."""
     with pytest.raises(ConfigError, match=f"{field}.*{message}"):
-        with_overrides(material_fit.get_config("cpu-small"), {field: value}, "material")
-    ok = with_overrides(material_fit.get_config("cpu-small"),
+        with_overrides(get_config("cpu-small"), {field: value}, "material")
+    ok = with_overrides(get_config("cpu-small"),
                         {"refine_again_global": False, "refine_global": 64}, "material")
     assert ok.refine_again_global is False and ok.refine_global == 64
 
@@ -429,8 +460,8 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
     vcfg = VisibilityConfig(resolution=64)
     d = light_grid(128)[int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))]
     maps = render_shadow_maps(s, d[None], bounds, vcfg)
-    cfg = material_fit.get_config("cpu-small")
-    ch = material_fit.init_channels(s, cfg)
+    cfg = get_config("cpu-small")
+    ch = init_channels(s, cfg)
     rng = np.random.default_rng(3)
     alb = rng.uniform(0.3, 0.99, (s.count, 3)).astype(np.float32)
     ch["albedo"] = mi.TensorXf(alb)
@@ -447,8 +478,8 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
         cam = cams[1]
         pairs = shading.splat_pairs(s, cam)
         geom = shading.pixel_geometry(s, cam)
-        albedo, rough, metal, ind = material_fit.view_maps(pairs, ch,
-                                                           shading.facing_normals(s, cam))
+        albedo, rough, metal, ind = view_maps(pairs, ch,
+                                              shading.facing_normals(s, cam))
         vis = maps.evaluate(geom.points, geom.normal, geom.footprint)
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, ind, False)
         return np.stack([np.asarray(rgb[c], np.float64) for c in range(3)], -1)
@@ -456,7 +487,7 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
     before = image(ch)
     support = np.ones(s.count)
     held = dataclasses.replace(cfg, albedo_scale=0.8, albedo_scale_quantile=1.0)
-    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_scale_factor(
+    hold_albedo_scale(ch, opt, albedo_scale_factor(
         ch["albedo"].numpy(), support, held))
     after = image(ch)
     assert ch["albedo"].numpy().max() == pytest.approx(0.8, rel=1e-6)
@@ -467,13 +498,13 @@ def test_hold_albedo_scale_keeps_the_diffuse_image_and_sets_the_albedo():
     # Held both ways: an albedo below the value is brought up to it.
     a0 = ch["albedo"].numpy()
     up = dataclasses.replace(held, albedo_scale=0.9)
-    material_fit.hold_albedo_scale(ch, opt, material_fit.albedo_scale_factor(a0, support, up))
+    hold_albedo_scale(ch, opt, albedo_scale_factor(a0, support, up))
     np.testing.assert_allclose(ch["albedo"].numpy(), a0 * (0.9 / 0.8), rtol=1e-6)
     np.testing.assert_allclose(image(ch), before, rtol=1e-5, atol=1e-7)
 
 
 def test_albedo_scale_is_not_set_by_a_few_percent_of_the_support_at_the_box():
-    """The ficus at stage-1 seed 1 (session 30), per segment: support share and brightest
+    """The ficus at stage-1 seed 1, per segment: support share and brightest
     albedo channel. Two small segments around the pot, with little direct light in the
     model, ran to the box with 1.65% of the support; the hold must follow the base (91%),
     not them: at the 0.99 quantile they held it and the light ran 7x too bright."""
@@ -482,20 +513,20 @@ def test_albedo_scale_is_not_set_by_a_few_percent_of_the_support_at_the_box():
     counts = np.array([1500, 250, 270, 170, 270, 440])  # surfels per segment
     albedo = np.repeat(top, counts)[:, None] * np.ones(3)
     support = np.repeat(shares / counts, counts)
-    cfg = material_fit.get_config("cpu-small")
-    assert material_fit.albedo_scale_factor(albedo, support, cfg) == pytest.approx(0.9 / 0.135)
+    cfg = get_config("cpu-small")
+    assert albedo_scale_factor(albedo, support, cfg) == pytest.approx(0.9 / 0.135)
     old = dataclasses.replace(cfg, albedo_scale_quantile=0.99)
-    assert material_fit.albedo_scale_factor(albedo, support, old) == pytest.approx(0.9 / 0.863)
+    assert albedo_scale_factor(albedo, support, old) == pytest.approx(0.9 / 0.863)
 
 
 def test_albedo_scale_is_set_by_what_the_views_see():
     """A bright segment no view supervises (surfels under the base) must not set the
     albedo scale: the quantile is weighted by each surfel's blending weight in the views."""
     s, cams, _ = _plane_scene()
-    cfg = with_overrides(material_fit.get_config("cpu-small"), {"specular": "off"}, "material")
-    views = [material_fit.prepare_view(s, c, np.zeros((c.height, c.width, 3)),
-                                       np.ones((c.height, c.width), bool), cfg) for c in cams]
-    support = material_fit.surfel_support(views, s.count)
+    cfg = with_overrides(get_config("cpu-small"), {"specular": "off"}, "material")
+    views = [prepare_view(s, c, np.zeros((c.height, c.width, 3)),
+                          np.ones((c.height, c.width), bool), cfg) for c in cams]
+    support = surfel_support(views, s.count)
     # Against a float64 sum over the pair lists.
     want = np.zeros(s.count)
     for v in views:
@@ -509,10 +540,10 @@ def test_albedo_scale_is_set_by_what_the_views_see():
     albedo[hidden] = 0.99
     support[hidden] = 0.0  # as surfels below the floor
     held = dataclasses.replace(cfg, albedo_scale=0.9)
-    assert material_fit.albedo_scale_factor(albedo, support, held) == pytest.approx(2.0)
+    assert albedo_scale_factor(albedo, support, held) == pytest.approx(2.0)
     # Unweighted, 40 of the surfels would be past the 0.99 quantile and set it.
     flat = dataclasses.replace(held, albedo_scale_quantile=1.0)
-    assert material_fit.albedo_scale_factor(albedo, np.ones(s.count), flat) == \
+    assert albedo_scale_factor(albedo, np.ones(s.count), flat) == \
         pytest.approx(0.9 / 0.99)
 
 
@@ -523,12 +554,12 @@ def test_albedo_tv_across_segments_only_where_configured():
     the segment constraint (the ablation) the TV applies either way."""
     s, cams, bounds = _plane_scene()
     cam = cams[0]
-    cfg = with_overrides(material_fit.get_config("cpu-small"),
+    cfg = with_overrides(get_config("cpu-small"),
                          {"specular": "off", "albedo_tv_with_segments": True}, "material")
     target = np.full((cam.height, cam.width, 3), 0.3, np.float32)
-    view = material_fit.prepare_view(s, cam, target, np.ones((cam.height, cam.width), bool),
-                                     cfg)
-    ch = material_fit.init_channels(s, cfg)
+    view = prepare_view(s, cam, target, np.ones((cam.height, cam.width), bool),
+                        cfg)
+    ch = init_channels(s, cfg)
     del ch[shading.INDIRECT_CHANNEL]
     seg = s.channels["segment"].numpy()[:, 0]
     d = light_grid(128)[int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))]
@@ -538,7 +569,7 @@ def test_albedo_tv_across_segments_only_where_configured():
     def loss(c, albedo):
         ch["albedo"] = mi.TensorXf(np.where(seg[:, None] == 0, albedo[0], albedo[1])
                                    .astype(np.float32))
-        return float(material_fit.view_loss(view, ch, lights, None, c, False)[0])
+        return float(view_loss(view, ch, lights, None, c, False)[0])
 
     same, apart = [[0.4] * 3, [0.4] * 3], [[0.4] * 3, [0.9, 0.1, 0.4]]
     no_tv = dataclasses.replace(cfg, albedo_tv_with_segments=False)
@@ -617,7 +648,7 @@ def test_indirect_sh_is_evaluated_per_surfel_at_its_camera_facing_normal():
     # reference; its gradient reaches exactly the clamped values, and raises them.
     sh_t = mi.TensorXf(sh)
     dr.enable_grad(sh_t)
-    pen = material_fit.indirect_floor_penalty(sh_t, nrm)
+    pen = indirect_floor_penalty(sh_t, nrm)
     np.testing.assert_allclose(pen[0], np.mean(np.minimum(raw, 0.0) ** 2), rtol=1e-5)
     dr.backward(pen)
     grad = dr.grad(sh_t).numpy().reshape(n, 9, 3)
@@ -661,10 +692,10 @@ def test_surfel_normals_blend_as_the_rasterizer_blends_them():
     n = rng.normal(size=(s.count, 3)) + [0.0, 3.0, 0.0]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     s = s.with_channels({shading.SHADING_NORMAL_CHANNEL: mi.TensorXf(n.astype(np.float32))})
-    cfg = material_fit.get_config("cpu-small")
+    cfg = get_config("cpu-small")
     for cam in cams[:2]:
-        view = material_fit.prepare_view(s, cam, np.zeros((48, 48, 3)), np.ones((48, 48)), cfg)
-        got = material_fit.with_surfel_normals(
+        view = prepare_view(s, cam, np.zeros((48, 48, 3)), np.ones((48, 48)), cfg)
+        got = with_surfel_normals(
             view, shading.unit_rows(s.channels[shading.SHADING_NORMAL_CHANNEL]),
             s.position).geom.normal
         ref = view.geom.normal  # the rasterizer's blended shading normals, normalised
@@ -678,10 +709,10 @@ def test_normal_phase_finds_the_shading_the_geometry_lacks():
     normal phase must bring the tile's n . l to the truth's (what one light identifies) and
     leave the floor's normals where they were."""
     s, cams, bounds, vcfg, imgs, masks, light, normals, seg = _tilted_tile_truth()
-    cfg = dataclasses.replace(material_fit.get_config("cpu-small"), iterations=0, warmup=0,
+    cfg = dataclasses.replace(get_config("cpu-small"), iterations=0, warmup=0,
                               normal_steps=300, log_every=50)
-    fit, state = material_fit.setup_fit(s, cams, imgs, masks, cfg, bounds, vcfg,
-                                        progress=False)
+    fit, state = setup_fit(s, cams, imgs, masks, cfg, bounds, vcfg,
+                           progress=False)
     e = 2.0
     state.directions = light[None]
     state.opt["log_light"] = mi.Float(math.log(e / solid_angle(cfg.n_directions)))
@@ -689,11 +720,11 @@ def test_normal_phase_finds_the_shading_the_geometry_lacks():
     state.channels[shading.INDIRECT_CHANNEL] = mi.TensorXf(
         np.zeros(state.channels[shading.INDIRECT_CHANNEL].shape, np.float32))
     fit.maps = fit.shadow_maps(state.directions)
-    material_fit.start_normal_phase(fit, state)
+    start_normal_phase(fit, state)
     assert set(state.opt.keys()) == {"log_light", shading.SHADING_NORMAL_CHANNEL}
     while state.step < cfg.normal_steps:
-        material_fit.normal_step(fit, state)
-    res = material_fit.fit_result(fit, state)
+        normal_step(fit, state)
+    res = fit_result(fit, state)
     got = res.surfels.channels[shading.SHADING_NORMAL_CHANNEL].numpy()
     np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
     # The light is held: the phase moves the normals only.
@@ -710,22 +741,22 @@ def test_normal_phase_finds_the_shading_the_geometry_lacks():
     # Not held, the floor's pixels are explained already: its normals stay near (the prior).
     fit.config = dataclasses.replace(cfg, normal_hold_planar=False)
     fit.start_normals = fit.held_normals = None
-    material_fit.start_normal_phase(fit, state)
+    start_normal_phase(fit, state)
     state.step = 0
     while state.step < 100:
-        material_fit.normal_step(fit, state)
-    free = material_fit.fit_result(fit, state).surfels.channels[
+        normal_step(fit, state)
+    free = fit_result(fit, state).surfels.channels[
         shading.SHADING_NORMAL_CHANNEL].numpy()
     floor_err = np.degrees(np.arccos(np.clip(np.sum(free[~tile] * normals[~tile], 1), -1, 1)))
     assert 0.0 < np.percentile(floor_err, 90) < 2.0, np.percentile(floor_err, [50, 90, 99])
 
 
 def test_normal_phase_settings_are_checked_and_off_in_the_paper():
-    assert material_fit.get_config("paper").normal_steps == 0
-    assert material_fit.get_config("cpu-small").normal_steps > 0
+    assert get_config("paper").normal_steps == 0
+    assert get_config("cpu-small").normal_steps > 0
     for bad in ({"normal_steps": -1}, {"lr_normal": 0.0}, {"lambda_normal_prior": -1.0}):
         with pytest.raises(ValueError, match="normal_steps >= 0"):
-            material_fit.MaterialConfig(**bad)
+            MaterialConfig(**bad)
 
 
 def test_a_pixel_covered_in_part_shades_its_surface_not_a_diluted_one():
@@ -742,7 +773,7 @@ def test_a_pixel_covered_in_part_shades_its_surface_not_a_diluted_one():
                 "metallic": mi.TensorXf(np.ones((2, 1), np.float32)),
                 shading.INDIRECT_CHANNEL: mi.TensorXf(np.tile(dc, (2, 1)).astype(np.float32))}
     normals = mi.Vector3f([0.0, 0.0], [1.0, 1.0], [0.0, 0.0])
-    albedo, rough, metal, ind = material_fit.view_maps(pairs, channels, normals, True)
+    albedo, rough, metal, ind = view_maps(pairs, channels, normals, True)
     np.testing.assert_allclose(np.array(albedo), [[0.5, 0.3]] * 3, rtol=1e-6)  # [3, pixels]
     np.testing.assert_allclose(np.array(rough), [0.3, 0.3], rtol=1e-6)
     np.testing.assert_allclose(np.array(metal), [1.0, 1.0], rtol=1e-6)
@@ -750,7 +781,7 @@ def test_a_pixel_covered_in_part_shades_its_surface_not_a_diluted_one():
     np.testing.assert_allclose(np.array(ind), np.tile(sh_c0 * dc[:, None], (1, 2)), rtol=1e-6)
     # An empty pixel stays 0 (no division by its zero coverage).
     empty = shading.SplatPairs(mi.UInt32([0]), mi.UInt32([0]), mi.Float([1.0]), 1, 2)
-    _, rough, metal, ind = material_fit.view_maps(empty, channels, normals, True)
+    _, rough, metal, ind = view_maps(empty, channels, normals, True)
     assert np.array(rough)[1] == 0 and np.array(metal)[1] == 0 and not np.array(ind)[:, 1].any()
 
 
@@ -759,14 +790,14 @@ def _detail_view():
     with a random albedo detail, and one light."""
     s, cams, _ = _plane_scene()
     cam = cams[0]
-    cfg = with_overrides(material_fit.get_config("cpu-small"), {"specular": "off"}, "material")
+    cfg = with_overrides(get_config("cpu-small"), {"specular": "off"}, "material")
     target = np.full((cam.height, cam.width, 3), 0.3, np.float32)
-    view = material_fit.prepare_view(s, cam, target, np.ones((cam.height, cam.width), bool),
-                                     cfg)
-    ch = material_fit.init_channels(s, cfg)
+    view = prepare_view(s, cam, target, np.ones((cam.height, cam.width), bool),
+                        cfg)
+    ch = init_channels(s, cfg)
     del ch[shading.INDIRECT_CHANNEL]
     rng = np.random.default_rng(5)
-    ch[material_fit.DETAIL_CHANNEL] = mi.TensorXf(
+    ch[DETAIL_CHANNEL] = mi.TensorXf(
         rng.uniform(-0.3, 0.3, (s.count, 3)).astype(np.float32))
     d = light_grid(128)[int(np.argmin(np.abs(light_grid(128)[:, 1] - 0.75)))]
     e = mi.Float(2.0)
@@ -783,13 +814,13 @@ def test_albedo_detail_takes_gradients_only_where_its_gate_is_open():
 
     def grads(gate):
         c = dict(ch)
-        for k in ("albedo", material_fit.DETAIL_CHANNEL):
+        for k in ("albedo", DETAIL_CHANNEL):
             c[k] = mi.TensorXf(ch[k])
             dr.enable_grad(c[k])
         v = dataclasses.replace(view, detail_gate=None if gate is None else mi.Float(gate))
-        loss = material_fit.view_loss(v, c, lights, None, cfg, False)
+        loss = view_loss(v, c, lights, None, cfg, False)
         dr.backward(loss)
-        return (float(loss[0]), dr.grad(c[material_fit.DETAIL_CHANNEL]).numpy(),
+        return (float(loss[0]), dr.grad(c[DETAIL_CHANNEL]).numpy(),
                 dr.grad(c["albedo"]).numpy())
 
     loss_all, d_all, a_all = grads(None)
@@ -812,17 +843,17 @@ def test_albedo_detail_is_projected_to_zero_mean_per_segment_within_its_bound():
     s, _, ch, _, cfg = _detail_view()
     cfg = dataclasses.replace(cfg, detail_prior=0.3, detail_max=0.2)
     seg = s.channels["segment"].numpy()[:, 0].astype(int)
-    raw = np.asarray(ch[material_fit.DETAIL_CHANNEL].numpy(), np.float64)
+    raw = np.asarray(ch[DETAIL_CHANNEL].numpy(), np.float64)
     raw[seg == 1] += 0.5  # a segment whose detail drifted: its mean goes back to the albedo
-    ch[material_fit.DETAIL_CHANNEL] = mi.TensorXf(raw.astype(np.float32))
-    material_fit._clamp_channels(ch, material_fit.segment_ids(s), 2, cfg, False)
+    ch[DETAIL_CHANNEL] = mi.TensorXf(raw.astype(np.float32))
+    _clamp_channels(ch, segment_ids(s), 2, cfg, False)
     ref = raw.copy()
     for k in (0, 1):
         ref[seg == k] -= raw[seg == k].mean(0)
-    np.testing.assert_allclose(ch[material_fit.DETAIL_CHANNEL].numpy(), np.clip(ref, -0.2, 0.2),
+    np.testing.assert_allclose(ch[DETAIL_CHANNEL].numpy(), np.clip(ref, -0.2, 0.2),
                                rtol=0, atol=2e-6)
-    bright = material_fit.detailed_albedo(mi.TensorXf(np.full((s.count, 3), 0.9, np.float32)),
-                                          ch[material_fit.DETAIL_CHANNEL]).numpy()
+    bright = detailed_albedo(mi.TensorXf(np.full((s.count, 3), 0.9, np.float32)),
+                             ch[DETAIL_CHANNEL]).numpy()
     assert bright.max() == 1.0 and bright.min() == pytest.approx(0.9 * math.exp(-0.2), 1e-6)
 
 
@@ -831,12 +862,12 @@ def test_albedo_detail_recovers_a_printed_floor_and_is_off_in_every_preset():
     / 0.6) that one albedo per segment cannot hold. With the detail on, the fitted floor
     albedo follows the print; off (every preset), the segment constraint holds exactly."""
     for name in ("paper", "cpu-small", "cpu-medium", "gpu-large"):
-        assert material_fit.get_config(name).detail_prior == 0.0
+        assert get_config(name).detail_prior == 0.0
     for bad in ({"detail_prior": -0.1}, {"detail_prior": math.inf},
                 {"detail_prior": math.nan}, {"detail_max": 0.0}, {"lr_detail": 0.0},
                 {"detail_edge_px": -1}):
         with pytest.raises(ValueError, match="detail_prior >= 0"):
-            material_fit.MaterialConfig(**bad)
+            MaterialConfig(**bad)
     s, cams, bounds = _plane_scene()
     seg = s.channels["segment"].numpy()[:, 0]
     x = np.stack([np.asarray(c) for c in s.position], -1)  # [N, 3]
@@ -849,13 +880,13 @@ def test_albedo_detail_recovers_a_printed_floor_and_is_off_in_every_preset():
     imgs, masks = _render_truth(s, cams, bounds, light_grid(128)[k_true], 2.0, vcfg)
     floor = seg == 0
     for prior in (0.0, 0.3):
-        cfg = with_overrides(material_fit.get_config("cpu-small"),
+        cfg = with_overrides(get_config("cpu-small"),
                              {"iterations": 200, "warmup": 60, "log_every": 50,
                               "normal_steps": 0, "detail_prior": prior}, "material")
-        res = material_fit.fit_material(s, cams, imgs, masks, cfg, bounds, vcfg,
-                                        progress=False)
+        res = fit_material(s, cams, imgs, masks, cfg, bounds, vcfg,
+                           progress=False)
         a = res.surfels.channels["albedo"].numpy()
-        assert material_fit.DETAIL_CHANNEL not in res.surfels.channels
+        assert DETAIL_CHANNEL not in res.surfels.channels
         if prior == 0:
             assert np.ptp(a[floor], axis=0).max() < 1e-6
             continue
@@ -874,15 +905,15 @@ def test_albedo_detail_gates_follow_the_lights_it_joined_with():
     vcfg = VisibilityConfig(resolution=128)
     dirs = np.array([direction_from_angles(47.0, 52.0), direction_from_angles(200.0, 35.0)])
     imgs, masks = _render_truth(s, cams, bounds, dirs, [2.0, 1.5], vcfg)
-    cfg = with_overrides(material_fit.get_config("cpu-small"), {"detail_prior": 0.1},
+    cfg = with_overrides(get_config("cpu-small"), {"detail_prior": 0.1},
                          "material")
-    fit, state = material_fit.setup_fit(s, cams, imgs, masks, cfg, bounds, vcfg,
-                                        progress=False)
+    fit, state = setup_fit(s, cams, imgs, masks, cfg, bounds, vcfg,
+                           progress=False)
     state.directions = dirs
     fit.maps = fit.shadow_maps(dirs)
     dw = solid_angle(cfg.n_directions)
     state.opt["log_light"] = mi.Float(np.log(np.array([2.0, 1.5]) / dw).astype(np.float32))
-    material_fit.start_detail(fit, state)
+    start_detail(fit, state)
     first = [v.detail_gate.numpy().copy() for v in fit.views]
     sup = [v.weight.numpy() > 0 for v in fit.views]
     share = np.mean([g[m].mean() for g, m in zip(first, sup, strict=True)])
@@ -891,7 +922,7 @@ def test_albedo_detail_gates_follow_the_lights_it_joined_with():
     state.directions = dirs[:1]
     fit.maps = fit.shadow_maps(dirs[:1])
     state.opt["log_light"] = mi.Float(np.log(np.array([20.0]) / dw).astype(np.float32))
-    material_fit.detail_gates(fit, state)
+    detail_gates(fit, state)
     for g, v in zip(first, fit.views, strict=True):
         np.testing.assert_array_equal(v.detail_gate.numpy(), g)
 
@@ -899,16 +930,16 @@ def test_albedo_detail_gates_follow_the_lights_it_joined_with():
 def test_label_source_overrides_change_only_chromaticity_fits():
     """Material-id segments keep the preset; chromaticity ones take its chromaticity_*
     settings (only those that differ); an unknown source is refused by name."""
-    cfg = material_fit.get_config("cpu-small")
-    assert material_fit.label_source_overrides(cfg, "material") == {}
-    assert material_fit.label_source_overrides(cfg, "chromaticity") == {
+    cfg = get_config("cpu-small")
+    assert label_source_overrides(cfg, "material") == {}
+    assert label_source_overrides(cfg, "chromaticity") == {
         "normal_steps": cfg.chromaticity_normal_steps,
         "refine_score": cfg.chromaticity_refine_score}
     same = dataclasses.replace(cfg, normal_steps=cfg.chromaticity_normal_steps)
-    assert material_fit.label_source_overrides(same, "chromaticity") == {
+    assert label_source_overrides(same, "chromaticity") == {
         "refine_score": cfg.chromaticity_refine_score}
     with pytest.raises(ValueError, match="label source must be one of"):
-        material_fit.label_source_overrides(cfg, "auto")
+        label_source_overrides(cfg, "auto")
     with pytest.raises(ValueError, match="chromaticity_normal_steps must be >= 0"):
         dataclasses.replace(cfg, chromaticity_normal_steps=-1)
     with pytest.raises(ValueError, match="chromaticity_refine_score 'albedo' needs specular"):

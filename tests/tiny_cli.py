@@ -31,7 +31,7 @@ def stage_presets() -> list[tuple[dict, object]]:
     from mi_shadowgs.stages.export import export
     from mi_shadowgs.stages.geometry import train as geometry_train
     from mi_shadowgs.stages.geometry.densify import DensifyConfig
-    from mi_shadowgs.stages.material import fit as material_fit
+    from mi_shadowgs.stages.material import config as material_config
     from mi_shadowgs.stages.relight import render as relight
     from mi_shadowgs.stages.segmentation import features as segmentation
     from mi_shadowgs.stages.segmentation import masks
@@ -50,8 +50,8 @@ def stage_presets() -> list[tuple[dict, object]]:
         (segmentation.PRESETS, dataclasses.replace(
             segmentation.get_config("cpu-small"), iterations=40, n_samples=256, feature_dim=8,
             log_every=10, checkpoint_every=15, checkpoint_seconds=0.5)),
-        (material_fit.PRESETS, dataclasses.replace(
-            material_fit.get_config("cpu-small"), iterations=60, warmup=20, prune_every=10,
+        (material_config.PRESETS, dataclasses.replace(
+            material_config.get_config("cpu-small"), iterations=60, warmup=20, prune_every=10,
             warmup_map_resolution=32, refine_passes=((4.0, 2.0),), refine_views=4,
             refine_global=128, refine_global_map_resolution=32, refine_global_views=2,
             normal_steps=30, log_every=10, checkpoint_every=15, checkpoint_seconds=0.5)),

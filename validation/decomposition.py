@@ -38,7 +38,8 @@ from mi_shadowgs.io.images import write_png
 from mi_shadowgs.io.provenance import Provenance
 from mi_shadowgs.stages import evaluation, material, relight
 from mi_shadowgs.stages.common import checkpoint_hooks
-from mi_shadowgs.stages.material import fit as material_fit
+from mi_shadowgs.stages.material.config import get_config
+from mi_shadowgs.stages.material.state import MaterialState
 from mi_shadowgs.stages.visibility import shadow_maps
 from validation import claim_out, fail
 from validation.units import run_unit, settings_of
@@ -62,14 +63,14 @@ def run_variant(name, overrides, surfels, train, test, bounds, preset, extra,
     """Fit one variant on the stand-in and evaluate it (``mi_shadowgs.pipeline``);
     ``checkpoints``: ``state`` and ``on_checkpoint`` of stage 4."""
     t0 = time.perf_counter()
-    res = material.decompose(surfels, train, preset, bounds, {**overrides, **extra},
+    cfg = with_overrides(get_config(preset), {**overrides, **extra}, "material")
+    res = material.decompose(surfels, train, cfg, shadow_maps.get_config(preset), bounds,
                              **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
     out, images = evaluation.evaluate_decomposition(res, train, test, bounds,
                                                     shadow_maps.get_config(preset),
                                                     relight.get_config(preset))
     out.update(fit_s=fit_s, timings=res.timings, history=res.history)
-    cfg = with_overrides(material_fit.get_config(preset), {**overrides, **extra}, "material")
     steps_w = min(cfg.warmup, cfg.iterations)
     if steps_w and "warmup_total_s" in res.timings:
         out["step_ms_warmup"] = 1e3 * res.timings["warmup_total_s"] / steps_w
@@ -103,7 +104,7 @@ def main(argv=None) -> int:
     p.add_argument("--overwrite", action="store_true")
     args = p.parse_args(argv)
     try:
-        for stage in (material_fit, shadow_maps):  # the preset named by stage before any work
+        for stage in (material, shadow_maps):  # the preset named by stage before any work
             stage.get_config(args.preset)
         train = load_dataset(args.data, "train")
         test = load_dataset(args.data, "test")
@@ -121,7 +122,7 @@ def main(argv=None) -> int:
                "variants": {}}
     for name, ov in variants.items():
         def fit_variant(unit, name=name, ov=ov) -> dict:
-            hooks = checkpoint_hooks(unit, material_fit.MaterialState.from_checkpoint)
+            hooks = checkpoint_hooks(unit, MaterialState.from_checkpoint)
             res, figs = run_variant(name, ov, surfels, train, test, bounds, args.preset,
                                     extra, hooks)
             res["resumed"] = hooks["state"] is not None  # fit_s: this call's part only

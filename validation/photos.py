@@ -4,9 +4,8 @@ For one scene (``validation.pipeline.SCENES``) under one light pair, on the text
 (``base_texture=mat``: SfM needs features):
 
 1. ``OUT/photoset/data``: the scene's training views as a user's photos (sRGB JPEG, no camera,
-   no mask) at ``--photo-size`` pixels, where SfM registers every view (BENCHMARKS.md, "Your
-   own captures in"). Only the training views' photos are imported (``OUT/photos``): the
-   test cameras stay unseen.
+   no mask) at ``--photo-size`` pixels, where SfM registers every view. Only the training
+   views' photos are imported (``OUT/photos``): the test cameras stay unseen.
 2. ``OUT/import``: ``mi-shadowgs import`` of them (SfM, no cameras, no masks, no material
    ids), resized to the preset's resolution; ``OUT/run-photos``: ``mi-shadowgs run`` on it
    (its own test split has no ground truth; the run skips those metrics).
@@ -124,7 +123,7 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.evaluation import metrics as evaluation
     from mi_shadowgs.stages.evaluation.evaluate import evaluate_decomposition, scored_pixels
-    from mi_shadowgs.stages.material.files import fit_from_files
+    from mi_shadowgs.stages.material.outputs import fit_from_files
     from mi_shadowgs.stages.material.runner import occluder_bounds
 
     fit_dir = run / "material" / "full"

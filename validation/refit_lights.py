@@ -37,13 +37,19 @@ def _value(text: str):
         return text
 
 
+def material_config(preset: str, overrides: dict):
+    """Stage 4's settings of preset ``preset`` with ``overrides`` ({field: value})."""
+    from mi_shadowgs.presets import build
+
+    return build(preset, {"material": overrides}).material
+
+
 def with_label_source(run: Path, preset: str, overrides: dict) -> dict:
     """``overrides`` with the stage-4 settings that ``run`` fitted with for the source of its
     segments' labels (stage 2's ``masks`` in ``segmentation.json``: on chromaticity ones
     ``MaterialConfig.chromaticity_*``, as ``run`` applies them); a setting in ``overrides``
     wins."""
-    from mi_shadowgs.stages.material.fit import label_source_overrides
-    from mi_shadowgs.stages.material.runner import material_config
+    from mi_shadowgs.stages.material.config import label_source_overrides
 
     record = run / "segmentation" / "segmentation.json"
     try:
@@ -63,13 +69,12 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.io.provenance import read_manifest
+    from mi_shadowgs.presets import get_config
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.evaluation.evaluate import evaluate_decomposition
-    from mi_shadowgs.stages.material.files import light_json
+    from mi_shadowgs.stages.material.outputs import light_json
     from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
-    from mi_shadowgs.stages.relight import render as relight
     from mi_shadowgs.stages.relight.runner import run_preset
-    from mi_shadowgs.stages.visibility import shadow_maps
 
     before_path = run / "material" / "full" / "metrics.json"
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
@@ -79,11 +84,11 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     surfels = load_ply(run / "segmentation" / "model.ply")
     bounds = occluder_bounds(surfels, train.cameras, float(settings.get("bounds_quantile", 0.98)))
     t0 = time.perf_counter()
-    res = decompose(surfels, train, preset, bounds, overrides, progress, **(checkpoints or {}))
+    tree = get_config(preset)
+    res = decompose(surfels, train, material_config(preset, overrides), tree.visibility, bounds,
+                    progress=progress, **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
-    metrics, _ = evaluate_decomposition(res, train, test, bounds,
-                                        shadow_maps.get_config(preset),
-                                        relight.get_config(preset))
+    metrics, _ = evaluate_decomposition(res, train, test, bounds, tree.visibility, tree.relight)
     metrics["fit_s"] = fit_s
     # Read at the end: the run's own stage 4 may still be running when this starts. With
     # another dataset than the run's (the same scene and cameras under other lights: a
@@ -111,21 +116,23 @@ def settle_only(run: Path, data: Path) -> dict:
     from mi_shadowgs.io.ply import load_ply
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.evaluation import metrics as evaluation
-    from mi_shadowgs.stages.material import fit as mf
+    from mi_shadowgs.stages.material.config import get_config
+    from mi_shadowgs.stages.material.lights import settle_lights
     from mi_shadowgs.stages.material.runner import occluder_bounds
+    from mi_shadowgs.stages.material.views import prepare_view
     from mi_shadowgs.stages.visibility import shadow_maps
 
     folder = run / "material" / "full"
     light = json.loads((folder / "light.json").read_text())
     model = load_ply(folder / "model.ply")
     train = load_training_views(data)
-    cfg, vcfg = mf.get_config("cpu-small"), shadow_maps.get_config("cpu-small")
+    cfg, vcfg = get_config("cpu-small"), shadow_maps.get_config("cpu-small")
     bounds = occluder_bounds(load_ply(run / "segmentation" / "model.ply"), train.cameras, 0.98)
     pick = np.unique(np.linspace(0, len(train.views) - 1, cfg.refine_views).round()
                      .astype(int))
-    views = [mf.prepare_view(model, train.views[i].camera, train.views[i].image,
-                             train.views[i].mask, cfg,
-                             receiver_band=vcfg.receiver_band) for i in pick]
+    views = [prepare_view(model, train.views[i].camera, train.views[i].image,
+                          train.views[i].mask, cfg,
+                          receiver_band=vcfg.receiver_band) for i in pick]
     ch = {k: model.channels[k] for k in ("albedo", "roughness", "metallic", "indirect_sh")}
 
     def render(d, resolution=None):
@@ -136,8 +143,8 @@ def settle_only(run: Path, data: Path) -> dict:
     gt_dirs = np.array([g["direction"] for g in gt])
     gt_w = np.array([np.mean(g["irradiance"]) for g in gt])
     dirs, irr = np.asarray(light["directions"]), np.asarray(light["irradiance"], float)
-    d2, e2, _ = mf.settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
-                                 light["specular"])
+    d2, e2, _ = settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
+                              light["specular"])
     out = {}
     for key, (d, e) in (("run", (dirs, irr)), ("settled", (d2, e2))):
         out[key] = {**evaluation.light_angular_errors(d, e, gt_dirs),
@@ -216,7 +223,6 @@ def main(argv=None) -> int:
         k, v = item.split("=", 1)
         overrides[k] = _value(v)
     from mi_shadowgs.config import ConfigError
-    from mi_shadowgs.stages.material.runner import material_config
     from mi_shadowgs.stages.relight.runner import run_preset
 
     preset = run_preset(args.run)
@@ -238,7 +244,7 @@ def main(argv=None) -> int:
 
     def fit(unit) -> dict:
         from mi_shadowgs.stages.common import checkpoint_hooks
-        from mi_shadowgs.stages.material.fit import MaterialState
+        from mi_shadowgs.stages.material.state import MaterialState
 
         return refit(args.run, args.data, overrides, not args.quiet, not args.other_data,
                      checkpoint_hooks(unit, MaterialState.from_checkpoint))

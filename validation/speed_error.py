@@ -98,12 +98,12 @@ def _preset_tables() -> list[dict]:
     from mi_shadowgs.core import raster
     from mi_shadowgs.dataset import generate
     from mi_shadowgs.stages.geometry import train
-    from mi_shadowgs.stages.material import fit
+    from mi_shadowgs.stages.material.config import PRESETS
     from mi_shadowgs.stages.relight import render
     from mi_shadowgs.stages.segmentation import features, masks
     from mi_shadowgs.stages.visibility import shadow_maps
 
-    return [generate.PRESETS, train.PRESETS, features.PRESETS, masks.PRESETS, fit.PRESETS,
+    return [generate.PRESETS, train.PRESETS, features.PRESETS, masks.PRESETS, PRESETS,
             shadow_maps.PRESETS, render.PRESETS, raster.PRESETS, pipeline.PRESETS]
 
 
@@ -209,10 +209,10 @@ def run_point(scene: str, point: str, out: Path, base: Path, base_row: dict | No
 # -- the table and the plots ---------------------------------------------------------------------
 def _iterations(spec: dict) -> tuple[int, int]:
     from mi_shadowgs.stages.geometry import train
-    from mi_shadowgs.stages.material import fit
+    from mi_shadowgs.stages.material.config import get_config
 
     s1 = train.get_config(PRESET).iterations
-    s4 = fit.get_config(PRESET).iterations
+    s4 = get_config(PRESET).iterations
     return (int(round(s1 * spec.get("stage1", 1.0))), int(spec.get("stage4", s4)))
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from mi_shadowgs.core.directions import angles_from_direction
 from mi_shadowgs.stages.evaluation import metrics as evaluation
-from mi_shadowgs.stages.material import fit
+from mi_shadowgs.stages.material.state import MaterialResult
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -101,7 +101,7 @@ def skipped_metrics(available: dict[str, str | None]) -> list[dict]:
     return out
 
 
-def evaluate_decomposition(result: fit.MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
+def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_maps.SceneBounds,
                            vis_config: shadow_maps.VisibilityConfig,
                            relight_config: relight.RelightConfig, figure_lights: int = 3,
                            cache: relight.RelightCache | None = None) -> tuple[dict, dict]:

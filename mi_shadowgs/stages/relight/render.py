@@ -34,6 +34,11 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels, eval_sh
+from mi_shadowgs.stages.material.outputs import (
+    BAND_METADATA_KEY,
+    SPECULAR_METADATA_KEY,
+    VISIBILITY_METADATA_KEY,
+)
 from mi_shadowgs.stages.visibility.shadow_maps import (
     MapCache,
     SceneBounds,
@@ -80,29 +85,6 @@ class RelightModel:
     train_lights: shading.LightSet | None = None  # for the indirect scaling
     # The receivers it was fitted with (``VisibilityConfig.receiver_band``; 0: blended).
     receiver_band: float = 0.0
-
-
-# The stage-4 model's PLY records the shadow maps and receivers it was fitted with under
-# these keys (the whole ``VisibilityConfig`` as one word of JSON, and its band alone, which
-# older models hold without the rest), so that a reader of the bare file
-# (the ``surfel_relight`` plugin) shades it as ``relight`` shades the run.
-BAND_METADATA_KEY = "receiver_band"
-VISIBILITY_METADATA_KEY = "visibility"
-# Whether the fit modelled the GGX lobe: a model fitted without it (cpu-*) has roughness and
-# metallic channels the fit never moved, so a reader that turns the lobe on draws highlights
-# from untrained values.
-SPECULAR_METADATA_KEY = "specular"
-
-
-def model_metadata(vis_config: VisibilityConfig, specular: bool) -> dict[str, str]:
-    """What a stage-4 model's PLY records for its readers (``ply.save_ply``'s metadata)."""
-    import json
-
-    from mi_shadowgs.config import to_dict
-
-    return {BAND_METADATA_KEY: repr(float(vis_config.receiver_band)),
-            VISIBILITY_METADATA_KEY: json.dumps(to_dict(vis_config), separators=(",", ":")),
-            SPECULAR_METADATA_KEY: "true" if specular else "false"}
 
 
 def recorded_specular(path) -> bool | None:

@@ -22,7 +22,7 @@ from mi_shadowgs.config import recorded_config
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, parse_angle_fields
 from mi_shadowgs.stages.common import warn, warn_other_backend
-from mi_shadowgs.stages.material.files import fit_from_files
+from mi_shadowgs.stages.material.outputs import fit_from_files
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
