@@ -171,11 +171,9 @@ class MaterialFit:
         """Shadow maps of ``directions`` (at ``resolution``, default the visibility's)."""
         if not self.config.use_visibility:
             return None
-        cfg = (self.vis_config if resolution is None
-               else dataclasses.replace(self.vis_config, resolution=resolution))
         if self.map_cache is None:
             self.map_cache = MapCache(self.surfels, self.bounds, max_bytes=96 << 20)
-        return self.map_cache.maps(directions, cfg)
+        return self.map_cache.maps(directions, self.vis_config, resolution)
 
 
 def _count_step(state: MaterialState, config: MaterialConfig, total: mi.Float) -> float | None:
