@@ -37,10 +37,10 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
 
 def _measure(out: Path, data: Path, log) -> dict:
     from mi_shadowgs.dataset import fingerprint
-    from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.dataset.writer import write_dataset
     from mi_shadowgs.io.atomic import write_json
+    from mi_shadowgs.presets import generate_config as get_config
     from mi_shadowgs.scenes import scene_path
 
     write_dataset(scene_path("default"), data, dataclasses.replace(get_config("cpu-small"),

@@ -22,6 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from mi_shadowgs import presets as run_presets
+
 FRAMES = 8
 TARGETS = {"directional_later_s": 0.1, "envmap_later_s": 1.0, "plugin_speedup": 10.0}
 
@@ -119,7 +121,7 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
         f"{statistics.median(directional_cpu[1:]):.3f} s)")
     with tempfile.TemporaryDirectory() as tmp:
         sky = _sky(Path(tmp))
-        cfg = relight.get_config("cpu-small")
+        cfg = run_presets.relight_config("cpu-small")
         t0 = time.perf_counter()
         env_lights = runner.build_lights(envmap=str(sky), config=cfg,
                                          cache=relight.RelightCache())

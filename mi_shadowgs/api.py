@@ -11,7 +11,8 @@ A model's views go to files with ``render_views`` (``mi-shadowgs render``), a fi
 relit views with ``run_relight`` (``mi-shadowgs relight``).
 
 Each stage can also be run alone (``run_geometry``, ``run_segmentation``) or used through
-its package (``mi_shadowgs.stages.<stage>``: ``get_config(preset)``, its maths, its runner).
+its package (``mi_shadowgs.stages.<stage>``: its config, its maths, its runner); the
+settings of a run are one tree (``mi_shadowgs.presets``: ``build``, ``RunConfig``).
 Everything here is a re-export or a thin wrapper; the CLI (``mi-shadowgs``) calls the same
 functions.
 """
@@ -28,7 +29,7 @@ from mi_shadowgs.dataset.loader import Dataset, load_dataset
 from mi_shadowgs.dataset.scene import dataset_scene
 from mi_shadowgs.io.ply import load_ply, save_ply
 from mi_shadowgs.pipeline import run_pipeline
-from mi_shadowgs.presets import RunConfig, build
+from mi_shadowgs.presets import RunConfig, build, get_config
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages.geometry import run_geometry
 from mi_shadowgs.stages.relight import (
@@ -48,8 +49,8 @@ def generate_dataset(scene: str | Path, out: str | Path, preset: str = "cpu-smal
                      seed: int = 0, overwrite: bool = False, progress: bool = False) -> Path:
     """Render a shadowed synthetic dataset of the scene XML ``scene`` into ``out``
     (``mi-shadowgs generate``): train/test views, masks, ground truth and ``lights.json``."""
-    from mi_shadowgs.dataset.generate import get_config as generate_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.presets import generate_config
 
     write_dataset(scene, out, generate_config(preset), preset, seed=seed, overwrite=overwrite,
                   progress=progress)
@@ -99,10 +100,12 @@ def export_asset(run_folder: str | Path, out: str | Path, fmt: str = "mesh",
                  color: str = "sh", preset: str | None = None, overwrite: bool = False):
     """A finished run's stage-4 model as ``fmt`` ("3dgs-ply", "2dgs-ply" or "mesh": a mesh
     with per-vertex materials and a Mitsuba ``scene.xml``) in the folder ``out``, at
-    ``preset``'s export settings (default: the run's preset)."""
+    ``preset``'s export settings (default: the run's own, ``presets.recorded``)."""
+    from mi_shadowgs.presets import recorded
     from mi_shadowgs.stages.export.export import export_run
 
-    return export_run(run_folder, out, fmt, color=color, preset=preset, overwrite=overwrite)
+    config = get_config(preset).export if preset else recorded(run_folder).export
+    return export_run(run_folder, out, fmt, color=color, config=config, overwrite=overwrite)
 
 
 def _model(surfels, what: str):
@@ -153,9 +156,7 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
 
     from mi_shadowgs.core.shading import LightSet
     from mi_shadowgs.stages.material.runner import occluder_bounds
-    from mi_shadowgs.stages.relight import get_config as relight_config
     from mi_shadowgs.stages.relight.render import recorded_specular, recorded_visibility
-    from mi_shadowgs.stages.visibility import get_config as visibility_config
     from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
 
     by_path = isinstance(surfels, str | os.PathLike)
@@ -176,8 +177,9 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
     elif not isinstance(bounds, SceneBounds):
         raise TypeError(f"relight: 'bounds' must be a SceneBounds or None, got "
                         f"{type(bounds).__name__}")
-    vis_config = recorded or visibility_config(preset or "cpu-small")
-    config = dataclasses.replace(relight_config(preset or "cpu-small"), indirect="keep")
+    tree = get_config(preset or "cpu-small")
+    vis_config = recorded or tree.visibility
+    config = dataclasses.replace(tree.relight, indirect="keep")
     model = RelightModel(model_surfels, specular, True, receiver_band=vis_config.receiver_band)
     return relight_views(model, cameras, lights, bounds, config, vis_config)
 

@@ -1,11 +1,9 @@
-"""Named presets for the hyperparameter dataclasses of every stage.
+"""What every settings dataclass shares: the preset names, overrides checked by name and
+type, field checks, and settings read back from a manifest.
 
-Each stage module defines a frozen dataclass whose field defaults are the paper's values,
-and a ``PRESETS`` dict name -> instance for each of ``PRESET_NAMES``: ``paper``,
-``cpu-small`` (128^2, 64 views, minutes on 2 cores), ``cpu-medium`` (256^2, 96 views:
-cpu-small's settings where the resolution does not change them; issue 18) and ``gpu-large``
-(512^2, 96 views, cpu-medium's schedule: minutes on a GPU, the size at which the thin parts of
-the table's scenes span enough pixels; issue 15).
+Each stage module defines a frozen dataclass whose field defaults are the paper's values;
+the named presets (``PRESET_NAMES``: ``paper``, ``cpu-small``, ``cpu-medium``, ``gpu-large``)
+are trees of them in ``mi_shadowgs.presets``.
 """
 
 from __future__ import annotations

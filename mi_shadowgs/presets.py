@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 from mi_shadowgs.config import (
-    GPU_PRESETS,
     LABEL_MAP_SOURCES,
     PRESET_NAMES,
     ConfigError,
@@ -28,19 +27,18 @@ from mi_shadowgs.config import (
     parse_value,
     with_overrides,
 )
-from mi_shadowgs.stages.export.export import PRESETS as EXPORT
+from mi_shadowgs.dataset.generate import GenerateConfig
+from mi_shadowgs.dataset.importer import ImportConfig
 from mi_shadowgs.stages.export.export import ExportConfig
-from mi_shadowgs.stages.geometry.train import PRESETS as GEOMETRY
+from mi_shadowgs.stages.export.mesh import MeshConfig
+from mi_shadowgs.stages.geometry.densify import DensifyConfig
 from mi_shadowgs.stages.geometry.train import GeometryConfig
-from mi_shadowgs.stages.material.config import PRESETS as MATERIAL
 from mi_shadowgs.stages.material.config import MaterialConfig
-from mi_shadowgs.stages.relight.render import PRESETS as RELIGHT
 from mi_shadowgs.stages.relight.render import RelightConfig
-from mi_shadowgs.stages.segmentation.features import PRESETS as SEGMENTATION
 from mi_shadowgs.stages.segmentation.features import SegmentationConfig
-from mi_shadowgs.stages.segmentation.masks import PRESETS as CHROMATICITY
 from mi_shadowgs.stages.segmentation.masks import ChromaticityConfig
-from mi_shadowgs.stages.visibility.shadow_maps import PRESETS as VISIBILITY
+from mi_shadowgs.stages.segmentation.planes import PlaneConfig
+from mi_shadowgs.stages.visibility.baselines import GaussianTraceConfig, VoxelConfig
 from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
 
 MASK_SOURCES = ("auto", *LABEL_MAP_SOURCES)  # "auto": material ids where the views have them
@@ -48,6 +46,12 @@ MASK_SOURCES = ("auto", *LABEL_MAP_SOURCES)  # "auto": material ids where the vi
 SECTIONS = ("geometry", "segmentation", "chromaticity", "visibility", "material", "relight",
             "export")
 CONFIG_NAME = "config.json"  # the tree a run ran with, in the run folder
+# Stage 4's fits: the method, and the paper's Table 3 ablations (settings changed from it).
+VARIANTS = {
+    "full": {},
+    "no_visibility": {"use_visibility": False},  # "w/o visibility"
+    "no_segmentation": {"segment_average": False},  # "w/o segmentation"
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,14 +94,64 @@ class RunConfig:
 
     def variants(self) -> dict[str, MaterialConfig]:
         """Stage 4's fits: ``full``, and with ``ablations`` the paper's Table 3 variants."""
-        out = {"full": self.material}
-        if self.ablations:
-            out["no_visibility"] = dataclasses.replace(self.material, use_visibility=False)
-            out["no_segmentation"] = dataclasses.replace(self.material, segment_average=False)
-        return out
+        names = VARIANTS if self.ablations else ("full",)
+        return {name: dataclasses.replace(self.material, **VARIANTS[name]) if VARIANTS[name]
+                else self.material for name in names}
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+# -- the named presets ---------------------------------------------------------------------
+# paper: the paper's settings (its defaults are each config's field defaults). cpu-small:
+# 128^2 views on 2 CPU cores; cpu-medium: 256^2; gpu-large: 512^2 on a GPU. The reason for
+# every value that departs from the paper is in docs/decisions.md.
+
+_GEOMETRY_CPU_SMALL = GeometryConfig(
+    iterations=2500, sh_degree=0, sh_degree_interval=500,
+    lr_position_init=0.0016, lr_position_final=0.000016, lr_sh_dc=0.01, lr_sh_rest=0.0005,
+    lr_scale=0.01, lr_rotation=0.004,
+    lambda_normal=0.1, lambda_dist=3e4, normal_from=800, dist_from=1200,
+    normal_depth_differences="same_plane",
+    init_points=8000, hull_resolution=48, hull_extent=1.2, init_scale_factor=0.4,
+    init_consistent_fraction=0.5,
+    densify=DensifyConfig(start=200, stop=1800, interval=100, opacity_reset_interval=1000,
+                          grad_threshold=0.0002, max_surfels=30000),
+    unmasked_max_surfels=80000, log_every=25, preview_every=500, checkpoint_every=500)
+_GEOMETRY_CPU_MEDIUM = dataclasses.replace(
+    _GEOMETRY_CPU_SMALL, sh_degree=1, unmasked_max_surfels=None,
+    densify=dataclasses.replace(_GEOMETRY_CPU_SMALL.densify, max_surfels=80000))
+GEOMETRY = {
+    # no screen-space prune: at 800^2 it removes the flat surfaces' surfels at each reset
+    "paper": GeometryConfig(densify=DensifyConfig(screen_size_threshold=None)),
+    "cpu-small": _GEOMETRY_CPU_SMALL,
+    "cpu-medium": _GEOMETRY_CPU_MEDIUM,
+    "gpu-large": dataclasses.replace(
+        _GEOMETRY_CPU_MEDIUM, densify=dataclasses.replace(
+            _GEOMETRY_CPU_MEDIUM.densify, max_surfels=200000, screen_size_threshold=None)),
+}
+_SEGMENTATION_CPU = SegmentationConfig(iterations=300, lr=0.02, n_samples=2048,
+                                       prototype_iterations=1,
+                                       planes=PlaneConfig(enabled=True))
+SEGMENTATION = {"paper": SegmentationConfig(), "cpu-small": _SEGMENTATION_CPU,
+                "cpu-medium": _SEGMENTATION_CPU, "gpu-large": _SEGMENTATION_CPU}
+CHROMATICITY = dict.fromkeys(PRESET_NAMES, ChromaticityConfig())
+_VISIBILITY_CPU = VisibilityConfig(resolution=512, projection="orthographic", bias_texels=1.0,
+                                   layer_bias=1.0, layer_cap_texels=3.0, layer_window=1,
+                                   receiver_band=0.5)
+VISIBILITY = {"paper": VisibilityConfig(), "cpu-small": _VISIBILITY_CPU,
+              "cpu-medium": _VISIBILITY_CPU,
+              "gpu-large": dataclasses.replace(_VISIBILITY_CPU, resolution=1024)}
+_MATERIAL_CPU = MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_light=0.1,
+                               lambda_ind2=1.0, log_every=50, refine_global=128,
+                               refine_again_global=True, specular="off",
+                               albedo_tv_with_segments=False, albedo_scale=0.9,
+                               refine_score="albedo", normal_steps=1500)
+MATERIAL = {"paper": MaterialConfig(), "cpu-small": _MATERIAL_CPU, "cpu-medium": _MATERIAL_CPU,
+            "gpu-large": _MATERIAL_CPU}
+RELIGHT = dict.fromkeys(PRESET_NAMES, RelightConfig())
+EXPORT = {"paper": ExportConfig(mesh=MeshConfig(resolution=320)), "cpu-small": ExportConfig(),
+          "cpu-medium": ExportConfig(), "gpu-large": ExportConfig()}
 
 
 def _tree(name: str, **run) -> RunConfig:
@@ -114,10 +168,79 @@ PRESETS: dict[str, RunConfig] = {
     "gpu-large": _tree("gpu-large"),
 }
 
+# The dataset generator (``mi-shadowgs generate``): views and samples per preset.
+_GENERATE_CPU = {"n_test": 32, "spp": 128, "max_depth": 4}
+GENERATE = {
+    "paper": GenerateConfig(),
+    "cpu-small": GenerateConfig(width=128, height=128, n_train=64, **_GENERATE_CPU),
+    "cpu-medium": GenerateConfig(width=256, height=256, n_train=96, **_GENERATE_CPU),
+    "gpu-large": GenerateConfig(width=512, height=512, n_train=96, **_GENERATE_CPU),
+}
+# The photo importer (``mi-shadowgs import``): the longest side of the imported views.
+IMPORT = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512),
+          "cpu-medium": ImportConfig(max_size=512), "gpu-large": ImportConfig(max_size=512)}
+# The visibility baselines of the paper's Table 2 (``validation.visibility``).
+GAUSSIAN_TRACE = {"paper": GaussianTraceConfig(), "cpu-small": GaussianTraceConfig(max_hits=16),
+                  "cpu-medium": GaussianTraceConfig(max_hits=16),
+                  "gpu-large": GaussianTraceConfig(max_hits=16)}
+VOXEL = {"paper": VoxelConfig(), "cpu-small": VoxelConfig(resolution=48),
+         "cpu-medium": VoxelConfig(resolution=48), "gpu-large": VoxelConfig(resolution=48)}
+
 
 def get_config(name: str) -> RunConfig:
     """The named preset's tree, unchanged."""
     return get_preset(PRESETS, name, "run")
+
+
+def geometry_config(name: str) -> GeometryConfig:
+    """The named preset's stage-1 settings."""
+    return get_config(name).geometry
+
+
+def segmentation_config(name: str) -> SegmentationConfig:
+    """The named preset's stage-2 settings."""
+    return get_config(name).segmentation
+
+
+def chromaticity_config(name: str) -> ChromaticityConfig:
+    """The named preset's settings of stage 2's colour label maps."""
+    return get_config(name).chromaticity
+
+
+def visibility_config(name: str) -> VisibilityConfig:
+    """The named preset's shadow-map settings (stage 3)."""
+    return get_config(name).visibility
+
+
+def material_config(name: str) -> MaterialConfig:
+    """The named preset's stage-4 settings."""
+    return get_config(name).material
+
+
+def relight_config(name: str) -> RelightConfig:
+    """The named preset's relighting settings (stage 5)."""
+    return get_config(name).relight
+
+
+def export_config(name: str) -> ExportConfig:
+    """The named preset's export settings."""
+    return get_config(name).export
+
+
+def generate_config(name: str) -> GenerateConfig:
+    """The named preset's dataset generation settings."""
+    return get_preset(GENERATE, name, "dataset generation")
+
+
+def import_config(name: str) -> ImportConfig:
+    """The named preset's photo import settings."""
+    return get_preset(IMPORT, name, "import")
+
+
+def baseline_configs(name: str) -> tuple[GaussianTraceConfig, VoxelConfig]:
+    """The named preset's settings of the Table 2 visibility baselines."""
+    return (get_preset(GAUSSIAN_TRACE, name, "Gaussian-based visibility"),
+            get_preset(VOXEL, name, "voxel-based visibility"))
 
 
 def build(preset: str = "cpu-small", overrides: dict[str, Any] | None = None,
@@ -184,6 +307,22 @@ def merge(base: dict[str, Any], more: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def recorded(run: str | Path) -> RunConfig:
+    """The settings tree a run folder recorded (``RUN/config.json``); for a run that
+    predates the record, the tree of the preset its manifest names. A ConfigError naming
+    the folder where there is neither."""
+    from mi_shadowgs.io.provenance import read_manifest
+
+    run = Path(run)
+    if (run / CONFIG_NAME).is_file():
+        return build(*load_overrides(run / CONFIG_NAME))
+    preset = ((read_manifest(run) or {}).get("settings") or {}).get("preset")
+    if not isinstance(preset, str):
+        raise ConfigError(f"{run}: no record of a run's settings ({CONFIG_NAME}, or a preset "
+                          "in its manifest); is it a `mi-shadowgs run` folder?")
+    return get_config(preset)
+
+
 def load_overrides(path: str | Path) -> tuple[str, dict[str, Any]]:
     """(preset, overrides) of a run's recorded settings ``path`` (``RUN/config.json``, or
     the run folder): ``build(*load_overrides(p))`` rebuilds the tree that run ran with."""
@@ -214,13 +353,8 @@ def _lists_to_tuples(value):
     return value
 
 
-def slow_preset_warning(config: RunConfig, variant: str) -> str | None:
-    """The warning for a GPU-sized preset run on another backend, else None."""
-    if config.preset in GPU_PRESETS and not variant.startswith("cuda"):
-        return (f"preset {config.preset!r} is sized for a GPU (--variant cuda_ad_rgb); on "
-                f"{variant} its run takes hours")
-    return None
-
-
-__all__ = ["MASK_SOURCES", "PRESETS", "PRESET_NAMES", "RunConfig", "build", "get_config",
-           "load_overrides", "merge", "parse_sets", "slow_preset_warning"]
+__all__ = ["MASK_SOURCES", "PRESETS", "PRESET_NAMES", "RunConfig", "baseline_configs", "build",
+           "chromaticity_config", "export_config", "generate_config", "geometry_config",
+           "get_config", "import_config", "load_overrides", "material_config", "merge",
+           "parse_sets", "recorded", "relight_config", "segmentation_config",
+           "visibility_config"]

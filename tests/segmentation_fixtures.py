@@ -10,8 +10,8 @@ SIZE = 48  # pixels: big enough for the base's shadows to span several pixels
 
 def tiny_dataset(root):
     """A small dataset of the embedded default scene under ``root`` (about 10 s)."""
-    from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.presets import generate_config as get_config
     from mi_shadowgs.scenes import scene_path
 
     config = dataclasses.replace(get_config("cpu-small"), width=SIZE, height=SIZE, n_train=8,

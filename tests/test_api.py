@@ -29,8 +29,8 @@ def test_script_the_method(tiny_presets, tmp_path):
     assert "albedo" in model.channels
     # The model records the maps and receivers it was fitted with, for readers of the bare
     # PLY.
+    from mi_shadowgs.presets import visibility_config as get_config
     from mi_shadowgs.stages.relight.render import recorded_visibility
-    from mi_shadowgs.stages.visibility.shadow_maps import get_config
 
     assert recorded_visibility(tmp_path / "run" / "material" / "full" / "model.ply") == \
         get_config(TINY)
@@ -106,9 +106,10 @@ def test_relight_of_a_ply_uses_the_shadow_maps_it_records(tmp_path):
     records (as the surfel_relight plugin and `mi-shadowgs relight` do), not cpu-small's."""
     from mi_shadowgs.core.surfels import Surfels
     from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.presets import visibility_config as get_config
     from mi_shadowgs.stages.material.outputs import model_metadata
     from mi_shadowgs.stages.relight.render import relight_views
-    from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, get_config
+    from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds
 
     rng = np.random.default_rng(1)
     n = 400

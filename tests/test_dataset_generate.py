@@ -19,15 +19,11 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.cameras import train_cameras
-from mi_shadowgs.dataset.generate import (
-    PRESETS,
-    ViewRenderer,
-    camera_rays,
-    get_config,
-    trace_ground_truth,
-)
+from mi_shadowgs.dataset.generate import ViewRenderer, camera_rays, trace_ground_truth
 from mi_shadowgs.dataset.scene import SceneError, load_scene
 from mi_shadowgs.io.provenance import MANIFEST_NAME
+from mi_shadowgs.presets import GENERATE as PRESETS
+from mi_shadowgs.presets import generate_config as get_config
 from mi_shadowgs.scenes import scene_path
 
 SIZE = 64
@@ -68,9 +64,7 @@ def test_gpu_large_differs_from_cpu_medium_only_where_the_size_asks():
     # cpu-medium's, so a gpu-large row differs from a cpu-medium one by the size alone.
     import dataclasses
 
-    from mi_shadowgs.stages.geometry.train import PRESETS as GEOMETRY
-    from mi_shadowgs.stages.material.config import PRESETS as MATERIAL
-    from mi_shadowgs.stages.visibility.shadow_maps import PRESETS as VISIBILITY
+    from mi_shadowgs.presets import GEOMETRY, MATERIAL, VISIBILITY
 
     large, medium = GEOMETRY["gpu-large"], GEOMETRY["cpu-medium"]
     assert large.densify.screen_size_threshold is None
@@ -81,26 +75,23 @@ def test_gpu_large_differs_from_cpu_medium_only_where_the_size_asks():
     assert MATERIAL["gpu-large"] == MATERIAL["cpu-medium"]
 
 
-def test_every_stage_has_every_preset():
-    # A run with --preset P reads P from every stage; a missing one would fail mid-run.
-    import importlib
+def test_every_table_has_every_preset_and_only_one_module_defines_them():
+    # A run with --preset P reads P from every table; a missing one would fail mid-run.
+    import re
+    from pathlib import Path
 
+    from mi_shadowgs import presets
     from mi_shadowgs.config import PRESET_NAMES
 
-    for name in ("mi_shadowgs.dataset.generate", "mi_shadowgs.dataset.importer",
-                 "mi_shadowgs.core.raster", "mi_shadowgs.stages.geometry.train",
-                 "mi_shadowgs.stages.segmentation.features",
-                 "mi_shadowgs.stages.segmentation.masks",
-                 "mi_shadowgs.stages.visibility.shadow_maps",
-                 "mi_shadowgs.stages.material.config", "mi_shadowgs.stages.relight.render",
-                 "mi_shadowgs.stages.export.mesh", "mi_shadowgs.stages.export.export",
-                 "mi_shadowgs.presets"):
-        presets = importlib.import_module(name).PRESETS
-        assert set(PRESET_NAMES) <= set(presets), (name, sorted(presets))
-    from mi_shadowgs.stages.visibility import baselines
-
-    for presets in (baselines.GAUSSIAN_PRESETS, baselines.VOXEL_PRESETS):
-        assert set(PRESET_NAMES) <= set(presets)
+    for table in (presets.PRESETS, presets.GEOMETRY, presets.SEGMENTATION,
+                  presets.CHROMATICITY, presets.VISIBILITY, presets.MATERIAL, presets.RELIGHT,
+                  presets.EXPORT, presets.GENERATE, presets.IMPORT, presets.GAUSSIAN_TRACE,
+                  presets.VOXEL):
+        assert set(PRESET_NAMES) <= set(table), sorted(table)
+    package = Path(presets.__file__).parent
+    others = [p for p in package.rglob("*.py") if p.name != "presets.py"
+              and re.search(r"^\w*PRESETS\s*=\s*[{d]", p.read_text(), re.M)]
+    assert not others, f"preset tables outside mi_shadowgs/presets.py: {others}"
 
 
 def test_default_scene_normalised(default_setup):

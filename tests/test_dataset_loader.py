@@ -11,11 +11,12 @@ import pytest
 
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
-from mi_shadowgs.dataset.generate import get_config, trace_ground_truth
+from mi_shadowgs.dataset.generate import trace_ground_truth
 from mi_shadowgs.dataset.loader import BLENDER_TO_YUP, DatasetError, load_cameras, load_dataset
 from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.io.images import read_exr, write_png
+from mi_shadowgs.presets import generate_config as get_config
 from mi_shadowgs.scenes import scene_path
 
 

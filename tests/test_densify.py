@@ -108,7 +108,7 @@ def test_screen_space_prune_and_without_it():
     # Surfel 1 spanned 25 px (3-sigma) in some view since the last densify: after the first
     # opacity reset 2DGS's rule prunes it (> 20 px); the paper preset, without that rule,
     # keeps it. Nothing is hot, so nothing is cloned or split.
-    from mi_shadowgs.stages.geometry.train import PRESETS
+    from mi_shadowgs.presets import GEOMETRY as PRESETS
 
     rng = np.random.default_rng(4)
     p = _params(3, rng)

@@ -20,10 +20,10 @@ import pytest
 from mi_shadowgs.cli import main as cli_main
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.assets import SHARED_DATA_ENV
-from mi_shadowgs.dataset.generate import get_config
 from mi_shadowgs.dataset.writer import resolve_envmaps
 from mi_shadowgs.io.images import write_exr
 from mi_shadowgs.io.provenance import MANIFEST_NAME
+from mi_shadowgs.presets import generate_config as get_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--width", "24", "--height", "24", "--n-train", "2", "--n-test", "1", "--spp", "4",

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from mi_shadowgs import cli
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.io.ply import SH_C0, read_ply_model
 from mi_shadowgs.io.provenance import MANIFEST_NAME, file_digest
 from tests import synthetic_asset as syn
@@ -61,11 +62,11 @@ def small_mesh_grid():
     refusals; tests/test_tsdf.py measures the mesh's accuracy."""
     import dataclasses
 
-    from mi_shadowgs.stages.export import export as ex
+    from tiny_cli import set_sections
 
-    cfg = ex.get_config("cpu-small")
+    cfg = run_presets.export_config("cpu-small")
     with pytest.MonkeyPatch.context() as mp:
-        mp.setitem(ex.PRESETS, "cpu-small", dataclasses.replace(
+        set_sections(mp, "cpu-small", export=dataclasses.replace(
             cfg, mesh=dataclasses.replace(cfg.mesh, resolution=96)))
         yield
 

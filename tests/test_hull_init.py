@@ -11,6 +11,7 @@ import re
 import numpy as np
 import pytest
 
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset.loader import View
 from mi_shadowgs.stages.geometry import train
@@ -91,12 +92,12 @@ def test_an_initialisation_setting_out_of_range_is_refused_when_made(field, valu
     from mi_shadowgs.config import ConfigError
 
     with pytest.raises(ConfigError, match=re.escape(message)):
-        dataclasses.replace(train.get_config("cpu-small"), **{field: value})
+        dataclasses.replace(run_presets.geometry_config("cpu-small"), **{field: value})
 
 
 def test_points_without_points_names_what_is_missing():
     views = _ring_views(n=4, elevations_deg=(30.0,))
-    config = dataclasses.replace(train.get_config("cpu-small"), init="points")
+    config = dataclasses.replace(run_presets.geometry_config("cpu-small"), init="points")
     with pytest.raises(ValueError, match="init 'points' needs the dataset's SfM points"):
         train.init_params(views, config)
 
@@ -154,7 +155,7 @@ def test_prune_outside_masks_removes_floaters_and_keeps_the_object():
     floaters = np.array([[0.0, 0.0, 1.0], [0.9, 0.2, 0.0], [-0.6, -0.7, 0.3]])
     pts = np.concatenate([inner[:100], floaters, inner[100:]])
     surfels = _surfels_at(pts)
-    config = dataclasses.replace(train.get_config("cpu-small"), hull_prune_views=2)
+    config = dataclasses.replace(run_presets.geometry_config("cpu-small"), hull_prune_views=2)
     pruned, removed = train.prune_outside_masks(surfels, views, config)
     assert removed == 3 and pruned.count == 200
     got = pruned.to_numpy()
@@ -164,7 +165,7 @@ def test_prune_outside_masks_removes_floaters_and_keeps_the_object():
     for key in ("position", "scale", "rotation", "opacity", "rgb"):
         np.testing.assert_allclose(got[key], want[key][keep], rtol=0, atol=1e-7)
     # Off (the paper): the very same set back.
-    off, n = train.prune_outside_masks(surfels, views, train.get_config("paper"))
+    off, n = train.prune_outside_masks(surfels, views, run_presets.geometry_config("paper"))
     assert off is surfels and n == 0
     # One view whose mask lost its left half votes against the object's surfels there:
     # two views are needed to remove one, so they stay at 2 and go at 1.
@@ -200,4 +201,4 @@ def test_a_prune_setting_below_zero_is_refused(field, value):
     from mi_shadowgs.config import ConfigError
 
     with pytest.raises(ConfigError, match=f"GeometryConfig.{field} must be >= 0"):
-        dataclasses.replace(train.get_config("cpu-small"), **{field: value})
+        dataclasses.replace(run_presets.geometry_config("cpu-small"), **{field: value})

@@ -14,8 +14,7 @@ from PIL import Image
 
 from mi_shadowgs.cli import main
 from mi_shadowgs.config import with_overrides
-from mi_shadowgs.dataset.generate import get_config as gen_config
-from mi_shadowgs.dataset.importer import get_config, import_capture
+from mi_shadowgs.dataset.importer import import_capture
 from mi_shadowgs.dataset.loader import load_cameras, load_dataset
 from mi_shadowgs.dataset.world_frame import (
     FrameConfig,
@@ -25,6 +24,8 @@ from mi_shadowgs.dataset.world_frame import (
     world_frame,
 )
 from mi_shadowgs.dataset.writer import write_dataset
+from mi_shadowgs.presets import generate_config as gen_config
+from mi_shadowgs.presets import import_config as get_config
 from mi_shadowgs.scenes import scene_path
 
 # 24 views at 256^2 register 21-24 of 24 here; the acceptance run (512^2, 64 views) is in
@@ -415,12 +416,8 @@ def test_stage1_without_masks_starts_from_the_sfm_points(imported, capsys):
     import dataclasses
 
     from mi_shadowgs.io.ply import read_ply_vertices
-    from mi_shadowgs.stages.geometry.train import (
-        evaluate,
-        get_config,
-        initial_state,
-        train_geometry,
-    )
+    from mi_shadowgs.presets import geometry_config as get_config
+    from mi_shadowgs.stages.geometry.train import evaluate, initial_state, train_geometry
 
     data, rec = imported
     train = load_dataset(data, "train")
@@ -453,8 +450,8 @@ def test_stage1_runner_trains_unmasked_views_with_the_dark_alpha_prior(imported,
     import dataclasses
     import json
 
+    from mi_shadowgs.presets import geometry_config as get_config
     from mi_shadowgs.stages.geometry.runner import run_geometry
-    from mi_shadowgs.stages.geometry.train import get_config
 
     data, _ = imported
     cfg = dataclasses.replace(get_config("cpu-small"), iterations=4, init_points=300)
@@ -491,8 +488,9 @@ def test_random_init_lies_where_training_views_see(imported):
     the cameras' centre puts some points outside every view, so the check can fail."""
     import dataclasses
 
+    from mi_shadowgs.presets import geometry_config as get_config
     from mi_shadowgs.stages.common import load_training_views
-    from mi_shadowgs.stages.geometry.train import get_config, init_params, scene_bounds
+    from mi_shadowgs.stages.geometry.train import init_params, scene_bounds
 
     data, _ = imported
     train = load_training_views(data)

@@ -16,6 +16,7 @@ import dataclasses
 import drjit as dr
 import numpy as np
 
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.surfels import Surfels
@@ -56,7 +57,7 @@ def _step_hashes(surfels: Surfels, view, config, step: int) -> set:
 
 
 def test_a_new_camera_compiles_no_new_stage1_kernel():
-    config = geometry_train.get_config("cpu-small")
+    config = run_presets.geometry_config("cpu-small")
     config = dataclasses.replace(config, sh_degree=1)
     step = config.dist_from + 1  # every loss term on: colour, mask, normal, distortion
     surfels = _surfels()

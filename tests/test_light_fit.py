@@ -18,8 +18,9 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, light_grid, solid_angle
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.surfels import Surfels
+from mi_shadowgs.presets import material_config as get_config
 from mi_shadowgs.stages.material import fit as material_fit
-from mi_shadowgs.stages.material.config import MaterialConfig, get_config
+from mi_shadowgs.stages.material.config import MaterialConfig
 from mi_shadowgs.stages.material.fit import _refine, end_warmup, setup_fit
 from mi_shadowgs.stages.material.lights import (
     Refinement,

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from raster_reference import random_scene, reference, to_surfels
 
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.config import ConfigError
 from mi_shadowgs.core import shading
 from mi_shadowgs.core.camera import Camera
@@ -143,7 +144,7 @@ def test_the_plugin_shades_the_receivers_and_maps_its_model_was_fitted_with(plug
 
     s = _wall_on_base_model()
     paper = shadow_maps.VisibilityConfig(resolution=128, receiver_band=0.5)
-    cpu = dataclasses.replace(shadow_maps.get_config("cpu-small"), resolution=128)
+    cpu = dataclasses.replace(run_presets.visibility_config("cpu-small"), resolution=128)
     assert cpu.projection != paper.projection  # else the cpu case below would prove nothing
     fitted, plain, ortho = tmp_path / "fitted.ply", tmp_path / "plain.ply", tmp_path / "o.ply"
     save_ply(fitted, s, outputs.model_metadata(paper, False))
@@ -289,7 +290,7 @@ def test_a_run_is_relit_with_the_receivers_it_was_fitted_with():
     gets the blend it was fitted with, not the preset's new default."""
     from mi_shadowgs.stages.relight.runner import recorded_config
 
-    preset = dataclasses.replace(shadow_maps.get_config("cpu-small"), receiver_band=0.5)
+    preset = dataclasses.replace(run_presets.visibility_config("cpu-small"), receiver_band=0.5)
     saved = dataclasses.asdict(preset)
     assert recorded_config(shadow_maps.VisibilityConfig, saved,
                            lambda: None).receiver_band == 0.5

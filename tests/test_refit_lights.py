@@ -65,7 +65,7 @@ def test_a_refit_takes_the_settings_its_runs_segments_were_fitted_with(tmp_path)
     """A run whose segments came from chromaticity was fitted with stage 4's chromaticity_*
     settings in place of normal_steps and refine_score; its refit takes them too (a --set
     still wins), and a run of material-id segments keeps the preset's."""
-    from mi_shadowgs.stages.material.config import get_config
+    from mi_shadowgs.presets import material_config as get_config
     from validation.refit_lights import with_label_source
 
     preset = get_config("cpu-small")

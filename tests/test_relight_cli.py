@@ -18,6 +18,7 @@ import synthetic_asset
 import tiny_cli
 
 from mi_shadowgs import cli
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, light_grid
 from mi_shadowgs.dataset.generate import SkyConfig, sky_envmap_image
@@ -310,9 +311,9 @@ def test_scene_emitter_equals_the_same_light_given_as_angles(tiny_run, tiny_pres
 
 
 def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkeypatch):
+    from mi_shadowgs.presets import visibility_config as vis_get_config
     from mi_shadowgs.stages.material.state import LightModel, MaterialResult
     from mi_shadowgs.stages.relight.previews import write_previews
-    from mi_shadowgs.stages.visibility.shadow_maps import get_config as vis_get_config
 
     for table, config in tiny_cli.presets():  # 64^2 shadow maps
         monkeypatch.setitem(table, TINY, config)
@@ -324,7 +325,7 @@ def test_previews_turntable_and_env_maps_reuse_the_callers_maps(tmp_path, monkey
     bounds = SceneBounds.from_points(model.surfels.to_numpy()["position"], [cam])
     sky = _sky_file(tmp_path)
     cache = relight.RelightCache()
-    rcfg = relight.get_config(TINY)
+    rcfg = run_presets.relight_config(TINY)
     # What the evaluation's sky relighting leaves in the cache (another model object with
     # the same geometry, as the evaluation's rescaled albedo is).
     sky_lights = relight.grid_light_set(

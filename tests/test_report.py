@@ -9,7 +9,7 @@ import pytest
 
 from mi_shadowgs.io.images import write_png
 from mi_shadowgs.io.report import render_html, write_report
-from mi_shadowgs.pipeline import refresh_speed_error
+from mi_shadowgs.summary import refresh_speed_error
 
 
 def test_report_shows_tables_grid_and_stage_figures(tmp_path):

@@ -21,15 +21,16 @@ from segmentation_fixtures import standin_surfels
 from test_stage_material import _plane_scene, _render_truth
 
 from mi_shadowgs import cli
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.dataset.loader import load_dataset
 from mi_shadowgs.io import interrupt
 from mi_shadowgs.io.checkpoint import load_checkpoint, save_checkpoint
+from mi_shadowgs.presets import material_config as get_config
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages import common as stage_common
 from mi_shadowgs.stages.geometry import train as geometry_train
 from mi_shadowgs.stages.material import fit as material_fit
-from mi_shadowgs.stages.material.config import get_config
 from mi_shadowgs.stages.material.fit import fit_material
 from mi_shadowgs.stages.material.state import MaterialState
 from mi_shadowgs.stages.segmentation import features as seg
@@ -114,7 +115,7 @@ def test_signals_are_deferred_in_a_loop_and_immediate_outside():
 
 def test_stage1_resumes_bit_identically(data, tmp_path):
     train = load_dataset(data, "train")
-    config = dataclasses.replace(geometry_train.get_config(TINY), checkpoint_every=7,
+    config = dataclasses.replace(run_presets.geometry_config(TINY), checkpoint_every=7,
                                  checkpoint_seconds=1e9)
     logs = []
     straight = geometry_train.train_geometry(
@@ -155,7 +156,7 @@ def test_stage2_resumes_bit_identically(data, tmp_path):
     train = load_dataset(data, "train")
     surfels, _ = standin_surfels(800)
     labels = seg.prepare_labels(material_masks(train), train.cameras)
-    config = dataclasses.replace(seg.get_config(TINY), checkpoint_every=1)
+    config = dataclasses.replace(run_presets.segmentation_config(TINY), checkpoint_every=1)
     straight = seg.train_features(surfels, train.cameras, labels, config, progress=False)
     for stop in (5, 16, 35):  # inside a round of the 8 views; in the prototype quarter
         with pytest.raises(Stop):

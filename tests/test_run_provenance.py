@@ -12,62 +12,38 @@ import numpy as np
 import pytest
 
 from mi_shadowgs import cli
-from mi_shadowgs.dataset.generate import get_config as gen_config
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.io import ply
 from mi_shadowgs.io.provenance import MANIFEST_NAME
+from mi_shadowgs.presets import generate_config as gen_config
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages.geometry import train as geometry_train
-from mi_shadowgs.stages.material.config import PRESETS, get_config
-from mi_shadowgs.stages.segmentation import features as seg
-from mi_shadowgs.stages.visibility import shadow_maps as vis
 from tests.conftest import without_few_views_warning
+
 
 # Every stage cut to seconds: the checks here are about which files are written, kept or
 # refused, not about the fits' quality (tests/test_stage_*.py measure that).
-TINY = [
-    (
-        geometry_train.PRESETS,
-        dataclasses.replace(
-            geometry_train.get_config("cpu-small"),
-            iterations=20,
-            sh_degree=0,
-            init_points=500,
-            hull_resolution=16,
-            log_every=10,
-            preview_every=10,
-            checkpoint_every=10,
-            densify=dataclasses.replace(
-                geometry_train.get_config("cpu-small").densify,
-                start=5,
-                stop=15,
-                interval=5,
-                opacity_reset_interval=0,
-                max_surfels=2000,
-            ),
-        ),
-    ),
-    (seg.PRESETS, dataclasses.replace(seg.get_config("cpu-small"), iterations=20, n_samples=256)),
-    (
-        PRESETS,
-        dataclasses.replace(
-            get_config("cpu-small"),
-            iterations=10,
-            warmup=5,
-            refine_passes=(),
-            refine_views=2,
-            detail_edge_px=0,  # at 32^2 nearly every pixel is near a shadow's edge
-        ),
-    ),
-    (vis.PRESETS, dataclasses.replace(vis.get_config("cpu-small"), resolution=64)),
-]
+def _tiny_tree():
+    small = run_presets.get_config("cpu-small")
+    return dataclasses.replace(
+        small,
+        geometry=dataclasses.replace(
+            small.geometry, iterations=20, sh_degree=0, init_points=500, hull_resolution=16,
+            log_every=10, preview_every=10, checkpoint_every=10,
+            densify=dataclasses.replace(small.geometry.densify, start=5, stop=15, interval=5,
+                                        opacity_reset_interval=0, max_surfels=2000)),
+        segmentation=dataclasses.replace(small.segmentation, iterations=20, n_samples=256),
+        material=dataclasses.replace(
+            small.material, iterations=10, warmup=5, refine_passes=(), refine_views=2,
+            detail_edge_px=0),  # at 32^2 nearly every pixel is near a shadow's edge
+        visibility=dataclasses.replace(small.visibility, resolution=64))
 
 
 @pytest.fixture(scope="module", autouse=True)
 def tiny_presets():
     with pytest.MonkeyPatch.context() as mp:
-        for presets, config in TINY:
-            mp.setitem(presets, "cpu-small", config)
+        mp.setitem(run_presets.PRESETS, "cpu-small", _tiny_tree())
         yield
 
 
@@ -264,7 +240,7 @@ def test_chromaticity_segments_get_stage_4s_chromaticity_settings(finished, data
     settings take their place, recorded as the values that ran and said once. With
     material ids the preset's run. A run fitted before on chromaticity segments is
     refused naming the setting."""
-    preset = get_config("cpu-small")
+    preset = run_presets.material_config("cpu-small")
     # else the test would not tell the two apart
     assert preset.normal_steps != preset.chromaticity_normal_steps
     assert preset.refine_score != preset.chromaticity_refine_score

@@ -10,6 +10,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.stages.segmentation import features as seg
@@ -417,11 +418,11 @@ def test_k_selection_settings():
 
 
 def test_presets():
-    assert seg.get_config("paper") == seg.SegmentationConfig()
-    p = seg.get_config("paper")
+    assert run_presets.segmentation_config("paper") == seg.SegmentationConfig()
+    p = run_presets.segmentation_config("paper")
     assert (p.lambda_neg, p.lambda_norm, p.lambda_mask, p.lr, p.temperature, p.n_samples,
             p.iterations) == (0.1, 1e-4, 0.5, 0.005, 0.3, 10_000, 1000)
-    assert seg.get_config("cpu-small").iterations < p.iterations
+    assert run_presets.segmentation_config("cpu-small").iterations < p.iterations
 
 
 # -- the stage end to end on a synthetic two-material plane ---------------------------------

@@ -9,12 +9,14 @@ import time
 
 import numpy as np
 import pytest
+from tiny_cli import set_sections
 
 from mi_shadowgs import cli
-from mi_shadowgs.dataset.generate import get_config as gen_config
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.dataset.loader import load_dataset
 from mi_shadowgs.dataset.writer import write_dataset
 from mi_shadowgs.io import checkpoint as ckpt
+from mi_shadowgs.presets import generate_config as gen_config
 from mi_shadowgs.scenes import scene_path
 from mi_shadowgs.stages.geometry import train as geometry_train
 from mi_shadowgs.stages.geometry.densify import DensifyConfig
@@ -23,7 +25,7 @@ from mi_shadowgs.stages.geometry.densify import DensifyConfig
 # lambda_dist stays at 100: cpu-small's 3e4 was tuned at 128^2; on this 32^2, 1500-surfel
 # run its last 50 steps at 1e4 already emptied silhouette pixels (mask IoU 0.76 against > 0.9).
 TINY = dataclasses.replace(
-    geometry_train.get_config("cpu-small"), iterations=300, sh_degree=0, init_points=1500,
+    run_presets.geometry_config("cpu-small"), iterations=300, sh_degree=0, init_points=1500,
     hull_resolution=24, normal_from=150, dist_from=250, lambda_dist=100.0, log_every=10,
     densify=DensifyConfig(start=50, stop=250, interval=50, opacity_reset_interval=0,
                           max_surfels=6000))
@@ -126,11 +128,8 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
 
 
 def test_train_cli_writes_run_and_rejects_bad_data(tiny, tmp_path, capsys, monkeypatch):
-    monkeypatch.setitem(
-        geometry_train.PRESETS,
-        "cpu-small",
-        dataclasses.replace(TINY, iterations=20, preview_every=10, checkpoint_every=10),
-    )
+    set_sections(monkeypatch, "cpu-small", geometry=dataclasses.replace(
+        TINY, iterations=20, preview_every=10, checkpoint_every=10))
     run = tmp_path / "run"
     assert cli.main(["train", str(tiny), "--out", str(run), "--no-progress"]) == 0
     g = run / "geometry"
@@ -219,7 +218,7 @@ def _dark_alpha_grad(lam: float, has_mask: bool):
     dr.enable_grad(s.opacity_logit)
     view = SimpleNamespace(camera=cam, image=np.zeros((16, 16, 3), np.float32),
                            mask=np.ones((16, 16), bool), has_mask=has_mask)
-    cfg = dataclasses.replace(geometry_train.get_config("cpu-small"),
+    cfg = dataclasses.replace(run_presets.geometry_config("cpu-small"),
                               lambda_dark_alpha=lam, lambda_mask=0.0)
     total, terms = geometry_train.geometry_loss(
         s, geometry_train._view_data(view, cfg.dark_max), cfg, 0)
@@ -305,8 +304,7 @@ def test_prune_outside_masks_reaches_stage_1_from_train_and_run(tiny, tmp_path, 
     """`train --prune-outside-masks N` and `run --prune-outside-masks N` (and api.run's
     prune_outside_masks) set stage 1's hull_prune_views; a value below 0 exits 2 naming
     the setting before anything is trained."""
-    monkeypatch.setitem(geometry_train.PRESETS, "cpu-small",
-                        dataclasses.replace(TINY, iterations=20))
+    set_sections(monkeypatch, "cpu-small", geometry=dataclasses.replace(TINY, iterations=20))
     run = tmp_path / "run"
     argv = ["train", str(tiny), "--out", str(run), "--no-progress"]
     assert cli.main([*argv, "--prune-outside-masks", "2"]) == 0

@@ -17,6 +17,7 @@ from mi_shadowgs.core.directions import light_grid, solid_angle
 from mi_shadowgs.core.frames import frame_to_quaternion
 from mi_shadowgs.core.raster import rasterize
 from mi_shadowgs.core.surfels import Surfels, eval_sh
+from mi_shadowgs.presets import material_config as get_config
 from mi_shadowgs.stages.material.channels import (
     DETAIL_CHANNEL,
     _clamp_channels,
@@ -27,7 +28,7 @@ from mi_shadowgs.stages.material.channels import (
     segment_average,
     segment_ids,
 )
-from mi_shadowgs.stages.material.config import MaterialConfig, get_config, label_source_overrides
+from mi_shadowgs.stages.material.config import MaterialConfig, label_source_overrides
 from mi_shadowgs.stages.material.fit import (
     detail_gates,
     fit_material,
@@ -421,7 +422,7 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
 def test_overrides_reach_nested_settings():
     """A stage's nested config (the rasterizer's) takes its own dict of overrides, checked
     like the top level, instead of being replaced by a dict that fails much later."""
-    from mi_shadowgs.stages.geometry.train import get_config as geometry_config
+    from mi_shadowgs.presets import geometry_config
 
     cfg = with_overrides(
         geometry_config("cpu-small"),

@@ -16,8 +16,9 @@ import json
 
 import pytest
 from conftest import exits_2
-from tiny_cli import TINY
+from tiny_cli import TINY, set_sections
 
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.stages.geometry import train as geometry_train
 
 
@@ -84,14 +85,13 @@ def test_segmentation_reuses_its_dataset_and_stages_and_continues_the_one_in_pro
     checkpoint. The rerun keeps the dataset, reuses the first stage, continues the second
     from its checkpoint and writes the rows of an uninterrupted call; other settings exit 2
     naming the setting."""
-    from mi_shadowgs.dataset import generate
     from mi_shadowgs.stages.segmentation import features
     from validation import segmentation
 
     # The default scene only, its dataset and stages at the tiny preset.
     monkeypatch.setattr(segmentation, "HOTDOG", tmp_path / "no_hotdog.ply")
-    for table in (generate.PRESETS, features.PRESETS):
-        monkeypatch.setitem(table, "cpu-small", table[TINY])
+    monkeypatch.setitem(run_presets.GENERATE, "cpu-small", run_presets.GENERATE[TINY])
+    set_sections(monkeypatch, "cpu-small", segmentation=run_presets.PRESETS[TINY].segmentation)
     root, out = tmp_path / "data", tmp_path / "seg"
     argv = ["--out", str(out), "--data-root", str(root), "--quick"]
     starts = []
@@ -126,8 +126,8 @@ def test_segmentation_reuses_its_dataset_and_stages_and_continues_the_one_in_pro
         return [{k: v for k, v in r.items() if not k.startswith("seconds")} for r in table]
 
     assert timeless(rows) == timeless(json.loads((whole / "segmentation.json").read_text()))
-    monkeypatch.setitem(features.PRESETS, "cpu-small",
-                 dataclasses.replace(features.PRESETS[TINY], n_samples=128))
+    set_sections(monkeypatch, "cpu-small", segmentation=dataclasses.replace(
+        run_presets.PRESETS[TINY].segmentation, n_samples=128))
     err = exits_2(segmentation.main, argv, capsys)
     assert "config.n_samples: 256 there, 128 now" in err and str(out / "default_material") \
         in err, err
@@ -143,8 +143,8 @@ def test_lowpass_drift_keeps_each_finished_k_and_continues_the_one_in_progress(
     quick = lowpass_drift.DriftConfig(ks=(2.0, 12.0), steps=20, object_surfels=600,
                                       base_surfels=300, test_views=2)
     monkeypatch.setattr(lowpass_drift, "QUICK", quick)
-    monkeypatch.setitem(geometry_train.PRESETS, "cpu-small", dataclasses.replace(
-        geometry_train.get_config("cpu-small"), checkpoint_every=5))
+    set_sections(monkeypatch, "cpu-small", geometry=dataclasses.replace(
+        run_presets.geometry_config("cpu-small"), checkpoint_every=5))
     out, data = tmp_path / "drift", str(tiny_run / "data")
     argv = ["--out", str(out), "--data", data, "--quick"]
     starts = []
@@ -181,11 +181,10 @@ def test_asset_keeps_its_finished_parts_and_continues_a_path_trace_from_its_last
     and figure; another --spp exits 2 naming it."""
     import mitsuba as mi
 
-    from mi_shadowgs.stages.export import export
     from validation import asset
 
-    cfg = export.get_config("cpu-small")  # a coarse grid for speed, as tests/test_export.py
-    monkeypatch.setitem(export.PRESETS, "cpu-small", dataclasses.replace(
+    cfg = run_presets.export_config("cpu-small")  # a coarse grid for speed, as tests/test_export.py
+    set_sections(monkeypatch, "cpu-small", export=dataclasses.replace(
         cfg, mesh=dataclasses.replace(cfg.mesh, resolution=48)))
     calls = {"truth": 0, "mesh": 0, "scale": 0, "trace": 0}
 

@@ -245,10 +245,12 @@ def test_soft_gaussian_visibility_in_unit_interval():
 
 
 def test_configs_and_presets():
-    assert baselines.gaussian_preset("paper") == baselines.GaussianTraceConfig()
-    assert baselines.voxel_preset("cpu-small").resolution < baselines.VoxelConfig().resolution
+    from mi_shadowgs.presets import baseline_configs
+
+    assert baseline_configs("paper")[0] == baselines.GaussianTraceConfig()
+    assert baseline_configs("cpu-small")[1].resolution < baselines.VoxelConfig().resolution
     with pytest.raises(ConfigError, match="Gaussian-based"):
-        baselines.gaussian_preset("nope")
+        baseline_configs("nope")
     with pytest.raises(ValueError):
         baselines.VoxelConfig(resolution=1)
     with pytest.raises(ValueError):
@@ -358,14 +360,14 @@ def exact_model(tmp_path_factory):
 
     import mi_shadowgs.api as msg
     import validation.visibility as vv
-    from mi_shadowgs.dataset import generate
+    from mi_shadowgs import presets as run_presets
     from mi_shadowgs.dataset.scene import dataset_scene
     from mi_shadowgs.io.ply import save_ply
 
     root = tmp_path_factory.mktemp("factors")
     with pytest.MonkeyPatch.context() as mp:
         for table, config in presets():
-            if table is generate.PRESETS:
+            if table is run_presets.GENERATE:
                 config = dataclasses.replace(config, width=40, height=40)
             mp.setitem(table, TINY, config)
         data = msg.generate_dataset(msg.scene_path("default"), root / "data", preset=TINY)
@@ -519,7 +521,8 @@ def test_preset_gives_the_pixel_method_a_runs_maps_and_receivers(exact_model, tm
     the summary and the README; an unknown preset exits 2 naming it."""
 
     import validation.visibility as vv
-    from mi_shadowgs.stages.visibility.shadow_maps import get_config, render_shadow_maps
+    from mi_shadowgs.presets import visibility_config as get_config
+    from mi_shadowgs.stages.visibility.shadow_maps import render_shadow_maps
 
     data, model, cfg = exact_model
     preset = get_config("cpu-small")

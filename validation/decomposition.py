@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np  # noqa: I001
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
-from mi_shadowgs import pipeline
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.config import ConfigError, with_overrides
 from mi_shadowgs.core.directions import map_to_blocks
 from mi_shadowgs.dataset.fingerprint import dataset_ref
@@ -36,9 +36,9 @@ from mi_shadowgs.dataset.standin import standin_surfels
 from mi_shadowgs.io.atomic import write_bytes, write_json
 from mi_shadowgs.io.images import write_png
 from mi_shadowgs.io.provenance import Provenance
-from mi_shadowgs.stages import evaluation, material, relight
+from mi_shadowgs.presets import material_config as get_config
+from mi_shadowgs.stages import evaluation, material
 from mi_shadowgs.stages.common import checkpoint_hooks
-from mi_shadowgs.stages.material.config import get_config
 from mi_shadowgs.stages.material.state import MaterialState
 from mi_shadowgs.stages.visibility import shadow_maps
 from validation import claim_out, fail
@@ -46,7 +46,7 @@ from validation.units import run_unit, settings_of
 
 STUDY = "validation.decomposition"
 
-VARIANTS = pipeline.VARIANTS
+VARIANTS = run_presets.VARIANTS
 # Bounds of the occluders' shadow maps: the object's sphere times this covers the shadows it
 # casts on the base down to ~30 degrees of light elevation.
 BOUNDS_FACTOR = 2.5
@@ -64,12 +64,12 @@ def run_variant(name, overrides, surfels, train, test, bounds, preset, extra,
     ``checkpoints``: ``state`` and ``on_checkpoint`` of stage 4."""
     t0 = time.perf_counter()
     cfg = with_overrides(get_config(preset), {**overrides, **extra}, "material")
-    res = material.decompose(surfels, train, cfg, shadow_maps.get_config(preset), bounds,
+    res = material.decompose(surfels, train, cfg, run_presets.visibility_config(preset), bounds,
                              **(checkpoints or {}))
     fit_s = time.perf_counter() - t0
     out, images = evaluation.evaluate_decomposition(res, train, test, bounds,
-                                                    shadow_maps.get_config(preset),
-                                                    relight.get_config(preset))
+                                                    run_presets.visibility_config(preset),
+                                                    run_presets.relight_config(preset))
     out.update(fit_s=fit_s, timings=res.timings, history=res.history)
     steps_w = min(cfg.warmup, cfg.iterations)
     if steps_w and "warmup_total_s" in res.timings:

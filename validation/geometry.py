@@ -58,7 +58,8 @@ def validate(data: Path, out: Path, preset: str = "cpu-small", iterations: int |
     from mi_shadowgs.config import with_overrides
     from mi_shadowgs.io.checkpoint import has_checkpoint
     from mi_shadowgs.io.images import write_png
-    from mi_shadowgs.stages.geometry import get_config, run_geometry
+    from mi_shadowgs.presets import geometry_config as get_config
+    from mi_shadowgs.stages.geometry import run_geometry
 
     try:
         config = get_config(preset)
@@ -113,8 +114,8 @@ def _markdown(m: dict) -> str:
 
 def run(out_dir: Path, quick: bool) -> dict:
     """validation.run_all entry: generate the default scene at cpu-small and validate."""
-    from mi_shadowgs.dataset.generate import get_config as gen_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.presets import generate_config as gen_config
     from mi_shadowgs.scenes import scene_path
 
     out_dir = Path(out_dir) / "geometry"

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.io.atomic import write_json, write_text
 from validation import claim_out, fail
 from validation.units import run_unit, settings_of, smoke_name
@@ -129,11 +130,10 @@ def run_drift(data: Path, cfg: DriftConfig, out: Path, overwrite: bool = False,
     from mi_shadowgs.dataset.scene import SceneError, dataset_scene
     from mi_shadowgs.io.provenance import Provenance
     from mi_shadowgs.stages.common import settings_dict
-    from mi_shadowgs.stages.geometry import train as G
 
     if not (data / DATASET_JSON).is_file():
         fail(f"--data {data}: no {DATASET_JSON}; name a dataset of mi-shadowgs generate")
-    base = G.get_config("cpu-small")
+    base = run_presets.geometry_config("cpu-small")
     inputs = {}
 
     def loaded() -> dict:

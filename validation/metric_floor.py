@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.dataset.generate import box_filtered_ground_truth, trace_ground_truth
 from mi_shadowgs.stages.evaluation import metrics as evaluation
 
@@ -48,9 +49,8 @@ from mi_shadowgs.stages.evaluation import metrics as evaluation
 def exact_visibility_config(preset: str, map_resolution: int | None):
     """The shadow maps' settings of the method on exact geometry: ``preset``'s, at
     ``map_resolution`` texels when given."""
-    from mi_shadowgs.stages.visibility import shadow_maps
 
-    vcfg = shadow_maps.get_config(preset)
+    vcfg = run_presets.visibility_config(preset)
     return vcfg if map_resolution is None else \
         dataclasses.replace(vcfg, resolution=map_resolution)
 
@@ -249,10 +249,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.exact is not None:
         from mi_shadowgs.config import ConfigError
-        from mi_shadowgs.stages.visibility import shadow_maps
 
         try:
-            shadow_maps.get_config(args.exact)
+            run_presets.visibility_config(args.exact)
         except ConfigError as e:
             ap.error(f"--exact: {e}")
     if args.exact_surfels < 1 or (args.map_resolution is not None and args.map_resolution < 1):

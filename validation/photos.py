@@ -245,11 +245,11 @@ def main(argv=None) -> int:
     claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr
 
-    from mi_shadowgs.dataset.generate import get_config as gen_config
-    from mi_shadowgs.dataset.importer import get_config as import_config
     from mi_shadowgs.dataset.importer import import_capture
     from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.io.atomic import write_json, write_text
+    from mi_shadowgs.presets import generate_config as gen_config
+    from mi_shadowgs.presets import import_config
     from validation.import_sfm import cameras_by_photo, truth
 
     if args.threads:

@@ -126,8 +126,8 @@ def make_dataset(name: str, mesh: Path | None, folder: Path, lights: str = "tune
     GenerateConfig fields, and ``photos`` the photo set (``write_dataset``)."""
     import dataclasses
 
-    from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.presets import generate_config as get_config
     from mi_shadowgs.scenes import scene_path
 
     data = folder / "data"

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from mi_shadowgs import presets as run_presets
 from validation import claim_out, fail
 
 KEYS = ("fitted_lights", "angular_error_deg", "spurious_irradiance_fraction", "light_cosine",
@@ -74,11 +75,10 @@ def refit(run: Path, data: Path, overrides: dict, progress: bool = True,
     from mi_shadowgs.stages.evaluation.evaluate import evaluate_decomposition
     from mi_shadowgs.stages.material.outputs import light_json
     from mi_shadowgs.stages.material.runner import decompose, occluder_bounds
-    from mi_shadowgs.stages.relight.runner import run_preset
 
     before_path = run / "material" / "full" / "metrics.json"
     settings = (read_manifest(run / "material" / "full") or {}).get("settings", {})
-    preset = run_preset(run)
+    preset = run_presets.recorded(run).preset
     train = load_training_views(data)
     test = load_dataset(data, "test")
     surfels = load_ply(run / "segmentation" / "model.ply")
@@ -114,9 +114,9 @@ def settle_only(run: Path, data: Path) -> dict:
     import numpy as np
 
     from mi_shadowgs.io.ply import load_ply
+    from mi_shadowgs.presets import material_config as get_config
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.evaluation import metrics as evaluation
-    from mi_shadowgs.stages.material.config import get_config
     from mi_shadowgs.stages.material.lights import settle_lights
     from mi_shadowgs.stages.material.runner import occluder_bounds
     from mi_shadowgs.stages.material.views import prepare_view
@@ -126,7 +126,7 @@ def settle_only(run: Path, data: Path) -> dict:
     light = json.loads((folder / "light.json").read_text())
     model = load_ply(folder / "model.ply")
     train = load_training_views(data)
-    cfg, vcfg = get_config("cpu-small"), shadow_maps.get_config("cpu-small")
+    cfg, vcfg = get_config("cpu-small"), run_presets.visibility_config("cpu-small")
     bounds = occluder_bounds(load_ply(run / "segmentation" / "model.ply"), train.cameras, 0.98)
     pick = np.unique(np.linspace(0, len(train.views) - 1, cfg.refine_views).round()
                      .astype(int))
@@ -223,9 +223,8 @@ def main(argv=None) -> int:
         k, v = item.split("=", 1)
         overrides[k] = _value(v)
     from mi_shadowgs.config import ConfigError
-    from mi_shadowgs.stages.relight.runner import run_preset
 
-    preset = run_preset(args.run)
+    preset = run_presets.recorded(args.run).preset
     try:  # before any work: a setting the config refuses exits 2 naming it
         material_config(preset, overrides)
     except (ConfigError, ValueError) as e:

@@ -60,8 +60,8 @@ def _dataset(root: Path, scene: str, overwrite: bool = False) -> Path:
     """The scene's cpu-small dataset in ``root``: kept when it is this one (its fingerprint),
     else made; one made from other scene files or settings is replaced only with
     ``overwrite`` (exit 2 naming the folder otherwise)."""
-    from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.writer import OutputExistsError, write_dataset
+    from mi_shadowgs.presets import generate_config as get_config
     from mi_shadowgs.scenes import scene_path
 
     name, overrides = SCENES[scene]

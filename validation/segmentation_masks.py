@@ -17,6 +17,7 @@ import argparse
 import dataclasses
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from mi_shadowgs import presets as run_presets
 
 
 def score(labels, gt, vis, base: int) -> dict:
@@ -55,7 +56,7 @@ def main(argv=None) -> int:
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.segmentation import masks
 
-    cfg = masks.get_config(args.preset)
+    cfg = run_presets.chromaticity_config(args.preset)
     variants = {"no checks": dataclasses.replace(cfg, max_region_spread=float("inf"),
                                                  min_label_fraction=0.0),
                 args.preset: cfg}

@@ -63,6 +63,7 @@ import mitsuba as mi
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
+from mi_shadowgs import presets as run_presets
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 from mi_shadowgs.dataset.scene import Light
 from mi_shadowgs.stages.evaluation import metrics as evaluation
@@ -127,13 +128,14 @@ def run_visibility(run: Path, variant: str = "full") -> tuple[str, object, float
     """The run's preset, the visibility settings its stage 4 ran with (as relighting reads
     them) and its bounds quantile."""
     from mi_shadowgs.io.provenance import read_manifest
-    from mi_shadowgs.stages.relight.runner import recorded_config, run_preset
+    from mi_shadowgs.stages.relight.runner import recorded_config
     from mi_shadowgs.stages.visibility import shadow_maps
 
     settings = (read_manifest(run / "material" / variant) or {}).get("settings", {})
-    preset = run_preset(run)
+    tree = run_presets.recorded(run)
+    preset = tree.preset
     vcfg = recorded_config(shadow_maps.VisibilityConfig, settings.get("visibility"),
-                           lambda: shadow_maps.get_config(preset))
+                           lambda: tree.visibility)
     return preset, vcfg, float(settings.get("bounds_quantile", 0.98))
 
 

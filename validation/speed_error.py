@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
+from mi_shadowgs import presets as run_presets
 from validation import claim_out, fail
 
 from . import pipeline as vpipe
@@ -74,9 +75,8 @@ def scaled_geometry(factor: float):
     """cpu-small's stage-1 config with its step count and whole schedule (SH degree steps,
     regulariser starts, densification window and interval, opacity resets, previews and
     checkpoints) scaled by ``factor``, so a shorter run does the same things in fewer steps."""
-    from mi_shadowgs.stages.geometry import train
 
-    c = train.get_config(PRESET)
+    c = run_presets.geometry_config(PRESET)
 
     def s(n: int) -> int:
         return max(1, int(round(n * factor)))
@@ -92,32 +92,14 @@ def scaled_geometry(factor: float):
         preview_every=s(c.preview_every), checkpoint_every=s(c.checkpoint_every))
 
 
-def _preset_tables() -> list[dict]:
-    """Every stage's PRESETS table that a run reads (a missing one fails loudly: ConfigError)."""
-    from mi_shadowgs import pipeline
-    from mi_shadowgs.core import raster
-    from mi_shadowgs.dataset import generate
-    from mi_shadowgs.stages.geometry import train
-    from mi_shadowgs.stages.material.config import PRESETS
-    from mi_shadowgs.stages.relight import render
-    from mi_shadowgs.stages.segmentation import features, masks
-    from mi_shadowgs.stages.visibility import shadow_maps
-
-    return [generate.PRESETS, train.PRESETS, features.PRESETS, masks.PRESETS, PRESETS,
-            shadow_maps.PRESETS, render.PRESETS, raster.PRESETS, pipeline.PRESETS]
-
-
 def register_stage1_preset(factor: float) -> str:
-    """A preset named after the point: cpu-small in every stage but stage 1 (scaled)."""
-    from mi_shadowgs import pipeline
-    from mi_shadowgs.stages.geometry import train
+    """A preset named after the point: cpu-small's tree with stage 1 scaled."""
+    from mi_shadowgs import presets
 
     name = f"{PRESET}-s1x{factor:g}"
-    for table in _preset_tables():
-        if PRESET in table:
-            table.setdefault(name, table[PRESET])
-    train.PRESETS[name] = scaled_geometry(factor)
-    pipeline.PRESETS[name] = dataclasses.replace(pipeline.PRESETS[PRESET], preset=name)
+    presets.GENERATE.setdefault(name, presets.GENERATE[PRESET])
+    presets.PRESETS[name] = dataclasses.replace(presets.PRESETS[PRESET], preset=name,
+                                                geometry=scaled_geometry(factor))
     return name
 
 
@@ -208,10 +190,9 @@ def run_point(scene: str, point: str, out: Path, base: Path, base_row: dict | No
 
 # -- the table and the plots ---------------------------------------------------------------------
 def _iterations(spec: dict) -> tuple[int, int]:
-    from mi_shadowgs.stages.geometry import train
-    from mi_shadowgs.stages.material.config import get_config
+    from mi_shadowgs.presets import material_config as get_config
 
-    s1 = train.get_config(PRESET).iterations
+    s1 = run_presets.geometry_config(PRESET).iterations
     s4 = get_config(PRESET).iterations
     return (int(round(s1 * spec.get("stage1", 1.0))), int(spec.get("stage4", s4)))
 
@@ -403,7 +384,7 @@ def attach(run: Path, plots: list[Path], command: str = "") -> Path:
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
     from mi_shadowgs.io.report import write_report
-    from mi_shadowgs.pipeline import SPEED_ERROR_SOURCE, refresh_speed_error
+    from mi_shadowgs.summary import SPEED_ERROR_SOURCE, refresh_speed_error
 
     run = Path(run)
     manifest = read_manifest(run)

@@ -69,6 +69,7 @@ from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X, transforms_name
 from mi_shadowgs.dataset.scene import Light, dataset_scene, load_scene
 from mi_shadowgs.io.atomic import write_json, write_text
 from mi_shadowgs.io.provenance import Provenance, device_name, input_ref
+from mi_shadowgs.presets import visibility_config as get_visibility_config
 from mi_shadowgs.stages.visibility.baselines import (
     GaussianTraceConfig,
     VoxelConfig,
@@ -81,7 +82,6 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
     mean_camera_distance,
     render_shadow_maps,
 )
-from mi_shadowgs.stages.visibility.shadow_maps import get_config as get_visibility_config
 from validation import claim_out, fail
 from validation.units import UNITS, run_unit, settings_of, smoke_name, unit_name
 

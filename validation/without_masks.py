@@ -62,7 +62,8 @@ def unmasked_copy(src: Path, dst: Path) -> Path:
 
 def train(data: Path, out: Path, preset: str, overrides: dict) -> dict:
     """Stage 1 on ``data`` into ``out`` (resumed or reused when it is there); its metrics."""
-    from mi_shadowgs.stages.geometry import get_config, run_geometry
+    from mi_shadowgs.presets import geometry_config as get_config
+    from mi_shadowgs.stages.geometry import run_geometry
 
     config = get_config(preset)
     if overrides:

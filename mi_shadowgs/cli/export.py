@@ -40,15 +40,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import dataclasses
 
-    from mi_shadowgs.stages.export.export import export_run, get_config
-    from mi_shadowgs.stages.relight.runner import run_preset
+    from mi_shadowgs.presets import get_config, recorded
+    from mi_shadowgs.stages.export.export import export_run
 
-    preset = args.preset or run_preset(args.run)
-    config = get_config(preset)
+    config = get_config(args.preset).export if args.preset else recorded(args.run).export
     if args.bsdf is not None:
         config = dataclasses.replace(config, bsdf=args.bsdf)
     result = export_run(args.run, args.out, args.fmt, color=args.color, data=args.data,
-                        config=config, preset=preset, overwrite=args.overwrite,
+                        config=config, overwrite=args.overwrite,
                         progress=not args.no_progress)
     print(result.summary)
     return 0

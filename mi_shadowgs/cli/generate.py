@@ -74,10 +74,10 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from mi_shadowgs.config import with_overrides
-    from mi_shadowgs.dataset.generate import get_config
     from mi_shadowgs.dataset.writer import write_dataset
+    from mi_shadowgs.presets import generate_config
 
-    config = get_config(args.preset)
+    config = generate_config(args.preset)
     over = {k: v for k, v in (("spp", args.spp), ("width", args.width),
                               ("height", args.height), ("n_train", args.n_train),
                               ("n_test", args.n_test)) if v is not None}

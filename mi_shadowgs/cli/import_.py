@@ -33,13 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from mi_shadowgs.config import with_overrides
-    from mi_shadowgs.dataset.importer import (
-        get_config,
-        ground_outside_masks_warning,
-        import_capture,
-    )
+    from mi_shadowgs.dataset.importer import ground_outside_masks_warning, import_capture
+    from mi_shadowgs.presets import import_config
 
-    config = get_config(args.preset)
+    config = import_config(args.preset)
     over = {k: v for k, v in (("test_every", args.test_every), ("max_size", args.max_size),
                               ("focal_px", args.focal_px)) if v is not None}
     for k, v in over.items():

@@ -25,8 +25,8 @@ def run(args) -> int:
                               "only there")
     from pathlib import Path
 
-    from mi_shadowgs.pipeline import refresh_speed_error
     from mi_shadowgs.stages.common import check_run_stages
+    from mi_shadowgs.summary import refresh_speed_error
 
     check_run_stages(args.run)  # a summary of stages made from another stage's files
     refresh_speed_error(Path(args.run))  # plots that validation.speed_error added since

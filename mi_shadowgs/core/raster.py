@@ -38,7 +38,6 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster_common import (
     AOV_CHANNELS,
     PAIR_FIELDS,
-    PRESETS,
     RASTER_METHODS,
     Proj,
     RasterConfig,
@@ -49,7 +48,6 @@ from mi_shadowgs.core.raster_common import (
     distortion_m,
     expand,
     face_camera,
-    get_config,
     memory_budget,
     pair_eval,
     pair_kept,
@@ -63,13 +61,11 @@ DEFAULT_CONFIG = RasterConfig()
 # The public face of both rasterizers (``RasterConfig`` and the rest live in raster_common).
 __all__ = [
     "AOV_CHANNELS",
-    "PRESETS",
     "RASTER_METHODS",
     "RasterConfig",
     "RasterMemoryError",
     "depth_key",
     "face_camera",
-    "get_config",
     "pair_counts",
     "pixel_runs",
     "rasterize",

@@ -14,7 +14,6 @@ from collections.abc import Sequence
 import drjit as dr
 import mitsuba as mi
 
-from mi_shadowgs.config import get_preset
 from mi_shadowgs.core import jit, memory
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.surfels import Surfels
@@ -107,14 +106,6 @@ RASTER_METHODS = ("pairs", "tiles")
 class RasterMemoryError(MemoryError, ValueError):
     """A render's pair list does not fit the memory budget or ``max_pairs``; a ValueError
     too, so that the CLI reports it in one line with exit status 2."""
-
-
-PRESETS = {"paper": RasterConfig(), "cpu-small": RasterConfig(), "cpu-medium": RasterConfig(),
-           "gpu-large": RasterConfig()}
-
-
-def get_config(name: str) -> RasterConfig:
-    return get_preset(PRESETS, name, "raster")
 
 
 # A finite stand-in for rho3d when the ray misses the plane (edge-on): the filter wins.

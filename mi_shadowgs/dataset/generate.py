@@ -15,7 +15,6 @@ import math
 
 import numpy as np
 
-from mi_shadowgs.config import get_preset
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.core.envmap import load_envmap
@@ -134,28 +133,6 @@ class GenerateConfig:
     @property
     def samples_per_pass(self) -> int:
         return render_passes(self.spp, self.pass_spp)[0]
-
-
-PRESETS = {
-    "paper": GenerateConfig(),
-    # 2 x 64 multi-jittered spp: a noise floor below that of the 256 independent samples
-    # of sessions 1-15 (see pass_spp); 64 independent spp would cost ~4 dB and cap a
-    # reconstruction's test PSNR near stage 1's (35.7 dB).
-    "cpu-small": GenerateConfig(width=128, height=128, n_train=64, n_test=32, spp=128,
-                                max_depth=4),
-    # Issue 18: 256^2 and 64-100 views, the resolution real captures need (SfM wants 384^2
-    # or more; `import` resizes to ImportConfig.max_size).
-    "cpu-medium": GenerateConfig(width=256, height=256, n_train=96, n_test=32, spp=128,
-                                 max_depth=4),
-    # Issue 15: the size at which the table's thin parts (a ficus leaf, the hotdog's
-    # sauces) span a few pixels; made and run on a GPU.
-    "gpu-large": GenerateConfig(width=512, height=512, n_train=96, n_test=32, spp=128,
-                                max_depth=4),
-}
-
-
-def get_config(name: str) -> GenerateConfig:
-    return get_preset(PRESETS, name, "dataset generation")
 
 
 def relight_lights(config: GenerateConfig) -> list[tuple[str, list[Light]]]:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.config import check_fields, get_preset
+from mi_shadowgs.config import check_fields
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.world_frame import FrameConfig, world_frame
@@ -52,7 +52,7 @@ class CaptureError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class ImportConfig:
-    """Import settings (``mi-shadowgs import``); presets via ``get_config``."""
+    """Import settings (``mi-shadowgs import``; presets: ``mi_shadowgs.presets.IMPORT``)."""
 
     test_every: int = 8  # every K-th registered view (by name) is held out for testing
     max_size: int = 800  # training images' longest side in pixels (full size kept beside)
@@ -77,14 +77,6 @@ class ImportConfig:
         check_fields(self, (("sfm_chunk_photos", self.sfm_chunk_photos >= 1, ">= 1"),
                             ("sfm_chunk_pairs", self.sfm_chunk_pairs >= 1, ">= 1"),
                             ("checkpoint_seconds", self.checkpoint_seconds > 0, "> 0")))
-
-
-PRESETS = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512),
-           "cpu-medium": ImportConfig(max_size=512), "gpu-large": ImportConfig(max_size=512)}
-
-
-def get_config(name: str) -> ImportConfig:
-    return get_preset(PRESETS, name, "import")
 
 
 # -- inputs -------------------------------------------------------------------------------------

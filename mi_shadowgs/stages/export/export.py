@@ -55,7 +55,6 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.config import get_preset
 from mi_shadowgs.io.ply import SH_C0, SH_SPACE_KEY, sh_to_srgb
 from mi_shadowgs.stages.export import mesh as mesh_mod
 
@@ -85,14 +84,6 @@ class ExportConfig:
             raise ValueError(f"ExportConfig: bad settings {self}")
         if self.bsdf not in BSDFS:
             raise ValueError(f"ExportConfig.bsdf must be one of {BSDFS}, got {self.bsdf!r}")
-
-
-PRESETS = {"cpu-small": ExportConfig(), "cpu-medium": ExportConfig(), "gpu-large": ExportConfig(),
-           "paper": ExportConfig(mesh=mesh_mod.get_config("paper"))}
-
-
-def get_config(name: str) -> ExportConfig:
-    return get_preset(PRESETS, name, "export")
 
 
 class ExportError(ValueError):
@@ -374,7 +365,7 @@ def base_known(data: Path) -> bool:
 
 def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
                data: str | Path | None = None, config: ExportConfig | None = None,
-               preset: str | None = None, overwrite: bool = False, progress: bool = False):
+               overwrite: bool = False, progress: bool = False):
     """Export the run's stage-4 model as ``fmt`` into the folder ``out``; returns a
     ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs).
     ``preset``: the export's settings (the mesh's grid); default the run's own, as
@@ -402,11 +393,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     if data is not None and fmt != "mesh":
         raise ExportError(f"--data is read by --format mesh only (its training cameras); "
                           f"--format {fmt} takes the model alone")
-    if preset is None:
-        from mi_shadowgs.stages.relight.runner import run_preset
-
-        preset = run_preset(run)
-    config = get_config(preset) if config is None else config
+    config = ExportConfig() if config is None else config
     run, out = Path(run), Path(out)
     model_path, light_path = stage4_inputs(run)
     _check_out(out, run)
@@ -414,7 +401,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     inputs = {"model": input_ref(model_path)}
     if fmt == "mesh":
         inputs["light"] = input_ref(light_path)
-    settings = {"format": fmt, "color": color, "preset": preset, **settings_dict(config)}
+    settings = {"format": fmt, "color": color, **settings_dict(config)}
     if fmt != "mesh":
         settings["layout"] = SPLAT_LAYOUT
     provenance = Provenance(dataset=dataset_ref(data_path) if data_path else None,

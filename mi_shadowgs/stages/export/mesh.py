@@ -30,7 +30,7 @@ import dataclasses
 
 import numpy as np
 
-from mi_shadowgs.config import check_fields, get_preset
+from mi_shadowgs.config import check_fields
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.tsdf import VoxelGrid, fuse_tsdf
 
@@ -83,14 +83,6 @@ class MeshConfig:
             raise ValueError(f"MeshConfig: bad settings {self}")
         check_fields(self, (("outline_weld", self.outline_weld >= 0, ">= 0"),
                             ("sliver_area", self.sliver_area >= 0, ">= 0")))
-
-
-PRESETS = {"cpu-small": MeshConfig(), "cpu-medium": MeshConfig(), "gpu-large": MeshConfig(),
-           "paper": MeshConfig(resolution=320)}
-
-
-def get_config(name: str) -> MeshConfig:
-    return get_preset(PRESETS, name, "export mesh")
 
 
 @dataclasses.dataclass

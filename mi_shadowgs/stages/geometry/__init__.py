@@ -9,21 +9,17 @@ from __future__ import annotations
 
 from mi_shadowgs.stages.geometry.runner import run_geometry
 from mi_shadowgs.stages.geometry.train import (
-    PRESETS,
     GeometryConfig,
     TrainState,
     evaluate,
-    get_config,
     render_view,
     train_geometry,
 )
 
 __all__ = [
     "GeometryConfig",
-    "PRESETS",
     "TrainState",
     "evaluate",
-    "get_config",
     "render_view",
     "run_geometry",
     "train_geometry",

@@ -7,7 +7,7 @@ position schedule) and 3DGS/2DGS density control (``mi_shadowgs.stages.geometry.
 Only the training images, their masks (alpha: object plus base) and cameras are used;
 ground-truth normals and depth serve evaluation (``evaluate``) only.
 
-- ``GeometryConfig`` / ``PRESETS`` ("cpu-small", "cpu-medium", "gpu-large", "paper");
+- ``GeometryConfig`` (its presets: ``mi_shadowgs.presets``);
 - ``scene_bounds``, ``visual_hull_points``, ``init_params``: initialisation;
 - ``train_geometry(dataset, config, ...) -> Surfels``: the loop (I/O through callbacks);
 - ``evaluate(surfels, dataset)``: test-view metrics (``mi_shadowgs.core.metrics``).
@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import check_fields, get_preset
+from mi_shadowgs.config import check_fields
 from mi_shadowgs.core import jit, losses, metrics
 from mi_shadowgs.core.optim import SurfelAdam, surfels_from_params
 from mi_shadowgs.core.raster import RasterConfig, rasterize
@@ -169,81 +169,6 @@ class GeometryConfig:
             ("preview_every", self.preview_every >= 1, ">= 1"),
             ("checkpoint_every", self.checkpoint_every >= 1, ">= 1"),
             ("checkpoint_seconds", self.checkpoint_seconds > 0, "> 0")))
-
-
-PRESETS = {
-    # 2DGS's density control, but without its screen-space prune. That prune removes every
-    # surfel whose 3-sigma radius passed 20 px since the last densify, once the opacity has
-    # been reset. At 800^2 the textureless base and flat faces are covered by surfels of
-    # that size, and the prune removed most of them at each reset. On an H100 the count fell
-    # from 69k (training PSNR 34.3 dB) to 6.6k (30 dB) after the reset at 3000, and again
-    # after 6000. At 400^2, from the same step-2804 state to step 3400: 18.8k surfels and a
-    # test PSNR of 25.2 dB with the prune, 33.7k and 32.3 dB without. The world-space prune
-    # (world_size_fraction) stays. BENCHMARKS.md, "The paper preset at 800^2".
-    "paper": GeometryConfig(densify=DensifyConfig(screen_size_threshold=None)),
-    # 128x128, 64 views, 2 CPU cores, <= 8 minutes: fewer, denser steps; SH degree 0;
-    # regularisers on from a third of the run; densification over most of it.
-    "cpu-small": GeometryConfig(
-        # SH degree 0, a colour that does not change with the view: stages 3-5 shade the
-        # surfels as diffuse, and a view-dependent colour lets a smoothed shape match the
-        # photos. The twelve table rows, SH degree 1 -> 0: shadow IoU mean 0.741 -> 0.755
-        # (hotdog-tuned +0.022, ficus-low +0.028, no row down by more than 0.007), albedo
-        # 38.76 -> 39.13 dB, relight 29.45 -> 29.63 dB, stage-1 test PSNR -0.1 to -0.2 dB.
-        # Hotdog-low over five stage-1 seeds: shadow IoU 0.401 -> 0.419 (within the seeds'
-        # spread), relight 25.42 -> 25.55 dB (higher on every seed).
-        # BENCHMARKS.md, "Stage 1 at SH degree 0".
-        iterations=2500, sh_degree=0, sh_degree_interval=500,
-        # 4x 2DGS's rates: ~15x fewer steps than the paper at 1/40 of the pixels.
-        lr_position_init=0.0016, lr_position_final=0.000016, lr_sh_dc=0.01,
-        lr_sh_rest=0.0005, lr_scale=0.01, lr_rotation=0.004,
-        # lambda_d = 3e4 (paper 1000): the distortion term is in 2DGS's NDC-like depth
-        # (near 0.2, far 100), ~0.008 per scene unit at the datasets' camera distance of 5,
-        # so at 100 or 1000 it did nothing here. Weighted enough, it collapses the fit's
-        # multi-layer fuzz; lambda_d 100 / 3e3 / 1e4 / 3e4: bunny median normal error 1.97 /
-        # 1.78 / 1.36 / 1.10 deg, stage-4 shadow IoU 0.821 / 0.831 / 0.851 / 0.859; default
-        # scene 0.853 / - / 0.868 / 0.883 at 35.78 / - / 35.86 / 35.69 dB; at 1e5 the default
-        # lost 1.1 dB. BENCHMARKS.md, "Stage 1: the distortion weight".
-        # lambda_n = 0.1 (paper 0.05) over ~1700 regularised steps instead of 2DGS's 23k:
-        # default / bunny test PSNR 35.43 -> 35.80 / 35.89 -> 36.82 dB, median normal error
-        # 2.79 -> 2.06 / 2.16 -> 1.85 deg, stage-4 shadow IoU 0.844 -> 0.858 / 0.812 ->
-        # 0.827; 0.2 made needle-like floaters (mask IoU 0.91). BENCHMARKS.md, Stage 1.
-        lambda_normal=0.1, lambda_dist=3e4, normal_from=800, dist_from=1200,
-        # One-sided depth differences on the pixel's own plane: 2DGS's central ones tilt
-        # the depth normal at every crease, and the normal term then bends the base into a
-        # ramp up to the object over 2-3 pixels (ground normals 15-40 deg off where the
-        # object meets it, flipping its contact shadows in stage 5's n . l). Whole runs
-        # (shadow IoU / albedo / relight dB, central -> same_plane): default scene
-        # 0.880 -> 0.894 / 31.87 -> 32.11 / 27.21 -> 27.44; bunny, low pair 0.732 -> 0.761 /
-        # 34.12 -> 34.17 / 29.08 -> 29.19; toy train, low pair 0.517 -> 0.615 / 34.44 ->
-        # 34.03 / 22.70 -> 21.86. BENCHMARKS.md, "Depth normals on the pixel's own plane".
-        normal_depth_differences="same_plane",
-        init_points=8000, hull_resolution=48, hull_extent=1.2, init_scale_factor=0.4,
-        init_consistent_fraction=0.5,
-        # 30k surfels: with the hull on the object (hull_extent) densification went on to
-        # 33-37k on the default scene at the same test PSNR (37.86 dB at 36.6k, 37.84 at
-        # 29.7k) and made `make demo` 30 s slower; 27.7k before.
-        densify=DensifyConfig(start=200, stop=1800, interval=100, opacity_reset_interval=1000,
-                              grad_threshold=0.0002, max_surfels=30000),
-        unmasked_max_surfels=80000,  # the field's comment
-        log_every=25, preview_every=500, checkpoint_every=500),
-}
-# 256^2, 96 views: cpu-small's schedule; 80k surfels for the 4x pixels. SH degree 1, as
-# measured there: degree 0 was measured at 128^2 only.
-PRESETS["cpu-medium"] = dataclasses.replace(
-    PRESETS["cpu-small"], sh_degree=1,
-    unmasked_max_surfels=None,  # measured at 128^2 only: its 80k cap for views either way
-    densify=dataclasses.replace(PRESETS["cpu-small"].densify, max_surfels=80000))
-# 512^2, 96 views, on a GPU: cpu-medium's schedule; 200k surfels for 4x its pixels, and no
-# screen-space prune: above ~400^2 the 20 px rule removes the flat surfaces' surfels at each
-# opacity reset (the paper preset's comment above).
-PRESETS["gpu-large"] = dataclasses.replace(
-    PRESETS["cpu-medium"], densify=dataclasses.replace(PRESETS["cpu-medium"].densify,
-                                                       max_surfels=200000,
-                                                       screen_size_threshold=None))
-
-
-def get_config(name: str) -> GeometryConfig:
-    return get_preset(PRESETS, name, "geometry")
 
 
 def unmasked(config: GeometryConfig) -> GeometryConfig:

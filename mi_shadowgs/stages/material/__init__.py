@@ -59,7 +59,7 @@ and ``runner`` (stage 4 on a dataset, fitted or read back).
 
 from __future__ import annotations
 
-from mi_shadowgs.stages.material.config import PRESETS, MaterialConfig, get_config
+from mi_shadowgs.stages.material.config import MaterialConfig
 from mi_shadowgs.stages.material.fit import fit_material
 from mi_shadowgs.stages.material.outputs import fit_from_files, light_json
 from mi_shadowgs.stages.material.runner import (
@@ -73,12 +73,10 @@ __all__ = [
     "MaterialConfig",
     "MaterialResult",
     "MaterialState",
-    "PRESETS",
     "decompose",
     "fit_from_files",
     "fit_material",
     "fit_or_reuse",
-    "get_config",
     "light_json",
     "occluder_bounds",
 ]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from mi_shadowgs.config import LABEL_MAP_SOURCES, get_preset
+from mi_shadowgs.config import LABEL_MAP_SOURCES
 
 SPECULAR_MODES = ("auto", "on", "off")
 REFINE_SCORES = ("segment", "irradiance", "albedo")
@@ -212,24 +212,6 @@ class MaterialConfig:
         if not again or self.refine_again_passes is None or not self.refine_passes:
             return self.refine_passes
         return self.refine_again_passes
-
-
-PRESETS = {
-    "paper": MaterialConfig(),
-    # Fewer, faster steps for ground-truth-like geometry, and the settings of
-    # docs/decisions.md ("Stage 4: material and light") for 128^2 to 512^2 views.
-    "cpu-small": MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_light=0.1,
-                                lambda_ind2=1.0, log_every=50, refine_global=128,
-                                refine_again_global=True,
-                                specular="off", albedo_tv_with_segments=False,
-                                albedo_scale=0.9, refine_score="albedo",
-                                normal_steps=1500),
-}
-PRESETS["cpu-medium"] = PRESETS["gpu-large"] = PRESETS["cpu-small"]
-
-
-def get_config(name: str) -> MaterialConfig:
-    return get_preset(PRESETS, name, "material")
 
 
 def label_source_overrides(config: MaterialConfig, source: str) -> dict:

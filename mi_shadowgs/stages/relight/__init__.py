@@ -9,22 +9,18 @@ from __future__ import annotations
 
 from mi_shadowgs.stages.relight.previews import write_previews
 from mi_shadowgs.stages.relight.render import (
-    PRESETS,
     RelightConfig,
     RelightModel,
     directional_light_set,
-    get_config,
     lights_from_json,
     relight_view,
     relight_views,
 )
 
 __all__ = [
-    "PRESETS",
     "RelightConfig",
     "RelightModel",
     "directional_light_set",
-    "get_config",
     "lights_from_json",
     "relight_view",
     "relight_views",

@@ -28,7 +28,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import get_preset
 from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
@@ -66,13 +65,7 @@ class RelightConfig:
                              f"{self.indirect!r}")
 
 
-PRESETS = {"paper": RelightConfig(), "cpu-small": RelightConfig(), "cpu-medium": RelightConfig(),
-           "gpu-large": RelightConfig()}
 DEFAULT_RELIGHT = RelightConfig()
-
-
-def get_config(name: str) -> RelightConfig:
-    return get_preset(PRESETS, name, "relight")
 
 
 @dataclasses.dataclass

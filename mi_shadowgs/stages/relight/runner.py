@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.config import recorded_config
+from mi_shadowgs.config import ConfigError, recorded_config
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, parse_angle_fields
 from mi_shadowgs.stages.common import warn, warn_other_backend
@@ -146,16 +146,17 @@ class RunFit:
     model: relight.RelightModel
     bounds: shadow_maps.SceneBounds
     dataset: Path | None  # the run's dataset, where it still is
-    preset: str
-    vis_config: shadow_maps.VisibilityConfig  # what stage 4 ran with (its receivers too)
+    relight_config: relight.RelightConfig = relight.DEFAULT_RELIGHT  # the run's relighting
+    # What stage 4 ran with (its receivers too).
+    vis_config: shadow_maps.VisibilityConfig = shadow_maps.VisibilityConfig()
 
 
-def run_preset(run: str | Path) -> str:
-    """The preset a ``mi-shadowgs run`` was made at, from the run's manifest (written when
-    the run starts, so an unfinished run has it too); cpu-small for a folder without one."""
-    from mi_shadowgs.io.provenance import read_manifest
-
-    return (read_manifest(run) or {}).get("settings", {}).get("preset", "cpu-small")
+def _unrecorded(source: str):
+    """The fallback of a setting a run must record: a ConfigError naming where."""
+    def fail():
+        raise ConfigError(f"{source}: not recorded (the fit was made by an older mi_shadowgs, "
+                          "or by hand); run its stage 4 again with `mi-shadowgs run`")
+    return fail
 
 
 def run_fits(run: str | Path) -> list[str]:
@@ -189,7 +190,6 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
     check_run_stages(run)
     manifest = read_manifest(folder) or {}
     settings = manifest.get("settings") or {}
-    preset = run_preset(run)
     result = fit_from_files(folder / "model.ply", folder / "light.json",
                             folder / "history.csv",
                             use_visibility=settings.get("material", {})
@@ -209,11 +209,15 @@ def load_run(run: str | Path, variant: str = "full", fallback_cameras=()) -> Run
         raise FileNotFoundError(f"{run}: the run's dataset ({gone}) is gone; give the views "
                                 "with --cameras or --orbit")
     vis_config = recorded_config(shadow_maps.VisibilityConfig, settings.get("visibility"),
-                                 lambda: shadow_maps.get_config(preset),
+                                 _unrecorded(f"{folder / MANIFEST_NAME}: settings.visibility"),
                                  f"{folder / MANIFEST_NAME}: settings.visibility")
+    # (every preset relights alike: a fit that predates the record takes the defaults)
+    relight_config = recorded_config(relight.RelightConfig, settings.get("relight"),
+                                     relight.RelightConfig,
+                                     f"{folder / MANIFEST_NAME}: settings.relight")
     model = relight.RelightModel(result.surfels, result.specular, result.use_visibility,
                                  result.light.light_set(), vis_config.receiver_band)
-    return RunFit(result, model, bounds, data, preset, vis_config)
+    return RunFit(result, model, bounds, data, relight_config, vis_config)
 
 
 def dataset_cameras(root: Path, split: str) -> list[Camera]:
@@ -254,7 +258,7 @@ def relight_frames(fit: RunFit, cameras, lights, cache: relight.RelightCache,
     import drjit as dr
     from tqdm import tqdm
 
-    config = config or relight.get_config(fit.preset)
+    config = config or fit.relight_config
     vis_config = vis_config or fit.vis_config
     factor = relight.indirect_factor(fit.model, lights, config)
     for i, cam in enumerate(tqdm(cameras, desc="relight", unit="frame", disable=not progress)):
@@ -350,7 +354,7 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
     run_fit = load_run(run_dir, fit, [c for _, c in named])
     cache = relight.RelightCache()
     light_set = build_lights(lights, envmap, rotate_deg, envmap_scale, scene,
-                             relight.get_config(run_fit.preset), cache)
+                             run_fit.relight_config, cache)
     if orbit is not None or not named:
         named = _default_views(run_dir, run_fit, orbit, orbit_elevation)
     names = view_stems(n for n, _ in named)
@@ -365,7 +369,8 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
                   "fps": fps,
                   # What else a view depends on, read from the run and its dataset: a
                   # continued relight must not mix views of other maps or bounds.
-                  "preset": run_fit.preset, "visibility": settings_dict(run_fit.vis_config),
+                  "visibility": settings_dict(run_fit.vis_config),
+                  "relight": settings_dict(run_fit.relight_config),
                   "shadow_bounds": {"center": [float(c) for c in bounds.center],
                                     "radius": float(bounds.radius),
                                     "mean_camera_distance": float(bounds.mean_camera_distance)}})

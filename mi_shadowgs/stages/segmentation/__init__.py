@@ -9,20 +9,16 @@ regions); ``runner``: ``run_segmentation``.
 from __future__ import annotations
 
 from mi_shadowgs.stages.segmentation.features import (
-    PRESETS,
     SegmentationConfig,
     SegmentationResult,
-    get_config,
     segment_surfels,
 )
 from mi_shadowgs.stages.segmentation.masks import masks_for
 from mi_shadowgs.stages.segmentation.runner import label_fraction, run_segmentation
 
 __all__ = [
-    "PRESETS",
     "SegmentationConfig",
     "SegmentationResult",
-    "get_config",
     "masks_for",
     "run_segmentation",
     "segment_surfels",

@@ -34,7 +34,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import check_fields, get_preset
+from mi_shadowgs.config import check_fields
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, rasterize
@@ -84,7 +84,7 @@ class SegmentationConfig:
     kmeans_iterations: int = 50  # Lloyd steps after k-means++ seeding
     # ... and after seeding with the label prototypes (``prototype_seeds``; k-means++ when
     # fewer than K labels have one). From the prototypes each step lets the centres leave
-    # what the labels taught (``PRESETS``' cpu-small takes one).
+    # what the labels taught (cpu-small takes one).
     prototype_iterations: int = 50
     min_coverage: float = 0.5  # surfels with less summed splat weight (pixels) are "unseen"
     segment_alpha: float = 0.5  # rendered segment maps: background where alpha is lower
@@ -122,29 +122,6 @@ class SegmentationConfig:
             ("prototype_share", 0 < self.prototype_share <= 1, "in (0, 1]"),
             ("segment_alpha", 0 <= self.segment_alpha <= 1, "in [0, 1]"),
             ("checkpoint_seconds", self.checkpoint_seconds > 0, "> 0")))
-
-
-PRESETS = {
-    "paper": SegmentationConfig(),
-    # 2 CPU cores: fewer iterations (~0.2 s each at 128 px), a larger step to make up for
-    # them, and 2k samples (the pairwise term is n^2 / 4). Planar segments shaded flat: the
-    # twelve table rows' stage 4 refitted with and without (BENCHMARKS.md, "Planar
-    # segments").
-    # One K-means step from the label prototypes, not 50: further steps move a small part's
-    # centre into a large surface beside it (the default scene's pillar cap into the
-    # pillar at one stage seed in eight: mIoU 0.795). One step raised the mean mIoU over
-    # the stage's seeds from 0.927 to 0.964 on the default scene (eight seeds), from 0.54 to
-    # 0.63 on the hotdog, 0.37 to 0.45 on the ficus and 0.951 to 0.962 on the textured mat
-    # (four each; BENCHMARKS.md, "Session 42").
-    "cpu-small": SegmentationConfig(iterations=300, lr=0.02, n_samples=2048,
-                                    prototype_iterations=1,
-                                    planes=PlaneConfig(enabled=True)),
-}
-PRESETS["cpu-medium"] = PRESETS["gpu-large"] = PRESETS["cpu-small"]  # of the surfels, not pixels
-
-
-def get_config(name: str) -> SegmentationConfig:
-    return get_preset(PRESETS, name, "segmentation")
 
 
 # -- feature helpers ----------------------------------------------------------------------

@@ -32,7 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mi_shadowgs.config import LABEL_MAP_SOURCES, get_preset
+from mi_shadowgs.config import LABEL_MAP_SOURCES
 
 
 class MaskError(ValueError):
@@ -55,14 +55,6 @@ class ChromaticityConfig:
     max_region_spread: float = 0.03
     # Merged labels with less than this share of all labelled pixels become unlabelled.
     min_label_fraction: float = 0.005
-
-
-PRESETS = {"paper": ChromaticityConfig(), "cpu-small": ChromaticityConfig(),
-           "cpu-medium": ChromaticityConfig(), "gpu-large": ChromaticityConfig()}
-
-
-def get_config(name: str) -> ChromaticityConfig:
-    return get_preset(PRESETS, name, "chromaticity masks")
 
 
 def material_masks(dataset) -> list[np.ndarray]:

@@ -154,7 +154,6 @@ class ViewerSession:
 
     def __init__(self, run: str | Path, fit: str = "full", *, max_shadow_maps: int = 192):
         from mi_shadowgs.io.ply import load_ply
-        from mi_shadowgs.io.provenance import MANIFEST_NAME, read_manifest
         from mi_shadowgs.stages.common import check_run_stages
         from mi_shadowgs.stages.relight import runner
 
@@ -165,8 +164,6 @@ class ViewerSession:
         self.fit = None  # runner.RunFit when stage 4 is there
         self.relight_off: str | None = None  # why relighting is off, when it is
         self.segments_off: str | None = None
-        manifest = read_manifest(material) or {}
-        settings = manifest.get("settings") or {}
         if (material / "model.ply").is_file():
             # Where the dataset is gone, an orbit camera stands in for the training
             # cameras in the shadow maps' bounds (as --orbit does for `relight`).
@@ -199,15 +196,11 @@ class ViewerSession:
         else:
             self._segment_colors = None
             self.segments_off = "the model has no segments (stage 2 did not run)"
-        preset = self.fit.preset if self.fit else "cpu-small"
-        # The settings stage 4 ran with (its manifest), else the preset's.
-        recorded = material / MANIFEST_NAME
-        self.vis_config = runner.recorded_config(
-            shadow_maps.VisibilityConfig, settings.get("visibility"),
-            lambda: shadow_maps.get_config(preset), f"{recorded}: settings.visibility")
-        self.relight_config = runner.recorded_config(
-            relight.RelightConfig, settings.get("relight"), lambda: relight.get_config(preset),
-            f"{recorded}: settings.relight")
+        # The settings stage 4 ran with (its manifest); without a fit, the defaults (the
+        # geometry and segments are shown unlit).
+        self.vis_config = self.fit.vis_config if self.fit else shadow_maps.VisibilityConfig()
+        self.relight_config = (self.fit.relight_config if self.fit
+                               else relight.RelightConfig())
         self.raster = RasterConfig()
         self.maps = relight.RelightCache(
             max_map_bytes=max_shadow_maps * 4 * self.vis_config.resolution ** 2, max_sets=4)

@@ -8,22 +8,18 @@ other visibility estimates it is compared with (validation).
 from __future__ import annotations
 
 from mi_shadowgs.stages.visibility.shadow_maps import (
-    PRESETS,
     SceneBounds,
     ShadowMaps,
     VisibilityConfig,
-    get_config,
     point_visibility,
     render_shadow_maps,
     view_visibility,
 )
 
 __all__ = [
-    "PRESETS",
     "SceneBounds",
     "ShadowMaps",
     "VisibilityConfig",
-    "get_config",
     "point_visibility",
     "render_shadow_maps",
     "view_visibility",

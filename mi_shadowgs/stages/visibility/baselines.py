@@ -31,7 +31,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import get_preset
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.frames import quaternion_to_matrix
 from mi_shadowgs.stages.visibility.shadow_maps import lift_receivers
@@ -79,28 +78,6 @@ class VoxelConfig:
             raise ValueError(f"invalid VoxelConfig: {self}")
         if self.start_offset < 0 or self.tau_stop <= 0:
             raise ValueError(f"invalid VoxelConfig: {self}")
-
-
-GAUSSIAN_PRESETS = {
-    "paper": GaussianTraceConfig(),
-    "cpu-small": GaussianTraceConfig(max_hits=16),
-    "cpu-medium": GaussianTraceConfig(max_hits=16),
-    "gpu-large": GaussianTraceConfig(max_hits=16),
-}
-VOXEL_PRESETS = {
-    "paper": VoxelConfig(),
-    "cpu-small": VoxelConfig(resolution=48),
-    "cpu-medium": VoxelConfig(resolution=48),
-    "gpu-large": VoxelConfig(resolution=48),
-}
-
-
-def gaussian_preset(name: str) -> GaussianTraceConfig:
-    return get_preset(GAUSSIAN_PRESETS, name, "Gaussian-based visibility")
-
-
-def voxel_preset(name: str) -> VoxelConfig:
-    return get_preset(VOXEL_PRESETS, name, "voxel-based visibility")
 
 
 # -- shared helpers -----------------------------------------------------------------------

@@ -22,7 +22,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import get_preset
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
@@ -124,40 +123,6 @@ class VisibilityConfig:
                 self.layer_bias < 0 or self.layer_cap_texels < 0 or self.layer_window < 0 or \
                 not 0.0 < self.fractional_min_alpha <= 1.0:
             raise ValueError(f"invalid visibility settings: {self}")
-
-
-PRESETS = {
-    "paper": VisibilityConfig(),
-    # the paper's Eq. 6-7 alone
-    "paper-exact": VisibilityConfig(normal_offset=0.0, receiver_offset=0.0),
-    # Orthographic maps: the light is directional, and the validation (BENCHMARKS.md,
-    # Visibility) measured them ahead of the paper's 30x perspective camera.
-    # A 1-texel threshold plus the occluder layer's slack instead of tau: tau (~14 texels
-    # at 30x the camera distance) erases contact shadows, a bare texel threshold leaves
-    # acne where the fitted layer is thick (BENCHMARKS.md, "The occluder layer's slack").
-    # Receivers on the median surface (receiver_band 0.5): stage 4 refitted on the twelve
-    # table rows' stages 1-2, shadow IoU 0.751 -> 0.762 on the mean (hotdog +0.02 / +0.035,
-    # default-tuned +0.017, eleven rows up, toy train-tuned -0.004), albedo +0.10 dB, relight
-    # -0.18 dB (the blend's antialiased shading suits the photos' edges); 0.25 scored alike
-    # (0.762), 1.0 and 2.0 below it on the run's own lights (BENCHMARKS.md, "Session 31").
-    "cpu-small": VisibilityConfig(resolution=512, projection="orthographic", bias_texels=1.0,
-                                  layer_bias=1.0, layer_cap_texels=3.0, layer_window=1,
-                                  receiver_band=0.5),
-}
-# 512 texels across the scene's bounds are ~0.006 units, under the 0.014-unit footprint of a
-# 256^2 view's pixel at the datasets' camera distance: the same maps serve cpu-medium. The
-# receiver band measured there too: four rows refitted at band 0, every one lower (0.704 ->
-# 0.694 on their mean; BENCHMARKS.md, "Session 32: the receiver band at cpu-medium").
-PRESETS["cpu-medium"] = PRESETS["cpu-small"]
-# 512^2 views: the same settings on 1024-texel maps. On exact surfels and the true lights the
-# twelve table datasets at 512^2 score a mean shadow IoU of 0.868, none under 0.764
-# (validation.metric_floor --exact cpu-small --map-resolution 1024; BENCHMARKS.md, "What
-# each view size allows the method"). Its receiver band is cpu-small's, not measured at 512^2.
-PRESETS["gpu-large"] = dataclasses.replace(PRESETS["cpu-small"], resolution=1024)
-
-
-def get_config(name: str) -> VisibilityConfig:
-    return get_preset(PRESETS, name, "visibility")
 
 
 @dataclasses.dataclass(frozen=True)
