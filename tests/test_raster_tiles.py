@@ -363,14 +363,14 @@ def test_tiles_grown_for_a_tight_budget_render_the_same_bytes(monkeypatch):
     from mi_shadowgs.core import raster_tiles
 
     sizes = []
-    real = raster_tiles._bin
+    real = raster_tiles.bin_surfels
 
     def spy(*args, **kw):
         bins = real(*args, **kw)
         sizes.append(bins.size)
         return bins
 
-    monkeypatch.setattr(raster_tiles, "_bin", spy)
+    monkeypatch.setattr(raster_tiles, "bin_surfels", spy)
     cam = cameras(64, 48)["perspective"]
     raw = random_scene(300, 4)  # 10016 surfel-tile pairs at 4x4, 3328 at 8x8, 1348, 751, 300
     want, _ = render(to_surfels(raw), cam, TILES, AOVS, BACKGROUND)

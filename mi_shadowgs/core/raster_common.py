@@ -1,8 +1,8 @@
 """What the two rasterizers share: ``RasterConfig``, the per-surfel projection (``project``,
 ``Proj``), the pixel boxes and pair counts, the memory budget, and the per-pixel splat maths
 (``pair_eval``, ``pair_kept``, ``distortion_m``). ``raster`` (the pixel-splat pair list) and
-``raster_tiles`` (the tiled renderer) both build on it, and neither imports the other's
-internals.
+``raster_tiles`` (the tiled renderer, its screen-tile binning in ``raster_bins``) build on
+it, and neither imports the other's internals.
 """
 
 from __future__ import annotations
