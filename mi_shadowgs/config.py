@@ -56,7 +56,9 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
             current = {"int": 0, "float": 0.0, "bool": False}.get(kinds[name][0])
         if dataclasses.is_dataclass(current) and not isinstance(current, type):
             if isinstance(value, dict):
-                values[name] = with_overrides(current, value, f"{what}.{name}")
+                # (a run's sections are named alone: "material", not "run.material")
+                values[name] = with_overrides(current, value,
+                                              name if what == "run" else f"{what}.{name}")
             elif not isinstance(value, type(current)):
                 raise ConfigError(f"{what} setting {name!r} takes a dict of its own settings "
                                   f"or a {type(current).__name__}, got {value!r}")
@@ -104,10 +106,11 @@ def parse_settings(cls, items, what: str) -> dict[str, Any]:
     return out
 
 
-def parse_value(key: str, text: str, annotation) -> Any:
-    """Command-line text ``text`` of setting ``key`` as its annotated type (``int``,
-    ``float``, ``bool``, ``str``, ``X | None``; ``none`` for an optional one, a
-    comma-separated list for a tuple of numbers); a ConfigError naming ``key`` otherwise."""
+def parse_value(key: str, text: str, annotation, what: str = "") -> Any:
+    """Command-line text ``text`` of setting ``key`` (of the settings ``what``) as its
+    annotated type (``int``, ``float``, ``bool``, ``str``, ``X | None``; ``none`` for an
+    optional one, a comma-separated list for a tuple of numbers); a ConfigError naming
+    ``key`` otherwise."""
     options = _type_names(annotation)
     kind = " | ".join(options)
     if text.lower() == "none" and "None" in options:
@@ -121,7 +124,9 @@ def parse_value(key: str, text: str, annotation) -> Any:
             cast = float if "float" in first else int
             return tuple(cast(t) for t in text.split(",") if t.strip())
     except ValueError as err:
-        raise ConfigError(f"--set {key}={text!r}: takes {kind}") from err
+        name = key.rsplit(".", 1)[-1]
+        raise ConfigError(f"--set {key}={text!r}: {what + ' ' if what else ''}setting "
+                          f"{name!r} takes {kind}") from err
     raise ConfigError(f"--set {key}: a setting of type {kind} is not set from the command "
                       "line; use --config with a JSON file")
 

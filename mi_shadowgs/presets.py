@@ -280,9 +280,9 @@ def parse_sets(items: list[str], section: str | None = None) -> dict[str, Any]:
             if not dataclasses.is_dataclass(node) or name not in {
                     f.name for f in dataclasses.fields(node)}:
                 where = ".".join(path[:depth]) or "run"
-                known = sorted(f.name for f in dataclasses.fields(node)) \
-                    if dataclasses.is_dataclass(node) else []
-                raise ConfigError(f"--set {key}: unknown setting {name!r} in {where}; "
+                known = (sorted(f.name for f in dataclasses.fields(node))
+                         if dataclasses.is_dataclass(node) else [])
+                raise ConfigError(f"--set {key}: unknown {where} setting {name!r}; "
                                   f"known: {known}")
             field = next(f for f in dataclasses.fields(node) if f.name == name)
             child = getattr(node, name)
@@ -291,7 +291,8 @@ def parse_sets(items: list[str], section: str | None = None) -> dict[str, Any]:
                     raise ConfigError(f"--set {key}: {key} is a group of settings; set one "
                                       f"of its fields, e.g. {key}."
                                       f"{dataclasses.fields(child)[0].name}=...")
-                target[name] = parse_value(key, text, field.type)
+                target[name] = parse_value(key, text, field.type,
+                                           ".".join(path[:-1]) or "run")
             else:
                 target = target.setdefault(name, {})
                 node = child

@@ -47,7 +47,7 @@ def test_script_the_method(tiny_presets, tmp_path):
     ({"ablations": "false"}, ValueError, "'ablations' takes True or False"),  # was True
     ({"material": {"iterations": "10"}}, ValueError, "'iterations' takes a number"),
     ({"segmnets": 3}, ValueError, r"unknown run setting\(s\) \['segmnets'\]"),
-    ({"material": {"iterationz": 3}}, ValueError, r"unknown run.material setting"),
+    ({"material": {"iterationz": 3}}, ValueError, r"unknown material setting"),
     ({"preview_envmaps": "sky.exr"}, TypeError, "preview_envmaps takes a list"),
     ({"preview_envmaps": ["missing.exr"]}, FileNotFoundError,
      "preview_envmaps: missing.exr: not found"),  # was left out without a word

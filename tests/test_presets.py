@@ -107,9 +107,10 @@ def test_set_reads_each_value_as_its_fields_type():
 
 
 @pytest.mark.parametrize("item, match", [
-    ("material.iterationz=3", "unknown setting 'iterationz' in material"),
-    ("materal.iterations=3", "unknown setting 'materal' in run"),
-    ("material.iterations=many", "material.iterations='many': takes int"),
+    ("material.iterationz=3", "unknown material setting 'iterationz'"),
+    ("materal.iterations=3", "unknown run setting 'materal'"),
+    ("material.iterations=many", "material.iterations='many': material setting 'iterations' "
+                                 "takes int"),
     ("material.use_visibility=yes", "use_visibility"),
     ("visibility.raster=3", "is a group of settings"),
     ("material.iterations", "expected SECTION.FIELD=VALUE"),

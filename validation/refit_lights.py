@@ -224,8 +224,15 @@ def main(argv=None) -> int:
         overrides[k] = _value(v)
     from mi_shadowgs.config import ConfigError
 
-    preset = run_presets.recorded(args.run).preset
-    try:  # before any work: a setting the config refuses exits 2 naming it
+    try:  # before any work, the run's folder too: a setting the config refuses exits 2
+        material_config("cpu-small", overrides)
+    except (ConfigError, ValueError) as e:
+        fail(f"--set: {e}")
+    try:
+        preset = run_presets.recorded(args.run).preset
+    except ConfigError as e:
+        fail(str(e))
+    try:  # and at the run's own preset
         material_config(preset, overrides)
     except (ConfigError, ValueError) as e:
         fail(f"--set: {e}")
