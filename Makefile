@@ -41,7 +41,7 @@ test: install-dev
 # BENCH_ARGS="--results results" also writes the rasterizer's figures as a result file.
 BENCH_ARGS ?=
 bench: install
-	$(PY) -m benchmarks.run_all --out BENCHMARKS-latest $(BENCH_ARGS)
+	$(PY) -m benchmarks.run_all --out bench-out $(BENCH_ARGS)
 
 # The whole table (6 scenes x 2 light pairs, hours on 2 cores; resumed after a kill), Table 2,
 # the filter drift and the report pages in headless Chromium. A subset:
@@ -74,4 +74,4 @@ lint: install-dev
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) runs validation-out BENCHMARKS-latest site .pytest_cache
+	rm -rf $(VENV) runs validation-out bench-out site .pytest_cache

@@ -4,7 +4,7 @@ Every ``train`` / ``segment`` / ``run`` hashes the dataset's files once per proc
 times that hash on the cpu-small dataset layout (128^2, 64 + 32 views, every ground-truth
 buffer) against loading the same splits, which reads the same bytes::
 
-    python -m benchmarks.run_all --out BENCHMARKS-latest --only fingerprint
+    python -m benchmarks.run_all --out bench-out --only fingerprint
 """
 
 from __future__ import annotations

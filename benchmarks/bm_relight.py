@@ -12,7 +12,7 @@ material channels (albedo 0.6, roughness 0.5, metallic 0, GGX on), 128^2 views o
 - plugin: ``mi.render`` of a scene with the sky and the ``surfel_relight`` integrator twice
   (target: the second >= 10x faster than the first).
 
-    python -m benchmarks.run_all --out BENCHMARKS-latest --only relight
+    python -m benchmarks.run_all --out bench-out --only relight
 """
 
 from __future__ import annotations

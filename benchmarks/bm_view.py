@@ -15,7 +15,7 @@ frame (the run's shadow maps) and of the preview (half size, half-resolution map
 shows while the slider moves, and of a camera move (a new G-buffer, the light unchanged).
 Targets: full frame <= 0.15 s at 128^2 and <= 0.5 s at 256^2.
 
-    python -m benchmarks.run_all --out BENCHMARKS-latest --only view
+    python -m benchmarks.run_all --out bench-out --only view
 """
 
 from __future__ import annotations

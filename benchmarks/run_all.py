@@ -11,7 +11,7 @@ in (``--overwrite`` runs this call's suites again). When every suite has run, th
 are copied to OUT's top level, then ``machine.json`` and ``README.md`` are written, each
 atomically, so a reader never sees a half-written report::
 
-    python -m benchmarks.run_all --out BENCHMARKS-latest [--quick] [--only raster]
+    python -m benchmarks.run_all --out bench-out [--quick] [--only raster]
                                  [--overwrite] [--results results]
 
 ``--results DIR`` also writes the rasterizer's figures as ``DIR/raster_vs_mitsuba.json``,

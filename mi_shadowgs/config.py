@@ -13,9 +13,7 @@ from typing import Any, TypeVar
 
 T = TypeVar("T")
 PRESET_NAMES = ("cpu-small", "cpu-medium", "gpu-large", "paper")
-# Presets sized for a GPU: on the CPU backend their runs take hours. A gpu-large row took
-# 4.5-4.8 min on an H100; its stage 1 alone took 30 min on one Xeon thread, and the paper's
-# 40k steps at 800^2 take hours on 2 cores (BENCHMARKS.md, "Session 26").
+# Presets sized for a GPU: on the CPU backend their runs take hours (RESULTS.md).
 GPU_PRESETS = ("gpu-large", "paper")
 # Where stage 2's label maps come from (segmentation.masks): here, so the CLI names them
 # without importing the stages.

@@ -12,7 +12,7 @@ backend.set_variant("llvm_ad_rgb")
 CUDA_AVAILABLE = backend.variant_available("cuda_ad_rgb")
 CUDA_SKIP_REASON = (
     "cuda_ad_rgb needs an NVIDIA GPU and its driver; this machine has none, "
-    "so the CUDA path is checked only on a GPU machine (see BENCHMARKS.md)"
+    "so the CUDA path is checked only on a GPU machine (see RESULTS.md)"
 )
 
 

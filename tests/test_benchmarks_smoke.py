@@ -169,7 +169,7 @@ def test_cuda_suite_says_it_was_skipped_without_a_gpu(tmp_path, monkeypatch):
 
 
 def test_cuda_suite_report_ratios_and_failures():
-    # The H100 figures of BENCHMARKS.md (session 21) for one case: llvm / cuda and Mitsuba /
+    # The H100 figures of RESULTS.md for one case: llvm / cuda and Mitsuba /
     # ours are the ratios of the fwd+bwd medians; a failed case reads as failed, not as 0.
     from benchmarks import bm_cuda
 

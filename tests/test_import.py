@@ -28,8 +28,8 @@ from mi_shadowgs.presets import generate_config as gen_config
 from mi_shadowgs.presets import import_config as get_config
 from mi_shadowgs.scenes import scene_path
 
-# 24 views at 256^2 register 21-24 of 24 here; the acceptance run (512^2, 64 views) is in
-# BENCHMARKS.md. Below that size or count SfM gets unreliable, as real captures do.
+# 24 views at 256^2 register 21-24 of 24 here; the photo study (512^2, 64 views) is in
+# RESULTS.md. Below that size or count SfM gets unreliable, as real captures do.
 CONFIG = with_overrides(get_config("cpu-small"), {"min_registered": 0.75, "test_every": 6},
                         "import")
 

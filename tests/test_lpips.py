@@ -148,7 +148,7 @@ def test_identical_is_zero_and_symmetric():
     a, b = pairs(128)["noise_0.05"]
     # Not exactly 0: both images go through one GEMM per layer, and BLAS rounds the rows of
     # the two halves by position (3e-14 with numpy 2.4.6's OpenBLAS; 0 with earlier ones).
-    # One forward per image gives 0 but costs 12% more (BENCHMARKS.md, "LPIPS"); 1e-12 is
+    # One forward per image gives 0 but costs 12% more; 1e-12 is
     # ten orders under the smallest distortion scored here (0.01 below).
     assert 0.0 <= lp.lpips(a, a) < 1e-12
     assert lp.lpips(a, b) == pytest.approx(lp.lpips(b, a), abs=1e-7)

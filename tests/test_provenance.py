@@ -100,8 +100,8 @@ def _write_many(path: str, n: int) -> None:
 
 
 def test_concurrent_writers_of_one_output_do_not_fail(tmp_path):
-    """Session 32's GPU table: twelve rows sharing one folder, each writing pipeline.json at
-    its end; one failed when another's write removed its temporary as stale."""
+    """A table's rows sharing one folder, each writing pipeline.json at its end: none may
+    fail because another's write removed its temporary as stale."""
     target = str(tmp_path / "table.json")
     ctx = multiprocessing.get_context("spawn")
     workers = [ctx.Process(target=_write_many, args=(target, 300)) for _ in range(3)]

@@ -285,7 +285,7 @@ def test_kmeans_steps_from_the_prototypes_drift_into_a_spread_surface():
     surfels, the default scene's pillar cap) just past the end of a spread surface (an arc
     of 60 deg, the pillar's side in shade and light) takes more of the surface's end at
     each further step, as its centre follows what it took (on the default scene at stage
-    seed 5: the cap's IoU 0.18, mIoU 0.795; one step: 0.970; BENCHMARKS.md, "Session 42")."""
+    seed 5: the cap's IoU 0.18, mIoU 0.795; one step: 0.970)."""
     rng = np.random.default_rng(3)
     t = np.radians(rng.uniform(-30, 30, 2000))
     arc = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], -1) + rng.normal(0, 0.01,

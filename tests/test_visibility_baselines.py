@@ -568,7 +568,7 @@ def test_never_replaces_a_folder_it_did_not_write(someone_elses_folder, capsys):
 def test_exact_surfels_scale_with_the_views_pixel_count():
     """The exact geometry keeps its surfels per pixel at every view size: counts given for
     ``cfg.resolution``^2 views grow with the pixel count (a fixed 80k on the object was too
-    sparse at 512^2, BENCHMARKS.md "Session 26"); at that size they are as given."""
+    sparse at 512^2); at that size they are as given."""
     import dataclasses
 
     import validation.visibility as vv

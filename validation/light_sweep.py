@@ -77,7 +77,7 @@ def markdown(rows: list[dict]) -> str:
         (a0, e0, _), (a1, e1, _) = r["lights"]
         err = " / ".join("lost" if not np.isfinite(e) else f"{e:.1f}"
                          for e in r["angular_error_deg"])
-        # rows evaluated before the decided figure existed (session 46) have none
+        # rows evaluated before the decided figure existed have none
         decided = "n/a" if r.get("shadow_iou_decided") is None else \
             f"{r['shadow_iou_decided']:.3f}"
         lines.append(f"| {r['scene']} | {r['pair']} | {a0:g}/{e0:g} | {a1:g}/{e1:g} | {err} | "

@@ -68,8 +68,8 @@ LIGHT_PAIRS = {
 # while a table runs does not change the code already loaded).
 CODE_COMMIT = git_commit()
 # The table's env-map relit views: the procedural sky alone. The shipped maps (GenerateConfig
-# "auto") add three path-traced test sets per row; they are scored apart (BENCHMARKS.md,
-# "Shipped env maps"). One choice for every row keeps the rows comparable.
+# "auto") add three path-traced test sets per row, scored apart. One choice for every row
+# keeps the rows comparable.
 ENVMAPS = "sky"
 # The presets a table can be made at (gpu-large's 512^2 runs take minutes each on a GPU,
 # hours on 2 cores; the paper preset's 800^2 runs, with 40k stage-1 steps, longer still).

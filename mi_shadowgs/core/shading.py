@@ -14,7 +14,7 @@ RGB SH of degree 2 per surfel, evaluated at the surfel's normal facing the view
 (``facing_normals``: indirect light depends on where the surface faces) and blended
 into the pixel like a channel. Evaluated per pixel at the blended normal instead, a view
 splatted 27 coefficients per pixel-splat pair rather than 3, which made a stage-4 step
-2.2x slower, and the twelve table rows fit no better that way (BENCHMARKS.md, "Session 17").
+2.2x slower, and the six-scene table fit no better that way.
 Being independent of ``l`` it
 is integrated in closed form over the normal's hemisphere: its diffuse part is
 (1 - m) a / pi * pi L_ind; its specular part is left out (the grid covers only the upper
@@ -184,8 +184,8 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
     floats between them, and over leaves smaller than a pixel the point lies between leaves.
     Stage 5 scores the shadows of the surface at the pixel's centre. The compositing order
     (centre depths) is not the order along the ray for tilted splats, hence the re-sort:
-    taken in compositing order, the median lost half of toy train-low's gain (BENCHMARKS.md,
-    "Session 31: receivers on the median surface")."""
+    taken in compositing order, the median lost half of its gain (docs/decisions.md,
+    "Receivers on each pixel's median surface")."""
     from mi_shadowgs.core.depth import pixel_footprint
     from mi_shadowgs.core.raster import depth_key, pixel_runs, segment_exclusive_sum
 
@@ -288,8 +288,7 @@ def facing_normals(surfels: Surfels, camera: Camera) -> mi.Vector3f:
     (``raster.face_camera``), evaluated and detached: where stage 4 and relighting evaluate
     the surfel's indirect light (``eval_sh(sh, normal, offset=0.0)``: max(0, SH(n)) per
     surfel, then blended; a view splats 3 values per pixel-splat pair, not 3 K, and in stage
-    4 the backward's scatter-adds of the 27 degree-2 coefficients were most of a step;
-    BENCHMARKS.md, "Session 17")."""
+    4 the backward's scatter-adds of the 27 degree-2 coefficients were most of a step)."""
     with dr.suspend_grad():
         n = face_camera(shading_normals(surfels), dr.detach(surfels.position), camera)
         dr.eval(n)

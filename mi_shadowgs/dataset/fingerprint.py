@@ -61,9 +61,8 @@ def dataset_fingerprint(root: str | os.PathLike) -> str:
     in its folder and every other file the loader reads (``_dataset_files``).
 
     Contents, not modification times, decide: a copied dataset has the fingerprint of its
-    original; an edited image changes it. The cpu-small dataset (1093 files, 23 MB) takes
-    0.17 s, 0.08 s with its digests cached, against about 1.1 s to load it (BENCHMARKS.md,
-    "Dataset fingerprint", session 37).
+    original; an edited image changes it. A cpu-small dataset (1093 files, 23 MB) takes
+    0.17 s, 0.08 s with its digests cached, against about 1.1 s to load it.
     """
     root = Path(root).resolve()
     h = hashlib.blake2b(digest_size=16)

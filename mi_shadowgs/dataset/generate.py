@@ -96,10 +96,8 @@ class GenerateConfig:
     # pass: spp / pass_spp passes with their own seeds are averaged. Stratified samples reach
     # a given noise with fewer paths than independent ones, and multijitter is cheap when
     # its grid is a power of two (64: 8 x 8; other counts take its permutation's rejection
-    # loop, 1.5-2x slower per sample). On the default scene's 128^2 views, against a
-    # 4096-spp reference, two multi-jittered passes of 64 are 1.8 dB closer than 256
-    # independent samples (2.6 dB under the sky) in 0.6x the time (BENCHMARKS.md,
-    # "Session 16"). An spp up to pass_spp is one pass. The count per pass must be one the
+    # loop, 1.5-2x slower per sample; docs/decisions.md, "Two multi-jittered passes").
+    # An spp up to pass_spp is one pass. The count per pass must be one the
     # sampler takes as is (``check_sampler``: multijitter rounds 128 up to 132).
     sampler: str = "multijitter"
     pass_spp: int = 64

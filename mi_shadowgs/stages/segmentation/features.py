@@ -66,11 +66,8 @@ class SegmentationConfig:
     # pixels (material ids, and chromaticity masks, whose checks already drop leaky regions
     # and slivers); "silhouette" picks the K in [2, that count] with the best silhouette of
     # the trained surfel features (a label the features do not separate earns no segment).
-    # Silhouette is not the default for chromaticity masks: on the default scene (5 labels
-    # in every run) it chose 5, 4 and 3 in three runs, its scores 0.005-0.03 apart, and at 3
-    # merged the red sphere with the yellow pillar (mIoU 0.49, ARI 0.964; from the labels:
-    # K = 5, mIoU 0.90, ARI 0.976; BENCHMARKS.md, issue 17, session 9). A large base
-    # favours fewer clusters in the silhouette.
+    # Silhouette is not the default, not even for chromaticity masks: its scores are close
+    # together and a large base favours fewer clusters (docs/decisions.md).
     k_select: str = "labels"
     silhouette_samples: int = 2000  # seen surfels drawn for the silhouette ([n, n] distances)
     min_label_pixels: int = 20  # labels with fewer pixels (all views) do not count for K

@@ -47,12 +47,8 @@ class PlaneConfig:
     # ... and normal within this angle of the plane's: keeps an object's side surfels that
     # touch the base out (45-90 deg scored alike).
     max_angle_deg: float = 60.0
-    # Of the segment's opacity. On the twelve table rows (session 21) the planar segments
-    # hold 0.79-0.93 and every other at most 0.65. At 0.8, armadillo-low's base (0.7997)
-    # and the hotdog's second layer of base surfels just under its surface (0.79) were
-    # left as fitted; flat, they took shadow IoU 0.766 -> 0.813 (armadillo-low), 0.371 ->
-    # 0.380 and 0.544 -> 0.559 (hotdog), stage 4 refitted. Session 19's fits had two small
-    # hotdog parts at 0.75 and 0.79 (BENCHMARKS.md, "Planar segments").
+    # Of the segment's opacity: planar segments hold most of it, curved ones at most about
+    # two thirds (docs/decisions.md, "Planar segments shaded flat").
     min_inlier_share: float = 0.75
     min_surfels: int = 100  # smaller segments are left alone
     iterations: int = 4  # PCA refits on the inliers

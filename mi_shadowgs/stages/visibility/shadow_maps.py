@@ -103,12 +103,9 @@ class VisibilityConfig:
     # where the truth is dappled. False: the paper's binary test.
     fractional: bool = False
     fractional_min_alpha: float = 0.05
-    # The maps' rasterization. Forward-only renders of 256^2-512^2 composite faster with
+    # The maps' rasterization: forward-only renders of 256^2-512^2 composite faster with
     # larger tiles and more pixels per lane than the views' training renders (which keep
-    # 4x4 / 2): on the demo's model (27.9k surfels) a 512^2 map took 57 ms at 4x4 tiles /
-    # 2 pixels per lane, 44 ms at 8x8 / 4, 54-57 at 16x16; 256^2 21 -> 17 ms; 128^2 alike
-    # (8.3-9.7 ms). The maps are bit-identical: each texel composites the same surfels in
-    # the same order (BENCHMARKS.md, "Session 18").
+    # 4x4 / 2), and bit-identically (docs/decisions.md).
     raster: RasterConfig = RasterConfig(tile_size=8, pixels_per_lane=4)
 
     def __post_init__(self):
@@ -197,8 +194,8 @@ class ShadowMaps:
         """V [P * L] (point-major) for surface points [P], evaluated; see
         ``point_visibility``. Evaluated here because its readers are many: a lazy V would be
         recomputed (the L maps' lookups) in each kernel that reads it, a stage-4 step's
-        forward and backward or a relit view's image and irradiance (144 -> 88 ms per
-        warm-up step at L = 128; BENCHMARKS.md, "Session 16")."""
+        forward and backward or a relit view's image and irradiance (a third of a warm-up
+        step at L = 128)."""
         vis = point_visibility(points, self, normals, footprint)
         dr.eval(vis)
         return vis
