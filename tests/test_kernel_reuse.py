@@ -3,8 +3,9 @@
 Dr.Jit reuses a compiled kernel only when its source is the same (``mi_shadowgs.core.jit``).
 A camera value that enters a kernel as a literal compiles every kernel that reads it again
 for every view: ~100 ms per kernel on the CPU, a cost that can exceed the step itself
-(stage 1's view-dependent colours once did this for ~1300 steps). The test compares the kernel hashes (a hash of the
-source) of one stage-1 step from two cameras: equal sets, whatever the kernel cache holds.
+(stage 1's view-dependent colours once did this for ~1300 steps). The test compares the
+kernel hashes (a hash of the source) of one stage-1 step from two cameras: equal sets,
+whatever the kernel cache holds.
 The last test counts kernels run rather than compiled: work done once, not per channel.
 """
 
