@@ -71,7 +71,7 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
     (positive: from +X toward -Z, the way azimuth turns); errors name the option."""
     import mitsuba as mi
 
-    from mi_shadowgs.core.envmap import load_envmap, low_dynamic_range_warning
+    from mi_shadowgs.core.envmap import EnvmapError, load_envmap, low_dynamic_range_warning
 
     path = Path(path)
     if not path.is_file():
@@ -83,6 +83,8 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
         raise ValueError(f"--envmap-scale must be > 0, got {scale:g}")
     try:
         emitter = load_envmap(str(path), scale)
+    except EnvmapError as exc:  # names the file, and the texels that are no radiance
+        raise ValueError(f"--envmap {exc}") from None
     except RuntimeError as exc:  # Mitsuba's message names the file; keep its first line
         raise ValueError(f"--envmap {path}: not a readable env map: "
                          f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
