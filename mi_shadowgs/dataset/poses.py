@@ -59,6 +59,9 @@ def check_pose(m: np.ndarray) -> tuple[np.ndarray, float | None]:
         raise PoseError(f"has a rotation that is not orthonormal (|R^T R - I| = {error:.3g} "
                         f"after its scale is taken out, over {ORTHONORMAL_TOLERANCE:g}; column "
                         f"lengths {_row(norms)}): a shear or an uneven scale")
+    if not np.array_equal(bottom, (0.0, 0.0, 0.0, 1.0)):  # round-off of a written row
+        m = m.copy()
+        m[3] = (0.0, 0.0, 0.0, 1.0)
     if abs(scale - 1.0) <= SCALE_TOLERANCE:
         return m, None
     out = m.copy()
