@@ -87,8 +87,9 @@ class RunConfig:
                             ("seed", self.seed >= 0, ">= 0"),
                             ("bounds_quantile", 0 < self.bounds_quantile <= 1, "in (0, 1]"),
                             ("figure_views", self.figure_views >= 1, ">= 1"),
+                            # 0 reported the metrics of an albedo never fitted
                             ("material_iterations", self.material_iterations is None
-                             or self.material_iterations >= 0, ">= 0 or None"),
+                             or self.material_iterations >= 1, ">= 1 or None"),
                             ("prune_outside_masks", self.prune_outside_masks is None
                              or self.prune_outside_masks >= 0, ">= 0 or None"),
                             ("albedo_detail", self.albedo_detail is None
