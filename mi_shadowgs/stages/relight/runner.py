@@ -29,12 +29,18 @@ from mi_shadowgs.stages.visibility import shadow_maps
 DEFAULT_QUANTILE = 0.98  # the run's bounds_quantile when its manifest does not say
 
 
+# Elevations a directional light may have, as `generate` and `view` take them: above the
+# horizon. From below, a light reaches only the ground's underside, which no view saw and the
+# model does not hold (it drew a lit object over a ground that cast no shadow).
+LIGHT_ELEVATION = (0.0, 90.0, False)
+
+
 def parse_light(text: str, option: str = "--light",
-                elevation: tuple[float, float, bool] = (-90.0, 90.0, True)
+                elevation: tuple[float, float, bool] = LIGHT_ELEVATION
                 ) -> tuple[float, float, np.ndarray]:
     """``AZ,EL,E`` or ``AZ,EL,R,G,B`` (degrees, W/m^2) -> (azimuth, elevation, RGB [3]);
-    ValueError naming the option and the field at fault. A relit light may lie below the
-    horizon; ``elevation`` is ``parse_angle_fields``' range."""
+    ValueError naming the option and the field at fault. ``elevation`` is
+    ``parse_angle_fields``' range: above the horizon (``LIGHT_ELEVATION``)."""
     az, el, *irr = parse_angle_fields(
         str(text), option, "AZ,EL,IRRADIANCE or AZ,EL,R,G,B (degrees, W/m^2)",
         {3: ("azimuth", "elevation", "irradiance"),
