@@ -43,7 +43,9 @@ exactly (its view-mean colour through the sRGB curve), the higher bands to first
 albedo, in sRGB, as the DC term with the higher bands zero, so a viewer shows the
 relightable albedo. Both PLYs record ``sh_space srgb`` in their header, so that our own
 reader (``surfel_raster``, ``mi-shadowgs render``, ``api.load_model``) turns the SH back
-into linear ones instead of showing them washed out.
+into linear ones instead of showing them washed out. sRGB values end at white: a splat whose
+view-mean colour lies outside [0, 1] is clipped there, said in a warning and recorded in the
+header (``display_clipped_splats``); the run's ``model.ply`` keeps it (``clip_record``).
 """
 
 from __future__ import annotations
