@@ -14,7 +14,11 @@ try:
 except _backend.BackendError:
     pass  # set_variant raises it, naming what to install; drjit cannot load a broken LLVM
 else:
-    _backend.ensure_variant()
+    try:
+        _backend.ensure_variant()
+    except _backend.BackendError:
+        pass  # e.g. a bad MI_SHADOWGS_VARIANT: set_variant raises it, naming the variable,
+        # so that `--help` works and `--variant` overrides it
 
 set_variant = _backend.set_variant
 

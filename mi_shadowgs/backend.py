@@ -109,7 +109,21 @@ def set_variant(name: str | None = None) -> str:
 
     Raises BackendError with one clear line when it cannot run here.
     """
-    name = name or os.environ.get(VARIANT_ENV) or DEFAULT_VARIANT
+    # A variant from the environment is named as such: the user may not know it is set.
+    source = "variant"
+    if not name and os.environ.get(VARIANT_ENV):
+        name, source = os.environ[VARIANT_ENV], f"{VARIANT_ENV}={os.environ[VARIANT_ENV]}:"
+    name = name or DEFAULT_VARIANT
+    try:
+        return _select(name)
+    except BackendError as exc:
+        if source == "variant":
+            raise
+        raise BackendError(f"mi_shadowgs: {source} {str(exc).removeprefix('mi_shadowgs: ')} "
+                           f"(unset {VARIANT_ENV} or pass --variant)") from None
+
+
+def _select(name: str) -> str:
     if name not in SUPPORTED_VARIANTS:
         raise BackendError(
             f"mi_shadowgs: unsupported variant {name!r}; choose one of {SUPPORTED_VARIANTS}"

@@ -91,6 +91,9 @@ class RunConfig:
             ("bounds_quantile", 0 < self.bounds_quantile <= 1, "in (0, 1]"),
             ("figure_views", self.figure_views >= 1, ">= 1"),
             ("preset", isinstance(self.preset, str) and bool(self.preset), "a preset name")))
+        if self.material.iterations < 1:  # its albedo would be scored unfitted
+            raise ConfigError(f"material.iterations must be >= 1 for a run, got "
+                              f"{self.material.iterations}")
 
     def variants(self) -> dict[str, MaterialConfig]:
         """Stage 4's fits: ``full``, and with ``ablations`` the paper's Table 3 variants."""

@@ -145,3 +145,22 @@ def test_opacity_reset_and_schedule():
 def test_bad_extent():
     with pytest.raises(ValueError, match="extent"):
         DensifyStrategy(DensifyConfig(), extent=0.0, count=1)
+
+
+def test_no_opacity_reset_in_the_last_interval_of_the_schedule():
+    """`train --iterations 1000` at cpu-small reset every opacity at step 1000 and saved that
+    transparent model (test mask IoU 0.0009). A reset now needs a whole interval after it;
+    the presets' own schedules keep every reset they had."""
+    from mi_shadowgs.stages.geometry.train import PRESETS
+
+    def resets(config, iterations):
+        strat = DensifyStrategy(config.densify, extent=4.0, count=3, iterations=iterations)
+        return [t for t in range(1, iterations + 1) if strat.reset_due(t)]
+
+    small = PRESETS["cpu-small"]
+    assert resets(small, small.iterations) == [1000]
+    assert resets(small, 1000) == [] and resets(small, 1999) == []
+    assert resets(small, 2000) == [1000]
+    paper = PRESETS["paper"]
+    assert resets(paper, paper.iterations)[-1] < paper.densify.stop
+    assert DensifyStrategy(small.densify, extent=4.0, count=3).reset_due(1000)  # no length

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -161,3 +162,43 @@ def test_an_integer_envmap_is_used_with_a_warning_of_its_clipped_highlights(tmp_
     assert _names(resolve_envmaps(cfg)) == ["env_phone_pano", "env_noon"]
     err = capsys.readouterr().err
     assert f"--envmap {png} stores integers (low dynamic range)" in err and "noon" not in err
+
+
+@pytest.mark.parametrize("value, kind", [(np.nan, "NaN"), (np.inf, "Inf"),
+                                         (-0.5, "a negative value")])
+def test_envmap_texels_that_are_no_radiance_are_refused_naming_count_and_place(
+        tmp_path, value, kind):
+    """Mitsuba loads them without a word (one NaN texel: 121 of 128 light directions, the
+    map 10% darker); every path that takes a map refuses it: generate, relight, run's
+    previews, the emitter itself."""
+    from mi_shadowgs.core.envmap import EnvmapError, load_envmap
+    from mi_shadowgs.pipeline import check_preview_envmaps
+    from mi_shadowgs.stages.relight import runner
+
+    img = np.full((16, 32, 3), 0.5, np.float32)
+    img[3, 7, 1] = value
+    img[9, 2, :] = value
+    path = write_exr(tmp_path / "bad.exr", img) or tmp_path / "bad.exr"
+    want = re.escape(f"2 hold {kind} (the first at row 3, column 7)")
+    with pytest.raises(EnvmapError, match=f"{path}: .*of its 32x16: {want}"):
+        load_envmap(str(path))
+    with pytest.raises(ValueError, match=f"--envmap {path}: .*{want}"):
+        runner.build_lights(envmap=str(path))
+    with pytest.raises(EnvmapError, match=want):
+        check_preview_envmaps([str(path)])
+    cfg = dataclasses.replace(get_config("cpu-small"), envmaps=(str(path),))
+    with pytest.raises(EnvmapError, match=want):
+        resolve_envmaps(cfg)
+
+
+def test_an_integer_envmap_is_known_by_its_content_not_its_name(tmp_path, capsys):
+    import imageio.v3 as iio
+
+    from mi_shadowgs.core.envmap import low_dynamic_range
+
+    disguised = tmp_path / "pano.exr"
+    iio.imwrite(disguised, np.full((8, 16, 3), 200, np.uint8), extension=".png")
+    assert low_dynamic_range(str(disguised))
+    resolve_envmaps(dataclasses.replace(get_config("cpu-small"), envmaps=(str(disguised),)))
+    assert f"--envmap {disguised} stores integers (low dynamic range)" in \
+        capsys.readouterr().err

@@ -390,3 +390,30 @@ def test_2dgs_ply_keeps_the_fits_header_records(tmp_path):
     out = tmp_path / "e" / "point_cloud.ply"
     assert read_ply_metadata(out) == {**meta, "sh_space": "srgb"}  # + its SH's colour space
     assert recorded_specular(out) is False
+
+
+def test_splat_colours_above_white_are_said_clipped_in_the_header(tmp_path, capsys):
+    """Display SH hold sRGB values, which end at white: a linear colour above 1 comes back
+    as 1 (95 of 4,096 pixels of a 64^2 view up to 0.88 darker). The export says so on stderr
+    and in the header (``display_clipped_splats``); a model inside [0, 1] gets no record."""
+    import dataclasses
+
+    from mi_shadowgs.io.ply import CLIPPED_KEY, read_ply_metadata
+
+    model = syn.sphere_on_plane(300, 300)
+    sh = model.channels["sh"].copy()
+    bright = np.arange(0, model.count, 7)
+    sh[bright, :3] = (1.6 - 0.5) / SH_C0  # a view-mean colour of 1.6
+    run, _ = syn.fake_run(tmp_path / "r", model=dataclasses.replace(
+        model, channels={**model.channels, "sh": sh}))
+    for fmt in ("3dgs-ply", "2dgs-ply"):
+        capsys.readouterr()
+        assert export(run, "--format", fmt, "--out", tmp_path / fmt) == 0
+        err = capsys.readouterr().err
+        assert f"{len(bright)} of {model.count} splats have colours outside [0, 1]" in err, err
+        meta = read_ply_metadata(tmp_path / fmt / "point_cloud.ply")
+        assert meta[CLIPPED_KEY] == str(len(bright)) and meta["sh_space"] == "srgb"
+    plain, _ = syn.fake_run(tmp_path / "p", model=model)
+    assert export(plain, "--format", "3dgs-ply", "--out", tmp_path / "plain") == 0
+    assert CLIPPED_KEY not in read_ply_metadata(tmp_path / "plain" / "point_cloud.ply")
+    assert "outside [0, 1]" not in capsys.readouterr().err

@@ -751,3 +751,21 @@ def test_masks_that_cover_the_ground_are_not_taken_for_object_masks(photos, impo
                      "--no-progress"]) == 0
     err = capsys.readouterr().err
     assert f"{masks}: the masks leave out" in err and "the ground its shadows fall on" in err
+
+
+def test_identical_photos_are_named_as_no_parallax_not_too_few_features(tmp_path, capsys):
+    """Twelve copies of one textured photo match perfectly, but as one view: SfM places no
+    camera, and the message names that cause (it blamed too few features)."""
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(0)
+    img = gaussian_filter(rng.random((120, 160, 3)), (1.5, 1.5, 0))
+    img = ((img - img.min()) / (img.max() - img.min()) * 255).astype(np.uint8)
+    (tmp_path / "same").mkdir()
+    for i in range(12):
+        Image.fromarray(img).save(tmp_path / "same" / f"p{i:02d}.jpg", quality=95)
+    code, err = _cli(capsys, tmp_path / "same", "--out", tmp_path / "out")
+    assert code == 2, err
+    assert "show no parallax" in err and "Walk around the object" in err, err
+    assert "too few features" not in err
+    assert not (tmp_path / "out").exists()

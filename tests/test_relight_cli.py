@@ -36,7 +36,10 @@ TINY = tiny_cli.TINY
 
 @pytest.mark.parametrize("text, field", [
     ("a,45,3", "field azimuth must be a number"),
-    ("30,95,3", "field elevation must be in [-90, 90]"),
+    ("30,95,3", "field elevation must be in (0, 90]"),
+    # Below the horizon, refused as generate and view refuse it (it was rendered).
+    ("0,-10,3", "field elevation must be in (0, 90] degrees, got -10"),
+    ("0,0,3", "field elevation must be in (0, 90]"),
     ("30,45,-1", "field irradiance must be >= 0"),
     ("30,45,nan", "field irradiance must be finite"),
     ("30,45", "expected AZ,EL,IRRADIANCE"),

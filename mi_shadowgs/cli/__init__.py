@@ -8,6 +8,7 @@ heavy imports inside ``run`` so that ``--help`` stays fast.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import sys
 
@@ -61,14 +62,31 @@ OVERWRITE_RESTARTS = ("render", "relight")
 STOPPED_BY_SIGNAL = ("view",)
 
 
+# The argument that names each command's output folder (locked while it runs); commands
+# that write nothing are absent.
+OUTPUT_ARGUMENT = {"generate": "out", "import": "out", "render": "out", "segment": "out",
+                   "train": "out", "run": "out", "report": "run", "relight": "out",
+                   "export": "out"}
+
+
+def _note(line: str) -> None:
+    print(f"mi-shadowgs: note: {line}", file=sys.stderr, flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     from mi_shadowgs import backend
     from mi_shadowgs.io.interrupt import Interrupted, handle_signals
+    from mi_shadowgs.io.outlock import describe_os_error, output_lock
 
+    folder = getattr(args, OUTPUT_ARGUMENT.get(args.command, ""), None)
+    hint = RESUME_HINTS.get(args.command, "run the same command again to continue")
     try:
-        with handle_signals():
+        with contextlib.ExitStack() as stack:
+            if folder is not None:  # before anything is read: a second writer stops at once
+                stack.enter_context(output_lock(folder, args.command, note=_note))
+            stack.enter_context(handle_signals())
             backend.set_variant(args.variant)
             return int(importlib.import_module(args._module).run(args) or 0)
     except (CLIError, backend.BackendError, FileNotFoundError, FileExistsError,
@@ -83,11 +101,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mi-shadowgs {args.command}: error: {exc.filename}: {exc.strerror}",
               file=sys.stderr)
         return 2
+    except OSError as exc:
+        # Read-only, full, over quota, a name too long: the output path's fault, named.
+        line = describe_os_error(exc, folder, hint)
+        if line is None:
+            raise
+        print(f"mi-shadowgs {args.command}: error: {line}", file=sys.stderr)
+        return 2
     except Interrupted as exc:
         if args.command in STOPPED_BY_SIGNAL:
             print(f"mi-shadowgs {args.command}: stopped", flush=True)
             return 0
-        hint = RESUME_HINTS.get(args.command, "run the same command again to continue")
         if args.command in OVERWRITE_RESTARTS and args.overwrite:
             hint = "run it again without --overwrite to continue"
         print(f"mi-shadowgs {args.command}: interrupted by {exc}; {hint}", file=sys.stderr)

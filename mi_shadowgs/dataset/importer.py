@@ -33,6 +33,7 @@ import numpy as np
 from mi_shadowgs.config import check_fields
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
+from mi_shadowgs.dataset.poses import PoseError, check_intrinsics, check_pose
 from mi_shadowgs.dataset.world_frame import FrameConfig, world_frame
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -231,6 +232,14 @@ def read_colmap(model: Path, photos: list[Path]):
         if not all(math.isfinite(f) and f > 0 for f in focal):
             raise CaptureError(f"{cameras}: camera {im.camera_id} (of {im.name}) has focal "
                                f"length {focal[0]:g} x {focal[1]:g} px; it must be > 0")
+        try:
+            check_intrinsics(int(cam.width), int(cam.height), *focal)
+        except PoseError as exc:
+            raise CaptureError(f"{cameras}: camera {im.camera_id} (of {im.name}): {exc}") from None
+        try:
+            check_pose(np.vstack([im.cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]]))
+        except PoseError as exc:
+            raise CaptureError(f"{model}: the pose of image {im.name} {exc}") from None
     return rec
 
 
@@ -366,11 +375,41 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, config: ImportConfig,
     timings["map_s"] = time.perf_counter() - t
     if not recs:
         raise CaptureError(f"{image_dir}: SfM registered 0 of {len(names)} photos; dropped: "
-                           f"{', '.join(names[:12])}{' ...' if len(names) > 12 else ''}. The "
-                           "photos share too few features: photograph the object on a textured "
-                           "background (a printed mat, newspaper) with more overlap between "
-                           "photos")
+                           f"{', '.join(names[:12])}{' ...' if len(names) > 12 else ''}. "
+                           f"{registration_advice(db)}")
     return max(recs.values(), key=lambda r: r.num_reg_images())
+
+
+# Two-view geometries of photos that match but were taken from one place: COLMAP sees a
+# homography of a turn (or of a copy), which no triangulation can use.
+_NO_PARALLAX = ("PANORAMIC", "PLANAR_OR_PANORAMIC")
+_MATCHED_INLIERS = 15  # COLMAP's default minimum of inliers for a verified pair
+TOO_FEW_FEATURES = ("The photos share too few features: photograph the object on a textured "
+                    "background (a printed mat, newspaper) with more overlap between photos")
+
+
+def registration_advice(db: Path | None) -> str:
+    """Why SfM registered too few photos, from its database's verified pairs: no parallax
+    (pairs that match well, but as one view turned or copied: identical photos, or a camera
+    that only turned) or too few features (pairs that hardly match)."""
+    import pycolmap
+
+    if db is None or not db.is_file():
+        return TOO_FEW_FEATURES
+    database = pycolmap.Database.open(str(db))
+    try:
+        _, geometries = database.read_two_view_geometries()
+    finally:
+        database.close()
+    matched = [g for g in geometries if len(g.inlier_matches) >= _MATCHED_INLIERS]
+    no_parallax = {int(getattr(pycolmap.TwoViewGeometryConfiguration, n)) for n in _NO_PARALLAX}
+    turned = [g for g in matched if int(g.config) in no_parallax]
+    if not matched or len(turned) < 0.5 * len(matched):
+        return TOO_FEW_FEATURES
+    return (f"The photos match well ({len(matched)} of {len(geometries)} pairs) but show no "
+            f"parallax: {len(turned)} of those pairs are one view turned, or copies of one "
+            "photo, and SfM cannot place cameras that did not move. Walk around the object "
+            "between photos (do not only turn the camera), and give each view once")
 
 
 def incremental_mapping(db: Path, image_dir: Path, work: Path, config: ImportConfig) -> dict:
@@ -694,8 +733,8 @@ def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, co
             raise CaptureError(
                 f"{source}: SfM registered {len(registered)} of {len(names)} photos (below "
                 f"{config.min_registered:.0%}); dropped: {', '.join(rejected[:12])}"
-                f"{' ...' if len(rejected) > 12 else ''}. Photograph the object on a textured "
-                "background (a printed mat, newspaper) with more overlap between photos")
+                f"{' ...' if len(rejected) > 12 else ''}. "
+                f"{registration_advice(sfm_work / 'database.db' if sfm_work else None)}")
         sparse = tmp / COLMAP_DIR / "sparse" / "0"
         sparse.mkdir(parents=True)
         rec.write(str(sparse))

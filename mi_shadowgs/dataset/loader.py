@@ -18,7 +18,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +28,13 @@ import numpy as np
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.distortion import FIELDS, Distortion, undistort
+from mi_shadowgs.dataset.poses import (
+    PoseError,
+    check_intrinsics,
+    check_pose,
+    duplicate_images,
+    scaled_note,
+)
 from mi_shadowgs.io.images import read_exr, read_png, srgb_to_linear
 
 # Blender Z-up world -> our Y-up world (a rotation of -90 degrees about +X).
@@ -140,11 +149,29 @@ def _matrix(path: Path, field: str, value) -> np.ndarray:
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
     if m.shape != (4, 4):
         raise DatasetError(f"{path}: field {field!r} must be a 4x4 matrix, got shape {m.shape}")
-    if not np.all(np.isfinite(m)):
-        raise DatasetError(f"{path}: field {field!r} holds NaN or Inf")
-    if abs(np.linalg.det(m[:3, :3])) < 1e-12:
-        raise DatasetError(f"{path}: field {field!r} is singular (not a camera pose)")
     return m
+
+
+def _pose(path: Path, field: str, value, scaled: dict[int, float], frame: int) -> np.ndarray:
+    """``_matrix`` checked as a camera pose (``poses.check_pose``); a uniform scale divided
+    out of its rotation is recorded in ``scaled`` by frame, for one note per file."""
+    try:
+        m, scale = check_pose(_matrix(path, field, value))
+    except PoseError as exc:
+        raise DatasetError(f"{path}: field {field!r} {exc}") from None
+    if scale is not None:
+        scaled[frame] = scale
+    return m
+
+
+_NOTED: set[str] = set()  # files whose scaled rotations were noted: once per process
+
+
+def _note_scaled(path: Path, scaled: dict[int, float]) -> None:
+    if scaled and str(path.resolve()) not in _NOTED:
+        _NOTED.add(str(path.resolve()))
+        print(f"mi-shadowgs: note: {scaled_note(path, sorted(scaled), list(scaled.values()))}",
+              file=sys.stderr)
 
 
 def _image_file(root: Path, file_path: str, exts=(".exr", ".png")) -> Path | None:
@@ -222,6 +249,11 @@ def _intrinsics(path: Path, meta: dict, fr: dict, i: int, width: int, height: in
     for key, v in (("fl_x", fx), ("fl_y", fy)):
         if v <= 0:
             raise DatasetError(f"{path}: field '{where.format(i=i)}{key}' must be > 0, got {v}")
+    try:
+        check_intrinsics(width, height, fx, fy)
+    except PoseError as exc:
+        field = "camera_angle_x" if fov_x is not None else f"{where.format(i=i)}fl_x/fl_y"
+        raise DatasetError(f"{path}: field '{field}' (frame {i}): {exc}") from None
     for key, v, size in (("cx", cx, width), ("cy", cy, height)):
         if not 0.0 < v < size:  # a principal point outside the image contradicts its size
             raise DatasetError(f"{path}: field '{where.format(i=i)}{key}' = {v} lies outside "
@@ -271,15 +303,29 @@ def load_frames(path: str | Path, as_stored: bool = False) -> list[Frame]:
     # as_stored: the file's own world, whatever it is (the importer places it itself)
     blender = not as_stored and world_frame(path, meta) == "+z"
     to_ours = BLENDER_TO_YUP if blender else np.eye(4)
-    out = []
+    out, scaled = [], {}
+    if (pair := duplicate_images([_same_image(fr["file_path"]) for fr in frames])) is not None:
+        a, b = pair
+        raise DatasetError(f"{path}: frames {a} and {b} name one image file "
+                           f"({frames[b]['file_path']!r}, field 'frames[{b}].file_path'): "
+                           "one photo cannot have two poses")
     for i, fr in enumerate(frames):
-        c2w = _matrix(path, f"frames[{i}].transform_matrix", fr["transform_matrix"])
+        c2w = _pose(path, f"frames[{i}].transform_matrix", fr["transform_matrix"], scaled, i)
         fx, fy, cx, cy, dist, fov_x = _intrinsics(path, meta, fr, i, width, height)
         cam = Camera(c2w=to_ours @ c2w, width=width, height=height, fov_x=fov_x) \
             if fov_x is not None else \
             Camera.from_intrinsics(to_ours @ c2w, width, height, fx, fy, cx, cy)
         out.append(Frame(fr["file_path"], cam, dist, BLENDER_TO_YUP[:3, :3] if blender else None))
+    _note_scaled(path, scaled)
     return out
+
+
+def _same_image(file_path: str) -> str:
+    """A frame's ``file_path`` as one image file: ``./a/b`` and ``a//b.png`` are ``a/b``
+    (NeRF-synthetic leaves the extension out)."""
+    p = os.path.normpath(file_path)
+    stem, ext = os.path.splitext(p)
+    return stem if ext.lower() in (".png", ".exr", ".jpg", ".jpeg") else p
 
 
 def load_cameras(path: str | Path) -> list[tuple[str, Camera]]:
@@ -292,12 +338,35 @@ def load_cameras(path: str | Path) -> list[tuple[str, Camera]]:
 def _read_image(path: Path) -> np.ndarray:
     """Linear float [H, W, C]: EXR as stored, PNG decoded from sRGB (alpha stays linear)."""
     if path.suffix.lower() == ".exr":
-        return read_exr(path).astype(np.float32)
-    img = read_png(path).astype(np.float32) / 255.0
+        return _as_rgb(path, read_exr(path).astype(np.float32))
+    img = _png_unit(path)
     c = img.shape[-1]
     if c in (2, 4):
         return np.concatenate([srgb_to_linear(img[..., :-1]), img[..., -1:]], axis=-1)
     return srgb_to_linear(img)
+
+
+def _png_unit(path: Path) -> np.ndarray:
+    """A PNG as float [H, W, 3 or 4] in [0, 1]: 8- or 16-bit (scaled by its own maximum, not
+    by 255), grey (+ alpha) made RGB (+ alpha)."""
+    raw = read_png(path)
+    if raw.dtype.kind not in "ui":
+        raise DatasetError(f"{path}: PNG samples of type {raw.dtype} are not supported "
+                           "(8- or 16-bit integers)")
+    return _as_rgb(path, raw.astype(np.float32) / float(np.iinfo(raw.dtype).max))
+
+
+def _as_rgb(path: Path, img: np.ndarray) -> np.ndarray:
+    """Grey [H, W, 1] or grey + alpha [H, W, 2] as RGB (+ alpha); RGB(A) as it is."""
+    c = img.shape[-1]
+    if c == 1:
+        return np.repeat(img, 3, axis=-1)
+    if c == 2:
+        return np.concatenate([np.repeat(img[..., :1], 3, axis=-1), img[..., 1:]], axis=-1)
+    if c not in (3, 4):
+        raise DatasetError(f"{path}: an image of {c} channels; grey, grey + alpha, RGB or "
+                           "RGBA is expected")
+    return img
 
 
 def _check_size(path: Path, arr: np.ndarray, cam: Camera) -> np.ndarray:
@@ -489,11 +558,19 @@ def _tensoir_camera(meta_path: Path, meta: dict) -> Camera:
     except ValueError:
         raise DatasetError(f"{meta_path}: field 'cam_transform_mat' must be 16 "
                            "comma-separated numbers") from None
-    c2w_blender = _matrix(meta_path, "cam_transform_mat", np.reshape(values, (4, 4))
-                          if np.size(values) == 16 else values)
+    c2w_blender = _pose(meta_path, "cam_transform_mat", np.reshape(values, (4, 4))
+                        if np.size(values) == 16 else values, scaled := {}, 0)
+    _note_scaled(meta_path, scaled)
     fov_x = _number(meta_path, "cam_angle_x", meta["cam_angle_x"])
     w = int(_number(meta_path, "imw", meta["imw"]))
     h = int(_number(meta_path, "imh", meta["imh"]))
+    if not 0.0 < fov_x < math.pi:
+        raise DatasetError(f"{meta_path}: field 'cam_angle_x' must be in (0, pi) radians, "
+                           f"got {fov_x}")
+    try:
+        check_intrinsics(w, h, 0.5 * w / math.tan(0.5 * fov_x), 0.5 * w / math.tan(0.5 * fov_x))
+    except PoseError as exc:
+        raise DatasetError(f"{meta_path}: field 'cam_angle_x': {exc}") from None
     return Camera(c2w=BLENDER_TO_YUP @ c2w_blender, width=w, height=h, fov_x=fov_x)
 
 
@@ -537,7 +614,7 @@ def load_tensoir(root: str | Path, split: str = "train", require_mask: bool = Tr
             view.albedo = _check_size(folder / "albedo.png",
                                       _read_image(folder / "albedo.png"), cam)[..., :3]
         if (folder / "normal.png").is_file():
-            raw = read_png(folder / "normal.png").astype(np.float32) / 255.0
+            raw = _png_unit(folder / "normal.png")
             n = (_check_size(folder / "normal.png", raw, cam)[..., :3] * 2.0 - 1.0) @ rot.T
             n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-8)
             view.normal = np.where(mask[..., None], n, 0.0).astype(np.float32)

@@ -171,6 +171,21 @@ def sh_to_srgb(sh: np.ndarray) -> np.ndarray:
     return out.reshape(n, kc).astype(np.float32)
 
 
+# The header record of a display-SH PLY whose view-mean colours were clipped into [0, 1]:
+# the number of such splats. Display SH hold sRGB values, which end at white; a linear
+# colour above 1 (a highlight, a bright albedo under a strong light) comes back as 1, so
+# those splats render darker than the run's model (by up to 0.88 on a 64^2 view), and one
+# below 0 comes back as 0.
+CLIPPED_KEY = "display_clipped_splats"
+
+
+def display_clipped(sh: np.ndarray) -> int:
+    """How many splats of linear SH [N, K*3] ``sh_to_srgb`` clips: view-mean colour outside
+    [0, 1] in some channel."""
+    linear = SH_C0 * np.asarray(sh, np.float64)[:, :3] + 0.5
+    return int(np.count_nonzero(np.any((linear < 0.0) | (linear > 1.0), axis=1)))
+
+
 def sh_from_srgb(sh: np.ndarray) -> np.ndarray:
     """Inverse of ``sh_to_srgb``: display SH [N, K*3] -> linear SH. Exact on what
     ``sh_to_srgb`` wrote wherever the view-mean colour lies inside [0, 1]."""

@@ -43,19 +43,28 @@ exactly (its view-mean colour through the sRGB curve), the higher bands to first
 albedo, in sRGB, as the DC term with the higher bands zero, so a viewer shows the
 relightable albedo. Both PLYs record ``sh_space srgb`` in their header, so that our own
 reader (``surfel_raster``, ``mi-shadowgs render``, ``api.load_model``) turns the SH back
-into linear ones instead of showing them washed out.
+into linear ones instead of showing them washed out. sRGB values end at white: a splat whose
+view-mean colour lies outside [0, 1] is clipped there, said in a warning and recorded in the
+header (``display_clipped_splats``); the run's ``model.ply`` keeps it (``clip_record``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from mi_shadowgs.io.ply import SH_C0, SH_SPACE_KEY, sh_to_srgb
+from mi_shadowgs.io.ply import (
+    CLIPPED_KEY,
+    SH_C0,
+    SH_SPACE_KEY,
+    display_clipped,
+    sh_to_srgb,
+)
 from mi_shadowgs.stages.export import mesh as mesh_mod
 
 FORMATS = ("3dgs-ply", "2dgs-ply", "mesh")
@@ -116,6 +125,20 @@ def display_sh(model, color: str) -> np.ndarray:
     if "sh" not in model.channels:
         raise ExportError("--color sh: the model has no 'sh' channel; use --color albedo")
     return sh_to_srgb(_pad_sh(model.channels["sh"]))
+
+
+def clip_record(model, color: str, fmt: str, out) -> dict[str, str]:
+    """The header record of the splats whose colours the display SH clip at white (none:
+    empty), said once on stderr; ``--color albedo`` is clipped as the albedo is, in [0, 1]."""
+    if fmt == "mesh" or color != "sh" or "sh" not in model.channels:
+        return {}
+    n = display_clipped(model.channels["sh"])
+    if n:
+        print(f"mi-shadowgs: warning: {out}: {n} of {model.count} splats have colours outside "
+              "[0, 1] (brighter than white, or below black): the display SH clip them, so "
+              "the PLY renders them unlike the run (a colour above 1 darker); its header "
+              f"records {CLIPPED_KEY} {n}, and the run's model.ply keeps them", file=sys.stderr)
+    return {CLIPPED_KEY: str(n)} if n else {}
 
 
 def gs3d_columns(model, color: str, config: ExportConfig) -> dict[str, np.ndarray]:
@@ -412,10 +435,11 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
         if output.complete:
             return StageRun(out, False, 0.0, f"{out}: already holds this export (reused)")
         model = read_ply_model(model_path)
+        clipped = clip_record(model, color, fmt, out)
         if fmt == "3dgs-ply":
             write_ply_vertices(output.path("point_cloud.ply"), gs3d_columns(model, color,
                                                                             config),
-                               {SH_SPACE_KEY: "srgb"})
+                               {SH_SPACE_KEY: "srgb", **clipped})
             summary = f"wrote {out / 'point_cloud.ply'} (3DGS layout, {model.count} splats)"
         elif fmt == "2dgs-ply":
             # The header's settings of the fit (receiver band, shadow maps, whether the GGX
@@ -423,7 +447,8 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
             # the surfel_relight plugin) takes another tool's defaults and adds highlights
             # and shadows the fit never had.
             write_ply_model(output.path("point_cloud.ply"), gs2d_model(model, color),
-                            {**read_ply_metadata(model_path), SH_SPACE_KEY: "srgb"})
+                            {**read_ply_metadata(model_path), SH_SPACE_KEY: "srgb",
+                             **clipped})
             summary = f"wrote {out / 'point_cloud.ply'} (2DGS layout, {model.count} surfels)"
         else:
             summary = _export_mesh(output, model, light_path, data_path, config, progress,

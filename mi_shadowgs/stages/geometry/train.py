@@ -489,7 +489,8 @@ class TrainState:
         step, t, extent, elapsed, log_count = (float(x) for x in arrays["scalars"])
         opt = SurfelAdam(group("param/"), _learning_rates_split(config, int(step), extent))
         opt.load(group("param/"), group("adam_m/"), group("adam_v/"), int(t))
-        strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed)
+        strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed,
+                                   iterations=config.iterations)
         strategy.load_state(group("densify/"))
         sums = {k: mi.Float(a) for k, a in group("log/").items()}
         return TrainState(int(step), opt, strategy, extent, elapsed, sums, int(log_count))
@@ -535,7 +536,8 @@ def state_from_params(params: dict[str, np.ndarray], cameras, config: GeometryCo
     _, radius = scene_bounds(cameras)
     extent = 1.1 * radius  # 3DGS's cameras_extent
     opt = SurfelAdam(_split_sh(params), _learning_rates_split(config, step, extent))
-    strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed)
+    strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed,
+                                   iterations=config.iterations)
     return TrainState(step, opt, strategy, extent)
 
 

@@ -29,12 +29,18 @@ from mi_shadowgs.stages.visibility import shadow_maps
 DEFAULT_QUANTILE = 0.98  # the run's bounds_quantile when its manifest does not say
 
 
+# Elevations a directional light may have, as `generate` and `view` take them: above the
+# horizon. From below, a light reaches only the ground's underside, which no view saw and the
+# model does not hold (it drew a lit object over a ground that cast no shadow).
+LIGHT_ELEVATION = (0.0, 90.0, False)
+
+
 def parse_light(text: str, option: str = "--light",
-                elevation: tuple[float, float, bool] = (-90.0, 90.0, True)
+                elevation: tuple[float, float, bool] = LIGHT_ELEVATION
                 ) -> tuple[float, float, np.ndarray]:
     """``AZ,EL,E`` or ``AZ,EL,R,G,B`` (degrees, W/m^2) -> (azimuth, elevation, RGB [3]);
-    ValueError naming the option and the field at fault. A relit light may lie below the
-    horizon; ``elevation`` is ``parse_angle_fields``' range."""
+    ValueError naming the option and the field at fault. ``elevation`` is
+    ``parse_angle_fields``' range: above the horizon (``LIGHT_ELEVATION``)."""
     az, el, *irr = parse_angle_fields(
         str(text), option, "AZ,EL,IRRADIANCE or AZ,EL,R,G,B (degrees, W/m^2)",
         {3: ("azimuth", "elevation", "irradiance"),
@@ -71,7 +77,7 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
     (positive: from +X toward -Z, the way azimuth turns); errors name the option."""
     import mitsuba as mi
 
-    from mi_shadowgs.core.envmap import load_envmap, low_dynamic_range_warning
+    from mi_shadowgs.core.envmap import EnvmapError, load_envmap, low_dynamic_range_warning
 
     path = Path(path)
     if not path.is_file():
@@ -83,6 +89,8 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
         raise ValueError(f"--envmap-scale must be > 0, got {scale:g}")
     try:
         emitter = load_envmap(str(path), scale)
+    except EnvmapError as exc:  # names the file, and the texels that are no radiance
+        raise ValueError(f"--envmap {exc}") from None
     except RuntimeError as exc:  # Mitsuba's message names the file; keep its first line
         raise ValueError(f"--envmap {path}: not a readable env map: "
                          f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
