@@ -13,11 +13,15 @@ Formats (``--out`` is a folder; it gets a provenance manifest like every output)
   stage-4 model's header records (``comment mi_shadowgs ...``: receiver band, shadow maps,
   specular), so that relighting this file gives the run's relit views.
 - ``mesh`` -> ``object.ply``/``object.obj`` (+ ``base.ply``/``base.obj`` when the base is
-  known), ``scene.xml``, ``export.json``: see ``mi_shadowgs.stages.export.mesh``. The PLYs
-  carry per-vertex ``albedo_r/g/b``, ``roughness_0``, ``metallic_0`` and ``ggxalpha_0``
-  (roughness^2, clamped as in ``core.brdf``; linear; Mitsuba loads them as
-  ``vertex_albedo_color``, ``vertex_roughness``, ``vertex_metallic``, ``vertex_ggxalpha``),
-  the OBJs sRGB vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba:
+  known), ``asset.glb`` (both meshes, glTF binary), ``scene.xml``, ``export.json``: see
+  ``mi_shadowgs.stages.export.mesh``. The object is closed where it stands on the base
+  (``mi_shadowgs.stages.export.close``); ``export.json`` says whether it is watertight and,
+  if not, why. The PLYs carry the standard uchar ``red green blue alpha`` vertex colours
+  (the albedo in sRGB, which mesh tools show) and per-vertex ``albedo_r/g/b``,
+  ``roughness_0``, ``metallic_0`` and ``ggxalpha_0`` (roughness^2, clamped as in
+  ``core.brdf``; linear; Mitsuba loads them as ``vertex_albedo_color``,
+  ``vertex_roughness``, ``vertex_metallic``, ``vertex_ggxalpha``); the OBJs and the glTF
+  hold sRGB vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba:
   each mesh with a BSDF driven by ``mesh_attribute`` textures (``ExportConfig.bsdf``, below),
   the fitted lights as ``directional`` emitters, one ``perspective`` sensor per test camera
   (``$resx``, ``$resy``, ``$spp``, ``$max_depth`` can be overridden at load).
@@ -201,10 +205,29 @@ def bsdf_xml(parent, kind: str) -> None:
     _attribute(metal, "specular_reflectance", "vertex_albedo_color")
 
 
-def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
+def vertex_colors(part: mesh_mod.MeshPart) -> np.ndarray:
+    """[V, 4] uint8 RGBA: the albedo in sRGB (rounded: within 1/255), opaque."""
+    from mi_shadowgs.io.images import linear_to_srgb
+
+    rgb = linear_to_srgb(np.clip(part.albedo.astype(np.float64), 0.0, 1.0))
+    rgba = np.full((len(part.vertices), 4), 255, np.uint8)
+    rgba[:, :3] = np.round(rgb * 255.0).astype(np.uint8)
+    return rgba
+
+
+def _trimesh(part: mesh_mod.MeshPart):
     import trimesh
 
-    m = trimesh.Trimesh(part.vertices, part.faces, vertex_normals=part.normals, process=False)
+    return trimesh.Trimesh(part.vertices, part.faces, vertex_normals=part.normals,
+                           vertex_colors=vertex_colors(part), process=False)
+
+
+def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
+    """Binary PLY: normals, the standard uchar ``red green blue alpha`` (sRGB albedo) that
+    mesh tools show, then the float materials Mitsuba reads (module docstring)."""
+    import trimesh
+
+    m = _trimesh(part)
     for c, name in enumerate("rgb"):
         m.vertex_attributes[f"albedo_{name}"] = part.albedo[:, c].astype(np.float32)
     m.vertex_attributes["roughness_0"] = part.roughness.astype(np.float32)
@@ -212,6 +235,18 @@ def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
     m.vertex_attributes["ggxalpha_0"] = ggx_alpha(part.roughness).astype(np.float32)
     return trimesh.exchange.ply.export_ply(m, encoding="binary", vertex_normal=True,
                                            include_attributes=True)
+
+
+def _glb_bytes(parts: dict[str, mesh_mod.MeshPart]) -> bytes:
+    """glTF binary of the meshes (one node each, named by part) with the sRGB albedo as
+    vertex colours (``COLOR_0``), written by trimesh. glTF's frame is ours: Y-up,
+    right-handed, metres as scene units."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    for name, part in parts.items():
+        scene.add_geometry(_trimesh(part), node_name=name, geom_name=name)
+    return scene.export(file_type="glb", include_normals=True)
 
 
 def _mesh_obj_text(part: mesh_mod.MeshPart) -> str:
@@ -479,6 +514,8 @@ def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConf
         with atomic_path(output.path(f"{name}.ply")) as tmp:
             tmp.write_bytes(_mesh_ply_bytes(part))
         write_text(output.path(f"{name}.obj"), _mesh_obj_text(part))
+    with atomic_path(output.path("asset.glb")) as tmp:
+        tmp.write_bytes(_glb_bytes(parts))
     lights = fitted_lights(json.loads(light_path.read_text()))
     write_text(output.path("scene.xml"), scene_xml(
         {name: f"{name}.ply" for name in parts}, lights, test, config,
