@@ -81,8 +81,22 @@ def export(*args) -> int:
 
 def test_3dgs_ply_loads_by_3dgs_rules_and_in_viewers(run_data, tmp_path):
     run, _ = run_data
-    model = read_ply_model(run / "material" / "full" / "model.ply")
+    from mi_shadowgs.io.ply import read_ply_metadata, to_frame
+
+    ours = read_ply_model(run / "material" / "full" / "model.ply")
+    # In the splat tools' frame by default (Y down: upright in SuperSplat), recorded
     assert export(run, "--format", "3dgs-ply", "--out", tmp_path / "sh") == 0
+    assert read_ply_metadata(tmp_path / "sh" / "point_cloud.ply") == \
+        {"sh_space": "srgb", "world_frame": "opencv"}
+    model = to_frame(ours, "opencv")
+    np.testing.assert_array_equal(model.position, ours.position * [1, -1, -1])
+    back = read_ply_model(tmp_path / "sh" / "point_cloud.ply")  # turned back into ours
+    np.testing.assert_array_equal(back.position, ours.position)
+    np.testing.assert_array_equal(back.rotation, ours.rotation)
+    assert export(run, "--format", "3dgs-ply", "--out", tmp_path / "yup", "--frame",
+                  "y-up") == 0
+    np.testing.assert_array_equal(gs_load_ply(tmp_path / "yup" / "point_cloud.ply")["xyz"],
+                                  ours.position)
     g = gs_load_ply(tmp_path / "sh" / "point_cloud.ply")
     assert all(n in g["names"] for n in VIEWER_REQUIRED)
     np.testing.assert_array_equal(g["xyz"], model.position)
@@ -421,7 +435,8 @@ def test_2dgs_ply_keeps_the_fits_header_records(tmp_path):
     write_ply_model(model_path, read_ply_model(model_path), meta)
     assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "e") == 0
     out = tmp_path / "e" / "point_cloud.ply"
-    assert read_ply_metadata(out) == {**meta, "sh_space": "srgb"}  # + its SH's colour space
+    # + its SH's colour space and its frame
+    assert read_ply_metadata(out) == {**meta, "sh_space": "srgb", "world_frame": "opencv"}
     assert recorded_specular(out) is False
 
 

@@ -40,6 +40,13 @@ The BSDF (``ExportConfig.bsdf``):
   layout other tools map to. Its diffuse lobe is Disney's, not Lambert's: under grazing
   views and lights it differs from the fitted model by up to ~2x (retro-reflection).
 
+Frame of the splat PLYs (``--frame``): by default the splat tools' (OpenCV/COLMAP: Y down,
+``x, y, z = x, -y, -z`` of ours, the quaternions and SH turned with it), which SuperSplat,
+PlayCanvas and 3DGS's viewers take a PLY's world to be, so the asset stands upright in them;
+``--frame y-up`` keeps ours. The header records it (``world_frame``), so our reader turns
+the file back; a copy that lost its header (splat-transform drops comments) reads right with
+``io.ply.SPLAT_TOOLS`` (``mi-shadowgs render --splat-conventions``).
+
 Colours in the splat PLYs are what splat viewers display: sRGB values (3DGS trains on sRGB
 images). ``--color sh`` converts the model's linear SH (``io.ply.sh_to_srgb``): the DC term
 exactly (its view-mean colour through the sRGB curve), the higher bands to first order
@@ -60,7 +67,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.config import get_preset
-from mi_shadowgs.io.ply import SH_C0, SH_SPACE_KEY, sh_to_srgb
+from mi_shadowgs.io.ply import FRAME_KEY, FRAMES, SH_C0, SH_SPACE_KEY, sh_to_srgb, to_frame
 from mi_shadowgs.stages.export import mesh as mesh_mod
 
 FORMATS = ("3dgs-ply", "2dgs-ply", "mesh")
@@ -70,6 +77,9 @@ PLY_SH_DEGREE = 3  # what 3DGS/2DGS's load_ply expect (max_sh_degree default)
 # What the splat PLYs hold, a setting of their provenance so that an older export is not
 # reused as this one: 2 = with the header records (the fit's, ``sh_space``; session 39).
 SPLAT_LAYOUT = 2
+# The splat PLYs' world: the splat tools' (3DGS, COLMAP, SuperSplat, PlayCanvas: Y down), so
+# that viewers show the scene upright; "y-up" keeps ours. Recorded in the header.
+DEFAULT_FRAME = "opencv"
 MATERIAL_FOLDER = "material/full"
 
 
@@ -409,11 +419,14 @@ def base_known(data: Path) -> bool:
 
 def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
                data: str | Path | None = None, config: ExportConfig | None = None,
-               preset: str | None = None, overwrite: bool = False, progress: bool = False):
+               preset: str | None = None, overwrite: bool = False, progress: bool = False,
+               frame: str | None = None):
     """Export the run's stage-4 model as ``fmt`` into the folder ``out``; returns a
     ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs).
     ``preset``: the export's settings (the mesh's grid); default the run's own, as
-    ``relight`` takes it. ``data`` (the run's dataset, when it moved) only for a mesh."""
+    ``relight`` takes it. ``data`` (the run's dataset, when it moved) only for a mesh.
+    ``frame``: the world frame of the splat PLYs (``FRAMES``; default ``DEFAULT_FRAME``;
+    module docstring)."""
     from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
     from mi_shadowgs.io.ply import (
@@ -434,6 +447,12 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     if fmt == "mesh" and color != "sh":
         raise ExportError("--color applies to the splat PLYs; a mesh always carries the "
                           "albedo, roughness and metallic")
+    if fmt == "mesh" and frame not in (None, "y-up"):
+        raise ExportError("--frame applies to the splat PLYs; a mesh (and scene.xml, "
+                          "glTF) is in our Y-up world, as Mitsuba and glTF take it")
+    frame = DEFAULT_FRAME if frame is None else frame
+    if frame not in FRAMES:
+        raise ExportError(f"unknown --frame {frame!r}: choose from {', '.join(FRAMES)}")
     if data is not None and fmt != "mesh":
         raise ExportError(f"--data is read by --format mesh only (its training cameras); "
                           f"--format {fmt} takes the model alone")
@@ -452,6 +471,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     settings = {"format": fmt, "color": color, "preset": preset, **settings_dict(config)}
     if fmt != "mesh":
         settings["layout"] = SPLAT_LAYOUT
+        settings["frame"] = frame
     provenance = Provenance(dataset=dataset_ref(data_path) if data_path else None,
                             inputs=inputs, settings=settings)
     guard = [model_path, light_path] + ([data_path] if data_path else [])
@@ -460,18 +480,19 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
         if output.complete:
             return StageRun(out, False, 0.0, f"{out}: already holds this export (reused)")
         model = read_ply_model(model_path)
+        records = {SH_SPACE_KEY: "srgb", FRAME_KEY: frame}
         if fmt == "3dgs-ply":
-            write_ply_vertices(output.path("point_cloud.ply"), gs3d_columns(model, color,
-                                                                            config),
-                               {SH_SPACE_KEY: "srgb"})
+            write_ply_vertices(output.path("point_cloud.ply"),
+                               gs3d_columns(to_frame(model, frame), color, config), records)
             summary = f"wrote {out / 'point_cloud.ply'} (3DGS layout, {model.count} splats)"
         elif fmt == "2dgs-ply":
             # The header's settings of the fit (receiver band, shadow maps, whether the GGX
             # lobe was fitted) travel too: without them a relight of this PLY (api.relight,
             # the surfel_relight plugin) takes another tool's defaults and adds highlights
             # and shadows the fit never had.
-            write_ply_model(output.path("point_cloud.ply"), gs2d_model(model, color),
-                            {**read_ply_metadata(model_path), SH_SPACE_KEY: "srgb"})
+            write_ply_model(output.path("point_cloud.ply"),
+                            gs2d_model(to_frame(model, frame), color),
+                            {**read_ply_metadata(model_path), **records})
             summary = f"wrote {out / 'point_cloud.ply'} (2DGS layout, {model.count} surfels)"
         else:
             summary = _export_mesh(output, model, light_path, data_path, config, progress,
