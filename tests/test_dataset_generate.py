@@ -268,8 +268,9 @@ def test_generate_deterministic_and_recognised(tmp_path, capsys):
     assert _run(["default", "--out", str(b), "--seed", "7", *TINY], capsys)[0] == 0
     la, lb = _listing(a), _listing(b)
     # 2 + 1 views x 10 files, 4 relit test images (3 directional, the procedural sky), 2
-    # transforms, lights.json, dataset.json, the sky's env map, the manifest
-    assert len(la) == 3 * 10 + 4 + 6
+    # transforms (and the val split's, the test one for NeRF tools), lights.json,
+    # dataset.json, the sky's env map, the manifest
+    assert len(la) == 3 * 10 + 4 + 7
     assert json.loads(la[MANIFEST_NAME])["files"] == sorted(set(la) - {MANIFEST_NAME})
     assert la.keys() == lb.keys()
     differ = [k for k in la if la[k] != lb[k]]

@@ -82,8 +82,22 @@ def export(*args) -> int:
 
 def test_3dgs_ply_loads_by_3dgs_rules_and_in_viewers(run_data, tmp_path):
     run, _ = run_data
-    model = read_ply_model(run / "material" / "full" / "model.ply")
+    from mi_shadowgs.io.ply import read_ply_metadata, to_frame
+
+    ours = read_ply_model(run / "material" / "full" / "model.ply")
+    # In the splat tools' frame by default (Y down: upright in SuperSplat), recorded
     assert export(run, "--format", "3dgs-ply", "--out", tmp_path / "sh") == 0
+    assert read_ply_metadata(tmp_path / "sh" / "point_cloud.ply") == \
+        {"sh_space": "srgb", "world_frame": "opencv"}
+    model = to_frame(ours, "opencv")
+    np.testing.assert_array_equal(model.position, ours.position * [1, -1, -1])
+    back = read_ply_model(tmp_path / "sh" / "point_cloud.ply")  # turned back into ours
+    np.testing.assert_array_equal(back.position, ours.position)
+    np.testing.assert_array_equal(back.rotation, ours.rotation)
+    assert export(run, "--format", "3dgs-ply", "--out", tmp_path / "yup", "--frame",
+                  "y-up") == 0
+    np.testing.assert_array_equal(gs_load_ply(tmp_path / "yup" / "point_cloud.ply")["xyz"],
+                                  ours.position)
     g = gs_load_ply(tmp_path / "sh" / "point_cloud.ply")
     assert all(n in g["names"] for n in VIEWER_REQUIRED)
     np.testing.assert_array_equal(g["xyz"], model.position)
@@ -146,14 +160,15 @@ def _render_plain_mitsuba(scene: str, out_npy: str, size: int = 32) -> None:
         "img = np.asarray(mi.render(s, sensor=0, seed=1))\n"
         "assert not any(m.startswith('mi_shadowgs') for m in sys.modules)\n"
         "np.save(sys.argv[2], img)\n"
-        "print(len(s.sensors()), len(s.emitters()), sorted(sh.id() for sh in s.shapes()))\n")
+        "print('RESULT', len(s.sensors()), len(s.emitters()),\n"
+        "      sorted(sh.id() for sh in s.shapes()))\n")
     # The LLVM library that `import mi_shadowgs` found for this process (README: Set-up);
     # a user's plain Mitsuba needs a working one too.
     env = dict(os.environ)
     res = subprocess.run([sys.executable, "-c", code, scene, out_npy], env=env,
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
-    return res.stdout
+    return res.stdout[res.stdout.index("RESULT ") + len("RESULT "):]
 
 
 def test_mesh_scene_renders_with_plain_mitsuba(run_data, tmp_path):
@@ -162,7 +177,7 @@ def test_mesh_scene_renders_with_plain_mitsuba(run_data, tmp_path):
     assert export(run, "--format", "mesh", "--out", out) == 0
     files = json.loads((out / MANIFEST_NAME).read_text())["files"]
     assert sorted(files) == sorted(["object.ply", "object.obj", "base.ply", "base.obj",
-                                    "scene.xml", "export.json"])
+                                    "asset.glb", "scene.xml", "export.json"])
     stdout = _render_plain_mitsuba(str(out / "scene.xml"), str(tmp_path / "img.npy"))
     assert stdout.split()[:2] == ["3", "2"]  # 3 test cameras, the 2 fitted lights
     img = np.load(tmp_path / "img.npy")
@@ -213,6 +228,39 @@ def test_mesh_scene_renders_with_plain_mitsuba(run_data, tmp_path):
         pts = np.asarray(m.vertices)[f]
         assert np.linalg.norm(pts[:, 0] - pts[:, 1], axis=1).min() > 1e-6, part
         np.testing.assert_allclose(np.linalg.norm(m.vertex_normals, axis=1), 1.0, atol=1e-4)
+    _check_mesh_tools_read_it(out)
+
+
+def _check_mesh_tools_read_it(out):
+    """What mesh tools (trimesh, MeshLab, Blender, three.js) read: the PLYs' standard uchar
+    colours are sRGB(albedo) within 1/255 beside the float materials; the object is
+    watertight or export.json says why not; no sliver components; the glTF loads."""
+    import trimesh
+    from plyfile import PlyData
+
+    info = json.loads((out / "export.json").read_text())
+    for part in ("object", "base"):
+        m = trimesh.load(out / f"{part}.ply")
+        assert m.visual.kind == "vertex", part
+        el = PlyData.read(str(out / f"{part}.ply"))["vertex"]
+        assert [el[c].dtype.name for c in ("red", "green", "blue")] == ["uint8"] * 3
+        albedo = np.stack([el[f"albedo_{c}"] for c in "rgb"], 1)
+        colours = np.stack([el[c] for c in ("red", "green", "blue")], 1) / 255.0
+        assert np.abs(colours - srgb(albedo)).max() <= 1 / 255 + 1e-9, part
+        # trimesh's own read of the colours (it may merge vertices: compare by position)
+        raw = trimesh.load(out / f"{part}.ply", process=False)
+        np.testing.assert_array_equal(raw.visual.vertex_colors[:, :3],
+                                      np.round(colours * 255).astype(np.uint8))
+        split = raw.split(only_watertight=False)
+        areas = sorted(c.area for c in split)
+        assert areas[0] >= 0.02 * areas[-1], (part, areas)  # no sliver components
+    obj = trimesh.load(out / "object.ply", process=False)
+    assert obj.is_watertight == info["watertight"]
+    assert info["watertight"] or info["not_watertight_because"], info
+    glb = trimesh.load(out / "asset.glb")
+    assert isinstance(glb, trimesh.Scene) and sorted(glb.geometry) == ["base", "object"]
+    g = glb.geometry["object"]
+    assert g.visual.kind == "vertex" and len(g.faces) == len(obj.faces)
 
 
 def test_rerun_reuses_and_other_settings_are_refused(run_data, tmp_path, capsys):
@@ -388,7 +436,8 @@ def test_2dgs_ply_keeps_the_fits_header_records(tmp_path):
     write_ply_model(model_path, read_ply_model(model_path), meta)
     assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "e") == 0
     out = tmp_path / "e" / "point_cloud.ply"
-    assert read_ply_metadata(out) == {**meta, "sh_space": "srgb"}  # + its SH's colour space
+    # + its SH's colour space and its frame
+    assert read_ply_metadata(out) == {**meta, "sh_space": "srgb", "world_frame": "opencv"}
     assert recorded_specular(out) is False
 
 
@@ -417,3 +466,51 @@ def test_splat_colours_above_white_are_said_clipped_in_the_header(tmp_path, caps
     assert export(plain, "--format", "3dgs-ply", "--out", tmp_path / "plain") == 0
     assert CLIPPED_KEY not in read_ply_metadata(tmp_path / "plain" / "point_cloud.ply")
     assert "outside [0, 1]" not in capsys.readouterr().err
+
+
+def test_close_mesh_caps_the_foot_and_small_holes_and_says_what_stays_open():
+    """A star-footed prism open at y = 0 (a non-convex foot) with a small hole and a large
+    one in its walls: the foot is capped inside the footprint, facing down; the small hole
+    is capped; the large one stays open and the info says why."""
+    import trimesh
+
+    from mi_shadowgs.stages.export.close import close_mesh, ear_clip
+
+    k = 24
+    ang = np.linspace(0, 2 * np.pi, k, endpoint=False)
+    r = np.where(np.arange(k) % 2 == 0, 1.0, 0.45)
+    ring = np.stack([r * np.cos(ang), r * np.sin(ang)], 1)
+    tri = ear_clip(ring)
+    assert len(tri) == k - 2
+    a = ring[tri]
+    areas = 0.5 * ((a[:, 1, 0] - a[:, 0, 0]) * (a[:, 2, 1] - a[:, 0, 1])
+                   - (a[:, 1, 1] - a[:, 0, 1]) * (a[:, 2, 0] - a[:, 0, 0]))
+    poly = 0.5 * np.sum(ring[:, 0] * np.roll(ring[:, 1], -1) - np.roll(ring[:, 0], -1) * ring[:, 1])
+    assert np.all(areas > 0) and np.isclose(areas.sum(), poly)  # no fold, no overlap
+    # A closed prism (star cross-section in x, z; y from 0.01 to 1), its bottom removed.
+    bottom = np.c_[ring[:, 0], np.full(k, 0.01), ring[:, 1]]
+    top = np.c_[ring[:, 0], np.ones(k), ring[:, 1]]
+    v = np.concatenate([bottom, top])
+    i = np.arange(k)
+    j = (i + 1) % k
+    walls = np.concatenate([np.c_[i, j, k + j], np.c_[i, k + j, k + i]])
+    top_faces = k + tri[:, ::-1]
+    full = trimesh.Trimesh(v, np.concatenate([walls, top_faces, tri]), process=False)
+    full.fix_normals()
+    assert full.is_watertight and full.volume > 0
+    bottom_cap = set(map(tuple, np.sort(tri, 1)))
+    faces = np.array([f for f in full.faces if tuple(sorted(f)) not in bottom_cap])
+    verts, closed, info = close_mesh(v.astype(np.float32), faces, 0.05, 8)
+    m = trimesh.Trimesh(verts, closed, process=False)
+    assert info == {"watertight": True, "capped_base_loops": 1, "capped_holes": 0}
+    assert m.is_watertight and m.is_winding_consistent and np.isclose(m.volume, full.volume,
+                                                                        rtol=0.02)
+    cap = m.faces[len(faces):]
+    assert np.all(verts[cap][..., 1] == 0) and np.all(m.face_normals[len(faces):, 1] < -0.99)
+    # A hole of one top triangle (3 edges) is capped; with hole_edges 2 it stays open.
+    holed = np.delete(faces, len(walls), axis=0)
+    _, _, info = close_mesh(v.astype(np.float32), holed, 0.05, 8)
+    assert info["watertight"] and info["capped_holes"] == 1
+    _, _, info = close_mesh(v.astype(np.float32), holed, 0.05, 2)
+    assert not info["watertight"] and "1 open loop(s) off the base" in \
+        info["not_watertight_because"]

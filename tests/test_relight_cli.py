@@ -181,9 +181,15 @@ def test_relight_command_orbit_video_and_test_views(tiny_run, tiny_presets, tmp_
     video = out / info["video"]
     assert video.is_file() and video.stat().st_size > 0
     text = capsys.readouterr().out
-    assert "shadow maps included" in text
-    if video.suffix == ".gif":
-        assert "wrote a GIF instead" in text and info["video_note"]
+    assert "shadow maps included" in text and "GIF" not in text
+    # imageio-ffmpeg is a dependency: a fresh install writes H.264, as ffmpeg reads it
+    import imageio_ffmpeg
+
+    assert video.suffix == ".mp4", info.get("video_note")
+    reader = imageio_ffmpeg.read_frames(str(video))
+    meta = next(reader)
+    assert meta["codec"] == "h264" and meta["size"] == (24, 24)
+    assert sum(1 for _ in reader) == 4
     # Default views: the run's test views.
     assert cli.main(["relight", str(run), "--out", str(tmp_path / "test"), "--light",
                      "30,45,3", "--no-progress"]) == 0
@@ -398,3 +404,23 @@ def test_the_plugin_and_api_relight_take_the_lobe_the_model_was_fitted_with(plug
     save_ply(bad, model, {key: "maybe"})
     with pytest.raises(PlyError, match=f"{bad}: header comment specular 'maybe'"):
         relight.recorded_specular(bad)
+
+
+def test_video_is_h264_and_a_gif_only_without_the_encoder(tmp_path, monkeypatch):
+    import importlib.util
+
+    import imageio_ffmpeg
+
+    from mi_shadowgs.stages.relight.runner import write_video
+
+    frames = [np.full((16, 20, 3), 40 * i, np.uint8) for i in range(5)]
+    path, why = write_video(tmp_path / "v", frames, 10.0)
+    assert path.suffix == ".mp4" and why is None
+    meta = next(imageio_ffmpeg.read_frames(str(path)))
+    assert meta["codec"] == "h264" and meta["size"] == (20, 16)
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "imageio_ffmpeg" else real(name, *a))
+    path, why = write_video(tmp_path / "g", frames, 10.0)
+    assert path.suffix == ".gif" and "imageio-ffmpeg" in why and "wrote a GIF instead" in why
+    assert iio.imread(path).shape[0] == 5

@@ -24,6 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (new, or an earlier export)")
     parser.add_argument("--color", default="sh",
                         help="splat PLY colour: sh (view-dependent, default) or albedo")
+    parser.add_argument("--frame", default=None, choices=("opencv", "y-up"),
+                        help="splat PLYs' world frame: opencv (the splat tools' and 3DGS's, "
+                             "Y down: upright in SuperSplat; default) or y-up (ours); the "
+                             "header records it, so our reader turns it back")
     parser.add_argument("--data", default=None,
                         help="the run's dataset, when it moved (mesh: training cameras)")
     parser.add_argument("--preset", default=None,
@@ -48,6 +52,6 @@ def run(args) -> int:
         config = dataclasses.replace(config, bsdf=args.bsdf)
     result = export_run(args.run, args.out, args.fmt, color=args.color, data=args.data,
                         config=config, overwrite=args.overwrite,
-                        progress=not args.no_progress)
+                        progress=not args.no_progress, frame=args.frame)
     print(result.summary)
     return 0

@@ -13,6 +13,9 @@ POINTS_PLY = "points3d.ply"  # an import's SfM points, in our frame
 SKY_ENVMAP = "sky_envmap.exr"  # the procedural sky of the env-map relit test views
 ENVMAP_DIR = "envmaps"  # copies of the other env maps the relit test views were rendered with
 FORMAT_VERSION = 1
+# dataset.json's record of the PNGs' alpha: "straight" (NeRF-synthetic's). A generated
+# dataset without it wrote premultiplied PNGs; the loader refuses to read those.
+PNG_ALPHA_FIELD = "png_alpha"
 # generate --photos: every view as a user's photo (sRGB JPEG, no cameras, no masks), named
 # "<split>_<index>.jpg" so that scoring finds the view's ground truth.
 PHOTOS = "photos"

@@ -537,14 +537,32 @@ def load_dataset(root: str | Path, split: str = "train", require_mask: bool = Tr
         else None
     _check_fields_read(root, info, lights)
     n_lights, relit_names = _light_buffers(lights)
+    frames = load_frames(tpath)
+    _check_png_alpha(root, info, frames)
     # An import without masks says so ("masks": false): its opaque PNGs carry no mask.
     no_masks = _read_json(tpath).get("masks", True) is False
     views = [_load_nerf_view(root, f.file_path, f.camera, n_lights, relit_names, tpath, i,
                              require_mask, f.distortion, f.to_ours, no_masks)
-             for i, f in enumerate(load_frames(tpath))]
+             for i, f in enumerate(frames)]
     points = root / layout.POINTS_PLY
     return Dataset(root=root, split=split, views=views, lights=lights, info=info, layout="nerf",
                    points=points if points.is_file() else None)
+
+
+def _check_png_alpha(root: Path, info: dict | None, frames: list[Frame]) -> None:
+    """A generated dataset (``dataset.json``) whose views would be read from PNGs that an
+    older generator wrote premultiplied (no ``png_alpha`` record) is refused, naming them:
+    read as straight alpha their edges would be dark. Their EXRs, when present, are read."""
+    if info is None or info.get(layout.PNG_ALPHA_FIELD) == "straight":
+        return
+    old = [p for f in frames if (p := _image_file(root, f.file_path)) is not None
+           and p.suffix.lower() == ".png"]
+    if old:
+        raise DatasetError(
+            f"{root / layout.DATASET_JSON}: no '{layout.PNG_ALPHA_FIELD}' record: its PNGs "
+            f"({old[0]}{f' and {len(old) - 1} more' if len(old) > 1 else ''}) were written "
+            "premultiplied by an older generator and have no EXR beside them; generate the "
+            "dataset again")
 
 
 # -- TensoIR ------------------------------------------------------------------------------

@@ -187,6 +187,13 @@ def _finish_swap(out: Path) -> None:
             os.replace(old, out)
 
 
+def scene_box(setup: SceneSetup) -> list[list[float]]:
+    """[[x, y, z] min, max] of every shape of the scene (object and base) in our world:
+    the box NeRF tools should sample (nerfstudio's Blender reader assumes +-1.5)."""
+    bbox = setup.scene.bbox()
+    return [[round(float(v), 6) for v in bbox.min], [round(float(v), 6) for v in bbox.max]]
+
+
 def _seed(seed: int, stream: int, index: int) -> int:
     """Per-render sampler seed, distinct per (stream, view), deterministic per dataset seed."""
     return (seed * 1_000_003 + stream * 100_003 + index) % (1 << 32)
@@ -194,7 +201,11 @@ def _seed(seed: int, stream: int, index: int) -> int:
 
 def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> None:
     """The files of one view; its image EXR last, which marks the view finished."""
-    write_png(root / (stem + layout.IMAGE_PNG), rgba)
+    # Straight alpha, as NeRF-synthetic's PNGs (the EXR stays premultiplied over black):
+    # a premultiplied PNG read by NeRF tools gives silhouettes a dark fringe.
+    alpha = rgba[..., 3:]
+    straight = np.where(alpha > 0, rgba[..., :3] / np.maximum(alpha, 1e-12), 0.0)
+    write_png(root / (stem + layout.IMAGE_PNG), np.concatenate([straight, alpha], axis=-1))
     write_exr(root / (stem + layout.ALBEDO), gt["albedo"][i])
     write_exr(root / (stem + layout.NORMAL), gt["normal"][i])
     write_exr(root / (stem + layout.DEPTH), gt["depth"][i])
@@ -353,6 +364,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                                  max_elevation_deg=config.test_elevation_deg[1], **kw)}
     relights = [(name, lit_scene(setup, lights=lts)) for name, lts in relight_lights(config)]
     partial = _prepare_partial(out, fp)
+    box = scene_box(setup)
     for env in envmaps:
         # Every env map lives in the dataset, so that the evaluation reads the same file;
         # named relative to it, since the partial folder is renamed.
@@ -394,9 +406,11 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                     bar.update(renders)
             frames = [cam.to_frame_json("./" + layout.view_stem(split, i))
                       for i, cam in enumerate(views)]
-            write_json(partial / layout.transforms_name(split),
-                       {"camera_angle_x": config.camera_angle_x, "w": config.width,
-                        "h": config.height, "world_up": "+y", "frames": frames})
+            meta = {"camera_angle_x": config.camera_angle_x, "w": config.width,
+                    "h": config.height, "world_up": "+y", "scene_box": box, "frames": frames}
+            write_json(partial / layout.transforms_name(split), meta)
+            if split == "test":  # NeRF tools (nerfstudio) also load a val split: the test one
+                write_json(partial / layout.transforms_name("val"), meta)
     if photos:
         _write_photos(partial)
     write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmaps))
@@ -414,6 +428,8 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
         "materials": setup.materials_json(),
         "object": {"center": setup.object_center.tolist(), "radius": setup.object_radius,
                    "to_world": setup.object_to_world.tolist()},
+        "scene_box": box,
+        layout.PNG_ALPHA_FIELD: "straight",
         "mitsuba_version": mi.__version__,
         "variant": mi.variant(),
     })

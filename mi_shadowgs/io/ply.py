@@ -27,6 +27,15 @@ values, so ``mi-shadowgs export`` writes display SH and records ``sh_space srgb`
 exactly, the higher bands to first order. A PLY without the record is read as linear (our
 own models); for another tool's PLY, which holds display values, pass ``sh_space="srgb"``.
 
+World frame (record ``world_frame``): "y-up" is our world (docs/conventions.md); "opencv"
+is the frame 3DGS, COLMAP, SuperSplat and PlayCanvas take a splat PLY's world to be in (Y
+down, Z forward), ours turned 180 degrees about X: ``x, y, z = x, -y, -z``, with the
+quaternions, ``shading_normal`` and the SH turned with it (exact: each SH coefficient only
+changes sign). ``save_ply`` records "y-up"; ``mi-shadowgs export``'s splat PLYs record the
+frame they are written in. ``read_ply_model`` turns an "opencv" PLY back into ours; a PLY
+without the record is returned as stored (its frame unknown: ``frame_of``). A PLY that lost
+its records (splat-transform drops comments) reads right with ``**SPLAT_TOOLS``.
+
 The reader handles ascii and binary (either byte order) PLY files with scalar vertex
 properties of any PLY type; the writer is atomic (``mi_shadowgs.io.atomic``).
 """
@@ -69,6 +78,14 @@ MAX_SH_DEGREE = 3
 SH_C0 = 0.28209479177387814  # Y_0^0: 3DGS's colour = C0 f_dc + 0.5 for the DC band
 SH_SPACE_KEY = "sh_space"  # header record: the colour space of f_dc/f_rest (docstring)
 SH_SPACES = ("linear", "srgb")
+FRAME_KEY = "world_frame"  # header record: the world frame of the model (docstring)
+FRAMES = ("y-up", "opencv")
+# What the splat tools assume of a PLY (3DGS, SuperSplat, PlayCanvas): sRGB SH, OpenCV frame.
+# read_ply_model(path, **SPLAT_TOOLS) reads one of our exports that lost its header records.
+SPLAT_TOOLS = {"sh_space": "srgb", "frame": "opencv"}
+# Sign of each SH basis function (3DGS order, degree <= 3) under x, y, z -> x, -y, -z.
+_SH_FLIP = np.array([1, -1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], np.float32)
+VECTOR_CHANNELS = ("shading_normal",)  # world-frame directions among the channels
 METADATA_PREFIX = "mi_shadowgs"  # comment lines of the header that hold metadata
 _METADATA_KEY = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
@@ -132,6 +149,56 @@ class PlyModel:
                        opacity_logit=mi.Float(np.ascontiguousarray(self.opacity_logit,
                                                                    dtype=np.float32)),
                        channels=channels)
+
+
+# -- world frames --------------------------------------------------------------------------
+def _turned(model: PlyModel, sign: float) -> PlyModel:
+    """``model`` turned a half turn about X (``x, y, z = x, -y, -z``); ``sign`` picks +180
+    or -180 degrees for the quaternions, so that one way then the other gives back the same
+    bits. Exact in float32."""
+    flip = np.array([1.0, -1.0, -1.0], np.float32)
+    w, x, y, z = (model.rotation[:, i] for i in range(4))
+    # q' = r q with r = (0, sign, 0, 0): a half turn about X
+    rot = np.stack([-sign * x, sign * w, -sign * z, sign * y], axis=-1).astype(np.float32)
+    channels = {}
+    for name, c in model.channels.items():
+        if name == "sh":
+            k = c.shape[1] // 3
+            c = (c.reshape(len(c), k, 3) * _SH_FLIP[:k, None]).reshape(c.shape)
+        elif name in VECTOR_CHANNELS and c.shape[1] == 3:
+            c = c * flip
+        channels[name] = np.asarray(c, np.float32)
+    return dataclasses.replace(model, position=(model.position * flip).astype(np.float32),
+                               rotation=rot, channels=channels)
+
+
+def to_frame(model: PlyModel, frame: str) -> PlyModel:
+    """A model in our Y-up world written in ``frame`` (``FRAMES``)."""
+    _check_frame(frame, "frame")
+    return model if frame == "y-up" else _turned(model, 1.0)
+
+
+def from_frame(model: PlyModel, frame: str) -> PlyModel:
+    """Inverse of ``to_frame``: a model stored in ``frame`` in our Y-up world (bit-exact)."""
+    _check_frame(frame, "frame")
+    return model if frame == "y-up" else _turned(model, -1.0)
+
+
+def _check_frame(frame, where) -> None:
+    if frame not in FRAMES:
+        raise PlyError(f"{where} must be one of {', '.join(FRAMES)}, got {frame!r}")
+
+
+def frame_of(path: str | os.PathLike, frame: str | None = None) -> str | None:
+    """The world frame the PLY at ``path`` is stored in: ``frame`` when given, else its
+    ``world_frame`` record, else None (unknown: another tool's, or saved before the record)."""
+    if frame is not None:
+        _check_frame(frame, f"{path}: frame")
+        return frame
+    recorded = read_ply_metadata(path).get(FRAME_KEY)
+    if recorded is not None:
+        _check_frame(recorded, f"{path}: the header record '{FRAME_KEY}'")
+    return recorded
 
 
 # -- SH layout ----------------------------------------------------------------------------
@@ -338,7 +405,8 @@ def write_ply_vertices(path: str | os.PathLike, columns: dict[str, np.ndarray],
 
 
 # -- surfel models ------------------------------------------------------------------------
-def read_ply_model(path: str | os.PathLike, sh_space: str | None = None) -> PlyModel:
+def read_ply_model(path: str | os.PathLike, sh_space: str | None = None,
+                   frame: str | None = None) -> PlyModel:
     """Read a 2DGS-layout PLY as raw float32 parameters (PlyError names file and property).
 
     Refuses (``mi_shadowgs.core.surfel_checks``) an empty model, non-finite values in any
@@ -347,8 +415,11 @@ def read_ply_model(path: str | os.PathLike, sh_space: str | None = None) -> PlyM
 
     The "sh" channel is returned linear: ``sh_space`` ("linear" or "srgb") says what the
     file's SH hold; by default its ``sh_space`` record, else linear (module docstring).
+    A model stored in the "opencv" frame (``frame``, else its ``world_frame`` record) is
+    returned in our Y-up world; one of unknown frame as stored.
     """
     space = sh_space_of(path, sh_space)
+    stored_in = frame_of(path, frame)
     props = read_ply_vertices(path)
     missing = [name for name in REQUIRED if name not in props]
     if missing:
@@ -393,10 +464,11 @@ def read_ply_model(path: str | os.PathLike, sh_space: str | None = None) -> PlyM
         else:  # not a clean base_0..base_{C-1} run: each property is its own channel
             for name in names:
                 channels[name] = props[name].astype(np.float32)[:, None]
-    return PlyModel(position=stack(["x", "y", "z"]),
-                    log_scale=stack(["scale_0", "scale_1"]),
-                    rotation=stack([f"rot_{i}" for i in range(4)]),
-                    opacity_logit=props["opacity"].astype(np.float32), channels=channels)
+    model = PlyModel(position=stack(["x", "y", "z"]),
+                     log_scale=stack(["scale_0", "scale_1"]),
+                     rotation=stack([f"rot_{i}" for i in range(4)]),
+                     opacity_logit=props["opacity"].astype(np.float32), channels=channels)
+    return model if stored_in is None else from_frame(model, stored_in)
 
 
 def sh_space_of(path: str | os.PathLike, sh_space: str | None = None) -> str:
@@ -473,13 +545,15 @@ def write_ply_model(path: str | os.PathLike, model: PlyModel,
     write_ply_vertices(path, cols, metadata)
 
 
-def load_ply(path: str | os.PathLike, sh_space: str | None = None):
-    """Load a PLY surfel model as ``mi_shadowgs.core.surfels.Surfels`` (``sh_space`` as
-    ``read_ply_model``: the SH come out linear)."""
-    return read_ply_model(path, sh_space).to_surfels()
+def load_ply(path: str | os.PathLike, sh_space: str | None = None,
+             frame: str | None = None):
+    """Load a PLY surfel model as ``mi_shadowgs.core.surfels.Surfels`` (``sh_space`` and
+    ``frame`` as ``read_ply_model``: the SH come out linear, the world ours)."""
+    return read_ply_model(path, sh_space, frame).to_surfels()
 
 
 def save_ply(path: str | os.PathLike, surfels, metadata: dict | None = None) -> None:
-    """Save ``Surfels`` (raw parameters, as 2DGS does) to a PLY file, atomically, with
-    ``metadata`` (``read_ply_metadata``) in its header."""
-    write_ply_model(path, PlyModel.from_surfels(surfels), metadata)
+    """Save ``Surfels`` (raw parameters, as 2DGS does; our Y-up world, recorded as
+    ``world_frame y-up``) to a PLY file, atomically, with ``metadata``
+    (``read_ply_metadata``) in its header."""
+    write_ply_model(path, PlyModel.from_surfels(surfels), {FRAME_KEY: "y-up", **(metadata or {})})

@@ -122,6 +122,7 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "min_points": 10,  # import: the SfM points below which cameras set the frame
                   "lambda_ind_floor": 0.0,  # stage 4: no pull on negative indirect light
                   "sh_space": "linear",  # render: a PLY's SH read as linear
+                  "world_up": "+y", "ply_frame": "y-up",  # render: the model as stored, Y-up
                   "hull_prune_views": 0,  # stage 1: no prune outside the masks
                   "hull_prune_dilate": None,  # used only by that prune
                   "prototype_iterations": 50,  # stage 2: K-means' steps from the prototypes

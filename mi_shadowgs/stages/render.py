@@ -9,6 +9,15 @@ continued (a killed render keeps its finished views and renders only the missing
 finished one is reused), of others it is refused unless ``overwrite``, which removes the
 files its manifest lists (``mi_shadowgs.io.provenance``) so that old and new renders never
 mix. It is never a dataset folder or inside one.
+
+World frames are never guessed: the model's is its PLY's ``world_frame`` record (our PLYs
+record it; an "opencv" export is read back into ours), else ``world_up`` ("+y" ours, "+z"
+Blender's; ``--world-up``), else that of the cameras when they record theirs (a
+``world_up`` field, or our ``dataset.json`` beside them): the model is then taken to be in
+its cameras' frame, as given. When neither records a frame the render stops, asking for
+``--world-up``. The cameras' frame is their record, else Blender's (NeRF-synthetic's
+convention, as the dataset loader reads them). The cameras are turned into the model's
+frame, never the model into theirs, so a model and cameras in one frame render as given.
 """
 
 from __future__ import annotations
@@ -17,6 +26,67 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+
+WORLD_UPS = ("+y", "+z")  # --world-up: ours, Blender's (turned by loader.BLENDER_TO_YUP)
+
+
+def camera_frame(cameras: Path) -> str | None:
+    """The world up axis a transforms file records: its ``world_up`` field, or ours ("+y")
+    with our ``dataset.json`` beside it; None when it records none."""
+    import json
+
+    from mi_shadowgs.dataset import layout
+    from mi_shadowgs.dataset.loader import WORLD_UP_FIELD, world_frame
+
+    meta = json.loads(Path(cameras).read_text())
+    if WORLD_UP_FIELD in meta or (Path(cameras).parent / layout.DATASET_JSON).is_file():
+        return world_frame(Path(cameras), meta)
+    return None
+
+
+def model_world_up(model: Path, cameras: Path, recorded: str | None,
+                   world_up: str | None) -> str:
+    """The world up axis the model is rendered in (module docstring): "+y" for a PLY that
+    records its frame (read into ours), else ``world_up``, else the cameras' recorded one;
+    a ValueError (exit 2) asking for ``--world-up`` when neither input records a frame."""
+    from mi_shadowgs.dataset.layout import DATASET_JSON
+    from mi_shadowgs.dataset.loader import WORLD_UP_FIELD
+
+    if world_up is not None and world_up not in WORLD_UPS:
+        raise ValueError(f"--world-up must be one of {', '.join(WORLD_UPS)}, got {world_up!r}")
+    if recorded is not None:
+        if world_up not in (None, "+y"):
+            raise ValueError(f"{model}: the PLY records its world frame ({recorded!r}, read "
+                             f"as our Y-up world); --world-up {world_up} is for a PLY "
+                             "without that record")
+        return "+y"
+    if world_up is not None:
+        return world_up
+    up = camera_frame(cameras)
+    if up is None:
+        raise ValueError(
+            f"{model}: the PLY records no world frame, and {cameras} none either (no "
+            f"'{WORLD_UP_FIELD}' field, no {DATASET_JSON} beside it): pass --world-up +z "
+            "when the model was made from these cameras as they are (e.g. 3DGS or 2DGS "
+            "trained on NeRF-synthetic; rendered in the cameras' frame as given), or "
+            "--world-up +y when it is in our Y-up world (the cameras then read as "
+            "Blender's Z-up, as the dataset loader reads them)")
+    return up
+
+
+def cameras_in(cameras: Path, up: str) -> list:
+    """(file_path, Camera) per frame of ``cameras``, in the world whose up axis is ``up``:
+    the file's own cameras turned from its frame (``camera_frame``, else Blender's)."""
+    import dataclasses
+
+    from mi_shadowgs.dataset.loader import BLENDER_TO_YUP, load_frames
+
+    frames = load_frames(cameras, as_stored=True)
+    own = camera_frame(cameras) or "+z"
+    turn = (np.eye(4) if own == up else BLENDER_TO_YUP if up == "+y" else BLENDER_TO_YUP.T)
+    return [(f.file_path, f.camera if own == up else
+             dataclasses.replace(f.camera, c2w=turn @ f.camera.c2w)) for f in frames]
+
 
 # AOVs whose preview is stretched over the covered pixels' range (see ``aov_preview``).
 RANGE_AOVS = ("depth", "median_depth")
@@ -84,12 +154,15 @@ def view_stems(names) -> list[str]:
 def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(),
                  background=None, color_channel: str = "sh",
                  memory_budget: str | None = None, overwrite: bool = False,
-                 progress: bool = True, sh_space: str | None = None) -> RenderResult:
+                 progress: bool = True, sh_space: str | None = None,
+                 world_up: str | None = None, frame: str | None = None) -> RenderResult:
     """Render the surfel PLY ``model`` from every view of the NeRF-synthetic ``cameras``
     file into the folder ``out`` (module docstring). Every argument is checked before any
     rendering: a missing file, an unknown AOV or colour channel, a bad background or
     budget raise an error naming it. ``sh_space``: what the PLY's SH hold ("linear" or
-    "srgb"; default its header record, else linear: ``mi_shadowgs.io.ply``)."""
+    "srgb"; default its header record, else linear: ``mi_shadowgs.io.ply``). ``frame``:
+    the frame the PLY is stored in ("y-up", "opencv"; default its record), ``world_up``
+    the up axis of a PLY without either (module docstring)."""
     from mi_shadowgs.core.memory import parse_bytes
     from mi_shadowgs.core.raster import RasterConfig
     from mi_shadowgs.core.render import (
@@ -98,8 +171,7 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
         check_color_channel,
         parse_background,
     )
-    from mi_shadowgs.dataset.loader import load_cameras
-    from mi_shadowgs.io.ply import load_ply, sh_space_of
+    from mi_shadowgs.io.ply import frame_of, load_ply, sh_space_of
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
     from mi_shadowgs.stages.common import warn_other_backend
 
@@ -109,7 +181,10 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
     if not Path(cameras).is_file():
         raise FileNotFoundError(f"cameras file not found: {cameras}")
     sh_space = sh_space_of(model, sh_space)
-    surfels = load_ply(model, sh_space)
+    frame = frame_of(model, frame)
+    up = model_world_up(model, Path(cameras), frame, world_up)
+    views = cameras_in(Path(cameras), up)
+    surfels = load_ply(model, sh_space, frame)
     aovs = list(dict.fromkeys(aovs))
     aov_layout(aovs, surfels)  # unknown names fail before any rendering
     background = parse_background(background, "--background")
@@ -119,12 +194,12 @@ def render_views(model: str | Path, cameras: str | Path, out: str | Path, aovs=(
         check_color_channel(surfels, color_channel)
     except RenderError as exc:
         raise RenderError(f"{model}: --color-channel: {exc}") from None
-    views = load_cameras(cameras)
     stems = view_stems(name for name, _ in views)
     provenance = Provenance(
         inputs={"model": input_ref(model), "cameras": input_ref(cameras)},
         settings={"aovs": aovs, "background": background, "color_channel": color_channel,
-                  "sh_space": sh_space})
+                  "sh_space": sh_space, "world_up": up,
+                  "ply_frame": "opencv" if frame == "opencv" else "y-up"})
     suffixes = [".exr", ".png"] + [f"_{a}{ext}" for a in aovs for ext in (".exr", ".png")]
     with Output.open(out, "render", provenance, overwrite=overwrite, reuse=True,
                      inputs=[model, cameras]) as output:

@@ -13,11 +13,15 @@ Formats (``--out`` is a folder; it gets a provenance manifest like every output)
   stage-4 model's header records (``comment mi_shadowgs ...``: receiver band, shadow maps,
   specular), so that relighting this file gives the run's relit views.
 - ``mesh`` -> ``object.ply``/``object.obj`` (+ ``base.ply``/``base.obj`` when the base is
-  known), ``scene.xml``, ``export.json``: see ``mi_shadowgs.stages.export.mesh``. The PLYs
-  carry per-vertex ``albedo_r/g/b``, ``roughness_0``, ``metallic_0`` and ``ggxalpha_0``
-  (roughness^2, clamped as in ``core.brdf``; linear; Mitsuba loads them as
-  ``vertex_albedo_color``, ``vertex_roughness``, ``vertex_metallic``, ``vertex_ggxalpha``),
-  the OBJs sRGB vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba:
+  known), ``asset.glb`` (both meshes, glTF binary), ``scene.xml``, ``export.json``: see
+  ``mi_shadowgs.stages.export.mesh``. The object is closed where it stands on the base
+  (``mi_shadowgs.stages.export.close``); ``export.json`` says whether it is watertight and,
+  if not, why. The PLYs carry the standard uchar ``red green blue alpha`` vertex colours
+  (the albedo in sRGB, which mesh tools show) and per-vertex ``albedo_r/g/b``,
+  ``roughness_0``, ``metallic_0`` and ``ggxalpha_0`` (roughness^2, clamped as in
+  ``core.brdf``; linear; Mitsuba loads them as ``vertex_albedo_color``,
+  ``vertex_roughness``, ``vertex_metallic``, ``vertex_ggxalpha``); the OBJs and the glTF
+  hold sRGB vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba:
   each mesh with a BSDF driven by ``mesh_attribute`` textures (``ExportConfig.bsdf``, below),
   the fitted lights as ``directional`` emitters, one ``perspective`` sensor per test camera
   (``$resx``, ``$resy``, ``$spp``, ``$max_depth`` can be overridden at load).
@@ -35,6 +39,13 @@ The BSDF (``ExportConfig.bsdf``):
 - ``"principled"``: Mitsuba's Disney ``principled`` (base colour, roughness, metallic), the
   layout other tools map to. Its diffuse lobe is Disney's, not Lambert's: under grazing
   views and lights it differs from the fitted model by up to ~2x (retro-reflection).
+
+Frame of the splat PLYs (``--frame``): by default the splat tools' (OpenCV/COLMAP: Y down,
+``x, y, z = x, -y, -z`` of ours, the quaternions and SH turned with it), which SuperSplat,
+PlayCanvas and 3DGS's viewers take a PLY's world to be, so the asset stands upright in them;
+``--frame y-up`` keeps ours. The header records it (``world_frame``), so our reader turns
+the file back; a copy that lost its header (splat-transform drops comments) reads right with
+``io.ply.SPLAT_TOOLS`` (``mi-shadowgs render --splat-conventions``).
 
 Colours in the splat PLYs are what splat viewers display: sRGB values (3DGS trains on sRGB
 images). ``--color sh`` converts the model's linear SH (``io.ply.sh_to_srgb``): the DC term
@@ -60,10 +71,13 @@ import numpy as np
 
 from mi_shadowgs.io.ply import (
     CLIPPED_KEY,
+    FRAME_KEY,
+    FRAMES,
     SH_C0,
     SH_SPACE_KEY,
     display_clipped,
     sh_to_srgb,
+    to_frame,
 )
 from mi_shadowgs.stages.export import mesh as mesh_mod
 
@@ -74,6 +88,9 @@ PLY_SH_DEGREE = 3  # what 3DGS/2DGS's load_ply expect (max_sh_degree default)
 # What the splat PLYs hold, a setting of their provenance so that an older export is not
 # reused as this one: 2 = with the header records (the fit's, ``sh_space``).
 SPLAT_LAYOUT = 2
+# The splat PLYs' world: the splat tools' (3DGS, COLMAP, SuperSplat, PlayCanvas: Y down), so
+# that viewers show the scene upright; "y-up" keeps ours. Recorded in the header.
+DEFAULT_FRAME = "opencv"
 MATERIAL_FOLDER = "material/full"
 
 
@@ -215,10 +232,29 @@ def bsdf_xml(parent, kind: str) -> None:
     _attribute(metal, "specular_reflectance", "vertex_albedo_color")
 
 
-def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
+def vertex_colors(part: mesh_mod.MeshPart) -> np.ndarray:
+    """[V, 4] uint8 RGBA: the albedo in sRGB (rounded: within 1/255), opaque."""
+    from mi_shadowgs.io.images import linear_to_srgb
+
+    rgb = linear_to_srgb(np.clip(part.albedo.astype(np.float64), 0.0, 1.0))
+    rgba = np.full((len(part.vertices), 4), 255, np.uint8)
+    rgba[:, :3] = np.round(rgb * 255.0).astype(np.uint8)
+    return rgba
+
+
+def _trimesh(part: mesh_mod.MeshPart):
     import trimesh
 
-    m = trimesh.Trimesh(part.vertices, part.faces, vertex_normals=part.normals, process=False)
+    return trimesh.Trimesh(part.vertices, part.faces, vertex_normals=part.normals,
+                           vertex_colors=vertex_colors(part), process=False)
+
+
+def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
+    """Binary PLY: normals, the standard uchar ``red green blue alpha`` (sRGB albedo) that
+    mesh tools show, then the float materials Mitsuba reads (module docstring)."""
+    import trimesh
+
+    m = _trimesh(part)
     for c, name in enumerate("rgb"):
         m.vertex_attributes[f"albedo_{name}"] = part.albedo[:, c].astype(np.float32)
     m.vertex_attributes["roughness_0"] = part.roughness.astype(np.float32)
@@ -226,6 +262,18 @@ def _mesh_ply_bytes(part: mesh_mod.MeshPart) -> bytes:
     m.vertex_attributes["ggxalpha_0"] = ggx_alpha(part.roughness).astype(np.float32)
     return trimesh.exchange.ply.export_ply(m, encoding="binary", vertex_normal=True,
                                            include_attributes=True)
+
+
+def _glb_bytes(parts: dict[str, mesh_mod.MeshPart]) -> bytes:
+    """glTF binary of the meshes (one node each, named by part) with the sRGB albedo as
+    vertex colours (``COLOR_0``), written by trimesh. glTF's frame is ours: Y-up,
+    right-handed, metres as scene units."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    for name, part in parts.items():
+        scene.add_geometry(_trimesh(part), node_name=name, geom_name=name)
+    return scene.export(file_type="glb", include_normals=True)
 
 
 def _mesh_obj_text(part: mesh_mod.MeshPart) -> str:
@@ -388,11 +436,13 @@ def base_known(data: Path) -> bool:
 
 def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
                data: str | Path | None = None, config: ExportConfig | None = None,
-               overwrite: bool = False, progress: bool = False):
+               overwrite: bool = False, progress: bool = False, frame: str | None = None):
     """Export the run's stage-4 model as ``fmt`` into the folder ``out``; returns a
     ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs).
-    ``preset``: the export's settings (the mesh's grid); default the run's own, as
-    ``relight`` takes it. ``data`` (the run's dataset, when it moved) only for a mesh."""
+    ``config``: the export's settings (the mesh's grid), the run's own by default
+    (``mi_shadowgs.presets.recorded(run).export``). ``data`` (the run's dataset, when it moved) only for a mesh.
+    ``frame``: the world frame of the splat PLYs (``FRAMES``; default ``DEFAULT_FRAME``;
+    module docstring)."""
     from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
     from mi_shadowgs.io.ply import (
@@ -413,6 +463,12 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     if fmt == "mesh" and color != "sh":
         raise ExportError("--color applies to the splat PLYs; a mesh always carries the "
                           "albedo, roughness and metallic")
+    if fmt == "mesh" and frame not in (None, "y-up"):
+        raise ExportError("--frame applies to the splat PLYs; a mesh (and scene.xml, "
+                          "glTF) is in our Y-up world, as Mitsuba and glTF take it")
+    frame = DEFAULT_FRAME if frame is None else frame
+    if frame not in FRAMES:
+        raise ExportError(f"unknown --frame {frame!r}: choose from {', '.join(FRAMES)}")
     if data is not None and fmt != "mesh":
         raise ExportError(f"--data is read by --format mesh only (its training cameras); "
                           f"--format {fmt} takes the model alone")
@@ -427,6 +483,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     settings = {"format": fmt, "color": color, **settings_dict(config)}
     if fmt != "mesh":
         settings["layout"] = SPLAT_LAYOUT
+        settings["frame"] = frame
     provenance = Provenance(dataset=dataset_ref(data_path) if data_path else None,
                             inputs=inputs, settings=settings)
     guard = [model_path, light_path] + ([data_path] if data_path else [])
@@ -436,19 +493,19 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
             return StageRun(out, False, 0.0, f"{out}: already holds this export (reused)")
         model = read_ply_model(model_path)
         clipped = clip_record(model, color, fmt, out)
+        records = {SH_SPACE_KEY: "srgb", FRAME_KEY: frame, **clipped}
         if fmt == "3dgs-ply":
-            write_ply_vertices(output.path("point_cloud.ply"), gs3d_columns(model, color,
-                                                                            config),
-                               {SH_SPACE_KEY: "srgb", **clipped})
+            write_ply_vertices(output.path("point_cloud.ply"),
+                               gs3d_columns(to_frame(model, frame), color, config), records)
             summary = f"wrote {out / 'point_cloud.ply'} (3DGS layout, {model.count} splats)"
         elif fmt == "2dgs-ply":
             # The header's settings of the fit (receiver band, shadow maps, whether the GGX
             # lobe was fitted) travel too: without them a relight of this PLY (api.relight,
             # the surfel_relight plugin) takes another tool's defaults and adds highlights
             # and shadows the fit never had.
-            write_ply_model(output.path("point_cloud.ply"), gs2d_model(model, color),
-                            {**read_ply_metadata(model_path), SH_SPACE_KEY: "srgb",
-                             **clipped})
+            write_ply_model(output.path("point_cloud.ply"),
+                            gs2d_model(to_frame(model, frame), color),
+                            {**read_ply_metadata(model_path), **records})
             summary = f"wrote {out / 'point_cloud.ply'} (2DGS layout, {model.count} surfels)"
         else:
             summary = _export_mesh(output, model, light_path, data_path, config, progress,
@@ -491,6 +548,8 @@ def _export_mesh(output, model, light_path: Path, data: Path, config: ExportConf
         with atomic_path(output.path(f"{name}.ply")) as tmp:
             tmp.write_bytes(_mesh_ply_bytes(part))
         write_text(output.path(f"{name}.obj"), _mesh_obj_text(part))
+    with atomic_path(output.path("asset.glb")) as tmp:
+        tmp.write_bytes(_glb_bytes(parts))
     lights = fitted_lights(json.loads(light_path.read_text()))
     write_text(output.path("scene.xml"), scene_xml(
         {name: f"{name}.ply" for name in parts}, lights, test, config,

@@ -72,6 +72,10 @@ class MeshConfig:
     # Triangles left by a weld with less area than this times the weld radius squared are
     # dropped (a ray hitting one gets NaN barycentrics in Mitsuba).
     sliver_area: float = 1e-3
+    # The object is closed (export.close): its foot on the base capped, and other open
+    # loops of at most this many edges; larger holes stay open (export.json says so).
+    cap_foot: bool = True
+    cap_hole_edges: int = 64
 
     def __post_init__(self):
         if self.depth not in DEPTH_KINDS:
@@ -447,8 +451,23 @@ def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known:
         flat = config.flatten_base and base_grid is not None
         base = _weld(base, np.arange(len(base.vertices)), config.weld * grid.voxel,
                      config.sliver_area)
+        # Welds and the outline cut can leave specks of a few triangles apart from the
+        # plane: sliver components, which mesh tools show as stray debris.
+        base = keep_components(base.vertices, base.faces, config.min_component)
         if flat:
             base.normals[:] = (0.0, 1.0, 0.0)
+    obj = keep_components(obj.vertices, obj.faces, config.min_component)
+    close_info = {}
+    if config.cap_foot:
+        from mi_shadowgs.stages.export.close import close_mesh
+
+        # the foot: loops within twice the cut's height above the (flattened) base
+        band = 2.0 * config.base_cut * grid.voxel
+        on_base = config.flatten_base and base_grid is not None
+        verts, faces, close_info = close_mesh(obj.vertices, obj.faces,
+                                              band if on_base else None,
+                                              config.cap_hole_edges)
+        obj = MeshPart(verts, faces, obj.normals)  # the normals of the surface
     t.append(time.perf_counter())
     arrays = surfel_arrays(surfels)
     for part in (obj, base):
@@ -461,5 +480,6 @@ def extract_mesh(surfels, cameras: list[Camera], config: MeshConfig, base_known:
             "seconds": {k: t[i + 1] - t[i] for i, k in enumerate(
                 ("depth", "tsdf_marching_cubes", "materials"))},
             "object_vertices": len(obj.vertices), "object_faces": len(obj.faces),
-            "base_faces": 0 if base is None else len(base.faces), **outline_info}
+            "base_faces": 0 if base is None else len(base.faces), **outline_info,
+            **close_info}
     return obj, base, info

@@ -278,16 +278,17 @@ def relight_frames(fit: RunFit, cameras, lights, cache: relight.RelightCache,
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: float) -> tuple[Path, str | None]:
-    """An MP4 (H.264) of sRGB uint8 frames through imageio's ffmpeg plugin, or a GIF where
-    that plugin (the ``imageio-ffmpeg`` package) or its encoder is missing; returns (file
-    written, why not MP4 or None)."""
+    """An MP4 (H.264) of sRGB uint8 frames through imageio's ffmpeg plugin (the
+    ``imageio-ffmpeg`` dependency, whose wheel ships ffmpeg), or a GIF where that package or
+    its encoder is missing or fails; returns (file written, why not MP4 or None)."""
     import importlib.util
 
     import imageio.v3 as iio
 
     from mi_shadowgs.io.atomic import atomic_path
 
-    why = "MP4 (H.264) unavailable: the imageio-ffmpeg package is not installed"
+    why = ("MP4 (H.264) unavailable: the imageio-ffmpeg package (a dependency of "
+           "mi_shadowgs) is not installed")
     if importlib.util.find_spec("imageio_ffmpeg") is not None:
         try:
             with atomic_path(path.with_suffix(".mp4")) as tmp:
