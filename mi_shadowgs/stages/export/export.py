@@ -441,8 +441,8 @@ def export_run(run: str | Path, out: str | Path, fmt: str, color: str = "sh",
     ``StageRun`` (``ran`` False when ``out`` already holds this export of these inputs).
     ``config``: the export's settings (the mesh's grid), the run's own by default
     (``mi_shadowgs.presets.recorded(run).export``). ``data`` (the run's dataset, when it
-    moved) only for a mesh. ``frame``: the world frame of the splat PLYs (``FRAMES``; default ``DEFAULT_FRAME``;
-    module docstring)."""
+    moved) only for a mesh. ``frame``: the world frame of the splat PLYs (``FRAMES``;
+    default ``DEFAULT_FRAME``; module docstring)."""
     from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.atomic import atomic_path, write_json, write_text
     from mi_shadowgs.io.ply import (
