@@ -31,8 +31,8 @@ from mi_shadowgs.dataset.generate import GenerateConfig
 from mi_shadowgs.dataset.importer import ImportConfig
 from mi_shadowgs.stages.export.export import ExportConfig
 from mi_shadowgs.stages.export.mesh import MeshConfig
+from mi_shadowgs.stages.geometry.config import GeometryConfig
 from mi_shadowgs.stages.geometry.densify import DensifyConfig
-from mi_shadowgs.stages.geometry.train import GeometryConfig
 from mi_shadowgs.stages.material.config import MaterialConfig
 from mi_shadowgs.stages.relight.render import RelightConfig
 from mi_shadowgs.stages.segmentation.features import SegmentationConfig

@@ -312,7 +312,7 @@ def test_a_setting_out_of_range_exits_2_naming_it(tmp_path, capsys, argv, messag
 
 def test_parse_settings_reads_each_field_by_its_type():
     from mi_shadowgs.config import parse_settings
-    from mi_shadowgs.stages.geometry.train import GeometryConfig
+    from mi_shadowgs.stages.geometry.config import GeometryConfig
 
     got = parse_settings(GeometryConfig, ["iterations=7", "lambda_dist=3e3", "init=random",
                                           "hull_extent=none", "unmasked_opacity_reset=true"],

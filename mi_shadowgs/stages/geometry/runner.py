@@ -130,7 +130,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     if evaluate and test is None:
         test = load_dataset(data, "test")
     if not getattr(train, "has_masks", True):
-        from mi_shadowgs.stages.geometry.train import unmasked
+        from mi_shadowgs.stages.geometry.config import unmasked
 
         config = unmasked(config)
         warn(f"{data}: no masks: stage 1 initialises from "

@@ -7,7 +7,7 @@ position schedule) and 3DGS/2DGS density control (``mi_shadowgs.stages.geometry.
 Only the training images, their masks (alpha: object plus base) and cameras are used;
 ground-truth normals and depth serve evaluation (``evaluate``) only.
 
-- ``GeometryConfig`` (its presets: ``mi_shadowgs.presets``);
+- ``GeometryConfig`` (``config``; its presets: ``mi_shadowgs.presets``);
 - ``scene_bounds``, ``visual_hull_points``, ``init_params``: initialisation;
 - ``train_geometry(dataset, config, ...) -> Surfels``: the loop (I/O through callbacks);
 - ``evaluate(surfels, dataset)``: test-view metrics (``mi_shadowgs.core.metrics``).
@@ -24,167 +24,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.config import check_fields
 from mi_shadowgs.core import jit, losses, metrics
 from mi_shadowgs.core.optim import SurfelAdam, surfels_from_params
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import SH_C0, Surfels, sh_colors
 from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
-from mi_shadowgs.stages.geometry.densify import DensifyConfig, DensifyStrategy
-
-INITS = ("hull", "random", "points")
-
-
-@dataclasses.dataclass(frozen=True)
-class GeometryConfig:
-    """Stage-1 hyperparameters; defaults are the paper's (and 2DGS's where it is silent)."""
-
-    iterations: int = 40000
-    sh_degree: int = 3
-    sh_degree_interval: int = 1000  # one more active SH degree every so many iterations
-    # Learning rates (3DGS/2DGS); position ones are multiplied by the scene extent.
-    lr_position_init: float = 0.00016
-    lr_position_final: float = 0.0000016
-    lr_position_delay_mult: float = 0.01
-    lr_position_delay_steps: int = 0
-    lr_position_max_steps: int | None = None  # None: the whole run
-    lr_sh_dc: float = 0.0025
-    lr_sh_rest: float = 0.0025 / 20.0
-    lr_opacity: float = 0.05
-    lr_scale: float = 0.005
-    lr_rotation: float = 0.001
-    # Loss weights (paper Sec. V: l_n, l_d, l_o = 0.05, 1000, 0.01; 2DGS: l_ssim = 0.2).
-    lambda_dssim: float = 0.2
-    lambda_normal: float = 0.05
-    lambda_dist: float = 1000.0
-    lambda_mask: float = 0.01
-    normal_from: int = 7000  # 2DGS switches the regularisers on late
-    # How the normal-consistency term's depth normals are differenced
-    # (``losses.depth_normals``): "central" (2DGS) or "same_plane".
-    normal_depth_differences: str = "central"
-    dist_from: int = 3000
-    # Initialisation.
-    # "hull" (visual hull of the masks) or "random" (scene bounds); "points" (the SfM points)
-    # is what "hull" becomes on views without masks.
-    init: str = "hull"
-    init_points: int = 100_000
-    init_opacity: float = 0.1  # not 0.5: logit 0 is a known zero-gradient point
-    hull_resolution: int = 96
-    # The hull's cube: centre +- the mean camera distance when None; else this many times
-    # the half-width a typical view sees at the centre (``view_radius``). The first left
-    # 0.1-0.7% of cpu-small's 8000 points on the object: its 48^3 cells were 0.21 across
-    # (the object is 2 across) and 88-90% of the cells kept were ones no view sees
-    # (BENCHMARKS.md, "Stage 1's hull on the object").
-    hull_extent: float | None = None
-    init_consistent_fraction: float = 0.0  # share of hull points in photo-consistent cells
-    init_consistent_top: float = 0.05  # ... which are this share of the hull's cells, best first
-    init_scale_factor: float = 1.0  # initial std-dev = factor * mean 3-NN distance (3DGS: 1)
-    # Views without masks only: lambda * L1 of the rendered alpha at the training pixels
-    # whose channels are all <= dark_max (a black background): transparency preferred where
-    # it costs nothing. The default scene's background is 0; its object and base are above
-    # 1e-3 but for 0.013% of their test pixels (shadows get indirect light), so the term does
-    # not hollow out shadowed receivers there. A lit background leaves it no pixels.
-    lambda_dark_alpha: float = 0.0
-    dark_max: float = 1.0 / 255.0
-    densify: DensifyConfig = DensifyConfig()
-    raster: RasterConfig = RasterConfig()
-    seed: int = 0
-    # Training views without masks (``unmasked``). None keeps the masked weight. Before the
-    # dark-alpha prior below and the frustum-bound random initialisation (``init_params``),
-    # black floaters in front of the black background took these terms over: at cpu-small's
-    # lambda_d = 3e4 the fit went transparent (11.0 dB), and 0 was the default. With both,
-    # the masked weights hold: default scene, cpu-small, test PSNR / median normal error
-    # 34.16 dB / 1.72 deg with them against 33.41 / 8.8 without (BENCHMARKS.md, "Without
-    # masks", session 9).
-    unmasked_lambda_dist: float | None = None
-    unmasked_lambda_normal: float | None = None
-    unmasked_opacity_reset: bool = False
-    # ... and only the photometric loss acts on them: a black opaque floater in front of a
-    # black background renders as empty space does, and the test views' spiral sees some of
-    # them in front of the object. ``unmasked`` sets lambda_dark_alpha to this. Default scene
-    # without masks, cpu-small (test PSNR / mask IoU / median normal error), full runs:
-    # 0 -> 30.3 dB / 0.56 / 10.6 deg; 0.1 -> 33.4 / 0.997 / 8.8 (masked: 35.7 / 0.998 / 1.5);
-    # 0.01 left a floater alpha of 0.1 on dark pixels at step 1000 (32.0 / 0.82 at 1056, 0.1:
-    # 33.2 / 0.995 at 1276). BENCHMARKS.md, "Without masks" (issue 16).
-    unmasked_lambda_dark_alpha: float = 0.1
-    # Views without masks: the surfel cap (``densify.max_surfels``) in their place; None
-    # keeps it. Without masks stage 1 also fits the ground out to the photos' edges, and
-    # cpu-small's 30k (set for masked views, with the hull on the object) held a capture's
-    # fit back: the default scene on a textured mat from photos only, 30k -> 40k, test PSNR
-    # 32.3 -> 33.6 dB and stage-5 shadow IoU 0.816 -> 0.849 (seed 0), 0.816 -> 0.869 (seed
-    # 1) (BENCHMARKS.md, "Session 44: the photo path back inside issue 17's bound"). At 40k
-    # the objects held 1351 of the surfels against 3858 from ground-truth cameras, and their
-    # shadow edges fell where the photos are lit: the weak light's score went flat and seed 2
-    # fitted it 16 deg off. 40k -> 80k, shadow IoU at seeds 0 / 1 / 2: 0.849 / 0.869 / 0.784
-    # -> 0.862 / 0.877 / 0.861, ground-truth cameras 0.883 (BENCHMARKS.md, "Session 45: the
-    # photo path's weak light").
-    unmasked_max_surfels: int | None = None
-    # After training: remove the surfels whose centre projects outside the training masks,
-    # each dilated by ``hull_prune_dilate`` px, in at least ``hull_prune_views`` views
-    # (``prune_outside_masks``); 0 keeps them all, as the paper does. Floaters outside every
-    # mask survive the weak mask loss (0.01) where the base is textured: they covered 2.4%
-    # of the masks' area on the default object on a textured mat and drew bright streaks
-    # in relit views; the prune took them to 0.27% (BENCHMARKS.md, "Session 40: a textured
-    # base's texture goes into the indirect light"). Views without masks do not vote. Off in
-    # every preset: the metrics do not see the slivers (outside the true masks), and on the
-    # plain default scene over six seeds the prune moved albedo +0.43 dB, relight +0.11 dB
-    # and shadow IoU +0.002, within the runs' spread; the dilation keeps the ficus's
-    # leaves (61 surfels removed, no mask pixel lost; 4,153 without it). BENCHMARKS.md,
-    # "Session 41: the prune outside the masks".
-    hull_prune_views: int = 0
-    hull_prune_dilate: int = 1
-    # Reporting (the loop reads losses back only at these intervals).
-    log_every: int = 100
-    preview_every: int = 2000
-    checkpoint_every: int = 2000
-    # ... and at least this often in wall time (a kill loses at most this much work).
-    checkpoint_seconds: float = 60.0
-
-    def __post_init__(self):
-        check_fields(self, (
-            ("iterations", self.iterations >= 1, ">= 1"),
-            ("sh_degree", 0 <= self.sh_degree <= 3, "in [0, 3]"),
-            ("sh_degree_interval", self.sh_degree_interval >= 1, ">= 1"),
-            *((name, getattr(self, name) >= 0, ">= 0") for name in (
-                "lr_position_init", "lr_position_final", "lr_sh_dc", "lr_sh_rest",
-                "lr_opacity", "lr_scale", "lr_rotation", "lambda_dssim", "lambda_normal",
-                "lambda_dist", "lambda_mask", "lambda_dark_alpha", "normal_from", "dist_from",
-                "lr_position_delay_steps", "unmasked_lambda_dark_alpha")),
-            ("init", self.init in INITS, f"one of {INITS}"),
-            ("hull_extent", self.hull_extent is None or self.hull_extent > 0, "> 0 or None"),
-            ("normal_depth_differences",
-             self.normal_depth_differences in losses.DEPTH_NORMAL_DIFFERENCES,
-             f"one of {losses.DEPTH_NORMAL_DIFFERENCES}"),
-            ("init_points", self.init_points >= 1, ">= 1"),
-            ("unmasked_max_surfels", self.unmasked_max_surfels is None
-             or self.unmasked_max_surfels >= 1, ">= 1 or None"),
-            ("init_opacity", 0 < self.init_opacity < 1, "in (0, 1)"),
-            ("hull_resolution", self.hull_resolution >= 2, ">= 2"),
-            ("init_consistent_fraction", 0 <= self.init_consistent_fraction <= 1, "in [0, 1]"),
-            ("init_consistent_top", 0 < self.init_consistent_top <= 1, "in (0, 1]"),
-            ("init_scale_factor", self.init_scale_factor > 0, "> 0"),
-            ("hull_prune_views", self.hull_prune_views >= 0, ">= 0 (0: no prune)"),
-            ("hull_prune_dilate", self.hull_prune_dilate >= 0, ">= 0 (pixels)"),
-            ("log_every", self.log_every >= 1, ">= 1"),
-            ("preview_every", self.preview_every >= 1, ">= 1"),
-            ("checkpoint_every", self.checkpoint_every >= 1, ">= 1"),
-            ("checkpoint_seconds", self.checkpoint_seconds > 0, "> 0")))
-
-
-def unmasked(config: GeometryConfig) -> GeometryConfig:
-    """``config`` for training views without masks: its ``unmasked_*`` settings in place of
-    the distortion, normal and dark-alpha weights, the opacity reset and the surfel cap
-    (see the fields' comments; a None keeps the masked setting)."""
-    densify = config.densify if config.unmasked_opacity_reset else \
-        dataclasses.replace(config.densify, opacity_reset_interval=0)
-    if config.unmasked_max_surfels is not None:
-        densify = dataclasses.replace(densify, max_surfels=config.unmasked_max_surfels)
-    dist, normal = config.unmasked_lambda_dist, config.unmasked_lambda_normal
-    return dataclasses.replace(config,
-                               lambda_dist=config.lambda_dist if dist is None else dist,
-                               lambda_normal=config.lambda_normal if normal is None else normal,
-                               lambda_dark_alpha=config.unmasked_lambda_dark_alpha,
-                               densify=densify)
+from mi_shadowgs.stages.geometry.config import GeometryConfig
+from mi_shadowgs.stages.geometry.densify import DensifyStrategy
 
 
 # -- initialisation -----------------------------------------------------------------------
@@ -273,7 +119,7 @@ def points_in_views(views, centre, radius: float, count: int, rng: np.random.Gen
     its initial size, colour and opacity for good. On the default scene without masks,
     6.5% of a uniform cube's surfels ended there and drew faint sheets across the test
     views' corners; removing them raised the test PSNR from 34.16 to 35.54 dB (masked
-    35.70; BENCHMARKS.md, "Without masks", session 9).
+    35.70).
     """
     found, drawn = [], 0
     while sum(len(f) for f in found) < count:
@@ -708,8 +554,8 @@ def prune_outside_masks(surfels: Surfels, views, config: GeometryConfig
 
 
 # Above this share of the surfels removed, the prune says so: on the scenes measured it
-# removes 0-0.2% (floaters), and 44% where the masks left out the ground (BENCHMARKS.md,
-# "Session 41"), so a large share points at the masks or the cameras, not at floaters.
+# removes 0-0.2% (floaters), and 44% where the masks left out the ground, so a large share
+# points at the masks or the cameras, not at floaters.
 PRUNE_WARN_SHARE = 0.1
 
 
