@@ -597,7 +597,7 @@ def test_a_killed_sfm_resumes_where_it_stopped(photos, imported, tmp_path, monke
     that ran through; then the work folder is gone."""
     import pycolmap
 
-    from mi_shadowgs.dataset import importer
+    from mi_shadowgs.dataset import sfm
 
     config = with_overrides(CONFIG, {"sfm_chunk_pairs": 100}, "import")  # 276 pairs: 3
     out = tmp_path / "data"
@@ -618,9 +618,9 @@ def test_a_killed_sfm_resumes_where_it_stopped(photos, imported, tmp_path, monke
     monkeypatch.setattr(pycolmap, "match_image_pairs", match)
     with pytest.raises(KeyboardInterrupt):
         import_capture(photos / "photos", out, config, progress=False)
-    work = importer.sfm_work_folder(out)
+    work = sfm.sfm_work_folder(out)
     assert not out.exists() and work.is_dir()
-    state = json.loads((work / importer.SFM_STATE).read_text())
+    state = json.loads((work / sfm.SFM_STATE).read_text())
     assert len(state["extracted"]) == 24 and state["matched_pairs"] == 200
     assert not state["mapped"] and calls["extract"] == 3 and calls["match"] == 3
     calls["kill_at"] = None
@@ -644,7 +644,7 @@ def test_a_mapping_killed_between_registrations_continues_its_models(photos, imp
     its start, and gives the cameras of the import that ran through."""
     import pycolmap
 
-    from mi_shadowgs.dataset import importer
+    from mi_shadowgs.dataset import sfm
     from mi_shadowgs.io import interrupt
 
     config = with_overrides(CONFIG, {"checkpoint_seconds": 1e-9}, "import")
@@ -661,7 +661,7 @@ def test_a_mapping_killed_between_registrations_continues_its_models(photos, imp
     monkeypatch.setattr(interrupt, "raise_pending", killed_at_the_sixth)
     with pytest.raises(KeyboardInterrupt):
         import_capture(photos / "photos", out, config, progress=False)
-    saved = importer.sfm_work_folder(out) / importer.MAPPING / "0"
+    saved = sfm.sfm_work_folder(out) / sfm.MAPPING / "0"
     assert pycolmap.Reconstruction(str(saved)).num_reg_images() == 8  # the pair and 6 more
     monkeypatch.setattr(pycolmap.ReconstructionManager, "read",
                         lambda self, path: read.append(path) or real_read(self, path))
@@ -678,11 +678,11 @@ def test_an_import_killed_after_its_mapping_does_not_map_again(photos, imported,
                                                               monkeypatch):
     """Killed once the mapping is recorded (here in the world frame that follows it): the
     rerun reads the finished mapping's models back instead of mapping again."""
-    from mi_shadowgs.dataset import importer
+    from mi_shadowgs.dataset import importer, sfm
 
     out = tmp_path / "data"
     mappings, frames = [], []
-    real_map, real_frame = importer.incremental_mapping, importer.world_frame
+    real_map, real_frame = sfm.incremental_mapping, importer.world_frame
 
     def counted_map(*args, **kwargs):
         mappings.append(1)
@@ -694,7 +694,7 @@ def test_an_import_killed_after_its_mapping_does_not_map_again(photos, imported,
             raise KeyboardInterrupt
         return real_frame(*args, **kwargs)
 
-    monkeypatch.setattr(importer, "incremental_mapping", counted_map)
+    monkeypatch.setattr(sfm, "incremental_mapping", counted_map)
     monkeypatch.setattr(importer, "world_frame", killed_once)
     with pytest.raises(KeyboardInterrupt):
         import_capture(photos / "photos", out, CONFIG, progress=False)
@@ -704,21 +704,21 @@ def test_an_import_killed_after_its_mapping_does_not_map_again(photos, imported,
 
 
 def test_sfm_work_of_other_photos_is_not_resumed_and_a_stranger_folder_is_refused(tmp_path):
-    from mi_shadowgs.dataset import importer
+    from mi_shadowgs.dataset import importer, sfm
 
     work = tmp_path / ".data.sfm"
-    state = importer.open_sfm_work(work, "key-a")
+    state = sfm.open_sfm_work(work, "key-a")
     state["extracted"] = ["a.jpg"]
-    (work / importer.SFM_STATE).write_text(json.dumps(state))
+    (work / sfm.SFM_STATE).write_text(json.dumps(state))
     (work / "database.db").write_text("features of a.jpg")
-    assert importer.open_sfm_work(work, "key-a")["extracted"] == ["a.jpg"]  # resumed
-    fresh = importer.open_sfm_work(work, "key-b")  # other photos or settings: afresh
+    assert sfm.open_sfm_work(work, "key-a")["extracted"] == ["a.jpg"]  # resumed
+    fresh = sfm.open_sfm_work(work, "key-b")  # other photos or settings: afresh
     assert fresh["extracted"] == [] and not (work / "database.db").exists()
     stranger = tmp_path / ".other.sfm"
     stranger.mkdir()
     (stranger / "notes.txt").write_text("mine")
     with pytest.raises(importer.CaptureError, match="did not write"):
-        importer.open_sfm_work(stranger, "key-a")
+        sfm.open_sfm_work(stranger, "key-a")
     assert (stranger / "notes.txt").read_text() == "mine"
 
 

@@ -77,7 +77,8 @@ def main(argv=None) -> None:
     parser.add_argument("--preset", default="cpu-small")
     args = parser.parse_args(argv)
     claim_out(args.out, "validation.import_sfm", ('import_sfm.json', 'import_0'))
-    from mi_shadowgs.dataset.importer import import_capture, sfm_work_folder
+    from mi_shadowgs.dataset.importer import import_capture
+    from mi_shadowgs.dataset.sfm import sfm_work_folder
     from mi_shadowgs.dataset.writer import write_dataset
     from mi_shadowgs.presets import generate_config as gen_config
     from mi_shadowgs.presets import import_config as get_config

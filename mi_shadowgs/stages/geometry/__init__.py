@@ -2,8 +2,7 @@
 normal-consistency and depth-distortion losses, densified and pruned as they train.
 
 ``config``: the settings; ``train``: losses and the optimisation loop; ``densify``:
-clone/split/prune;
-``runner``: ``run_geometry``, which writes the stage's files.
+clone/split/prune; ``runner``: ``run_geometry``, which writes the stage's files.
 """
 
 from __future__ import annotations
