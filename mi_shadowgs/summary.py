@@ -212,6 +212,21 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     if speed:
         summary["tables"].append(speed)
     summary["provenance"] = _provenance(run, config, mi.variant())
+    _add_material_stage(summary, run, data, results, secs)
+    summary["stages"].append(speed_error_stage(run))
+    return summary
+
+
+# Columns of the decomposition (no ground truth needed) and of the comparison with ground
+# truth; "input" leads both.
+_DECOMPOSITION = ("albedo", "roughness", "metallic", "normal", "irradiance", "visibility",
+                  "segments")
+
+
+def _add_material_stage(summary: dict, run: Path, data: Path, results: dict, secs: dict
+                        ) -> None:
+    """The full fit's figure grid(s) and the stages 3-5 entry (light map, relit previews,
+    loss curve) into ``summary``, when the fit wrote its grid."""
     full = run / "material" / "full"
     if (full / "grid.json").is_file():
         grid = json.loads((full / "grid.json").read_text())
@@ -254,14 +269,6 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
             "metrics": {k: v for k, v in results.get("full", {}).items()
                         if not isinstance(v, (dict, list))},
             "figures": figures})
-    summary["stages"].append(speed_error_stage(run))
-    return summary
-
-
-# Columns of the decomposition (no ground truth needed) and of the comparison with ground
-# truth; "input" leads both.
-_DECOMPOSITION = ("albedo", "roughness", "metallic", "normal", "irradiance", "visibility",
-                  "segments")
 
 
 def _split_grid(grid: dict) -> list[dict]:

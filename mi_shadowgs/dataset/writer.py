@@ -324,6 +324,37 @@ def _write_photos(folder: Path) -> None:
                 write_jpeg(path, rgba[..., :3])
 
 
+def _cameras(setup, config: GenerateConfig, seed: int) -> dict[str, list]:
+    """The training cameras (random on a sphere band, ``seed``) and the test ones (a spiral),
+    looking at the object's centre."""
+    rng = np.random.default_rng(seed)
+    target = setup.object_center
+    kw = dict(distance=config.camera_distance, fov_x=config.camera_angle_x,
+              width=config.width, height=config.height)
+    lo, hi = config.train_elevation_deg
+    test_lo, test_hi = config.test_elevation_deg
+    return {"train": train_cameras(config.n_train, rng, target, min_elevation_deg=lo,
+                                   max_elevation_deg=hi, **kw),
+            "test": test_cameras(config.n_test, target, min_elevation_deg=test_lo,
+                                 max_elevation_deg=test_hi, **kw)}
+
+
+def _envmap_relights(setup, config: GenerateConfig, envmaps, partial: Path) -> list:
+    """(name, scene) of the env-map relightings, each map copied (or, for the sky, written)
+    into the dataset, so that the evaluation reads what was rendered; named relative to it,
+    since the partial folder is renamed."""
+    out = []
+    for env in envmaps:
+        if env.source is None:
+            write_exr(partial / env.ref, sky_envmap_image(config.sky))
+        else:
+            (partial / env.ref).parent.mkdir(parents=True, exist_ok=True)
+            write_bytes(partial / env.ref, env.source.read_bytes())
+        out.append((env.name, lit_scene(setup, envmap=str(partial / env.ref),
+                                        envmap_scale=config.envmap_scale)))
+    return out
+
+
 def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfig,
                   preset: str, seed: int = 0, overrides: dict[str, str] | None = None,
                   overwrite: bool = False, progress: bool = True,
@@ -352,29 +383,11 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     if _check_output(out, fp, overwrite):
         return out, False
 
-    rng = np.random.default_rng(seed)
-    target = setup.object_center
-    kw = dict(distance=config.camera_distance, fov_x=config.camera_angle_x,
-              width=config.width, height=config.height)
-    lo, hi = config.train_elevation_deg
-    cams = {"train": train_cameras(config.n_train, rng, target, min_elevation_deg=lo,
-                                   max_elevation_deg=hi, **kw),
-            "test": test_cameras(config.n_test, target, min_elevation_deg=config.
-                                 test_elevation_deg[0],
-                                 max_elevation_deg=config.test_elevation_deg[1], **kw)}
+    cams = _cameras(setup, config, seed)
     relights = [(name, lit_scene(setup, lights=lts)) for name, lts in relight_lights(config)]
     partial = _prepare_partial(out, fp)
     box = scene_box(setup)
-    for env in envmaps:
-        # Every env map lives in the dataset, so that the evaluation reads the same file;
-        # named relative to it, since the partial folder is renamed.
-        if env.source is None:
-            write_exr(partial / env.ref, sky_envmap_image(config.sky))
-        else:
-            (partial / env.ref).parent.mkdir(parents=True, exist_ok=True)
-            write_bytes(partial / env.ref, env.source.read_bytes())
-        relights.append((env.name, lit_scene(setup, envmap=str(partial / env.ref),
-                                             envmap_scale=config.envmap_scale)))
+    relights += _envmap_relights(setup, config, envmaps, partial)
     renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth,
                             sampler=config.sampler, pass_spp=config.pass_spp)
     total = config.n_train + config.n_test * (1 + len(relights))

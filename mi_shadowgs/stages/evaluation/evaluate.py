@@ -163,18 +163,7 @@ def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_m
                                                    "relight_lpips")}[metric]
             metrics.update(dict.fromkeys(keys))
     if "albedo PSNR/SSIM/LPIPS" not in gone:
-        gt_alb = test.stack("albedo")
-        regions = material  # present: the albedo metrics need the material ids
-        alb = evaluation.albedo_metrics(est_alb, gt_alb, regions, scored)
-        metrics.update({"albedo_estimate": ALBEDO_ESTIMATE,
-                        "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
-                        "albedo_lpips": alb["lpips"], "albedo_per_view": alb["per_view"],
-                        "albedo_psnr_global": alb["psnr_global"]})
-        if "lpips_skipped" in alb:
-            metrics["lpips_skipped"] = alb["lpips_skipped"]
-        scales = evaluation.albedo_scales(est_alb, gt_alb, regions, scored)
-        images["albedo"] = evaluation.align_albedo(est_alb, regions, scales)
-        images["gt/albedo"] = gt_alb
+        _albedo_scores(est_alb, test, material, scored, metrics, images)
     if "light cosine and angular errors" not in gone:
         gt_lights = train.lights["training"]["lights"]
         gt_dirs = np.array([lt["direction"] for lt in gt_lights], np.float64)  # [G, 3]
@@ -189,36 +178,13 @@ def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_m
                                                                   gt_map)
         images["gt/light_map"] = gt_map.mean(-1) if gt_map.ndim == 2 else gt_map
     if "shadow IoU" not in gone:
-        gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
-        metrics["shadow_iou"] = evaluation.shadow_iou(est_irr, gt_irr, scored)
-        metrics["shadow_iou_decided"] = evaluation.shadow_iou(
-            est_irr, gt_irr, scored, undecided_band=evaluation.SHADOW_UNDECIDED_BAND)
-        metrics["shadow_undecided_fraction"] = float(np.mean([
-            evaluation.undecided_pixels(g, m).sum() / max(int(m.sum()), 1)
-            for g, m in zip(gt_irr, scored, strict=True)]))
-        images["gt/irradiance"] = gt_irr
+        _shadow_scores(est_irr, test, scored, metrics, images)
     relit = {}
     if "relighting PSNR/SSIM/LPIPS" not in gone:
         # The albedo is aligned to ground truth by one global per-channel factor.
         smodel = _scaled_albedo_model(model, evaluation.global_albedo_scale(
             est_alb, test.stack("albedo"), scored))
-        for entry in train.lights.get("relightings", []):
-            name = entry["name"]
-            if entry.get("type") == "envmap":  # its 128-direction light set, shadows included
-                lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
-            else:
-                lights = relight.lights_from_json(entry)
-            # Only the relit colours are scored: no irradiance pass (for an env map, a
-            # second shading over its 128 directions).
-            rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg,
-                                             cache=cache, only_rgb=True)
-            est = np.stack([v["rgb"] for v in rv])
-            gt = np.stack([v.relit[name] for v in test.views])
-            relit[name] = {**evaluation.image_metrics(est, gt, mask), "render_s": secs,
-                           "views": len(rv), "type": entry.get("type", "directional"),
-                           "light_directions": lights.count}
-            images[f"relit/{name}"] = est
-            images[f"gt/relit/{name}"] = gt
+        relit = _relit_scores(smodel, train, test, bounds, vcfg, rcfg, cache, mask, images)
     if relit:
         metrics["relight_psnr"] = float(np.mean([r["psnr"] for r in relit.values()]))
         metrics["relight_ssim"] = float(np.mean([r["ssim"] for r in relit.values()]))
@@ -228,6 +194,59 @@ def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_m
     metrics["relighting"] = relit
     metrics["test_views"] = [Path(v.name).name for v in test.views]  # order of per_view
     return metrics, images
+
+
+def _albedo_scores(est_alb, test, material, scored, metrics: dict, images: dict) -> None:
+    """The albedo metrics (per material region, aligned by a scale per region) into
+    ``metrics``, the aligned albedo and its truth into ``images``."""
+    gt_alb = test.stack("albedo")
+    alb = evaluation.albedo_metrics(est_alb, gt_alb, material, scored)
+    metrics.update({"albedo_estimate": ALBEDO_ESTIMATE,
+                    "albedo_psnr": alb["psnr"], "albedo_ssim": alb["ssim"],
+                    "albedo_lpips": alb["lpips"], "albedo_per_view": alb["per_view"],
+                    "albedo_psnr_global": alb["psnr_global"]})
+    if "lpips_skipped" in alb:
+        metrics["lpips_skipped"] = alb["lpips_skipped"]
+    scales = evaluation.albedo_scales(est_alb, gt_alb, material, scored)
+    images["albedo"] = evaluation.align_albedo(est_alb, material, scales)
+    images["gt/albedo"] = gt_alb
+
+
+def _shadow_scores(est_irr, test, scored, metrics: dict, images: dict) -> None:
+    """The shadow IoU, its decided form and the undecided share into ``metrics``; the true
+    white direct irradiance into ``images``."""
+    gt_irr = test.stack("irradiance").sum(axis=3).mean(-1)  # [V, H, W] white direct
+    metrics["shadow_iou"] = evaluation.shadow_iou(est_irr, gt_irr, scored)
+    metrics["shadow_iou_decided"] = evaluation.shadow_iou(
+        est_irr, gt_irr, scored, undecided_band=evaluation.SHADOW_UNDECIDED_BAND)
+    metrics["shadow_undecided_fraction"] = float(np.mean([
+        evaluation.undecided_pixels(g, m).sum() / max(int(m.sum()), 1)
+        for g, m in zip(gt_irr, scored, strict=True)]))
+    images["gt/irradiance"] = gt_irr
+
+
+def _relit_scores(smodel, train, test, bounds, vcfg, rcfg, cache, mask, images: dict) -> dict:
+    """Each of the dataset's relightings rendered with ``smodel`` and scored against its
+    ground truth: {name: metrics}; the renders and truths into ``images``."""
+    relit = {}
+    for entry in train.lights.get("relightings", []):
+        name = entry["name"]
+        if entry.get("type") == "envmap":  # its 128-direction light set, shadows included
+            lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
+        else:
+            lights = relight.lights_from_json(entry)
+        # Only the relit colours are scored: no irradiance pass (for an env map, a second
+        # shading over its 128 directions).
+        rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg,
+                                         cache=cache, only_rgb=True)
+        est = np.stack([v["rgb"] for v in rv])
+        gt = np.stack([v.relit[name] for v in test.views])
+        relit[name] = {**evaluation.image_metrics(est, gt, mask), "render_s": secs,
+                       "views": len(rv), "type": entry.get("type", "directional"),
+                       "light_directions": lights.count}
+        images[f"relit/{name}"] = est
+        images[f"gt/relit/{name}"] = gt
+    return relit
 
 
 def check_evaluation_inputs(train, test) -> dict[str, str | None]:
