@@ -114,9 +114,11 @@ def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,
     """(run, data): a dataset folder with camera files and a ``dataset.json`` naming a base,
     and a run folder whose manifests are those of a finished `mi-shadowgs run` (stage 4 in
     ``material/full`` when ``stage4``) holding ``model``."""
+    from mi_shadowgs.config import to_dict
     from mi_shadowgs.dataset.fingerprint import dataset_ref
     from mi_shadowgs.io.ply import write_ply_model
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
+    from mi_shadowgs.presets import CONFIG_NAME, get_config
 
     data, run = root / "data", root / "run"
     data.mkdir(parents=True)
@@ -127,8 +129,11 @@ def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,
         "materials": [{"id": 0, "name": "background"}, {"id": 1, "name": "sphere"},
                       {"id": 2, "name": "base"}]}))
     model = sphere_on_plane() if model is None else model
-    with Output.open(run, "run", Provenance(dataset=dataset_ref(data)),
+    tree = get_config("cpu-small")  # what a run records: its settings tree
+    with Output.open(run, "run", Provenance(dataset=dataset_ref(data), settings=tree.to_dict()),
                      parts=("geometry", "segmentation", "material")) as top:
+        top.claim(CONFIG_NAME)
+        (run / CONFIG_NAME).write_text(json.dumps(tree.to_dict()))
         top.add_part("geometry")
         geo = run / "geometry"
         with Output.open(geo, "train", Provenance(dataset=dataset_ref(data))) as out:
@@ -143,7 +148,9 @@ def fake_run(root: Path, model: PlyModel | None = None, stage4: bool = True,
         if stage4:
             top.add_part("material/full")
             prov = Provenance(dataset=dataset_ref(data),
-                              inputs={"model": input_ref(seg / "model.ply")})
+                              inputs={"model": input_ref(seg / "model.ply")},
+                              settings={"visibility": to_dict(tree.visibility),
+                                        "relight": to_dict(tree.relight)})
             with Output.open(run / "material" / "full", "run", prov, part_of=run) as out:
                 write_ply_model(out.path("model.ply"), model)
                 dirs = np.array([d for d, _ in lights], np.float64)

@@ -402,24 +402,26 @@ def test_model_bsdf_renders_our_cook_torrance(tmp_path, roughness, metallic):
         assert err["principled"] > 0.05, err
 
 
-def test_the_export_takes_the_runs_preset_by_default(tmp_path):
-    """Without --preset the export's settings are the run's preset's (the mesh grid of a
-    `paper` run is `paper`'s), as relight takes them; they were cpu-small's for any run."""
+def test_the_export_takes_the_runs_settings_by_default(tmp_path):
+    """Without --preset the export's settings are those the run recorded (RUN/config.json:
+    the mesh grid of a `paper` run is `paper`'s), as relight takes them; --preset names
+    another preset's."""
     import json
 
     from mi_shadowgs.io.provenance import MANIFEST_NAME
+    from mi_shadowgs.presets import CONFIG_NAME
 
     run, _ = syn.fake_run(tmp_path / "r")
-    manifest = json.loads((run / MANIFEST_NAME).read_text())
-    manifest["settings"] = {**(manifest.get("settings") or {}), "preset": "cpu-medium"}
-    (run / MANIFEST_NAME).write_text(json.dumps(manifest))
+    paper, small = run_presets.get_config("paper"), run_presets.get_config("cpu-small")
+    assert paper.export.mesh.resolution != small.export.mesh.resolution
+    (run / CONFIG_NAME).write_text(json.dumps(paper.to_dict()))
     assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "a") == 0
     made = json.loads((tmp_path / "a" / MANIFEST_NAME).read_text())
-    assert made["settings"]["preset"] == "cpu-medium"
+    assert made["settings"]["mesh"]["resolution"] == paper.export.mesh.resolution
     assert export(run, "--format", "2dgs-ply", "--out", tmp_path / "b", "--preset",
                   "cpu-small") == 0
-    assert json.loads((tmp_path / "b" / MANIFEST_NAME).read_text())["settings"]["preset"] \
-        == "cpu-small"
+    made = json.loads((tmp_path / "b" / MANIFEST_NAME).read_text())
+    assert made["settings"]["mesh"]["resolution"] == small.export.mesh.resolution
 
 
 def test_2dgs_ply_keeps_the_fits_header_records(tmp_path):

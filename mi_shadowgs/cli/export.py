@@ -44,10 +44,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     import dataclasses
 
+    from mi_shadowgs.config import ConfigError
     from mi_shadowgs.presets import get_config, recorded
-    from mi_shadowgs.stages.export.export import export_run
+    from mi_shadowgs.stages.export.export import ExportConfig, export_run
 
-    config = get_config(args.preset).export if args.preset else recorded(args.run).export
+    try:  # the run's own export settings; a folder that is no run is named by export_run
+        config = get_config(args.preset).export if args.preset else recorded(args.run).export
+    except ConfigError:
+        config = ExportConfig()
     if args.bsdf is not None:
         config = dataclasses.replace(config, bsdf=args.bsdf)
     result = export_run(args.run, args.out, args.fmt, color=args.color, data=args.data,
