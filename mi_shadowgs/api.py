@@ -165,8 +165,8 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
         found = recorded_specular(surfels) if by_path else None
         specular = True if found is None else found
     model_surfels = _model(surfels, "relight")
-    if isinstance(cameras, Camera) or not isinstance(cameras, list | tuple) or \
-            not all(isinstance(c, Camera) for c in cameras):
+    if (isinstance(cameras, Camera) or not isinstance(cameras, list | tuple)
+            or not all(isinstance(c, Camera) for c in cameras)):
         raise TypeError(f"relight: 'cameras' must be a list of Camera, got "
                         f"{type(cameras).__name__}")
     if not isinstance(lights, LightSet):

@@ -67,8 +67,8 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
             continue
         elif isinstance(current, bool) and not isinstance(value, bool):
             raise ConfigError(f"{what} setting {name!r} takes True or False, got {value!r}")
-        elif isinstance(current, (int, float)) and not isinstance(current, bool) and \
-                (isinstance(value, bool) or not isinstance(value, (int, float))):
+        elif (isinstance(current, (int, float)) and not isinstance(current, bool)
+                and (isinstance(value, bool) or not isinstance(value, (int, float)))):
             raise ConfigError(f"{what} setting {name!r} takes a number, got {value!r}")
     return dataclasses.replace(config, **values)
 
@@ -99,8 +99,8 @@ def parse_settings(cls, items, what: str) -> dict[str, Any]:
         try:
             out[key] = reader(text)
         except ValueError as err:
-            raise ConfigError(f"--set {key}={text!r}: {what} setting {key!r} takes {kind}") \
-                from err
+            raise ConfigError(
+                f"--set {key}={text!r}: {what} setting {key!r} takes {kind}") from err
     return out
 
 

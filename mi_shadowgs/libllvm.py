@@ -200,8 +200,8 @@ def _judge_uncached(path: str, python: str | None,
         return False, f"LLVM {version[0]} (Dr.Jit needs >= {MIN_MAJOR})"
     tag = f"LLVM {'.'.join(map(str, version))}"
     if python is None or drjit_version is None:
-        where = "no Python with drjit given" if python is None else \
-            f"drjit is not importable by {python}"
+        where = ("no Python with drjit given" if python is None
+                 else f"drjit is not importable by {python}")
         return True, f"{tag} (version check only: {where})"
     if runs_drjit_kernel(path, python):
         return True, f"{tag}, runs a Dr.Jit {drjit_version} kernel"

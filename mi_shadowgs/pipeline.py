@@ -116,8 +116,8 @@ def _user_envmap_files(config: RunConfig) -> list[Path]:
     files = []
     for entry in config.preview_envmaps:
         path = Path(entry)
-        files += sorted(path.glob("*.exr")) if path.is_dir() else [path] if path.is_file() \
-            else []
+        files += (sorted(path.glob("*.exr")) if path.is_dir()
+                  else [path] if path.is_file() else [])
     return files
 
 
@@ -150,8 +150,8 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     available = check_evaluation_inputs(train, test)
     labels = config.masks
     if labels == "auto":
-        labels = "material" if all(v.material is not None for v in train.views) \
-            else "chromaticity"
+        labels = ("material" if all(v.material is not None for v in train.views)
+                  else "chromaticity")
     elif labels == "material":  # checked before stage 1 trains, not when stage 2 starts
         from mi_shadowgs.stages.segmentation.masks import material_masks
 

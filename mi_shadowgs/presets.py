@@ -306,8 +306,8 @@ def merge(base: dict[str, Any], more: dict[str, Any]) -> dict[str, Any]:
     """Nested overrides ``more`` laid over ``base`` (a new dict)."""
     out = dict(base)
     for k, v in more.items():
-        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
-            else v
+        out[k] = (merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict)
+                  else v)
     return out
 
 
@@ -336,8 +336,8 @@ def load_overrides(path: str | Path) -> tuple[str, dict[str, Any]]:
     try:
         saved = json.loads(path.read_text())
     except FileNotFoundError:
-        raise ConfigError(f"--config {path}: not found (a run folder's {CONFIG_NAME})") \
-            from None
+        raise ConfigError(
+            f"--config {path}: not found (a run folder's {CONFIG_NAME})") from None
     except (OSError, ValueError) as err:
         raise ConfigError(f"--config {path}: does not read as JSON: {err}") from None
     if not isinstance(saved, dict) or not isinstance(saved.get("preset"), str):

@@ -194,8 +194,8 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
             "name": "Stage 2: material segmentation", "seconds": secs.get("segmentation"),
             "metrics": m, "figures": [{"title": p.stem, "path": str(p.relative_to(run))}
                                       for p in segs]})
-    if (run / "report" / "geometry_curves.png").is_file() and summary["stages"] and \
-            summary["stages"][0]["name"].startswith("Stage 1"):
+    if ((run / "report" / "geometry_curves.png").is_file() and summary["stages"]
+            and summary["stages"][0]["name"].startswith("Stage 1")):
         summary["stages"][0]["figures"].insert(0, {
             "title": "training curves (geometry/log.csv)", "path": "report/geometry_curves.png",
             "wide": True})

@@ -63,8 +63,8 @@ def run(args) -> int:
         print(f"{result.folder} already holds these {result.views} relit view(s) (same run, "
               "lights, views and settings); nothing to render")
     else:
-        later = f", later frames {stats['later_median_s']:.3f} s (median)" \
-            if stats["later_median_s"] is not None else ""
+        later = (f", later frames {stats['later_median_s']:.3f} s (median)"
+                 if stats["later_median_s"] is not None else "")
         print(f"relit {result.rendered} view(s) under {result.light_directions} light "
               f"direction(s) into {result.folder}: first frame {stats['first_s']:.2f} s "
               f"(shadow maps included){later}"

@@ -18,8 +18,8 @@ def run(args) -> int:
     from mi_shadowgs.io.report import write_report
 
     manifest = read_manifest(args.run)
-    if manifest is None or manifest.get("command") != "run" or \
-            "report.html" not in manifest["files"]:
+    if (manifest is None or manifest.get("command") != "run"
+            or "report.html" not in manifest["files"]):
         raise ProvenanceError(f"{args.run}: not a run folder of `mi-shadowgs run` (no "
                               f"{MANIFEST_NAME} listing report.html); the report is written "
                               "only there")

@@ -159,8 +159,8 @@ class Camera:
         uv = np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)
         xi = np.clip(np.floor(uv[:, 0]), -1, self.width).astype(np.int64)
         yi = np.clip(np.floor(uv[:, 1]), -1, self.height).astype(np.int64)
-        inside = (z > self.near) & (xi >= 0) & (xi < self.width) & (yi >= 0) & \
-            (yi < self.height)
+        inside = ((z > self.near) & (xi >= 0) & (xi < self.width) & (yi >= 0)
+                  & (yi < self.height))
         return xi, yi, inside
 
     def lookup(self, image: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -254,8 +254,8 @@ class Camera:
         params = mi.traverse(sensor)
         film = sensor.film()
         width, height = (int(v) for v in film.crop_size())
-        if tuple(int(v) for v in film.crop_offset()) != (0, 0) or \
-                (width, height) != tuple(int(v) for v in film.size()):
+        if (tuple(int(v) for v in film.crop_offset()) != (0, 0)
+                or (width, height) != tuple(int(v) for v in film.size())):
             raise ValueError("Camera.from_mitsuba: cropped films are not supported")
         to_world = np.array(sensor.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         # By class, not by its parameters: a thinlens sensor has an x_fov too, and was drawn

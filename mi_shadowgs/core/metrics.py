@@ -58,8 +58,8 @@ def ssim_map(a, b, window: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np.n
     saa = _blur(a * a, g) - mu_a ** 2
     sbb = _blur(b * b, g) - mu_b ** 2
     sab = _blur(a * b, g) - mu_a * mu_b
-    return ((2 * mu_a * mu_b + SSIM_C1) * (2 * sab + SSIM_C2)) / \
-        ((mu_a ** 2 + mu_b ** 2 + SSIM_C1) * (saa + sbb + SSIM_C2))
+    return (((2 * mu_a * mu_b + SSIM_C1) * (2 * sab + SSIM_C2))
+            / ((mu_a ** 2 + mu_b ** 2 + SSIM_C1) * (saa + sbb + SSIM_C2)))
 
 
 def ssim(a, b) -> float:

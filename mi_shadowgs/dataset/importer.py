@@ -273,8 +273,8 @@ def ground_outside_masks(views: list[dict], points: np.ndarray, tolerance: float
     The masks should cover the ground the shadows fall on (the loader's masks are object
     plus base); object-only masks pull against it in stage 1 (BENCHMARKS.md, "Session 41":
     median normal error 1.43 -> 4.68 deg on the default scene)."""
-    near = (np.abs(points[:, 1]) < tolerance) & \
-        (np.hypot(points[:, 0], points[:, 2]) < reach)
+    near = ((np.abs(points[:, 1]) < tolerance)
+            & (np.hypot(points[:, 0], points[:, 2]) < reach))
     pts = points[near]
     seen = np.zeros(len(pts), np.int64)
     out = np.zeros(len(pts), np.int64)
@@ -464,8 +464,8 @@ def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, co
     from mi_shadowgs.io.atomic import atomic_dir
 
     steps = tqdm(total=5, desc=f"import {out.name}", unit="step", disable=not progress)
-    with tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s, \
-            atomic_dir(out) as tmp:
+    with (tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s,
+          atomic_dir(out) as tmp):
         image_dir = source
         names = [p.name for p in photos]
         # SfM reads pixels as stored: give ours upright copies. A user's model describes the
@@ -475,8 +475,8 @@ def _import_photos(source: Path, out: Path, photos, size, turned, mask_files, co
             image_dir.mkdir(exist_ok=True)
             for p in photos:
                 im, _ = _read_photo(p)
-                im.save(image_dir / p.name, quality=98) if p in turned else \
-                    shutil.copy2(p, image_dir / p.name)
+                (im.save(image_dir / p.name, quality=98) if p in turned
+                 else shutil.copy2(p, image_dir / p.name))
         if colmap is None:
             rec = run_sfm(image_dir, names, sfm_work, config, size, timings, sfm_state,
                           progress)
@@ -635,8 +635,8 @@ def import_transforms(path: Path, out: Path, config: ImportConfig) -> dict:
     check_output_location(out, [path.parent], command="import")
     sim, frame_report = world_frame(points, np.stack([f.camera.c2w for f in frames]),
                                     config.frame)
-    with tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s, \
-            atomic_dir(out) as tmp:
+    with (tempfile.TemporaryDirectory(prefix=".mi_shadowgs_import_") as work_s,
+          atomic_dir(out) as tmp):
         work = Path(work_s)
         views = []
         for i, f in enumerate(frames):

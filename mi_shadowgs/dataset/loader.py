@@ -120,10 +120,10 @@ def _check_fields_read(root: Path, info: dict | None, lights: dict | None) -> No
         value = (doc or {}).get(field)
         if value is None:
             return
-        if not isinstance(value, want) or \
-                (items is not None and not all(isinstance(v, items) for v in value)):
-            what = {dict: "an object", list: "a list"}[want] + \
-                ("" if items is None else " of objects")
+        if (not isinstance(value, want)
+                or (items is not None and not all(isinstance(v, items) for v in value))):
+            what = ({dict: "an object", list: "a list"}[want]
+                    + ("" if items is None else " of objects"))
             raise DatasetError(f"{path}: field {name or repr(field)} must be {what}, got {value!r}")
 
     kind(root / layout.DATASET_JSON, info, "materials", list, dict)
@@ -134,8 +134,8 @@ def _check_fields_read(root: Path, info: dict | None, lights: dict | None) -> No
 
 
 def _number(path: Path, field: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
-            not math.isfinite(float(value)):
+    if (isinstance(value, bool) or not isinstance(value, (int, float))
+            or not math.isfinite(float(value))):
         raise DatasetError(f"{path}: field {field!r} must be a finite number, got {value!r}")
     return float(value)
 
@@ -312,9 +312,9 @@ def load_frames(path: str | Path, as_stored: bool = False) -> list[Frame]:
     for i, fr in enumerate(frames):
         c2w = _pose(path, f"frames[{i}].transform_matrix", fr["transform_matrix"], scaled, i)
         fx, fy, cx, cy, dist, fov_x = _intrinsics(path, meta, fr, i, width, height)
-        cam = Camera(c2w=to_ours @ c2w, width=width, height=height, fov_x=fov_x) \
-            if fov_x is not None else \
-            Camera.from_intrinsics(to_ours @ c2w, width, height, fx, fy, cx, cy)
+        cam = (Camera(c2w=to_ours @ c2w, width=width, height=height, fov_x=fov_x)
+               if fov_x is not None
+               else Camera.from_intrinsics(to_ours @ c2w, width, height, fx, fy, cx, cy))
         out.append(Frame(fr["file_path"], cam, dist, BLENDER_TO_YUP[:3, :3] if blender else None))
     _note_scaled(path, scaled)
     return out
@@ -378,8 +378,8 @@ def _check_size(path: Path, arr: np.ndarray, cam: Camera) -> np.ndarray:
 
 def _view_stem(file_path: str) -> str:
     """A frame's ``file_path`` without its image's extension: what its buffers' names extend."""
-    stem = str(Path(file_path).with_suffix("")) if Path(file_path).suffix.lower() in \
-        (".png", ".exr") else file_path
+    stem = (str(Path(file_path).with_suffix(""))
+            if Path(file_path).suffix.lower() in (".png", ".exr") else file_path)
     return stem[2:] if stem.startswith("./") else stem
 
 
@@ -531,10 +531,10 @@ def load_dataset(root: str | Path, split: str = "train", require_mask: bool = Tr
         if any(root.glob(f"{split}_*/metadata.json")):
             return load_tensoir(root, split, require_mask=require_mask)
         raise DatasetError(f"{root}: no {tpath.name} and no TensoIR folders {split}_*/")
-    info = _read_json(root / layout.DATASET_JSON) if (root / layout.DATASET_JSON).is_file() \
-        else None
-    lights = _read_json(root / layout.LIGHTS_JSON) if (root / layout.LIGHTS_JSON).is_file() \
-        else None
+    info = (_read_json(root / layout.DATASET_JSON)
+            if (root / layout.DATASET_JSON).is_file() else None)
+    lights = (_read_json(root / layout.LIGHTS_JSON)
+              if (root / layout.LIGHTS_JSON).is_file() else None)
     _check_fields_read(root, info, lights)
     n_lights, relit_names = _light_buffers(lights)
     frames = load_frames(tpath)

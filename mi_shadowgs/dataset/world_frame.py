@@ -144,8 +144,8 @@ def world_frame(points: np.ndarray, c2w: np.ndarray,
         height = points @ n - d
     else:
         n = camera_up(c2w)
-        report["up_from"] = "camera up vectors (no plane holds "\
-            f"{config.min_plane_fraction:.0%} of the points)"
+        report["up_from"] = ("camera up vectors (no plane holds "
+                             f"{config.min_plane_fraction:.0%} of the points)")
         height = points @ n
         d = float(np.percentile(height, config.bound_percentiles[0]))
         height = height - d

@@ -117,8 +117,8 @@ def _check_only_ours(out: Path) -> None:
     """OutputExistsError naming the first file or folder in ``out`` that generate did not
     write (not in its manifest)."""
     manifest = read_manifest(out)
-    files = set(manifest["files"]) if manifest and manifest.get("command") == "generate" \
-        else set()
+    files = (set(manifest["files"]) if manifest and manifest.get("command") == "generate"
+             else set())
     files.add(MANIFEST_NAME)
     folders = {str(Path(f).parent) for f in files}
     for p in sorted(out.rglob("*")):
@@ -241,8 +241,8 @@ def resolve_envmaps(config: GenerateConfig) -> list[EnvMap]:
     """The env maps of ``config.envmaps`` (see ``GenerateConfig``), in order, checked:
     FileNotFoundError naming a missing file, ValueError for an unknown keyword or two maps
     of the same relighting name."""
-    entries = (config.envmaps,) if isinstance(config.envmaps, str) else \
-        tuple(config.envmaps)
+    entries = ((config.envmaps,) if isinstance(config.envmaps, str)
+               else tuple(config.envmaps))
     sources: list[Path | None] = []
     for entry in entries:
         entry = str(entry)
@@ -252,8 +252,8 @@ def resolve_envmaps(config: GenerateConfig) -> list[EnvMap]:
             sources += shipped_envmaps() or [None]
         elif entry == "sky":
             sources.append(None)
-        elif Path(entry).suffix.lower() in ENVMAP_SUFFIXES or Path(entry).exists() or \
-                "/" in entry:
+        elif (Path(entry).suffix.lower() in ENVMAP_SUFFIXES or Path(entry).exists()
+                or "/" in entry):
             path = Path(entry).resolve()
             if not path.is_file():
                 raise FileNotFoundError(f"environment map not found: {path} (--envmap)")

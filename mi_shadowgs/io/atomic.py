@@ -91,8 +91,8 @@ def _remove(path: Path) -> None:
 def remove_stale(path: str | os.PathLike) -> None:
     """Remove the temporaries that killed atomic writes of ``path`` left beside it."""
     path = Path(path)
-    for stale in _stale_siblings(path, _TMP_FILE + path.suffix) + \
-            _stale_siblings(path, _TMP_DIR):
+    for stale in (_stale_siblings(path, _TMP_FILE + path.suffix)
+                  + _stale_siblings(path, _TMP_DIR)):
         _remove(stale)
 
 

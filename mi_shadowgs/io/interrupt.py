@@ -94,8 +94,8 @@ class CheckpointClock:
         now = time.monotonic()
         self.longest = max(self.longest, now - self.previous)
         self.previous = now
-        return (step is not None and self.every > 0 and step % self.every == 0) or \
-            _pending is not None or now - self.last + self.longest >= self.seconds
+        return ((step is not None and self.every > 0 and step % self.every == 0)
+                or _pending is not None or now - self.last + self.longest >= self.seconds)
 
     def saved(self) -> None:
         self.last = time.monotonic()

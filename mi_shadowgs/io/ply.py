@@ -355,8 +355,8 @@ def _metadata_lines(path, metadata: dict | None) -> list[str]:
     lines = []
     for key, value in (metadata or {}).items():
         key, value = str(key), str(value)
-        if not _METADATA_KEY.fullmatch(key) or not value or any(c.isspace() for c in value) \
-                or not value.isascii():
+        if (not _METADATA_KEY.fullmatch(key) or not value
+                or any(c.isspace() for c in value) or not value.isascii()):
             raise PlyError(f"{path}: metadata {key!r}: {value!r} cannot be a PLY comment (a "
                            "key of letters, digits and '_', one word of ASCII as its value)")
         lines.append(f"comment {METADATA_PREFIX} {key} {value}")

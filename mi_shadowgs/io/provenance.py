@@ -264,8 +264,8 @@ def read_manifest(folder: str | os.PathLike) -> dict | None:
         manifest = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ProvenanceError(f"{path}: malformed manifest: {exc}") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT_VERSION or \
-            not isinstance(manifest.get("files"), list):
+    if (not isinstance(manifest, dict) or manifest.get("format") != FORMAT_VERSION
+            or not isinstance(manifest.get("files"), list)):
         raise ProvenanceError(f"{path}: not a mi_shadowgs manifest of format {FORMAT_VERSION}")
     return manifest
 
@@ -281,8 +281,8 @@ def _prune_empty(folder: Path, below: Path) -> None:
     """Remove ``folder`` and its parents while they are empty, stopping at ``below``."""
     below = below.resolve()
     folder = folder.resolve()
-    while folder != below and below in folder.parents and folder.is_dir() and \
-            not any(folder.iterdir()):
+    while (folder != below and below in folder.parents and folder.is_dir()
+           and not any(folder.iterdir())):
         folder.rmdir()
         folder = folder.parent
 
@@ -376,8 +376,8 @@ class Output:
             raise ProvenanceError(f"{folder}: holds the output of `mi-shadowgs "
                                   f"{manifest.get('command')}`, not of `mi-shadowgs {command}`;"
                                   " choose another folder")
-        emptied = manifest is not None and not manifest["files"] and \
-            not manifest.get("parts")
+        emptied = (manifest is not None and not manifest["files"]
+                   and not manifest.get("parts"))
         if emptied:
             manifest = None  # nothing written yet, or emptied by ``clear``: a new output
         if manifest is not None and overwrite:
@@ -545,8 +545,8 @@ def device_name(variant: str) -> str:
     model = "unknown CPU"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith(("model name", "hardware", "processor\t: ")) and \
-                    ":" in line and not line.split(":", 1)[1].strip().isdigit():
+            if (line.lower().startswith(("model name", "hardware", "processor\t: "))
+                    and ":" in line and not line.split(":", 1)[1].strip().isdigit()):
                 model = line.split(":", 1)[1].strip()
                 break
     except OSError:

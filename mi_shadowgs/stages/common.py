@@ -142,6 +142,6 @@ def checkpoint_hooks(out: Output, from_checkpoint) -> dict:
         out.claim("checkpoint/checkpoint.npz")
         save_checkpoint(folder, *state.to_checkpoint())
 
-    state = from_checkpoint(*load_checkpoint(folder)) \
-        if out.reused and has_checkpoint(folder) else None
+    state = (from_checkpoint(*load_checkpoint(folder))
+             if out.reused and has_checkpoint(folder) else None)
     return {"state": state, "on_checkpoint": on_checkpoint}

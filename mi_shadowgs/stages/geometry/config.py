@@ -124,8 +124,8 @@ def unmasked(config: GeometryConfig) -> GeometryConfig:
     """``config`` for training views without masks: its ``unmasked_*`` settings in place of
     the distortion, normal and dark-alpha weights, the opacity reset and the surfel cap
     (see the fields' comments; a None keeps the masked setting)."""
-    densify = config.densify if config.unmasked_opacity_reset else \
-        dataclasses.replace(config.densify, opacity_reset_interval=0)
+    densify = (config.densify if config.unmasked_opacity_reset
+               else dataclasses.replace(config.densify, opacity_reset_interval=0))
     if config.unmasked_max_surfels is not None:
         densify = dataclasses.replace(densify, max_surfels=config.unmasked_max_surfels)
     dist, normal = config.unmasked_lambda_dist, config.unmasked_lambda_normal

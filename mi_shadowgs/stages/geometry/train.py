@@ -214,8 +214,8 @@ def position_lr(config: GeometryConfig, step: int, extent: float) -> float:
                   math.log(config.lr_position_final) * t)
     if config.lr_position_delay_steps > 0:
         s = min(max(step / config.lr_position_delay_steps, 0.0), 1.0)
-        lr *= config.lr_position_delay_mult + (1 - config.lr_position_delay_mult) * \
-            math.sin(0.5 * math.pi * s)
+        lr *= (config.lr_position_delay_mult
+               + (1 - config.lr_position_delay_mult) * math.sin(0.5 * math.pi * s))
     return lr * extent
 
 
@@ -265,8 +265,8 @@ def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step
     use_dark = config.lambda_dark_alpha > 0 and view.dark is not None
     # Only the images this step's loss reads: before normal_from / dist_from the normal,
     # depth and distortion images would cost their compositing and backward for nothing.
-    aovs = ("alpha",) * (use_mask or use_normal or use_dark) + ("depth", "normal") * use_normal + \
-        ("distortion",) * use_dist
+    aovs = (("alpha",) * (use_mask or use_normal or use_dark)
+            + ("depth", "normal") * use_normal + ("distortion",) * use_dist)
     out = rasterize(surfels, view.camera, {"rgb": rgb}, aovs=aovs, config=config.raster)
     img = out["rgb"]
     l1 = losses.l1(img, view.image)
@@ -359,8 +359,8 @@ def points_init(dataset, count: int, rng: np.random.Generator) -> np.ndarray | N
     pts = np.stack([v["x"], v["y"], v["z"]], axis=-1).astype(np.float64)
     if len(pts) == 0:
         return None
-    return pts[rng.choice(len(pts), count, replace=len(pts) < count)] if len(pts) != count \
-        else pts
+    return (pts[rng.choice(len(pts), count, replace=len(pts) < count)] if len(pts) != count
+            else pts)
 
 
 def initial_state(dataset, config: GeometryConfig) -> TrainState:

@@ -56,8 +56,8 @@ def miou_hungarian(pred: np.ndarray, gt: np.ndarray) -> tuple[float, dict[int, i
     union = inter.sum(1, keepdims=True) + inter.sum(0, keepdims=True) - inter
     iou = np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
     rows, cols = linear_sum_assignment(-iou)
-    return float(iou[rows, cols].sum() / max(gv.size, 1)), \
-        {int(gv[r]): int(pv[c]) for r, c in zip(rows, cols, strict=True)}
+    return (float(iou[rows, cols].sum() / max(gv.size, 1)),
+            {int(gv[r]): int(pv[c]) for r, c in zip(rows, cols, strict=True)})
 
 
 def evaluate_maps(pred_maps: Sequence[np.ndarray],

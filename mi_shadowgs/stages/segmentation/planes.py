@@ -54,9 +54,9 @@ class PlaneConfig:
     iterations: int = 4  # PCA refits on the inliers
 
     def __post_init__(self):
-        if self.distance_scales <= 0 or not 0 < self.max_angle_deg <= 90 or \
-                not 0 < self.min_inlier_share <= 1 or self.min_surfels < 3 or \
-                self.iterations < 1:
+        if (self.distance_scales <= 0 or not 0 < self.max_angle_deg <= 90
+                or not 0 < self.min_inlier_share <= 1 or self.min_surfels < 3
+                or self.iterations < 1):
             raise ValueError(f"PlaneConfig: distance_scales > 0, max_angle_deg in (0, 90], "
                              f"min_inlier_share in (0, 1], min_surfels >= 3, iterations >= 1; "
                              f"got {self}")

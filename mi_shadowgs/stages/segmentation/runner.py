@@ -29,8 +29,8 @@ def label_fraction(config, masks: str) -> float:
     """The share of the labelled pixels below which a label does not count for K, for label
     maps from ``masks``: ``config.chromaticity_min_label_fraction`` for colour labels (their
     edge and highlight slivers would each count), else ``config.min_label_fraction``."""
-    return config.chromaticity_min_label_fraction if masks == "chromaticity" \
-        else config.min_label_fraction
+    return (config.chromaticity_min_label_fraction if masks == "chromaticity"
+            else config.min_label_fraction)
 
 
 def overlay(image, seg_map, colors, alpha: float = 0.5):

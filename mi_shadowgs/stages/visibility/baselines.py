@@ -286,11 +286,11 @@ class VoxelVisibility:
             for dy in (0, 1):
                 for dz in (0, 1):
                     ix, iy, iz = i0.x + dx, i0.y + dy, i0.z + dz
-                    ok = active & (ix >= 0) & (ix < g) & (iy >= 0) & (iy < g) & (iz >= 0) \
-                        & (iz < g)
+                    ok = (active & (ix >= 0) & (ix < g) & (iy >= 0) & (iy < g) & (iz >= 0)
+                          & (iz < g))
                     flat = mi.UInt32((ix * g + iy) * g + iz)
-                    w = (f.x if dx else 1.0 - f.x) * (f.y if dy else 1.0 - f.y) \
-                        * (f.z if dz else 1.0 - f.z)
+                    w = ((f.x if dx else 1.0 - f.x) * (f.y if dy else 1.0 - f.y)
+                         * (f.z if dz else 1.0 - f.z))
                     acc += dr.gather(mi.Float, self.grid, flat, ok) * w
         return acc
 

@@ -114,11 +114,11 @@ class VisibilityConfig:
                              f"got {self.projection!r}")
         if self.depth not in DEPTH_KINDS:
             raise ValueError(f"visibility depth must be one of {DEPTH_KINDS}, got {self.depth!r}")
-        if self.resolution < 1 or self.distance_factor <= 1.0 or self.tau < 0 or self.pcf < 0 \
-                or (self.bias_texels is not None and self.bias_texels < 0) \
-                or self.normal_offset < 0 or self.receiver_offset < 0 or self.receiver_band < 0 or \
-                self.layer_bias < 0 or self.layer_cap_texels < 0 or self.layer_window < 0 or \
-                not 0.0 < self.fractional_min_alpha <= 1.0:
+        if (self.resolution < 1 or self.distance_factor <= 1.0 or self.tau < 0 or self.pcf < 0
+                or (self.bias_texels is not None and self.bias_texels < 0)
+                or self.normal_offset < 0 or self.receiver_offset < 0 or self.receiver_band < 0
+                or self.layer_bias < 0 or self.layer_cap_texels < 0 or self.layer_window < 0
+                or not 0.0 < self.fractional_min_alpha <= 1.0):
             raise ValueError(f"invalid visibility settings: {self}")
 
 
@@ -203,8 +203,8 @@ class ShadowMaps:
     def depth_image(self, index: int) -> np.ndarray:
         """Shadow map ``index`` as [R, R] numpy (inf = empty), for inspection and plots."""
         r = self.resolution
-        return np.asarray(self.depth, dtype=np.float64)[index * r * r:(index + 1) * r * r] \
-            .reshape(r, r)
+        return (np.asarray(self.depth, dtype=np.float64)[index * r * r:(index + 1) * r * r]
+                .reshape(r, r))
 
 
 def shadow_camera(direction: np.ndarray, center: np.ndarray, radius: float,
@@ -314,8 +314,9 @@ class MapCache:
             for j, k in enumerate(todo):
                 part = dr.arange(mi.UInt32, j * r2, (j + 1) * r2)
                 depth = new.depth if len(todo) == 1 else dr.gather(mi.Float, new.depth, part)
-                alpha = None if new.alpha is None else \
-                    new.alpha if len(todo) == 1 else dr.gather(mi.Float, new.alpha, part)
+                alpha = (None if new.alpha is None
+                         else new.alpha if len(todo) == 1
+                         else dr.gather(mi.Float, new.alpha, part))
                 dr.eval(depth, *(() if alpha is None else (alpha,)))
                 self._maps[k] = (new.cameras[j], depth, alpha, new.texel)
                 self._bytes += 4 * r2 * (1 if alpha is None else 2)
