@@ -178,7 +178,6 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
     with Output.open(run, "run", provenance, overwrite=overwrite, reuse=True,
                      compare=("dataset",), inputs=[data],
                      parts=("geometry", "segmentation", "material")) as top:
-        write_json(top.path(CONFIG_NAME), settings)
         top.add_part("geometry")
         geo = geometry.run_geometry(data, run / "geometry", config.geometry,
                                     preset=config.preset, dataset=dataset, reuse=True,
@@ -210,6 +209,7 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         summary = build_summary(run, data, config, results, stages,
                                 time.perf_counter() - t_start, available, reused)
         write_json(top.path("summary.json"), summary)
+        write_json(top.path(CONFIG_NAME), settings)  # the tree it ran with (--config reads it)
         top.claim("report.html")
         write_report(run)
         top.finish()

@@ -255,7 +255,7 @@ def build(preset: str = "cpu-small", overrides: dict[str, Any] | None = None,
     overrides = {k: dict(v) if isinstance(v, dict) else v for k, v in (overrides or {}).items()}
     if seed is not None:
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ConfigError(f"seed must be a whole number >= 0, got {seed!r}")
+            raise ConfigError(f"seed must be >= 0 (a whole number), got {seed!r}")
         for section in ("geometry", "segmentation", "material"):
             overrides.setdefault(section, {}).setdefault("seed", seed)
     if "preview_envmaps" in overrides:
@@ -312,15 +312,21 @@ def merge(base: dict[str, Any], more: dict[str, Any]) -> dict[str, Any]:
 
 
 def recorded(run: str | Path) -> RunConfig:
-    """The settings tree a run folder recorded (``RUN/config.json``); for a run that
-    predates the record, the tree of the preset its manifest names. A ConfigError naming
+    """The settings tree a run folder recorded (``RUN/config.json`` when it finished, its
+    manifest before); for a run that predates the record, the tree of the preset its
+    manifest names. A ConfigError naming
     the folder where there is neither."""
     from mi_shadowgs.io.provenance import read_manifest
 
     run = Path(run)
     if (run / CONFIG_NAME).is_file():
         return build(*load_overrides(run / CONFIG_NAME))
-    preset = ((read_manifest(run) or {}).get("settings") or {}).get("preset")
+    saved = (read_manifest(run) or {}).get("settings") or {}
+    preset = saved.get("preset")
+    if isinstance(preset, str) and all(isinstance(saved.get(k), dict) for k in SECTIONS):
+        # an unfinished run: its manifest holds the same tree
+        return build(preset, _lists_to_tuples({k: v for k, v in saved.items()
+                                               if k != "preset"}))
     if not isinstance(preset, str):
         raise ConfigError(f"{run}: no record of a run's settings ({CONFIG_NAME}, or a preset "
                           "in its manifest); is it a `mi-shadowgs run` folder?")

@@ -228,7 +228,7 @@ def test_albedo_detail_reaches_stage_4_and_a_run_without_it_is_not_reused(
                for k in np.unique(seg)) == 0
     for bad in ("-1", "inf", "nan"):
         assert cli.main([*argv, bad, "--out", str(tmp_path / "bad")]) == 2
-        assert "RunConfig.albedo_detail must be finite, >= 0 or None" in \
+        assert "MaterialConfig: detail_prior >= 0" in \
             capsys.readouterr().err
         assert not (tmp_path / "bad").exists()
 

@@ -84,6 +84,13 @@ def _check_path(folder: Path, parent: Path) -> None:
     if len(folder.name.encode()) > limit:
         raise OutputPathError(f"{folder}: the name is too long ({len(folder.name.encode())} "
                               f"bytes; this file system allows {limit})")
+    for above in (folder, *folder.parents):
+        if above.exists():
+            if not above.is_dir():
+                where = "is" if above == folder else f"lies under {above}:"
+                raise OutputPathError(f"{folder}: {where} a file, not a folder: choose another "
+                                      "folder")
+            break
     target = folder if folder.is_dir() else parent
     if not os.access(target, os.W_OK | os.X_OK):
         read_only = bool(os.statvfs(target).f_flag & os.ST_RDONLY)
