@@ -260,6 +260,10 @@ def build(preset: str = "cpu-small", overrides: dict[str, Any] | None = None,
             overrides.setdefault(section, {}).setdefault("seed", seed)
     if "preview_envmaps" in overrides:
         overrides["preview_envmaps"] = tuple(overrides["preview_envmaps"])
+    if preset not in PRESETS and all(isinstance(overrides.get(k), dict) for k in SECTIONS):
+        # a whole recorded tree (a run's config.json) stands on its own, whatever preset it
+        # was built from: a preset made for a study, or one this version no longer has
+        return with_overrides(RunConfig(preset=preset), overrides, "run")
     return with_overrides(get_config(preset), overrides, "run")
 
 
@@ -349,7 +353,7 @@ def load_overrides(path: str | Path) -> tuple[str, dict[str, Any]]:
     if not isinstance(saved, dict) or not isinstance(saved.get("preset"), str):
         raise ConfigError(f"--config {path}: not a run's settings (no 'preset' field)")
     preset = saved.pop("preset")
-    if preset not in PRESETS:
+    if preset not in PRESETS and not all(isinstance(saved.get(k), dict) for k in SECTIONS):
         raise ConfigError(f"--config {path}: unknown preset {preset!r}; known: "
                           f"{sorted(PRESETS)}")
     return preset, _lists_to_tuples(saved)

@@ -141,7 +141,9 @@ def test_failed_evaluation_keeps_the_fit_and_a_rerun_does_not_fit_again(data, tm
     def no_fit(*args, **kwargs):
         raise AssertionError("the rerun fitted stage 4 again")
 
-    monkeypatch.setattr(pipeline, "decompose", no_fit)
+    from mi_shadowgs.stages.material import runner as material_runner
+
+    monkeypatch.setattr(material_runner, "decompose", no_fit)
     assert _run(data["nerf"], run) == 0
     assert {n: (fit / n).read_bytes() for n in kept} == kept
     assert json.loads((fit / "metrics.json").read_text())["fit_s"] == \

@@ -88,9 +88,12 @@ def test_a_run_builds_no_stage_config_of_its_own(tiny_presets, constructions, tm
     assert recorded == json.loads(json.dumps(config.to_dict()))
     assert build(*load_overrides(tmp_path / "run")) == config
     # Each stage's manifest records the object that stage ran with.
-    manifest = json.loads((tmp_path / "run" / "material" / "full" / "manifest.json")
+    from mi_shadowgs.io.provenance import MANIFEST_NAME
+
+    manifest = json.loads((tmp_path / "run" / "material" / "full" / MANIFEST_NAME)
                           .read_text())
-    assert manifest["settings"]["material"] == dataclasses.asdict(config.material)
+    assert manifest["settings"]["material"] == json.loads(json.dumps(
+        dataclasses.asdict(config.material)))
 
 
 def test_set_reads_each_value_as_its_fields_type():

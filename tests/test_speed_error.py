@@ -84,7 +84,7 @@ def test_sweep_runs_each_point_once_and_tabulates_it(sweep):
     assert (s4_run / "geometry" / "model.ply").read_bytes() == \
         (base_run / "geometry" / "model.ply").read_bytes()
     hist = (s4_run / "material" / "full" / "history.csv").read_text().splitlines()
-    normal_steps = next(c.normal_steps for _, c in presets() if hasattr(c, "normal_steps"))
+    normal_steps = next(c.material.normal_steps for _, c in presets() if hasattr(c, "material"))
     assert int(hist[-1].split(",")[0]) == 30 + normal_steps
     # the res16 point trained on its own 16-px dataset
     info = json.loads((out / "default" / "res16" / "data" / "dataset.json").read_text())

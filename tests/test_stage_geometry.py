@@ -334,4 +334,4 @@ def test_prune_outside_masks_reaches_stage_1_from_train_and_run(tiny, tmp_path, 
     assert seen[-1].hull_prune_views == 0  # the preset's
     assert cli.main(["run", str(tiny), "--out", str(tmp_path / "r5"), "--no-progress",
                      "--prune-outside-masks", "-2"]) == 2
-    assert "RunConfig.prune_outside_masks must be >= 0 or None" in capsys.readouterr().err
+    assert "GeometryConfig.hull_prune_views must be >= 0" in capsys.readouterr().err

@@ -163,17 +163,18 @@ def test_photos_albedo_detail_and_seed_are_checked_first_and_reach_the_runs(
 
     with pytest.raises(SystemExit) as exc:
         photos.main(["--out", str(tmp_path / "p"), "--albedo-detail", "-1"])
-    assert exc.value.code == 2 and "--albedo-detail must be finite" in capsys.readouterr().err
+    assert exc.value.code == 2 and "detail_prior >= 0" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:
         photos.main(["--out", str(tmp_path / "p"), "--seed", "-1"])
-    assert exc.value.code == 2 and "--seed must be >= 0" in capsys.readouterr().err
+    assert exc.value.code == 2 and "seed must be >= 0" in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
     seen = []
     monkeypatch.setattr(pipeline, "run_pipeline", lambda data, out, config, **kw: seen.append(
         config) or {"total_seconds": 1.0})
     photos._timed_run(tmp_path, tmp_path / "run", "cpu-small", tmp_path / "t.json", 0.1)
     photos._timed_run(tmp_path, tmp_path / "run2", "cpu-small", tmp_path / "t.json", seed=3)
-    assert [(c.albedo_detail, c.seed) for c in seen] == [(0.1, 0), (None, 3)]
+    assert [(c.material.detail_prior, c.geometry.seed, c.material.seed) for c in seen] == [
+        (0.1, 0, 0), (0.0, 3, 3)]
     # A study folder whose runs were made with another W: exit 2 naming the setting.
     from mi_shadowgs.io.provenance import ProvenanceError
 

@@ -104,8 +104,7 @@ def main(argv=None) -> int:
     p.add_argument("--overwrite", action="store_true")
     args = p.parse_args(argv)
     try:
-        for stage in (material, shadow_maps):  # the preset named by stage before any work
-            stage.get_config(args.preset)
+        run_presets.get_config(args.preset)  # the preset named before any work
         train = load_dataset(args.data, "train")
         test = load_dataset(args.data, "test")
         setup = dataset_scene(args.data)

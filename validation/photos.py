@@ -240,7 +240,7 @@ def main(argv=None) -> int:
     try:  # the settings' own checks, before any data is made
         base = build(args.preset, {} if args.albedo_detail is None else
               {"material": {"detail_prior": args.albedo_detail}}, seed=args.seed)
-    except ConfigError as exc:
+    except (ConfigError, ValueError) as exc:  # (a config's own checks raise ValueError)
         fail(f"--albedo-detail / --seed: {exc}")
     claim_out(args.out, "validation.photos", ('photos.json', 'wall_seconds.json'))
     import drjit as dr

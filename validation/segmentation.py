@@ -117,7 +117,7 @@ def evaluate(scene: str, data: Path, model: Path | None, masks: str, out: Path,
     strip = np.concatenate([read_png(p)[..., :3] for p in firsts], axis=1)  # r_000...: in order
     write_png(out / f"{scene}_{masks}_segments.png", strip)
     return {"scene": scene, "masks": masks, "geometry": geometry, "k": report["k"],
-            "surfels": report["surfels"], "iterations": config.iterations,
+            "surfels": report["surfels"], "iterations": config.segmentation.iterations,
             "seconds_masks": round(report["seconds_masks"], 1),
             "seconds_stage": round(report["seconds_stage"], 1),
             "ari": metrics["ari"], "miou": metrics["miou"],
