@@ -151,7 +151,7 @@ def test_no_opacity_reset_in_the_last_interval_of_the_schedule():
     """`train --iterations 1000` at cpu-small reset every opacity at step 1000 and saved that
     transparent model (test mask IoU 0.0009). A reset now needs a whole interval after it;
     the presets' own schedules keep every reset they had."""
-    from mi_shadowgs.stages.geometry.train import PRESETS
+    from mi_shadowgs.presets import GEOMETRY as PRESETS
 
     def resets(config, iterations):
         strat = DensifyStrategy(config.densify, extent=4.0, count=3, iterations=iterations)
