@@ -1,4 +1,4 @@
-"""Rasterizer benchmark (issue 3): our 2DGS rasterizer against Mitsuba's Gaussian renderer.
+"""Rasterizer benchmark: our 2DGS rasterizer against Mitsuba's Gaussian renderer.
 
 Both renderers get the same workload (``benchmarks.workloads``), the same camera and
 resolution, an L1 loss against a constant image, gradients for every parameter, and a
@@ -631,7 +631,7 @@ def write_report(out: Path, rows: list[dict], images: dict, cfg: BenchConfig,
                      f"{res_img}^2, {n_img} Gaussians, final step of the benchmark")
 
     goals = {}
-    # Issue 18's targets (issue 3 asked for 4x and 512 MB with the pair list).
+    # The targets (the first asked for 4x and 512 MB with the pair list).
     for res, target in ((128, 10.0), (256, 8.0)):
         speed = next((t for t in table if (t["n"], t["res"]) == (20_000, res)), None)
         if speed is not None:

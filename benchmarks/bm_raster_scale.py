@@ -3,7 +3,7 @@
 Each case is one ``benchmarks.bm_raster`` process (the shared sphere-on-plane workload,
 our default ``RasterConfig``, gradients of every parameter) run without the pair-count
 statistics pass, so that the process's peak RSS (``ru_maxrss`` of the child, imports and
-workload included) is the render's. Issue 18 asks for each under 2 GB::
+workload included) is the render's. The goal is each under 2 GB::
 
     python -m benchmarks.bm_raster_scale [--quick]
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 CASES = ((512, 200_000), (800, 200_000))
 QUICK_CASES = ((256, 50_000),)
-PEAK_LIMIT_BYTES = 2 << 30  # issue 18: each case under 2 GB peak
+PEAK_LIMIT_BYTES = 2 << 30  # each case under 2 GB peak
 ITERS, WARMUP = 5, 1
 
 
@@ -65,7 +65,7 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "raster_scale.json").write_text(json.dumps(rows, indent=1))
-    md = ["## The rasterizer at capture resolutions (issue 18)", "",
+    md = ["## The rasterizer at capture resolutions", "",
           "fwd+bwd of the shared workload (gradients of every parameter), one fresh process "
           f"per case, median of {ITERS} steps after {WARMUP} warm-up; peak RSS of the whole "
           f"process; limit {PEAK_LIMIT_BYTES / 2**30:.0f} GiB.", "",

@@ -1,4 +1,4 @@
-"""Relighting speed (issue 17, part 4): ``mi-shadowgs relight`` frames and the
+"""Relighting speed: ``mi-shadowgs relight`` frames and the
 ``surfel_relight`` plugin's env-map render, with shadow maps reused between frames.
 
 Workload: the raster benchmark's sphere on a plane (``workloads.py``: 20k surfels, 5k with

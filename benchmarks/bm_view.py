@@ -1,4 +1,4 @@
-"""The viewer's frame time (issue 20): a light change -> a new frame with recomputed shadows,
+"""The viewer's frame time: a light change -> a new frame with recomputed shadows,
 as ``mi-shadowgs view`` renders it (``ViewerSession.render``: the camera's cached G-buffer,
 one new shadow map, the visibility lookup, Cook-Torrance shading, the read-back of the
 image), at 128^2 and 256^2.

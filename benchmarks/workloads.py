@@ -1,4 +1,4 @@
-"""The shared rasterizer benchmark workload (issue 3): Gaussians on a sphere standing on a plane.
+"""The shared rasterizer benchmark workload: Gaussians on a sphere standing on a plane.
 
 One ``Workload`` (float64 NumPy arrays) feeds both renderers, so the comparison is fair:
 our 2D surfel rasterizer gets the tangent scales ``(s, s)``; Mitsuba's ``ellipsoids`` shape

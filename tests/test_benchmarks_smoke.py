@@ -131,7 +131,7 @@ def test_report_from_rows(tmp_path):
     img = np.full((8, 8, 3), 0.25, dtype=np.float32)
     summary = bm_raster.write_report(tmp_path, rows, {"ours": img, "mitsuba": img}, cfg, "x")
     assert summary["goals"]["speedup_fwd_bwd_128_20k"] == pytest.approx(5.0)
-    assert summary["goals"]["speedup_goal_128_met"] is False  # issue 18: >= 10x
+    assert summary["goals"]["speedup_goal_128_met"] is False  # >= 10x
     assert summary["goals"]["speedup_fwd_bwd_256_20k"] == pytest.approx(2.5)
     assert summary["goals"]["speedup_goal_256_met"] is False
     assert summary["table"][0]["ratio_fwd_bwd_cpu"] == pytest.approx(1500.0 / 90.0)

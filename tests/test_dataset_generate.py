@@ -1,4 +1,4 @@
-"""Dataset generator acceptance tests (issue 2): (a) camera convention, (b) analytic shadow,
+"""Dataset generator acceptance tests: (a) camera convention, (b) analytic shadow,
 (c) buffers agree with the path-traced image, (d) material ids, (e) bad input; determinism.
 
 Small images and few views keep the whole file to seconds on 2 cores.

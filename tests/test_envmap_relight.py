@@ -1,4 +1,4 @@
-"""Env-map relighting (issue 14, item 2): the generator's procedural sky and its scoring.
+"""Env-map relighting: the generator's procedural sky and its scoring.
 
 The sky is checked against its own definition through Mitsuba's ``envmap`` emitter (so the
 lat-long convention is Mitsuba's, not ours), and a generated dataset's env-map relit views

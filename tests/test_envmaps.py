@@ -1,4 +1,4 @@
-"""Several env maps per dataset (issue 14, item 2): ``GenerateConfig.envmaps`` resolves
+"""Several env maps per dataset: ``GenerateConfig.envmaps`` resolves
 "auto" to the shipped maps (``$MI_SHADOWGS_SHARED_DATA/envmaps``) or the sky, each map is a
 recorded input (copied into the dataset, in its fingerprint), and ``run`` scores every one.
 

@@ -125,7 +125,7 @@ def test_light_cosine_is_continuous_in_the_directions():
     gt_dirs = np.array([direction_from_angles(35.0, 50.0), direction_from_angles(215.0, 35.0)])
     gt_w = np.array([[3.0, 3.0, 3.0], [1.5, 1.5, 1.5]])
     assert evaluation.light_cosine(gt_dirs, gt_w, gt_dirs, gt_w) == pytest.approx(1.0, abs=1e-12)
-    # A light moved 1 degree in any direction changes the cosine by < 0.05 (issue 14), also
+    # A light moved 1 degree in any direction changes the cosine by < 0.05, also
     # where it crosses a grid cell border (the nearest-cell metric jumped there).
     grid = light_grid(128)
     border = (grid[0] + grid[1]) / np.linalg.norm(grid[0] + grid[1])

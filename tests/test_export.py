@@ -1,4 +1,4 @@
-"""`mi-shadowgs export` (issue 19): the splat PLYs under the loading rules of 3DGS/2DGS and
+"""`mi-shadowgs export`: the splat PLYs under the loading rules of 3DGS/2DGS and
 of splat viewers, the mesh + Mitsuba scene rendered by plain Mitsuba in a subprocess, and
 bad input refused (exit 2, one line naming what is wrong) without writing anything."""
 

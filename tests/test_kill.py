@@ -1,4 +1,4 @@
-"""Kill at any moment (issue 12, item 4): ``generate``, ``train`` and ``run`` are SIGKILLed at
+"""Kill at any moment: ``generate``, ``train`` and ``run`` are SIGKILLed at
 random (seeded) moments in a subprocess, rerun to completion, and must leave the files of an
 unkilled run.
 

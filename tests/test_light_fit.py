@@ -322,7 +322,7 @@ def test_segment_score_ignores_each_segments_albedo_scale(scene):
 
 
 def _warmup_map(strong, weak, extra=()):
-    """A warm-up light map [128] shaped like bunny-low's (issue 15; radiance L_dir): the
+    """A warm-up light map [128] shaped like bunny-low's (radiance L_dir): the
     strong light ``strong`` in one bright cell (27) and its neighbour (8), the others
     within 20 degrees at 1; the true weaker light ``weak`` (half the strong one's
     irradiance) blurred over the cells within 25 degrees, none brighter than 1.9; a floor
@@ -343,7 +343,7 @@ def _warmup_map(strong, weak, extra=()):
 
 
 def test_prune_judges_lights_by_irradiance_not_a_cells_radiance():
-    """Issue 15: the warm-up pruning kept only the grid cells brighter than 0.1 of the
+    """The warm-up pruning kept only the grid cells brighter than 0.1 of the
     brightest cell, so a true light that the warm-up spreads over many dim cells was
     dropped whole (bunny-low, toy_train-low: one light of two). Grouped first, it carries
     ~0.2 of the strong light's irradiance and stays; a spurious bump and the floor stay
@@ -374,7 +374,7 @@ def test_prune_judges_lights_by_irradiance_not_a_cells_radiance():
 
 
 def test_weak_true_light_kept_and_spurious_dropped_from_the_warm_up_map(scene):
-    """Issue 15 end to end from the warm-up's light map (``_warmup_map``) on views lit by a
+    """End to end from the warm-up's light map (``_warmup_map``) on views lit by a
     strong 20 degree light and a weaker 60 degree one (half its irradiance): the pruning
     keeps the weak light's dim cells as one light, and a spurious light that carries
     irradiance in the map (a quarter of the strong one's, as toy train's 0.30 light next

@@ -133,7 +133,7 @@ def sphere_model(tmp_path_factory):
 def test_sphere_surfels_match_mitsuba(kind, sphere_model):
     r = crosscheck(kind, sphere_model)
     assert r["in_frame"] and r["hit_pixels"] > 40000, r
-    # Acceptance (issue 3): silhouette IoU >= 0.98. The surfel silhouette is a ~1 px wider
+    # Acceptance: silhouette IoU >= 0.98. The surfel silhouette is a ~1 px wider
     # band than the sphere's (the 2DGS screen-space low-pass gives every splat a >= 1 px
     # footprint), so IoU depends on the sphere's size in pixels: ~160 px radius here.
     assert r["iou"] >= 0.98, r

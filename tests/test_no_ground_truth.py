@@ -1,4 +1,4 @@
-"""`run` on data without ground truth (issue 17, part 1 and 2): NeRF-synthetic and TensoIR
+"""`run` on data without ground truth: NeRF-synthetic and TensoIR
 copies of a tiny generated dataset (images, masks and cameras only) run to exit 0, write the
 models and the decomposition, and the summary names each skipped metric with its reason; a
 run that fails in evaluation keeps its fitted model and a rerun evaluates it without

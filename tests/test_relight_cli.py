@@ -1,4 +1,4 @@
-"""`mi-shadowgs relight` and the shadow-map cache (issue 17, part 4): light arguments checked
+"""`mi-shadowgs relight` and the shadow-map cache: light arguments checked
 with the field named, shadow maps rendered once per direction and reused (the cached maps
 equal fresh ones), the env map integrated once per content, the plugin's second render
 reusing its maps, and the command's views, files and video on a tiny run."""

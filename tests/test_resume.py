@@ -1,4 +1,4 @@
-"""Checkpoints and signals (issue 12, item 4): every training loop resumes from a checkpoint
+"""Checkpoints and signals: every training loop resumes from a checkpoint
 to the bit-identical result of an uninterrupted run, from any step; SIGINT/SIGTERM write a
 checkpoint and end the command with one line and exit 130/143.
 

@@ -182,7 +182,7 @@ def test_every_seed_of_a_row_runs_on_its_seed_0_dataset(monkeypatch, tmp_path):
 
 
 def test_visibility_runs_scores_the_table_models_at_their_rows_preset(tmp_path, monkeypatch):
-    # The stage-1 item of issue 15 was measured with the paper's maps for sessions; the
+    # The stage-1 item was measured with the paper's maps at first; the
     # table's models are scored here with the maps their runs use: the rows' preset.
     from validation import visibility
 

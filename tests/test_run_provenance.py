@@ -1,6 +1,6 @@
 """`run`, `train`, `segment` and `report` on tiny datasets: the pipeline end to end, stages
 reused only for the same dataset, model and settings, no output over an input, and every
-input checked before the first training step (issue 12, items 2, 3 and 5)."""
+input checked before the first training step."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """TSDF fusion (``core.tsdf``) against a float64 NumPy reference, and mesh extraction
-(``stages.export.mesh``) on a surfel model whose true surface is known (issue 19)."""
+(``stages.export.mesh``) on a surfel model whose true surface is known."""
 
 from __future__ import annotations
 

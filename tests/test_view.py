@@ -1,4 +1,4 @@
-"""The viewer behind ``mi-shadowgs view`` (issue 20): its frames follow the light where the
+"""The viewer behind ``mi-shadowgs view``: its frames follow the light where the
 shadows move, reuse the camera's G-buffer and each direction's shadow map, switch shadows
 off and between modes, show a run without stage 4 as geometry and segments (saying why),
 and the command exits 2 on a missing run, a run without a model and a busy port."""

@@ -1,4 +1,4 @@
-"""The viewer's page in a real headless Chromium (issue 20): it loads, the light's azimuth
+"""The viewer's page in a real headless Chromium: it loads, the light's azimuth
 slider is dragged, the picture changes where the shadows should move (newly lit pixels
 brighten, newly shadowed ones darken: the library's own visibility says which), and a
 screenshot is written.

@@ -1,4 +1,4 @@
-"""Issue 19 acceptance: the exported mesh asset, path-traced by Mitsuba, against ground truth.
+"""The exported mesh asset, path-traced by Mitsuba, against ground truth.
 
     python -m validation.asset --run RUN --data DATA --out OUT [--spp 64] [--overwrite]
 

@@ -1,4 +1,4 @@
-"""Stage 4-5 end to end on the ground-truth-geometry stand-in (issue 7 acceptance, Table 3).
+"""Stage 4-5 end to end on the ground-truth-geometry stand-in.
 
 Surfels are sampled on the dataset scene's true shapes (``mi_shadowgs.dataset.standin``; segment =
 shape), so the decomposition and relighting are measured independently of stage 1. For the

@@ -1,4 +1,4 @@
-"""Stage-1 acceptance (issue 4): train geometry on a dataset, evaluate on its test views.
+"""Stage-1 acceptance: train geometry on a dataset, evaluate on its test views.
 
     python -m validation.geometry --data DATA --out OUT [--preset P]
 
@@ -30,7 +30,7 @@ from mi_shadowgs.io.atomic import atomic_path, write_json
 from mi_shadowgs.io.provenance import ProvenanceError
 from validation import claim_out, fail
 
-# Issue 4 acceptance at cpu-small. "wall_s" is checked on the stage's training time
+# The acceptance figures at cpu-small. "wall_s" is checked on the stage's training time
 # (``train_s``): a resumed stage's call takes only part of it.
 ACCEPT = {"psnr": 30.0, "normal_error_median_deg": 10.0, "mask_iou": 0.98, "wall_s": 480.0}
 

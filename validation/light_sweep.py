@@ -1,4 +1,4 @@
-"""The light fit under light pairs all over the hemisphere (issue 15, Build 2).
+"""The light fit under light pairs all over the hemisphere.
 
 Eight pairs of opposing directional lights (irradiance 3.0 and 1.5, so each carries at
 least a third of it): the strong light at azimuths 0-315 deg in steps of 45, elevations
@@ -27,7 +27,7 @@ import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from validation import claim_out, fail
 
 SHARE = 0.25  # lights carrying at least this share of the irradiance must be found ...
-MAX_ERROR_DEG = 3.0  # ... within this angle (issue 15's acceptance)
+MAX_ERROR_DEG = 3.0  # ... within this angle (the acceptance)
 STRONG, WEAK = 3.0, 1.5  # irradiance (W/m^2) of the two lights
 # (azimuth, elevation) of the strong light per pair; the weak one is at azimuth + 180 and
 # elevation 90 - elevation (clipped to 15-75)

@@ -1,4 +1,4 @@
-"""The method from photos alone against the same scene from ground-truth cameras (issue 17).
+"""The method from photos alone against the same scene from ground-truth cameras.
 
 For one scene (``validation.pipeline.SCENES``) under one light pair, on the textured mat
 (``base_texture=mat``: SfM needs features):
@@ -44,7 +44,7 @@ import numpy as np
 import mi_shadowgs  # noqa: F401  (finds libLLVM before drjit loads)
 from validation import claim_out, fail
 
-# The figures compared; the acceptance bounds of issue 17 (photo run against GT-camera run).
+# The figures compared; the acceptance bounds (photo run against GT-camera run).
 FIGURES = ("albedo_psnr", "albedo_ssim", "shadow_iou", "shadow_iou_decided", "relight_psnr",
            "relight_ssim", "light_cosine")
 ALBEDO_PSNR_TOLERANCE_DB = 1.5

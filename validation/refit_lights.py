@@ -7,7 +7,7 @@ how a change to the light fit moves a scene without redoing stages 1-2.
     python -m validation.refit_lights --run RUN --data DATA --settle-only
 
 ``--set`` overrides a stage-4 setting (e.g. ``refine_global=0 refine_again_global=False
-drop_share=0`` for the fit before issue 15). Writes (atomically) ``refit.json``
+drop_share=0`` for the fit without dropped lights). Writes (atomically) ``refit.json``
 (before/after metrics), ``light.json`` and ``metrics.json`` into ``--out``; reads the run,
 never writes there. The fit is a unit (``validation.units``, ``OUT/units/refit/``, with stage
 4's checkpoint): a killed call, run again, continues it; other settings or another model

@@ -1,4 +1,4 @@
-"""The run reports in headless Chromium (issue 14, Build 5): each ``report.html`` is
+"""The run reports in headless Chromium: each ``report.html`` is
 screenshot at a 1400-px window, and a copy of the page reports after loading whether every
 image loaded and how wide the page is::
 

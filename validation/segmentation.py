@@ -1,4 +1,4 @@
-"""Acceptance figures of stage 2 (issue 6): rendered segment maps against ground-truth ids.
+"""Acceptance figures of stage 2: rendered segment maps against ground-truth ids.
 
 For the default scene and the hotdog (cpu-small datasets, generated under --data-root when
 missing), on stand-in geometry (surfels on the true surfaces; stage 1 is not needed) or on a

@@ -1,4 +1,4 @@
-"""Chromaticity label maps of a dataset's training views against its material ids (issue 17).
+"""Chromaticity label maps of a dataset's training views against its material ids.
 
 Stage 2 without material ids trains on ``chromaticity_masks``; this scores those label
 maps themselves (no feature training, no surfels), before and after the leak and sliver

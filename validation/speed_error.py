@@ -1,4 +1,4 @@
-"""Speed against error for the whole method (issue 14, Build 4): albedo PSNR, shadow IoU and
+"""Speed against error for the whole method: albedo PSNR, shadow IoU and
 relight PSNR against training wall time, over a small sweep around ``cpu-small``::
 
     python -m validation.speed_error --out OUT [--base TABLE] [--scene default --scene bunny]

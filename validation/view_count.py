@@ -1,5 +1,5 @@
 """How many training views the method needs: the whole run on subsets of one dataset
-(issue 17; the threshold of ``stages.common.MIN_TRAIN_VIEWS``).
+(the threshold of ``stages.common.MIN_TRAIN_VIEWS``).
 
 For each N of ``--views``, ``OUT/data-N`` is a copy of ``DATA`` whose training split keeps N
 views spread around the object (farthest-point sampling of the camera centres, from view

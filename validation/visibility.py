@@ -1,4 +1,4 @@
-"""Visibility against Mitsuba ray tracing: paper Table 2 and a speed-vs-error sweep (issue 5).
+"""Visibility against Mitsuba ray tracing: paper Table 2 and a speed-vs-error sweep.
 
 For each scene (the embedded default and the bunny), views on the test spiral and 8 light
 directions spread in azimuth and elevation (down to 10 degrees), the ground truth is Mitsuba's

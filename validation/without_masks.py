@@ -1,4 +1,4 @@
-"""Stage 1 without masks against stage 1 with them, on the same dataset (issue 16).
+"""Stage 1 without masks against stage 1 with them, on the same dataset.
 
 ``unmasked_copy`` writes a dataset whose training views are what a user without masks has:
 RGB images with no alpha and no object masks, and ``"masks": false`` in

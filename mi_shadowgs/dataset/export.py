@@ -1,5 +1,5 @@
 """Copies of a dataset in the public layouts with the images, masks and cameras only: what
-a NeRF-synthetic or TensoIR download gives a user (issue 17). ``run`` must finish on them,
+a NeRF-synthetic or TensoIR download gives a user. ``run`` must finish on them,
 scoring only what needs no ground truth.
 
 - ``"nerf"``: ``transforms_{train,test}.json`` (OpenGL camera-to-world in Blender's Z-up

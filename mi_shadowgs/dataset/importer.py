@@ -271,8 +271,8 @@ def ground_outside_masks(views: list[dict], points: np.ndarray, tolerance: float
     have it outside their mask. None when fewer than 20 such points are seen.
 
     The masks should cover the ground the shadows fall on (the loader's masks are object
-    plus base); object-only masks pull against it in stage 1 (BENCHMARKS.md, "Session 41":
-    median normal error 1.43 -> 4.68 deg on the default scene)."""
+    plus base); object-only masks pull against it in stage 1 (median normal error 1.43 ->
+    4.68 deg on the default scene)."""
     near = ((np.abs(points[:, 1]) < tolerance)
             & (np.hypot(points[:, 0], points[:, 2]) < reach))
     pts = points[near]
@@ -304,7 +304,7 @@ def ground_outside_masks_warning(record: dict) -> str | None:
     return (f"{record['masks']}: the masks leave out {share:.0%} of the SfM points on the "
             "ground near the object; masks should cover the object and the ground its shadows "
             "fall on (the shadows' receiver): with the object's alone stage 1's normals were "
-            "3x worse (BENCHMARKS.md, \"Session 41\")")
+            "3x worse")
 
 
 def _pinhole(camera, c2w_src: np.ndarray) -> Camera:

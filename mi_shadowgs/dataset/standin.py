@@ -1,6 +1,6 @@
 """Stage-1-independent stand-in geometry: surfels on the true shapes of a dataset's scene.
 
-Stages 4-5 are developed and validated with it (issue 7): every surfel lies on a true
+Stages 4-5 are developed and validated with it: every surfel lies on a true
 surface, with its shape index as the "segment" channel (one segment per Mitsuba shape,
 i.e. per material part) and the shape's diffuse reflectance as "albedo_gt".
 """

@@ -20,7 +20,7 @@ region. The contrastive trainer (``mi_shadowgs.stages.segmentation.features``) t
   and base), and a merged label with a tiny share of the labelled pixels (edge and
   highlight slivers). Measured on the default scene's 64 training views: ARI of the label
   maps against the ids 0.858 -> 0.954 on the labelled pixels, 7.6 % of them unlabelled,
-  and 5 labels above 0.5 % (the 5 materials) instead of 7 (issue 17).
+  and 5 labels above 0.5 % (the 5 materials) instead of 7.
   Limits: surfaces that differ only in brightness (a white and a grey one) share a
   chromaticity and merge; coloured indirect light or strong specular highlights shift it.
 """

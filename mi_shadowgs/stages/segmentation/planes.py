@@ -7,7 +7,7 @@ the 90th percentile. Under a grazing light that matters: the base's regions lit 
 of a pair sit near the shadow metric's threshold of half the median irradiance (0.44 and 0.56
 of it under the table's low pair), and a few degrees of n . l flip whole patches. With the
 true plane's normal on the base's pixels, the low-pair shadow IoU of four table rows rose by
-0.03-0.10 (BENCHMARKS.md, "Planar segments").
+0.03-0.10 (docs/decisions.md, "Planar segments shaded flat").
 
 After stage 2's K-means, each segment's surfels get a plane by opacity-weighted PCA of their
 centres, refitted ``iterations`` times on the inliers: surfels whose centre lies within
@@ -18,7 +18,7 @@ side) as its shading normal (``shading.SHADING_NORMAL_CHANNEL``), every other su
 The geometry is left as it is: coverage, depth and the shadow maps' occluders. Turning the
 inliers themselves, or moving their centres onto the plane as well, changed what covers the
 base's rim and where it meets the object (bunny, low pair: albedo PSNR 36.05 dB as fitted,
-35.4 turned, 32.4 turned and moved; BENCHMARKS.md, "Planar segments").
+35.4 turned, 32.4 turned and moved).
 """
 
 from __future__ import annotations

@@ -82,7 +82,7 @@ class VisibilityConfig:
     # stage 1 weights its distortion term enough to collapse those layers (lambda_d 3e4),
     # the lift only costs contact shadows (stage-1 surfels, default / bunny visibility IoU:
     # 0.882 / 0.837 at 0, 0.883 / 0.817 at 0.5); with the earlier, layered fits 0.5 took the
-    # default scene from 0.819 to 0.836 (BENCHMARKS.md, Visibility).
+    # default scene from 0.819 to 0.836 (docs/decisions.md, "No receiver lift").
     receiver_offset: float = 0.0
     # Which surface of a pixel receives the light (not in the paper), in stage 4's fit, stage
     # 5's evaluation, relighting and the viewer alike: 0 (the paper's deferred shading) takes
