@@ -176,6 +176,7 @@ def test_envmap_texels_that_are_no_radiance_are_refused_naming_count_and_place(
     from mi_shadowgs.stages.relight import runner
 
     img = np.full((16, 32, 3), 0.5, np.float32)
+    img[0, 0, 0] = -0.01  # HDR ringing, 2% of the mean below 0: kept (NEGATIVE_TOLERANCE)
     img[3, 7, 1] = value
     img[9, 2, :] = value
     path = write_exr(tmp_path / "bad.exr", img) or tmp_path / "bad.exr"
