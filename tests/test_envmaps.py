@@ -203,3 +203,16 @@ def test_an_integer_envmap_is_known_by_its_content_not_its_name(tmp_path, capsys
     resolve_envmaps(dataclasses.replace(get_config("cpu-small"), envmaps=(str(disguised),)))
     assert f"--envmap {disguised} stores integers (low dynamic range)" in \
         capsys.readouterr().err
+
+
+def test_the_shipped_env_maps_pass_the_check():
+    """`make demo` generates with the shipped maps ("auto"): each must pass the check that
+    every path applies to a map (their HDR ringing below 0 included)."""
+    from mi_shadowgs.core.envmap import check_envmap
+    from mi_shadowgs.dataset.assets import shipped_envmaps
+
+    maps = shipped_envmaps()
+    if not maps:
+        pytest.skip("the shared env maps are not beside this checkout (../shared/data)")
+    for path in maps:
+        check_envmap(path)
