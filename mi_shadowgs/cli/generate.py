@@ -40,7 +40,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace a dataset that generate wrote before (refused when "
                              "the folder holds files not in its .mi_shadowgs_manifest.json)")
     parser.add_argument("-D", dest="defines", action="append", default=[],
-                        metavar="NAME=VALUE", help="set a scene <default> parameter")
+                        metavar="NAME=VALUE",
+                        help="set a scene <default> parameter, or one that every scene "
+                             "takes: base_texture=mat, and the capture's (docs/capture.md): "
+                             "capture=lab (a lamp at 6 object radii, room light, the photos' "
+                             "exposure and white-balance jitter, noise, JPEG), lamp_*, "
+                             "room_radiance, photo_*")
     parser.add_argument("--photos", action="store_true",
                         help="also write every view as a user's photo (sRGB JPEG, no camera, "
                              "no mask) under DIR/photos/, for `mi-shadowgs import`; pair it "

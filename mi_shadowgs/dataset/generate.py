@@ -170,17 +170,63 @@ def camera_rays(cameras: list[Camera], offset: tuple[float, float] = (0.5, 0.5)
     return np.concatenate(origins), np.concatenate(dirs), np.concatenate(fwd)
 
 
+LAMP_SAMPLES = 16  # points on a sphere lamp's disc for its soft visibility
+
+
+def _disc_points(count: int) -> np.ndarray:
+    """[count, 2] points evenly spread over the unit disc (Vogel's sunflower), each the
+    centre of an equal area."""
+    k = np.arange(count) + 0.5
+    r = np.sqrt(k / count)
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi)], -1)
+
+
+def _lamp_terms(scene, si, n, valid, light, samples: int):
+    """(hard visibility, soft visibility, irradiance [RGB]) of a lamp ``Light`` at the
+    interactions ``si`` (normals ``n``): shadow rays to its centre, and to ``samples``
+    points of the disc of its radius across the direction to it."""
+    import drjit as dr
+    import mitsuba as mi
+
+    centre = mi.Point3f(*light.position)
+    to = centre - si.p
+    dist2 = dr.squared_norm(to)
+    l_dir = to * dr.rsqrt(dist2)
+    hard = valid & ~scene.ray_test(si.spawn_ray_to(centre), valid)
+    v_hard = dr.select(hard, 1.0, 0.0)
+    if light.radius > 0 and samples > 0:
+        e1, e2 = mi.coordinate_system(l_dir)
+        v_soft = dr.zeros(mi.Float, dr.width(valid))
+        for a, b in _disc_points(samples) * light.radius:
+            target = centre + float(a) * e1 + float(b) * e2
+            seen = valid & ~scene.ray_test(si.spawn_ray_to(target), valid)
+            v_soft += dr.select(seen, 1.0 / samples, 0.0)
+    else:
+        v_soft = v_hard
+    cos = dr.maximum(dr.dot(n, l_dir), 0.0)
+    falloff = light.distance**2 / dist2
+    irr = mi.Color3f(*light.irradiance) * dr.select(valid, cos * falloff * v_soft, 0.0)
+    return v_hard, v_soft, irr
+
+
 def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
                        lights: list[Light] | None = None,
                        chunk_rays: int = 1 << 22,
-                       offset: tuple[float, float] = (0.5, 0.5)) -> dict[str, np.ndarray]:
+                       offset: tuple[float, float] = (0.5, 0.5),
+                       lamp_samples: int = LAMP_SAMPLES) -> dict[str, np.ndarray]:
     """Exact per-pixel buffers at pixel centres for each camera (all the same size); at
     the point ``offset`` of each pixel instead when given (``camera_rays``).
 
     Returns [N, H, W, ...] arrays: ``albedo`` [3], ``normal`` [3] (unit, world, facing the
     camera), ``depth`` (z-depth, 0 on background), ``mask`` (object or base hit), ``object``
     (object parts hit), ``material`` (int32), ``visibility`` [L] (1 where the light's shadow
-    ray is unoccluded), ``irradiance`` [L, 3] = E * max(0, n . l) * V.
+    ray is unoccluded), ``visibility_soft`` [L] (a sphere lamp's visible share: of
+    ``lamp_samples`` points on its disc as the pixel sees it; the hard one for the other
+    lights), ``irradiance`` [L, 3] = E * max(0, n . l) * V. A lamp's V is its soft
+    visibility, its l points from the pixel to its centre, and its E falls off as 1 / r^2
+    from the irradiance it gives at the object's centre: exact for a point lamp, and for a
+    sphere wholly above the pixel's horizon that is unoccluded.
     """
     import drjit as dr
     import mitsuba as mi
@@ -195,7 +241,7 @@ def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
     n_parts = len(setup.parts)
     views_per_chunk = max(1, chunk_rays // (h * w))
     out = {k: [] for k in ("albedo", "normal", "depth", "mask", "object", "material",
-                           "visibility", "irradiance")}
+                           "visibility", "visibility_soft", "irradiance")}
     for v0 in range(0, len(cameras), views_per_chunk):
         o, d, f = camera_rays(cameras[v0:v0 + views_per_chunk], offset)
         ray = mi.Ray3f(mi.Point3f(*(o.T.astype(np.float32))),
@@ -210,15 +256,22 @@ def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
         mat = dr.zeros(mi.UInt32, dr.width(valid))
         for ptr, mid in shape_ids:
             mat = dr.select(valid & (si.shape == ptr), mid, mat)
-        vis, irr = [], []
+        vis, soft, irr = [], [], []
         for lt in lights:
+            if lt.is_lamp:
+                v, vs, e = _lamp_terms(scene, si, n, valid, lt, lamp_samples)
+                vis.append(v)
+                soft.append(vs)
+                irr.append(e)
+                continue
             l_dir = mi.Vector3f(*lt.direction)
             occluded = scene.ray_test(si.spawn_ray(l_dir), valid)
             v = valid & ~occluded
             cos = dr.maximum(dr.dot(n, l_dir), 0.0)
             vis.append(dr.select(v, 1.0, 0.0))
+            soft.append(vis[-1])
             irr.append(mi.Color3f(*lt.irradiance) * dr.select(v, cos, 0.0))
-        dr.eval(n, depth, albedo, mat, vis, irr)
+        dr.eval(n, depth, albedo, mat, vis, soft, irr)
         nv = len(cameras[v0:v0 + views_per_chunk])
 
         def arr(x, c=None, nv=nv):
@@ -236,6 +289,8 @@ def trace_ground_truth(setup: SceneSetup, cameras: list[Camera],
         out["albedo"].append(arr(albedo, 3))
         out["visibility"].append(np.stack([arr(v) for v in vis], -1) if vis else
                                  np.zeros((nv, h, w, 0), np.float32))
+        out["visibility_soft"].append(np.stack([arr(v) for v in soft], -1) if soft else
+                                      np.zeros((nv, h, w, 0), np.float32))
         out["irradiance"].append(np.stack([arr(e, 3) for e in irr], -2) if irr else
                                  np.zeros((nv, h, w, 0, 3), np.float32))
     return {k: np.concatenate(v) for k, v in out.items()}

@@ -19,6 +19,9 @@ PNG_ALPHA_FIELD = "png_alpha"
 # generate --photos: every view as a user's photo (sRGB JPEG, no cameras, no masks), named
 # "<split>_<index>.jpg" so that scoring finds the view's ground truth.
 PHOTOS = "photos"
+# photos/gains.json: each photo's true exposure and white-balance gains, when the capture
+# jitters them (mi_shadowgs.dataset.photos)
+PHOTO_GAINS = "gains.json"
 
 
 def photo_name(split: str, index: int) -> str:
@@ -36,7 +39,9 @@ DEPTH = "_depth.exr"           # z-depth, 0 on background
 MASK = "_mask.png"             # object mask (object parts only), 0 / 255
 MATERIAL = "_material.png"     # uint8 material id: 0 background, 1..P parts, P + 1 base
 VISIBILITY = "_visibility.exr"  # one channel per training light, 1 where unoccluded
-IRRADIANCE = "_irradiance_{k}.exr"  # E_k * max(0, n . l_k) * V_k, linear RGB
+# a sphere lamp's visible share per training light (only when a lamp has a radius)
+VISIBILITY_SOFT = "_visibility_soft.exr"
+IRRADIANCE = "_irradiance_{k}.exr"  # E_k * max(0, n . l_k) * V_k (lamps: soft V), RGB
 RELIT = "_relit_{name}.exr"    # test views only: relit linear RGBA
 
 

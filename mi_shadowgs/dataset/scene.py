@@ -12,6 +12,8 @@ Overriding a computed parameter is an error naming the parameters to set instead
 the mesh, the object is loaded as one shape per part with the part's material.
 Every scene takes ``-D base_texture=mat``: the base's reflectance becomes a procedural
 mottled mat (``mat_texture``), so that SfM finds features on photo sets (``--photos``).
+Every scene also takes the capture's parameters (``capture.py``: ``-D capture=lab``, a lamp
+in place of the directional lights, room light, the photos' jitter).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.dataset.capture import Capture, captured_scenes, lamp_light, split_capture
 
 LIGHT_ID = re.compile(r"^light(\d+)$")
 
@@ -51,11 +54,26 @@ class Light:
     irradiance: tuple  # RGB, W/m^2 at normal incidence
     azimuth_deg: float
     elevation_deg: float
+    # A lamp (``capture.py``): its centre (world), sphere radius (world units; 0: a point)
+    # and distance from the object's centre, where ``direction`` points to it and
+    # ``irradiance`` is what it gives. None: a directional light.
+    position: tuple | None = None
+    radius: float = 0.0
+    distance: float = 0.0
+
+    @property
+    def is_lamp(self) -> bool:
+        return self.position is not None
 
     def to_json(self) -> dict:
-        return {"name": self.name, "direction": list(self.direction),
-                "irradiance": list(self.irradiance), "azimuth_deg": self.azimuth_deg,
-                "elevation_deg": self.elevation_deg}
+        out = {"name": self.name, "direction": list(self.direction),
+               "irradiance": list(self.irradiance), "azimuth_deg": self.azimuth_deg,
+               "elevation_deg": self.elevation_deg}
+        if self.is_lamp:
+            out.update({"type": "lamp", "position": list(self.position),
+                        "radius": self.radius, "distance": self.distance,
+                        "intensity": [e * self.distance**2 for e in self.irradiance]})
+        return out
 
 
 @dataclasses.dataclass
@@ -73,6 +91,16 @@ class SceneSetup:
     # *_parts.json), "part FILE" / "texture FILE" (relative to it), "file VALUE" (another
     # ``filename`` of the XML). The generator digests them all; ``dataset_scene`` checks them.
     inputs: dict = dataclasses.field(default_factory=dict)  # name -> Path (resolved)
+    # lamp, room light and photo jitter (``capture.py``)
+    capture: Capture = dataclasses.field(default_factory=Capture)
+    # The scene to path-trace where it differs from ``scene`` (a sphere lamp: ``scene``
+    # holds it as a point, which rays never hit), else None.
+    render_scene: object = None
+
+    @property
+    def path_traced(self):
+        """The scene the views are path-traced from."""
+        return self.scene if self.render_scene is None else self.render_scene
 
     def shape_material_ids(self) -> dict[str, int]:
         ids = {p.shape_id: p.material_id for p in self.parts}
@@ -235,12 +263,13 @@ def _computed_params(root: ET.Element, defaults: dict) -> dict[str, str]:
     return {k: v for k, v in out.items() if k in defaults}
 
 
-def _scene_params(path: Path, root, overrides: dict | None) -> tuple[dict[str, str], str]:
+def _scene_params(path: Path, root, overrides: dict | None
+                  ) -> tuple[dict[str, str], str, Capture]:
     """(the scene's parameters: its ``<default>`` values with ``overrides``, the base's
-    texture); an unknown or computed parameter is a SceneError naming it."""
-    # base_texture is Python's, for every scene: kept out of the XML (and of params unless
-    # set), so that plain datasets keep their fingerprints.
-    overrides = dict(overrides or {})
+    texture, the capture); an unknown or computed parameter is a SceneError naming it."""
+    # base_texture and the capture's parameters are Python's, for every scene: kept out of
+    # the XML (and of params unless set), so that plain datasets keep their fingerprints.
+    capture, overrides = split_capture(path, dict(overrides or {}))
     texture = str(overrides.pop("base_texture", "plain")).strip().lower()
     if texture not in ("plain", "mat"):
         raise SceneError(f"{path}: scene parameter 'base_texture' must be 'plain' or 'mat', "
@@ -255,7 +284,7 @@ def _scene_params(path: Path, root, overrides: dict | None) -> tuple[dict[str, s
             raise SceneError(f"{path}: scene parameter {k!r} is computed, not set; "
                              f"{computed[k]}")
         params[k] = str(v)
-    return params, texture
+    return params, texture, capture
 
 
 def _scene_lights(path: Path, root, params: dict[str, str]) -> list[Light]:
@@ -312,7 +341,7 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
 
     path = Path(path)
     root = _parse_xml(path)
-    params, texture = _scene_params(path, root, overrides)
+    params, texture, capture = _scene_params(path, root, overrides)
     shapes = [s for s in root.findall("shape")]
     part_elems = [s for s in shapes if (s.get("id") or "").startswith("object_")]
     if not part_elems:
@@ -378,9 +407,17 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
     lo_w, hi_w = (m[:3, :3] @ np.stack([lo, hi]).T).T + m[:3, 3]
     centre = 0.5 * (lo_w + hi_w)
     radius = 0.5 * float(np.linalg.norm(hi_w - lo_w))
+    render_scene = None
+    if capture.lamp is not None or capture.has_room:
+        lamp = (lamp_light(capture.lamp, centre, radius, path)
+                if capture.lamp is not None else None)
+        scene, render_scene = captured_scenes(scene, capture, lamp)
+        lights = [lamp] if lamp is not None else lights
+    params.update(capture.params)
     return SceneSetup(path=path, params=params, scene=scene, parts=parts,
                       base_id=len(parts) + 1, lights=lights, object_to_world=m,
-                      object_center=centre, object_radius=radius, inputs=inputs)
+                      object_center=centre, object_radius=radius, inputs=inputs,
+                      capture=capture, render_scene=render_scene)
 
 
 def _load_part(parts_json: Path, shape_id: str, desc: dict):

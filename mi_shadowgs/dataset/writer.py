@@ -29,6 +29,7 @@ from mi_shadowgs.core.directions import N_LIGHT_DIRECTIONS, directional_lights_t
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.assets import ENVMAP_SUFFIXES, shipped_envmaps
 from mi_shadowgs.dataset.cameras import test_cameras, train_cameras
+from mi_shadowgs.dataset.capture import room_json
 from mi_shadowgs.dataset.generate import (
     GenerateConfig,
     ViewRenderer,
@@ -38,6 +39,7 @@ from mi_shadowgs.dataset.generate import (
     sky_envmap_image,
     trace_ground_truth,
 )
+from mi_shadowgs.dataset.photos import write_photos
 from mi_shadowgs.dataset.scene import SceneSetup, load_scene
 from mi_shadowgs.io.atomic import remove_stale, write_bytes, write_json
 from mi_shadowgs.io.images import write_exr, write_png
@@ -199,7 +201,8 @@ def _seed(seed: int, stream: int, index: int) -> int:
     return (seed * 1_000_003 + stream * 100_003 + index) % (1 << 32)
 
 
-def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> None:
+def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int,
+                soft: bool = False) -> None:
     """The files of one view; its image EXR last, which marks the view finished."""
     # Straight alpha, as NeRF-synthetic's PNGs (the EXR stays premultiplied over black):
     # a premultiplied PNG read by NeRF tools gives silhouettes a dark fringe.
@@ -214,6 +217,9 @@ def _write_view(root: Path, stem: str, rgba: np.ndarray, gt: dict, i: int) -> No
     vis = gt["visibility"][i]
     if vis.shape[-1]:
         write_exr(root / (stem + layout.VISIBILITY), vis,
+                  channels=[f"V{k:02d}" for k in range(vis.shape[-1])])
+    if soft:  # a sphere lamp: its visible share beside the hard test of its centre
+        write_exr(root / (stem + layout.VISIBILITY_SOFT), gt["visibility_soft"][i],
                   channels=[f"V{k:02d}" for k in range(vis.shape[-1])])
     for k in range(gt["irradiance"].shape[-2]):
         write_exr(root / (stem + layout.IRRADIANCE.format(k=k)), gt["irradiance"][i, :, :, k])
@@ -298,30 +304,19 @@ def lights_json(setup: SceneSetup, config: GenerateConfig, envmaps: list[EnvMap]
                       else str(env.source),
                       "scale": config.envmap_scale,
                       "convention": "Mitsuba lat-long envmap, Y-up, identity to_world"})
-    return {
-        "convention": "direction = unit vector toward the light (Y-up world); irradiance in "
-                      "W/m^2 at normal incidence, linear RGB",
-        "training": {"lights": train,
-                     "light_map": {"grid": f"mi_shadowgs.core.directions.light_grid"
-                                           f"({N_LIGHT_DIRECTIONS})",
-                                   "radiance": light_map.tolist()}},
-        "relightings": relit,
-    }
-
-
-def _write_photos(folder: Path) -> None:
-    """Every view of ``folder`` as a photo: sRGB JPEG of the rendered image (background
-    black, as the render leaves it), no alpha, no camera."""
-    from mi_shadowgs.io.images import read_exr, write_jpeg
-
-    (folder / layout.PHOTOS).mkdir(exist_ok=True)
-    for split in layout.SPLITS:
-        meta = json.loads((folder / layout.transforms_name(split)).read_text())
-        for i in range(len(meta["frames"])):
-            path = folder / layout.PHOTOS / layout.photo_name(split, i)
-            if not path.is_file():  # a kill may have come after some of them
-                rgba = read_exr(folder / (layout.view_stem(split, i) + layout.IMAGE_EXR))
-                write_jpeg(path, rgba[..., :3])
+    training = {"lights": train,
+                "light_map": {"grid": f"mi_shadowgs.core.directions.light_grid"
+                                      f"({N_LIGHT_DIRECTIONS})",
+                              "radiance": light_map.tolist()}}
+    if setup.capture.has_room:
+        training["room"] = room_json(setup.capture)
+    convention = ("direction = unit vector toward the light (Y-up world); irradiance in "
+                  "W/m^2 at normal incidence, linear RGB")
+    if any(lt.is_lamp for lt in setup.lights):
+        convention += ("; a lamp's direction and irradiance are those at the object's "
+                       "centre, its intensity (W/sr) = irradiance * distance^2, and "
+                       "position, radius and distance are in world units")
+    return {"convention": convention, "training": training, "relightings": relit}
 
 
 def _cameras(setup, config: GenerateConfig, seed: int) -> dict[str, list]:
@@ -371,7 +366,8 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     envmaps = resolve_envmaps(config)
     setup = load_scene(scene_path, overrides)
     if not setup.lights:
-        raise ValueError(f"{scene_path}: no directional light (emitters light0, light1, ...)")
+        raise ValueError(f"{scene_path}: no light: neither a directional light (emitters "
+                         "light0, light1, ...) nor a lamp (-D lamp_distance=...)")
     fp = fingerprint(setup, config, seed, envmaps, photos)
     inputs = {name: input_ref(path) for name, path in setup.inputs.items()}
     for env in envmaps:
@@ -393,6 +389,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     total = config.n_train + config.n_test * (1 + len(relights))
     # Ground truth for this many views at a time: what a kill loses beside one render.
     per_chunk = max(1, config.gt_chunk_rays // (config.width * config.height))
+    soft = any(lt.is_lamp and lt.radius > 0 for lt in setup.lights)
     with tqdm(total=total, desc=f"generate {out.name}", unit="view",
               disable=not progress) as bar:
         for split_no, split in enumerate(layout.SPLITS):
@@ -408,14 +405,15 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
                                         chunk_rays=config.gt_chunk_rays)
                 for j, i in enumerate(chunk):
                     stem = layout.view_stem(split, i)
-                    rgba = renderer.render(setup.scene, views[i], _seed(seed, split_no, i))
+                    rgba = renderer.render(setup.path_traced, views[i],
+                                           _seed(seed, split_no, i))
                     for k, (name, sc) in enumerate(relights if split == "test" else []):
                         path = partial / (stem + layout.RELIT.format(name=name))
                         if not path.is_file():  # a kill may have come after some of them
                             img = renderer.render(sc, views[i], _seed(seed, 2 + k, i))
                             img[..., 3] = rgba[..., 3]  # coverage does not depend on the light
                             write_exr(path, img)
-                    _write_view(partial, stem, rgba, gt, j)
+                    _write_view(partial, stem, rgba, gt, j, soft)
                     bar.update(renders)
             frames = [cam.to_frame_json("./" + layout.view_stem(split, i))
                       for i, cam in enumerate(views)]
@@ -425,7 +423,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
             if split == "test":  # NeRF tools (nerfstudio) also load a val split: the test one
                 write_json(partial / layout.transforms_name("val"), meta)
     if photos:
-        _write_photos(partial)
+        write_photos(partial, setup.capture, seed)
     write_json(partial / layout.LIGHTS_JSON, lights_json(setup, config, envmaps))
     import mitsuba as mi
 
