@@ -42,9 +42,10 @@ def _csv_columns(path: Path) -> dict[str, list[float]]:
 
 def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
     """The labelled 22x12 light map of a variant's ``light.json`` beside the dataset's
-    ground truth (``lights.json``); False when the fit has no light.json. Both maps are
-    binned from the light grid's directions, the fitted lights lie on them and the true
-    lights do not: the figure marks the grid and where the truth's map puts each light."""
+    ground truth (``lights.json``); False when the fit has no light.json. Both maps hold
+    radiance on the light grid's directions only, and a light (true, or fitted and refined
+    off the grid) lies between them: the figure marks the grid and where the maps put each
+    true light."""
     import numpy as np
 
     from mi_shadowgs.core.directions import light_grid, map_to_blocks, nearest_grid_index
@@ -285,14 +286,16 @@ def _add_material_stage(summary: dict, run: Path, data: Path, results: dict, sec
                          .get("light_map"))
         if (run / "report" / "light_map.png").is_file():
             figures.append({"title": "light map, 22x12 blocks: estimate | ground truth; "
-                                     "rings: true lights, crosses: fitted; dots: the light "
-                                     "grid's directions. Both maps hold radiance on the grid "
-                                     "only: the fitted lights lie on it, the true ones do not, "
-                                     "so each true light's block is that of its nearest grid "
-                                     "direction (+), beside its ring" if has_truth else
+                                     "rings: true lights, crosses: fitted lights (their "
+                                     "own directions); dots: the 128-direction light grid. "
+                                     "Both maps hold radiance on the grid's directions only, "
+                                     "so a light's bright block is that of its nearest grid "
+                                     "direction (+), beside its ring or cross, not an error"
+                                     if has_truth else
                                      "light map, 22x12 blocks over azimuth/elevation: "
-                                     "estimate (no ground truth); crosses: fitted lights on "
-                                     "the light grid's directions (dots)",
+                                     "estimate (no ground truth); crosses: fitted lights "
+                                     "(their own directions); dots: the light grid, the only "
+                                     "directions the map holds radiance on",
                             "path": "report/light_map.png", "wide": True})
         else:
             figures.append({"title": "light map 22x12: estimate | ground truth",

@@ -115,7 +115,7 @@ def light_map_png(path: str | os.PathLike, est_blocks: np.ndarray, gt_blocks: np
                         [lt["elevation"], lt["grid_elevation"]], "-", color="#19d3ff", lw=0.8)
                 ax.plot(lt["grid_azimuth"], lt["grid_elevation"], "+", ms=9, mew=1.8,
                         color="#19d3ff", label=None if snapped else
-                        "true light on its nearest grid direction (where the map has it)")
+                        "a true light's nearest grid direction (its block in the maps)")
                 snapped = True
         if name == "estimate" and fitted:
             w = np.asarray([f["weight"] for f in fitted], np.float64)
