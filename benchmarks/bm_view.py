@@ -12,8 +12,12 @@ Each resolution: a fresh session, 3 warm-up light changes (kernels compile), the
 light changes 3 degrees apart in azimuth (a slider drag: every one a new direction and so a
 new shadow map). Reported: the median wall time and CPU time (all threads) of the full
 frame (the run's shadow maps) and of the preview (half size, half-resolution maps) the page
-shows while the slider moves, and of a camera move (a new G-buffer, the light unchanged).
-Targets: full frame <= 0.15 s at 128^2 and <= 0.5 s at 256^2.
+shows while the slider moves, and of a camera move: the camera orbiting the model 5 degrees
+a step about the vertical through its centre, the light unchanged (a new G-buffer with the
+kernels compiled for the first pose, the light's shadow map reused), as the full frame and
+as the preview the page shows at once while the camera moves (half the size: a quarter of
+the pixels, ``viewer_server``). Targets: full frame
+<= 0.15 s at 128^2 and <= 0.5 s at 256^2; camera move <= 0.2 s at 256^2 (issue 67).
 
     python -m benchmarks.run_all --out bench-out --only view
 """
@@ -30,31 +34,44 @@ from pathlib import Path
 FRAMES = 12
 WARMUP = 3
 TARGETS = {128: 0.15, 256: 0.5}
+MOVE_TARGETS = {256: 0.2}  # camera move, s
+MOVES = 8
 DEFAULT_RUN = Path(__file__).resolve().parents[1] / "runs" / "demo" / "run"
 
 
 def _synthetic_run(folder: Path, n: int) -> Path:
-    """The raster workload as a stage-4 run folder (material/full: model.ply, light.json)."""
+    """The raster workload as a stage-4 run folder (material/full: model.ply, light.json),
+    with the manifests a finished run has (the viewer reads only a fit its run lists)."""
     import numpy as np
 
     from benchmarks.workloads import WorkloadConfig, build_workload
+    from mi_shadowgs.config import to_dict
     from mi_shadowgs.core.directions import direction_from_angles
     from mi_shadowgs.core.surfels import Surfels
     from mi_shadowgs.io.ply import save_ply
+    from mi_shadowgs.io.provenance import Output, Provenance
+    from mi_shadowgs.stages.relight.render import RelightConfig
+    from mi_shadowgs.stages.visibility.shadow_maps import VisibilityConfig
 
     wl = build_workload(WorkloadConfig(n=n))
     channels = {"albedo": np.full((wl.n, 3), 0.6, np.float32),
                 "roughness": np.full((wl.n, 1), 0.5, np.float32),
                 "metallic": np.zeros((wl.n, 1), np.float32)}
     surfels = Surfels.from_numpy(wl.position, wl.scale, wl.rotation, wl.opacity, channels)
-    material = folder / "run" / "material" / "full"
-    material.mkdir(parents=True)
-    save_ply(material / "model.ply", surfels)
-    d = direction_from_angles(40.0, 45.0)
-    (material / "light.json").write_text(json.dumps(
-        {"radiance": [0.0] * 128, "active": [0], "directions": [d.tolist()],
-         "irradiance": [3.0], "specular": True, "use_visibility": True}))
-    return folder / "run"
+    run = folder / "run"
+    with Output.open(run, "run", Provenance(), parts=("material",)) as top:
+        top.add_part("material/full")
+        settings = {"visibility": to_dict(VisibilityConfig()), "relight": to_dict(RelightConfig())}
+        with Output.open(run / "material" / "full", "run", Provenance(settings=settings),
+                         part_of=run) as out:
+            save_ply(out.path("model.ply"), surfels)
+            d = direction_from_angles(40.0, 45.0)
+            out.path("light.json").write_text(json.dumps(
+                {"radiance": [0.0] * 128, "active": [0], "directions": [d.tolist()],
+                 "irradiance": [3.0], "specular": True, "use_visibility": True}))
+            out.finish()
+        top.finish()
+    return run
 
 
 def _light(az: float):
@@ -72,6 +89,23 @@ def _timed(render) -> tuple[float, float, object]:
     frame = render()
     wall = time.perf_counter() - t0
     return wall, time.process_time() - c0, frame
+
+
+def _orbit(camera, centre, deg: float):
+    """``camera`` turned by ``deg`` about the vertical through ``centre`` (an orbit drag)."""
+    import dataclasses
+    import math
+
+    import numpy as np
+
+    a = math.radians(deg)
+    turn = np.eye(4)
+    turn[[0, 0, 2, 2], [0, 2, 0, 2]] = [math.cos(a), math.sin(a), -math.sin(a), math.cos(a)]
+    shift = np.eye(4)
+    shift[:3, 3] = centre
+    back = np.eye(4)
+    back[:3, 3] = -np.asarray(centre)
+    return dataclasses.replace(camera, c2w=shift @ turn @ back @ camera.c2w)
 
 
 def _measure(run: Path, res: int, log) -> dict:
@@ -98,24 +132,43 @@ def _measure(run: Path, res: int, log) -> dict:
         prev.append(w)
         prev_cpu.append(c)
     # Camera moves under a light seen before: a new G-buffer, no new shadow map.
-    moves = []
-    pos, wxyz, fov_y = viewer.pose_of_camera(cam)
-    for i in range(4):
-        moved = viewer.camera_from_pose(pos, wxyz, fov_y * (1.0 + 0.01 * (i + 1)), res, res)
-        moves.append(_timed(lambda m=moved: session.render(m, _light(az)))[0])
+    centre = session.surfels.to_numpy()["position"].mean(0)
+    moves, preview_moves, built = [], [], session.gbuffers.rendered
+    for i in range(MOVES + 1):
+        moved = _orbit(cam, centre, 5.0 * (i + 1))
+        wall = _timed(lambda m=moved: session.render(m, _light(az)))[0]
+        # What the page shows at once while the camera moves: the preview (half the size).
+        small = _orbit(preview_cam, centre, 5.0 * (i + 1))
+        wall_preview = _timed(lambda m=small: session.render(
+            m, _light(az), shadow_resolution=preview_maps))[0]
+        if i:  # the first: the kernels of a pose other than the warm-up's
+            moves.append(wall)
+            preview_moves.append(wall_preview)
+    moved_built = session.gbuffers.rendered - built
+    # A light change after the moves: the last pose's G-buffer reused.
+    built = session.gbuffers.rendered
+    session.render(moved, _light(az + 3.0))
+    move_target = MOVE_TARGETS.get(res)
     out = {"resolution": res, "surfels": session.surfels.count,
            "shadow_map_resolution": session.vis_config.resolution,
            "preview_shadow_map_resolution": preview_maps, "frame_s": full,
            "frame_cpu_s": full_cpu, "preview_s": prev, "preview_cpu_s": prev_cpu,
            "camera_move_s": moves, "new_maps_per_change": maps,
+           "camera_move_preview_s": preview_moves,
+           "gbuffers_per_move": moved_built / (2 * (MOVES + 1)),
+           "gbuffers_per_light_change": session.gbuffers.rendered - built,
            "median_s": statistics.median(full), "median_cpu_s": statistics.median(full_cpu),
            "preview_median_s": statistics.median(prev),
            "camera_move_median_s": statistics.median(moves),
-           "target_s": TARGETS[res]}
+           "camera_move_preview_median_s": statistics.median(preview_moves),
+           "target_s": TARGETS[res], "camera_move_target_s": move_target}
     out["met"] = out["median_s"] <= TARGETS[res]
+    out["camera_move_met"] = (None if move_target is None
+                              else out["camera_move_median_s"] <= move_target)
     log(f"view {res}^2: light change {out['median_s'] * 1000:.0f} ms (CPU "
         f"{out['median_cpu_s'] * 1000:.0f} ms), preview {out['preview_median_s'] * 1000:.0f}"
-        f" ms, camera move {out['camera_move_median_s'] * 1000:.0f} ms")
+        f" ms, camera move {out['camera_move_median_s'] * 1000:.0f} ms (preview "
+        f"{out['camera_move_preview_median_s'] * 1000:.0f} ms)")
     return out
 
 
@@ -146,12 +199,17 @@ def run_suite(out: Path, preset: str = "paper", log=print) -> dict:
           f"shadow maps; median of {FRAMES} changes 3 degrees apart after {WARMUP} warm-up; "
           f"{mi.variant()}, {dr.thread_count()} threads; load {load0:.2f} -> {load1:.2f}.", "",
           "| frame | light change, wall (ms) | CPU, all threads (ms) | target | met | preview "
-          "(half size, half-res maps) (ms) | camera move (ms) |",
-          "|---|---|---|---|---|---|---|"]
+          "(half size, half-res maps) (ms) | camera move (ms) | target | met | camera move, "
+          "preview (ms) |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        move_target = r.get("camera_move_target_s")
         md.append(f"| {r['resolution']}^2 | {r['median_s'] * 1000:.0f} | "
                   f"{r['median_cpu_s'] * 1000:.0f} | <= {r['target_s'] * 1000:.0f} | "
                   f"{r['met']} | {r['preview_median_s'] * 1000:.0f} | "
-                  f"{r['camera_move_median_s'] * 1000:.0f} |")
+                  f"{r['camera_move_median_s'] * 1000:.0f} | "
+                  + (f"<= {move_target * 1000:.0f} | {r['camera_move_met']} | "
+                     if move_target else "| | ")
+                  + f"{r['camera_move_preview_median_s'] * 1000:.0f} |")
     md.append("")
     return {**result, "markdown": "\n".join(md)}

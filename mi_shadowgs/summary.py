@@ -8,7 +8,7 @@ import json
 import time
 from pathlib import Path
 
-from mi_shadowgs.core.directions import angles_from_direction
+from mi_shadowgs.core.directions import angles_from_direction, direction_from_angles
 from mi_shadowgs.io.atomic import write_json
 from mi_shadowgs.presets import RunConfig
 
@@ -42,10 +42,13 @@ def _csv_columns(path: Path) -> dict[str, list[float]]:
 
 def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
     """The labelled 22x12 light map of a variant's ``light.json`` beside the dataset's
-    ground truth (``lights.json``); False when the fit has no light.json."""
+    ground truth (``lights.json``); False when the fit has no light.json. Both maps hold
+    radiance on the light grid's directions only, and a light (true, or fitted and refined
+    off the grid) lies between them: the figure marks the grid and where the maps put each
+    true light."""
     import numpy as np
 
-    from mi_shadowgs.core.directions import map_to_blocks
+    from mi_shadowgs.core.directions import light_grid, map_to_blocks, nearest_grid_index
     from mi_shadowgs.io.plots import light_map_png
 
     fit = _json_or_empty(variant / "light.json")
@@ -58,6 +61,7 @@ def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
 
     truth = _json_or_empty(data / "lights.json").get("training", {})
     gt_map = truth.get("light_map", {}).get("radiance")
+    grid = light_grid(len(fit["radiance"]))
     errors = _json_or_empty(variant / "metrics.json").get("angular_error_deg") or []
     gt_lights = []
     for k, lt in enumerate(truth.get("lights", [])):
@@ -69,9 +73,12 @@ def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
             continue
         err = errors[k] if k < len(errors) and errors[k] is not None else None
         err_text = f", error {err:.1f}\u00b0" if err is not None and err == err else ""
+        g_az, g_el = angles_from_direction(grid[int(nearest_grid_index(
+            direction_from_angles(az, el), grid)[0])])
         gt_lights.append({"azimuth": az % 360.0, "elevation": el, "label":
                           f"{lt.get('name', f'light {k}')} (az {az:.0f}\u00b0, "
-                          f"el {el:.0f}\u00b0){err_text}"})
+                          f"el {el:.0f}\u00b0){err_text}", "grid_azimuth": g_az,
+                          "grid_elevation": g_el})
     fitted = []
     dirs = np.asarray(fit.get("directions") or np.zeros((0, 3)), np.float64).reshape(-1, 3)
     w = np.asarray(fit.get("irradiance") if fit.get("irradiance") is not None
@@ -84,13 +91,37 @@ def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
         az, el = angles_from_direction(d)
         fitted.append({"azimuth": az, "elevation": el, "weight": float(weight)})
     light_map_png(path, blocks(fit["radiance"]), blocks(gt_map) if gt_map else None,
-                  gt_lights, fitted)
+                  gt_lights, fitted, np.asarray([angles_from_direction(d) for d in grid
+                                                 if d[1] > 0]))
     return True
+
+
+# Stage 1's loss terms that start late: (setting of the start, of the weight, the term).
+_LATE_TERMS = (("normal_from", "lambda_normal", "normal loss"),
+               ("dist_from", "lambda_dist", "distortion loss"))
+
+
+def loss_term_starts(run: Path) -> list[dict]:
+    """Where stage 1's late loss terms start, as the curves mark them: ``{"x": iteration,
+    "setting": "normal_from", "label": ...}``, read from the run's recorded settings
+    (``geometry/config.json``, else ``RUN/config.json``); a term with weight 0, or that
+    starts at 0 or after the last iteration, is not marked."""
+    cfg = (_json_or_empty(run / "geometry" / "config.json").get("config")
+           or _json_or_empty(run / "config.json").get("geometry") or {})
+    out = []
+    for start, weight, term in _LATE_TERMS:
+        x, w, last = cfg.get(start), cfg.get(weight), cfg.get("iterations")
+        if (isinstance(x, int) and isinstance(w, int | float) and w > 0 and x > 0
+                and (not isinstance(last, int) or x < last)):
+            out.append({"x": x, "setting": start,
+                        "label": f"{term} from iteration {x} ({start})"})
+    return out
 
 
 def write_report_figures(folder: Path, run: Path, data: Path) -> None:
     """The report's plots into ``folder`` from the run's files, each only when its data is
-    there: stage-1 training curves (``geometry/log.csv``), stage-4 loss
+    there: stage-1 training curves (``geometry/log.csv``, with where each late loss
+    term starts: ``loss_term_starts``), stage-4 loss
     (``material/*/history.csv``), the labelled light map of the full fit and the colour bar
     of the error maps."""
     from mi_shadowgs.io.plots import colorbar_png, curves_png
@@ -102,7 +133,8 @@ def write_report_figures(folder: Path, run: Path, data: Path) -> None:
                    "lines": [{"x": it, "y": log[key]}]}
                   for key, label in (("loss", "training loss"), ("psnr", "training PSNR (dB)"),
                                      ("surfels", "surfels")) if key in log]
-        curves_png(folder / "geometry_curves.png", panels, title="Stage 1: geometry")
+        curves_png(folder / "geometry_curves.png", panels, title="Stage 1: geometry",
+                   markers=loss_term_starts(run))
     lines = []
     for hist in [v / "history.csv" for v in _variant_folders(run)]:
         h = _csv_columns(hist)
@@ -198,7 +230,7 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
             and summary["stages"][0]["name"].startswith("Stage 1")):
         summary["stages"][0]["figures"].insert(0, {
             "title": "training curves (geometry/log.csv)", "path": "report/geometry_curves.png",
-            "wide": True})
+            "wide": True, "markers": loss_term_starts(run)})
     skipped_tab = skipped_table(results, available)
     if skipped_tab:
         summary["tables"].insert(1, skipped_tab)
@@ -213,6 +245,11 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
         summary["tables"].append(speed)
     summary["provenance"] = _provenance(run, config, mi.variant())
     _add_material_stage(summary, run, data, results, secs)
+    held = _held_channels(results, config)
+    for grid in [summary.get("grid")] + list(summary.get("grids") or []):
+        notes = {c: held[c] for c in (grid or {}).get("columns", []) if c in held}
+        if notes:
+            grid["column_notes"] = notes
     summary["stages"].append(speed_error_stage(run))
     return summary
 
@@ -249,9 +286,16 @@ def _add_material_stage(summary: dict, run: Path, data: Path, results: dict, sec
                          .get("light_map"))
         if (run / "report" / "light_map.png").is_file():
             figures.append({"title": "light map, 22x12 blocks: estimate | ground truth; "
-                                     "rings: true lights, crosses: fitted" if has_truth else
+                                     "rings: true lights, crosses: fitted lights (their "
+                                     "own directions); dots: the 128-direction light grid. "
+                                     "Both maps hold radiance on the grid's directions only, "
+                                     "so a light's bright block is that of its nearest grid "
+                                     "direction (+), beside its ring or cross, not an error"
+                                     if has_truth else
                                      "light map, 22x12 blocks over azimuth/elevation: "
-                                     "estimate (no ground truth); crosses: fitted lights",
+                                     "estimate (no ground truth); crosses: fitted lights "
+                                     "(their own directions); dots: the light grid, the only "
+                                     "directions the map holds radiance on",
                             "path": "report/light_map.png", "wide": True})
         else:
             figures.append({"title": "light map 22x12: estimate | ground truth",
@@ -269,6 +313,19 @@ def _add_material_stage(summary: dict, run: Path, data: Path, results: dict, sec
             "metrics": {k: v for k, v in results.get("full", {}).items()
                         if not isinstance(v, (dict, list))},
             "figures": figures})
+
+
+def _held_channels(results: dict, config: RunConfig) -> dict[str, str]:
+    """What the grid says under a channel the full fit did not fit (its images a constant):
+    metallic and roughness when the fit modelled no specular lobe, because the preset has
+    none (``specular "off"``) or because the fit dropped it after the warm-up (``"auto"``)."""
+    if (results.get("full") or {}).get("specular") is not False:
+        return {}
+    if config.variants()["full"].specular == "off":
+        return {"metallic": "held at 0 by the preset (specular \"off\")",
+                "roughness": "not fitted: the preset models no specular lobe"}
+    return {"metallic": "held at 0: the fit dropped the specular lobe (specular \"auto\")",
+            "roughness": "not fitted after the warm-up (no specular lobe)"}
 
 
 def _split_grid(grid: dict) -> list[dict]:
@@ -377,24 +434,27 @@ PAPER_VIEWS = 200
 
 
 def _per_view_tables(metrics: dict) -> list[dict]:
-    """PSNR/SSIM/LPIPS of each test view: albedo and every relighting (full fit)."""
+    """PSNR/SSIM/LPIPS of each test view: albedo and every relighting (full fit), one row
+    per view and lighting, so that the table keeps its five columns however many
+    relightings the dataset has."""
     per = {"albedo": metrics.get("albedo_per_view")}
     per.update({name: r.get("per_view") for name, r in (metrics.get("relighting") or {}).items()})
     per = {k: v for k, v in per.items() if isinstance(v, dict) and v.get("psnr")}
     if not per:
         return []
     n = max(len(v["psnr"]) for v in per.values())
-    names = metrics.get("test_views") or [f"view {i}" for i in range(n)]
-    cols, rows = ["view"], [[names[i] if i < len(names) else f"view {i}"] for i in range(n)]
-    for kind, v in per.items():
-        for m in ("psnr", "ssim", "lpips"):
-            cols.append(f"{kind} {m.upper()}")
-            vals = v.get(m) or []
-            for i, row in enumerate(rows):
-                row.append(vals[i] if i < len(vals) else None)
-    return [{"title": "Per test view (full fit)", "columns": cols, "rows": rows,
-             "note": "relit views: albedo scaled by one global per-channel factor; n/a: not "
-                     "computed (see the table above)"}]
+    names = metrics.get("test_views") or []
+    rows = []
+    for i in range(n):
+        for kind, v in per.items():
+            vals = [(v.get(m) or [])[i] if i < len(v.get(m) or []) else None
+                    for m in ("psnr", "ssim", "lpips")]
+            rows.append([names[i] if i < len(names) else f"view {i}", kind, *vals])
+    return [{"title": "Per test view (full fit)",
+             "columns": ["view", "image", "PSNR", "SSIM", "LPIPS"], "rows": rows,
+             "note": "image: the albedo, or the view relit under that lighting (albedo scaled "
+                     "by one global per-channel factor); n/a: not computed (see the table "
+                     "above)"}]
 
 
 def _speed_table(metrics: dict, dataset: dict) -> dict | None:

@@ -60,7 +60,10 @@ def test_every_image_and_link_of_the_report_exists(run):
                                            "(paper Sec. V-A4)")]
     assert "extrapolated" in speed["note"]
     per_view = summary["tables"][titles.index("Per test view (full fit)")]
-    assert [r[0] for r in per_view["rows"]] == ["r_000", "r_001"]
+    assert per_view["columns"] == ["view", "image", "PSNR", "SSIM", "LPIPS"]
+    assert [r[:2] for r in per_view["rows"][:3]] == [
+        ["r_000", "albedo"], ["r_000", "sun_high"], ["r_000", "env_sky_envmap"]]
+    assert len(per_view["rows"]) == 6
     hist = (run / "material" / "full" / "history.csv").read_text().splitlines()
     assert hist[0] == "step,loss" and len(hist) > 2
     manifest = json.loads((run / "material" / "full" / ".mi_shadowgs_manifest.json").read_text())
@@ -85,6 +88,26 @@ def test_report_plots_are_byte_identical_and_tolerate_missing_files(run, tmp_pat
     assert "missing: report/geometry_curves.png" in page  # named, not dropped
 
 
+def test_report_reads_right(run):
+    """The curves mark where stage 1's late loss terms start (from the run's recorded
+    settings), a channel the preset holds constant says so, every grid thumbnail links to
+    its image, and no grid header may break inside a word."""
+    summary = json.loads((run / "summary.json").read_text())
+    geo = json.loads((run / "geometry" / "config.json").read_text())["config"]
+    curves = next(f for f in summary["stages"][0]["figures"]
+                  if f["path"] == "report/geometry_curves.png")
+    assert {m["setting"]: m["x"] for m in curves["markers"]} == {
+        "normal_from": geo["normal_from"], "dist_from": geo["dist_from"]}
+    assert summary["grids"][0]["column_notes"]["metallic"].startswith(
+        "held at 0 by the preset")  # test-tiny, like cpu-small, has specular "off"
+    page = (run / "report.html").read_text()
+    assert "held at 0 by the preset" in page and "normal loss from iteration" in page
+    thumbs = re.findall(r"<td>(<a href='[^']+'>)?<img src='([^']+)'", page)
+    assert thumbs and all(link == f"<a href='{src}'>" for link, src in thumbs)
+    assert "anywhere" not in page and "word-break: normal" in page
+    assert "relit env_<wbr>sky_<wbr>envmap" in page  # breaks after "_", not inside words
+
+
 @pytest.mark.skipif(CHROMIUM is None, reason=NO_CHROMIUM)
 def test_report_in_headless_chromium(run, tmp_path):
     """The check ``make validate`` runs on every table run (validation.report_page)."""
@@ -93,9 +116,11 @@ def test_report_in_headless_chromium(run, tmp_path):
     img = read_png(shot)
     assert img.shape[1] == report_page.PAGE_WIDTH
     assert img.std() > 10  # something was drawn, not a blank page
-    # The page's images all load and nothing is wider than the window.
+    # The page's images all load, nothing is wider than the window, no table hides columns
+    # in a sideways scroll, and the grid's thumbnails are not drawn tiny.
     assert result["bad"] == [] and result["images"] >= 8
     assert result["width"] <= report_page.PAGE_WIDTH and result["ok"]
+    assert result["wide_tables"] == [] and result["thumb_min_px"] >= 96
     # A page that is too wide, or with an image that does not load, is caught: the probe is
     # not a check that cannot fail.
     wide = tmp_path / "wide.html"
@@ -104,5 +129,12 @@ def test_report_in_headless_chromium(run, tmp_path):
     bad = report_page.check_report(wide, tmp_path / "wide.png")
     assert bad["width"] > report_page.PAGE_WIDTH and bad["bad"] == ["gone.png"]
     assert not bad["ok"]
+    scrolled = tmp_path / "scrolled.html"  # the page fits, the table hides its columns
+    scrolled.write_text("<html><head></head><body><div style='overflow-x:auto'><table><tr>"
+                        + "<th>env_sky_envmap_LPIPS</th>" * 80 + "</tr></table></div>"
+                        "</body></html>")
+    hidden = report_page.check_report(scrolled, tmp_path / "scrolled.png")
+    assert hidden["width"] <= report_page.PAGE_WIDTH and len(hidden["wide_tables"]) == 1
+    assert not hidden["ok"]
     with pytest.raises(AssertionError, match="wide.html"):
         report_page.run(tmp_path / "shots", [wide])

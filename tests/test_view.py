@@ -194,6 +194,19 @@ def test_view_benchmark_measures_a_run(runs, monkeypatch):
     assert row["surfels"] == 4000 and row["shadow_map_resolution"] == 128
     assert row["new_maps_per_change"] == [1, 1]  # every change a new direction
     assert len(row["frame_s"]) == 2 and 0 < row["median_s"] < 10.0 and row["met"]
+    # Every camera move a new G-buffer (full frame and preview), a light change none.
+    assert row["gbuffers_per_move"] == 1 and row["gbuffers_per_light_change"] == 0
+    assert len(row["camera_move_s"]) == bm_view.MOVES == len(row["camera_move_preview_s"])
+    assert row["camera_move_met"] is None  # no camera-move target at 32^2
+
+
+def test_view_benchmark_makes_its_own_run_where_there_is_none(tmp_path):
+    """Without a demo run the benchmark views the raster workload as a run folder the
+    viewer opens (its manifests list the fit)."""
+    from benchmarks import bm_view
+
+    session = viewer.ViewerSession(bm_view._synthetic_run(tmp_path, 500))
+    assert session.can_relight and session.surfels.count == 500
 
 
 def test_previews_while_changes_come_then_one_full_frame():

@@ -1,6 +1,7 @@
 """The run reports in headless Chromium: each ``report.html`` is
 screenshot at a 1400-px window, and a copy of the page reports after loading whether every
-image loaded and how wide the page is::
+image loaded, how wide the page is, which tables reach past the window (a table that
+scrolls inside its box hides columns) and how small the grid's thumbnails are drawn::
 
     python -m validation.report_page RUN [RUN ...] [--out SHOTS]
 
@@ -29,9 +30,16 @@ NO_CHROMIUM = ("no chromium on PATH (Debian: apt-get install -y chromium, or "
 # Appended to a copy of the page: after loading, the body carries what the check reads.
 PROBE = """<script>window.addEventListener('load', () => {
   const bad = [...document.images].filter(i => !(i.complete && i.naturalWidth > 0));
+  const page = document.documentElement.clientWidth;
+  const wide = [...document.querySelectorAll('table')].filter(
+    t => t.getBoundingClientRect().right > page + 1);
+  const thumbs = [...document.querySelectorAll('table.grid img')].map(
+    i => i.getBoundingClientRect().width);
   document.body.setAttribute('data-probe', JSON.stringify({
     width: document.documentElement.scrollWidth, images: document.images.length,
-    bad: bad.map(i => i.getAttribute('src'))}));
+    bad: bad.map(i => i.getAttribute('src')),
+    wide_tables: wide.map(t => t.rows[0] ? t.rows[0].textContent.slice(0, 60) : ''),
+    thumb_min_px: thumbs.length ? Math.min(...thumbs) : null}));
 });</script></body>"""
 
 
@@ -50,8 +58,10 @@ def chromium(*args: str, width: int = PAGE_WIDTH) -> subprocess.CompletedProcess
 
 
 def probe(page: Path, width: int = PAGE_WIDTH) -> dict:
-    """{"width": the page's scroll width, "images": count, "bad": srcs that did not load}
-    of an HTML file that ends with ``PROBE``."""
+    """{"width": the page's scroll width, "images": count, "bad": srcs that did not load,
+    "wide_tables": the first row's text of each table that reaches past the window,
+    "thumb_min_px": the narrowest grid thumbnail's drawn width} of an HTML file that ends
+    with ``PROBE``."""
     dom = chromium("--virtual-time-budget=10000", "--dump-dom", page.as_uri(),
                    width=width).stdout
     found = re.search(r"data-probe=\"([^\"]+)\"", dom)
@@ -76,7 +86,8 @@ def check_report(report: Path, shot: Path, width: int = PAGE_WIDTH) -> dict:
         copy.write_text(page.replace("<head>", f"<head><base href='{report.parent.as_uri()}/'>",
                                      1).replace("</body>", PROBE))
         result = probe(copy, width)
-    result.update(ok=not result["bad"] and result["width"] <= width and result["images"] > 0,
+    result.update(ok=(not result["bad"] and not result["wide_tables"]
+                      and result["width"] <= width and result["images"] > 0),
                   screenshot=str(shot), report=str(report))
     return result
 
@@ -84,11 +95,13 @@ def check_report(report: Path, shot: Path, width: int = PAGE_WIDTH) -> dict:
 def markdown(results: list[dict], width: int = PAGE_WIDTH) -> str:
     lines = ["## Report pages in headless Chromium", "",
              f"Each run's `report.html` at a {width}-px window: images loaded, page width.", "",
-             "| report | images | not loaded | page width px | fits | screenshot |",
-             "|---|---|---|---|---|---|"]
+             "| report | images | not loaded | page width px | tables past the window | "
+             "fits | screenshot |",
+             "|---|---|---|---|---|---|---|"]
     for r in results:
         lines.append(f"| {r['report']} | {r['images']} | {len(r['bad'])} | {r['width']} | "
-                     f"{'yes' if r['ok'] else '**no**'} | {r['screenshot']} |")
+                     f"{len(r['wide_tables'])} | {'yes' if r['ok'] else '**no**'} | "
+                     f"{r['screenshot']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -108,7 +121,8 @@ def run(out_dir: Path, reports: list[Path]) -> dict:
     bad = [r for r in results if not r["ok"]]
     if bad:
         raise AssertionError(f"{len(bad)} report page(s) fail: " + "; ".join(
-            f"{r['report']}: width {r['width']} px, not loaded {r['bad'][:3]}" for r in bad))
+            f"{r['report']}: width {r['width']} px, not loaded {r['bad'][:3]}, tables past "
+            f"the window {r['wide_tables'][:3]}" for r in bad))
     return {"markdown": md, "results": results}
 
 

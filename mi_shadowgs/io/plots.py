@@ -20,6 +20,9 @@ ERROR_MAX = 0.25  # error maps: |estimate - ground truth| in sRGB [0, 1], colour
 ERROR_CMAP = "inferno"
 
 
+_MARKER_STYLES = ("--", ":", "-.")
+
+
 def _figure(width_in: float, height_in: float):
     from matplotlib.figure import Figure
 
@@ -36,18 +39,24 @@ def _save(fig, path: str | os.PathLike) -> None:
 
 
 def curves_png(path: str | os.PathLike, panels: list[dict], xlabel: str = "iteration",
-               title: str | None = None) -> None:
+               title: str | None = None, markers: list[dict] | None = None) -> None:
     """Side-by-side line plots. Each panel is ``{"ylabel": str, "log": bool, "lines":
-    [{"x": [N], "y": [N], "label": str | None}]}``; NaNs are gaps."""
+    [{"x": [N], "y": [N], "label": str | None}]}``; NaNs are gaps. ``markers``
+    (``[{"x", "label"}]``, where a loss term starts) are dashed vertical lines on every
+    panel, named in a legend below the panels."""
     n = max(len(panels), 1)
     fig = _figure(3.4 * n, 2.8)
     axes = fig.subplots(1, n, squeeze=False)[0]
+    marks = []
     for ax, p in zip(axes, panels, strict=False):
         labelled = False
         for k, line in enumerate(p["lines"]):
             ax.plot(np.asarray(line["x"], np.float64), np.asarray(line["y"], np.float64),
                     lw=1.4, color=f"C{k}", label=line.get("label"))
             labelled |= bool(line.get("label"))
+        marks = [ax.axvline(m["x"], color="0.35", lw=1.0,
+                            ls=_MARKER_STYLES[k % len(_MARKER_STYLES)])
+                 for k, m in enumerate(markers or [])]
         ys = np.concatenate([np.asarray(ln["y"], np.float64).ravel() for ln in p["lines"]]
                             or [np.zeros(0)])
         if p.get("log") and np.any(ys > 0):
@@ -57,20 +66,26 @@ def curves_png(path: str | os.PathLike, panels: list[dict], xlabel: str = "itera
         ax.set_xlabel(xlabel)
         ax.set_ylabel(p["ylabel"])
         ax.grid(alpha=0.3)
+    if markers:
+        fig.legend(marks, [m["label"] for m in markers], loc="outside lower center",
+                   ncol=len(markers), fontsize=7.5, frameon=False)
     if title:
         fig.suptitle(title, fontsize=11)
     _save(fig, path)
 
 
 def light_map_png(path: str | os.PathLike, est_blocks: np.ndarray, gt_blocks: np.ndarray | None,
-                  gt_lights: list[dict], fitted: list[dict]) -> None:
+                  gt_lights: list[dict], fitted: list[dict],
+                  grid: np.ndarray | None = None) -> None:
     """The paper's 22 x 12 light map, estimate and ground truth side by side.
 
     ``est_blocks``/``gt_blocks`` [12, 22]: rows from the zenith down to the horizon, columns
     over azimuth [0, 360) (``core.directions.map_to_blocks``), each normalised to its peak.
-    ``gt_lights``: ``{"azimuth", "elevation", "label"}`` (degrees) marked as rings on both;
-    ``fitted``: ``{"azimuth", "elevation", "weight"}`` marked as crosses (size by weight) on
-    the estimate.
+    ``gt_lights``: ``{"azimuth", "elevation", "label"}`` (degrees) marked as rings on both,
+    with optional ``"grid_azimuth"``/``"grid_elevation"``: the grid direction the map puts
+    the light on, marked "+" and joined to its ring; ``fitted``: ``{"azimuth", "elevation",
+    "weight"}`` marked as crosses (size by weight) on the estimate; ``grid`` [N, 2]: the
+    azimuth and elevation of the light grid's directions, small dots on both.
     """
     maps = [("estimate", est_blocks)] + ([("ground truth", gt_blocks)]
                                          if gt_blocks is not None else [])
@@ -88,9 +103,20 @@ def light_map_png(path: str | os.PathLike, est_blocks: np.ndarray, gt_blocks: np
         ax.set_ylabel("elevation (deg)")
         ax.set_xticks(range(0, 361, 60))
         ax.set_yticks(range(0, 91, 30))
+        if grid is not None and len(grid):
+            ax.plot(grid[:, 0], grid[:, 1], ".", ms=2.5, color="0.55",
+                    label=f"the {len(grid)} grid directions")
+        snapped = False
         for lt in gt_lights:
             ax.plot(lt["azimuth"], lt["elevation"], "o", ms=11, mfc="none", mec="#19d3ff",
                     mew=1.8, label=lt["label"])
+            if "grid_azimuth" in lt and abs(lt["grid_azimuth"] - lt["azimuth"]) < 180:
+                ax.plot([lt["azimuth"], lt["grid_azimuth"]],
+                        [lt["elevation"], lt["grid_elevation"]], "-", color="#19d3ff", lw=0.8)
+                ax.plot(lt["grid_azimuth"], lt["grid_elevation"], "+", ms=9, mew=1.8,
+                        color="#19d3ff", label=None if snapped else
+                        "a true light's nearest grid direction (its block in the maps)")
+                snapped = True
         if name == "estimate" and fitted:
             w = np.asarray([f["weight"] for f in fitted], np.float64)
             w = w / w.max() if w.max() > 0 else np.ones_like(w)
