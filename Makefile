@@ -27,13 +27,14 @@ demo: install
 	$(CLI) generate $(SCENE) --out $(DEMO_DIR)/data --preset $(PRESET)
 	$(CLI) run $(DEMO_DIR)/data --out $(DEMO_DIR)/run --preset $(PRESET)
 
-# The viewer's browser test needs chromium and chromium-driver (installed here when root).
+# The viewer's browser test needs chromium and chromium-driver (installed here when root),
+# the splat tools' tests PlayCanvas's splat-transform (npm, into .venv/node; skipped without).
 # The test files run on one process per core, at most TEST_WORKERS (pytest-xdist; a file's
 # tests stay on one process, so its fixtures are made once): most of a test's time is one
 # thread, so two processes on 2 cores take about two thirds of one's time.
 TEST_WORKERS ?= 4
 test: install-dev
-	@bash scripts/setup.sh --chromium
+	@bash scripts/setup.sh --clients
 	$(PY) -m pytest -q -n auto --maxprocesses $(TEST_WORKERS) --dist loadfile tests
 
 # Each suite is kept once it has run (a killed `make bench` resumes); suites run at another

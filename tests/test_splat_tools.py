@@ -15,6 +15,7 @@ import os
 import shutil
 import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,7 +24,9 @@ from mi_shadowgs import cli
 from mi_shadowgs.io import ply
 from tests import synthetic_asset as syn
 
-SPLAT_TRANSFORM = os.environ.get("SPLAT_TRANSFORM") or shutil.which("splat-transform")
+_LOCAL = Path(__file__).resolve().parents[1] / ".venv/node/node_modules/.bin/splat-transform"
+SPLAT_TRANSFORM = (os.environ.get("SPLAT_TRANSFORM") or shutil.which("splat-transform")
+                   or (str(_LOCAL) if _LOCAL.is_file() else None))
 NO_SPLAT = ("needs node and PlayCanvas's splat-transform (apt-get install -y nodejs npm; "
             "npm install -g @playcanvas/splat-transform, or SPLAT_TRANSFORM=path/to/its "
             "cli); not found")
