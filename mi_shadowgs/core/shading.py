@@ -197,9 +197,9 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
             return SplatPairs(sid, pix, weight, h, w), {
                 "depth": mi.TensorXf(dr.zeros(mi.Float, npix), (h, w, 1)),
                 "normal": mi.TensorXf(dr.zeros(mi.Float, npix * 3), (h, w, 3))}
-        # Each pixel's pairs by intersection depth: a stable sort by depth, then by pixel.
-        order = dr.argsort(depth_key(z))
-        order = dr.gather(mi.UInt32, order, dr.argsort(dr.gather(mi.UInt32, pix, order)))
+        # Each pixel's pairs by intersection depth: one stable sort by (pixel, depth), the
+        # order a stable sort by depth then by pixel gives, at one sort's cost.
+        order = dr.argsort((mi.UInt64(pix) << 32) | mi.UInt64(depth_key(z)))
         sid, pix, weight, z = (dr.gather(type(x), x, order) for x in (sid, pix, weight, z))
         _, _, first, last = pixel_runs(pix)
         w64 = mi.Float64(weight)
