@@ -431,8 +431,8 @@ def material_patches(fit):
         patch(stack, prof, dr, "backward", "backward")
         patch(stack, prof, fit_mod, "_clamp_channels", "clamp channels")
         patch(stack, prof, fit_mod, "hold_albedo_scale", "albedo scale")
-        patch(stack, prof, fit_mod, "albedo_scale_factor", "albedo scale (host read)")
-        patch(stack, prof, fit_mod, "_count_step", "loss bookkeeping (+ log read)")
+        patch(stack, prof, fit_mod, "albedo_scale_factor", "albedo scale factor (NumPy)")
+        patch(stack, prof, fit_mod, "_count_step", "loss bookkeeping (log read)")
     return patches
 
 
@@ -496,10 +496,20 @@ def machine() -> dict:
             "commit": git("rev-parse", "--short", "HEAD"),
             "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-            "host": platform.node(), "cpu": platform.processor() or platform.machine(),
+            "host": platform.node(), "cpu": _cpu_name(),
             "cores": os.cpu_count(), "threads": dr.thread_count(),
             "python": platform.python_version(), "drjit": dr.__version__,
             "mitsuba": mi.__version__, "variant": mi.variant()}
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def run_case(name: str, size: tuple, steps: int, warmup: int, lights: int) -> dict:
