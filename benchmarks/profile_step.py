@@ -526,7 +526,8 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.profile_step", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="tiny sizes: a smoke test")
-    ap.add_argument("--out", default="results/profile", help="folder for profile.{md,json}")
+    ap.add_argument("--out", default="bench-out/profile",
+                    help="folder for profile.md and profile.json")
     ap.add_argument("--steps", type=int, default=None, help="profiled steps (default 25)")
     ap.add_argument("--case", action="append", choices=sorted(CASES),
                     help="only these cases (repeatable)")
