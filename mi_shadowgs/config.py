@@ -75,32 +75,17 @@ def with_overrides(config: T, overrides: dict[str, Any] | None, what: str) -> T:
 
 def parse_settings(cls, items, what: str) -> dict[str, Any]:
     """A command line's ``--set KEY=VALUE`` items -> {field: value} for config class ``cls``,
-    each read as its field's annotated type (bool, int, float, str; ``none`` for an optional
-    one). A malformed item, an unknown key or a value of the wrong type is a ConfigError
-    naming the setting."""
-    kinds = _field_kinds(cls)
-    readers = {"bool": _read_bool, "int": int, "float": float, "str": str}
+    each read as its field's annotated type (``parse_value``). A malformed item, an unknown
+    key or a value of the wrong type is a ConfigError naming the setting."""
+    fields = {f.name: f.type for f in dataclasses.fields(cls)}
     out = {}
     for item in items:
         key, sep, text = item.partition("=")
         if not sep:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
-        if key not in kinds:
-            raise ConfigError(f"--set: unknown {what} setting {key!r}; known: {sorted(kinds)}")
-        options = kinds[key]
-        kind = " | ".join(options)
-        if text.lower() == "none" and "None" in options:
-            out[key] = None
-            continue
-        reader = readers.get(options[0])
-        if reader is None:
-            raise ConfigError(f"--set {key}: {what} setting {key!r} ({kind}) is not set from "
-                              "the command line")
-        try:
-            out[key] = reader(text)
-        except ValueError as err:
-            raise ConfigError(
-                f"--set {key}={text!r}: {what} setting {key!r} takes {kind}") from err
+        if key not in fields:
+            raise ConfigError(f"--set: unknown {what} setting {key!r}; known: {sorted(fields)}")
+        out[key] = parse_value(key, text, fields[key], what)
     return out
 
 

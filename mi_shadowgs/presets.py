@@ -260,7 +260,7 @@ def build(preset: str = "cpu-small", overrides: dict[str, Any] | None = None,
             overrides.setdefault(section, {}).setdefault("seed", seed)
     if "preview_envmaps" in overrides:
         overrides["preview_envmaps"] = tuple(overrides["preview_envmaps"])
-    if preset not in PRESETS and all(isinstance(overrides.get(k), dict) for k in SECTIONS):
+    if preset not in PRESETS and _whole_tree(overrides):
         # a whole recorded tree (a run's config.json) stands on its own, whatever preset it
         # was built from: a preset made for a study, or one this version no longer has
         return with_overrides(RunConfig(preset=preset), overrides, "run")
@@ -318,8 +318,7 @@ def merge(base: dict[str, Any], more: dict[str, Any]) -> dict[str, Any]:
 def recorded(run: str | Path) -> RunConfig:
     """The settings tree a run folder recorded (``RUN/config.json`` when it finished, its
     manifest before); for a run that predates the record, the tree of the preset its
-    manifest names. A ConfigError naming
-    the folder where there is neither."""
+    manifest names. A ConfigError naming the folder where there is neither."""
     from mi_shadowgs.io.provenance import read_manifest
 
     run = Path(run)
@@ -327,7 +326,7 @@ def recorded(run: str | Path) -> RunConfig:
         return build(*load_overrides(run / CONFIG_NAME))
     saved = (read_manifest(run) or {}).get("settings") or {}
     preset = saved.get("preset")
-    if isinstance(preset, str) and all(isinstance(saved.get(k), dict) for k in SECTIONS):
+    if isinstance(preset, str) and _whole_tree(saved):
         # an unfinished run: its manifest holds the same tree
         return build(preset, _lists_to_tuples({k: v for k, v in saved.items()
                                                if k != "preset"}))
@@ -353,10 +352,15 @@ def load_overrides(path: str | Path) -> tuple[str, dict[str, Any]]:
     if not isinstance(saved, dict) or not isinstance(saved.get("preset"), str):
         raise ConfigError(f"--config {path}: not a run's settings (no 'preset' field)")
     preset = saved.pop("preset")
-    if preset not in PRESETS and not all(isinstance(saved.get(k), dict) for k in SECTIONS):
+    if preset not in PRESETS and not _whole_tree(saved):
         raise ConfigError(f"--config {path}: unknown preset {preset!r}; known: "
                           f"{sorted(PRESETS)}")
     return preset, _lists_to_tuples(saved)
+
+
+def _whole_tree(saved: dict) -> bool:
+    """Whether ``saved`` holds a section for every stage (a run's recorded tree)."""
+    return all(isinstance(saved.get(k), dict) for k in SECTIONS)
 
 
 def _lists_to_tuples(value):

@@ -254,12 +254,6 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     return summary
 
 
-# Columns of the decomposition (no ground truth needed) and of the comparison with ground
-# truth; "input" leads both.
-_DECOMPOSITION = ("albedo", "roughness", "metallic", "normal", "irradiance", "visibility",
-                  "segments")
-
-
 def _add_material_stage(summary: dict, run: Path, data: Path, results: dict, secs: dict
                         ) -> None:
     """The full fit's figure grid(s) and the stages 3-5 entry (light map, relit previews,
@@ -313,6 +307,12 @@ def _add_material_stage(summary: dict, run: Path, data: Path, results: dict, sec
             "metrics": {k: v for k, v in results.get("full", {}).items()
                         if not isinstance(v, (dict, list))},
             "figures": figures})
+
+
+# Columns of the decomposition (no ground truth needed) and of the comparison with ground
+# truth; "input" leads both.
+_DECOMPOSITION = ("albedo", "roughness", "metallic", "normal", "irradiance", "visibility",
+                  "segments")
 
 
 def _held_channels(results: dict, config: RunConfig) -> dict[str, str]:

@@ -75,6 +75,16 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or os.strerror(exc.errno or 0)
 
 
+def file_in_the_way(folder: Path) -> str | None:
+    """The message for an output ``folder`` that is a file or lies under one (it could never
+    be made), else None."""
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if existing.is_dir():
+        return None
+    where = "is" if existing == folder else f"lies under {existing}, which is"
+    return f"{folder}: {where} a file, not a folder: choose another folder"
+
+
 def _check_path(folder: Path, parent: Path) -> None:
     """OutputPathError naming ``folder`` when it cannot be written at all."""
     try:
@@ -84,13 +94,8 @@ def _check_path(folder: Path, parent: Path) -> None:
     if len(folder.name.encode()) > limit:
         raise OutputPathError(f"{folder}: the name is too long ({len(folder.name.encode())} "
                               f"bytes; this file system allows {limit})")
-    for above in (folder, *folder.parents):
-        if above.exists():
-            if not above.is_dir():
-                where = "is" if above == folder else f"lies under {above}:"
-                raise OutputPathError(f"{folder}: {where} a file, not a folder: choose another "
-                                      "folder")
-            break
+    if (blocked := file_in_the_way(folder)) is not None:
+        raise OutputPathError(blocked)
     target = folder if folder.is_dir() else parent
     if not os.access(target, os.W_OK | os.X_OK):
         read_only = bool(os.statvfs(target).f_flag & os.ST_RDONLY)

@@ -208,11 +208,11 @@ def check_output_location(folder: str | os.PathLike, inputs=(),
     (``generate``), so ``folder`` itself may be one; its ancestors still may not.
     ``command`` writes it; ``part_of``: the output whose part it is (a run's stage 4).
     """
+    from mi_shadowgs.io.outlock import file_in_the_way
+
     folder = Path(folder).resolve()
-    existing = next(p for p in (folder, *folder.parents) if p.exists())
-    if not existing.is_dir():
-        where = "is" if existing == folder else f"lies under {existing}, which is"
-        raise ProvenanceError(f"{folder}: {where} a file, not a folder: choose another folder")
+    if (blocked := file_in_the_way(folder)) is not None:
+        raise ProvenanceError(blocked)
     for p in (folder.parents if writes_dataset else (folder, *folder.parents)):
         if is_dataset_folder(p):
             where = "is" if p == folder else "is inside"
