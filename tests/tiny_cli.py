@@ -1,7 +1,8 @@
 """``python -m tests.tiny_cli [--threads N] COMMAND ...``: the ``mi-shadowgs`` command line
 with one more preset, ``test-tiny`` (in ``mi_shadowgs.presets``): 24 px views, seconds per
 command, and checkpoints every few steps and every half second, so that a kill at any moment
-finds some.
+finds some. ``-m MODULE ARGS`` runs another module's ``main`` with the preset instead
+(``mi_shadowgs.cli``, ``validation.pipeline``: how a batch's workers start their steps).
 
 The kill tests run commands in a subprocess so that they can SIGKILL them; a subprocess
 cannot see a test's monkeypatched presets, so it registers them here. ``--threads 1`` runs
@@ -68,6 +69,13 @@ def main(argv: list[str]) -> int:
 
         dr.set_thread_count(int(argv[1]))
         argv = argv[2:]
+    if argv[:1] == ["-m"]:  # how a batch's worker starts its steps (tests/test_batch.py)
+        import importlib
+
+        module = importlib.import_module(argv[1])
+        if hasattr(module, "TABLE_PRESETS"):
+            module.TABLE_PRESETS = (*module.TABLE_PRESETS, TINY)
+        return module.main(argv[2:])
     return cli.main(argv)
 
 
