@@ -498,11 +498,11 @@ def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
         [(s, p) for s in chosen for p in pairs]
     failed = []
     if address is not None:
-        from mi_shadowgs.batch.runner import Launcher, run_batch
+        from mi_shadowgs.batch.runner import run_batch
 
         items = batch_items(out_dir, jobs, seeds or [0], preset, envmaps, ablations,
                             threads or 1)
-        done = run_batch(items, out_dir, address=address, launcher=launcher or Launcher(),
+        done = run_batch(items, out_dir, address=address, launcher=launcher,
                          num_cpus=None if workers is None else workers * (threads or 1))
         failed = [r for r in done if r["status"] not in ("finished", "reused")]
     else:

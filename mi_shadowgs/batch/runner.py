@@ -101,6 +101,10 @@ class Launcher:
         return [*(self.prefix or (sys.executable, "-m")), step.module, *step.args]
 
 
+# How a batch's workers start their steps unless the caller says otherwise.
+DEFAULT_LAUNCHER = Launcher()
+
+
 # -- the task: one item on a worker -----------------------------------------------------------
 def _tree_digest(paths: tuple[str, ...]) -> str:
     """The content of files and folders ``paths`` (names and bytes), as one digest."""
@@ -290,11 +294,12 @@ def _lost_line(exc: BaseException, retries: int) -> str:
 
 
 def run_batch(items: list[Item], out: str | os.PathLike, *, address: str | None = None,
-              num_cpus: int | None = None, retries: int = 3, launcher: Launcher = Launcher(),
+              num_cpus: int | None = None, retries: int = 3, launcher: Launcher | None = None,
               progress: bool = True, lock: bool = True) -> list[dict]:
     """Run ``items`` into the batch folder ``out`` on Ray (``ray_runtime``: the caller's,
     a local runtime of ``num_cpus`` CPUs, or the cluster at ``address``); a task whose
-    worker is lost is tried again ``retries`` times. With ``lock``, holds ``out``'s lock
+    worker is lost is tried again ``retries`` times; ``launcher``: how a worker starts a
+    step (default ``DEFAULT_LAUNCHER``: its own Python). With ``lock``, holds ``out``'s lock
     (``output_lock``) meanwhile. Writes ``out/batch.csv`` and ``out/batch.html`` as items
     end; returns the rows, in the items' order."""
     from mi_shadowgs.io.outlock import output_lock
@@ -312,7 +317,7 @@ def run_batch(items: list[Item], out: str | os.PathLike, *, address: str | None 
             stack.enter_context(output_lock(out, "batch"))
         out.mkdir(parents=True, exist_ok=True)
         where = stack.enter_context(ray_runtime(address, num_cpus))
-        return _drive(items, out, retries, launcher, progress, where)
+        return _drive(items, out, retries, launcher or DEFAULT_LAUNCHER, progress, where)
 
 
 def _drive(items: list[Item], out: Path, retries: int, launcher: Launcher, progress: bool,

@@ -203,9 +203,9 @@ def read_spec(spec: str | os.PathLike, out: str | os.PathLike,
     else:
         raise SpecError(f"{spec}: not found (a folder of captures or a .toml/.json file)")
     items, seen = [], {}
-    for i, entry in enumerate(entries):
-        where = f"{spec}: item {entry.get('name') or i + 1}"
+    for entry in entries:
         source = base / entry["source"]
+        where = f"{spec}: item {entry.get('name') or source.stem}"
         name = check_name(entry.get("name") or source.stem, where)
         if name in seen:
             raise SpecError(f"{spec}: two items are named {name!r} ({seen[name]} and "
