@@ -32,8 +32,7 @@ from tests import tiny_cli
 ROOT = Path(__file__).resolve().parents[1]
 TINY = tiny_cli.TINY
 # The workers start each step through tests.tiny_cli, which knows the test-tiny preset.
-LAUNCHER = runner.Launcher(prefix=(sys.executable, "-m", "tests.tiny_cli", "-m"),
-                           env=(("PYTHONPATH", str(ROOT)),), cwd=str(ROOT))
+LAUNCHER = tiny_cli.launcher()
 TIMERS = ("relight time (s)",)  # wall-clock figures: the only ones two runs may differ in
 
 

@@ -59,11 +59,24 @@ def set_sections(mp, name: str, **sections) -> None:
                dataclasses.replace(run_presets.PRESETS[name], **sections))
 
 
+def launcher():
+    """How a batch's workers start their steps with the preset: through this module."""
+    from pathlib import Path
+
+    from mi_shadowgs.batch.runner import Launcher
+
+    root = str(Path(__file__).resolve().parents[1])
+    return Launcher(prefix=(sys.executable, "-m", "tests.tiny_cli", "-m"),
+                    env=(("PYTHONPATH", root),), cwd=root)
+
+
 def main(argv: list[str]) -> int:
     from mi_shadowgs import cli
+    from mi_shadowgs.batch import runner
 
     for table, config in presets():
         table[TINY] = config
+    runner.DEFAULT_LAUNCHER = launcher()  # a batch started here: its steps know it too
     if argv[:1] == ["--threads"]:
         import drjit as dr
 
