@@ -357,7 +357,8 @@ def _drive(items: list[Item], out: Path, retries: int, launcher: Launcher, progr
     pending = list(refs)
     try:
         while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
+            # with a timeout: a wait without one does not return to Python for Ctrl-C
+            ready, pending = ray.wait(pending, num_returns=1, timeout=1.0)
             for ref in ready:
                 name = refs[ref]
                 try:
