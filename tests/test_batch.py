@@ -104,6 +104,7 @@ def test_three_captures_finish_with_their_figures(first):
     assert sorted(table) == ["a", "b", "c"]
     for name, row in table.items():
         assert row["status"] == "finished" and row["attempts"] == "1" and not row["error"]
+        assert 50 < float(row["peak MiB"]) < 4096, row  # a whole run: Python, Mitsuba, data
         assert float(row["geometry PSNR"]) > 10 and float(row["albedo PSNR"]) > 10, row
         assert row["report"] == f"{name}/run/report.html" and (out / row["report"]).is_file()
     # one capture's data three times, on one thread each: the same figures

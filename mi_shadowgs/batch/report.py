@@ -2,7 +2,8 @@
 
 One row per item, in the spec's order: its status (``finished``, ``reused``: every stage
 made by an earlier call, ``failed``, ``pending``: not ended yet), its seconds in this call,
-its attempts (more than one: its worker was lost and Ray tried again), the error line of a
+the most memory one of its commands held (peak resident MiB, read every half second), its
+attempts (more than one: its worker was lost and Ray tried again), the error line of a
 failed item, the link to its run's ``report.html`` and log, and the run's figures: stage 1's
 PSNR and mask IoU, stage 2's segments and ARI, and the full fit's row of the report's first
 table (albedo, light, shadow and relighting figures; n/a without ground truth).
@@ -17,8 +18,8 @@ import json
 import time
 from pathlib import Path
 
-COLUMNS = ("name", "status", "seconds", "attempts", "preset", "source", "error", "report",
-           "log")
+COLUMNS = ("name", "status", "seconds", "peak MiB", "attempts", "preset", "source", "error",
+           "report", "log")
 
 
 def run_figures(run: Path) -> tuple[dict, bool]:
@@ -60,8 +61,8 @@ def _rows(out: Path, items, rows: dict) -> tuple[list[str], list[dict]]:
         report = Path(item.run) / "report.html"
         log = Path(item.folder) / "batch.log"
         flat.append({"name": item.name, "status": row["status"], "seconds": row["seconds"],
-                     "attempts": row["attempts"], "preset": item.preset,
-                     "source": item.source, "error": row["error"],
+                     "peak MiB": row.get("peak_mib"), "attempts": row["attempts"],
+                     "preset": item.preset, "source": item.source, "error": row["error"],
                      "report": str(report) if (out / report).is_file() else "",
                      "log": str(log) if (out / log).is_file() else "", **row["figures"]})
     return figure_columns, flat
@@ -111,7 +112,7 @@ def _page(out: Path, columns: list[str], flat: list[dict]) -> str:
                 cell = f'<a href="{html.escape(r["report"])}">{html.escape(r["name"])}</a>'
             elif c == "status" and r["log"]:
                 cell = f'<a href="{html.escape(r["log"])}">{html.escape(r["status"])}</a>'
-            elif c == "seconds" and value is not None:
+            elif c in ("seconds", "peak MiB") and value is not None:
                 cell = f"{value:.0f}"
             else:
                 cell = "" if c == "error" and not value else _html_value(value)

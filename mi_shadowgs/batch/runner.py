@@ -162,19 +162,39 @@ def error_line(text: str, step: str, status: int) -> str:
     return f"{step}: {line}"[:500]
 
 
-def _call(launcher: Launcher, step: Step, env: dict, log: Path) -> tuple[int, str]:
-    """Run ``step`` with its output appended to ``log``; (exit status, that output)."""
+def _peak_bytes(pid: int) -> int:
+    """The peak resident memory of process ``pid`` so far (``VmHWM``; 0 where unknown).
+    Not ``ru_maxrss``: Linux carries the parent's (here a Ray worker's) through fork."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            line = next((ln for ln in f if ln.startswith("VmHWM:")), "")
+    except OSError:
+        return 0
+    return int(line.split()[1]) * 1024 if line else 0
+
+
+def _call(launcher: Launcher, step: Step, env: dict, log: Path) -> tuple[int, str, int]:
+    """Run ``step`` with its output appended to ``log``; (exit status, that output, its
+    peak resident bytes, read every half second)."""
     argv = launcher.argv(step)
+    peak = 0
     with open(log, "a") as fh:
         fh.write(f"$ {shlex.join(argv)}\n")
         fh.flush()
         start = fh.tell()
-        proc = subprocess.run([sys.executable, "-c", _SHIM, str(os.getpid()), *argv],
-                              stdout=fh, stderr=subprocess.STDOUT, env=env,
-                              cwd=launcher.cwd, stdin=subprocess.DEVNULL, check=False)
+        proc = subprocess.Popen([sys.executable, "-c", _SHIM, str(os.getpid()), *argv],
+                                stdout=fh, stderr=subprocess.STDOUT, env=env,
+                                cwd=launcher.cwd, stdin=subprocess.DEVNULL)
+        while True:
+            peak = max(peak, _peak_bytes(proc.pid))
+            try:
+                proc.wait(timeout=0.5)
+                break
+            except subprocess.TimeoutExpired:
+                continue
     with open(log, errors="replace") as fh:
         fh.seek(start)
-        return proc.returncode, fh.read()[-65536:]
+        return proc.returncode, fh.read()[-65536:], peak
 
 
 def _attempt(folder: Path, call: str) -> int:
@@ -189,11 +209,12 @@ def _attempt(folder: Path, call: str) -> int:
 
 
 def result(item: Item, status: str, seconds: float = 0.0, attempts: int = 0,
-           error: str = "", figures: dict | None = None) -> dict:
-    """An item's row of the tables."""
+           error: str = "", figures: dict | None = None, peak: int = 0) -> dict:
+    """An item's row of the tables (``peak``: the most resident bytes one of its commands
+    held in this call)."""
     return {"name": item.name, "status": status, "seconds": seconds, "attempts": attempts,
             "error": error, "figures": figures or {}, "source": item.source,
-            "preset": item.preset, "run": item.run}
+            "preset": item.preset, "run": item.run, "peak_mib": peak / 2**20 or None}
 
 
 def run_item(item: Item, out: str, launcher: Launcher, call: str, *needed: dict) -> dict:
@@ -210,25 +231,26 @@ def run_item(item: Item, out: str, launcher: Launcher, call: str, *needed: dict)
             return result(item, "failed", 0.0, attempts,
                           f"needs item {r['name']}, which {r['status']}")
     env = {**os.environ, **dict(launcher.env), **dict(item.env)}
-    ran = False
+    ran, peak = False, 0
     for step in item.steps:
         try:
             if step.creates and _made_before(step, folder):
                 continue
         except ValueError as exc:
             return result(item, "failed", time.perf_counter() - t0, attempts,
-                          f"{step.name}: {exc}")
-        status, text = _call(launcher, step, env, folder / LOG)
+                          f"{step.name}: {exc}", peak=peak)
+        status, text, used = _call(launcher, step, env, folder / LOG)
+        peak = max(peak, used)
         if status < 0 or status in INTERRUPTED_STATUSES:
             raise ItemLost(f"{item.name}: {step.name} was stopped by a signal (exit status "
                            f"{status})")
         if status != 0:
             return result(item, "failed", time.perf_counter() - t0, attempts,
-                          error_line(text, step.name, status))
+                          error_line(text, step.name, status), peak=peak)
         ran = ran or step.creates is not None
     figures, reused = run_figures(Path(out) / item.run)
     return result(item, "reused" if reused and not ran else "finished",
-                  time.perf_counter() - t0, attempts, figures=figures)
+                  time.perf_counter() - t0, attempts, figures=figures, peak=peak)
 
 
 # -- the driver ------------------------------------------------------------------------------
