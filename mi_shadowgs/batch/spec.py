@@ -162,7 +162,9 @@ def capture_item(name: str, source: Path, out: Path, settings: dict,
     data = source if kind == "dataset" else folder / DATA
     steps = []
     if kind == "photos":
-        inputs = (str(source),) + ((str(masks.resolve()),) if masks else ())
+        # a transforms.json names its images relative to its folder: the folder is the input
+        photos = source.parent if source.suffix.lower() == ".json" else source
+        inputs = (str(photos),) + ((str(masks.resolve()),) if masks else ())
         args = (*common, "import", str(source), "--out", str(data),
                 "--preset", settings["preset"], "--no-progress")
         if masks:
