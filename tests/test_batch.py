@@ -307,6 +307,22 @@ def test_a_changed_photo_folder_is_not_reused(tmp_path):
         runner._made_before(step, folder)
 
 
+def test_an_address_where_nothing_answers_exits_2_at_once(tmp_path, tiny, dataset, capsys):
+    pytest.importorskip("ray", reason="Ray is the cluster extra (pip install .[cluster])")
+    import socket
+
+    with socket.socket() as s:  # a port of this machine that no one listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    captures = _captures(tmp_path / "c", dataset, ["x"])
+    t0 = time.perf_counter()
+    assert cli.main(["batch", str(captures), "--out", str(tmp_path / "out"), "--address",
+                     f"127.0.0.1:{port}", "--preset", TINY]) == 2
+    assert time.perf_counter() - t0 < 10
+    err = capsys.readouterr().err
+    assert f"--address 127.0.0.1:{port}: nothing answers there" in err and "ray start" in err
+
+
 def test_a_folder_that_is_not_a_batch_is_refused(tmp_path):
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep")

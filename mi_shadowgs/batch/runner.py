@@ -263,6 +263,8 @@ def ray_runtime(address: str | None = None, num_cpus: int | None = None):
     import logging
 
     ray = import_ray()
+    if address not in (None, "local"):
+        _check_reachable(address)
     if ray.is_initialized():
         yield "the Ray runtime of this process"
         return
@@ -287,6 +289,20 @@ def ray_runtime(address: str | None = None, num_cpus: int | None = None):
         yield where
     finally:
         ray.shutdown()
+
+
+def _check_reachable(address: str) -> None:
+    """BatchError at once when nothing answers at ``address`` (HOST:PORT or
+    ray://HOST:PORT): Ray itself would try for minutes. ``auto`` is Ray's to find."""
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if address == "auto" or not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=10).close()
+    except OSError as exc:
+        raise BatchError(f"--address {address}: nothing answers there "
+                         f"({exc.strerror or exc}); is the Ray head running (ray start "
+                         "--head), and is this its address?") from None
 
 
 def _largest_node() -> dict[str, float]:
