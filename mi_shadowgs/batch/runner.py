@@ -32,6 +32,7 @@ import json
 import os
 import re
 import shlex
+import signal
 import socket
 import subprocess
 import sys
@@ -40,6 +41,7 @@ import uuid
 from pathlib import Path
 
 from mi_shadowgs.batch.spec import Item, Step
+from mi_shadowgs.io.interrupt import Interrupted
 
 RAY_HINT = "pip install 'mi_shadowgs[cluster]' (in a checkout: pip install -e '.[cluster]')"
 OK = ("finished", "reused")
@@ -413,10 +415,14 @@ def _drive(items: list[Item], out: Path, retries: int, launcher: Launcher, progr
                           + (f": {row['error']}" if row["error"] else ""))
                 bar.update(1)
                 bar.set_postfix(failed=sum(r["status"] not in OK for r in rows.values()))
-    except BaseException:
+    except BaseException as exc:
         for ref in pending:  # stopped (Ctrl-C): no task left running for nobody
             with contextlib.suppress(Exception):
                 ray.cancel(ref, force=True)
+        if isinstance(exc, KeyboardInterrupt) and not isinstance(exc, Interrupted):
+            # Ray's wait turns a signal into a plain KeyboardInterrupt: the CLI's own kind
+            # says "interrupted; run it again to continue", not a traceback
+            raise Interrupted(signal.SIGINT) from None
         raise
     finally:
         bar.close()
