@@ -179,7 +179,7 @@ def _call(launcher: Launcher, step: Step, env: dict, log: Path) -> tuple[int, st
     """Run ``step`` with its output appended to ``log``; (exit status, that output, its
     peak resident bytes, read every half second)."""
     argv = launcher.argv(step)
-    peak = 0
+    peak, t0 = 0, time.perf_counter()
     with open(log, "a") as fh:
         fh.write(f"$ {shlex.join(argv)}\n")
         fh.flush()
@@ -194,9 +194,12 @@ def _call(launcher: Launcher, step: Step, env: dict, log: Path) -> tuple[int, st
                 break
             except subprocess.TimeoutExpired:
                 continue
-    with open(log, errors="replace") as fh:
-        fh.seek(start)
-        return proc.returncode, fh.read()[-65536:], peak
+        end = fh.tell()
+        fh.write(f"== {step.name}: exit status {proc.returncode} after "
+                 f"{time.perf_counter() - t0:.1f} s, peak memory {peak / 2**20:.0f} MiB\n")
+    with open(log, "rb") as fh:
+        fh.seek(max(start, end - 65536))
+        return proc.returncode, fh.read(end - fh.tell()).decode(errors="replace"), peak
 
 
 def _attempt(folder: Path, call: str) -> int:
