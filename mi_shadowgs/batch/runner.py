@@ -329,11 +329,13 @@ def unschedulable(item: Item, largest: dict[str, float], where: str) -> str | No
 
 
 def _lost_line(exc: BaseException, retries: int) -> str:
-    """One line for a task Ray gave up on."""
-    cause = getattr(exc, "cause", None) or exc  # a task's own exception, under Ray's
-    text = next((ln.strip() for ln in str(cause).splitlines() if ln.strip()),
-                type(cause).__name__)
-    return f"its worker was lost {retries + 1} times (tried again {retries}); the last: {text}"
+    """One line for a task Ray gave up on: lost every time it was tried, or failed."""
+    cause = getattr(exc, "cause", None)  # the task's own exception, under Ray's
+    text = next((ln.strip() for ln in str(cause or exc).splitlines() if ln.strip()),
+                type(cause or exc).__name__)
+    if cause is not None and not isinstance(cause, ItemLost):
+        return f"its task failed: {type(cause).__name__}: {text}"
+    return f"lost {retries + 1} times (tried again {retries}); the last time: {text}"
 
 
 def run_batch(items: list[Item], out: str | os.PathLike, *, address: str | None = None,
@@ -350,11 +352,11 @@ def run_batch(items: list[Item], out: str | os.PathLike, *, address: str | None 
     import_ray()
     out = Path(out).resolve()
     names = [i.name for i in items]
-    for item in items:
-        unknown = [a for a in item.after if a not in names]
+    for i, item in enumerate(items):
+        unknown = [a for a in item.after if a not in names[:i]]
         if unknown:
-            raise BatchError(f"item {item.name} waits for {unknown}, which are not items of "
-                             "this batch")
+            raise BatchError(f"item {item.name} waits for {unknown}, which are not earlier "
+                             "items of this batch")
     with contextlib.ExitStack() as stack:
         if lock:
             stack.enter_context(output_lock(out, "batch"))

@@ -76,7 +76,7 @@ class Item:
     env: tuple[tuple[str, str], ...] = ()
     """Environment variables its commands get."""
     after: tuple[str, ...] = ()
-    """Items (names) that must finish first."""
+    """Earlier items (names) that must finish first."""
     done: str | None = None
     """A file under the batch folder whose presence means the item is finished (it is then
     not run again)."""
