@@ -365,3 +365,31 @@ def test_validation_rows_through_ray_are_those_of_a_serial_call(ray_local, tmp_p
                       address="local", threads=1)
     assert again["rows"] == res["rows"]
     assert _table(tmp_path / "ray")["default-low"]["status"] == "reused"
+
+
+def test_validation_rows_as_items(tmp_path, monkeypatch):
+    """Each row is one item of --threads CPUs (a GPU under cuda_ad_rgb), done once its
+    row.json is there; a later seed's row waits for the row that makes its dataset."""
+    from validation import pipeline as vpipe
+
+    monkeypatch.setenv("MI_SHADOWGS_VARIANT", "cuda_ad_rgb")  # after the import: the rows'
+    items = vpipe.batch_items(tmp_path, [("default", "tuned"), ("bunny", "low")], [0, 2],
+                              "cpu-small", "sky", True, 2)
+    assert [i.name for i in items] == ["default-tuned", "bunny-low", "default-tuned-seed2",
+                                       "bunny-low-seed2"]
+    assert [i.after for i in items] == [(), (), ("default-tuned",), ("bunny-low",)]
+    first, last = items[0], items[-1]
+    assert (first.cpus, first.gpus, first.done) == (2, 1, "default-tuned/row.json")
+    assert ("MI_SHADOWGS_VARIANT", "cuda_ad_rgb") in first.env
+    (step,) = last.steps
+    assert step.module == "validation.pipeline" and "--rows-only" in step.args
+    assert step.args[step.args.index("--seed") + 1] == "2"
+    assert step.args[step.args.index("--out") + 1] == str(tmp_path.resolve())
+
+
+def test_the_error_line_of_a_failed_command():
+    text = "warning: few views\nTraceback ...\nmi-shadowgs run: error: DATA: not found\n"
+    assert runner.error_line(text, "run", 2) == "run: mi-shadowgs run: error: DATA: not found"
+    crash = runner.error_line("step 1\rstep 2\nSegmentation fault\n", "run", -11)
+    assert crash == "run: Segmentation fault"
+    assert runner.error_line("", "import", 1) == "import: exit status 1, no message"
