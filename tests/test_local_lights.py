@@ -108,3 +108,24 @@ def test_lamp_position_gradient_matches_finite_differences():
         fd.append((loss(mi.Point3f(*a.tolist()))[0] - loss(mi.Point3f(*b.tolist()))[0])
                   / (2 * h))
     np.testing.assert_allclose(grad, fd, rtol=2e-3, atol=1e-3)
+
+
+def test_light_json_round_trip_keeps_lamps():
+    from mi_shadowgs.stages.material.outputs import local_light_json, local_lights_from_json
+    from mi_shadowgs.stages.material.state import LightModel
+
+    pos = np.array([[1.0, 4.0, 2.0], [np.nan] * 3])
+    light = LightModel(np.zeros(8), np.array([0, 1]), np.array([[0, 1.0, 0], [0, 0, 1.0]]),
+                       np.array([2.0, 0.5]), pos, np.array([0.1, 0.0]), np.zeros(3))
+    data = local_light_json(light)
+    assert data["positions"][1] is None
+    back = local_lights_from_json(data, 2)
+    np.testing.assert_array_equal(back[0], pos)
+    np.testing.assert_array_equal(back[1], [0.1, 0.0])
+    ls = light.light_set()
+    np.testing.assert_array_equal(ls.local, [True, False])
+    assert local_light_json(LightModel(np.zeros(8), np.array([0]))) == {}
+    with pytest.raises(ValueError, match="radii"):
+        local_lights_from_json({**data, "radii": [-1, 0]}, 2)
+    with pytest.raises(ValueError, match="positions"):
+        local_lights_from_json(data, 3)

@@ -36,6 +36,11 @@ class LightModel:
     active: np.ndarray  # [K] grid index of each light
     directions: np.ndarray | None = None  # [K, 3] unit; None: the grid directions
     weights: np.ndarray | None = None  # [K] irradiance; None: radiance[active] * dw
+    # Local lights (lamps): [K, 3] positions with NaN rows for directional lights, their
+    # radii [K] and the point where a lamp's weight is its irradiance; None: all directional.
+    positions: np.ndarray | None = None
+    radii: np.ndarray | None = None
+    center: np.ndarray | None = None
 
     def light_set(self, n_directions: int | None = None) -> shading.LightSet:
         n = len(self.radiance) if n_directions is None else n_directions
@@ -43,7 +48,8 @@ class LightModel:
         w = (self.radiance[self.active] * solid_angle(n) if self.weights is None
              else self.weights)
         w = np.asarray(w, np.float32)
-        return shading.LightSet(np.asarray(dirs, np.float64), mi.Color3f(w, w, w))
+        return shading.LightSet(np.asarray(dirs, np.float64), mi.Color3f(w, w, w),
+                                self.positions, self.radii, self.center)
 
 
 @dataclasses.dataclass
