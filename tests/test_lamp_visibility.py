@@ -327,3 +327,34 @@ def test_sphere_over_plane_matches_ray_traced_lamp(lamp):
     assert truth.sum() > 100
     iou = np.count_nonzero(ours & truth) / np.count_nonzero(ours | truth)
     assert iou >= 0.95, iou
+
+
+# -- the validation command ---------------------------------------------------------------
+def test_lamp_validation_smoke(tmp_path, monkeypatch, capsys):
+    """``validation.visibility --lamp`` on a tiny case: its rows, its RESULTS section, and
+    an unknown preset refused with exit 2 before any work."""
+    from scripts import results
+    from validation import lamp_visibility
+
+    tiny = lamp_visibility.LampValidationConfig(
+        n_views=1, resolution=32, object_surfels=1500, base_surfels=300, distances=(6.0,),
+        radii=(0.15,), directions=((35.0, 50.0),), samples=(16,), truth_samples=8)
+    monkeypatch.setattr(lamp_visibility, "QUICK", tiny)
+    from validation import visibility
+
+    argv = ["--lamp", "--out", str(tmp_path / "out"), "--quick", "--quiet",
+            "--preset", "cpu-small", "--results", str(tmp_path / "res"),
+            "--bunny", str(tmp_path / "no-bunny.ply")]
+    assert visibility.main(argv) == 0
+    assert "Visibility from a lamp" in capsys.readouterr().out
+    summary = (tmp_path / "out" / "summary.json").read_text()
+    assert '"hard_iou"' in summary and "bunny skipped" in summary
+    doc = results.load(tmp_path / "res")[0]
+    assert doc["title"].startswith("Shadow maps from a lamp")
+    assert doc["command"].startswith("python -m validation.visibility --lamp --out OUT")
+    assert len(doc["tables"][0]["rows"]) == 1 and len(doc["tables"][1]["rows"]) == 2
+    assert "| cpu-small | 0.15 | default | 6 | 1 | " in results.render(tmp_path / "res")
+    with pytest.raises(SystemExit) as e:
+        visibility.main(["--lamp", "--out", str(tmp_path / "o2"), "--preset", "nope"])
+    assert e.value.code == 2
+    assert not (tmp_path / "o2").exists()

@@ -36,6 +36,7 @@ import drjit as dr
 import numpy as np
 
 import mi_shadowgs  # noqa: F401  (finds libLLVM, selects the variant)
+from mi_shadowgs.dataset.assets import shared_data_dir
 from mi_shadowgs.dataset.cameras import test_cameras
 from mi_shadowgs.dataset.generate import trace_ground_truth
 from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X
@@ -49,9 +50,11 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
     render_shadow_maps,
 )
 from validation import claim_out, fail
-from validation.visibility import BUNNY, REPO, ValidationConfig, iou, scene_surfels
+from validation.visibility import REPO, ValidationConfig, iou, scene_surfels
 
 STUDY = "validation.lamp_visibility"
+# the bunny's mesh: $MI_SHADOWGS_SHARED_DATA, else ../shared/data beside the repository
+BUNNY = shared_data_dir() / "meshes" / "bunny" / "bunny.ply"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,7 +161,8 @@ def case_rows(name: str, setup, surfels, cfg: LampValidationConfig, base: Visibi
     head = {"scene": name, "preset": preset, "distance": lamp.distance / setup.object_radius,
             "radius": lamp.radius / setup.object_radius,
             "azimuth": lamp.azimuth_deg, "elevation": lamp.elevation_deg,
-            "shadow_pixels": int((truth["hard_shadow"] & truth["mask"]).sum())}
+            "shadow_pixels": int((truth["hard_shadow"] & truth["mask"]).sum()),
+            "directional_iou": directional_iou(setup, cams, surfels, bounds, base, truth)}
     rows = []
     evaluate_maps(surfels, bounds, truth, dataclasses.replace(base, lamp_samples=1))
     for n in (0, *samples):
@@ -170,6 +174,22 @@ def case_rows(name: str, setup, surfels, cfg: LampValidationConfig, base: Visibi
                **soft_scores(vis, truth), "maps_s": t_map, "lookup_ms_per_view": 1e3 * t_look}
         rows.append(row)
     return rows
+
+
+def directional_iou(setup, cams, surfels, bounds: SceneBounds, base: VisibilityConfig,
+                    truth: dict) -> float:
+    """The directional maps' shadow IoU on the same views under a directional light of the
+    lamp's direction (from the object's centre): what the method scores without the lamp."""
+    from validation.visibility import make_lights, truth_shadow
+
+    lamp = truth["lamp"]
+    lights, dirs = make_lights([(lamp.azimuth_deg, lamp.elevation_deg)])
+    shadow = truth_shadow(trace_ground_truth(setup, cams, lights), dirs)[..., 0]
+    maps = render_shadow_maps(surfels, dirs, bounds, base)
+    m = truth["mask"]
+    vis = np.stack([np.asarray(maps.evaluate(p, n), np.float64).reshape(m.shape[1:])
+                    for p, n in zip(truth["points"], truth["normals"], strict=True)])
+    return iou((vis < 0.5)[m], shadow[m])
 
 
 def _mean(rows: list[dict], key: str) -> float:
@@ -192,6 +212,7 @@ def tables(rows: list[dict], default_samples: int) -> dict:
         main.append({"preset": preset, "scene": scene, "distance": dist, "radius": radius,
                      "lamps": len(hard), "hard_iou": _mean(hard, "hard_iou"),
                      "hard_iou_min": min(r["hard_iou"] for r in hard),
+                     "directional_iou": _mean(hard, "directional_iou"),
                      "soft_iou": _mean(soft, "soft_iou"), "soft_mae": _mean(soft, "soft_mae"),
                      "penumbra_mae": _mean(soft, "penumbra_mae"),
                      "hard_map_penumbra_mae": _mean(hard, "penumbra_mae")})
@@ -210,15 +231,16 @@ def tables(rows: list[dict], default_samples: int) -> dict:
 
 
 MAIN_COLUMNS = ("settings", "lamp radius", "scene", "lamp distance", "lamps",
-                "hard IoU (mean / min)", "soft IoU", "soft MAE", "penumbra MAE",
-                "penumbra MAE, hard map")
+                "hard IoU (mean / min)", "directional IoU", "soft IoU", "soft MAE",
+                "penumbra MAE", "penumbra MAE, hard map")
 SWEEP_COLUMNS = ("settings", "lamp radius", "lamp_samples", "soft MAE", "penumbra MAE",
                  "soft IoU", "maps s", "lookup ms/view")
 
 
 def table_rows(t: dict) -> tuple[list[list[str]], list[list[str]]]:
     main = [[r["preset"], f"{r['radius']:g}", r["scene"], f"{r['distance']:g}", str(r["lamps"]),
-             f"{r['hard_iou']:.3f} / {r['hard_iou_min']:.3f}", f"{r['soft_iou']:.3f}",
+             f"{r['hard_iou']:.3f} / {r['hard_iou_min']:.3f}",
+             f"{r['directional_iou']:.3f}", f"{r['soft_iou']:.3f}",
              f"{r['soft_mae']:.4f}", f"{r['penumbra_mae']:.3f}",
              f"{r['hard_map_penumbra_mae']:.3f}"] for r in t["main"]]
     sweep = [[r["preset"], f"{r['radius']:g}", str(r["lamp_samples"]), f"{r['soft_mae']:.4f}",
@@ -242,7 +264,7 @@ def result_doc(summary: dict, command: str) -> dict:
     cfg = summary["config"]
     return {
         "order": 7, "title": "Shadow maps from a lamp against Mitsuba's ray-traced visibility",
-        "command": command, "produced_by": "python -m validation.lamp_visibility --results",
+        "command": command, "produced_by": f"{command} --results results",
         "machine": summary["device"], "commit": summary["commit"], "date": summary["date"],
         "text": [f"A lab capture's sphere lamp of radius {_joined(cfg['radii'])} object radii "
                  f"(the lab capture's: 0.15) at {_joined(cfg['distances'])} object radii, "
@@ -250,12 +272,16 @@ def result_doc(summary: dict, command: str) -> dict:
                  f"{[list(d) for d in cfg['directions']]}); "
                  f"{cfg['n_views']} test-spiral views at {cfg['resolution']}^2; surfels sampled "
                  "on the true shapes; receivers ray-traced. Hard: the map from the lamp's "
-                 "centre against a shadow ray to it (shadow IoU, V < 0.5). Soft: the maps over "
+                 "centre against a shadow ray to it (shadow IoU, V < 0.5); directional IoU: "
+                 "the directional maps on the same views under a directional light of the "
+                 "lamp's direction, against its traced shadows. Soft: the maps over "
                  f"the lamp's disc (lamp_samples {summary['default_samples']}) against the "
                  f"unoccluded share of the disc ({cfg['truth_samples']} points), mean absolute "
                  "error over the object and base pixels and over the penumbra alone. "
                  "Settings: each preset's visibility settings (cpu-small: 512^2 maps, a "
                  "one-texel bias and the occluder layer's slack; paper: 512^2, tau 8e-4)."],
+        "notes": [f"Times on a machine shared with other jobs (load average "
+                  f"{summary['loadavg'][0]:.0f}): compare them with each other only."],
         "tables": [{"columns": list(MAIN_COLUMNS), "rows": main},
                    {"caption": "Soft shadows by lamp_samples (mean over every lamp; 0: the "
                                "hard map from the centre).",
