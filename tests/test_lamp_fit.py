@@ -108,3 +108,20 @@ def test_lamp_settings_are_checked():
                 {"lamp_min_gain": 1.0}, {"lamp_passes": ((50.0, 0.1),)}):
         with pytest.raises(ValueError, match="lamp"):
             dataclasses.replace(base, **bad)
+
+
+def test_lamp_errors_against_the_truth():
+    from mi_shadowgs.stages.evaluation.metrics import lamp_errors
+
+    true = {"direction": TRUE_DIR.tolist(), "position": (TRUE_DIR * 6.0).tolist(),
+            "distance": 6.0, "irradiance": [3, 3, 3]}
+    est_pos = np.array([TRUE_DIR * 6.3, [np.nan] * 3])
+    sun = direction_from_angles(200.0, 30.0)
+    out = lamp_errors(np.array([TRUE_DIR, sun]), np.array([3.0, 1.0]), est_pos, [true])
+    assert out["lamp_position_error"] == [pytest.approx(0.05)]
+    assert out["strongest_light_share"] == pytest.approx(0.75)
+    # matched to a directional light: no position error
+    out = lamp_errors(np.array([TRUE_DIR]), np.array([3.0]), None, [true])
+    assert out["lamp_position_error"] == [None]
+    assert "lamp_position_error" not in lamp_errors(np.array([TRUE_DIR]), np.array([1.0]),
+                                                    None, [{"direction": [0, 1, 0]}])

@@ -172,6 +172,8 @@ def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_m
                                                           gt_dirs, gt_irr_w)
         metrics.update(evaluation.light_angular_errors(est_light.directions, est_light_w,
                                                        gt_dirs))
+        metrics.update(evaluation.lamp_errors(est_light.directions, est_light_w,
+                                              est_light.positions, gt_lights))
     if "light-map cosine" not in gone:
         gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
         metrics["light_map_cosine"] = evaluation.light_map_cosine(result.light.radiance,
