@@ -2,11 +2,12 @@
 
 Lights (together, in one light set): ``--light AZ,EL,IRRADIANCE`` (repeatable; degrees and
 W/m^2, or ``AZ,EL,R,G,B``), ``--point X,Y,Z,INTENSITY[,RADIUS]`` (repeatable; a lamp at a
-position of the run's world frame, its radiant intensity in W/sr, or ``X,Y,Z,R,G,B[,RADIUS]``;
-a radius > 0 is a sphere lamp), ``--envmap FILE [--rotate DEG] [--envmap-scale S]``,
-``--scene XML`` (its directional, infinite, point, spot and sphere area emitters). A lamp
-must stand above the base (y = 0) and outside the scene's bounding sphere, and a spot's
-cone must reach the scene. Views: ``--cameras transforms.json``,
+position of the run's world frame, its radiant intensity in W/sr, or
+``X,Y,Z,R,G,B[,RADIUS]``; a radius > 0 is a sphere lamp; write ``--point=-1,2,3,50`` where
+X is negative), ``--envmap FILE [--rotate DEG] [--envmap-scale S]``, ``--scene XML`` (its
+directional, infinite, point, spot and sphere area emitters). A lamp must stand above the
+base (y = 0) and outside the scene's bounding sphere, and a spot's cone must reach the
+scene. Views: ``--cameras transforms.json``,
 ``--orbit N`` (a circle about the object at the run's camera distance), else the run's test
 views. Writes ``NAME.exr`` (linear RGBA) and ``NAME.png`` (sRGB) per view, ``relight.json``
 (lights, views, the per-frame times of the views this call rendered) and, with ``--video``,
@@ -35,7 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="X,Y,Z,INTENSITY[,RADIUS]",
                         help="lamp: position in the run's world frame, radiant intensity "
                              "(W/sr, or R,G,B) and optional sphere radius (world units; 0: a "
-                             "point light); above the base and outside the scene; repeatable")
+                             "point light); above the base and outside the scene; repeatable "
+                             "(a negative X: --point=-1,2,3,50)")
     parser.add_argument("--envmap", default=None, metavar="FILE",
                         help="env map (lat-long EXR, Y-up) integrated over 128 directions")
     parser.add_argument("--rotate", type=float, default=0.0, metavar="DEG",

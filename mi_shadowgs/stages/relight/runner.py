@@ -113,8 +113,9 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
     return emitter
 
 
-def scene_emitters(path: str | Path):
-    """The emitters of a Mitsuba scene file (its shapes, sensors and integrator unused)."""
+def load_scene_file(path: str | Path):
+    """A Mitsuba scene file, for its emitters (its sensors and integrator unused; its shapes
+    only where an area emitter lies on one: hold the scene while its emitters are read)."""
     import mitsuba as mi
 
     path = Path(path)
@@ -125,7 +126,7 @@ def scene_emitters(path: str | Path):
     except RuntimeError as exc:
         raise ValueError(f"--scene {path}: Mitsuba could not load it: "
                          f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
-    return scene.emitters()
+    return scene
 
 
 def build_lights(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
@@ -157,7 +158,8 @@ def build_lights(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
             raise ValueError(f"--envmap {envmap}: the env map is black above the horizon")
         sets.append(ls)
     if scene is not None:
-        sets.append(relight.emitter_light_set(scene_emitters(scene), config, cache,
+        loaded = load_scene_file(scene)
+        sets.append(relight.emitter_light_set(loaded.emitters(), config, cache,
                                               where=f"--scene {scene}", bounds=bounds))
     if not sets:
         raise ValueError(NO_LIGHT)
