@@ -140,7 +140,17 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         # Shadow maps per light direction and env-map grid radiance, kept between renders.
         self.cache = relight.RelightCache()
 
-    def light_set(self, scene, bounds: SceneBounds) -> shading.LightSet:
+    def bounds(self, camera) -> SceneBounds:
+        """The surfels' bounding sphere: what the shadow maps cover, and where a lamp may
+        not stand."""
+        pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
+        return SceneBounds.from_points(pos, [camera])
+
+    def light_set(self, scene, bounds: SceneBounds | None = None) -> shading.LightSet:
+        """The scene's emitters as lights (lamps checked against ``bounds``, by default those
+        seen from the scene's first sensor)."""
+        if bounds is None:
+            bounds = self.bounds(core_render.sensor_camera(scene.sensors()[0]))
         return relight.emitter_light_set(scene.emitters(), self.relight_config, self.cache,
                                          where="surfel_relight", bounds=bounds)
 
@@ -148,8 +158,7 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         camera = core_render.sensor_camera(sensor)
-        pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
-        bounds = SceneBounds.from_points(pos, [camera])
+        bounds = self.bounds(camera)
         lights = self.light_set(scene, bounds)
         model = relight.RelightModel(self.surfels, self.specular, self.visibility,
                                      receiver_band=self.receiver_band)

@@ -77,8 +77,8 @@ def check_lamp_values(lamp: Lamp) -> None:
     if not (math.isfinite(lamp.radius) and lamp.radius >= 0):
         raise ValueError(f"{lamp.source}: field radius must be finite and >= 0, got "
                          f"{lamp.radius:g}")
-    if inten.shape != (3,) or not np.all(np.isfinite(inten)) or inten.min() < 0 or \
-            inten.max() <= 0:
+    if (inten.shape != (3,) or not np.all(np.isfinite(inten)) or inten.min() < 0
+            or inten.max() <= 0):
         raise ValueError(f"{lamp.source}: field intensity must be finite, >= 0 and > 0 in "
                          f"some channel (W/sr), got {', '.join(f'{v:g}' for v in inten)}")
 

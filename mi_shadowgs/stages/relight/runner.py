@@ -363,15 +363,7 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
     if not lights and not points and envmap is None and scene is None:
         raise ValueError(NO_LIGHT)
     check_light_args(lights, envmap, rotate_deg, envmap_scale, scene, points)
-    if not (fps > 0 and math.isfinite(fps)):
-        raise ValueError(f"--fps must be > 0, got {fps:g}")
-    if orbit_elevation is not None:
-        if orbit is None:  # it would be dropped without a word
-            raise ValueError("--orbit-elevation sets the elevation of --orbit N's views: give "
-                             "--orbit N with it")
-        if not (math.isfinite(orbit_elevation) and -90.0 < orbit_elevation < 90.0):
-            raise ValueError(f"--orbit-elevation must be a finite angle in (-90, 90) degrees, "
-                             f"got {orbit_elevation:g}")
+    _check_view_args(fps, orbit, orbit_elevation)
     run_dir = Path(run)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder not found: {run_dir}")
@@ -442,6 +434,19 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
         output.finish()
     return RelightResult(output.folder, len(names), light_set.count, stats, movie, why,
                          len(todo))
+
+
+def _check_view_args(fps: float, orbit: int | None, orbit_elevation: float | None) -> None:
+    """``--fps`` and ``--orbit-elevation`` (which needs ``--orbit``), before the run is read."""
+    if not (fps > 0 and math.isfinite(fps)):
+        raise ValueError(f"--fps must be > 0, got {fps:g}")
+    if orbit_elevation is not None:
+        if orbit is None:  # it would be dropped without a word
+            raise ValueError("--orbit-elevation sets the elevation of --orbit N's views: give "
+                             "--orbit N with it")
+        if not (math.isfinite(orbit_elevation) and -90.0 < orbit_elevation < 90.0):
+            raise ValueError(f"--orbit-elevation must be a finite angle in (-90, 90) degrees, "
+                             f"got {orbit_elevation:g}")
 
 
 def _default_views(run_dir: Path, fit: RunFit, orbit: int | None,
