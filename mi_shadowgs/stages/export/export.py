@@ -348,10 +348,13 @@ def fitted_lights(light: dict) -> list[FittedLight]:
 def emitter_xml(root, k: int, lt: FittedLight) -> None:
     """A fitted light as Mitsuba XML under ``root``: a ``directional`` emitter, a lamp as a
     ``point`` emitter, or (radius > 0) a black ``sphere`` with an ``area`` emitter whose
-    uniform radiance I / (pi R^2) has the lamp's intensity I toward every side."""
+    uniform radiance I / (pi R^2) has the lamp's intensity I toward every side. A plain
+    (direction, irradiance) pair is a directional light."""
     import math
     import xml.etree.ElementTree as ET
 
+    if not isinstance(lt, FittedLight):
+        lt = FittedLight(np.asarray(lt[0], np.float64), np.asarray(lt[1], np.float64))
     if lt.position is None:
         em = ET.SubElement(root, "emitter", type="directional", id=f"light_{k}")
         ET.SubElement(em, "vector", name="direction", value=_fmt(-lt.direction))  # -l
