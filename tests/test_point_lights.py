@@ -348,7 +348,18 @@ def test_relight_point_renders_and_bad_lamps_exit_2(run, tmp_path, capsys):
 
 def test_relight_scene_with_a_spot_that_misses_exits_2(run, tmp_path, capsys):
     from mi_shadowgs import cli
+    from mi_shadowgs.io.images import read_exr
 
+    lamps_xml = tmp_path / "lamps.xml"
+    lamps_xml.write_text("""<scene version="3.0.0"><emitter type="spot" id="desk">
+      <transform name="to_world"><lookat origin="2, 3, 1" target="0, 0.4, 0" up="0, 1, 0"/>
+      </transform><rgb name="intensity" value="20"/></emitter>
+      <shape type="sphere"><point name="center" x="-2" y="3" z="-1"/>
+      <float name="radius" value="0.2"/><emitter type="area"><rgb name="radiance"
+      value="30"/></emitter></shape></scene>""")
+    assert cli.main(["relight", str(run), "--out", str(tmp_path / "lit"), "--scene",
+                     str(lamps_xml), "--orbit", "1", "--no-progress"]) == 0
+    assert read_exr(tmp_path / "lit" / "orbit_000.exr")[..., :3].max() > 0.05
     xml = tmp_path / "spot.xml"
     xml.write_text("""<scene version="3.0.0"><emitter type="spot" id="desk">
       <transform name="to_world"><lookat origin="3, 3, 0" target="9, 3, 0" up="0, 1, 0"/>
@@ -419,6 +430,18 @@ def test_viewer_lamp_and_fitted_lamps(tmp_path):
     light.write_text(json.dumps(data))
     again = viewer.ViewerSession(run)
     np.testing.assert_allclose(again.fitted_lamps()[0], pos)
+    from mi_shadowgs.stages.viewer.server import ViewerServer
+
+    server = ViewerServer(again, port=0, resolution=16).start()
+    try:
+        assert server.light_state().lamps == ()
+        on, az, *_ = server.lamp
+        on.value, az.value = True, 100.0
+        server._draw_arrows()  # the lamp's ball and the fitted lamp's
+        assert server.light_state().lamps[0].azimuth_deg == 100.0
+        assert again.render(cam, server.light_state()).image.max() > 0
+    finally:
+        server.stop()
 
 
 def test_report_table_gives_a_lamps_distance_and_position(tmp_path):
@@ -489,3 +512,34 @@ def test_a_point_relighting_is_scored_against_its_ground_truth(lamp_scene):
     assert got["type"] == "point" and got["light_directions"] == 1
     assert got["psnr"] > 20.0, got  # shadows from the fallback maps included
     np.testing.assert_allclose(images["gt/relit/lamp_moved"][0], ref)
+
+
+def test_generate_writes_the_point_relighting_the_evaluation_reads(tmp_path, capsys):
+    from mi_shadowgs import cli
+    from mi_shadowgs.dataset import layout
+    from mi_shadowgs.dataset.loader import load_dataset
+    from mi_shadowgs.io.images import read_exr
+    from mi_shadowgs.stages.evaluation.evaluate import check_evaluation_inputs, ground_truth
+
+    out = tmp_path / "lamp"
+    assert cli.main(["generate", "default", "--out", str(out), "-D", "lamp_distance=6",
+                     "--width", "48", "--height", "48", "--n-train", "4", "--n-test", "1",
+                     "--spp", "16", "--envmap", "none", "--no-progress"]) == 0
+    capsys.readouterr()
+    relit = json.loads((out / layout.LIGHTS_JSON).read_text())["relightings"]
+    point = [e for e in relit if e["type"] == "point"]
+    assert [e["name"] for e in point] == ["lamp_moved"]
+    (lt,) = point[0]["lights"]
+    centre = np.array(json.loads((out / layout.DATASET_JSON).read_text())["object"]["center"])
+    assert np.linalg.norm(np.array(lt["position"]) - centre) == pytest.approx(lt["distance"])
+    assert lt["intensity"] == pytest.approx([3.0 * lt["distance"] ** 2] * 3)
+    img = read_exr(out / (layout.view_stem("test", 0) + layout.RELIT.format(name="lamp_moved")))
+    assert img[..., :3].max() > 0.05
+    train, test = load_dataset(out, "train"), load_dataset(out, "test")
+    assert check_evaluation_inputs(train, test)["test relit images"] is None
+    assert "lamp_moved" in test.views[0].relit and ground_truth(train, test)["relightings"] is None
+    bad = json.loads((out / layout.LIGHTS_JSON).read_text())
+    bad["relightings"][-1]["lights"][0]["intensity"] = [-1.0]
+    train.lights = bad
+    with pytest.raises(ValueError, match="relighting 'lamp_moved' light 0"):
+        check_evaluation_inputs(train, test)
