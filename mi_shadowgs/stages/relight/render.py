@@ -43,6 +43,7 @@ from mi_shadowgs.stages.material.outputs import (
     VISIBILITY_METADATA_KEY,
 )
 from mi_shadowgs.stages.relight import lamps as lamp_mod
+from mi_shadowgs.stages.visibility.lamp_maps import lamp_arguments
 from mi_shadowgs.stages.visibility.shadow_maps import (
     MapCache,
     SceneBounds,
@@ -357,7 +358,8 @@ def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: Scene
                     vis_config: VisibilityConfig = DEFAULT_VISIBILITY):
     if not model.use_visibility or lights.count == 0:
         return None
-    return render_shadow_maps(model.surfels, lights.directions, bounds, vis_config)
+    return render_shadow_maps(model.surfels, lights.directions, bounds, vis_config,
+                              **lamp_arguments(lights))
 
 
 def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, maps,
@@ -578,12 +580,14 @@ class RelightCache:
         base = (tuple(id(g) for g in geometry), bounds)
         self._models[base[0]] = geometry  # held: the ids stay unique
         dirs = np.asarray(lights.directions, np.float64).reshape(-1, 3)
-        key = (*base, vis_config, dirs.round(12).tobytes())
+        lamps = lamp_arguments(lights)
+        key = (*base, vis_config, dirs.round(12).tobytes(),
+               *(np.asarray(v, np.float64).round(12).tobytes() for v in lamps.values()))
         if key in self._sets:  # the same lights again: the assembled maps as they are
             return self._sets[key]
         if base not in self._caches:
             self._caches[base] = MapCache(model.surfels, bounds, self.max_map_bytes)
-        maps = self._caches[base].maps(dirs, vis_config)
+        maps = self._caches[base].maps(dirs, vis_config, **lamps)
         self._sets[key] = maps
         while len(self._sets) > self.max_sets:  # oldest first
             self._sets.pop(next(iter(self._sets)))
