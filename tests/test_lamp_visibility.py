@@ -112,17 +112,19 @@ def test_lamp_lookup_matches_float64_reference():
     assert 0.05 < np.mean(want[:, 0] == 0) < 0.95  # the case is not trivial
 
 
-def test_point_lamp_casts_the_central_projection_of_a_square():
+@pytest.mark.parametrize("scale", [1.0, 0.05])
+def test_point_lamp_casts_the_central_projection_of_a_square(scale):
     """A square of half size a at height h over the plane y = 0, lit by a point lamp at P:
-    the shadow is the square's central projection from P onto the plane."""
-    h, a = 1.0, 0.5
-    lamp = np.array([0.7, 3.2, -0.4])
+    the shadow is the square's central projection from P onto the plane. At scale 0.05 the
+    lamp stands nearer the square than the rasterizer's default near plane (0.2 units)."""
+    h, a = scale, 0.5 * scale
+    lamp = np.array([0.7, 3.2, -0.4]) * scale
     surfels = _square_surfels(h, a, 8000)
-    bounds = SceneBounds((0.0, h, 0.0), a * math.sqrt(2.0), 3.0)
+    bounds = SceneBounds((0.0, h, 0.0), a * math.sqrt(2.0), 3.0 * scale)
     cfg = VisibilityConfig(resolution=256, bias_texels=1.0)
     d = (lamp - bounds.center) / np.linalg.norm(lamp - bounds.center)
     maps = render_shadow_maps(surfels, d[None], bounds, cfg, positions=lamp[None])
-    g = np.linspace(-1.5, 1.5, 121)
+    g = np.linspace(-1.5, 1.5, 121) * scale
     pts = np.stack(np.meshgrid(g, [0.0], g, indexing="ij"), -1).reshape(-1, 3)
     nrm = np.tile([0.0, 1.0, 0.0], (len(pts), 1))
     vis = _evaluate(maps, pts, nrm)[:, 0]
