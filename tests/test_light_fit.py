@@ -119,7 +119,7 @@ def _fit_lights(s, bounds, views, ch, start_dirs, start_irr, global_pass=True, *
     dirs, irr = refine_directions(views, ch, start_dirs, np.asarray(start_irr),
                                   render(start_dirs), render, cfg, False,
                                   global_pass)
-    out, e, _ = settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
+    out, e, _, _ = settle_lights(views, ch, dirs, irr, render(dirs), render, cfg,
                               False)
     return out, e, dirs, irr
 
@@ -401,7 +401,7 @@ def test_weak_true_light_kept_and_spurious_dropped_from_the_warm_up_map(scene):
         return render_shadow_maps(s, d, bounds, vc)
 
     dw = solid_angle(128)
-    settled, e, _ = settle_lights(views, ch, dirs, rad * dw, render(dirs),
+    settled, e, _, _ = settle_lights(views, ch, dirs, rad * dw, render(dirs),
                                   render, cfg, False)
     assert len(settled) == 2, (settled, e)
     assert all(min(_angle(d, t) for t in (strong, weak)) < 6.5 for d in settled), settled

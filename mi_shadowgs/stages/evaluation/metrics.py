@@ -234,6 +234,33 @@ def light_angular_errors(est_dirs, est_w, gt_dirs) -> dict:
             "spurious_irradiance_fraction": float(spurious)}
 
 
+def lamp_errors(est_dirs, est_w, est_positions, gt_lights: list[dict]) -> dict:
+    """Each true lamp (a ``lights.json`` entry with a ``position``) against the fitted light
+    matched with it (Hungarian matching on the directions): its position error as a share of
+    the lamp's distance (None where the matched light is directional), and the strongest
+    fitted light's share of the fitted irradiance."""
+    from scipy.optimize import linear_sum_assignment
+
+    d = np.asarray(est_dirs, np.float64).reshape(-1, 3)
+    a = _mean_weights(est_w, len(d))
+    out = {"strongest_light_share": float(a.max() / a.sum()) if a.sum() > 0 else 0.0}
+    lamps = [lt for lt in gt_lights if lt.get("position") is not None]
+    if not lamps:
+        return out
+    pos = (np.full((len(d), 3), np.nan) if est_positions is None
+           else np.asarray(est_positions, np.float64).reshape(-1, 3))
+    e = np.array([lt["direction"] for lt in lamps], np.float64)
+    rows, cols = linear_sum_assignment(np.degrees(np.arccos(np.clip(e @ d.T, -1.0, 1.0))))
+    errors: list = [None] * len(lamps)
+    for r, c in zip(rows, cols, strict=True):
+        if np.all(np.isfinite(pos[c])):
+            true = np.asarray(lamps[r]["position"], np.float64)
+            centre = true - e[r] * float(lamps[r]["distance"])
+            errors[r] = float(np.linalg.norm(pos[c] - true) / np.linalg.norm(true - centre))
+    out["lamp_position_error"] = errors
+    return out
+
+
 def light_map_cosine(est, gt) -> float:
     """Cosine similarity of two light maps over the grid ([n] or [n, 3]; RGB -> mean)."""
     e, g = (np.asarray(x, np.float64) for x in (est, gt))

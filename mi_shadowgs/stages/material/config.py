@@ -11,6 +11,7 @@ from mi_shadowgs.config import LABEL_MAP_SOURCES
 SPECULAR_MODES = ("auto", "on", "off")
 REFINE_SCORES = ("segment", "irradiance", "albedo")
 SETTLE_SCORES = ("segment", "irradiance")
+LAMP_MODES = ("off", "auto")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +93,17 @@ class MaterialConfig:
     settle_score: str = "segment"
     # Settle the warm-up's pruned lights before the first refinement too.
     settle_warmup: bool = True
+    # Local lights: "auto" tests each refined light as a lamp (a position with 1/r^2
+    # falloff) against a directional light and keeps what the views prefer; "off": every
+    # light directional (the paper's light map).
+    lamps: str = "off"
+    # Candidate distances of a lamp from the scene centre, in scene-bound radii.
+    lamp_distances: tuple = (1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
+    # A lamp replaces a directional light only when it lowers the views' error by this share.
+    lamp_min_gain: float = 0.02
+    # Pattern searches of a lamp's position, coarse to fine: (direction step in degrees,
+    # distance step as a share of the distance).
+    lamp_passes: tuple = ((4.0, 0.16), (1.0, 0.04), (0.25, 0.01))
     # Keep the albedo's TV while the segment constraint holds.
     albedo_tv_with_segments: bool = True
     # Hold the support-weighted albedo quantile at this value (no specular lobe); 0: off.
@@ -202,6 +214,16 @@ class MaterialConfig:
                              f"lr_detail > 0, all finite, detail_edge_px >= 0: "
                              f"{self.detail_prior}, "
                              f"{self.detail_max}, {self.lr_detail}, {self.detail_edge_px}")
+        if (self.lamps not in LAMP_MODES or not self.lamp_distances
+                or any(not 1.0 < d < math.inf for d in self.lamp_distances)
+                or not 0.0 <= self.lamp_min_gain < 1.0
+                or any(len(p) != 2 or not 0.0 < p[0] < 45.0 or not 0.0 < p[1] < 1.0
+                       for p in self.lamp_passes)):
+            raise ValueError(f"MaterialConfig: lamps one of {LAMP_MODES}, lamp_distances > 1 "
+                             f"(scene radii, finite), lamp_min_gain in [0, 1), lamp_passes "
+                             f"(direction step in (0, 45) degrees, distance share in (0, 1)): "
+                             f"{self.lamps!r}, {self.lamp_distances}, {self.lamp_min_gain}, "
+                             f"{self.lamp_passes}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")

@@ -27,6 +27,7 @@ from mi_shadowgs.stages.material.channels import (
     segment_ids,
 )
 from mi_shadowgs.stages.material.config import MaterialConfig
+from mi_shadowgs.stages.material.lamps import LampSearch, localize_lights
 from mi_shadowgs.stages.material.lights import Refinement, _prune, settle_lights
 from mi_shadowgs.stages.material.normals import _start_normals, normal_step, start_normal_phase
 from mi_shadowgs.stages.material.state import (
@@ -53,7 +54,7 @@ DEFAULT_VISIBILITY = VisibilityConfig()
 
 
 def _refine(views, state: MaterialState, maps, render_maps, config: MaterialConfig,
-            on_unit, global_pass: bool = False) -> np.ndarray:
+            on_unit, global_pass: bool = False, center=None) -> np.ndarray:
     """``refine_directions`` on the optimiser's current state, or the rest of
     ``state.refine`` when a checkpoint was written inside it; sets the refitted light and
     returns the directions."""
@@ -70,8 +71,9 @@ def _refine(views, state: MaterialState, maps, render_maps, config: MaterialConf
                                         global_pass or config.refine_again_global,
                                         again=not global_pass)
     else:
-        maps = render_maps(state.refine.dirs)
-    state.refine.run(views, cur, maps, render_maps, config, state.specular, on_unit)
+        maps = render_maps(state.refine.dirs, None, state.positions)
+    state.refine.run(views, cur, maps, render_maps, config, state.specular, on_unit,
+                     state.positions, center)
     dirs, irr = state.refine.dirs, state.refine.irradiance
     state.refine = None
     opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
@@ -90,11 +92,53 @@ def _settle(fit: MaterialFit, state: MaterialState) -> None:
                                  min(config.refine_views, len(fit.views))).round().astype(int))
     dw = solid_angle(config.n_directions)
     irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
-    dirs, irr, maps = settle_lights([fit.views[i] for i in pick], cur, state.directions, irr,
-                                    fit.maps, fit.shadow_maps, config, state.specular)
-    state.directions, fit.maps = dirs, maps
+    dirs, irr, maps, pos = settle_lights([fit.views[i] for i in pick], cur, state.directions,
+                                         irr, fit.maps, fit.shadow_maps, config,
+                                         state.specular, state.positions, fit.bounds.center)
+    state.directions, fit.maps, state.positions = dirs, maps, pos
     opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
     opt.set_learning_rate({"log_light": config.lr_light})
+
+
+def _prune_state(fit: MaterialFit, state: MaterialState) -> None:
+    """``_prune`` on the state's lights (lamps keep their positions)."""
+    state.directions, fit.maps, state.positions = _prune(
+        state.opt, state.directions, fit.maps, fit.config, fit.shadow_maps, state.positions)
+
+
+def _localize(fit: MaterialFit, state: MaterialState) -> None:
+    """``localize_lights`` on the refinement's views and the optimiser's current state,
+    then the lights settled again (a lamp explains the falloff a second light was fitted
+    to)."""
+    config, opt = fit.config, state.opt
+    if not fit.views:
+        return
+    cur = dict(state.channels)
+    for key in opt.keys():
+        if key not in _LIGHT_KEYS:
+            cur[key] = opt[key]
+    pick = np.unique(np.linspace(0, len(fit.views) - 1,
+                                 min(config.refine_views, len(fit.views))).round().astype(int))
+    dw = solid_angle(config.n_directions)
+    irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
+    search = LampSearch([fit.views[i] for i in pick], cur, fit.shadow_maps, config,
+                        state.specular, np.asarray(fit.bounds.center, np.float64),
+                        fit.bounds.radius)
+    order = np.argsort(-irr)[:config.refine_max_lights]
+    dirs, pos, irr, log = localize_lights(search, state.directions, state.positions, irr,
+                                          order)
+    if state.positions is None and not np.isfinite(pos).any():
+        state.log_lights("localize", dw, log)  # every light stays as it was
+        return
+    state.directions = dirs
+    state.positions = pos if np.isfinite(pos).any() else None
+    opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
+    opt.set_learning_rate({"log_light": config.lr_light})
+    fit.maps = fit.state_maps(state)
+    state.log_lights("localize", dw, log)
+    if len(state.directions) > 1:
+        _settle(fit, state)
+        state.log_lights("settle", dw)
 
 
 def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
@@ -124,7 +168,7 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
     # The warm-up's maps up to its end (unless the checkpoint is inside the refinement that
     # follows it), the full-resolution ones after.
     warmup_res = min(config.warmup_map_resolution, vis_config.resolution)
-    fit.maps = fit.shadow_maps(state.directions, warmup_res if state.step < config.warmup or (
+    fit.maps = fit.state_maps(state, warmup_res if state.step < config.warmup or (
         state.step == config.warmup and state.refine is None) else None)
     if DETAIL_CHANNEL in state.channels and state.step < config.iterations:
         detail_gates(fit, state)  # resumed while the detail fits (the normal phase holds it)
@@ -140,12 +184,14 @@ def refine_lights(fit: MaterialFit, state: MaterialState, on_unit=None,
     if ((fit.config.local_passes(not global_pass) or (global_pass and fit.config.refine_global))
             and fit.maps is not None):
         state.directions = _refine(fit.views, state, fit.maps, fit.shadow_maps, fit.config,
-                                   on_unit, global_pass)
-        fit.maps = fit.shadow_maps(state.directions)
+                                   on_unit, global_pass, fit.bounds.center)
+        fit.maps = fit.state_maps(state)
         state.log_lights("refine", solid_angle(fit.config.n_directions))
     if len(state.directions) > 1:
         _settle(fit, state)
         state.log_lights("settle", solid_angle(fit.config.n_directions))
+    if fit.config.lamps != "off":
+        _localize(fit, state)
 
 
 def end_warmup(fit: MaterialFit, state: MaterialState, on_unit=None) -> None:
@@ -156,10 +202,9 @@ def end_warmup(fit: MaterialFit, state: MaterialState, on_unit=None) -> None:
     if state.refine is None:
         # One host read at the phase boundary.
         if fit.config.prune:
-            state.directions, fit.maps = _prune(state.opt, state.directions, fit.maps,
-                                                fit.config, fit.shadow_maps)
+            _prune_state(fit, state)
             state.log_lights("prune", solid_angle(fit.config.n_directions))
-        fit.maps = fit.shadow_maps(state.directions)
+        fit.maps = fit.state_maps(state)
         if fit.config.settle_warmup and len(state.directions) > 1:
             _settle(fit, state)
             state.log_lights("settle", solid_angle(fit.config.n_directions))
@@ -184,7 +229,7 @@ def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
     Returns the mean loss since the last history entry on a ``log_every`` step, else None."""
     config, opt, ch = fit.config, state.opt, state.channels
     w_light = dr.exp(opt["log_light"]) * solid_angle(config.n_directions)
-    lights = shading.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
+    lights = state.light_set(w_light, fit.bounds.center)
     cur = dict(ch)
     for k in opt.keys():
         if k not in _LIGHT_KEYS:
@@ -232,8 +277,10 @@ def detail_gates(fit: MaterialFit, state: MaterialState) -> None:
 
     if fit.config.detail_edge_px <= 0 or fit.maps is None:
         return
-    dirs = state.detail_directions
-    maps = fit.maps if np.array_equal(dirs, state.directions) else fit.shadow_maps(dirs)
+    dirs, pos = state.detail_directions, state.detail_positions
+    same = (np.array_equal(dirs, state.directions)
+            and np.array_equal(pos, state.positions, equal_nan=True))
+    maps = fit.maps if same else fit.shadow_maps(dirs, None, pos)
     size = (2 * fit.config.detail_edge_px + 1,) * 2 + (1,)
     for k, v in enumerate(fit.views):
         with dr.suspend_grad():
@@ -251,6 +298,8 @@ def start_detail(fit: MaterialFit, state: MaterialState) -> None:
     state.opt[DETAIL_CHANNEL] = state.channels[DETAIL_CHANNEL]
     state.opt.set_learning_rate({DETAIL_CHANNEL: fit.config.lr_detail})
     state.detail_directions = np.array(state.directions, np.float64)
+    state.detail_positions = (None if state.positions is None
+                              else np.array(state.positions, np.float64))
     detail_gates(fit, state)
 
 
@@ -275,8 +324,14 @@ def fit_result(fit: MaterialFit, state: MaterialState) -> MaterialResult:
         n = dr.detach(dr.select(held, start, free))
         out = out.with_channels({shading.SHADING_NORMAL_CHANNEL:
                                  mi.TensorXf(dr.ravel(n), (surfels.count, 3))})
+    positions = state.positions
+    if positions is not None and not np.isfinite(positions).any():
+        positions = None  # every light directional: light.json as without lamps
+    center = None if positions is None else np.asarray(fit.bounds.center, np.float64)
+    radii = None if positions is None else np.zeros(len(positions))
     return MaterialResult(out, LightModel(radiance, active, state.directions,
-                                          light * solid_angle(config.n_directions)),
+                                          light * solid_angle(config.n_directions),
+                                          positions, radii, center),
                           state.specular, config.use_visibility, state.history,
                           dict(state.timings), list(state.light_log))
 
@@ -341,8 +396,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
                 if state.refine is None and prune_due(config, it):
                     # A host read every prune_every steps (not per step): drop dark lights.
                     n_before = len(state.directions)
-                    state.directions, fit.maps = _prune(state.opt, state.directions,
-                                                        fit.maps, config, fit.shadow_maps)
+                    _prune_state(fit, state)
                     if len(state.directions) != n_before:
                         state.log_lights("prune", solid_angle(config.n_directions))
                 if it == refine_again:

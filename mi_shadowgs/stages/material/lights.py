@@ -24,16 +24,7 @@ from mi_shadowgs.stages.material.views import TrainView
 
 def subset_maps(maps, keep: np.ndarray):
     """The shadow maps of the kept directions (no re-rendering: a gather of the texels)."""
-    import dataclasses as dc
-
-    idx = np.flatnonzero(keep)
-    r2 = maps.resolution * maps.resolution
-    tex = (idx[:, None] * r2 + np.arange(r2)[None]).reshape(-1).astype(np.uint32)
-    depth = dr.gather(mi.Float, maps.depth, mi.UInt32(tex))
-    alpha = None if maps.alpha is None else dr.gather(mi.Float, maps.alpha, mi.UInt32(tex))
-    dr.eval(depth, alpha)
-    return dc.replace(maps, directions=maps.directions[idx],
-                      cameras=[maps.cameras[i] for i in idx], depth=depth, alpha=alpha)
+    return maps.subset(keep)
 
 
 def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig
@@ -65,23 +56,31 @@ def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig
     return dirs, light, idx
 
 
-def _prune(opt, dirs: np.ndarray, maps, config: MaterialConfig, render_maps):
+def _prune(opt, dirs: np.ndarray, maps, config: MaterialConfig, render_maps,
+           positions: np.ndarray | None = None):
     """``prune_lights`` on the optimiser's L_dir: the kept lights' maps are a subset of
-    ``maps``, or rendered anew where lights merged. Returns (dirs, maps)."""
+    ``maps``, or rendered anew where lights merged. With lamps (``positions`` rows finite)
+    nothing merges: a lamp and a light near its direction are different lights. Returns
+    (dirs, maps, positions)."""
     if len(dirs) <= 1:
-        return dirs, maps
+        return dirs, maps, positions
     light = np.exp(opt["log_light"].numpy().astype(np.float64))
+    if positions is not None:
+        config = dataclasses.replace(config, merge_angle_deg=0.0)
     new_dirs, light, idx = prune_lights(dirs, light, config)
     if idx is None:
         maps = render_maps(new_dirs)
-    elif len(idx) < len(dirs) and maps is not None:
+    elif len(idx) < len(dirs):
         keep = np.zeros(len(dirs), bool)
         keep[idx] = True
-        maps = subset_maps(maps, keep)
+        if maps is not None:
+            maps = subset_maps(maps, keep)
+        if positions is not None:
+            positions = positions[keep]
     if len(light) != dr.width(opt["log_light"]):
         opt["log_light"] = mi.Float(np.log(light).astype(np.float32))
         opt.set_learning_rate({"log_light": config.lr_light})
-    return new_dirs, maps
+    return new_dirs, maps, positions
 
 
 def merge_directions(dirs: np.ndarray, energy: np.ndarray, max_angle_deg: float
@@ -145,24 +144,29 @@ def candidate_directions(direction: np.ndarray, radius_deg: float, step_deg: flo
 
 def settle_lights(views: list[TrainView], channels: dict, dirs: np.ndarray,
                   irradiance: np.ndarray, maps, render_maps, config: MaterialConfig,
-                  with_specular: bool) -> tuple[np.ndarray, np.ndarray, object]:
+                  with_specular: bool, positions: np.ndarray | None = None, center=None
+                  ) -> tuple[np.ndarray, np.ndarray, object, np.ndarray | None]:
     """After a refinement: lights that moved within ``merge_angle_deg`` of each other merge
-    (a light split over two grid cells is refined onto one spot twice), then
-    ``drop_unexplained``. Returns (dirs [K'], irradiance [K'], their maps)."""
+    (a light split over two grid cells is refined onto one spot twice; not with lamps,
+    ``positions`` rows finite), then ``drop_unexplained``. Returns (dirs [K'],
+    irradiance [K'], their maps, positions [K'] or None)."""
     dirs, irr = np.asarray(dirs, np.float64), np.asarray(irradiance, np.float64)
-    if config.merge_angle_deg > 0 and len(dirs) > 1:
+    if config.merge_angle_deg > 0 and len(dirs) > 1 and positions is None:
         merged, irr_m = merge_directions(dirs, irr, config.merge_angle_deg)
         if len(merged) < len(dirs):
             dirs, irr = merged, irr_m
             maps = render_maps(dirs)
     if config.drop_share > 0 and len(dirs) > 1:
         gram, h, rr = light_normal_equations(views, channels, dirs, maps, config,
-                                             with_specular, config.settle_score == "segment")
+                                             with_specular, config.settle_score == "segment",
+                                             positions, center)
         keep, e = drop_unexplained(gram, h, rr, config)
         dirs, irr = dirs[keep], e[keep]  # the joint re-fit: better than one at a time
         if not keep.all() and maps is not None:
             maps = subset_maps(maps, keep)
-    return dirs, irr, maps
+        if positions is not None:
+            positions = positions[keep]
+    return dirs, irr, maps, positions
 
 
 @dataclasses.dataclass
@@ -197,13 +201,20 @@ class Refinement:
         return [(int(k), r, st) for k in self.lights for r, st in passes]
 
     def run(self, views: list[TrainView], channels: dict, maps, render_maps,
-            config: MaterialConfig, with_specular: bool, on_unit=None) -> None:
-        """The units left; ``maps``: the shadow maps of ``dirs``; ``on_unit()`` after each."""
+            config: MaterialConfig, with_specular: bool, on_unit=None, positions=None,
+            center=None) -> None:
+        """The units left; ``maps``: the shadow maps of ``dirs``; ``on_unit()`` after each.
+        Lamps (``positions`` rows finite, the lamp search's) keep their place."""
         pick = np.unique(np.linspace(0, len(views) - 1, min(config.refine_views, len(views)))
                          .round().astype(int))
         sub = [views[i] for i in pick]
         sub_global = sub[::max(1, -(-len(sub) // config.refine_global_views))]
         for k, radius, step in self.units(config)[self.done:]:
+            if positions is not None and np.all(np.isfinite(positions[k])):
+                self.done += 1
+                if on_unit:
+                    on_unit()
+                continue
             scored = sub
             if math.isinf(radius):
                 cand = np.concatenate([self.dirs[k][None], light_grid(config.refine_global)])
@@ -213,13 +224,15 @@ class Refinement:
                 cand = candidate_directions(self.dirs[k], radius, step)
                 cand_maps = render_maps(cand)
             irr = jit.array(self.irradiance.astype(np.float32))
-            lights = shading.LightSet(self.dirs, mi.Color3f(irr, irr, irr))
+            lights = shading.LightSet(self.dirs, mi.Color3f(irr, irr, irr), positions, None,
+                                      center)
             err, fit = _candidate_scores(scored, channels, lights, maps, k, cand_maps,
                                          config, with_specular)
             best = int(np.argmin(err))
             if best != 0 and fit[best] > 0:
                 self.dirs[k], self.irradiance[k] = cand[best], fit[best]
-                maps = render_maps(self.dirs)
+                maps = (render_maps(self.dirs) if positions is None
+                        else render_maps(self.dirs, None, positions))
             self.done += 1
             if on_unit:
                 on_unit()

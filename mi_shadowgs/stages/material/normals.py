@@ -94,7 +94,7 @@ def normal_step(fit: MaterialFit, state: MaterialState) -> float | None:
     2's normals; everything else held. Returns as ``fit_step``."""
     config, opt = fit.config, state.opt
     w_light = dr.detach(dr.exp(opt["log_light"])) * solid_angle(config.n_directions)
-    lights = shading.LightSet(state.directions, mi.Color3f(w_light, w_light, w_light))
+    lights = state.light_set(w_light, fit.bounds.center)
     start, held = _start_normals(fit)
     free = shading.unit_rows(opt[shading.SHADING_NORMAL_CHANNEL])  # [N]
     normals = dr.select(held, start, free)

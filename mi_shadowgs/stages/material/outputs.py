@@ -48,7 +48,36 @@ def light_json(result: MaterialResult) -> dict:
             "irradiance": light.weights.tolist() if light.weights is not None else None,
             "angles_deg": [list(angles_from_direction(d)) for d in dirs],
             "specular": result.specular, "use_visibility": result.use_visibility,
-            "log": result.light_log}
+            "log": result.light_log, **local_light_json(light)}
+
+
+def local_light_json(light: LightModel) -> dict:
+    """light.json's local-light fields: ``positions`` ([x, y, z], or null for a directional
+    light), ``radii`` and ``center`` (where a lamp's irradiance is its weight); none when
+    every light is directional."""
+    if light.positions is None:
+        return {}
+    pos = np.asarray(light.positions, np.float64).reshape(-1, 3)
+    return {"positions": [p.tolist() if np.all(np.isfinite(p)) else None for p in pos],
+            "radii": np.asarray(light.radii if light.radii is not None
+                                else np.zeros(len(pos)), np.float64).tolist(),
+            "center": np.asarray(light.center, np.float64).tolist()}
+
+
+def local_lights_from_json(data: dict, count: int) -> tuple:
+    """(positions [K, 3] with NaN rows, radii [K], center [3]) from light.json's fields, or
+    (None, None, None) without them; raises ValueError naming the field."""
+    if data.get("positions") is None:
+        return None, None, None
+    rows = data["positions"]
+    if len(rows) != count:
+        raise ValueError(f"'positions' has {len(rows)} entries for {count} lights")
+    pos = np.array([[np.nan] * 3 if p is None else p for p in rows], np.float64).reshape(-1, 3)
+    radii = np.asarray(data.get("radii") or np.zeros(count), np.float64).reshape(count)
+    if np.any(radii < 0) or not np.all(np.isfinite(radii)):
+        raise ValueError("'radii' must be finite and >= 0")
+    center = np.asarray(data["center"], np.float64).reshape(3)
+    return pos, radii, center
 
 
 def save_fit(out, result: MaterialResult, vis_config: VisibilityConfig, fit_s: float) -> None:
@@ -90,6 +119,7 @@ def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None
         weights = (None if data.get("irradiance") is None
                    else np.asarray(data["irradiance"], np.float64).reshape(len(dirs)))
         specular = bool(data["specular"])
+        positions, radii, center = local_lights_from_json(data, len(dirs))
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{light_path}: missing or malformed field ({exc})") from None
     history = []
@@ -97,7 +127,7 @@ def fit_from_files(model_path: Path, light_path: Path, history_path: Path | None
         for line in Path(history_path).read_text().splitlines()[1:]:
             step, loss = line.split(",")
             history.append((int(step), float(loss)))
-    light = LightModel(radiance, active, dirs, weights)
+    light = LightModel(radiance, active, dirs, weights, positions, radii, center)
     return MaterialResult(model, light, specular,
                           bool(data.get("use_visibility", use_visibility)), history, {},
                           list(data.get("log", [])))

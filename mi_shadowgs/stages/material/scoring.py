@@ -17,14 +17,15 @@ from mi_shadowgs.stages.material.views import TrainView, view_maps
 
 
 def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dirs,
-                 with_specular: bool):
+                 with_specular: bool, positions=None, center=None):
     """A view's materials (albedo, roughness, metallic, indirect or None), its direct
-    shading per light of ``dirs`` [P * K] pixel-major and that visibility [P * K] (from
-    ``maps``; None without)."""
+    shading per light of ``dirs`` [P * K] pixel-major (lamps where ``positions`` rows are
+    finite) and that visibility [P * K] (from ``maps``; None without)."""
     albedo, rough, metal, ind = view_maps(v.pairs, channels, v.surfel_normal, with_specular)
     vis = (None if maps is None
            else maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint))
-    per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular)
+    per = shading.direct_per_light(v.geom, albedo, rough, metal, dirs, vis, with_specular,
+                                   positions, center)
     # [P * K] both, in one kernel: their readers (per channel, per sum, the albedo score's
     # unit-albedo shading) would each recompute the lookups
     dr.eval(per, vis)
@@ -32,15 +33,18 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
 
 
 def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.LightSet, maps,
-                      k: int, cand_maps, config: MaterialConfig, with_specular: bool
+                      k: int, cand_maps, config: MaterialConfig, with_specular: bool,
+                      cand_lights: shading.LightSet | None = None
                       ) -> tuple[np.ndarray, np.ndarray]:
     """(squared error [C], fitted irradiance [C]) of the views when light ``k`` moves to
     each candidate direction of ``cand_maps``, its irradiance re-fitted by least squares
     with the fitted materials. The error is that of ``config.refine_score``: with that one
     irradiance re-fitted ("irradiance"), with the light's scale re-fitted per segment
     ("segment", ``segment_errors``), or with each segment's albedo re-fitted per channel
-    ("albedo", ``albedo_errors``)."""
-    n_cand = cand_maps.count
+    ("albedo", ``albedo_errors``). ``cand_lights``: the candidates as lights (lamps among
+    them; their weights unused), else the directions of ``cand_maps``."""
+    cand = cand_lights or shading.LightSet(cand_maps.directions, mi.Color3f(1.0))
+    n_cand = cand.count
     s_rb = dr.zeros(mi.Float64, n_cand)  # summed in Dr.Jit, read once at the end
     s_bb = dr.zeros(mi.Float64, n_cand)
     s_rr = mi.Float64(0.0)
@@ -50,7 +54,8 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
     with dr.suspend_grad():
         for v in views:
             albedo, rough, metal, ind, per, vis_k = _view_direct(
-                v, channels, config, maps, lights.directions, with_specular)
+                v, channels, config, maps, lights.directions, with_specular, lights.positions,
+                lights.center)
             npix = dr.width(v.geom.alpha)
             kk = lights.count
             li = dr.arange(mi.UInt32, npix * kk) % kk
@@ -61,11 +66,13 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
             if ind is not None:
                 rest = rest + (1.0 - metal) * albedo * ind
             resid = (v.target - rest) * v.weight  # [P], what light k has to explain
-            vis = cand_maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
-            if alb_sums is not None:
+            vis = (None if cand_maps is None
+                   else cand_maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint))
+            if alb_sums is not None and vis is not None:
                 dr.eval(vis)  # [P * C]: read by both shadings below
-            b = shading.direct_per_light(v.geom, albedo, rough, metal, cand_maps.directions,
-                                         vis, with_specular)  # [P * C] pixel-major
+            b = shading.direct_per_light(v.geom, albedo, rough, metal, cand.directions,
+                                         vis, with_specular, cand.positions,
+                                         cand.center)  # [P * C] pixel-major
             dr.eval(b)  # once: r.b and b.b below would each recompute the lookups
             pi = dr.arange(mi.UInt32, npix * n_cand) // n_cand
             r = dr.gather(mi.Color3f, resid, pi)
@@ -81,7 +88,7 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
             if seg_sums is not None:
                 seg_sums.add(v, resid, rb, bb)
             if alb_sums is not None:
-                _add_albedo_sums(alb_sums, v, lights, vis_k, k, cand_maps.directions, vis)
+                _add_albedo_sums(alb_sums, v, lights, vis_k, k, cand, vis)
             dr.eval(s_rb, s_bb, s_rr)  # one kernel per view, not one growing graph
     s_rb, s_bb = s_rb.numpy(), s_bb.numpy()
     s_rr = float(s_rr.numpy()[0])
@@ -98,8 +105,8 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
 
 
 def _add_albedo_sums(sums: _AlbedoSums, v: TrainView, lights: shading.LightSet,
-                     vis: mi.Float | None, k: int, cand_dirs: np.ndarray, cand_vis: mi.Float
-                     ) -> None:
+                     vis: mi.Float | None, k: int, cand: shading.LightSet,
+                     cand_vis: mi.Float | None) -> None:
     """One view's sums of ``albedo_errors`` (no lobe): the target, the other lights' shading
     X at unit albedo (``vis`` [P * K] the lights' visibility, None: V = 1) and the
     candidates' B (``cand_vis`` [P * C] theirs). Only the target, the geometry, the shadow
@@ -109,12 +116,14 @@ def _add_albedo_sums(sums: _AlbedoSums, v: TrainView, lights: shading.LightSet,
     # a unit albedo splatted as the model's albedo is: the pixel's coverage (a silhouette
     # pixel's target is the blend with what lies behind)
     white = mi.Color3f(v.geom.alpha, v.geom.alpha, v.geom.alpha)
-    per = shading.direct_per_light(v.geom, white, zero, zero, lights.directions, vis, False)
+    per = shading.direct_per_light(v.geom, white, zero, zero, lights.directions, vis, False,
+                                   lights.positions, lights.center)
     kk = lights.count
     li = dr.arange(mi.UInt32, npix * kk) % kk
     others = dr.select(li == k, 0.0, 1.0) * dr.gather(mi.Color3f, lights.weights, li) * per
     x = mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, others[c], kk) for c in range(3)))
-    b = shading.direct_per_light(v.geom, white, zero, zero, cand_dirs, cand_vis, False)
+    b = shading.direct_per_light(v.geom, white, zero, zero, cand.directions, cand_vis, False,
+                                 cand.positions, cand.center)
     dr.eval(x, b)  # [P], [P * C] pixel-major (b grey)
     sums.add(v, v.target * v.weight, x * v.weight, b[0])
 
@@ -259,7 +268,7 @@ def segment_errors(rr: np.ndarray, rb: np.ndarray, bb: np.ndarray) -> np.ndarray
 
 def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndarray, maps,
                            config: MaterialConfig, with_specular: bool,
-                           per_segment: bool = False):
+                           per_segment: bool = False, positions=None, center=None):
     """Least squares of the views in the lights' irradiance e [K] (albedo, materials and
     indirect light fixed): the squared error is rr - 2 e . h + e^T G e. Returns (G [K, K],
     h [K], rr), float64; rr is the squared direct signal (target minus indirect).
@@ -270,8 +279,8 @@ def light_normal_equations(views: list[TrainView], channels: dict, dirs: np.ndar
     gram, h, rr = np.zeros((n_seg, k, k)), np.zeros((n_seg, k)), np.zeros(n_seg)
     with dr.suspend_grad():
         for v in views:
-            albedo, rough, metal, ind, per, _ = _view_direct(v, channels, config, maps, dirs,
-                                                             with_specular)  # per: [P * K]
+            albedo, rough, metal, ind, per, _ = _view_direct(
+                v, channels, config, maps, dirs, with_specular, positions, center)  # [P * K]
             resid = v.target - (1.0 - metal) * albedo * ind if ind is not None else v.target
             wgt = np.asarray(v.weight.numpy(), np.float64)  # [P]
             b = np.stack([np.asarray(per[c], np.float64).reshape(-1, k) for c in range(3)])

@@ -36,6 +36,11 @@ class LightModel:
     active: np.ndarray  # [K] grid index of each light
     directions: np.ndarray | None = None  # [K, 3] unit; None: the grid directions
     weights: np.ndarray | None = None  # [K] irradiance; None: radiance[active] * dw
+    # Local lights (lamps): [K, 3] positions with NaN rows for directional lights, their
+    # radii [K] and the point where a lamp's weight is its irradiance; None: all directional.
+    positions: np.ndarray | None = None
+    radii: np.ndarray | None = None
+    center: np.ndarray | None = None
 
     def light_set(self, n_directions: int | None = None) -> shading.LightSet:
         n = len(self.radiance) if n_directions is None else n_directions
@@ -43,7 +48,8 @@ class LightModel:
         w = (self.radiance[self.active] * solid_angle(n) if self.weights is None
              else self.weights)
         w = np.asarray(w, np.float32)
-        return shading.LightSet(np.asarray(dirs, np.float64), mi.Color3f(w, w, w))
+        return shading.LightSet(np.asarray(dirs, np.float64), mi.Color3f(w, w, w),
+                                self.positions, self.radii, self.center)
 
 
 @dataclasses.dataclass
@@ -87,13 +93,31 @@ class MaterialState:
     # The lights' directions [K, 3] when the albedo detail joined, whose shadows' edges its
     # gates follow (``detail_gates``); None before.
     detail_directions: np.ndarray | None = None
+    # [K, 3] the lamps' positions (NaN rows: directional lights; ``lamps``); None: every
+    # light directional. A lamp's ``directions`` row points from the scene centre to it.
+    positions: np.ndarray | None = None
+    detail_positions: np.ndarray | None = None  # ``positions`` when the detail joined
 
-    def log_lights(self, event: str, dw: float) -> None:
-        """Record the current lights (directions, irradiance L_dir dw) after ``event``."""
+    def light_set(self, weights: mi.Float, center) -> shading.LightSet:
+        """The current lights with white ``weights`` [K] (irradiance; a lamp's at
+        ``center``)."""
+        return shading.LightSet(self.directions, mi.Color3f(weights, weights, weights),
+                                self.positions, None, None if self.positions is None
+                                else np.asarray(center, np.float64))
+
+    def log_lights(self, event: str, dw: float, details: list | None = None) -> None:
+        """Record the current lights (directions, irradiance L_dir dw, lamps' positions)
+        after ``event``, with its ``details``."""
         irr = np.exp(self.opt["log_light"].numpy().astype(np.float64)) * dw
-        self.light_log.append({"step": self.step, "event": event,
-                               "directions": np.round(self.directions, 6).tolist(),
-                               "irradiance": np.round(irr, 6).tolist()})
+        entry = {"step": self.step, "event": event,
+                 "directions": np.round(self.directions, 6).tolist(),
+                 "irradiance": np.round(irr, 6).tolist()}
+        if self.positions is not None:
+            entry["positions"] = [np.round(p, 6).tolist() if np.all(np.isfinite(p)) else None
+                                  for p in self.positions]
+        if details is not None:
+            entry["details"] = details
+        self.light_log.append(entry)
 
     def to_checkpoint(self) -> tuple[dict[str, np.ndarray], dict]:
         """(arrays, JSON meta) for ``mi_shadowgs.io.checkpoint.save_checkpoint``."""
@@ -106,6 +130,10 @@ class MaterialState:
         arrays["loss_sum"] = np.asarray(self.loss_sum.numpy(), np.float32)
         if self.detail_directions is not None:
             arrays["detail/directions"] = self.detail_directions
+        if self.positions is not None:
+            arrays["positions"] = np.asarray(self.positions, np.float64)
+        if self.detail_positions is not None:
+            arrays["detail/positions"] = self.detail_positions
         if self.refine is not None:
             arrays.update({"refine/dirs": self.refine.dirs,
                            "refine/irradiance": self.refine.irradiance,
@@ -137,7 +165,8 @@ class MaterialState:
                              bool(meta["specular"]), rng, mi.Float(arrays["loss_sum"]),
                              [(int(i), float(x)) for i, x in meta["history"]],
                              dict(meta["timings"]), refine, list(meta.get("light_log", [])),
-                             arrays.get("detail/directions"))
+                             arrays.get("detail/directions"), arrays.get("positions"),
+                             arrays.get("detail/positions"))
 
 
 _LIGHT_KEYS = ("log_light",)
@@ -167,13 +196,21 @@ class MaterialFit:
     # index; kept while they fit in HELD_MAPS_BYTES.
     held_maps: dict = dataclasses.field(default_factory=dict)
 
-    def shadow_maps(self, directions, resolution=None):
-        """Shadow maps of ``directions`` (at ``resolution``, default the visibility's)."""
+    def shadow_maps(self, directions, resolution=None, positions=None):
+        """Shadow maps of ``directions`` (at ``resolution``, default the visibility's), or
+        of lamps at ``positions`` [K, 3] where a row is finite."""
         if not self.config.use_visibility:
             return None
         if self.map_cache is None:
             self.map_cache = MapCache(self.surfels, self.bounds, max_bytes=96 << 20)
-        return self.map_cache.maps(directions, self.vis_config, resolution)
+        if positions is None:
+            return self.map_cache.maps(directions, self.vis_config, resolution)
+        return self.map_cache.maps(directions, self.vis_config, resolution,
+                                   positions=positions)
+
+    def state_maps(self, state: MaterialState, resolution=None):
+        """The shadow maps of ``state``'s lights."""
+        return self.shadow_maps(state.directions, resolution, state.positions)
 
 
 def _count_step(state: MaterialState, config: MaterialConfig, total: mi.Float) -> float | None:

@@ -1,0 +1,176 @@
+"""Local lights: each refined light tested as a lamp against a directional light.
+
+A lamp at a finite distance lights the scene from a direction that changes across it and
+with an irradiance that falls off as 1/r^2; its shadows diverge. A directional fit of such
+a capture explains the falloff with a second light and leaves the lamp's shadows where a
+directional light would not cast them. ``localize_lights`` starts from the refined
+directional lights: for each light (strongest first) it scores, with the closed-form
+candidate scores of the direction search, the directional light against lamps along its
+direction at ``MaterialConfig.lamp_distances`` (scene-bound radii), each with its own
+shadow maps rendered from the lamp's position; a lamp is kept only when it lowers the
+views' error by ``lamp_min_gain`` (a sun stays directional: far lamps explain it no
+better). A kept lamp's position is then searched locally (``lamp_passes``): a pattern
+search over its direction from the scene centre and its distance, scale by scale.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mitsuba as mi
+import numpy as np
+
+from mi_shadowgs.core import jit, shading
+from mi_shadowgs.stages.material.config import MaterialConfig
+from mi_shadowgs.stages.material.scoring import _candidate_scores
+from mi_shadowgs.stages.material.views import TrainView
+
+# A pattern search's moves at one scale: enough to cross a pass's start error (the coarse
+# pass starts from the candidate distances' spacing, ~30%, and a refined direction).
+LAMP_MOVES = 8
+
+
+def lamp_rows(count: int, positions: np.ndarray | None) -> np.ndarray:
+    """[count, 3] positions with NaN rows for directional lights."""
+    if positions is None:
+        return np.full((count, 3), np.nan)
+    return np.array(positions, np.float64).reshape(count, 3)
+
+
+def candidate_set(center: np.ndarray, directions: np.ndarray, distances: np.ndarray
+                  ) -> shading.LightSet:
+    """Candidates [C] along ``directions`` [C, 3] from ``center`` at ``distances`` [C]
+    (world units; inf: a directional light), as lights of unit weight."""
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    dist = np.asarray(distances, np.float64).reshape(-1)
+    pos = np.where(np.isfinite(dist)[:, None], center + d * np.where(
+        np.isfinite(dist), dist, 0.0)[:, None], np.nan)
+    return shading.LightSet(d, mi.Color3f(1.0), pos, np.zeros(len(d)), center)
+
+
+def distance_of(center: np.ndarray, position: np.ndarray) -> float:
+    """A light's distance from the centre (inf for a directional light's NaN row)."""
+    if not np.all(np.isfinite(position)):
+        return math.inf
+    return float(np.linalg.norm(np.asarray(position) - center))
+
+
+class LampSearch:
+    """The candidates' scores for one light at a time, the other lights held."""
+
+    def __init__(self, views: list[TrainView], channels: dict, render_maps,
+                 config: MaterialConfig, with_specular: bool, center: np.ndarray,
+                 radius: float):
+        self.views, self.channels, self.render_maps = views, channels, render_maps
+        self.config, self.with_specular = config, with_specular
+        self.center = np.asarray(center, np.float64)
+        self.radius = float(radius)  # the scene bound's
+        # no lamp nearer than the nearest candidate distance
+        self.min_distance = self.radius * min(config.lamp_distances)
+
+    def lights(self, dirs: np.ndarray, positions: np.ndarray, irr: np.ndarray
+               ) -> shading.LightSet:
+        w = jit.array(np.asarray(irr, np.float32))
+        return shading.LightSet(dirs, mi.Color3f(w, w, w), positions, None, self.center)
+
+    def score(self, dirs, positions, irr, k: int, cand: shading.LightSet
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """(error [C], fitted irradiance at the centre [C]) of light ``k`` moved to each of
+        ``cand``."""
+        maps = self.render_maps(dirs, None, positions)
+        cand_maps = self.render_maps(cand.directions, None, cand.positions)
+        return _candidate_scores(self.views, self.channels, self.lights(dirs, positions, irr),
+                                 maps, k, cand_maps, self.config, self.with_specular, cand)
+
+
+def _best(err: np.ndarray, fit: np.ndarray) -> int:
+    ok = fit > 0
+    if not ok.any():
+        return 0
+    return int(np.flatnonzero(ok)[np.argmin(err[ok])])
+
+
+def localize_lights(search: LampSearch, dirs: np.ndarray, positions: np.ndarray | None,
+                    irradiance: np.ndarray, order: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[dict]]:
+    """Each light of ``order`` as a lamp or directional, and a kept lamp's position searched.
+
+    ``dirs`` [K, 3], ``positions`` [K, 3] (NaN rows directional; None: all), ``irradiance``
+    [K] at the centre. Returns (dirs, positions, irradiance,
+    decisions: per light its errors as directional and as the best lamp, and the choice).
+    """
+    config, center = search.config, search.center
+    dirs = np.array(dirs, np.float64)
+    pos = lamp_rows(len(dirs), positions)
+    irr = np.array(irradiance, np.float64)
+    log = []
+    for k in (int(i) for i in order):
+        dist = distance_of(center, pos[k])
+        scan = np.array([math.inf, *(search.radius * np.asarray(config.lamp_distances))])
+        if math.isfinite(dist):
+            scan = np.append(scan, dist)
+        cand = candidate_set(center, np.repeat(dirs[k][None], len(scan), 0), scan)
+        err, fit = search.score(dirs, pos, irr, k, cand)
+        lamp = 1 + _best(err[1:], fit[1:])
+        gain = (err[0] - err[lamp]) / max(err[0], 1e-30)
+        entry = {"light": k, "error_directional": float(err[0]),
+                 "error_lamp": float(err[lamp]), "distance": float(scan[lamp])}
+        if gain < config.lamp_min_gain or fit[lamp] <= 0:
+            if math.isfinite(dist):  # a lamp no better than a directional light
+                pos[k] = np.nan
+                if fit[0] > 0:
+                    irr[k] = fit[0]
+            log.append({**entry, "kept": "directional"})
+            continue
+        pos[k], irr[k] = cand.positions[lamp], fit[lamp]
+        for step_deg, share in config.lamp_passes:
+            dirs, pos, irr = _lamp_pass(search, dirs, pos, irr, k, step_deg, share)
+        log.append({**entry, "kept": "lamp", "position": pos[k].tolist(),
+                    "distance": distance_of(center, pos[k])})
+    return dirs, pos, irr, log
+
+
+def _lamp_pass(search: LampSearch, dirs, pos, irr, k: int, step_deg: float, share: float):
+    """A pattern search of lamp ``k``'s position at one scale: the 3 x 3 x 3 stencil of its
+    direction from the centre (two tangent steps of ``step_deg``) and its distance (steps of
+    ``share``), moved to the best until the middle wins (at most ``LAMP_MOVES`` times).
+    Joint steps, because a lamp moved sideways and one moved nearer cast alike."""
+    center = search.center
+    for _ in range(LAMP_MOVES):
+        dist = distance_of(center, pos[k])
+        d = dirs[k]
+        t1 = np.cross(d, [0.0, 1.0, 0.0] if abs(d[1]) < 0.99 else [1.0, 0.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(d, t1)
+        tan = math.tan(math.radians(step_deg))
+        steps = [(0, 0, 0)] + [(i, j, m) for i in (-1, 0, 1) for j in (-1, 0, 1)
+                               for m in (-1, 0, 1) if i or j or m]
+        cand_dirs = np.array([d + tan * (i * t1 + j * t2) for i, j, _ in steps])
+        lengths = np.array([dist * (1.0 + share) ** m for _, _, m in steps])
+        ok = (lengths >= search.min_distance) & (cand_dirs[:, 1] > 0)
+        ok[0] = True
+        cand = candidate_set(center, cand_dirs[ok], lengths[ok])
+        err, fit = search.score(dirs, pos, irr, k, cand)
+        best = _best(err, fit)
+        dirs, pos, irr = _moved(dirs, pos, irr, k, cand, best, fit)
+        if best == 0:
+            break
+    return dirs, pos, irr
+
+
+def _moved(dirs, pos, irr, k, cand: shading.LightSet, best: int, fit: np.ndarray):
+    dirs, pos, irr = dirs.copy(), pos.copy(), irr.copy()
+    dirs[k], pos[k] = cand.directions[best], cand.positions[best]
+    if fit[best] > 0:
+        irr[k] = fit[best]
+    return dirs, pos, irr
+
+
+def lamp_share(irradiance: np.ndarray, positions: np.ndarray | None) -> float:
+    """The share of the lights' irradiance at the centre that lamps carry."""
+    irr = np.asarray(irradiance, np.float64)
+    if positions is None or irr.sum() <= 0:
+        return 0.0
+    local = np.all(np.isfinite(np.asarray(positions)), axis=1)
+    return float(irr[local].sum() / irr.sum())

@@ -1,0 +1,127 @@
+"""Stage 4's lamps (``stages.material.lamps``): a light tested as a lamp against a
+directional light on views the model itself renders (true albedo, no indirect), the lamp's
+position searched, and a directional light kept directional."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import mi_shadowgs  # noqa: F401
+from mi_shadowgs.core import shading
+from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.presets import material_config as get_config
+from mi_shadowgs.stages.material.lamps import (
+    LampSearch,
+    candidate_set,
+    lamp_share,
+    localize_lights,
+)
+from mi_shadowgs.stages.material.views import prepare_view, view_maps
+from tests.test_light_fit import _scene
+
+TRUE_DIR = direction_from_angles(35.0, 50.0)
+
+
+def _views(s, cams, lights):
+    n = s.count
+    ch = {"albedo": s.channels["albedo_gt"],
+          "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
+          "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))}
+    cfg = get_config("cpu-small")
+    views = []
+    for cam in cams:
+        geom = shading.pixel_geometry(s, cam)
+        albedo, rough, metal, _ = view_maps(shading.splat_pairs(s, cam), ch,
+                                            shading.facing_normals(s, cam))
+        rgb = shading.shade(geom, albedo, rough, metal, lights, None, None, False)
+        img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
+        mask = geom.alpha.numpy() > 0.5
+        views.append(prepare_view(s, cam, img.reshape(64, 64, 3), mask.reshape(64, 64), cfg))
+    return views, ch
+
+
+@pytest.fixture(scope="module")
+def scene():
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    yield _scene()
+    dr.set_thread_count(threads)
+
+
+def _search(scene, lights, **over):
+    s, cams, bounds = scene
+    views, ch = _views(s, cams, lights)
+    cfg = dataclasses.replace(get_config("cpu-small"), lamps="auto", **over)
+    center = np.asarray(bounds.center)
+    return LampSearch(views, ch, lambda *a, **k: None, cfg, False, center, bounds.radius)
+
+
+def test_a_lamp_is_found_and_placed(scene):
+    _, _, bounds = scene
+    center = np.asarray(bounds.center)
+    true_pos = center + TRUE_DIR * 5.0  # 2.6 bound radii
+    lamp = shading.local_lights(true_pos[None], mi.Color3f(2.0), center)
+    search = _search(scene, lamp)
+    start = direction_from_angles(38.0, 47.0)  # a directional fit's few degrees off
+    dirs, pos, irr, log = localize_lights(search, start[None], None, np.array([1.5]),
+                                          np.array([0]))
+    assert log[0]["kept"] == "lamp"
+    assert log[0]["error_lamp"] < 0.5 * log[0]["error_directional"]
+    dist = np.linalg.norm(pos[0] - center)
+    assert abs(dist - 5.0) / 5.0 < 0.05
+    d = (pos[0] - center) / dist
+    assert math.degrees(math.acos(np.clip(d @ TRUE_DIR, -1, 1))) < 2.0
+    np.testing.assert_allclose(dirs[0], d, atol=1e-9)
+    assert irr[0] == pytest.approx(2.0, rel=0.05)
+    assert lamp_share(irr, pos) == 1.0
+
+
+def test_a_directional_light_stays_directional(scene):
+    sun = shading.directional_lights(TRUE_DIR[None], mi.Color3f(2.0))
+    search = _search(scene, sun)
+    dirs, pos, irr, log = localize_lights(search, TRUE_DIR[None], None, np.array([2.0]),
+                                          np.array([0]))
+    assert log[0]["kept"] == "directional"
+    assert not np.isfinite(pos).any()
+    np.testing.assert_array_equal(dirs[0], TRUE_DIR)
+    assert irr[0] == pytest.approx(2.0, rel=1e-3)
+    assert lamp_share(irr, pos) == 0.0
+
+
+def test_candidate_set_rows():
+    c = np.array([0.0, 1.0, 0.0])
+    cand = candidate_set(c, np.array([[0, 2.0, 0], [0, 0, 1.0]]), np.array([math.inf, 3.0]))
+    assert not np.isfinite(cand.positions[0]).any()
+    np.testing.assert_allclose(cand.positions[1], [0, 1, 3])
+    np.testing.assert_array_equal(cand.local, [False, True])
+
+
+def test_lamp_settings_are_checked():
+    base = get_config("cpu-small")
+    for bad in ({"lamps": "on"}, {"lamp_distances": (0.5,)}, {"lamp_distances": ()},
+                {"lamp_min_gain": 1.0}, {"lamp_passes": ((50.0, 0.1),)}):
+        with pytest.raises(ValueError, match="lamp"):
+            dataclasses.replace(base, **bad)
+
+
+def test_lamp_errors_against_the_truth():
+    from mi_shadowgs.stages.evaluation.metrics import lamp_errors
+
+    true = {"direction": TRUE_DIR.tolist(), "position": (TRUE_DIR * 6.0).tolist(),
+            "distance": 6.0, "irradiance": [3, 3, 3]}
+    est_pos = np.array([TRUE_DIR * 6.3, [np.nan] * 3])
+    sun = direction_from_angles(200.0, 30.0)
+    out = lamp_errors(np.array([TRUE_DIR, sun]), np.array([3.0, 1.0]), est_pos, [true])
+    assert out["lamp_position_error"] == [pytest.approx(0.05)]
+    assert out["strongest_light_share"] == pytest.approx(0.75)
+    # matched to a directional light: no position error
+    out = lamp_errors(np.array([TRUE_DIR]), np.array([3.0]), None, [true])
+    assert out["lamp_position_error"] == [None]
+    assert "lamp_position_error" not in lamp_errors(np.array([TRUE_DIR]), np.array([1.0]),
+                                                    None, [{"direction": [0, 1, 0]}])
