@@ -278,8 +278,10 @@ def detail_gates(fit: MaterialFit, state: MaterialState) -> None:
     if fit.config.detail_edge_px <= 0 or fit.maps is None:
         return
     dirs, pos = state.detail_directions, state.detail_positions
-    same = (np.array_equal(dirs, state.directions)
-            and np.array_equal(pos, state.positions, equal_nan=True))
+    same = np.array_equal(dirs, state.directions) and (
+        (pos is None and state.positions is None)
+        or (pos is not None and state.positions is not None
+            and np.array_equal(pos, state.positions, equal_nan=True)))
     maps = fit.maps if same else fit.shadow_maps(dirs, None, pos)
     size = (2 * fit.config.detail_edge_px + 1,) * 2 + (1,)
     for k, v in enumerate(fit.views):
