@@ -24,6 +24,7 @@ from mi_shadowgs.stages.common import (
     warn,
     warn_other_backend,
 )
+from mi_shadowgs.stages.geometry.gains import GAINS_FILE, resolve, write_gains
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
               "surfels", "time")
@@ -99,7 +100,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     """Stage 1 on dataset ``data`` into ``folder`` (a run's ``geometry/``).
 
     Writes ``model.ply``, ``checkpoint/checkpoint.npz``, ``log.csv``, ``previews/``,
-    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD`` and, with ``evaluate``,
+    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD``, with ``view_gains`` on
+    ``GAINS_FILE`` (its "auto" resolved by the dataset: ``gains.resolve``) and, with ``evaluate``,
     ``metrics.json`` (test views). An existing output
     is replaced (``overwrite``), continued from its checkpoint (``resume``), returned as it
     is when finished or else continued (``reuse``, as ``run`` does), or refused; it is
@@ -129,6 +131,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     train = train if train is not None else load_training_views(data)
     if evaluate and test is None:
         test = load_dataset(data, "test")
+    config = resolve(config, data)
     if not getattr(train, "has_masks", True):
         from mi_shadowgs.stages.geometry.config import unmasked
 
@@ -168,11 +171,14 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
                                              "data": str(Path(data).resolve()),
                                              "config": cfg_dict})
         out.claim("checkpoint/checkpoint.npz", "model.ply",
+                  *([GAINS_FILE] if config.view_gains == "on" else []),
                   *(["metrics.json"] if evaluate else []))
         writer = GeometryWriter(out, cfg_dict)
         writer.start_log(state.step if state else 0)
         cb = Callbacks(on_log=writer.on_log, on_preview=writer.on_preview,
-                       on_checkpoint=writer.on_checkpoint)
+                       on_checkpoint=writer.on_checkpoint,
+                       on_gains=lambda g: write_gains(folder / GAINS_FILE, g,
+                                                      [v.name for v in train.views], data))
         surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
         surfels, pruned = prune_outside_masks(surfels, train.views, config)
         if (note := prune_warning(pruned, surfels.count + pruned, config, data)) is not None:
@@ -192,8 +198,14 @@ def _write_metrics(folder: Path, surfels, test, config, on_test_view) -> str:
     With ``hull_prune_views`` on, ``hull_pruned`` is the count of ``PRUNE_RECORD``."""
     from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
 
-    m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view)
+    m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view,
+                          fit_gains=config.view_gains == "on")
     m["surfels"] = surfels.count
+    truth = (json.loads((folder / GAINS_FILE).read_text()).get("truth")
+             if (folder / GAINS_FILE).is_file() else None)
+    if truth:  # a lab capture's true gains: the fitted ones' error after one scale per channel
+        m["view_gain_error_max"] = truth["max_error"]
+        m["view_gain_error_mean"] = truth["mean_error"]
     if config.hull_prune_views and (folder / PRUNE_RECORD).is_file():
         m["hull_pruned"] = json.loads((folder / PRUNE_RECORD).read_text())["hull_pruned"]
     write_json(folder / "metrics.json", m)
