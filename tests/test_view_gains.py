@@ -189,11 +189,11 @@ def test_checkpoint_round_trip_and_resume(tiny, tmp_path):
 def test_auto_is_on_for_imports_only(tmp_path):
     cfg = run_presets.geometry_config("cpu-small")
     assert cfg.view_gains == "auto"
-    assert vg.resolve(cfg, tmp_path).view_gains == "off"
+    assert not vg.enabled(cfg, tmp_path) and not vg.enabled(cfg, None)
+    assert vg.enabled(dataclasses.replace(cfg, view_gains="on"), tmp_path)
     (tmp_path / "import.json").write_text("{}")
-    assert vg.resolve(cfg, tmp_path).view_gains == "on"
-    off = dataclasses.replace(cfg, view_gains="off")
-    assert vg.resolve(off, tmp_path) is off
+    assert vg.enabled(cfg, tmp_path)
+    assert not vg.enabled(dataclasses.replace(cfg, view_gains="off"), tmp_path)
 
 
 def test_record_matches_photos_and_truth(tmp_path):

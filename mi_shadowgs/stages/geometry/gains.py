@@ -41,14 +41,10 @@ def is_photo_import(root) -> bool:
     return root is not None and (Path(root) / IMPORT_JSON).is_file()
 
 
-def resolve(config, root):
-    """``config`` (a ``GeometryConfig``) with ``view_gains`` "auto" made "on" for a dataset
-    imported from photos (``is_photo_import(root)``) and "off" otherwise."""
-    import dataclasses
-
-    if config.view_gains != "auto":
-        return config
-    return dataclasses.replace(config, view_gains="on" if is_photo_import(root) else "off")
+def enabled(config, root) -> bool:
+    """Whether stage 1 fits the gains on dataset folder ``root`` with ``config`` (a
+    ``GeometryConfig``): ``view_gains`` "on", or "auto" and ``is_photo_import(root)``."""
+    return config.view_gains == "on" or (config.view_gains == "auto" and is_photo_import(root))
 
 
 # -- the maths ------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from mi_shadowgs.stages.common import (
     warn,
     warn_other_backend,
 )
-from mi_shadowgs.stages.geometry.gains import GAINS_FILE, resolve, write_gains
+from mi_shadowgs.stages.geometry.gains import GAINS_FILE, enabled, write_gains
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
               "surfels", "time")
@@ -89,7 +89,9 @@ def geometry_line(metrics: dict) -> str:
             + ("n/a (no masks)" if metrics.get("mask_iou") is None
                else f"{metrics['mask_iou']:.4f}")
             + (f"; {metrics['hull_pruned']} pruned outside the masks"
-               if "hull_pruned" in metrics else ""))
+               if "hull_pruned" in metrics else "")
+            + (f"; view gains within {100 * metrics['view_gain_error_max']:.1f}% of the "
+               "truth" if "view_gain_error_max" in metrics else ""))
 
 
 def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = "",
@@ -100,8 +102,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     """Stage 1 on dataset ``data`` into ``folder`` (a run's ``geometry/``).
 
     Writes ``model.ply``, ``checkpoint/checkpoint.npz``, ``log.csv``, ``previews/``,
-    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD``, with ``view_gains`` on
-    ``GAINS_FILE`` (its "auto" resolved by the dataset: ``gains.resolve``) and, with ``evaluate``,
+    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD``, with the view gains on
+    (``gains.enabled``) ``GAINS_FILE`` and, with ``evaluate``,
     ``metrics.json`` (test views). An existing output
     is replaced (``overwrite``), continued from its checkpoint (``resume``), returned as it
     is when finished or else continued (``reuse``, as ``run`` does), or refused; it is
@@ -131,7 +133,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     train = train if train is not None else load_training_views(data)
     if evaluate and test is None:
         test = load_dataset(data, "test")
-    config = resolve(config, data)
+    gains_on = enabled(config, data)
     if not getattr(train, "has_masks", True):
         from mi_shadowgs.stages.geometry.config import unmasked
 
@@ -157,7 +159,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
             # run's summary and report have stage 1.
             out.claim("metrics.json")
             line = _write_metrics(folder, load_ply(folder / "model.ply"), test, config,
-                                  on_test_view)
+                                  on_test_view, gains_on)
             out.finish()
             return StageRun(folder, False, 0.0, line)
         warn_other_backend(out)
@@ -171,7 +173,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
                                              "data": str(Path(data).resolve()),
                                              "config": cfg_dict})
         out.claim("checkpoint/checkpoint.npz", "model.ply",
-                  *([GAINS_FILE] if config.view_gains == "on" else []),
+                  *([GAINS_FILE] if gains_on else []),
                   *(["metrics.json"] if evaluate else []))
         writer = GeometryWriter(out, cfg_dict)
         writer.start_log(state.step if state else 0)
@@ -188,18 +190,21 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
             write_json(folder / PRUNE_RECORD, {"hull_pruned": pruned,
                                                "surfels_before": surfels.count + pruned})
         save_ply(folder / "model.ply", surfels)
-        line = _write_metrics(folder, surfels, test, config, on_test_view) if evaluate else ""
+        line = (_write_metrics(folder, surfels, test, config, on_test_view, gains_on)
+                if evaluate else "")
         out.finish()
     return StageRun(folder, True, time.perf_counter() - t0, line)
 
 
-def _write_metrics(folder: Path, surfels, test, config, on_test_view) -> str:
+def _write_metrics(folder: Path, surfels, test, config, on_test_view, gains_on: bool) -> str:
     """The model's test metrics into ``folder/metrics.json`` (claimed); their summary line.
-    With ``hull_prune_views`` on, ``hull_pruned`` is the count of ``PRUNE_RECORD``."""
+    With ``hull_prune_views`` on, ``hull_pruned`` is the count of ``PRUNE_RECORD``; with the
+    view gains on (``gains_on``), each test render is scaled by its own least-squares gain,
+    and the fitted gains' error is there when their truth is known."""
     from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
 
     m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view,
-                          fit_gains=config.view_gains == "on")
+                          fit_gains=gains_on)
     m["surfels"] = surfels.count
     truth = (json.loads((folder / GAINS_FILE).read_text()).get("truth")
              if (folder / GAINS_FILE).is_file() else None)

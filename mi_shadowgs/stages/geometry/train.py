@@ -34,8 +34,8 @@ from mi_shadowgs.stages.geometry.densify import DensifyStrategy
 from mi_shadowgs.stages.geometry.gains import (
     ViewGains,
     check_gains,
+    enabled,
     least_squares_gain,
-    resolve,
 )
 
 
@@ -465,7 +465,6 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     from tqdm import tqdm
 
     cb = callbacks or Callbacks()
-    config = resolve(config, getattr(dataset, "root", None))
     clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
     if len(dataset.views) == 0:
         raise ValueError(f"{dataset.root}: split {dataset.split!r} has no views")
@@ -476,7 +475,7 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     views = [_view_data(v, dark_max) for v in dataset.views]
     if state is None:
         state = initial_state(dataset, config)
-    if config.view_gains == "on" and state.gains is None:
+    if state.gains is None and enabled(config, getattr(dataset, "root", None)):
         state.gains = ViewGains.fresh(len(views), config.lr_view_gain)
     opt, strategy, sums = state.opt, state.strategy, state.log_sums
     t0 = time.perf_counter() - state.elapsed
