@@ -2,10 +2,14 @@
 
 A camera in auto mode scales each photo by its own exposure and white balance. Stage 1
 explains that as a gain ``g_v = exp(l_v)`` [3] per training view: the photometric loss
-compares ``g_v * render`` with the photo. The log gains ``l`` [V, 3] have their own Adam
-(``GeometryConfig.lr_view_gain``). The surfels' colours can take any per-channel factor
-that the gains give up, so after each step every channel's log gains are shifted to mean 0
-(``project``): the gains are relative to the views' geometric mean.
+compares ``g_v * render`` with the photo. The render is linear in the surfels' colours, so
+the gain multiplies the colours before they are composited (``apply_gain`` on [N, 3]): the
+same image, at the cost of N products, not H * W (multiplying the image changed how Dr.Jit
+fused the loss's backward kernels: a stage-1 step took 20% longer at 128^2). The log gains
+``l`` [V, 3] have their own Adam (``GeometryConfig.lr_view_gain``). The surfels' colours
+can take any per-channel factor that the gains give up, so after each step every channel's
+log gains are shifted to mean 0 (``project``): the gains are relative to the views'
+geometric mean.
 
 Stage 4 holds them (``mi_shadowgs.stages.material.views.held_images``: each training photo
 divided by its gain once, before the fit). The gains are saved as ``GAINS_FILE`` in stage
@@ -49,9 +53,9 @@ def enabled(config, root) -> bool:
 
 # -- the maths ------------------------------------------------------------------------------
 def apply_gain(image: mi.TensorXf, log_gain: mi.TensorXf, index) -> mi.TensorXf:
-    """``image`` [H, W, 3] times ``exp(log_gain[index])`` per channel; ``log_gain`` [V, 3],
-    ``index`` an opaque ``mi.UInt32`` (every view runs the same kernel). Differentiable in
-    both."""
+    """``image`` [..., 3] (colours [N, 3], or an image [H, W, 3]) times
+    ``exp(log_gain[index])`` per channel; ``log_gain`` [V, 3], ``index`` an opaque
+    ``mi.UInt32`` (every view runs the same kernel). Differentiable in both."""
     n = dr.width(image.array)
     channel = dr.arange(mi.UInt32, n) % 3
     lg = dr.gather(mi.Float, log_gain.array, index * 3 + channel)
@@ -87,7 +91,8 @@ class ViewGains:
         return self.opt.params[_KEY]
 
     def apply(self, image: mi.TensorXf, index: int) -> mi.TensorXf:
-        """``image`` [H, W, 3] of training view ``index`` times its gain."""
+        """``image`` [..., 3] (colours or an image) of training view ``index`` times its
+        gain."""
         return apply_gain(image, self.log_gain, jit.opaque(index, mi.UInt32))
 
     def step(self) -> None:

@@ -267,6 +267,8 @@ def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step
     """(total loss, dict of detached terms incl. "mse") for one view at 0-based ``step``;
     with ``gains``, the render is times the gain of training view ``index``."""
     rgb = sh_colors(surfels, view.camera.origin)
+    if gains is not None:  # the render is linear in the colours: gain * render, per channel
+        rgb = gains.apply(rgb, index)
     use_mask = config.lambda_mask > 0 and view.has_mask
     use_normal = config.lambda_normal > 0 and step >= config.normal_from
     use_dist = config.lambda_dist > 0 and step >= config.dist_from
@@ -276,7 +278,7 @@ def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step
     aovs = (("alpha",) * (use_mask or use_normal or use_dark)
             + ("depth", "normal") * use_normal + ("distortion",) * use_dist)
     out = rasterize(surfels, view.camera, {"rgb": rgb}, aovs=aovs, config=config.raster)
-    img = out["rgb"] if gains is None else gains.apply(out["rgb"], index)
+    img = out["rgb"]
     l1 = losses.l1(img, view.image)
     dssim = losses.d_ssim(img, view.ssim_target or view.image)
     total = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * dssim
