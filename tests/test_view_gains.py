@@ -187,6 +187,18 @@ def test_checkpoint_round_trip_and_resume(tiny, tmp_path):
 
 
 def test_auto_is_on_for_imports_only(tmp_path):
+    """``auto``: on for imports; an output made before the setting existed (one exposure)
+    is the same output as one with the gains off, whatever their learning rate."""
+    from mi_shadowgs.io import provenance
+
+    old = {"settings": {"config": {"iterations": 300}}}
+
+    def diff(**new):
+        return provenance.differences(old, provenance.Provenance(
+            settings={"config": {"iterations": 300, **new}}), ("settings",))
+
+    assert diff(view_gains="off", lr_view_gain=0.5) == []
+    assert "view_gains" in diff(view_gains="on", lr_view_gain=0.01)[0]
     cfg = run_presets.geometry_config("cpu-small")
     assert cfg.view_gains == "auto"
     assert not vg.enabled(cfg, tmp_path) and not vg.enabled(cfg, None)
@@ -271,6 +283,8 @@ def test_run_fits_records_holds_and_reports_the_gains(tmp_path, tiny_presets, mo
     run = tmp_path / "r"
     assert cli.main(["run", str(tmp_path / "d"), "--out", str(run), "--preset", TINY_PRESET,
                      "--no-progress", "--set", "geometry.view_gains=on"]) == 0
+    recorded = json.loads((run / "geometry" / "config.json").read_text())["config"]
+    assert recorded["view_gains"] == "on"
     rec = json.loads((run / "geometry" / vg.GAINS_FILE).read_text())
     assert len(rec["views"]) == 8 and "truth" not in rec
     gains = np.array([v["gain"] for v in rec["views"]])

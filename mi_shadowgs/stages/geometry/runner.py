@@ -148,6 +148,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
              + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
                 "no mask to prune by and removes nothing" if config.hull_prune_views else ""))
     cfg_dict = settings_dict(config)
+    cfg_dict["view_gains"] = "on" if gains_on else "off"  # what "auto" is on this dataset
     provenance = Provenance(dataset=dataset or dataset_ref(data), settings=cfg_dict)
     with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,
                      inputs=[data], continue_flag="--resume") as out:
