@@ -5,12 +5,14 @@ of a run folder, and the report's figures."""
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
 from mi_shadowgs.core.directions import angles_from_direction, direction_from_angles
 from mi_shadowgs.io.atomic import write_json
 from mi_shadowgs.presets import RunConfig
+from mi_shadowgs.stages.geometry.gains import GAINS_FILE
 
 # The ground truth of the stage-1 and stage-2 metrics (stage 5's: relight.METRIC_NEEDS); a
 # metric whose ground truth the dataset lacks is not computed, and the summary says so.
@@ -239,6 +241,9 @@ def build_summary(run: Path, data: Path, config: RunConfig, results: dict, stage
     lights_tab = _fitted_lights_table(run / "material" / "full" / "light.json")
     if lights_tab:
         summary["tables"].append(lights_tab)
+    gains_tab = view_gains_table(run / "geometry" / GAINS_FILE)
+    if gains_tab:
+        summary["tables"].append(gains_tab)
     summary["tables"] += _per_view_tables(results.get("full", {}))
     speed = _speed_table(results.get("full", {}), info)
     if speed:
@@ -399,6 +404,37 @@ def _lamp_cells(fit: dict, count: int) -> list | None:
             [float(np.linalg.norm(np.asarray(p, np.float64) - c)),
              "({:.3g}, {:.3g}, {:.3g})".format(*p), float(radii[k])]
             for k, p in enumerate(positions)]
+
+
+def view_gains_table(path: Path) -> dict | None:
+    """Stage 1's per-view exposure and white balance (``geometry/view_gains.json``, with
+    ``GeometryConfig.view_gains`` on): each training view's EV and RGB gain, and beside them
+    the truth and the error where the capture's true gains are known; None without the file."""
+    record = _json_or_empty(path)
+    views = record.get("views") or []
+    if not views:
+        return None
+    truth = record.get("truth")
+    cols = ["view", "photo", "EV", "gain R", "gain G", "gain B"]
+    if truth:
+        cols += ["true EV", "true R", "true G", "true B", "error (%)"]
+    rows = []
+    for v in views:
+        row = [v["name"], v.get("photo") or "", v["ev"], *v["gain"]]
+        if truth:
+            scale = truth["scale"]  # the truth in the fit's scale, channel by channel
+            t = [g / s for g, s in zip(v["true_gain"], scale, strict=True)]
+            row += [v["true_ev"] - sum(map(math.log2, scale)) / 3.0, *t, 100.0 * v["error"]]
+        rows.append(row)
+    note = ("gain: photo = gain * render, per channel; EV: the mean of the channels' log2 "
+            "gains; the gains' log has mean 0 over the views in every channel (the colours "
+            "take the rest).")
+    if truth:
+        note += (f" True gains ({truth['file']}) divided by one scale per channel; error: "
+                 f"the largest over the channels of |gain / true - 1|: max "
+                 f"{100 * truth['max_error']:.2f}%, mean {100 * truth['mean_error']:.2f}%.")
+    return {"title": "Exposure and white balance per training view (geometry/view_gains.json)",
+            "columns": cols, "rows": rows, "note": note}
 
 
 SPEED_ERROR_STAGE = "Speed against error"

@@ -128,13 +128,16 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "prototype_iterations": 50,  # stage 2: K-means' steps from the prototypes
                   "detail_prior": 0.0,  # stage 4: no albedo detail within a segment
                   "detail_max": None, "lr_detail": None,  # used only with the detail
-                  "detail_edge_px": None}
+                  "detail_edge_px": None,
+                  "view_gains": "off",  # stage 1: one exposure for every photo
+                  "lr_view_gain": None}  # used only with the view gains
 # An ADDED_SETTINGS entry of None is unused while its sibling setting here has the value that
 # does what the older code did: then any value of it counts as before.
 USED_ONLY_WITH = {"silhouette_samples": "k_select", "lr_normal": "normal_steps",
                   "lambda_normal_prior": "normal_steps", "normal_hold_planar": "normal_steps",
                   "hull_prune_dilate": "hull_prune_views", "detail_max": "detail_prior",
-                  "lr_detail": "detail_prior", "detail_edge_px": "detail_prior"}
+                  "lr_detail": "detail_prior", "detail_edge_px": "detail_prior",
+                  "lr_view_gain": "view_gains"}
 
 
 def _added_as_before(key: str, old: dict, new: dict) -> bool:

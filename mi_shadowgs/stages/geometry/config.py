@@ -12,6 +12,7 @@ from mi_shadowgs.core.raster import RasterConfig
 from mi_shadowgs.stages.geometry.densify import DensifyConfig
 
 INITS = ("hull", "random", "points")
+GAIN_MODES = ("auto", "on", "off")  # ``view_gains``
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +63,11 @@ class GeometryConfig:
     # not hollow out shadowed receivers there. A lit background leaves it no pixels.
     lambda_dark_alpha: float = 0.0
     dark_max: float = 1.0 / 255.0
+    # One RGB gain per training view, times the render in the photometric loss (a camera's
+    # exposure and white balance per photo; ``gains``): "on", "off", or "auto" (on for
+    # datasets imported from photos, off for generated ones, whose exposure is constant).
+    view_gains: str = "auto"
+    lr_view_gain: float = 0.01  # Adam learning rate of the views' log gains
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     seed: int = 0
@@ -100,6 +106,8 @@ class GeometryConfig:
                 "lambda_dist", "lambda_mask", "lambda_dark_alpha", "normal_from", "dist_from",
                 "lr_position_delay_steps", "unmasked_lambda_dark_alpha")),
             ("init", self.init in INITS, f"one of {INITS}"),
+            ("view_gains", self.view_gains in GAIN_MODES, f"one of {GAIN_MODES}"),
+            ("lr_view_gain", self.lr_view_gain > 0, "> 0"),
             ("hull_extent", self.hull_extent is None or self.hull_extent > 0, "> 0 or None"),
             ("normal_depth_differences",
              self.normal_depth_differences in losses.DEPTH_NORMAL_DIFFERENCES,

@@ -24,6 +24,7 @@ from mi_shadowgs.stages.common import (
     warn,
     warn_other_backend,
 )
+from mi_shadowgs.stages.geometry.gains import GAINS_FILE, enabled, write_gains
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
               "surfels", "time")
@@ -88,7 +89,9 @@ def geometry_line(metrics: dict) -> str:
             + ("n/a (no masks)" if metrics.get("mask_iou") is None
                else f"{metrics['mask_iou']:.4f}")
             + (f"; {metrics['hull_pruned']} pruned outside the masks"
-               if "hull_pruned" in metrics else ""))
+               if "hull_pruned" in metrics else "")
+            + (f"; view gains within {100 * metrics['view_gain_error_max']:.1f}% of the "
+               "truth" if "view_gain_error_max" in metrics else ""))
 
 
 def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = "",
@@ -99,7 +102,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     """Stage 1 on dataset ``data`` into ``folder`` (a run's ``geometry/``).
 
     Writes ``model.ply``, ``checkpoint/checkpoint.npz``, ``log.csv``, ``previews/``,
-    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD`` and, with ``evaluate``,
+    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD``, with the view gains on
+    (``gains.enabled``) ``GAINS_FILE`` and, with ``evaluate``,
     ``metrics.json`` (test views). An existing output
     is replaced (``overwrite``), continued from its checkpoint (``resume``), returned as it
     is when finished or else continued (``reuse``, as ``run`` does), or refused; it is
@@ -129,6 +133,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     train = train if train is not None else load_training_views(data)
     if evaluate and test is None:
         test = load_dataset(data, "test")
+    gains_on = enabled(config, data)
     if not getattr(train, "has_masks", True):
         from mi_shadowgs.stages.geometry.config import unmasked
 
@@ -143,6 +148,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
              + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
                 "no mask to prune by and removes nothing" if config.hull_prune_views else ""))
     cfg_dict = settings_dict(config)
+    cfg_dict["view_gains"] = "on" if gains_on else "off"  # what "auto" is on this dataset
     provenance = Provenance(dataset=dataset or dataset_ref(data), settings=cfg_dict)
     with Output.open(folder, "train", provenance, overwrite=overwrite, reuse=resume or reuse,
                      inputs=[data], continue_flag="--resume") as out:
@@ -154,7 +160,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
             # run's summary and report have stage 1.
             out.claim("metrics.json")
             line = _write_metrics(folder, load_ply(folder / "model.ply"), test, config,
-                                  on_test_view)
+                                  on_test_view, gains_on)
             out.finish()
             return StageRun(folder, False, 0.0, line)
         warn_other_backend(out)
@@ -168,11 +174,14 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
                                              "data": str(Path(data).resolve()),
                                              "config": cfg_dict})
         out.claim("checkpoint/checkpoint.npz", "model.ply",
+                  *([GAINS_FILE] if gains_on else []),
                   *(["metrics.json"] if evaluate else []))
         writer = GeometryWriter(out, cfg_dict)
         writer.start_log(state.step if state else 0)
         cb = Callbacks(on_log=writer.on_log, on_preview=writer.on_preview,
-                       on_checkpoint=writer.on_checkpoint)
+                       on_checkpoint=writer.on_checkpoint,
+                       on_gains=lambda g: write_gains(folder / GAINS_FILE, g,
+                                                      [v.name for v in train.views], data))
         surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
         surfels, pruned = prune_outside_masks(surfels, train.views, config)
         if (note := prune_warning(pruned, surfels.count + pruned, config, data)) is not None:
@@ -182,18 +191,27 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
             write_json(folder / PRUNE_RECORD, {"hull_pruned": pruned,
                                                "surfels_before": surfels.count + pruned})
         save_ply(folder / "model.ply", surfels)
-        line = _write_metrics(folder, surfels, test, config, on_test_view) if evaluate else ""
+        line = (_write_metrics(folder, surfels, test, config, on_test_view, gains_on)
+                if evaluate else "")
         out.finish()
     return StageRun(folder, True, time.perf_counter() - t0, line)
 
 
-def _write_metrics(folder: Path, surfels, test, config, on_test_view) -> str:
+def _write_metrics(folder: Path, surfels, test, config, on_test_view, gains_on: bool) -> str:
     """The model's test metrics into ``folder/metrics.json`` (claimed); their summary line.
-    With ``hull_prune_views`` on, ``hull_pruned`` is the count of ``PRUNE_RECORD``."""
+    With ``hull_prune_views`` on, ``hull_pruned`` is the count of ``PRUNE_RECORD``; with the
+    view gains on (``gains_on``), each test render is scaled by its own least-squares gain,
+    and the fitted gains' error is there when their truth is known."""
     from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
 
-    m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view)
+    m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view,
+                          fit_gains=gains_on)
     m["surfels"] = surfels.count
+    truth = (json.loads((folder / GAINS_FILE).read_text()).get("truth")
+             if (folder / GAINS_FILE).is_file() else None)
+    if truth:  # a lab capture's true gains: the fitted ones' error after one scale per channel
+        m["view_gain_error_max"] = truth["max_error"]
+        m["view_gain_error_mean"] = truth["mean_error"]
     if config.hull_prune_views and (folder / PRUNE_RECORD).is_file():
         m["hull_pruned"] = json.loads((folder / PRUNE_RECORD).read_text())["hull_pruned"]
     write_json(folder / "metrics.json", m)

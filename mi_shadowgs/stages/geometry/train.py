@@ -31,6 +31,12 @@ from mi_shadowgs.core.surfels import SH_C0, Surfels, sh_colors
 from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
 from mi_shadowgs.stages.geometry.config import GeometryConfig
 from mi_shadowgs.stages.geometry.densify import DensifyStrategy
+from mi_shadowgs.stages.geometry.gains import (
+    ViewGains,
+    check_gains,
+    enabled,
+    least_squares_gain,
+)
 
 
 # -- initialisation -----------------------------------------------------------------------
@@ -256,9 +262,13 @@ def _view_data(view, dark_max: float | None = None) -> ViewData:
                     has_mask, dark, losses.ssim_target(image))
 
 
-def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int):
-    """(total loss, dict of detached terms incl. "mse") for one view at 0-based ``step``."""
+def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int,
+                  gains: ViewGains | None = None, index: int = 0):
+    """(total loss, dict of detached terms incl. "mse") for one view at 0-based ``step``;
+    with ``gains``, the render is times the gain of training view ``index``."""
     rgb = sh_colors(surfels, view.camera.origin)
+    if gains is not None:  # the render is linear in the colours: gain * render, per channel
+        rgb = gains.apply(rgb, index)
     use_mask = config.lambda_mask > 0 and view.has_mask
     use_normal = config.lambda_normal > 0 and step >= config.normal_from
     use_dist = config.lambda_dist > 0 and step >= config.dist_from
@@ -309,6 +319,7 @@ class TrainState:
     # Loss terms summed since the last log row, so that a resumed run logs the same means.
     log_sums: dict = dataclasses.field(default_factory=dict)  # name -> mi.Float [1]
     log_count: int = 0
+    gains: ViewGains | None = None  # with GeometryConfig.view_gains on
 
     def to_numpy(self) -> dict[str, np.ndarray]:
         p, m, v = self.opt.to_numpy()
@@ -320,6 +331,8 @@ class TrainState:
                     for k, x in self.log_sums.items()})
         out["scalars"] = np.array([self.step, self.opt.t, self.extent, self.elapsed,
                                    self.log_count], np.float64)
+        if self.gains is not None:
+            out.update(self.gains.to_numpy("gains/"))
         return out
 
     def to_checkpoint(self, **meta) -> tuple[dict[str, np.ndarray], dict]:
@@ -339,7 +352,9 @@ class TrainState:
                                    iterations=config.iterations)
         strategy.load_state(group("densify/"))
         sums = {k: mi.Float(a) for k, a in group("log/").items()}
-        return TrainState(int(step), opt, strategy, extent, elapsed, sums, int(log_count))
+        gains = ViewGains.from_numpy(arrays, "gains/", config.lr_view_gain)
+        return TrainState(int(step), opt, strategy, extent, elapsed, sums, int(log_count),
+                          gains)
 
 
 def _learning_rates(config: GeometryConfig, step: int, extent: float) -> dict[str, float]:
@@ -431,13 +446,15 @@ class Callbacks:
     ``on_log(record: dict)`` every ``log_every`` steps; ``on_preview(step, render, view)``
     every ``preview_every``; ``on_checkpoint(state)`` every ``checkpoint_every`` steps, every
     ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.io.interrupt``);
-    ``on_step(step)`` after every step (tests use it to interrupt a run).
+    ``on_step(step)`` after every step (tests use it to interrupt a run); ``on_gains(gains)``
+    once at the end with the fitted view gains [V, 3] (``GeometryConfig.view_gains`` on).
     """
 
     on_log: Callable | None = None
     on_preview: Callable | None = None
     on_checkpoint: Callable | None = None
     on_step: Callable | None = None
+    on_gains: Callable | None = None
 
 
 def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None = None,
@@ -460,6 +477,8 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     views = [_view_data(v, dark_max) for v in dataset.views]
     if state is None:
         state = initial_state(dataset, config)
+    if state.gains is None and enabled(config, getattr(dataset, "root", None)):
+        state.gains = ViewGains.fresh(len(views), config.lr_view_gain)
     opt, strategy, sums = state.opt, state.strategy, state.log_sums
     t0 = time.perf_counter() - state.elapsed
     bar = tqdm(total=config.iterations, initial=state.step, disable=not progress,
@@ -468,15 +487,18 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
         while state.step < config.iterations:
             step = state.step
             opt.lr.update(_learning_rates_split(config, step, state.extent))
-            view = views[view_order(config, len(views), step)]
+            index = view_order(config, len(views), step)
+            view = views[index]
             surfels = model_surfels(opt.params, active_sh_degree(config, step))
-            total, terms = geometry_loss(surfels, view, config, step)
+            total, terms = geometry_loss(surfels, view, config, step, state.gains, index)
             dr.backward(total)
             strategy.observe(opt.params["position"], opt.params["log_scale"], view.camera)
             for k, val in terms.items():
                 sums[k] = sums[k] + val if k in sums else val
             dr.schedule(sums)
             opt.step()
+            if state.gains is not None:
+                state.gains.step()
             state.step = step + 1
             state.log_count += 1
             strategy.step(state.step, opt)
@@ -509,6 +531,11 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
                           + (", checkpoint written" if cb.on_checkpoint else ""))
             if cb.on_step:
                 cb.on_step(state.step)
+    if state.gains is not None:
+        gains = state.gains.gains()
+        check_gains(gains, [v.name for v in dataset.views])
+        if cb.on_gains:
+            cb.on_gains(gains)
     final = model_surfels({k: dr.detach(v) for k, v in opt.params.items()})
     return final
 
@@ -582,12 +609,16 @@ def render_view(surfels: Surfels, camera, config: RasterConfig | None = None) ->
 
 
 def evaluate(surfels: Surfels, dataset, config: RasterConfig | None = None,
-             on_view: Callable | None = None) -> dict:
+             on_view: Callable | None = None, fit_gains: bool = False) -> dict:
     """Test-view metrics: RGB PSNR/SSIM, normal angular error (degrees, over the pixels both
-    the ground-truth mask and normal cover), z-depth error, mask IoU (alpha > 0.5)."""
+    the ground-truth mask and normal cover), z-depth error, mask IoU (alpha > 0.5).
+    ``fit_gains``: each render is first scaled per channel by the least-squares gain to its
+    photo (a test photo's exposure and white balance are unknown, as a training one's)."""
     psnrs, ssims, angles, depth_abs, depth_rel, ious = [], [], [], [], [], []
     for view in dataset.views:
         r = render_view(surfels, view.camera, config)
+        if fit_gains:
+            r["rgb"] = r["rgb"] * least_squares_gain(r["rgb"], view.image).astype(np.float32)
         rgb = np.clip(r["rgb"], 0.0, 1.0)
         gt = np.clip(view.image, 0.0, 1.0)
         psnrs.append(metrics.psnr(rgb, gt))
@@ -608,6 +639,8 @@ def evaluate(surfels: Surfels, dataset, config: RasterConfig | None = None,
            "ssim": float(np.mean(ssims)),
            "mask_iou": float(np.mean(ious)) if ious else None,
            "psnr_per_view": [float(x) for x in psnrs]}
+    if fit_gains:
+        out["rgb_scored"] = "after one least-squares gain per test view and channel"
     if not ious:
         out["skipped"] = "mask IoU: the test views have no masks"
     if angles:

@@ -41,6 +41,7 @@ from mi_shadowgs.stages.material.state import (
 from mi_shadowgs.stages.material.views import (
     DEFAULT_RASTER,
     TrainView,
+    held_images,
     prepare_view,
     surfel_support,
     view_loss,
@@ -145,13 +146,16 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
               masks: list[np.ndarray], config: MaterialConfig, bounds: SceneBounds,
               vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
               raster: RasterConfig = DEFAULT_RASTER, progress: bool = True,
-              state: MaterialState | None = None) -> tuple[MaterialFit, MaterialState]:
+              state: MaterialState | None = None, gains: list[np.ndarray] | None = None
+              ) -> tuple[MaterialFit, MaterialState]:
     """Set-up: the training views' fixed lookups, the state at step 0 (or ``state``, from a
-    checkpoint) and the shadow maps of its lights."""
+    checkpoint) and the shadow maps of its lights. ``gains``: stage 1's RGB gain [3] per
+    view, held: each image is divided by its gain here, once (``held_images``)."""
     from tqdm import tqdm
 
     if not (len(cameras) == len(images) == len(masks)) or not cameras:
         raise ValueError("fit_material: need as many images and masks as cameras (>= 1)")
+    images = held_images(images, gains)
     t0 = time.perf_counter()
     seg = segment_ids(surfels)
     n_seg = int(np.max(seg.numpy())) + 1 if surfels.count else 1
@@ -342,7 +346,8 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
                  masks: list[np.ndarray], config: MaterialConfig, bounds: SceneBounds,
                  vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = True,
-                 state: MaterialState | None = None, on_checkpoint=None) -> MaterialResult:
+                 state: MaterialState | None = None, on_checkpoint=None,
+                 gains: list[np.ndarray] | None = None) -> MaterialResult:
     """Fit materials, light map and indirect light to the training views (the loop over
     ``setup_fit``, ``end_warmup``, ``prune_due``/``refine_lights``, ``fit_step``, then the
     normal phase's ``start_normal_phase`` and ``normal_step``, and ``fit_result``).
@@ -350,6 +355,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
     ``state`` (``MaterialState.from_checkpoint``) continues an interrupted fit;
     ``on_checkpoint(state)`` is called every ``checkpoint_every`` steps, every
     ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.io.interrupt``).
+    ``gains``: stage 1's RGB gain [3] per view, held (``setup_fit``).
     """
     from tqdm import tqdm
 
@@ -357,7 +363,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
 
     clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
     fit, state = setup_fit(surfels, cameras, images, masks, config, bounds, vis_config,
-                           raster, progress, state)
+                           raster, progress, state, gains)
     total_steps = config.iterations + config.normal_steps
     bar = tqdm(total=total_steps, initial=state.step, desc="stage 4: fit",
                disable=not progress)

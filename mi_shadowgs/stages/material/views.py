@@ -59,6 +59,19 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
                      shading.facing_normals(surfels, camera))
 
 
+def held_images(images: list[np.ndarray], gains: list[np.ndarray] | None
+                 ) -> list[np.ndarray]:
+    """Each training photo [H, W, 3+] divided by its view's RGB gain [3] from stage 1
+    (``GeometryConfig.view_gains``): the photos as if taken with one exposure and white
+    balance. ``images`` as they are without gains."""
+    if gains is None:
+        return images
+    if len(gains) != len(images):
+        raise ValueError(f"fit_material: {len(gains)} view gains for {len(images)} images")
+    return [(np.asarray(im, np.float32)[..., :3] / np.asarray(g, np.float32)[None, None])
+            for im, g in zip(images, gains, strict=True)]
+
+
 def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
                    ) -> tuple[mi.UInt32, int]:
     """(segment [H * W], segment count S): per pixel, the segment that carries at least
