@@ -12,6 +12,7 @@ from mi_shadowgs.core.raster import RasterConfig
 from mi_shadowgs.stages.geometry.densify import DensifyConfig
 
 INITS = ("hull", "random", "points")
+DARK_ALPHA_SUPPORTS = ("none", "points")  # see ``background``
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +63,10 @@ class GeometryConfig:
     # not hollow out shadowed receivers there. A lit background leaves it no pixels.
     lambda_dark_alpha: float = 0.0
     dark_max: float = 1.0 / 255.0
+    # Which dark pixels the term acts on (``background``): "points", those whose rays miss
+    # the SfM points' support (a cast shadow on the mat is dark too); "none", every one.
+    dark_alpha_support: str = "points"
+    dark_alpha_margin: float = 0.05  # the support grown by this much (object radii)
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     seed: int = 0
@@ -100,6 +105,10 @@ class GeometryConfig:
                 "lambda_dist", "lambda_mask", "lambda_dark_alpha", "normal_from", "dist_from",
                 "lr_position_delay_steps", "unmasked_lambda_dark_alpha")),
             ("init", self.init in INITS, f"one of {INITS}"),
+            ("dark_alpha_support", self.dark_alpha_support in DARK_ALPHA_SUPPORTS,
+             f"one of {DARK_ALPHA_SUPPORTS}"),
+            ("dark_alpha_margin", 0 <= self.dark_alpha_margin < float("inf"),
+             "finite and >= 0 (object radii)"),
             ("hull_extent", self.hull_extent is None or self.hull_extent > 0, "> 0 or None"),
             ("normal_depth_differences",
              self.normal_depth_differences in losses.DEPTH_NORMAL_DIFFERENCES,
