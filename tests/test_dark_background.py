@@ -83,31 +83,28 @@ def test_rays_meet_hull_on_a_cube_against_hand_cases():
                                                                False, False]
 
 
-def test_support_against_float64_references():
+def test_ground_and_hull_tests_against_float64_references():
     """The ground: each ray's point on y = 0 in the Delaunay triangulation of the ground's
-    points. The body: a linear programme per ray (a convex combination of the hull's vertices
-    on the ray, t >= 0), exact; the support's half-space tests must agree on every ray."""
+    points. A hull (the points above the ground and the object's cells): a linear programme
+    per ray (a convex combination of the hull's vertices on the ray, t >= 0), exact; the
+    half-space tests must agree on every ray."""
     from scipy.optimize import linprog
     from scipy.spatial import ConvexHull, Delaunay
 
-    rng = np.random.default_rng(0)
-    pts = _points(rng)
-    support = background.support_from_points(pts, 0.0)
-    assert support.ground is not None and support.body is not None
-    keep = pts[background.inliers(pts)]
-    on_ground = np.abs(keep[:, 1]) <= background.GROUND_HEIGHT
+    pts = _points(np.random.default_rng(0))
+    ground, above = background.split_points(pts)
     cam = _camera()
     o, d = background._rays(cam)
     t = -o[:, 1] / d[:, 1]
     hit = o + t[:, None] * d
-    ref = (t > 0) & (Delaunay(keep[on_ground][:, [0, 2]]).find_simplex(hit[:, [0, 2]]) >= 0)
-    got = background.rays_meet_ground(o, d, support.ground)
+    ref = (t > 0) & (Delaunay(ground[:, [0, 2]]).find_simplex(hit[:, [0, 2]]) >= 0)
+    got = background.rays_meet_ground(o, d, background._hull(ground[:, [0, 2]], 0.0))
     assert 0.1 < ref.mean() < 0.9
     assert np.mean(got != ref) <= 0.002  # rays through the outline's edge, in float64
 
-    body = keep[~on_ground]
+    body = np.concatenate([above, background.object_cells(6)])
     verts = body[ConvexHull(body).vertices]
-    near = Camera.look_at((0.0, 2.5, 4.0), (0.0, 0.5, 0.0), fov_x=0.45, width=16, height=16)
+    near = Camera.look_at((0.0, 2.5, 4.0), (0.0, 1.0, 0.0), fov_x=0.6, width=16, height=16)
     o, d = background._rays(near)
     ref = []
     for oi, di in zip(o, d, strict=True):
@@ -118,47 +115,96 @@ def test_support_against_float64_references():
         ref.append(res.status == 0)
     ref = np.array(ref)
     assert 0.2 < ref.mean() < 0.8
-    np.testing.assert_array_equal(background.rays_meet_hull(o, d, support.body), ref)
+    got = background.rays_meet_hull(o, d, background._hull(body, 0.0))
+    np.testing.assert_array_equal(got, ref)
+
+
+def _clear_of_the_scene(camera: Camera, slack: float = 0.3) -> np.ndarray:
+    """[H, W] bool: the rays that stay ``slack`` clear of the mat and of the object's bound
+    (the frame's cylinder of radius 1 and height 2), sampled in float64."""
+    o, d = background._rays(camera)
+    t = np.linspace(0.0, 12.0, 600)
+    p = o[:, None] + t[None, :, None] * d[:, None]  # [P, T, 3]
+    in_cylinder = ((np.hypot(p[..., 0], p[..., 2]) <= 1.0 + slack)
+                   & (p[..., 1] >= -slack) & (p[..., 1] <= 2.0 + slack))
+    in_mat = ((np.abs(p[..., 0]) <= MAT + slack) & (np.abs(p[..., 2]) <= MAT + slack)
+              & (np.abs(p[..., 1]) <= 0.05))
+    return ~np.any(in_cylinder | in_mat, axis=1).reshape(camera.height, camera.width)
+
+
+# Eight views round the scene, from 15 to 50 degrees above the mat.
+ORBIT = [(4.5 * np.cos(np.radians(el)) * np.sin(np.radians(az)),
+          4.5 * np.sin(np.radians(el)), 4.5 * np.cos(np.radians(el)) * np.cos(np.radians(az)))
+         for az, el in zip(range(0, 360, 45), (15, 50, 25, 40, 15, 50, 25, 40), strict=True)]
+
+
+def _dataset(pts):
+    cams = [_camera(o) for o in ORBIT]
+    views = [SimpleNamespace(camera=c, image=_image(c), mask=np.ones((SIZE, SIZE), bool),
+                             has_mask=False) for c in cams]
+    return SimpleNamespace(views=views, points="unused"), cams
 
 
 def test_a_shadow_on_the_mat_keeps_its_surface_and_the_backdrop_gets_the_prior():
-    """Every dark pixel of the shadow (no SfM points in it) is left to the photometric loss;
-    every dark backdrop pixel but those within the margin's reach of the mat gets the prior.
-    The rule of every dark pixel ("none") puts the prior on both."""
-    rng = np.random.default_rng(1)
-    pts = _points(rng, strays=5)
-    cams = [_camera(o) for o in ((0.0, 2.5, 4.0), (3.0, 1.5, 3.0), (2.5, 3.0, -3.0),
-                                (4.0, 1.2, 0.5))]
-    views = [SimpleNamespace(camera=c, image=_image(c), mask=np.ones((SIZE, SIZE), bool),
-                             has_mask=False) for c in cams]
-    dataset = SimpleNamespace(views=views, points="unused")
-    cfg = dataclasses.replace(run_presets.geometry_config("cpu-small"),
-                              lambda_dark_alpha=0.1)
+    """Every dark pixel of the shadow (no SfM points in it) is left to the photometric loss,
+    and so is the box; every dark backdrop pixel whose ray passes clear of the mat and of the
+    object's bound gets the prior, and most of the others. The rule of every dark pixel
+    ("none") puts the prior on the shadow too."""
     from unittest import mock
 
-    with mock.patch.object(background, "read_points", return_value=pts):
+    dataset, cams = _dataset(_points(np.random.default_rng(1), strays=5))
+    cfg = dataclasses.replace(run_presets.geometry_config("cpu-small"),
+                              lambda_dark_alpha=0.1)
+    with mock.patch.object(background, "read_points",
+                           return_value=_points(np.random.default_rng(1), strays=5)):
         priors = background.prior_pixels(dataset, cfg)
-        none = background.prior_pixels(
-            dataset, dataclasses.replace(cfg, dark_alpha_support="none"))
+    none = background.prior_pixels(dataset, dataclasses.replace(cfg, dark_alpha_support="none"))
+    shares = []
     for cam, prior, every in zip(cams, priors, none, strict=True):
-        _, shadow, _, backdrop = _truth(cam)
-        assert shadow.sum() > 20 and backdrop.sum() > 100
-        assert not prior[shadow].any()
+        _, shadow, box, backdrop = _truth(cam)
+        assert backdrop.sum() > 100
+        assert not prior[shadow].any() and not prior[box].any()
         assert every[shadow].all() and every[backdrop].all()
-        assert prior[backdrop].mean() > 0.9
+        assert prior[_clear_of_the_scene(cam)].all()
+        shares.append(prior[backdrop].mean())
+    assert sum(_truth(c)[1].sum() for c in cams) > 100  # the shadow is in view
+    assert np.mean(shares) > 0.85
 
 
-def test_stray_points_are_dropped_and_a_scene_without_ground_has_a_body_only():
+def test_the_carve_keeps_the_box_and_empties_the_space_above_it():
+    """The object's cells that half the views see as dark backdrop are carved: the space
+    above the box (height 1) goes, every cell within the box stays, and a cell no view sees
+    stays."""
+    dataset, cams = _dataset(_points(np.random.default_rng(1)))
+    ground, _ = background.split_points(_points(np.random.default_rng(1)))
+    mat = background.Support(background._hull(ground[:, [0, 2]], 0.05), None)
+    off = [background.dark_pixels(v.image, 1.0 / 255.0)
+           & ~background.supported_pixels(v.camera, mat) for v in dataset.views]
+    cells = background.object_cells()
+    kept = background.carve(cells, cams, off)
+    in_box = np.all(np.abs(cells - [0.0, 0.5, 0.0]) <= 0.5, axis=1)
+    assert kept[in_box].all()
+    assert not kept[cells[:, 1] > 1.4].any()
+    hidden = np.array([[0.0, 50.0, 0.0]])  # behind every camera's image
+    assert background.carve(hidden, cams, off).tolist() == [True]
+
+
+def test_stray_points_are_dropped_and_a_scene_without_ground_has_a_body():
     rng = np.random.default_rng(2)
     pts = _points(rng, with_shadow_points=True, strays=6)
     keep = background.inliers(pts)
     assert not keep[-6:].any() and keep[:-6].mean() > 0.99
     blob = rng.normal(0, 1, (500, 3)) + np.array([0.0, 3.0, 0.0])
-    s = background.support_from_points(blob, 0.05)
+    ground, body = background.split_points(blob)
+    assert ground is None and len(body) > 490
+    s = background.support_of(blob, [], [], 0.05)
     assert s.ground is None and s.body is not None
-    flat = background.support_from_points(np.zeros((50, 3)), 0.05)  # no volume, no area
-    assert flat.ground is None and flat.body is None
-    assert not background.supported_pixels(_camera(), flat).any()
+    # No points: the object's bound, uncarved without views
+    bound = background.support_of(np.zeros((0, 3)), [], [], 0.0)
+    assert bound.ground is None
+    hits = background.rays_meet_hull(np.array([[0.0, 1.9, 0.0], [0.0, 2.2, 0.0]]),
+                                     np.array([[1.0, 0.0, 0.0]] * 2), bound.body)
+    assert hits.tolist() == [True, False]
 
 
 def test_views_with_masks_and_a_zero_weight_get_no_prior_and_no_points_fall_back():

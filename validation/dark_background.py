@@ -60,6 +60,8 @@ def regions(view, shape) -> dict[str, np.ndarray]:
     ground = view.mask & ~view.object_mask
     return {"shadow": _down(ground & (vis < 0.5), shape) == 1.0,
             "lit_ground": _down(ground & (vis >= 0.5), shape) == 1.0,
+            "object": _down(view.object_mask, shape) == 1.0,
+            "object_shadow": _down(view.object_mask & (vis < 0.5), shape) == 1.0,
             "background": _down(~view.mask, shape) == 1.0}
 
 
@@ -75,10 +77,13 @@ def _photo(truth: Path, name: str, shape) -> np.ndarray:
 
 def score_rule(views, truth: Path, data: Path, dark_max: float, margin: float) -> dict:
     """The share of each region the dark-alpha prior would act on, per support rule."""
+    from mi_shadowgs.dataset.loader import load_dataset
     from mi_shadowgs.stages.geometry import background
 
-    support = background.support_from_points(background.read_points(data / "points3d.ply"),
-                                              margin)
+    train = load_dataset(data, "train")  # the support stage 1 would use
+    support = background.support_of(
+        background.read_points(data / "points3d.ply"), [v.camera for v in train.views],
+        [background.dark_pixels(v.image, dark_max) for v in train.views], margin)
     sums = {}
     for name, view, cam in views:
         shape = (cam.height, cam.width)

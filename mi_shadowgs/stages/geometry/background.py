@@ -3,20 +3,23 @@ prior (``GeometryConfig.lambda_dark_alpha``) asks for transparency.
 
 A dark pixel is not always empty space. Under one lamp a deep cast shadow on the mat is as
 dark as a black backdrop, and a prior on every dark pixel makes it a hole in the ground.
-What tells them apart is where the pixel's ray goes: the SfM points mark the surfaces SfM
-saw (the mat has points all round its shadows, a black backdrop has none), so
+What tells them apart is where the pixel's ray goes, and what the other views see there:
 
-- ``support_from_points``: the SfM points, isolated ones dropped (``inliers``), become a
-  *support*: the convex outline of the points on the ground (y = 0 in an import's frame)
-  and the convex hull of the points above it, each grown by a margin;
-- ``supported_pixels``: a view's pixels whose rays meet the support (a float64 ray test);
-- ``prior_pixels``: the pixels the prior acts on, per view: dark (every channel <=
-  ``dark_max``) and, with ``dark_alpha_support`` "points", not supported.
+- the *ground*: the convex outline of the SfM points on y = 0 (an import's frame), stray
+  points dropped (``inliers``). The mat has points all round its shadows, a black backdrop
+  has none, so a dark pixel whose ray meets the outline is the mat's;
+- the *body*: the convex hull of the SfM points above the ground and of what is left of the
+  object's bound after carving (``carve``). SfM finds few points on a plain object, but the
+  frame puts the object within the cylinder of radius 1 and height 2 about the Y axis
+  (``dataset.world_frame``); its cells that most views that see them see as background
+  (dark, off the ground) are empty space, the others may be the object;
+- ``prior_pixels``: per view, the dark pixels (every channel <= ``dark_max``) whose rays
+  meet neither (with ``dark_alpha_support`` "points"), or every dark pixel ("none").
 
-The ground and the body are hulls of their own: one hull of all points would also hold the
-empty space between the object's top and the mat's far corners, through which some rays
-that see the backdrop pass. Where no plane holds enough of the points (no ground), the
-body's hull is all there is. A dark hollow of the object lies within its hull: kept.
+Ground and body are hulls of their own: one hull of both would also hold the empty space
+between the object's top and the mat's far corners, through which some rays that see the
+backdrop pass. A dark hollow of the object lies within its hull: kept. Each is grown by
+``dark_alpha_margin``; rays are tested in float64 (``rays_meet_hull``, ``rays_meet_ground``).
 """
 
 from __future__ import annotations
@@ -33,13 +36,17 @@ STRAY_DISTANCE = 5.0
 # this share of the points (``world_frame``'s plane test).
 GROUND_HEIGHT = 0.05
 GROUND_SHARE = 0.15
+# The object's bound is carved in cells of 2 / CELLS object radii; a cell is empty space when
+# at least this share of the views that see it see background there.
+CELLS = 24
+CARVE_SHARE = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
 class Support:
-    """Where the SfM points say a surface may be. ``ground``: half-planes [F, 3] (a, b, c:
-    ``a x + b z + c <= 0``) of the ground's outline at y = 0, or None; ``body``: half-spaces
-    [F, 4] (n, d: ``n . p + d <= 0``) of the hull of the points above it, or None."""
+    """Where a surface may be. ``ground``: half-planes [F, 3] (a, b, c: ``a x + b z + c <=
+    0``) of the ground's outline at y = 0, or None; ``body``: half-spaces [F, 4] (n, d:
+    ``n . p + d <= 0``) of the body's hull, or None."""
 
     ground: np.ndarray | None
     body: np.ndarray | None
@@ -74,19 +81,38 @@ def _hull(points: np.ndarray, margin: float) -> np.ndarray | None:
     return eq
 
 
-def support_from_points(points: np.ndarray, margin: float) -> Support:
-    """The support of SfM ``points`` [M, 3] (in an import's frame: y up, ground at y = 0,
-    object radius 1) grown by ``margin`` (object radii). See the module doc."""
+def split_points(points: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(the ground's points [G, 3] or None where no plane holds ``GROUND_SHARE`` of them,
+    the others [B, 3]) of SfM ``points`` [M, 3], non-finite and stray points dropped."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     pts = pts[inliers(pts)]
     on_ground = np.abs(pts[:, 1]) <= GROUND_HEIGHT
-    if len(pts) and on_ground.mean() >= GROUND_SHARE:
-        ground = _hull(pts[on_ground][:, [0, 2]], margin)
-        body = _hull(pts[pts[:, 1] > GROUND_HEIGHT], margin)
-    else:
-        ground, body = None, _hull(pts, margin)
-    return Support(ground, body)
+    if len(pts) == 0 or on_ground.mean() < GROUND_SHARE:
+        return None, pts
+    return pts[on_ground], pts[pts[:, 1] > GROUND_HEIGHT]
+
+
+def object_cells(cells: int = CELLS) -> np.ndarray:
+    """[V, 3] the centres of the cells of size 2 / ``cells`` within the frame's object bound
+    (the cylinder of radius 1 from y = 0 to 2 about the Y axis)."""
+    g = (np.arange(cells) + 0.5) / cells
+    x, y, z = np.meshgrid(2 * g - 1, 2 * g, 2 * g - 1, indexing="ij")
+    c = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=-1)
+    return c[np.hypot(c[:, 0], c[:, 2]) <= 1.0]
+
+
+def carve(cells: np.ndarray, cameras, background: list[np.ndarray]) -> np.ndarray:
+    """[V] bool: the ``cells`` [V, 3] kept, those that fewer than ``CARVE_SHARE`` of the
+    views that see them (the cell's centre in front, within the image) see as
+    ``background`` ([H, W] bool per camera) there; a cell no view sees is kept."""
+    seen = np.zeros(len(cells))
+    empty = np.zeros(len(cells))
+    for cam, bg in zip(cameras, background, strict=True):
+        value, inside = cam.lookup(bg, cells)
+        seen += inside
+        empty += value & inside
+    return (seen == 0) | (empty < CARVE_SHARE * seen)
 
 
 def _rays(camera) -> tuple[np.ndarray, np.ndarray]:
@@ -151,24 +177,35 @@ def read_points(path) -> np.ndarray:
     return np.stack([v["x"], v["y"], v["z"]], axis=-1).astype(np.float64)
 
 
+def support_of(points: np.ndarray, cameras, dark: list[np.ndarray], margin: float
+               ) -> Support:
+    """The support (module doc) of SfM ``points`` [M, 3] in an import's frame, its body
+    carved by the views' ``cameras`` and their ``dark`` pixels ([H, W] bool each), ground
+    and body grown by ``margin`` (object radii; the carved cells by their half-size too)."""
+    ground_pts, body_pts = split_points(points)
+    ground = None if ground_pts is None else _hull(ground_pts[:, [0, 2]], margin)
+    off_ground = [d & ~supported_pixels(cam, Support(ground, None)) if ground is not None
+                  else d for cam, d in zip(cameras, dark, strict=True)]
+    cells = object_cells()
+    kept = cells[carve(cells, cameras, off_ground)]
+    return Support(ground, _hull(np.concatenate([body_pts, kept]), margin + 1.0 / CELLS))
+
+
 def prior_pixels(dataset, config) -> list[np.ndarray | None]:
     """Per training view of ``dataset``, the [H, W] bool pixels the dark-alpha prior acts on
-    under ``config`` (``GeometryConfig``), or None (a view with a mask, or the prior off).
-    ``dark_alpha_support`` "points" without SfM points (``dataset.points`` None) falls back
-    to every dark pixel, as "none" does; the stage's runner says so."""
+    under ``config`` (``GeometryConfig``; see the module doc), or None (a view with a mask,
+    or the prior off). ``dark_alpha_support`` "points" without SfM points (``dataset.points``
+    None) falls back to every dark pixel, as "none" does; the stage's runner says so."""
+    views = dataset.views
     if config.lambda_dark_alpha <= 0:
-        return [None] * len(dataset.views)
-    support = None
+        return [None] * len(views)
+    unmasked = [v for v in views if not getattr(v, "has_mask", True)]
+    dark = {id(v): dark_pixels(v.image, config.dark_max) for v in unmasked}
     points = getattr(dataset, "points", None)
-    if config.dark_alpha_support == "points" and points is not None:
-        support = support_from_points(read_points(points), config.dark_alpha_margin)
-    out = []
-    for view in dataset.views:
-        if getattr(view, "has_mask", True):
-            out.append(None)
-            continue
-        dark = dark_pixels(view.image, config.dark_max)
-        if support is not None and dark.any():
-            dark &= ~supported_pixels(view.camera, support)
-        out.append(dark)
-    return out
+    if config.dark_alpha_support == "points" and points is not None and unmasked:
+        support = support_of(read_points(points), [v.camera for v in unmasked],
+                             [dark[id(v)] for v in unmasked], config.dark_alpha_margin)
+        for v in unmasked:
+            if dark[id(v)].any():
+                dark[id(v)] &= ~supported_pixels(v.camera, support)
+    return [dark.get(id(v)) for v in views]
