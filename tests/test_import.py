@@ -465,7 +465,9 @@ def test_stage1_runner_trains_unmasked_views_with_the_dark_alpha_prior(imported,
     assert used["lambda_dark_alpha"] == cfg.unmasked_lambda_dark_alpha > 0
     assert used["densify"]["opacity_reset_interval"] == 0
     assert used["densify"]["max_surfels"] == cfg.unmasked_max_surfels != cfg.densify.max_surfels
-    assert f"lambda_dist {cfg.lambda_dist:g}" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"lambda_dist {cfg.lambda_dist:g}" in err
+    assert "(dark pixels whose rays miss the SfM points)" in err  # not the shadows' pixels
     # an explicit unmasked weight replaces the masked one
     cfg2 = dataclasses.replace(cfg, unmasked_lambda_dist=0.0)
     run_geometry(data, tmp_path / "geometry2", cfg2, preset="cpu-small", evaluate=False,

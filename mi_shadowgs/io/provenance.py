@@ -112,6 +112,7 @@ ADDED_SETTINGS = {"k_select": "labels",  # stage 2: K from the labels (material 
                   "silhouette_samples": None,  # used only by k_select "silhouette"
                   "lambda_dark_alpha": 0.0,  # stage 1, views without masks
                   "dark_max": 1.0 / 255.0,  # used only with lambda_dark_alpha > 0
+                  "dark_alpha_support": None, "dark_alpha_margin": None,  # ... and these
                   "normal_depth_differences": "central",  # stage 1, 2DGS's differences
                   "normal_steps": 0,  # stage 4's normal phase (none before it)
                   "lr_normal": None, "lambda_normal_prior": None,  # used only by that
@@ -137,7 +138,9 @@ USED_ONLY_WITH = {"silhouette_samples": "k_select", "lr_normal": "normal_steps",
                   "lambda_normal_prior": "normal_steps", "normal_hold_planar": "normal_steps",
                   "hull_prune_dilate": "hull_prune_views", "detail_max": "detail_prior",
                   "lr_detail": "detail_prior", "detail_edge_px": "detail_prior",
-                  "lr_view_gain": "view_gains"}
+                  "lr_view_gain": "view_gains",
+                  "dark_alpha_support": "lambda_dark_alpha",
+                  "dark_alpha_margin": "lambda_dark_alpha"}
 
 
 def _added_as_before(key: str, old: dict, new: dict) -> bool:

@@ -13,6 +13,7 @@ from mi_shadowgs.stages.geometry.densify import DensifyConfig
 
 INITS = ("hull", "random", "points")
 GAIN_MODES = ("auto", "on", "off")  # ``view_gains``
+DARK_ALPHA_SUPPORTS = ("none", "points")  # see ``background``
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +69,10 @@ class GeometryConfig:
     # datasets imported from photos, off for generated ones, whose exposure is constant).
     view_gains: str = "auto"
     lr_view_gain: float = 0.01  # Adam learning rate of the views' log gains
+    # Which dark pixels the term acts on (``background``): "points", those whose rays miss
+    # the SfM points' support (a cast shadow on the mat is dark too); "none", every one.
+    dark_alpha_support: str = "points"
+    dark_alpha_margin: float = 0.05  # the support grown by this much (object radii)
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     seed: int = 0
@@ -108,6 +113,10 @@ class GeometryConfig:
             ("init", self.init in INITS, f"one of {INITS}"),
             ("view_gains", self.view_gains in GAIN_MODES, f"one of {GAIN_MODES}"),
             ("lr_view_gain", self.lr_view_gain > 0, "> 0"),
+            ("dark_alpha_support", self.dark_alpha_support in DARK_ALPHA_SUPPORTS,
+             f"one of {DARK_ALPHA_SUPPORTS}"),
+            ("dark_alpha_margin", 0 <= self.dark_alpha_margin < float("inf"),
+             "finite and >= 0 (object radii)"),
             ("hull_extent", self.hull_extent is None or self.hull_extent > 0, "> 0 or None"),
             ("normal_depth_differences",
              self.normal_depth_differences in losses.DEPTH_NORMAL_DIFFERENCES,

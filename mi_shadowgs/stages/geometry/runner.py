@@ -94,6 +94,16 @@ def geometry_line(metrics: dict) -> str:
                "truth" if "view_gain_error_max" in metrics else ""))
 
 
+def _dark_alpha_pixels(config, points) -> str:
+    """Which pixels the dark-alpha term acts on, for the no-masks warning."""
+    if config.lambda_dark_alpha <= 0:
+        return "off"
+    if config.dark_alpha_support == "points" and points is not None:
+        return "dark pixels whose rays miss the SfM points"
+    return ("every dark pixel: no SfM points to tell a shadow from the background"
+            if config.dark_alpha_support == "points" else "every dark pixel")
+
+
 def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = "",
                  dataset: dict | None = None,
                  resume: bool = False, overwrite: bool = False, reuse: bool = False,
@@ -143,7 +153,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
                 "the cameras' bounds")
              + f", skips the mask loss and the mask IoU, and trains with lambda_dist "
                f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g}, "
-               f"lambda_dark_alpha {config.lambda_dark_alpha:g} and "
+               f"lambda_dark_alpha {config.lambda_dark_alpha:g} ("
+             + _dark_alpha_pixels(config, getattr(train, "points", None)) + ") and "
              + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset"
              + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
                 "no mask to prune by and removes nothing" if config.hull_prune_views else ""))

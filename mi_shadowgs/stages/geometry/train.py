@@ -29,6 +29,7 @@ from mi_shadowgs.core.optim import SurfelAdam, surfels_from_params
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import SH_C0, Surfels, sh_colors
 from mi_shadowgs.io.interrupt import CheckpointClock, raise_pending
+from mi_shadowgs.stages.geometry import background
 from mi_shadowgs.stages.geometry.config import GeometryConfig
 from mi_shadowgs.stages.geometry.densify import DensifyStrategy
 from mi_shadowgs.stages.geometry.gains import (
@@ -248,15 +249,18 @@ class ViewData:
     ssim_target: losses.SsimTarget | None = None  # the image's SSIM statistics
 
 
-def _view_data(view, dark_max: float | None = None) -> ViewData:
-    """``dark_max``: also mark the pixels whose channels are all <= it (``dark``). The
+def _view_data(view, dark_max: float | None = None, prior: np.ndarray | None = None
+               ) -> ViewData:
+    """``dark``: the pixels ``prior`` [H, W] bool marks (``background.prior_pixels``), or
+    with ``dark_max`` those whose channels are all <= it; views with masks have none. The
     images go into memory Dr.Jit allocated (``jit.tensor``): every view's kernels the same."""
     h, w = view.mask.shape
     has_mask = getattr(view, "has_mask", True)
     dark = None
-    if dark_max is not None and not has_mask:
-        d = np.all(np.asarray(view.image) <= dark_max, axis=-1)
-        dark = jit.tensor(d.astype(np.float32).reshape(h, w, 1))
+    if prior is None and dark_max is not None and not has_mask:
+        prior = background.dark_pixels(view.image, dark_max)
+    if prior is not None and not has_mask:
+        dark = jit.tensor(prior.astype(np.float32).reshape(h, w, 1))
     image = jit.tensor(view.image)
     return ViewData(view.camera, image, jit.tensor(view.mask.astype(np.float32).reshape(h, w, 1)),
                     has_mask, dark, losses.ssim_target(image))
@@ -473,8 +477,8 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     for v in dataset.views:
         if not v.mask.any():
             raise ValueError(f"{dataset.root}: view {v.name!r} has an empty mask")
-    dark_max = config.dark_max if config.lambda_dark_alpha > 0 else None
-    views = [_view_data(v, dark_max) for v in dataset.views]
+    priors = background.prior_pixels(dataset, config)
+    views = [_view_data(v, prior=p) for v, p in zip(dataset.views, priors, strict=True)]
     if state is None:
         state = initial_state(dataset, config)
     if state.gains is None and enabled(config, getattr(dataset, "root", None)):

@@ -1,0 +1,211 @@
+"""Which dark pixels of views without masks are background: where stage 1's dark-alpha
+prior (``GeometryConfig.lambda_dark_alpha``) asks for transparency.
+
+A dark pixel is not always empty space. Under one lamp a deep cast shadow on the mat is as
+dark as a black backdrop, and a prior on every dark pixel makes it a hole in the ground.
+What tells them apart is where the pixel's ray goes, and what the other views see there:
+
+- the *ground*: the convex outline of the SfM points on y = 0 (an import's frame), stray
+  points dropped (``inliers``). The mat has points all round its shadows, a black backdrop
+  has none, so a dark pixel whose ray meets the outline is the mat's;
+- the *body*: the convex hull of the SfM points above the ground and of what is left of the
+  object's bound after carving (``carve``). SfM finds few points on a plain object, but the
+  frame puts the object within the cylinder of radius 1 and height 2 about the Y axis
+  (``dataset.world_frame``); its cells that most views that see them see as background
+  (dark, off the ground) are empty space, the others may be the object;
+- ``prior_pixels``: per view, the dark pixels (every channel <= ``dark_max``) whose rays
+  meet neither (with ``dark_alpha_support`` "points"), or every dark pixel ("none").
+
+Ground and body are hulls of their own: one hull of both would also hold the empty space
+between the object's top and the mat's far corners, through which some rays that see the
+backdrop pass. A dark hollow of the object lies within its hull: kept. Each is grown by
+``dark_alpha_margin``; rays are tested in float64 (``rays_meet_hull``, ``rays_meet_ground``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+# A neighbourhood of this many points tells a stray SfM point from a sparse surface ...
+NEIGHBOURS = 8
+# ... which is kept while its NEIGHBOURS-th neighbour is within this many times the median.
+STRAY_DISTANCE = 5.0
+# Points within this height of y = 0 (object radii) are the ground's; a plane holds at least
+# this share of the points (``world_frame``'s plane test).
+GROUND_HEIGHT = 0.05
+GROUND_SHARE = 0.15
+# The object's bound is carved in cells of 2 / CELLS object radii; a cell is empty space when
+# at least this share of the views that see it see background there.
+CELLS = 24
+CARVE_SHARE = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Support:
+    """Where a surface may be. ``ground``: half-planes [F, 3] (a, b, c: ``a x + b z + c <=
+    0``) of the ground's outline at y = 0, or None; ``body``: half-spaces [F, 4] (n, d:
+    ``n . p + d <= 0``) of the body's hull, or None."""
+
+    ground: np.ndarray | None
+    body: np.ndarray | None
+
+
+def inliers(points: np.ndarray) -> np.ndarray:
+    """[M] bool: the points whose ``NEIGHBOURS``-th nearest neighbour lies within
+    ``STRAY_DISTANCE`` times the median such distance (the others are SfM's strays)."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts) <= NEIGHBOURS:
+        return np.ones(len(pts), bool)
+    dist, _ = cKDTree(pts).query(pts, k=NEIGHBOURS + 1)
+    kth = dist[:, -1]
+    return kth <= STRAY_DISTANCE * max(float(np.median(kth)), 1e-12)
+
+
+def _hull(points: np.ndarray, margin: float) -> np.ndarray | None:
+    """Half-spaces [F, D + 1] (unit normal, offset; inside: ``n . p + d <= 0``) of the convex
+    hull of ``points`` [M, D] grown by ``margin``; None when they span no D-volume."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    dim = points.shape[1]
+    if len(points) <= dim:
+        return None
+    try:
+        eq = ConvexHull(points).equations.copy()  # unit outward normals
+    except QhullError:  # flat or degenerate: no volume to test rays against
+        return None
+    eq[:, -1] -= margin
+    return eq
+
+
+def split_points(points: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(the ground's points [G, 3] or None where no plane holds ``GROUND_SHARE`` of them,
+    the others [B, 3]) of SfM ``points`` [M, 3], non-finite and stray points dropped."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    pts = pts[inliers(pts)]
+    on_ground = np.abs(pts[:, 1]) <= GROUND_HEIGHT
+    if len(pts) == 0 or on_ground.mean() < GROUND_SHARE:
+        return None, pts
+    return pts[on_ground], pts[pts[:, 1] > GROUND_HEIGHT]
+
+
+def object_cells(cells: int = CELLS) -> np.ndarray:
+    """[V, 3] the centres of the cells of size 2 / ``cells`` within the frame's object bound
+    (the cylinder of radius 1 from y = 0 to 2 about the Y axis)."""
+    g = (np.arange(cells) + 0.5) / cells
+    x, y, z = np.meshgrid(2 * g - 1, 2 * g, 2 * g - 1, indexing="ij")
+    c = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=-1)
+    return c[np.hypot(c[:, 0], c[:, 2]) <= 1.0]
+
+
+def carve(cells: np.ndarray, cameras, background: list[np.ndarray]) -> np.ndarray:
+    """[V] bool: the ``cells`` [V, 3] kept, those that fewer than ``CARVE_SHARE`` of the
+    views that see them (the cell's centre in front, within the image) see as
+    ``background`` ([H, W] bool per camera) there; a cell no view sees is kept."""
+    seen = np.zeros(len(cells))
+    empty = np.zeros(len(cells))
+    for cam, bg in zip(cameras, background, strict=True):
+        value, inside = cam.lookup(bg, cells)
+        seen += inside
+        empty += value & inside
+    return (seen == 0) | (empty < CARVE_SHARE * seen)
+
+
+def _rays(camera) -> tuple[np.ndarray, np.ndarray]:
+    """(origins [P, 3], directions [P, 3]) of the pixel centres' rays, row-major."""
+    px = camera.pixel_grid()
+    o = camera.unproject(px, np.zeros(len(px)))
+    return o, camera.unproject(px, np.ones(len(px))) - o
+
+
+def rays_meet_hull(origins: np.ndarray, dirs: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """[P] bool: the rays ``origins + t dirs`` (t >= 0) that meet the convex polytope of
+    half-spaces ``planes`` [F, 4] (``n . p + d <= 0``)."""
+    s = origins @ planes[:, :3].T + planes[:, 3]  # [P, F]: n . o + d
+    v = dirs @ planes[:, :3].T  # [P, F]: n . dir
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -s / v
+    # Entering faces (v < 0) raise the near bound, leaving ones (v > 0) lower the far bound;
+    # a face the ray runs along holds it wholly in or wholly out.
+    t_near = np.max(np.where(v < 0, t, 0.0), axis=1)
+    t_far = np.min(np.where(v > 0, t, np.inf), axis=1)
+    parallel_out = np.any((v == 0) & (s > 0), axis=1)
+    return (t_near <= t_far) & ~parallel_out
+
+
+def rays_meet_ground(origins: np.ndarray, dirs: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """[P] bool: the rays that meet the plane y = 0 (ahead of them) inside the outline of
+    half-planes ``lines`` [F, 3] (``a x + b z + c <= 0``)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -origins[:, 1] / dirs[:, 1]
+    ahead = np.isfinite(t) & (t > 0)
+    t = np.where(ahead, t, 0.0)
+    x = origins[:, 0] + t * dirs[:, 0]
+    z = origins[:, 2] + t * dirs[:, 2]
+    inside = np.all(x[:, None] * lines[:, 0] + z[:, None] * lines[:, 1] + lines[:, 2] <= 0,
+                    axis=1)
+    return ahead & inside
+
+
+def supported_pixels(camera, support: Support, chunk: int = 65536) -> np.ndarray:
+    """[H, W] bool: the pixels of ``camera`` whose centre rays meet ``support``."""
+    o, d = _rays(camera)
+    out = np.zeros(len(o), bool)
+    for a in range(0, len(o), chunk):
+        b = min(a + chunk, len(o))
+        if support.ground is not None:
+            out[a:b] |= rays_meet_ground(o[a:b], d[a:b], support.ground)
+        if support.body is not None:
+            out[a:b] |= rays_meet_hull(o[a:b], d[a:b], support.body)
+    return out.reshape(camera.height, camera.width)
+
+
+def dark_pixels(image: np.ndarray, dark_max: float) -> np.ndarray:
+    """[H, W] bool: the pixels of ``image`` [H, W, 3] whose channels are all <= ``dark_max``."""
+    return np.all(np.asarray(image) <= dark_max, axis=-1)
+
+
+def read_points(path) -> np.ndarray:
+    """The SfM points [M, 3] of an import's ``points3d.ply``."""
+    from mi_shadowgs.io.ply import read_ply_vertices
+
+    v = read_ply_vertices(path)
+    return np.stack([v["x"], v["y"], v["z"]], axis=-1).astype(np.float64)
+
+
+def support_of(points: np.ndarray, cameras, dark: list[np.ndarray], margin: float
+               ) -> Support:
+    """The support (module doc) of SfM ``points`` [M, 3] in an import's frame, its body
+    carved by the views' ``cameras`` and their ``dark`` pixels ([H, W] bool each), ground
+    and body grown by ``margin`` (object radii; the carved cells by their half-size too)."""
+    ground_pts, body_pts = split_points(points)
+    ground = None if ground_pts is None else _hull(ground_pts[:, [0, 2]], margin)
+    off_ground = [d & ~supported_pixels(cam, Support(ground, None)) if ground is not None
+                  else d for cam, d in zip(cameras, dark, strict=True)]
+    cells = object_cells()
+    kept = cells[carve(cells, cameras, off_ground)]
+    return Support(ground, _hull(np.concatenate([body_pts, kept]), margin + 1.0 / CELLS))
+
+
+def prior_pixels(dataset, config) -> list[np.ndarray | None]:
+    """Per training view of ``dataset``, the [H, W] bool pixels the dark-alpha prior acts on
+    under ``config`` (``GeometryConfig``; see the module doc), or None (a view with a mask,
+    or the prior off). ``dark_alpha_support`` "points" without SfM points (``dataset.points``
+    None) falls back to every dark pixel, as "none" does; the stage's runner says so."""
+    views = dataset.views
+    if config.lambda_dark_alpha <= 0:
+        return [None] * len(views)
+    unmasked = [v for v in views if not getattr(v, "has_mask", True)]
+    dark = {id(v): dark_pixels(v.image, config.dark_max) for v in unmasked}
+    points = getattr(dataset, "points", None)
+    if config.dark_alpha_support == "points" and points is not None and unmasked:
+        support = support_of(read_points(points), [v.camera for v in unmasked],
+                             [dark[id(v)] for v in unmasked], config.dark_alpha_margin)
+        for v in unmasked:
+            if dark[id(v)].any():
+                dark[id(v)] &= ~supported_pixels(v.camera, support)
+    return [dark.get(id(v)) for v in views]
