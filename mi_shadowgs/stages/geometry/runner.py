@@ -145,19 +145,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
         test = load_dataset(data, "test")
     gains_on = enabled(config, data)
     if not getattr(train, "has_masks", True):
-        from mi_shadowgs.stages.geometry.config import unmasked
-
-        config = unmasked(config)
-        warn(f"{data}: no masks: stage 1 initialises from "
-             + ("the SfM points" if getattr(train, "points", None) else "random points in "
-                "the cameras' bounds")
-             + f", skips the mask loss and the mask IoU, and trains with lambda_dist "
-               f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g}, "
-               f"lambda_dark_alpha {config.lambda_dark_alpha:g} ("
-             + _dark_alpha_pixels(config, getattr(train, "points", None)) + ") and "
-             + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset"
-             + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
-                "no mask to prune by and removes nothing" if config.hull_prune_views else ""))
+        config = _unmasked(config, train, data)
     cfg_dict = settings_dict(config)
     cfg_dict["view_gains"] = "on" if gains_on else "off"  # what "auto" is on this dataset
     provenance = Provenance(dataset=dataset or dataset_ref(data), settings=cfg_dict)
@@ -206,6 +194,24 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
                 if evaluate else "")
         out.finish()
     return StageRun(folder, True, time.perf_counter() - t0, line)
+
+
+def _unmasked(config, train, data):
+    """The settings of a dataset without masks, and a warning that says what they do."""
+    from mi_shadowgs.stages.geometry.config import unmasked
+
+    config = unmasked(config)
+    warn(f"{data}: no masks: stage 1 initialises from "
+         + ("the SfM points" if getattr(train, "points", None) else "random points in "
+            "the cameras' bounds")
+         + f", skips the mask loss and the mask IoU, and trains with lambda_dist "
+           f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g}, "
+           f"lambda_dark_alpha {config.lambda_dark_alpha:g} ("
+         + _dark_alpha_pixels(config, getattr(train, "points", None)) + ") and "
+         + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset"
+         + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
+            "no mask to prune by and removes nothing" if config.hull_prune_views else ""))
+    return config
 
 
 def _write_metrics(folder: Path, surfels, test, config, on_test_view, gains_on: bool) -> str:
