@@ -453,6 +453,8 @@ def parse_args(argv):
                     metavar="SECTION.FIELD=VALUE", help="a setting of both runs (repeatable)")
     ap.add_argument("--seed", type=int, default=0, help="both runs' seed (`run --seed`)")
     ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
+    ap.add_argument("--results", default=None, metavar="DIR",
+                    help="also write the table as DIR/lab.json (scripts.results)")
     return ap.parse_args(argv)
 
 
@@ -517,6 +519,14 @@ def main(argv=None) -> int:
         write_json(out / "lab.json", record)  # each finished case at once
         write_text(out / "lab.md", markdown(record))
     print(markdown(record))
+    if args.results:
+        import os
+        import platform
+
+        from scripts.results import lab_result, write_result
+
+        machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+        write_result(Path(args.results) / "lab.json", lab_result(record, machine))
     failed = [f"{c['scene']} at {c['distance']:g} ({k})" for c in record["cases"]
               for k in KINDS if "error" in c[k]]
     if failed:
