@@ -179,8 +179,9 @@ def lab_result(record: dict, machine: str) -> dict:
     rows = []
     for case in record["cases"]:
         lab = case["lab"].get("scores", {})
+        pos = lab.get("lamp_position_error")
         rows.append([f"{case['scene']}, {case['distance']:g} radii",
-                     first(lab.get("lamp_position_error"), 3),
+                     "directional" if pos and pos[0] is None else first(pos, 3),
                      " / ".join(first(case[k].get("scores", {}).get(
                          "light_angular_errors_deg"), 1) for k in ("control", "lab")),
                      pair(case, "strongest_light_share", 2), pair(case, "fitted_lights", 0),

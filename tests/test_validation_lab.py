@@ -131,6 +131,8 @@ def test_the_acceptance_table_marks_each_bound(tmp_path):
     no_gains = _case(_scores(), lab_gain=None)
     assert no_gains["passed"] is None  # not wholly measured
     assert [r["status"] for r in no_gains["acceptance"] if "gain" in r["figure"]] == ["n/a"]
+    assert _case(_scores(lamp_position_error=[None]))["acceptance"][0]["lab"] == \
+        "fitted as directional"
     crashed = _case({}, error="TypeError: boom")
     assert crashed["passed"] is False
     assert {r["status"] for r in crashed["acceptance"]} == {"fail", "info"}

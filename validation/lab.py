@@ -305,7 +305,8 @@ def acceptance(lab: dict, control: dict) -> list[dict]:
 
     pos = ls.get("lamp_position_error")
     rows = [
-        ("lamp position error (share of its distance)", None, first(pos),
+        ("lamp position error (share of its distance)", None,
+         "fitted as directional" if pos and pos[0] is None else first(pos),
          f"<= {b['lamp_position']:g}",
          "fail" if pos and pos[0] is None else _status(first(pos),
                                                        lambda v: v <= b["lamp_position"])),
