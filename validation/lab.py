@@ -169,11 +169,11 @@ def make_kind(out: Path, scene: str, mesh, kind: str, distance: float, settings:
                                     n_train=settings["views"], n_test=1, spp=PHOTO_SPP)
     gt, gt_s = generate("gt", n_train=GT_TRAIN_VIEWS)
     photos = folder / "photos"
-    if not photos.is_dir():
-        training_photos(photoset, photos)
-        gains = photoset / layout.PHOTOS / layout.PHOTO_GAINS
-        if gains.is_file():  # beside the photos: import.json's source leads a run to them
-            shutil.copy2(gains, photos / gains.name)
+    training_photos(photoset, photos)  # kept when there
+    gains = photoset / layout.PHOTOS / layout.PHOTO_GAINS
+    if gains.is_file() and not (photos / gains.name).is_file():
+        # beside the photos: import.json's source leads a run to the true gains
+        shutil.copy2(gains, photos / gains.name)
     imported = folder / "import"
     config = dataclasses.replace(import_config(preset), max_size=settings["max_size"])
     done = (imported / "import.json").is_file()
