@@ -415,6 +415,8 @@ def run_case(out: Path, scene: str, mesh, distance: float, settings: dict,
     (the method raising, not a bad input) is recorded with its error, and the case fails."""
     import traceback
 
+    from validation.pipeline import stage_seconds
+
     case = {"scene": scene, "distance": distance, "lamp": capture_params()}
     for kind in KINDS:  # the control first: shared by the scene's distances
         paths = make_kind(out, scene, mesh, kind, distance, settings, times)
@@ -423,9 +425,12 @@ def run_case(out: Path, scene: str, mesh, distance: float, settings: dict,
         except Exception as exc:  # noqa: BLE001  (the method failed: recorded, not fatal)
             traceback.print_exc()
             frame = traceback.extract_tb(exc.__traceback__)[-1]
+            # the stages it finished: their seconds from their own files
+            stages = stage_seconds({}, paths["run"]) if paths["run"].is_dir() else {}
             case[kind] = {"error": f"{type(exc).__name__}: {exc}",
                           "where": f"{frame.filename}:{frame.lineno}", "scores": {},
-                          "times": paths["times"], **_registered(paths["import"])}
+                          "times": {**paths["times"], **stages},
+                          **_registered(paths["import"])}
             continue
         record = score_kind(paths, settings)
         record["times"] = {**paths["times"], **run_times, "score_s": record.pop("score_s")}
