@@ -11,7 +11,8 @@ DEMO_DIR ?= runs/demo
 $(VENV)/.installed: pyproject.toml $(wildcard constraints.txt) scripts/setup.sh
 	bash scripts/setup.sh
 
-# The test tools and JAX (tests/test_lpips.py): only what make test and make lint need.
+# The test tools, JAX (tests/test_lpips.py) and Ray (the cluster extra, tests/test_batch.py):
+# only what make test and make lint need.
 $(VENV)/.installed-dev: $(VENV)/.installed
 	bash scripts/setup.sh --dev
 

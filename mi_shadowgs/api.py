@@ -36,6 +36,7 @@ from mi_shadowgs.stages.relight import (
     RelightModel,
     directional_light_set,
     lights_from_json,
+    point_light_set,
     relight_views,
 )
 from mi_shadowgs.stages.relight.runner import run_relight
@@ -140,9 +141,9 @@ def render(surfels, camera: Camera, aovs=(), background=None,
 def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
             preset: str | None = None):
     """Render a fitted model (stage 4's: a ``Surfels`` or its PLY's path) from each of
-    ``cameras`` (a list of Camera) under ``lights`` (``directional_light_set`` or
-    ``lights_from_json``) with shadows recomputed from the surfels; returns (views,
-    seconds), a view being ``relight_view``'s dict of numpy images.
+    ``cameras`` (a list of Camera) under ``lights`` (``directional_light_set``,
+    ``point_light_set`` or ``lights_from_json``) with shadows recomputed from the surfels;
+    returns (views, seconds), a view being ``relight_view``'s dict of numpy images.
 
     The shadow maps and receivers are ``preset``'s (``VisibilityConfig``); without one,
     those a PLY given by path records (the ones it was fitted with, as the
@@ -171,7 +172,7 @@ def relight(surfels, cameras, lights, bounds=None, specular: bool | None = None,
                         f"{type(cameras).__name__}")
     if not isinstance(lights, LightSet):
         raise TypeError(f"relight: 'lights' must be a LightSet (directional_light_set, "
-                        f"lights_from_json), got {type(lights).__name__}")
+                        f"point_light_set, lights_from_json), got {type(lights).__name__}")
     if bounds is None:
         bounds = occluder_bounds(model_surfels, cameras, quantile=1.0)
     elif not isinstance(bounds, SceneBounds):
@@ -188,6 +189,7 @@ __all__ = [
     "Camera", "Dataset", "RunConfig", "dataset_scene", "directional_light_set", "export_asset",
     "export_ply",
     "build", "generate_dataset", "lights_from_json", "load_dataset", "load_model",
+    "point_light_set",
     "relight", "render", "render_views", "run", "run_geometry", "run_pipeline", "run_relight",
     "run_segmentation", "scene_path", "set_variant", "stages",
 ]

@@ -366,16 +366,39 @@ def _fitted_lights_table(path: Path) -> dict | None:
                    else np.full(len(dirs), np.nan), np.float64).reshape(len(dirs), -1).mean(-1)
     total = np.nansum(w)
     rows = []
+    lamps = _lamp_cells(fit, len(dirs))
     for k in np.argsort(-np.nan_to_num(w)):
         az, el = angles_from_direction(dirs[k])
         rows.append([int(len(rows) + 1), az, el, float(w[k]),
-                     float(w[k] / total) if total > 0 else None])
+                     float(w[k] / total) if total > 0 else None, *(lamps[k] if lamps else [])])
+    note = ("Azimuth about +Y from +X toward -Z, elevation above the base "
+            "(docs/conventions.md); irradiance in the fit's own scale (albedo and "
+            "light are known only up to a common factor).")
+    if lamps:
+        note += (" A lamp's azimuth, elevation and irradiance are those at the fit's centre "
+                 f"({', '.join(f'{v:.3g}' for v in fit['center'])}), its distance from there "
+                 "and its position in world units; a directional light has neither.")
     return {"title": "Fitted lights (material/full/light.json)",
             "columns": ["light", "azimuth (deg)", "elevation (deg)", "irradiance",
-                        "share of irradiance"], "rows": rows,
-            "note": "Azimuth about +Y from +X toward -Z, elevation above the base "
-                    "(docs/conventions.md); irradiance in the fit's own scale (albedo and "
-                    "light are known only up to a common factor)."}
+                        "share of irradiance",
+                        *(["distance", "position (x, y, z)", "radius"] if lamps else [])],
+            "rows": rows, "note": note}
+
+
+def _lamp_cells(fit: dict, count: int) -> list | None:
+    """Per light of a light.json: [distance from its centre, "(x, y, z)", radius] for a
+    lamp, [None, "directional", None] for another; None when no light is a lamp."""
+    import numpy as np
+
+    positions = fit.get("positions")
+    if not positions or len(positions) != count or all(p is None for p in positions):
+        return None
+    c = np.asarray(fit.get("center") or [0.0, 0.0, 0.0], np.float64)
+    radii = list(fit.get("radii") or [0.0] * count)
+    return [[None, "directional", None] if p is None else
+            [float(np.linalg.norm(np.asarray(p, np.float64) - c)),
+             "({:.3g}, {:.3g}, {:.3g})".format(*p), float(radii[k])]
+            for k, p in enumerate(positions)]
 
 
 SPEED_ERROR_STAGE = "Speed against error"

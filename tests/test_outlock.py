@@ -58,6 +58,7 @@ COMMANDS = {
     "generate": ["generate", "--out", "OUT", "--preset", "cpu-small"],
     "segment": ["segment", "norun", "--data", "nodata", "--out", "OUT"],
     "report": ["report", "OUT"],
+    "batch": ["batch", "nocaptures", "--out", "OUT"],
 }
 
 

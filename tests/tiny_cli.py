@@ -1,7 +1,8 @@
 """``python -m tests.tiny_cli [--threads N] COMMAND ...``: the ``mi-shadowgs`` command line
 with one more preset, ``test-tiny`` (in ``mi_shadowgs.presets``): 24 px views, seconds per
 command, and checkpoints every few steps and every half second, so that a kill at any moment
-finds some.
+finds some. ``-m MODULE ARGS`` runs another module's ``main`` with the preset instead
+(``mi_shadowgs.cli``, ``validation.pipeline``: how a batch's workers start their steps).
 
 The kill tests run commands in a subprocess so that they can SIGKILL them; a subprocess
 cannot see a test's monkeypatched presets, so it registers them here. ``--threads 1`` runs
@@ -58,16 +59,36 @@ def set_sections(mp, name: str, **sections) -> None:
                dataclasses.replace(run_presets.PRESETS[name], **sections))
 
 
+def launcher():
+    """How a batch's workers start their steps with the preset: through this module."""
+    from pathlib import Path
+
+    from mi_shadowgs.batch.runner import Launcher
+
+    root = str(Path(__file__).resolve().parents[1])
+    return Launcher(prefix=(sys.executable, "-m", "tests.tiny_cli", "-m"),
+                    env=(("PYTHONPATH", root),), cwd=root)
+
+
 def main(argv: list[str]) -> int:
     from mi_shadowgs import cli
+    from mi_shadowgs.batch import runner
 
     for table, config in presets():
         table[TINY] = config
+    runner.DEFAULT_LAUNCHER = launcher()  # a batch started here: its steps know it too
     if argv[:1] == ["--threads"]:
         import drjit as dr
 
         dr.set_thread_count(int(argv[1]))
         argv = argv[2:]
+    if argv[:1] == ["-m"]:  # how a batch's worker starts its steps (tests/test_batch.py)
+        import importlib
+
+        module = importlib.import_module(argv[1])
+        if hasattr(module, "TABLE_PRESETS"):
+            module.TABLE_PRESETS = (*module.TABLE_PRESETS, TINY)
+        return module.main(argv[2:])
     return cli.main(argv)
 
 

@@ -21,6 +21,14 @@ call; the tables gather every ``row.json`` under OUT, so two processes with disj
 dataset of another preset already there is refused (exit 2), never reused or mixed; so is a
 dataset made from other scene files or settings (its fingerprint).
 
+``--address ADDR`` runs the rows as items of a batch on Ray (``mi_shadowgs.batch``): each
+row (its dataset, its run, its ``row.json``) is one Ray task of ``--threads`` CPUs (default
+1), run as ``python -m validation.pipeline ... --rows-only`` on a worker; ADDR is a cluster
+(``auto``, HOST:PORT, ``ray://HOST:10001``) or ``local`` for a Ray runtime on this machine
+(``--workers`` rows at once). The folders are the same as a serial call's, so the table is
+gathered from them as before, and ``OUT/batch.csv`` and ``OUT/batch.html`` add each row's
+status, time and error. A row of a later seed waits for the row that makes its dataset.
+
 ``--seed N`` (repeatable; default 0) runs each row at those seeds of every stage's random
 draws (``RunConfig.seed``), on the one dataset: seed 0 in ``OUT/<scene>-<pair>/``, seed N in
 ``OUT/<scene>-<pair>-seed<N>/`` (its run and row only). The table then adds the spread over
@@ -433,11 +441,46 @@ def check_preset(out_dir: Path, preset: str) -> None:
             raise PresetMismatch(path, made, preset)
 
 
+def batch_items(out_dir: Path, jobs: list[tuple[str, str]], seeds: list[int], preset: str,
+                envmaps: str, ablations: bool, threads: int) -> list:
+    """The rows as batch items (``mi_shadowgs.batch``): one ``validation.pipeline
+    --rows-only`` call each, of ``threads`` CPUs (and a GPU under cuda_ad_rgb); done once
+    its ``row.json`` is there; a row waits for the row of the same scene and pair that makes
+    its dataset (the first seed's)."""
+    from mi_shadowgs.backend import VARIANT_ENV
+    from mi_shadowgs.batch.spec import Item, Step
+
+    out = Path(out_dir).resolve()
+    variant = os.environ.get(VARIANT_ENV)
+    env = ((VARIANT_ENV, variant),) if variant else ()
+    items, first = [], {}
+    for seed in seeds:
+        for scene, lights in jobs:
+            name = row_name(scene, lights, seed)
+            args = ("--out", str(out), "--scene", scene, "--lights", lights, "--seed",
+                    str(seed), "--preset", preset, "--envmap", envmaps, "--threads",
+                    str(threads), "--rows-only", *(() if ablations else ("--no-ablations",)))
+            after = (first[(scene, lights)],) if (scene, lights) in first else ()
+            first.setdefault((scene, lights), name)
+            items.append(Item(name=name, folder=name, run=f"{name}/run",
+                              steps=(Step("row", "validation.pipeline", args),), cpus=threads,
+                              gpus=int(variant == "cuda_ad_rgb"), env=env, after=after,
+                              done=f"{name}/row.json", preset=preset,
+                              source=f"{scene}, {lights} lights, seed {seed}"))
+    return items
+
+
 def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
         command: str = "python -m validation.pipeline", lights: list[str] | None = None,
         ablations: bool = True, order: str = "pair", envmaps: str = ENVMAPS,
-        preset: str = "cpu-small", seeds: list[int] | None = None) -> dict:
-    """validation.run_all entry."""
+        preset: str = "cpu-small", seeds: list[int] | None = None,
+        address: str | None = None, threads: int | None = None, workers: int | None = None,
+        rows_only: bool = False, launcher=None) -> dict:
+    """validation.run_all entry. With ``address``, the rows run as batch items on Ray
+    (``batch_items``; ``threads`` CPUs each, ``workers`` rows at once on a local runtime,
+    ``launcher``: how a worker starts a row, ``mi_shadowgs.batch.runner.Launcher``);
+    ``rows_only`` leaves the tables to the caller. The result's ``failed`` lists the rows
+    that failed (with ``address``; a serial call stops at the first)."""
     from mi_shadowgs.io.atomic import write_json, write_text
 
     out_dir = Path(out_dir)
@@ -453,15 +496,27 @@ def run(out_dir: Path, quick: bool = False, scenes: list[str] | None = None,
     # order "pair": the whole table under one pair first; "scene": both pairs of a scene
     jobs = [(s, p) for p in pairs for s in chosen] if order == "pair" else \
         [(s, p) for s in chosen for p in pairs]
-    for seed in seeds or [0]:
-        for s, pair in jobs:
-            run_scene(s, avail[s], out_dir, pair, ablations, envmaps, preset=preset,
-                      seed=seed)
+    failed = []
+    if address is not None:
+        from mi_shadowgs.batch.runner import run_batch
+
+        items = batch_items(out_dir, jobs, seeds or [0], preset, envmaps, ablations,
+                            threads or 1)
+        done = run_batch(items, out_dir, address=address, launcher=launcher,
+                         num_cpus=None if workers is None else workers * (threads or 1))
+        failed = [r for r in done if r["status"] not in ("finished", "reused")]
+    else:
+        for seed in seeds or [0]:
+            for s, pair in jobs:
+                run_scene(s, avail[s], out_dir, pair, ablations, envmaps, preset=preset,
+                          seed=seed)
+    if rows_only:
+        return {"rows": [], "markdown": "", "failed": failed}
     rows = gather_rows(out_dir)
     md = markdown(rows, command)
     write_json(out_dir / "pipeline.json", rows)
     write_text(out_dir / "pipeline.md", md)
-    return {"rows": rows, "markdown": md}
+    return {"rows": rows, "markdown": md, "failed": failed}
 
 
 def main(argv=None) -> int:
@@ -493,7 +548,21 @@ def main(argv=None) -> int:
                          "(repeatable; default 0); the table adds the spread over seeds")
     ap.add_argument("--table-only", action="store_true",
                     help="only gather the finished rows under --out into the tables")
+    ap.add_argument("--address", default=None,
+                    help="run the rows as Ray tasks (--threads CPUs each, default 1) on this "
+                         "cluster (auto, HOST:PORT, ray://HOST:10001) or 'local' (a Ray "
+                         "runtime on this machine); needs pip install .[cluster]")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="with --address local: rows at once (default: cores / --threads)")
+    ap.add_argument("--rows-only", action="store_true",
+                    help="run the rows, leave the tables to the caller (how a Ray worker "
+                         "runs one row)")
     args = ap.parse_args(argv)
+    if args.threads is not None and args.threads < 1:
+        fail(f"--threads must be >= 1, got {args.threads}")
+    if args.workers is not None and (args.workers < 1 or args.address not in (None, "local")):
+        fail("--workers takes a count >= 1, with --address local (a cluster has the CPUs "
+             "it has)")
     if args.threads:
         import drjit as dr
 
@@ -509,14 +578,20 @@ def main(argv=None) -> int:
         return 0
     if any(s < 0 for s in args.seed or []):
         fail(f"--seed must be >= 0, got {args.seed}")
+    from mi_shadowgs.batch.runner import BatchError, RayMissing
+    from mi_shadowgs.io.outlock import OutputPathError
+
     try:
         res = run(Path(args.out), args.quick, args.scene, command, args.lights,
                   not args.no_ablations, args.order, args.envmap, args.preset,
-                  sorted(set(args.seed or [0])))
-    except (PresetMismatch, DatasetMismatch) as e:
+                  sorted(set(args.seed or [0])), address=args.address,
+                  threads=args.threads, workers=args.workers, rows_only=args.rows_only)
+    except (PresetMismatch, DatasetMismatch, RayMissing, BatchError, OutputPathError) as e:
         fail(str(e))
     print(res["markdown"])
-    return 0
+    for r in res["failed"]:
+        print(f"row {r['name']} failed: {r['error']}", file=sys.stderr)
+    return 1 if res["failed"] else 0
 
 
 if __name__ == "__main__":

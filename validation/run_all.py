@@ -6,7 +6,7 @@ one, import it here and give it a name in ``VALIDATIONS``::
 
     python -m validation.run_all --out validation-out [--quick] [--only visibility]
                                  [--scene NAME ...] [--lights PAIR ...] [--threads N]
-                                 [--overwrite]
+                                 [--overwrite] [--address ADDR]
 
 The pipeline table (every scene under both light pairs, ``validation.pipeline``) takes hours,
 so each validation writes into ``OUT/<name>/`` in place and the table resumes per scene and
@@ -79,7 +79,8 @@ def _pipeline(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
     opts = opts or {}
     return pipeline.run(out_dir, quick=quick, scenes=opts.get("scenes"),
                         lights=opts.get("lights"),
-                        command=opts.get("command", "python -m validation.pipeline"))
+                        command=opts.get("command", "python -m validation.pipeline"),
+                        address=opts.get("address"), threads=opts.get("threads"))
 
 
 def _metric_floor(out_dir: Path, quick: bool, opts: dict | None = None) -> dict:
@@ -163,7 +164,11 @@ def main(argv=None) -> int:
                     help="pipeline table: only this scene (repeatable)")
     ap.add_argument("--lights", action="append", choices=sorted(pipeline.LIGHT_PAIRS),
                     help="pipeline table: only this light pair (repeatable)")
-    ap.add_argument("--threads", type=int, default=None, help="Dr.Jit threads")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="Dr.Jit threads (with --address: each table row's CPUs, default 1)")
+    ap.add_argument("--address", default=None,
+                    help="run the pipeline table's rows as Ray tasks on this cluster, or "
+                         "'local' (validation.pipeline --address)")
     ap.add_argument("--overwrite", action="store_true",
                     help="make the studies' units again where they were made from other "
                          "inputs or settings (the table's finished rows stand)")
@@ -180,7 +185,7 @@ def main(argv=None) -> int:
     _check_out(out)
     command = " ".join(["python", "-m", "validation.run_all", *(argv or sys.argv[1:])])
     opts = {"scenes": args.scene, "lights": args.lights, "command": command,
-            "overwrite": args.overwrite}
+            "overwrite": args.overwrite, "address": args.address, "threads": args.threads}
     t0 = time.perf_counter()
     load0 = os.getloadavg()
     sections, failed = [], []

@@ -26,6 +26,10 @@ a fitted light's own.
     python -m validation.visibility --out validation-out/visibility [--quick]
         [--model RUN/geometry/model.ply --data DATASET ...] [--factors] [--models-only]
         [--receiver-band B] [--preset P] [--lights AZ,EL ...] [--overwrite]
+    python -m validation.visibility --lamp --out validation-out/lamp [--quick] [...]
+
+``--lamp``: shadow maps from a lamp (a lab capture's sphere lamp) against Mitsuba's hard and
+soft visibility of it instead: ``validation.lamp_visibility``, which takes the other options.
 
 Writes ``table2.md``, ``table2.csv``, ``sweep.csv``, ``sweep.png``, ``sweep.md``,
 ``timing.csv``, ``summary.json``, ``README.md`` (and ``factors.md``), each atomically, from
@@ -929,6 +933,14 @@ def run(out_dir, quick: bool = False, model=None, data=None, quiet: bool = False
 
 
 def main(argv=None) -> int:
+    import sys
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--lamp" in argv:  # the lamp's rows: validation.lamp_visibility takes the rest
+        from validation import lamp_visibility
+
+        return lamp_visibility.main([a for a in argv if a != "--lamp"],
+                                    "python -m validation.visibility --lamp")
     ap = argparse.ArgumentParser(description="Visibility validation against ray tracing "
                                              "(paper Table 2, speed-vs-error sweep).")
     ap.add_argument("--out", required=True, help="output folder: new or an earlier "
@@ -966,6 +978,9 @@ def main(argv=None) -> int:
                     help="make this call's units again (those made from other inputs or "
                          "settings exit 2 otherwise)")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
+    ap.add_argument("--lamp", action="store_true",
+                    help="shadow maps from a lamp against Mitsuba's hard and soft visibility "
+                         "instead (validation.lamp_visibility; see its --help)")
     args = ap.parse_args(argv)
     try:
         summary = run(args.out, args.quick, args.model, args.data, args.quiet,

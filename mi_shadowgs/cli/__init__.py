@@ -30,6 +30,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
              "a run in the browser: move the light, see the shadows move (local web viewer)"),
     "export": ("mi_shadowgs.cli.export",
                "a run's model as a 3DGS/2DGS PLY or a mesh with materials and a Mitsuba scene"),
+    "batch": ("mi_shadowgs.cli.batch",
+              "many captures (import + run each) as Ray tasks, here or on a cluster"),
 }
 
 
@@ -44,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--variant", default=None,
                         help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb")
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="Dr.Jit's CPU threads (default: every core); with one, a "
+                             "command's outputs are the same bytes every time")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
@@ -66,7 +71,9 @@ STOPPED_BY_SIGNAL = ("view",)
 # that write nothing are absent.
 OUTPUT_ARGUMENT = {"generate": "out", "import": "out", "render": "out", "segment": "out",
                    "train": "out", "run": "out", "report": "run", "relight": "out",
-                   "export": "out"}
+                   "export": "out", "batch": "out"}
+# Commands whose work runs in other processes: --variant is theirs, not this process's.
+DELEGATES_BACKEND = ("batch",)
 
 
 def _note(line: str) -> None:
@@ -87,7 +94,14 @@ def main(argv: list[str] | None = None) -> int:
             if folder is not None:  # before anything is read: a second writer stops at once
                 stack.enter_context(output_lock(folder, args.command, note=_note))
             stack.enter_context(handle_signals())
-            backend.set_variant(args.variant)
+            if args.threads is not None:
+                if args.threads < 1:
+                    raise CLIError(f"--threads must be >= 1, got {args.threads}")
+                import drjit as dr
+
+                dr.set_thread_count(args.threads)
+            if args.command not in DELEGATES_BACKEND:
+                backend.set_variant(args.variant)
             return int(importlib.import_module(args._module).run(args) or 0)
     except (CLIError, backend.BackendError, FileNotFoundError, FileExistsError,
             ValueError) as exc:

@@ -1,8 +1,13 @@
 """``mi-shadowgs relight RUN --out DIR``: a finished run's model under new lights.
 
 Lights (together, in one light set): ``--light AZ,EL,IRRADIANCE`` (repeatable; degrees and
-W/m^2, or ``AZ,EL,R,G,B``), ``--envmap FILE [--rotate DEG] [--envmap-scale S]``, ``--scene
-XML`` (its directional and infinite emitters). Views: ``--cameras transforms.json``,
+W/m^2, or ``AZ,EL,R,G,B``), ``--point X,Y,Z,INTENSITY[,RADIUS]`` (repeatable; a lamp at a
+position of the run's world frame, its radiant intensity in W/sr, or
+``X,Y,Z,R,G,B[,RADIUS]``; a radius > 0 is a sphere lamp; write ``--point=-1,2,3,50`` where
+X is negative), ``--envmap FILE [--rotate DEG] [--envmap-scale S]``, ``--scene XML`` (its
+directional, infinite, point, spot and sphere area emitters). A lamp must stand above the
+base (y = 0) and outside the scene's bounding sphere, and a spot's cone must reach the
+scene. Views: ``--cameras transforms.json``,
 ``--orbit N`` (a circle about the object at the run's camera distance), else the run's test
 views. Writes ``NAME.exr`` (linear RGBA) and ``NAME.png`` (sRGB) per view, ``relight.json``
 (lights, views, the per-frame times of the views this call rendered) and, with ``--video``,
@@ -27,6 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="directional light: azimuth and elevation (degrees; "
                              "docs/conventions.md) and irradiance (W/m^2, or R,G,B); "
                              "repeatable")
+    parser.add_argument("--point", action="append", default=[],
+                        metavar="X,Y,Z,INTENSITY[,RADIUS]",
+                        help="lamp: position in the run's world frame, radiant intensity "
+                             "(W/sr, or R,G,B) and optional sphere radius (world units; 0: a "
+                             "point light); above the base and outside the scene; repeatable "
+                             "(a negative X: --point=-1,2,3,50)")
     parser.add_argument("--envmap", default=None, metavar="FILE",
                         help="env map (lat-long EXR, Y-up) integrated over 128 directions")
     parser.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
@@ -34,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--envmap-scale", type=float, default=1.0, metavar="S",
                         help="multiply the env map's radiance")
     parser.add_argument("--scene", default=None, metavar="XML",
-                        help="a Mitsuba scene whose emitters light the model")
+                        help="a Mitsuba scene whose emitters light the model (directional, "
+                             "point, spot, sphere area, envmap, constant)")
     views = parser.add_mutually_exclusive_group()
     views.add_argument("--cameras", default=None, metavar="JSON",
                        help="NeRF-synthetic transforms.json with the views")
@@ -56,7 +68,7 @@ def run(args) -> int:
     result = run_relight(args.run, args.out, args.light, args.envmap, args.rotate,
                          args.envmap_scale, args.scene, args.cameras, args.orbit,
                          args.orbit_elevation, args.video, args.fps, args.fit, args.overwrite,
-                         progress=not args.no_progress)
+                         progress=not args.no_progress, points=args.point)
     stats = result.stats
     earlier = result.views - result.rendered
     if result.rendered == 0:

@@ -52,7 +52,8 @@ class LightSet:
     directional light, or a grid direction L dw, everywhere; for a local light, at the
     reference point ``center``, with ``directions`` pointing from ``center`` to the lamp.
     A local light k lights a point x from l = (p_k - x) / |p_k - x| with the irradiance
-    E_k |p_k - c|^2 / |p_k - x|^2 (radiant intensity E_k |p_k - c|^2, 1/r^2 falloff).
+    E_k |p_k - c|^2 / |p_k - x|^2 (radiant intensity E_k |p_k - c|^2, 1/r^2 falloff),
+    times its spot cone's falloff where it has one (``spot_falloff``, Mitsuba's ``spot``).
     """
 
     directions: np.ndarray  # [K, 3] unit, toward the light (for a lamp: from center)
@@ -62,10 +63,15 @@ class LightSet:
     positions: np.ndarray | mi.Point3f | None = None
     radii: np.ndarray | None = None  # [K] lamp radius, world units (0: a point light)
     center: np.ndarray | None = None  # [3] where a local light's weight is its irradiance
+    # [K, 5] spot cones of local lights: the unit axis the spot shines along (x, y, z), its
+    # cutoff and full-beam half-angles (radians); NaN rows have none; None: no spot.
+    cones: np.ndarray | None = None
 
     def __post_init__(self):
         if self.positions is not None and self.center is None:
             raise ValueError("LightSet: local lights need the reference point 'center'")
+        if self.cones is not None and self.positions is None:
+            raise ValueError("LightSet: spot cones need the lights' positions")
 
     @property
     def count(self) -> int:
@@ -118,14 +124,44 @@ def _numpy_rows(v) -> np.ndarray:
     return np.stack([np.asarray(c, np.float64) for c in (v.x, v.y, v.z)], axis=1)
 
 
+def spot_falloff(cos_theta, cutoff, beam):
+    """Mitsuba's ``spot`` profile at cos_theta = axis . (x - p) / |x - p|: 1 inside the
+    beam (cos_theta >= cos(beam)), falling linearly in angle to 0 at the cutoff, 0 beyond.
+    Works on Dr.Jit floats and, for references, NumPy arrays."""
+    if isinstance(cos_theta, np.ndarray):
+        ang = np.arccos(np.clip(cos_theta, -1.0, 1.0))
+        ramp = (cutoff - ang) / np.maximum(cutoff - beam, 1e-12)
+        f = np.where(cos_theta >= np.cos(beam), 1.0, ramp)
+        return np.where(cos_theta > np.cos(cutoff), f, 0.0)
+    ang = dr.acos(dr.clip(cos_theta, -1.0, 1.0))
+    ramp = (cutoff - ang) / dr.maximum(cutoff - beam, 1e-12)
+    f = dr.select(cos_theta >= dr.cos(beam), 1.0, ramp)
+    return dr.select(cos_theta > dr.cos(cutoff), f, 0.0)
+
+
+def _cone_factor(l_loc: mi.Vector3f, li: mi.UInt32, cones) -> mi.Float | None:
+    """The spot falloff [P] of light ``li`` toward ``-l_loc``; None when no light has a cone."""
+    cn = np.asarray(cones, np.float64).reshape(-1, 5)
+    has = np.all(np.isfinite(cn), axis=1)
+    if not has.any():
+        return None
+    safe = np.where(has[:, None], cn, [0.0, 0.0, 1.0, np.pi, np.pi]).astype(np.float32)
+    axis = mi.Vector3f(*(dr.gather(mi.Float, jit.array(safe[:, k]), li) for k in range(3)))
+    cut, beam = (dr.gather(mi.Float, jit.array(safe[:, k]), li) for k in (3, 4))
+    f = spot_falloff(-dr.dot(axis, l_loc), cut, beam)
+    return dr.select(dr.gather(mi.Bool, mi.Bool(has), li), f, 1.0)
+
+
 def light_vectors(points: mi.Point3f, li: mi.UInt32, directions: np.ndarray,
-                  positions=None, center=None) -> tuple[mi.Vector3f, mi.Float | None]:
+                  positions=None, center=None, cones=None
+                  ) -> tuple[mi.Vector3f, mi.Float | None]:
     """The unit direction toward light ``li`` [P] from ``points`` [P], and the irradiance
-    factor (|p - c|^2 / |p - x|^2 for local lights, 1 for directional; None when every
-    light is directional).
+    factor (|p - c|^2 / |p - x|^2 for local lights, times a spot's cone falloff; 1 for
+    directional; None when every light is directional).
 
     ``directions`` [K, 3]; ``positions``: None, [K, 3] with NaN rows for directional
-    lights, or a differentiable mi.Point3f [K] (every light local); ``center`` [3].
+    lights, or a differentiable mi.Point3f [K] (every light local); ``center`` [3];
+    ``cones``: None or [K, 5] (``LightSet.cones``).
     """
     d = np.asarray(directions, np.float32).reshape(-1, 3)
     l_dir = mi.Vector3f(*(dr.gather(mi.Float, jit.array(d[:, c]), li) for c in range(3)))
@@ -149,7 +185,11 @@ def light_vectors(points: mi.Point3f, li: mi.UInt32, directions: np.ndarray,
     to_lamp = p - points
     r2 = dr.maximum(dr.squared_norm(to_lamp), 1e-12)
     l_loc = to_lamp * dr.rsqrt(r2)
-    return dr.select(flag, l_loc, l_dir), dr.select(flag, r2c / r2, 1.0)
+    falloff = r2c / r2
+    cone = None if cones is None else _cone_factor(l_loc, li, cones)
+    if cone is not None:
+        falloff = falloff * cone
+    return dr.select(flag, l_loc, l_dir), dr.select(flag, falloff, 1.0)
 
 
 @dataclasses.dataclass
@@ -393,19 +433,21 @@ def facing_normals(surfels: Surfels, camera: Camera) -> mi.Vector3f:
 
 def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float,
                      metallic: mi.Float, directions: np.ndarray, vis: mi.Float | None,
-                     with_specular: bool, positions=None, center=None) -> mi.Color3f:
+                     with_specular: bool, positions=None, center=None,
+                     cones=None) -> mi.Color3f:
     """f_r (n . l_k)^+ V_k per pixel and light, unit weight: [H * W * K] pixel-major.
 
     ``directions`` [K, 3]; ``vis`` [H * W * K] pixel-major (None: V = 1). With
     ``positions`` and ``center`` (see ``light_vectors``), local lights shine from their
-    position with 1/r^2 falloff, their unit weight being the irradiance at ``center``.
+    position with 1/r^2 falloff, their unit weight being the irradiance at ``center``;
+    ``cones`` (``LightSet.cones``) shape the spots among them.
     """
     k_count = len(directions)
     npix = dr.width(geom.alpha)
     idx = dr.arange(mi.UInt32, npix * k_count)
     pi, li = idx // k_count, idx % k_count
     points = None if positions is None else dr.gather(mi.Point3f, geom.points, pi)
-    l_dir, falloff = light_vectors(points, li, directions, positions, center)
+    l_dir, falloff = light_vectors(points, li, directions, positions, center, cones)
     n = dr.gather(mi.Vector3f, geom.normal, pi)
     a = dr.gather(mi.Color3f, albedo, pi)
     m = dr.gather(mi.Float, metallic, pi)
@@ -429,7 +471,8 @@ def direct(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float, metalli
     li = dr.arange(mi.UInt32, npix * k_count) % k_count
     e = dr.gather(mi.Color3f, lights.weights, li)
     contrib = direct_per_light(geom, albedo, roughness, metallic, lights.directions, vis,
-                               with_specular, lights.positions, lights.center) * e
+                               with_specular, lights.positions, lights.center,
+                               lights.cones) * e
     # The three channels in one kernel: each block_reduce evaluates its own input, and left
     # lazy every channel would redo the per-light shading and shadow-map lookups [H * W * K]
     # (at K = 128, the warm-up's and an env map's grid, 3x the work).

@@ -13,6 +13,13 @@ XML, so that datasets without them keep their fingerprints (docs/capture.md):
   normal incidence, that the lamp gives at the object's centre; its radiant intensity is
   ``lamp_irradiance * distance^2`` W/sr with the distance in world units).
 - ``room_radiance``: a dim ``constant`` emitter of this radiance (1 or 3 numbers; 0: none).
+- ``relight_lamp``: a relit test set under a new point lamp (lights.json's relighting
+  ``RELIGHT_LAMP_NAME``, of type "point"): ``AZ,EL,DISTANCE`` (degrees from the object's
+  centre, object radii, > 1), with the training lamp's irradiance at the object's centre
+  (else ``LAMP_DEFAULTS``'); ``none``: no such set. A capture with a lamp gets one by
+  default, ``RELIGHT_LAMP_TURN`` degrees of azimuth from its lamp, at
+  ``RELIGHT_LAMP_ELEVATION`` and the same distance (recorded among the parameters, so that
+  the dataset's fingerprint says it); a scene without a lamp only when it is set.
 - ``photo_ev``, ``photo_wb``, ``photo_noise``, ``photo_jpeg`` (``generate --photos`` only):
   each photo's exposure is multiplied by ``2^u`` with ``u`` uniform in +-``photo_ev``, and
   each channel by ``1 + w`` with ``w`` uniform in +-``photo_wb``; Gaussian sensor noise of
@@ -34,7 +41,12 @@ from mi_shadowgs.core.directions import direction_from_angles
 LAMP_PARAMS = ("lamp_azimuth", "lamp_elevation", "lamp_distance", "lamp_radius",
                "lamp_irradiance")
 PHOTO_PARAMS = ("photo_ev", "photo_wb", "photo_noise", "photo_jpeg")
-CAPTURE_PARAMS = ("capture", *LAMP_PARAMS, "room_radiance", *PHOTO_PARAMS)
+CAPTURE_PARAMS = ("capture", *LAMP_PARAMS, "room_radiance", "relight_lamp", *PHOTO_PARAMS)
+# A lamp capture's relighting: a point lamp turned this far in azimuth from its lamp and at
+# this elevation (a shadow the training views never showed), named so in lights.json.
+RELIGHT_LAMP_NAME = "lamp_moved"
+RELIGHT_LAMP_TURN = 150.0
+RELIGHT_LAMP_ELEVATION = 35.0
 LAMP_DEFAULTS = {"lamp_azimuth": "35", "lamp_elevation": "50", "lamp_radius": "0",
                  "lamp_irradiance": "3"}
 # A lab capture as the paper's real scenes were taken: one white lamp near the object in a
@@ -68,6 +80,7 @@ class Capture:
     photo_noise: float = 0.0
     photo_jpeg: int = PHOTO_JPEG_DEFAULT
     params: dict = dataclasses.field(default_factory=dict)  # as recorded (strings)
+    relight_lamp: LampSpec | None = None  # the point lamp of the lamp relighting
 
     @property
     def has_room(self) -> bool:
@@ -148,6 +161,7 @@ def split_capture(path: Path, overrides: dict) -> tuple[Capture, dict]:
                          "'lamp_distance' (object radii), which places the lamp")
     room = (_rgb(path, "room_radiance", params["room_radiance"], positive=False)
             if "room_radiance" in params else (0.0, 0.0, 0.0))
+    relight = _relight_lamp(path, params, lamp)
     ev = _in_range(path, "photo_ev", _numbers(path, "photo_ev", params.get("photo_ev", "0"))[0],
                    0.0, 3.0, "in [0, 3] EV")
     wb = _in_range(path, "photo_wb", _numbers(path, "photo_wb", params.get("photo_wb", "0"))[0],
@@ -158,12 +172,36 @@ def split_capture(path: Path, overrides: dict) -> tuple[Capture, dict]:
     if jpeg != int(jpeg) or not 1 <= jpeg <= 100:
         raise SceneError(f"{path}: scene parameter 'photo_jpeg' must be a whole number in "
                          f"[1, 100], got {params['photo_jpeg']!r}")
-    return Capture(lamp, room, ev, wb, noise, int(jpeg), params), rest
+    return Capture(lamp, room, ev, wb, noise, int(jpeg), params, relight), rest
 
 
-def lamp_light(spec: LampSpec, centre: np.ndarray, object_radius: float, path: Path):
-    """The lamp as a ``scene.Light`` in the world: its position, radius and irradiance at the
-    object's centre; ``SceneError`` when any of its sphere lies at or below the base."""
+def _relight_lamp(path: Path, params: dict, lamp: LampSpec | None) -> LampSpec | None:
+    """The point lamp of ``relight_lamp`` (module doc), derived from ``lamp`` and written
+    into ``params`` where it is not set; None for none."""
+    from mi_shadowgs.dataset.scene import SceneError
+
+    if "relight_lamp" not in params and lamp is not None:
+        params["relight_lamp"] = (f"{(lamp.azimuth_deg + RELIGHT_LAMP_TURN) % 360.0:g},"
+                                  f"{RELIGHT_LAMP_ELEVATION:g},{lamp.distance:g}")
+    text = params.get("relight_lamp")
+    if text is None or text.strip().lower() == "none":
+        return None
+    az, el, dist = _numbers(path, "relight_lamp", text, (3,))
+    _in_range(path, "relight_lamp", el, -90.0, 90.0, "AZ,EL,DISTANCE with EL in [-90, 90] "
+              "degrees")
+    if dist <= 1.0:
+        raise SceneError(f"{path}: scene parameter 'relight_lamp' {text!r} puts the lamp "
+                         "inside the object: its DISTANCE must be > 1 object radius")
+    irr = (lamp.irradiance if lamp is not None else
+           _rgb(path, "lamp_irradiance", LAMP_DEFAULTS["lamp_irradiance"], positive=True))
+    return LampSpec(az, el, dist, 0.0, irr)
+
+
+def lamp_light(spec: LampSpec, centre: np.ndarray, object_radius: float, path: Path,
+               name: str = "lamp", param: str = "lamp"):
+    """The lamp as a ``scene.Light`` named ``name`` in the world: its position, radius and
+    irradiance at the object's centre; ``SceneError`` naming the ``param`` parameters when
+    any of its sphere lies at or below the base."""
     from mi_shadowgs.dataset.scene import Light, SceneError
 
     l_dir = direction_from_angles(spec.azimuth_deg, spec.elevation_deg)
@@ -171,11 +209,12 @@ def lamp_light(spec: LampSpec, centre: np.ndarray, object_radius: float, path: P
     position = np.asarray(centre, np.float64) + distance * l_dir
     radius = spec.radius * object_radius
     if position[1] - radius <= 0.0:
-        raise SceneError(f"{path}: the lamp (scene parameters 'lamp_elevation' "
-                         f"{spec.elevation_deg:g}, 'lamp_distance' {spec.distance:g}, "
-                         f"'lamp_radius' {spec.radius:g}) is at or below the base (y = 0): "
+        given = (f"scene parameters 'lamp_elevation' {spec.elevation_deg:g}, 'lamp_distance' "
+                 f"{spec.distance:g}, 'lamp_radius' {spec.radius:g}" if param == "lamp" else
+                 f"scene parameter '{param}'")
+        raise SceneError(f"{path}: the lamp ({given}) is at or below the base (y = 0): "
                          f"its lowest point is at y = {position[1] - radius:.4g}")
-    return Light("lamp", tuple(l_dir.tolist()), spec.irradiance, spec.azimuth_deg,
+    return Light(name, tuple(l_dir.tolist()), spec.irradiance, spec.azimuth_deg,
                  spec.elevation_deg, position=tuple(position.tolist()), radius=radius,
                  distance=distance)
 

@@ -389,13 +389,19 @@ class ViewRenderer:
 
 def lit_scene(setup: SceneSetup, lights: list[Light] | None = None,
               envmap: str | None = None, envmap_scale: float = 1.0):
-    """The scene's shapes under other lighting: directional ``lights`` or an env map."""
+    """The scene's shapes under other lighting: ``lights`` (directional, or lamps: a
+    ``point`` emitter, or a ``sphere`` area emitter with a radius) or an env map."""
     import mitsuba as mi
+
+    from mi_shadowgs.dataset.capture import lamp_emitter
 
     desc = {"type": "scene"}
     for s in setup.scene.shapes():
         desc[s.id() or f"shape{len(desc)}"] = s
     for lt in lights or []:
+        if lt.is_lamp:
+            desc[lt.name] = lamp_emitter(lt, area=True)
+            continue
         desc[lt.name] = {"type": "directional", "direction": [-x for x in lt.direction],
                          "irradiance": {"type": "rgb", "value": list(lt.irradiance)}}
     if envmap is not None:

@@ -29,7 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.core.directions import direction_from_angles
-from mi_shadowgs.dataset.capture import Capture, captured_scenes, lamp_light, split_capture
+from mi_shadowgs.dataset.capture import (
+    RELIGHT_LAMP_NAME,
+    Capture,
+    captured_scenes,
+    lamp_light,
+    split_capture,
+)
 
 LIGHT_ID = re.compile(r"^light(\d+)$")
 
@@ -96,6 +102,8 @@ class SceneSetup:
     # The scene to path-trace where it differs from ``scene`` (a sphere lamp: ``scene``
     # holds it as a point, which rays never hit), else None.
     render_scene: object = None
+    # Relit test sets under lamps (``capture.py``'s ``relight_lamp``): (name, [Light]).
+    lamp_relights: list = dataclasses.field(default_factory=list)
 
     @property
     def path_traced(self):
@@ -413,11 +421,15 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
                 if capture.lamp is not None else None)
         scene, render_scene = captured_scenes(scene, capture, lamp)
         lights = [lamp] if lamp is not None else lights
+    relit = []
+    if capture.relight_lamp is not None:
+        relit.append((RELIGHT_LAMP_NAME, [lamp_light(capture.relight_lamp, centre, radius,
+                                                     path, "lamp", "relight_lamp")]))
     params.update(capture.params)
     return SceneSetup(path=path, params=params, scene=scene, parts=parts,
                       base_id=len(parts) + 1, lights=lights, object_to_world=m,
                       object_center=centre, object_radius=radius, inputs=inputs,
-                      capture=capture, render_scene=render_scene)
+                      capture=capture, render_scene=render_scene, lamp_relights=relit)
 
 
 def _load_part(parts_json: Path, shape_id: str, desc: dict):

@@ -304,6 +304,8 @@ def lights_json(setup: SceneSetup, config: GenerateConfig, envmaps: list[EnvMap]
                       else str(env.source),
                       "scale": config.envmap_scale,
                       "convention": "Mitsuba lat-long envmap, Y-up, identity to_world"})
+    for name, lts in setup.lamp_relights:  # after the env maps: their seeds stay
+        relit.append({"name": name, "type": "point", "lights": [lt.to_json() for lt in lts]})
     training = {"lights": train,
                 "light_map": {"grid": f"mi_shadowgs.core.directions.light_grid"
                                       f"({N_LIGHT_DIRECTIONS})",
@@ -312,7 +314,7 @@ def lights_json(setup: SceneSetup, config: GenerateConfig, envmaps: list[EnvMap]
         training["room"] = room_json(setup.capture)
     convention = ("direction = unit vector toward the light (Y-up world); irradiance in "
                   "W/m^2 at normal incidence, linear RGB")
-    if any(lt.is_lamp for lt in setup.lights):
+    if any(lt.is_lamp for lt in setup.lights) or setup.lamp_relights:
         convention += ("; a lamp's direction and irradiance are those at the object's "
                        "centre, its intensity (W/sr) = irradiance * distance^2, and "
                        "position, radius and distance are in world units")
@@ -384,6 +386,7 @@ def write_dataset(scene_path: str | Path, out: str | Path, config: GenerateConfi
     partial = _prepare_partial(out, fp)
     box = scene_box(setup)
     relights += _envmap_relights(setup, config, envmaps, partial)
+    relights += [(name, lit_scene(setup, lights=lts)) for name, lts in setup.lamp_relights]
     renderer = ViewRenderer(cams["train"][0], config.spp, config.max_depth,
                             sampler=config.sampler, pass_spp=config.pass_spp)
     total = config.n_train + config.n_test * (1 + len(relights))

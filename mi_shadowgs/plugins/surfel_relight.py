@@ -38,13 +38,19 @@ saved before that record takes them from the run's manifest beside it, or, with 
 paper's maps. A malformed record is an error naming the file, even where a property above
 is given.
 
-**Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`) and
+**Emitters:** every `directional` emitter (direction from its `to_world`, `irradiance`),
 every infinite emitter (`envmap`, `constant`: mean radiance over each of the 128 equal-area
-grid cells of the upper hemisphere, times `2 pi / 128`). Any other emitter type is an error,
-as is a scene without emitters. One shadow map per light direction is rendered the first
-time the direction is seen and kept with the integrator: a later `mi.render` of the same
-emitters (any sensor at the same distance) reuses the maps and the env map's grid radiance
-(re-integrated only when the env map's parameters change).
+grid cells of the upper hemisphere, times `2 pi / 128`) and every lamp: a `point` emitter
+(`position`, `intensity` in W/sr), a `spot` (position and axis from its `to_world`,
+`intensity`, and Mitsuba's cone: full between the axis and `beam_width`, falling linearly
+in angle to 0 at `cutoff_angle`) and an `area` emitter on a `sphere` shape (its centre and
+radius R from the shape, its `radiance` L shining as a lamp of intensity L pi R^2). A lamp
+must stand above the base plane y = 0 and outside the surfels' bounding sphere, and a
+spot's cone must reach that sphere; a textured spot or radiance, an area light on another
+shape, any other emitter type and a scene without emitters are errors. One shadow map per
+light is rendered the first time the light is seen and kept with the integrator: a later
+`mi.render` of the same emitters (any sensor at the same distance) reuses the maps and the
+env map's grid radiance (re-integrated only when the env map's parameters change).
 
 **Not used:** sampler, spp and seeds (deterministic); the sensor's `near_clip` and
 `far_clip`; not differentiable (`render_forward` and `render_backward` are not
@@ -134,17 +140,26 @@ class SurfelRelightIntegrator(mi.SamplingIntegrator):
         # Shadow maps per light direction and env-map grid radiance, kept between renders.
         self.cache = relight.RelightCache()
 
-    def light_set(self, scene) -> shading.LightSet:
+    def bounds(self, camera) -> SceneBounds:
+        """The surfels' bounding sphere: what the shadow maps cover, and where a lamp may
+        not stand."""
+        pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
+        return SceneBounds.from_points(pos, [camera])
+
+    def light_set(self, scene, bounds: SceneBounds | None = None) -> shading.LightSet:
+        """The scene's emitters as lights (lamps checked against ``bounds``, by default those
+        seen from the scene's first sensor)."""
+        if bounds is None:
+            bounds = self.bounds(core_render.sensor_camera(scene.sensors()[0]))
         return relight.emitter_light_set(scene.emitters(), self.relight_config, self.cache,
-                                         where="surfel_relight")
+                                         where="surfel_relight", bounds=bounds)
 
     def _image(self, scene, sensor) -> mi.TensorXf:
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         camera = core_render.sensor_camera(sensor)
-        lights = self.light_set(scene)
-        pos = np.stack([np.asarray(self.surfels.position[k]) for k in range(3)], -1)
-        bounds = SceneBounds.from_points(pos, [camera])
+        bounds = self.bounds(camera)
+        lights = self.light_set(scene, bounds)
         model = relight.RelightModel(self.surfels, self.specular, self.visibility,
                                      receiver_band=self.receiver_band)
         maps = self.cache.shadow_maps(model, lights, bounds, self.vis_config)

@@ -235,8 +235,8 @@ def _relit_scores(smodel, train, test, bounds, vcfg, rcfg, cache, mask, images: 
         name = entry["name"]
         if entry.get("type") == "envmap":  # its 128-direction light set, shadows included
             lights = relight.envmap_light_set(load_envmap(entry, train.root), rcfg)
-        else:
-            lights = relight.lights_from_json(entry)
+        else:  # directional lights, or lamps weighted at the scene's centre
+            lights = relight.lights_from_json(entry, bounds.center)
         # Only the relit colours are scored: no irradiance pass (for an env map, a second
         # shading over its 128 directions).
         rv, secs = relight.relight_views(smodel, test.cameras, lights, bounds, rcfg, vcfg,
@@ -282,10 +282,17 @@ def check_evaluation_inputs(train, test) -> dict[str, str | None]:
                                f"known: {', '.join(RELIGHT_TYPES)}")
         if kind == "envmap":
             envmap_file(entry, train.root)
+        if kind == "point":
+            from mi_shadowgs.stages.relight.lamps import lamps_from_json
+
+            try:
+                lamps_from_json(entry, str(path))
+            except ValueError as exc:
+                raise DatasetError(str(exc)) from None
     return ground_truth(train, test)
 
 
-RELIGHT_TYPES = ("directional", "envmap")
+RELIGHT_TYPES = ("directional", "envmap", "point")
 
 
 def envmap_file(entry: dict, root: Path) -> Path:

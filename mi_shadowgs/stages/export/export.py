@@ -23,7 +23,9 @@ Formats (``--out`` is a folder; it gets a provenance manifest like every output)
   ``vertex_roughness``, ``vertex_metallic``, ``vertex_ggxalpha``); the OBJs and the glTF
   hold sRGB vertex colours of the albedo for viewers. ``scene.xml`` needs only Mitsuba:
   each mesh with a BSDF driven by ``mesh_attribute`` textures (``ExportConfig.bsdf``, below),
-  the fitted lights as ``directional`` emitters, one ``perspective`` sensor per test camera
+  the fitted lights as ``directional`` emitters (a fitted lamp as a ``point`` emitter of its
+  intensity, or with a radius as a ``sphere`` with an ``area`` emitter of radiance
+  I / (pi R^2)), one ``perspective`` sensor per test camera
   (``$resx``, ``$resy``, ``$spp``, ``$max_depth`` can be overridden at load).
 
 The BSDF (``ExportConfig.bsdf``):
@@ -296,10 +298,23 @@ def _fmt(values) -> str:
     return ", ".join(f"{float(v):.9g}" for v in np.ravel(values))
 
 
-def fitted_lights(light: dict) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(unit direction toward the light [3], RGB irradiance [3]) of each fitted light of a
-    stage-4 ``light.json``."""
+@dataclasses.dataclass(frozen=True)
+class FittedLight:
+    """One fitted light of a stage-4 ``light.json``."""
+
+    direction: np.ndarray  # [3] unit, toward the light (a lamp's: from the fit's centre)
+    irradiance: np.ndarray  # [3] RGB (a lamp's: at the fit's centre)
+    position: np.ndarray | None = None  # [3] a lamp's, world; None: directional
+    radius: float = 0.0  # a lamp's sphere radius (0: a point)
+    intensity: np.ndarray | None = None  # [3] a lamp's radiant intensity, W/sr
+
+
+def fitted_lights(light: dict) -> list[FittedLight]:
+    """Each fitted light of a stage-4 ``light.json`` (those of zero irradiance left out);
+    a lamp's intensity is its irradiance at the fit's ``center`` times the squared distance
+    from there."""
     from mi_shadowgs.core.directions import light_grid, solid_angle
+    from mi_shadowgs.stages.material.outputs import local_lights_from_json
 
     dirs = np.asarray(light.get("directions") or [], np.float64).reshape(-1, 3)
     irr = light.get("irradiance")
@@ -314,8 +329,49 @@ def fitted_lights(light: dict) -> list[tuple[np.ndarray, np.ndarray]]:
     irr = np.repeat(irr.reshape(-1, 1), 3, 1) if irr.ndim == 1 else irr.reshape(-1, 3)
     if len(irr) != len(dirs):
         raise ExportError(f"light.json: {len(dirs)} directions but {len(irr)} irradiances")
-    return [(d / np.linalg.norm(d), e) for d, e in zip(dirs, irr, strict=True)
-            if np.any(e > 0)]
+    try:
+        pos, radii, center = local_lights_from_json(light, len(dirs))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ExportError(f"light.json: malformed local lights ({exc})") from None
+    out = []
+    for k, (d, e) in enumerate(zip(dirs, irr, strict=True)):
+        if not np.any(e > 0):
+            continue
+        if pos is None or not np.all(np.isfinite(pos[k])):
+            out.append(FittedLight(d / np.linalg.norm(d), e))
+            continue
+        r2 = float(np.sum((pos[k] - center) ** 2))
+        out.append(FittedLight(d / np.linalg.norm(d), e, pos[k], float(radii[k]), e * r2))
+    return out
+
+
+def emitter_xml(root, k: int, lt: FittedLight) -> None:
+    """A fitted light as Mitsuba XML under ``root``: a ``directional`` emitter, a lamp as a
+    ``point`` emitter, or (radius > 0) a black ``sphere`` with an ``area`` emitter whose
+    uniform radiance I / (pi R^2) has the lamp's intensity I toward every side. A plain
+    (direction, irradiance) pair is a directional light."""
+    import math
+    import xml.etree.ElementTree as ET
+
+    if not isinstance(lt, FittedLight):
+        lt = FittedLight(np.asarray(lt[0], np.float64), np.asarray(lt[1], np.float64))
+    if lt.position is None:
+        em = ET.SubElement(root, "emitter", type="directional", id=f"light_{k}")
+        ET.SubElement(em, "vector", name="direction", value=_fmt(-lt.direction))  # -l
+        ET.SubElement(em, "rgb", name="irradiance", value=_fmt(lt.irradiance))
+    elif lt.radius <= 0:
+        em = ET.SubElement(root, "emitter", type="point", id=f"light_{k}")
+        ET.SubElement(em, "point", name="position", value=_fmt(lt.position))
+        ET.SubElement(em, "rgb", name="intensity", value=_fmt(lt.intensity))
+    else:
+        shape = ET.SubElement(root, "shape", type="sphere", id=f"light_{k}")
+        ET.SubElement(shape, "point", name="center", value=_fmt(lt.position))
+        ET.SubElement(shape, "float", name="radius", value=f"{lt.radius:.9g}")
+        bsdf = ET.SubElement(shape, "bsdf", type="diffuse")
+        ET.SubElement(bsdf, "rgb", name="reflectance", value="0")
+        em = ET.SubElement(shape, "emitter", type="area")
+        ET.SubElement(em, "rgb", name="radiance",
+                      value=_fmt(lt.intensity / (math.pi * lt.radius**2)))
 
 
 def scene_xml(parts: dict[str, str], lights, cameras, config: ExportConfig,
@@ -337,10 +393,8 @@ def scene_xml(parts: dict[str, str], lights, cameras, config: ExportConfig,
         shape = ET.SubElement(root, "shape", type="ply", id=shape_id)
         ET.SubElement(shape, "string", name="filename", value=filename)
         bsdf_xml(shape, config.bsdf)
-    for k, (d, e) in enumerate(lights):
-        em = ET.SubElement(root, "emitter", type="directional", id=f"light_{k}")
-        ET.SubElement(em, "vector", name="direction", value=_fmt(-d))  # propagation = -l
-        ET.SubElement(em, "rgb", name="irradiance", value=_fmt(e))
+    for k, lt in enumerate(lights):
+        emitter_xml(root, k, lt)
     for name, cam in cameras:
         if cam.is_ortho:
             raise ExportError(f"camera {name!r} is orthographic; scene.xml takes perspective "

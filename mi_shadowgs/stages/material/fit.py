@@ -127,6 +127,9 @@ def _localize(fit: MaterialFit, state: MaterialState) -> None:
     order = np.argsort(-irr)[:config.refine_max_lights]
     dirs, pos, irr, log = localize_lights(search, state.directions, state.positions, irr,
                                           order)
+    if state.positions is None and not np.isfinite(pos).any():
+        state.log_lights("localize", dw, log)  # every light stays as it was
+        return
     state.directions = dirs
     state.positions = pos if np.isfinite(pos).any() else None
     opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))

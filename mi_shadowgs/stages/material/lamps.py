@@ -117,9 +117,10 @@ def localize_lights(search: LampSearch, dirs: np.ndarray, positions: np.ndarray 
         entry = {"light": k, "error_directional": float(err[0]),
                  "error_lamp": float(err[lamp]), "distance": float(scan[lamp])}
         if gain < config.lamp_min_gain or fit[lamp] <= 0:
-            pos[k] = np.nan
-            if fit[0] > 0:
-                irr[k] = fit[0]
+            if math.isfinite(dist):  # a lamp no better than a directional light
+                pos[k] = np.nan
+                if fit[0] > 0:
+                    irr[k] = fit[0]
             log.append({**entry, "kept": "directional"})
             continue
         pos[k], irr[k] = cand.positions[lamp], fit[lamp]

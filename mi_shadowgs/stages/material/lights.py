@@ -24,16 +24,7 @@ from mi_shadowgs.stages.material.views import TrainView
 
 def subset_maps(maps, keep: np.ndarray):
     """The shadow maps of the kept directions (no re-rendering: a gather of the texels)."""
-    import dataclasses as dc
-
-    idx = np.flatnonzero(keep)
-    r2 = maps.resolution * maps.resolution
-    tex = (idx[:, None] * r2 + np.arange(r2)[None]).reshape(-1).astype(np.uint32)
-    depth = dr.gather(mi.Float, maps.depth, mi.UInt32(tex))
-    alpha = None if maps.alpha is None else dr.gather(mi.Float, maps.alpha, mi.UInt32(tex))
-    dr.eval(depth, alpha)
-    return dc.replace(maps, directions=maps.directions[idx],
-                      cameras=[maps.cameras[i] for i in idx], depth=depth, alpha=alpha)
+    return maps.subset(keep)
 
 
 def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig

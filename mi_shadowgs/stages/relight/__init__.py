@@ -13,6 +13,7 @@ from mi_shadowgs.stages.relight.render import (
     RelightModel,
     directional_light_set,
     lights_from_json,
+    point_light_set,
     relight_view,
     relight_views,
 )
@@ -22,6 +23,7 @@ __all__ = [
     "RelightModel",
     "directional_light_set",
     "lights_from_json",
+    "point_light_set",
     "relight_view",
     "relight_views",
     "write_previews",

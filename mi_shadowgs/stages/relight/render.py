@@ -1,19 +1,23 @@
-"""Stage 5: relight a decomposed surfel model under new lights (directional or env map).
+"""Stage 5: relight a decomposed surfel model under new lights (directional, lamps, env map).
 
 A model is surfels with "albedo", "roughness", "metallic" and "indirect_sh" channels
 (``stage_material``). New lights become a ``LightSet`` (directions with RGB weights):
-directional lights as they are (their exact directions, irradiance E), an environment map
-integrated over the 128 grid directions (mean radiance over each direction's cell times
-dw = 2 pi / 128). Visibility is recomputed for the new directions with new shadow maps of
-the surfels (rendered once per light, shared by every view).
+directional lights as they are (their exact directions, irradiance E), lamps as local lights
+(``lamps``: a position, its intensity as the irradiance at the scene's centre, 1/r^2
+falloff, a spot's cone), an environment map integrated over the 128 grid directions (mean
+radiance over each direction's cell times dw = 2 pi / 128). Visibility is recomputed for
+the new lights with new shadow maps of the surfels (rendered once per light, shared by
+every view).
 
 Indirect light under new lights: the fitted L_ind is what the *training* light bounced
 around; reusing it as is would keep the old lighting's glow, dropping it would darken the
 shadows that interreflection fills in. We keep its spatial pattern and scale it by the ratio
 of the new to the training lights' irradiance on an unoccluded upward-facing surface,
 E_up = sum_k E_k max(0, l_k . y) (mode "scaled", the default; "none" drops it, "keep" reuses
-it unchanged). This is a first-order guess, exact only when the new light illuminates the
-scene the way the old one did; it is documented as such.
+it unchanged); a lamp counts with its irradiance at the lights' reference point (the scene's
+centre), along its direction from there, a spot's cone included. This is a first-order
+guess, exact only when the new light illuminates the scene the way the old one did; it is
+documented as such.
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ from mi_shadowgs.stages.material.outputs import (
     SPECULAR_METADATA_KEY,
     VISIBILITY_METADATA_KEY,
 )
+from mi_shadowgs.stages.relight import lamps as lamp_mod
+from mi_shadowgs.stages.visibility.lamp_maps import lamp_arguments
 from mi_shadowgs.stages.visibility.shadow_maps import (
     MapCache,
     SceneBounds,
@@ -170,8 +176,34 @@ def directional_light_set(directions, irradiance) -> shading.LightSet:
     return shading.LightSet(d, mi.Color3f(*(jit.array(e[:, k]) for k in range(3))))
 
 
-def lights_from_json(entry: dict) -> shading.LightSet:
-    """A ``lights.json`` relighting entry of type "directional"."""
+def point_light_set(positions, intensity, center, radii=None) -> shading.LightSet:
+    """Lamps at ``positions`` [K, 3] (world) of radiant intensity ``intensity`` [K] or
+    [K, 3] (W/sr) and ``radii`` [K] (world units; default 0: points), weighted by their
+    irradiance at ``center`` [3] (the scene's centre, e.g. ``SceneBounds.center``)."""
+    pos = np.atleast_2d(np.asarray(positions, np.float64))
+    inten = np.asarray(intensity, np.float64).reshape(len(pos), -1)
+    inten = np.repeat(inten, 3, axis=1) if inten.shape[1] == 1 else inten
+    radii = np.zeros(len(pos)) if radii is None else np.asarray(radii, np.float64).reshape(-1)
+    if pos.shape[1] != 3 or inten.shape[1] != 3 or len(radii) != len(pos):
+        raise ValueError(f"point lights: bad positions {pos.shape}, intensity {inten.shape} "
+                         f"or radii {radii.shape}")
+    lamps = [lamp_mod.Lamp(tuple(map(float, p)), tuple(map(float, i)), float(r),
+                           source=f"point light {k}")
+             for k, (p, i, r) in enumerate(zip(pos, inten, radii, strict=True))]
+    for lamp in lamps:
+        lamp_mod.check_lamp_values(lamp)
+    return lamp_mod.lamp_light_set(lamps, center)
+
+
+def lights_from_json(entry: dict, center=None) -> shading.LightSet:
+    """A ``lights.json`` relighting entry of type "directional", or "point" (lamps: each
+    light's ``position``, ``intensity`` in W/sr and ``radius``; their weights are their
+    irradiance at ``center`` [3], the scene's centre)."""
+    if entry.get("type") == "point":
+        if center is None:
+            raise ValueError(f"lights.json: relighting {entry.get('name')!r} has lamps; "
+                             "their weights need the scene's centre")
+        return lamp_mod.lamp_light_set(lamp_mod.lamps_from_json(entry, "lights.json"), center)
     if entry.get("type") != "directional":
         raise ValueError(f"lights.json: relighting {entry.get('name')!r} has type "
                          f"{entry.get('type')!r}; use envmap_light_set for env maps")
@@ -243,7 +275,10 @@ def envmap_light_set(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> shadin
 def upward_irradiance(lights: shading.LightSet) -> float:
     """Mean-RGB irradiance the lights give an unoccluded surface facing +Y."""
     w = np.stack([np.asarray(lights.weights[k], np.float64) for k in range(3)], -1)
-    return float(np.sum(w.mean(1) * np.maximum(lights.directions[:, 1], 0.0)))
+    up = w.mean(1) * np.maximum(np.asarray(lights.directions)[:, 1], 0.0)
+    if lights.cones is not None:  # a spot lights the centre only inside its cone
+        up = up * lamp_mod.cone_at(lights, lights.center)
+    return float(np.sum(up))
 
 
 def indirect_factor(model: RelightModel, lights: shading.LightSet, config: RelightConfig) -> float:
@@ -323,7 +358,8 @@ def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: Scene
                     vis_config: VisibilityConfig = DEFAULT_VISIBILITY):
     if not model.use_visibility or lights.count == 0:
         return None
-    return render_shadow_maps(model.surfels, lights.directions, bounds, vis_config)
+    return render_shadow_maps(model.surfels, lights.directions, bounds, vis_config,
+                              **lamp_arguments(lights))
 
 
 def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, maps,
@@ -408,10 +444,39 @@ def standard_turntable(count: int = 8, elevation_deg: float = 45.0,
 
 
 def combine_light_sets(sets: Sequence[shading.LightSet]) -> shading.LightSet:
-    """One LightSet holding every light of ``sets`` (e.g. a sun and a sky)."""
+    """One LightSet holding every light of ``sets`` (e.g. a sun, a sky and a lamp); the
+    lamps' weights are taken to the first reference point among them (``relocate``)."""
+    if all(s.positions is None for s in sets):
+        dirs = np.concatenate([np.asarray(s.directions, np.float64).reshape(-1, 3)
+                               for s in sets])
+        return directional_light_set(dirs, np.concatenate([light_weights(s) for s in sets]))
+    center = next(np.asarray(s.center, np.float64) for s in sets if s.positions is not None)
+    sets = [relocate(s, center) for s in sets]
+    rows = [lamp_mod.local_rows(s) for s in sets]
+    pos, radii, cones = (np.concatenate([r[i] for r in rows]) for i in range(3))
     dirs = np.concatenate([np.asarray(s.directions, np.float64).reshape(-1, 3) for s in sets])
-    w = np.concatenate([light_weights(s) for s in sets])
-    return directional_light_set(dirs, w)
+    wf = np.concatenate([light_weights(s) for s in sets]).astype(np.float32)
+    return shading.LightSet(dirs, mi.Color3f(*(jit.array(wf[:, k]) for k in range(3))),
+                            pos, radii, center,
+                            None if np.all(np.isnan(cones)) else cones)
+
+
+def relocate(lights: shading.LightSet, center) -> shading.LightSet:
+    """``lights`` with the reference point ``center`` [3]: each lamp's weight becomes its
+    irradiance there (intensity / |p - c|^2) and its direction points from there."""
+    c = np.asarray(center, np.float64).reshape(3)
+    if lights.positions is None or (lights.center is not None and
+                                    np.array_equal(np.asarray(lights.center, np.float64), c)):
+        return lights
+    pos, _, _ = lamp_mod.local_rows(lights)
+    loc = lights.local
+    w = light_weights(lights)
+    w[loc] = lamp_mod.intensities(lights)[loc] / np.sum((pos[loc] - c) ** 2, axis=1)[:, None]
+    dirs = np.array(lights.directions, np.float64).reshape(-1, 3)
+    dirs[loc] = (pos[loc] - c) / np.linalg.norm(pos[loc] - c, axis=1, keepdims=True)
+    wf = w.astype(np.float32)
+    return dataclasses.replace(lights, directions=dirs, center=c, weights=mi.Color3f(
+        *(jit.array(wf[:, k]) for k in range(3))))
 
 
 def light_weights(lights: shading.LightSet) -> np.ndarray:
@@ -421,18 +486,30 @@ def light_weights(lights: shading.LightSet) -> np.ndarray:
 
 
 def scale_light_set(lights: shading.LightSet, factor: float) -> shading.LightSet:
-    return directional_light_set(lights.directions, light_weights(lights) * factor)
+    """``lights`` with every weight (and so every lamp's intensity) times ``factor``."""
+    if lights.positions is None:
+        return directional_light_set(lights.directions, light_weights(lights) * factor)
+    w = (light_weights(lights) * factor).astype(np.float32)
+    return dataclasses.replace(lights, weights=mi.Color3f(*(jit.array(w[:, k])
+                                                             for k in range(3))))
 
 
 def emitter_light_set(emitters, config: RelightConfig = DEFAULT_RELIGHT,
-                      cache: RelightCache | None = None, where: str = "scene"
-                      ) -> shading.LightSet:
+                      cache: RelightCache | None = None, where: str = "scene",
+                      bounds: SceneBounds | None = None) -> shading.LightSet:
     """The lights of Mitsuba emitters: each ``directional`` emitter as it is, each infinite
     one (``envmap``, ``constant``) over the grid (``envmap_grid_radiance``, cached by its
-    contents in ``cache``). Any other emitter type, or none at all, is a ValueError naming
-    ``where``."""
-    sets = []
+    contents in ``cache``), each ``point``, ``spot`` and ``area`` emitter on a ``sphere`` as
+    a lamp (``lamps.mitsuba_lamp``; checked against ``bounds``, the model's
+    ``SceneBounds``, whose centre is the lamps' reference point). Any other emitter type,
+    a lamp outside the model's reach (``lamps.check_lamps``), or no emitter at all, is a
+    ValueError naming ``where``."""
+    sets, lamps = [], []
     for e in emitters:
+        lamp = lamp_mod.mitsuba_lamp(e, where)
+        if lamp is not None:
+            lamps.append(lamp)
+            continue
         name = e.class_name()
         if "Directional" in name:
             p = mi.traverse(e)
@@ -450,7 +527,13 @@ def emitter_light_set(emitters, config: RelightConfig = DEFAULT_RELIGHT,
                 sets.append(ls)
         else:
             raise ValueError(f"{where}: emitter {e.id()!r} ({name}) is not supported; use "
-                             "directional or infinite (envmap, constant) emitters")
+                             "directional, point, spot, area (on a sphere) or infinite "
+                             "(envmap, constant) emitters")
+    if lamps:
+        if bounds is None:
+            raise ValueError(f"{where}: lamps need the model's scene bounds")
+        lamp_mod.check_lamps(lamps, bounds)
+        sets.append(lamp_mod.lamp_light_set(lamps, bounds.center))
     if not sets:
         raise ValueError(f"{where}: no emitter to relight with")
     return combine_light_sets(sets)
@@ -497,12 +580,14 @@ class RelightCache:
         base = (tuple(id(g) for g in geometry), bounds)
         self._models[base[0]] = geometry  # held: the ids stay unique
         dirs = np.asarray(lights.directions, np.float64).reshape(-1, 3)
-        key = (*base, vis_config, dirs.round(12).tobytes())
+        lamps = lamp_arguments(lights)
+        key = (*base, vis_config, dirs.round(12).tobytes(),
+               *(np.asarray(v, np.float64).round(12).tobytes() for v in lamps.values()))
         if key in self._sets:  # the same lights again: the assembled maps as they are
             return self._sets[key]
         if base not in self._caches:
             self._caches[base] = MapCache(model.surfels, bounds, self.max_map_bytes)
-        maps = self._caches[base].maps(dirs, vis_config)
+        maps = self._caches[base].maps(dirs, vis_config, **lamps)
         self._sets[key] = maps
         while len(self._sets) > self.max_sets:  # oldest first
             self._sets.pop(next(iter(self._sets)))

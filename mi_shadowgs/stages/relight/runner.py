@@ -2,7 +2,9 @@
 model rendered under new lights, from new views, with shadows recomputed from the surfels.
 
 Light sources: directional lights given as azimuth, elevation and irradiance
-(``parse_light``), an env map (optionally turned about +Y), the emitters of a Mitsuba scene.
+(``parse_light``), lamps given as a position, an intensity and a radius
+(``lamps.parse_point``), an env map (optionally turned about +Y), the emitters of a Mitsuba
+scene (directional, infinite, point, spot and sphere area emitters).
 Views: a ``transforms.json``, an orbit of N cameras around the object, or the run's test
 views. Every shadow map is rendered once per light direction and reused by every frame
 (``render.RelightCache``); the env map's grid radiance is integrated once.
@@ -23,10 +25,13 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, parse_angle_fields
 from mi_shadowgs.stages.common import warn, warn_other_backend
 from mi_shadowgs.stages.material.outputs import fit_from_files
+from mi_shadowgs.stages.relight import lamps as lamp_mod
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
 DEFAULT_QUANTILE = 0.98  # the run's bounds_quantile when its manifest does not say
+NO_LIGHT = ("no light: give --light AZ,EL,IRRADIANCE, --point X,Y,Z,INTENSITY, --envmap FILE "
+            "or --scene XML")
 
 
 # Elevations a directional light may have, as `generate` and `view` take them: above the
@@ -54,11 +59,16 @@ def parse_light(text: str, option: str = "--light",
 
 
 def check_light_args(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
-                     envmap_scale: float = 1.0, scene: str | None = None) -> None:
+                     envmap_scale: float = 1.0, scene: str | None = None,
+                     points=()) -> None:
     """The light arguments checked before anything is loaded (errors name the option and
-    field): ``parse_light`` on each light, the env map's and scene's files and numbers."""
+    field): ``parse_light`` on each light, ``lamps.parse_point`` on each lamp, the env
+    map's and scene's files and numbers. Where the lamps stand is checked once the run's
+    bounds are known (``build_lights``)."""
     for text in lights:
         parse_light(text)
+    for text in points:
+        lamp_mod.parse_point(text)
     for name, v in (("--rotate", rotate_deg), ("--envmap-scale", envmap_scale)):
         if not math.isfinite(v):
             raise ValueError(f"{name} must be finite, got {v!r}")
@@ -103,8 +113,9 @@ def envmap_emitter(path: str | Path, rotate_deg: float = 0.0, scale: float = 1.0
     return emitter
 
 
-def scene_emitters(path: str | Path):
-    """The emitters of a Mitsuba scene file (its shapes, sensors and integrator unused)."""
+def load_scene_file(path: str | Path):
+    """A Mitsuba scene file, for its emitters (its sensors and integrator unused; its shapes
+    only where an area emitter lies on one: hold the scene while its emitters are read)."""
     import mitsuba as mi
 
     path = Path(path)
@@ -115,20 +126,29 @@ def scene_emitters(path: str | Path):
     except RuntimeError as exc:
         raise ValueError(f"--scene {path}: Mitsuba could not load it: "
                          f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
-    return scene.emitters()
+    return scene
 
 
 def build_lights(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
                  envmap_scale: float = 1.0, scene: str | None = None,
                  config: relight.RelightConfig = relight.DEFAULT_RELIGHT,
-                 cache: relight.RelightCache | None = None):
-    """One LightSet from every source given: ``lights`` (``parse_light`` strings), an env
-    map, a scene's emitters. ValueError when there is none."""
+                 cache: relight.RelightCache | None = None, points=(),
+                 bounds: shadow_maps.SceneBounds | None = None):
+    """One LightSet from every source given: ``lights`` (``parse_light`` strings),
+    ``points`` (``lamps.parse_point`` strings), an env map, a scene's emitters. The lamps
+    are checked against ``bounds``, the run's ``SceneBounds`` (``lamps.check_lamps``), and
+    weighted at its centre. ValueError when there is no light."""
     sets = []
     for text in lights:
         az, el, rgb = parse_light(text)
         sets.append(relight.directional_light_set(direction_from_angles(az, el)[None],
                                                   rgb[None]))
+    if points:
+        lamps = [lamp_mod.parse_point(text) for text in points]
+        if bounds is None:
+            raise ValueError("--point: lamps need the run's scene bounds")
+        lamp_mod.check_lamps(lamps, bounds)
+        sets.append(lamp_mod.lamp_light_set(lamps, bounds.center))
     if envmap is not None:
         rad = (cache.envmap_radiance(envmap_emitter(envmap, rotate_deg, envmap_scale), config)
                if cache is not None else relight.envmap_grid_radiance(
@@ -138,11 +158,11 @@ def build_lights(lights=(), envmap: str | None = None, rotate_deg: float = 0.0,
             raise ValueError(f"--envmap {envmap}: the env map is black above the horizon")
         sets.append(ls)
     if scene is not None:
-        sets.append(relight.emitter_light_set(scene_emitters(scene), config, cache,
-                                              where=f"--scene {scene}"))
+        loaded = load_scene_file(scene)
+        sets.append(relight.emitter_light_set(loaded.emitters(), config, cache,
+                                              where=f"--scene {scene}", bounds=bounds))
     if not sets:
-        raise ValueError("no light: give --light AZ,EL,IRRADIANCE, --envmap FILE or --scene "
-                         "XML")
+        raise ValueError(NO_LIGHT)
     return relight.combine_light_sets(sets)
 
 
@@ -325,7 +345,7 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
                 cameras: str | None = None, orbit: int | None = None,
                 orbit_elevation: float | None = None, video: bool = False, fps: float = 12.0,
                 fit: str = "full", overwrite: bool = False,
-                progress: bool = True) -> RelightResult:
+                progress: bool = True, points=()) -> RelightResult:
     """The fit ``material/<fit>`` of the finished run ``run`` under new lights (module
     docstring), into the folder ``out``: ``NAME.exr`` / ``NAME.png`` per view,
     ``relight.json`` (lights, views, the per-frame times of the views this call rendered)
@@ -340,18 +360,10 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
     from mi_shadowgs.stages.common import settings_dict
     from mi_shadowgs.stages.render import missing_views, view_stems, write_rgba
 
-    if not lights and envmap is None and scene is None:
-        raise ValueError("no light: give --light AZ,EL,IRRADIANCE, --envmap FILE or --scene XML")
-    check_light_args(lights, envmap, rotate_deg, envmap_scale, scene)
-    if not (fps > 0 and math.isfinite(fps)):
-        raise ValueError(f"--fps must be > 0, got {fps:g}")
-    if orbit_elevation is not None:
-        if orbit is None:  # it would be dropped without a word
-            raise ValueError("--orbit-elevation sets the elevation of --orbit N's views: give "
-                             "--orbit N with it")
-        if not (math.isfinite(orbit_elevation) and -90.0 < orbit_elevation < 90.0):
-            raise ValueError(f"--orbit-elevation must be a finite angle in (-90, 90) degrees, "
-                             f"got {orbit_elevation:g}")
+    if not lights and not points and envmap is None and scene is None:
+        raise ValueError(NO_LIGHT)
+    check_light_args(lights, envmap, rotate_deg, envmap_scale, scene, points)
+    _check_view_args(fps, orbit, orbit_elevation)
     run_dir = Path(run)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder not found: {run_dir}")
@@ -363,7 +375,7 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
     run_fit = load_run(run_dir, fit, [c for _, c in named])
     cache = relight.RelightCache()
     light_set = build_lights(lights, envmap, rotate_deg, envmap_scale, scene,
-                             run_fit.relight_config, cache)
+                             run_fit.relight_config, cache, points, run_fit.bounds)
     if orbit is not None or not named:
         named = _default_views(run_dir, run_fit, orbit, orbit_elevation)
     names = view_stems(n for n, _ in named)
@@ -382,7 +394,9 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
                   "relight": settings_dict(run_fit.relight_config),
                   "shadow_bounds": {"center": [float(c) for c in bounds.center],
                                     "radius": float(bounds.radius),
-                                    "mean_camera_distance": float(bounds.mean_camera_distance)}})
+                                    "mean_camera_distance": float(bounds.mean_camera_distance)},
+                  # only with lamps: earlier relights without them are continued as before
+                  **({"points": list(points)} if points else {})})
     suffixes = (".exr", ".png")
     with Output.open(out, "relight", provenance, overwrite=overwrite, reuse=True,
                      inputs=inputs + extra + ([run_fit.dataset] if run_fit.dataset else [])
@@ -420,6 +434,19 @@ def run_relight(run: str | Path, out: str | Path, lights=(), envmap: str | None 
         output.finish()
     return RelightResult(output.folder, len(names), light_set.count, stats, movie, why,
                          len(todo))
+
+
+def _check_view_args(fps: float, orbit: int | None, orbit_elevation: float | None) -> None:
+    """``--fps`` and ``--orbit-elevation`` (which needs ``--orbit``), before the run is read."""
+    if not (fps > 0 and math.isfinite(fps)):
+        raise ValueError(f"--fps must be > 0, got {fps:g}")
+    if orbit_elevation is not None:
+        if orbit is None:  # it would be dropped without a word
+            raise ValueError("--orbit-elevation sets the elevation of --orbit N's views: give "
+                             "--orbit N with it")
+        if not (math.isfinite(orbit_elevation) and -90.0 < orbit_elevation < 90.0):
+            raise ValueError(f"--orbit-elevation must be a finite angle in (-90, 90) degrees, "
+                             f"got {orbit_elevation:g}")
 
 
 def _default_views(run_dir: Path, fit: RunFit, orbit: int | None,

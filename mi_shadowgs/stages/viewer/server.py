@@ -1,9 +1,10 @@
 """The browser page of ``mi-shadowgs view RUN``, drawn with viser (nerfstudio's viewer).
 
 The page is viser's: an orbit camera, a GUI panel and a 3D scene in which the fitted and
-the new lights are arrows. Each frame is rendered on the server by ``viewer.ViewerSession``
-(our relighting: surfels, shadow maps, Cook-Torrance) for the browser's camera and shown as
-the scene's background image, composited with the arrows by depth.
+the new lights are arrows, and lamps (fitted local lights, the lamp of the sliders) balls.
+Each frame is rendered on the server by ``viewer.ViewerSession`` (our relighting: surfels,
+shadow maps, Cook-Torrance) for the browser's camera and shown as the scene's background
+image, composited with the arrows by depth.
 
 Progressive: every change (camera, slider, toggle) renders a preview at once: half the
 frame size and half the run's shadow-map resolution (a 512^2 map of a 30k-surfel model
@@ -34,6 +35,9 @@ ARROW_NEW = (90, 170, 255)  # blue: the lights of the sliders
 BACKGROUND_DEPTH = 150.0  # viser's depth images reach 167.77 units; "far" for the arrows
 ELEVATION_MIN = 1.0  # the elevation slider's low end (a --light below it lowers it)
 INTENSITY_MAX = 10.0  # the intensity slider's high end (a --light above it raises it)
+# The lamp's distance slider, in scene radii (the bounds' radius): outside the scene (a lamp
+# inside it is refused) out to where it lights almost as a directional light does.
+LAMP_DISTANCE = (1.2, 12.0)
 
 
 class AddressUnusable(OSError):
@@ -155,6 +159,9 @@ class ViewerServer:
             lines.append("fitted lights (orange): " + ", ".join(
                 "az {:.0f} el {:.0f} E {:.2f}".format(*angles_from_direction(d), e)
                 for d, e in fitted))
+        if s.fitted_lamps():
+            lines.append("fitted lamps (orange balls) at " + ", ".join(
+                "({:.2f}, {:.2f}, {:.2f})".format(*p) for p in s.fitted_lamps()))
         gui.add_markdown("  \n".join(lines))
         self.status = gui.add_markdown("waiting for the browser's camera")
         modes = list(s.modes)
@@ -189,6 +196,18 @@ class ViewerServer:
                 irr = gui.add_slider("intensity", 0.0, max(INTENSITY_MAX, lt.irradiance), 0.05,
                                      float(lt.irradiance), disabled=not s.can_relight)
             self.lights.append((on, az, el, irr))
+        with gui.add_folder("lamp"):
+            off = not s.can_relight
+            self.lamp = (gui.add_checkbox("on", False, disabled=off),
+                         gui.add_slider("azimuth", 0.0, 360.0, 1.0, 210.0, disabled=off),
+                         gui.add_slider("elevation", ELEVATION_MIN, 90.0, 1.0, 40.0,
+                                        disabled=off),
+                         gui.add_slider("distance (scene radii)", *LAMP_DISTANCE, 0.1, 3.0,
+                                        disabled=off),
+                         gui.add_slider("irradiance at centre", 0.0, INTENSITY_MAX, 0.05, 3.0,
+                                        hint="W/m^2 at the scene's centre; its intensity "
+                                        "(W/sr) is this times the squared distance",
+                                        disabled=off))
         envs = s.envmaps()
         self._envmaps = {k: str(v) for k, v in envs.items()}
         with gui.add_folder("env map"):
@@ -200,7 +219,7 @@ class ViewerServer:
             self.env_scale = gui.add_slider("env intensity", 0.05, 4.0, 0.05, 1.0,
                                             disabled=not s.can_relight)
         handles = [self.mode, self.shadows, self.exposure, self.envmap, self.env_rotate,
-                   self.env_scale, *(h for group in self.lights for h in group)]
+                   self.env_scale, *(h for group in self.lights for h in group), *self.lamp]
         for h in handles:
             h.on_update(lambda _event: self._changed())
         for h in (self.show_fitted, self.show_new):
@@ -241,16 +260,31 @@ class ViewerServer:
                                                float(irr.value))
                        for on, az, el, irr in self.lights if on.value)
         env = self._envmaps.get(self.envmap.value)
+        on, az, el, dist, irr = self.lamp
+        lamps = ((viewer.LampLight(float(az.value), float(el.value), float(dist.value),
+                                   float(irr.value)),) if on.value else ())
         return viewer.LightState(lights, env, float(self.env_rotate.value) if env else 0.0,
-                                 float(self.env_scale.value) if env else 1.0)
+                                 float(self.env_scale.value) if env else 1.0, lamps)
 
     def _draw_arrows(self) -> None:
         s = self.session
         c = np.asarray(s.bounds.center, np.float64)
         r = s.bounds.radius
-        groups = (("/lights/fitted", [d for d, _ in s.fitted_lights()], ARROW_FITTED,
+        state = self.light_state()
+        fitted = s.fitted_lights()
+        local = s.fit.model.train_lights.local if s.fit is not None else []
+        balls = (("/lamps/fitted", s.fitted_lamps(), ARROW_FITTED, self.show_fitted.value),
+                 ("/lamps/new", [lt.position(c, r) for lt in state.lamps], ARROW_NEW,
+                  self.show_new.value))
+        for name, where, color, visible in balls:
+            self.server.scene.remove_by_name(name)
+            for k, p in enumerate(where if visible else []):
+                self.server.scene.add_icosphere(f"{name}/{k}", 0.06 * r, color,
+                                                position=tuple(np.asarray(p, float)))
+        groups = (("/lights/fitted", [d for k, (d, _) in enumerate(fitted)
+                                      if not (len(local) and local[k])], ARROW_FITTED,
                    self.show_fitted.value),
-                  ("/lights/new", [lt.direction for lt in self.light_state().directional],
+                  ("/lights/new", [lt.direction for lt in state.directional],
                    ARROW_NEW, self.show_new.value))
         for name, dirs, color, visible in groups:
             if not dirs or not visible:

@@ -29,6 +29,7 @@ from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
 from mi_shadowgs.core.raster import RasterConfig
 from mi_shadowgs.io.images import to_uint8
+from mi_shadowgs.stages.relight import lamps as lamp_mod
 from mi_shadowgs.stages.relight import render as relight
 from mi_shadowgs.stages.visibility import shadow_maps
 
@@ -53,13 +54,32 @@ class DirectionalLight:
 
 
 @dataclasses.dataclass(frozen=True)
+class LampLight:
+    """One slider-driven point lamp about the scene's centre: its direction from there
+    (degrees, as a directional light's), its distance in scene radii (the bounds' radius)
+    and the irradiance it gives the centre (W/m^2; its intensity is that times the squared
+    distance in world units)."""
+
+    azimuth_deg: float
+    elevation_deg: float
+    distance: float = 3.0
+    irradiance: float = 3.0
+
+    def position(self, center, radius: float) -> np.ndarray:  # [3] world
+        d = np.asarray(direction_from_angles(self.azimuth_deg, self.elevation_deg),
+                       np.float64).reshape(3)
+        return np.asarray(center, np.float64) + self.distance * radius * d
+
+
+@dataclasses.dataclass(frozen=True)
 class LightState:
-    """The viewer's lights: directional lights and/or one env map turned about +Y."""
+    """The viewer's lights: directional lights, lamps and/or one env map turned about +Y."""
 
     directional: tuple[DirectionalLight, ...] = ()
     envmap: str | None = None  # path of a lat-long EXR
     envmap_rotate_deg: float = 0.0
     envmap_scale: float = 1.0
+    lamps: tuple[LampLight, ...] = ()
 
 
 @dataclasses.dataclass
@@ -218,13 +238,22 @@ class ViewerSession:
                      and (m != "segments" or self._segment_colors is not None))
 
     def fitted_lights(self) -> list[tuple[np.ndarray, float]]:
-        """Stage 4's lights: (direction [3] toward the light, irradiance W/m^2)."""
+        """Stage 4's lights: (direction [3] toward the light, irradiance W/m^2); a lamp's
+        from the fit's centre and there."""
         if self.fit is None:
             return []
         ls = self.fit.model.train_lights
         w = relight.light_weights(ls).mean(1)
         return [(np.asarray(d, np.float64), float(e))
                 for d, e in zip(np.asarray(ls.directions).reshape(-1, 3), w, strict=True)]
+
+    def fitted_lamps(self) -> list[np.ndarray]:
+        """The positions [3] of stage 4's lamps (its local lights)."""
+        if self.fit is None or self.fit.model.train_lights.positions is None:
+            return []
+        ls = self.fit.model.train_lights
+        pos = np.asarray(ls.positions, np.float64).reshape(-1, 3)
+        return [pos[k] for k in np.flatnonzero(ls.local)]
 
     def envmaps(self) -> dict[str, Path]:
         """Env maps to light with: the shipped ones and those copied into the run's
@@ -261,6 +290,13 @@ class ViewerSession:
             return self._light_sets[key]
         sets = [relight.directional_light_set(lt.direction[None], [lt.irradiance])
                 for lt in state.directional if lt.irradiance > 0]
+        c, r = self.bounds.center, self.bounds.radius
+        lamps = [lamp_mod.Lamp(tuple(lt.position(c, r)), (lt.irradiance * (lt.distance * r)
+                               ** 2,) * 3, source="the viewer's lamp")
+                 for lt in state.lamps if lt.irradiance > 0]
+        if lamps:
+            lamp_mod.check_lamps(lamps, self.bounds)
+            sets.append(lamp_mod.lamp_light_set(lamps, c))
         if state.envmap is not None:
             em = runner.envmap_emitter(state.envmap, state.envmap_rotate_deg, state.envmap_scale)
             ls = relight.grid_light_set(self.maps.envmap_radiance(em, self.relight_config),

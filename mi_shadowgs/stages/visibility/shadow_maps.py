@@ -26,6 +26,7 @@ from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.depth import pixel_footprint, unproject_depth
 from mi_shadowgs.core.raster import RasterConfig
+from mi_shadowgs.stages.visibility import lamp_maps
 
 PROJECTIONS = ("perspective", "orthographic")
 DEPTH_KINDS = ("median", "expected")
@@ -103,6 +104,10 @@ class VisibilityConfig:
     # where the truth is dappled. False: the paper's binary test.
     fractional: bool = False
     fractional_min_alpha: float = 0.05
+    # Soft shadows of a lamp with a radius (``lamp_maps``): one map from each of this many
+    # points spread evenly over its disc facing the scene, V the mean of their lookups;
+    # 0: one map from its centre (hard shadows). Why 16: docs/decisions.md.
+    lamp_samples: int = 16
     # The maps' rasterization: forward-only renders of 256^2-512^2 composite faster with
     # larger tiles and more pixels per lane than the views' training renders (which keep
     # 4x4 / 2), and bit-identically (docs/decisions.md).
@@ -118,6 +123,7 @@ class VisibilityConfig:
                 or (self.bias_texels is not None and self.bias_texels < 0)
                 or self.normal_offset < 0 or self.receiver_offset < 0 or self.receiver_band < 0
                 or self.layer_bias < 0 or self.layer_cap_texels < 0 or self.layer_window < 0
+                or self.lamp_samples < 0
                 or not 0.0 < self.fractional_min_alpha <= 1.0):
             raise ValueError(f"invalid visibility settings: {self}")
 
@@ -171,6 +177,13 @@ class ShadowMaps:
     config: VisibilityConfig
     texel: float  # size of one map texel at the scene centre, scene units
     alpha: mi.Float | None = None  # [L * R * R] accumulated alpha (config.fractional only)
+    # Local lights (``lamp_maps``): [L, 3] lamp centres, NaN rows for directional lights
+    # (None: every light directional), [L] their radii, and [M] the light of each of the M
+    # maps (None: one map per light; a soft lamp has several, consecutive). ``cameras``,
+    # ``depth`` and ``alpha`` then hold M maps.
+    positions: np.ndarray | None = None
+    radii: np.ndarray | None = None
+    map_light: np.ndarray | None = None
     # The lookup's per-light arrays (``_camera_rows`` and the directions), made at the first
     # ``point_visibility``: a stage-4 step evaluates the same maps again and again, and 128
     # cameras' inverses and host copies cost ~1 ms each time.
@@ -187,7 +200,30 @@ class ShadowMaps:
 
     @property
     def count(self) -> int:
-        return len(self.cameras)
+        """The number of lights (of V's columns)."""
+        return len(self.directions)
+
+    def subset(self, keep: np.ndarray) -> ShadowMaps:
+        """The maps of the lights ``keep`` [L] bool (no re-rendering: a gather of their
+        texels)."""
+        idx = np.flatnonzero(keep)
+        light = (np.arange(len(self.cameras)) if self.map_light is None
+                 else np.asarray(self.map_light))
+        maps_idx = np.flatnonzero(np.isin(light, idx))
+        r2 = self.resolution * self.resolution
+        tex = (maps_idx[:, None] * r2 + np.arange(r2)[None]).reshape(-1).astype(np.uint32)
+        depth = dr.gather(mi.Float, self.depth, mi.UInt32(tex))
+        alpha = None if self.alpha is None else dr.gather(mi.Float, self.alpha, mi.UInt32(tex))
+        dr.eval(depth, alpha)
+        local = dict(positions=None, radii=None, map_light=None)
+        if self.positions is not None and np.isfinite(self.positions[idx]).all(1).any():
+            remap = np.full(len(self.directions), -1)
+            remap[idx] = np.arange(len(idx))
+            local = dict(positions=self.positions[idx], radii=self.radii[idx],
+                         map_light=None if self.map_light is None else remap[light[maps_idx]])
+        return dataclasses.replace(self, directions=self.directions[idx],
+                                   cameras=[self.cameras[i] for i in maps_idx], depth=depth,
+                                   alpha=alpha, **local)
 
     def evaluate(self, points: mi.Point3f, normals: mi.Vector3f | None = None,
                  footprint: mi.Float | None = None) -> mi.Float:
@@ -233,27 +269,63 @@ def shadow_camera(direction: np.ndarray, center: np.ndarray, radius: float,
 
 def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
                        config: VisibilityConfig = VisibilityConfig(),
-                       resolution: int | None = None) -> ShadowMaps:
+                       resolution: int | None = None, positions: np.ndarray | None = None,
+                       radii: np.ndarray | None = None) -> ShadowMaps:
     """Rasterize the surfels' depth from each of ``directions`` [L, 3] (one map per light),
-    ``resolution`` texels a side (default ``config.resolution``; stage 4's coarse maps)."""
-    from mi_shadowgs.core.raster import rasterize
+    ``resolution`` texels a side (default ``config.resolution``; stage 4's coarse maps).
 
+    ``positions`` [L, 3] (NaN rows: directional lights) and ``radii`` [L] make lights local:
+    perspective maps from the lamp, ``config.lamp_samples`` of them over the disc of a lamp
+    with a radius (``lamp_maps``; ``lamp_arguments`` gives both from a ``LightSet``)."""
     directions = np.atleast_2d(np.asarray(directions, dtype=np.float64))
     center = np.asarray(bounds.center, dtype=np.float64)
     res = resolution or config.resolution
-    cams = [shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance, config, res)
-            for d in directions]
+    lamps = lamp_maps.checked_lamps(positions, radii, len(directions))
+    if lamps is None:
+        cams = [shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance, config,
+                              res) for d in directions]
+        depth, alpha = _render_depths(surfels, cams, None, bounds, config, res)
+        return ShadowMaps(directions, cams, depth, res, config, map_texel(bounds, config, res),
+                          alpha)
+    pos, rad = lamps
+    cams, light, local = [], [], []
+    reach = bounds.radius * config.margin
+    for k, d in enumerate(directions):
+        if not np.isfinite(pos[k]).all():
+            cams.append(shadow_camera(d, center, bounds.radius, bounds.mean_camera_distance,
+                                      config, res))
+            light.append(k)
+            local.append(False)
+            continue
+        for q in lamp_maps.lamp_points(pos[k], rad[k], center, config.lamp_samples):
+            cams.append(lamp_maps.lamp_camera(q, center, reach, res, f"lamp {k}"))
+            light.append(k)
+            local.append(True)
+    depth, alpha = _render_depths(surfels, cams, local, bounds, config, res)
+    light = np.asarray(light)
+    return ShadowMaps(directions, cams, depth, res, config, map_texel(bounds, config, res),
+                      alpha, pos, rad, None if len(light) == len(directions) else light)
+
+
+def _render_depths(surfels, cams: list[Camera], lamps: list[bool] | None, bounds: SceneBounds,
+                   config: VisibilityConfig, res: int) -> tuple[mi.Float, mi.Float | None]:
+    """The maps' depth [M * R * R] (and alpha with ``config.fractional``) of ``cams``; the
+    texel of a lamp's map (``lamps``) is z-depth / focal, the others' ``map_texel``."""
+    from mi_shadowgs.core.raster import rasterize
+
     key = "median_depth" if config.depth == "median" else "depth"
     aovs = ("alpha", "median_depth", "depth") if config.layer_bias > 0 else ("alpha", key)
     texel = map_texel(bounds, config, res)
     min_alpha = config.fractional_min_alpha if config.fractional else config.empty_alpha
     texels = res * res
-    depth = dr.empty(mi.Float, len(cams) * texels)  # [L * R * R]
+    depth = dr.empty(mi.Float, len(cams) * texels)  # [M * R * R]
     alpha = dr.empty(mi.Float, len(cams) * texels) if config.fractional else None
     local = dr.arange(mi.UInt32, texels)
     with dr.suspend_grad():
         for i, cam in enumerate(cams):
-            out = rasterize(surfels, cam, None, aovs=aovs, config=config.raster)
+            is_lamp = lamps is not None and lamps[i]
+            raster = lamp_maps.lamp_raster(config.raster, cam) if is_lamp else config.raster
+            out = rasterize(surfels, cam, None, aovs=aovs, config=raster)
             d = out[key].array
             empty = (out["alpha"].array < min_alpha) | (d <= 0)
             if config.layer_bias > 0:
@@ -263,7 +335,9 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
                     step = _window_max(dr.select(empty, -dr.inf, d), res,
                                        config.layer_window) - d
                     slack = dr.maximum(slack, step)
-                d = d + dr.minimum(slack, config.layer_cap_texels * texel)
+                cap = (config.layer_cap_texels / cam.focal) * d if is_lamp else (
+                    config.layer_cap_texels * texel)
+                d = d + dr.minimum(slack, cap)
             # Each map written into its slice by its own kernel, the same for every map and
             # light count (the offset opaque). Left lazy and joined by dr.concat, the maps'
             # post-processing fused into one kernel whose size (L maps) was in its source:
@@ -273,24 +347,25 @@ def render_shadow_maps(surfels, directions: np.ndarray, bounds: SceneBounds,
             if alpha is not None:
                 dr.scatter(alpha, dr.clip(out["alpha"].array, 0.0, 1.0), at)
             dr.eval(depth, *(() if alpha is None else (alpha,)))
-    return ShadowMaps(directions, cams, depth, res, config, texel, alpha)
+    return depth, alpha
 
 
 class MapCache:
-    """Shadow maps of one set of occluders by light direction, rendered once each.
+    """Shadow maps of one set of occluders by light, rendered once each.
 
-    A map depends on the surfels, the bounds, the visibility settings and its direction,
-    never on the view or the materials: ``maps(directions, config)`` renders only the
-    directions not held (the new ones in one ``render_shadow_maps``, each map by its own
-    kernel, so a held map equals a fresh one) and assembles the set. Stage 4's refinement
-    asks again for maps it has (the candidates' current direction, the lights after a move),
-    and the relighting for every light it has seen. At most ``max_bytes`` of maps are held,
-    the least recently used dropped first.
+    A map depends on the surfels, the bounds, the visibility settings and its light (a
+    direction, or a lamp's position and radius), never on the view or the materials:
+    ``maps(directions, config)`` renders only the lights not held (the new ones in one
+    ``render_shadow_maps``, each map by its own kernel, so a held map equals a fresh one)
+    and assembles the set. Stage 4's refinement asks again for maps it has (the candidates'
+    current direction, the lights after a move), and the relighting for every light it has
+    seen. At most ``max_bytes`` of maps are held, the least recently used dropped first.
     """
 
     def __init__(self, surfels, bounds: SceneBounds, max_bytes: int = 256 << 20):
         self.surfels, self.bounds, self.max_bytes = surfels, bounds, max_bytes
-        self._maps: dict[tuple, tuple] = {}  # (config, direction) -> (camera, depth, alpha)
+        # key -> (cameras, depths, alphas or None, texel): a soft lamp's several maps
+        self._maps: dict[tuple, tuple] = {}
         self._bytes = 0
         self.rendered = 0  # maps rendered (not reused), for tests and benchmarks
 
@@ -298,39 +373,67 @@ class MapCache:
     def _key(config: VisibilityConfig, resolution: int, direction) -> tuple:
         return config, resolution, np.asarray(direction, np.float64).round(12).tobytes()
 
+    @staticmethod
+    def _lamp_key(config: VisibilityConfig, resolution: int, position, radius) -> tuple:
+        return (config, resolution, "lamp", np.asarray(position, np.float64).round(12).tobytes(),
+                round(float(radius), 12))
+
     def maps(self, directions: np.ndarray, config: VisibilityConfig,
-             resolution: int | None = None) -> ShadowMaps:
-        """``render_shadow_maps(surfels, directions, bounds, config, resolution)``, reusing
-        held maps."""
+             resolution: int | None = None, positions: np.ndarray | None = None,
+             radii: np.ndarray | None = None) -> ShadowMaps:
+        """``render_shadow_maps(surfels, directions, bounds, config, resolution, positions,
+        radii)``, reusing held maps."""
         resolution = resolution or config.resolution
         dirs = np.atleast_2d(np.asarray(directions, np.float64))
-        keys = [self._key(config, resolution, d) for d in dirs]
+        lamps = lamp_maps.checked_lamps(positions, radii, len(dirs))
+        pos, rad = lamps if lamps is not None else (np.full((len(dirs), 3), np.nan),
+                                                     np.zeros(len(dirs)))
+        local = np.isfinite(pos).all(axis=1)
+        keys = [self._lamp_key(config, resolution, pos[i], rad[i]) if local[i]
+                else self._key(config, resolution, d) for i, d in enumerate(dirs)]
         todo = list(dict.fromkeys(k for k in keys if k not in self._maps))
         if todo:
-            first = {k: i for i, k in reversed(list(enumerate(keys)))}
-            new = render_shadow_maps(self.surfels, dirs[[first[k] for k in todo]],
-                                     self.bounds, config, resolution)
-            r2 = new.resolution * new.resolution
-            for j, k in enumerate(todo):
-                part = dr.arange(mi.UInt32, j * r2, (j + 1) * r2)
-                depth = new.depth if len(todo) == 1 else dr.gather(mi.Float, new.depth, part)
-                alpha = (None if new.alpha is None
-                         else new.alpha if len(todo) == 1
-                         else dr.gather(mi.Float, new.alpha, part))
-                dr.eval(depth, *(() if alpha is None else (alpha,)))
-                self._maps[k] = (new.cameras[j], depth, alpha, new.texel)
-                self._bytes += 4 * r2 * (1 if alpha is None else 2)
-            self.rendered += len(todo)
+            first = [{k: i for i, k in reversed(list(enumerate(keys)))}[k] for k in todo]
+            new = render_shadow_maps(self.surfels, dirs[first], self.bounds, config,
+                                     resolution, **({} if lamps is None else
+                                                    {"positions": pos[first],
+                                                     "radii": rad[first]}))
+            self._hold(todo, new)
         for k in keys:  # most recently used last
             self._maps[k] = self._maps.pop(k)
         parts = [self._maps[k] for k in keys]
-        maps = ShadowMaps(dirs, [p[0] for p in parts], _joined([p[1] for p in parts]),
+        cams = [c for p in parts for c in p[0]]
+        maps = ShadowMaps(dirs, cams, _joined([d for p in parts for d in p[1]]),
                           resolution, config, parts[0][3],
-                          None if parts[0][2] is None else _joined([p[2] for p in parts]))
+                          None if parts[0][2] is None
+                          else _joined([a for p in parts for a in p[2]]))
+        if lamps is not None:
+            light = np.repeat(np.arange(len(parts)), [len(p[0]) for p in parts])
+            maps = dataclasses.replace(maps, positions=pos, radii=rad,
+                                       map_light=None if len(light) == len(dirs) else light)
         while self._bytes > self.max_bytes and len(self._maps) > len(set(keys)):
-            _, depth, alpha, _ = self._maps.pop(next(iter(self._maps)))
-            self._bytes -= 4 * dr.width(depth) * (1 if alpha is None else 2)
+            _, depths, alphas, _ = self._maps.pop(next(iter(self._maps)))
+            self._bytes -= 4 * sum(dr.width(d) for d in depths) * (1 if alphas is None else 2)
         return maps
+
+    def _hold(self, todo: list, new: ShadowMaps) -> None:
+        """Keep each light's maps of ``new`` (rendered for the lights ``todo``, in order)."""
+        r2 = new.resolution * new.resolution
+        light = (np.arange(len(new.cameras)) if new.map_light is None
+                 else np.asarray(new.map_light))
+        for j, k in enumerate(todo):
+            depths, alphas = [], None if new.alpha is None else []
+            ms = np.flatnonzero(light == j)
+            for m in ms:
+                part = dr.arange(mi.UInt32, m * r2, (m + 1) * r2)
+                one = len(new.cameras) == 1
+                depths.append(new.depth if one else dr.gather(mi.Float, new.depth, part))
+                if alphas is not None:
+                    alphas.append(new.alpha if one else dr.gather(mi.Float, new.alpha, part))
+                dr.eval(depths[-1], *(() if alphas is None else (alphas[-1],)))
+            self._maps[k] = ([new.cameras[m] for m in ms], depths, alphas, new.texel)
+            self._bytes += 4 * r2 * len(ms) * (1 if alphas is None else 2)
+        self.rendered += len(new.cameras)
 
 
 def _joined(parts: list) -> mi.Float:
@@ -403,10 +506,13 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
     ``points`` [P] are surface points in world space; with ``normals`` [P] the horizon is
     exact (V = 0 where n . l <= horizon_cos) and the normal offset applies; with
     ``footprint`` [P] (points from a rendered depth map) the receiver offset too. Soft (PCF)
-    when ``maps.config.pcf > 0``, else in {0, 1}.
+    when ``maps.config.pcf > 0``, or for a lamp with a radius, else in {0, 1}. For a lamp
+    the direction l is the point's own, toward the lamp (``lamp_maps``).
     """
     cfg = maps.config
     points = lift_receivers(points, normals, footprint, cfg.receiver_offset)
+    if maps.positions is not None:
+        return lamp_maps.lamp_visibility(points, maps, normals)
     n_lights = maps.count
     n_points = dr.width(points)
     r = maps.resolution
