@@ -30,7 +30,11 @@ def _lamp_lights(centre, direction, distance) -> dict:
         "radius": 0.15, "intensity": [3.0 * distance**2] * 3}],
         "light_map": {"radiance": [[1.0] * 3]}, "room": {"radiance": [0.03] * 3}},
         "relightings": [{"name": "sun", "type": "directional", "lights": [
-            {"direction": [0.0, 1.0, 0.0], "irradiance": [1.0] * 3}]}]}
+            {"direction": [0.0, 1.0, 0.0], "irradiance": [1.0] * 3}]},
+            {"name": "lamp_moved", "type": "point", "lights": [
+                {"position": (centre + [3.0, 4.0, 0.0]).tolist(), "intensity": [75.0] * 3,
+                 "radius": 0.0, "direction": [0.6, 0.8, 0.0]}]},
+            {"name": "env", "type": "envmap", "path": "envmaps/x.exr"}]}
 
 
 def test_a_lamp_is_moved_by_the_whole_similarity():
@@ -61,6 +65,14 @@ def test_a_lamp_is_moved_by_the_whole_similarity():
     assert np.allclose(np.asarray(lamp["position"]) - lamp["distance"] *
                        np.asarray(lamp["direction"]), mapped_centre, atol=1e-12)
     assert "light_map" not in out["training"] and out["training"]["room"]["radiance"]
+    # the new point lamp of the relit test set moves alike; env maps are left out
+    assert [e["name"] for e in out["relightings"]] == ["sun", "lamp_moved"]
+    moved = out["relightings"][1]["lights"][0]
+    src = lights["relightings"][1]["lights"][0]
+    assert np.allclose(moved["position"], (m @ np.append(src["position"], 1.0))[:3],
+                       atol=1e-12)
+    assert np.allclose(moved["intensity"], np.array(src["intensity"]) * 0.37**2, rtol=1e-12)
+    assert moved["radius"] == 0.0
     assert lights["training"]["lights"][0]["position"] == true["position"]  # input untouched
     fitted = np.asarray(true["position"]) + rng.normal(0, 0.2, 3)
     here = lamp_errors([direction], [1.0], [fitted], lights["training"]["lights"])
@@ -75,8 +87,9 @@ def test_a_lamp_is_moved_by_the_whole_similarity():
 
 def _scores(**kw) -> dict:
     base = {"light_angular_errors_deg": [0.5], "strongest_light_share": 0.95,
-            "fitted_lights": 1, "shadow_iou": 0.80, "albedo_psnr": 18.0,
-            "relight_psnr": 20.0, "lamp_position_error": [0.03]}
+            "fitted_lights": 1, "fitted_lamps": 1, "shadow_iou": 0.80, "albedo_psnr": 18.0,
+            "relight_psnr": 20.0, "lamp_position_error": [0.03],
+            "relighting": {"lamp_moved": {"psnr": 21.5, "ssim": 0.9}}}
     return {**base, **kw}
 
 
@@ -89,9 +102,10 @@ def _kind(scores, gain=0.01, error=None) -> dict:
     return out if error is None else {**out, "error": error, "where": "x.py:1"}
 
 
-def _case(lab_scores, lab_gain=0.01, error=None) -> dict:
+def _case(lab_scores, lab_gain=0.01, error=None, control_lamps=0) -> dict:
     control = _kind(_scores(lamp_position_error=None, light_angular_errors_deg=[0.3],
-                            shadow_iou=0.82, albedo_psnr=18.8), gain=0.002)
+                            shadow_iou=0.82, albedo_psnr=18.8, fitted_lamps=control_lamps,
+                            relighting={}), gain=0.002)
     labk = _kind(lab_scores, lab_gain, error)
     rows = lab.acceptance(labk, control)
     return {"scene": "default", "distance": 6.0, "control": control, "lab": labk,
@@ -110,7 +124,7 @@ def test_the_acceptance_table_marks_each_bound(tmp_path):
     ok = _case(_scores())
     marks = {r["figure"].split(" (")[0]: r["status"] for r in ok["acceptance"]}
     assert ok["passed"] is True and set(marks.values()) == {"pass", "info"}
-    assert len([m for m in marks.values() if m == "pass"]) == 6
+    assert len([m for m in marks.values() if m == "pass"]) == 7
     cases = [
         (_scores(lamp_position_error=[0.06]), "lamp position error"),
         (_scores(lamp_position_error=[None]), "lamp position error"),  # fitted directional
@@ -125,6 +139,10 @@ def test_the_acceptance_table_marks_each_bound(tmp_path):
                   if r["status"] == "fail"]
         assert failed == [figure], (scores, failed)
         assert case["passed"] is False
+    lamped = _case(_scores(), control_lamps=1)  # the directional capture fitted a lamp
+    assert lamped["passed"] is False and [r["figure"] for r in lamped["acceptance"]
+                                          if r["status"] == "fail"] == [
+        "of them lamps (the control's must stay directional)"]
     above = _case(_scores(shadow_iou=0.9, albedo_psnr=25.0))  # better than the control
     assert above["passed"] is True
     assert _case(_scores(), lab_gain=0.04)["passed"] is False
@@ -146,6 +164,7 @@ def test_the_acceptance_table_marks_each_bound(tmp_path):
     assert "| shadow IoU | 0.82 | 0.8 | >= control - 0.05 | **pass** |" in md
     assert "run failed: `TypeError: boom`" in md and "not wholly measured" in md
     assert "| run, lab / control | | 1.00x |" in md
+    assert "| relight PSNR (dB) under a new point lamp | n/a | 21.50 |  |  |" in md
     from scripts.results import lab_result
 
     doc = lab_result(record, "CPU, 2 cores")
@@ -232,11 +251,12 @@ def test_bad_options_and_other_settings_exit_2(tmp_path, capsys):
     assert exc.value.code == 2 and "views = 48" in err and "24" in err
 
 
-def test_cases_share_their_control_and_only_the_lab_fits_lamps(tmp_path, monkeypatch,
-                                                               capsys):
-    """Two distances of one scene: one control run, two lab runs (``material.lamps=auto``),
-    ``--set`` in all; a lab run that raises is recorded and the study exits 1."""
+def test_cases_share_their_control_and_the_lab_fits_lamps(tmp_path, monkeypatch, capsys):
+    """Two distances of one scene: one control run (the preset's ``material.lamps``), two
+    lab runs (``material.lamps=auto``), ``--set`` in all; a lab run that raises is
+    recorded and the study exits 1."""
     import validation.photos as photos
+    from mi_shadowgs.presets import get_config
 
     made, ran = [], []
 
@@ -271,7 +291,8 @@ def test_cases_share_their_control_and_only_the_lab_fits_lamps(tmp_path, monkeyp
     assert lab.main(argv) == 1
     assert "runs that failed: default at 12 (lab)" in capsys.readouterr().err
     assert made == ["default/control", "default/lamp6", "default/control", "default/lamp12"]
-    assert [r[1:] for r in ran] == [("off", 50), ("auto", 50), ("off", 50), ("auto", 50)]
+    preset = get_config("cpu-small").material.lamps  # the control runs as the preset does
+    assert [r[1:] for r in ran] == [(preset, 50), ("auto", 50), (preset, 50), ("auto", 50)]
     rec = json.loads((out / "lab.json").read_text())
     assert [c["distance"] for c in rec["cases"]] == [6.0, 12.0]
     assert rec["cases"][1]["lab"]["error"] == "TypeError: no lamp maps"

@@ -99,8 +99,9 @@ def mapped_lights(lights: dict, frame) -> dict:
     """``lights.json`` in the other frame of ``frame`` (a ``Similarity``, or a rotation
     [3, 3] alone): every light's direction rotated, and a lamp's position moved by the whole
     similarity (p' = s R p + t), its distance and radius scaled by s and its intensity by
-    s^2 (its irradiance at the object's centre, which the photos fix, stays). Env-map
-    relightings and the grid light map (which would need resampling) are left out."""
+    s^2 (its irradiance at the object's centre, which the photos fix, stays); the same for
+    the lamps of a point relighting. Env-map relightings and the grid light map (which would
+    need resampling) are left out."""
     from mi_shadowgs.dataset.world_frame import Similarity
 
     if not isinstance(frame, Similarity):
@@ -108,8 +109,10 @@ def mapped_lights(lights: dict, frame) -> dict:
                            translation=np.zeros(3))
 
     def turn(entry: dict) -> dict:
-        d = frame.rotation @ np.asarray(entry["direction"], np.float64)
-        out = {**entry, "direction": (d / np.linalg.norm(d)).tolist()}
+        out = dict(entry)
+        if entry.get("direction") is not None:
+            d = frame.rotation @ np.asarray(entry["direction"], np.float64)
+            out["direction"] = (d / np.linalg.norm(d)).tolist()
         if entry.get("position") is not None:
             out["position"] = frame.points(np.asarray(entry["position"],
                                                       np.float64)[None])[0].tolist()
@@ -122,7 +125,7 @@ def mapped_lights(lights: dict, frame) -> dict:
     training = {k: v for k, v in lights["training"].items() if k != "light_map"}
     training["lights"] = [turn(lt) for lt in lights["training"]["lights"]]
     relit = [{**e, "lights": [turn(lt) for lt in e["lights"]]}
-             for e in lights.get("relightings", []) if e.get("type") == "directional"]
+             for e in lights.get("relightings", []) if e.get("type") in ("directional", "point")]
     return {**lights, "training": training, "relightings": relit}
 
 
@@ -165,6 +168,8 @@ def score_run(run: Path, train, test, preset: str, quantile: float, settings=Non
         "spurious_irradiance_fraction": metrics.get("spurious_irradiance_fraction"),
         "strongest_light_share": metrics.get("strongest_light_share"),
         "lamp_position_error": metrics.get("lamp_position_error"),
+        "fitted_lamps": int(np.sum([p is not None for p in json.loads(
+            (fit_dir / "light.json").read_text()).get("positions") or []])),
         "relighting": {n: {k: r[k] for k in ("psnr", "ssim")}
                        for n, r in metrics["relighting"].items()}}
 
