@@ -186,7 +186,9 @@ def lab_result(record: dict, machine: str) -> dict:
                          "light_angular_errors_deg"), 1) for k in ("control", "lab")),
                      pair(case, "strongest_light_share", 2), pair(case, "fitted_lights", 0),
                      pair(case, "shadow_iou", 3), pair(case, "albedo_psnr", 2), gain(case),
-                     pair(case, "relight_psnr", 2), minutes(case),
+                     pair(case, "relight_psnr", 2),
+                     _fmt(((lab.get("relighting") or {}).get("lamp_moved") or {}).get("psnr"),
+                          2), minutes(case),
                      verdicts[case["passed"]]])
     s = record["settings"]
     return {
@@ -205,7 +207,8 @@ def lab_result(record: dict, machine: str) -> dict:
         "tables": [{"columns": ["case", "lamp position err (share)",
                                 "light err deg (control / lab)", "strongest light share",
                                 "lights kept", "shadow IoU", "albedo dB",
-                                "gain err (one scale)", "relight dB", "run min", "bounds"],
+                                "gain err (one scale)", "relight dB",
+                                "lab relight dB, new point lamp", "run min", "bounds"],
                     "rows": rows}],
     }
 
