@@ -157,6 +157,62 @@ def pipeline_result(rows: list[dict], command: str, machine: str, date: str) -> 
     }
 
 
+def lab_result(record: dict, machine: str) -> dict:
+    """The lab captures' acceptance table from ``validation.lab``'s ``lab.json``: one row
+    per scene and lamp distance, each figure as "control / lab" where both have it."""
+    def pair(case, key, digits):
+        return " / ".join(_fmt(case[k].get("scores", {}).get(key), digits)
+                          for k in ("control", "lab"))
+
+    def first(seq, digits):
+        return _fmt(seq[0] if seq else None, digits)
+
+    def gain(case):
+        g = case["lab"].get("gains")
+        return _fmt(g["global"]["max"] if g and "global" in g else None, 3)
+
+    def minutes(case):
+        return " / ".join(_fmt(None if case[k]["times"].get("run_s") is None else
+                               case[k]["times"]["run_s"] / 60, 0) for k in ("control", "lab"))
+
+    verdicts = {True: "pass", False: "fail", None: "not measured"}
+    rows = []
+    for case in record["cases"]:
+        lab = case["lab"].get("scores", {})
+        pos = lab.get("lamp_position_error")
+        rows.append([f"{case['scene']}, {case['distance']:g} radii",
+                     "directional" if pos and pos[0] is None else first(pos, 3),
+                     " / ".join(first(case[k].get("scores", {}).get(
+                         "light_angular_errors_deg"), 1) for k in ("control", "lab")),
+                     pair(case, "strongest_light_share", 2), pair(case, "fitted_lights", 0),
+                     pair(case, "shadow_iou", 3), pair(case, "albedo_psnr", 2), gain(case),
+                     pair(case, "relight_psnr", 2),
+                     _fmt(((lab.get("relighting") or {}).get("lamp_moved") or {}).get("psnr"),
+                          2), minutes(case),
+                     verdicts[case["passed"]]])
+    s = record["settings"]
+    return {
+        "order": 5, "title": "Lab captures: a lamp in a room against its ideal control",
+        "command": record["command"], "produced_by": "python -m validation.lab ... --results "
+        "results", "machine": machine, "commit": str(record.get("commit", "unknown"))[:12],
+        "date": record.get("date", ""),
+        "text": [f"Preset `{s['preset']}`; {s['views']} photos of {s['photo_size'][0]}x"
+                 f"{s['photo_size'][1]} on the mat, imported with SfM at {s['max_size']} px; "
+                 "the lab capture: a sphere lamp of radius 0.15 radii, room light, +-0.35 EV "
+                 "and +-4% white balance per photo, sensor noise, JPEG; the control: one "
+                 "directional light of the lamp's direction and irradiance, nothing else. "
+                 "Bounds: position <= 0.05 of the distance, direction <= 2 deg, strongest "
+                 "light >= 0.90, shadow IoU and albedo at most 0.05 and 1 dB below the "
+                 "control's, gains <= 0.03."],
+        "tables": [{"columns": ["case", "lamp position err (share)",
+                                "light err deg (control / lab)", "strongest light share",
+                                "lights kept", "shadow IoU", "albedo dB",
+                                "gain err (one scale)", "relight dB",
+                                "lab relight dB, new point lamp", "run min", "bounds"],
+                    "rows": rows}],
+    }
+
+
 def _fmt(value, digits: int) -> str:
     if value is None:
         return "-"

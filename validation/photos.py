@@ -95,16 +95,37 @@ def fit_frame(imported: dict, truth: dict):
     return sim, {"photos": len(names), **camera_errors(est, ref)}
 
 
-def mapped_lights(lights: dict, rotation: np.ndarray) -> dict:
-    """``lights.json`` with every directional light rotated into the other frame; env-map
-    relightings and the grid light map (which would need resampling) are left out."""
-    def turn(entry: dict) -> dict:
-        d = rotation @ np.asarray(entry["direction"], np.float64)
-        return {**entry, "direction": (d / np.linalg.norm(d)).tolist()}
+def mapped_lights(lights: dict, frame) -> dict:
+    """``lights.json`` in the other frame of ``frame`` (a ``Similarity``, or a rotation
+    [3, 3] alone): every light's direction rotated, and a lamp's position moved by the whole
+    similarity (p' = s R p + t), its distance and radius scaled by s and its intensity by
+    s^2 (its irradiance at the object's centre, which the photos fix, stays); the same for
+    the lamps of a point relighting. Env-map relightings and the grid light map (which would
+    need resampling) are left out."""
+    from mi_shadowgs.dataset.world_frame import Similarity
 
-    training = {"lights": [turn(lt) for lt in lights["training"]["lights"]]}
+    if not isinstance(frame, Similarity):
+        frame = Similarity(scale=1.0, rotation=np.asarray(frame, np.float64),
+                           translation=np.zeros(3))
+
+    def turn(entry: dict) -> dict:
+        out = dict(entry)
+        if entry.get("direction") is not None:
+            d = frame.rotation @ np.asarray(entry["direction"], np.float64)
+            out["direction"] = (d / np.linalg.norm(d)).tolist()
+        if entry.get("position") is not None:
+            out["position"] = frame.points(np.asarray(entry["position"],
+                                                      np.float64)[None])[0].tolist()
+            for key, power in (("distance", 1), ("radius", 1), ("intensity", 2)):
+                if entry.get(key) is not None:
+                    out[key] = (np.asarray(entry[key], np.float64) *
+                                frame.scale ** power).tolist()
+        return out
+
+    training = {k: v for k, v in lights["training"].items() if k != "light_map"}
+    training["lights"] = [turn(lt) for lt in lights["training"]["lights"]]
     relit = [{**e, "lights": [turn(lt) for lt in e["lights"]]}
-             for e in lights.get("relightings", []) if e.get("type") == "directional"]
+             for e in lights.get("relightings", []) if e.get("type") in ("directional", "point")]
     return {**lights, "training": training, "relightings": relit}
 
 
@@ -116,9 +137,10 @@ def mapped_split(dataset, sim, lights: dict):
     return dataclasses.replace(dataset, views=views, lights=lights)
 
 
-def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
+def score_run(run: Path, train, test, preset: str, quantile: float, settings=None) -> dict:
     """Stage 5's evaluation of ``run``'s stage-4 fit on ``test`` (cameras and lights in the
-    run's frame)."""
+    run's frame), with the shadow maps and relighting of ``settings`` (a RunConfig; None:
+    ``preset``'s)."""
     from mi_shadowgs.presets import get_config
     from mi_shadowgs.stages.common import load_training_views
     from mi_shadowgs.stages.evaluation import metrics as evaluation
@@ -131,7 +153,7 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
     run_train = load_training_views(Path(json.loads((run / "summary.json").read_text())
                                          ["dataset"]))
     bounds = occluder_bounds(result.surfels, run_train.cameras, quantile)
-    settings = get_config(preset)
+    settings = get_config(preset) if settings is None else settings
     metrics, images = evaluate_decomposition(result, train, test, bounds, settings.visibility,
                                              settings.relight, figure_lights=1)
     # The albedo on the object alone: the mat's printed texture is flattened by stage 4's
@@ -144,34 +166,47 @@ def score_run(run: Path, train, test, preset: str, quantile: float) -> dict:
         "light_angular_errors_deg": metrics.get("angular_error_deg"),
         "fitted_lights": metrics.get("fitted_lights"),
         "spurious_irradiance_fraction": metrics.get("spurious_irradiance_fraction"),
+        "strongest_light_share": metrics.get("strongest_light_share"),
+        "lamp_position_error": metrics.get("lamp_position_error"),
+        "fitted_lamps": int(np.sum([p is not None for p in json.loads(
+            (fit_dir / "light.json").read_text()).get("positions") or []])),
         "relighting": {n: {k: r[k] for k in ("psnr", "ssim")}
                        for n, r in metrics["relighting"].items()}}
 
 
 def _timed_run(data: Path, out: Path, preset: str, times: Path,
                albedo_detail: float | None = None, seed: int = 0) -> tuple[float, bool]:
-    """Stages 1-5 on ``data`` (``RunConfig.albedo_detail``, ``RunConfig.seed``); (seconds,
-    resumed). A run made whole by this call takes the call's seconds. A run resumed after an
+    """``timed_run`` at ``preset`` with ``RunConfig.albedo_detail`` and ``RunConfig.seed``."""
+    from mi_shadowgs.presets import build
+
+    config = build(preset, {} if albedo_detail is None else
+                   {"material": {"detail_prior": albedo_detail}}, seed=seed)
+    return timed_run(data, out, config, times)
+
+
+def timed_run(data: Path, out: Path, config, times: Path, key: str | None = None,
+              study: str = "validation.photos") -> tuple[float, bool]:
+    """Stages 1-5 on ``data`` with settings ``config`` (a RunConfig); (seconds, resumed). A
+    run made whole by this call takes the call's seconds. A run resumed after an
     interruption adds the seconds its reused stages 1, 2 and 4 recorded in their own files
     (``validation.pipeline.stage_seconds``), and is marked resumed: what the interrupted call
     spent on other stages is not known. A finished run is reused and its time read back
-    from ``times`` (JSON: run folder name -> [seconds, resumed])."""
+    from ``times`` (JSON: ``key``, by default the run folder's name -> [seconds, resumed]).
+    A run folder made with other settings exits 2 (``study`` names the command)."""
     from mi_shadowgs.io.atomic import write_json
     from mi_shadowgs.io.provenance import ProvenanceError
     from mi_shadowgs.pipeline import run_pipeline
-    from mi_shadowgs.presets import build
     from validation.pipeline import STAGE_KEYS, stage_seconds
 
+    key = out.name if key is None else key
     known = json.loads(times.read_text()) if times.is_file() else {}
     finished = (out / "summary.json").is_file()
-    config = build(preset, {} if albedo_detail is None else
-                   {"material": {"detail_prior": albedo_detail}}, seed=seed)
     try:
         summary = run_pipeline(data, out, config, progress=True)
     except ProvenanceError as exc:  # e.g. another --albedo-detail or --seed into the same OUT
-        fail(f"{exc}; validation.photos has no --overwrite: give another --out")
-    if finished and out.name in known:
-        entry = known[out.name]  # a bare number: written before the resumed flag
+        fail(f"{exc}; {study} has no --overwrite: give another --out")
+    if finished and key in known:
+        entry = known[key]  # a bare number: written before the resumed flag
         seconds, resumed = (entry, False) if isinstance(entry, int | float) else entry
         return float(seconds), bool(resumed)
     seconds, resumed = float(summary["total_seconds"]), False
@@ -181,7 +216,7 @@ def _timed_run(data: Path, out: Path, preset: str, times: Path,
         seconds += sum(recorded[k] or 0.0 for k, name in STAGE_KEYS.items()
                        if own.get(name) is None)
         resumed = True
-    write_json(times, {**known, out.name: [seconds, resumed]})
+    write_json(times, {**known, key: [seconds, resumed]})
     return seconds, resumed
 
 
@@ -280,7 +315,7 @@ def main(argv=None) -> int:
     quantile = base.bounds_quantile
     train, test = load_dataset(gt_data, "train"), load_dataset(gt_data, "test")
     sim, frame = fit_frame(cameras_by_photo(imported), truth(photoset))
-    lights = mapped_lights(train.lights, sim.rotation)
+    lights = mapped_lights(train.lights, sim)
     gt_scores = score_run(out / "run-gt", dataclasses.replace(train, lights=mapped_lights(
         train.lights, np.eye(3))), test, args.preset, quantile)
     photo_scores = score_run(out / "run-photos", mapped_split(train, sim, lights),
