@@ -415,12 +415,12 @@ def view_gains_table(path: Path) -> dict | None:
     if not views:
         return None
     truth = record.get("truth")
-    cols = ["view", "photo", "EV", "gain R", "gain G", "gain B"]
+    cols = ["view", "photo", "fit PSNR (dB)", "EV", "gain R", "gain G", "gain B"]
     if truth:
         cols += ["true EV", "true R", "true G", "true B", "error (%)"]
     rows = []
     for v in views:
-        row = [v["name"], v.get("photo") or "", v["ev"], *v["gain"]]
+        row = [v["name"], v.get("photo") or "", v.get("psnr"), v["ev"], *v["gain"]]
         if truth:
             scale = truth["scale"]  # the truth in the fit's scale, channel by channel
             t = [g / s for g, s in zip(v["true_gain"], scale, strict=True)]
@@ -428,7 +428,8 @@ def view_gains_table(path: Path) -> dict | None:
         rows.append(row)
     note = ("gain: photo = gain * render, per channel; EV: the mean of the channels' log2 "
             "gains; the gains' log has mean 0 over the views in every channel (the colours "
-            "take the rest).")
+            "take the rest); fit PSNR: the gained render against the photo (where it is low "
+            "the model does not explain the photo, and its gain is not measured).")
     if truth:
         note += (f" True gains ({truth['file']}) divided by one scale per channel; error: "
                  f"the largest over the channels of |gain / true - 1|: max "

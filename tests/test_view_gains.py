@@ -50,6 +50,11 @@ def _true_gains(views: int, seed: int = 3) -> np.ndarray:
                                                                         (views, 3)))
 
 
+def _collect(into: list):
+    """Stage 1's callbacks that put the fitted gains [V, 3] into ``into``."""
+    return geometry_train.Callbacks(on_gains=lambda gains, psnr: into.append(gains))
+
+
 # -- the maths against float64 NumPy ----------------------------------------------------------
 def test_gain_and_projection_match_float64_reference():
     rng = np.random.default_rng(0)
@@ -61,13 +66,38 @@ def test_gain_and_projection_match_float64_reference():
     proj = vg.project(mi.Float(lg.ravel().astype(np.float32)), 4).numpy().reshape(4, 3)
     np.testing.assert_allclose(proj, lg - lg.mean(0), atol=1e-6)
     # the step keeps the channels' means at 0 whatever the gradient did
-    gains = vg.ViewGains(lg, 0.1)
+    gains = vg.ViewGains(lg - lg.mean(0))
     dr.backward(dr.sum(gains.log_gain.array * mi.Float(rng.normal(size=12).astype(np.float32))))
-    gains.step()
+    gains.step(1, 0.1)
     np.testing.assert_allclose(np.log(gains.gains()).mean(0), 0.0, atol=1e-6)
     # least squares per channel: exact for a scaled image
     np.testing.assert_allclose(vg.least_squares_gain(img, img * [0.5, 1.0, 2.0]),
                                [0.5, 1.0, 2.0], rtol=1e-12)
+
+
+def test_per_view_adam_matches_float64_reference():
+    """Each view's moments and bias correction advance only at its own steps; then every
+    channel's log gains are shifted to mean 0."""
+    rng = np.random.default_rng(4)
+    v_count, b1, b2, eps = 4, 0.9, 0.999, 1e-15
+    p = rng.normal(0, 0.2, (v_count, 3))
+    p -= p.mean(0)
+    m, v, visits = np.zeros_like(p), np.zeros_like(p), np.zeros(v_count)
+    gains = vg.ViewGains(p)
+    for index, lr in ((1, 0.05), (1, 0.02), (3, 0.05), (1, 0.01)):
+        g = np.zeros_like(p)
+        g[index] = rng.normal(0, 1, 3)
+        dr.backward(dr.sum(gains.log_gain.array * mi.Float(g.ravel().astype(np.float32))))
+        gains.step(index, lr)
+        visits[index] += 1
+        m[index] = b1 * m[index] + (1 - b1) * g[index]
+        v[index] = b2 * v[index] + (1 - b2) * g[index] ** 2
+        k = visits[index]
+        p[index] -= lr * (m[index] / (1 - b1 ** k)) / (np.sqrt(v[index] / (1 - b2 ** k)) + eps)
+        p -= p.mean(0)
+        np.testing.assert_allclose(gains.log_gain.numpy().reshape(-1, 3), p, atol=2e-6)
+    # a view's first step moves it by lr (Adam's bias-corrected step), whatever V is
+    assert np.abs(np.asarray(gains.m.numpy())).reshape(-1, 3)[[0, 2]].max() == 0.0
 
 
 def test_gain_errors_and_ev_against_reference():
@@ -106,7 +136,7 @@ def test_loss_gradient_in_log_gain_matches_finite_differences():
     lg = rng.normal(0, 0.2, (3, 3))
 
     def loss(log_gain, grad=False):
-        gains = vg.ViewGains(log_gain, 0.01)
+        gains = vg.ViewGains(log_gain)
         total, _ = geometry_train.geometry_loss(s, view, cfg, 0, gains, 1)
         if grad:
             dr.backward(total)
@@ -139,7 +169,7 @@ def test_stage_1_recovers_known_gains(tiny):
         v.image = (v.image * g).astype(np.float32)
     got = []
     geometry_train.train_geometry(train, TINY, progress=False,
-                                  callbacks=geometry_train.Callbacks(on_gains=got.append))
+                                  callbacks=_collect(got))
     e = vg.gain_errors(got[0], true)
     assert e["max"] < 0.12 and e["mean"] < 0.03, e
     np.testing.assert_allclose(np.log(got[0]).mean(0), 0.0, atol=1e-5)
@@ -171,17 +201,17 @@ def test_checkpoint_round_trip_and_resume(tiny, tmp_path):
             callbacks=geometry_train.Callbacks(on_checkpoint=save, on_step=kill_at_50))
     arrays, meta = ckpt.load_checkpoint(tmp_path)
     state = geometry_train.TrainState.from_numpy(arrays, cfg)
-    assert meta["step"] == 40 and state.gains.opt.t == 40
+    assert meta["step"] == 40 and state.gains.visits.numpy().sum() == 40
     np.testing.assert_array_equal(state.gains.gains(), saved[-1])
     again = state.to_numpy()
-    for key in ("gains/log_gain", "gains/adam_m", "gains/adam_v", "gains/t"):
+    for key in ("gains/log_gain", "gains/adam_m", "gains/adam_v", "gains/visits"):
         np.testing.assert_array_equal(again[key], arrays[key])
     assert np.abs(np.log(saved[-1])).max() > 1e-3  # the gains moved from 1
     resumed, straight = [], []
     geometry_train.train_geometry(train, cfg, state=state, progress=False,
-                                  callbacks=geometry_train.Callbacks(on_gains=resumed.append))
+                                  callbacks=_collect(resumed))
     geometry_train.train_geometry(train, cfg, progress=False,
-                                  callbacks=geometry_train.Callbacks(on_gains=straight.append))
+                                  callbacks=_collect(straight))
     # float atomics reorder the render's sums: the runs agree closely, not bit for bit
     np.testing.assert_allclose(resumed[0], straight[0], rtol=2e-3)
 
@@ -226,7 +256,7 @@ def test_record_matches_photos_and_truth(tmp_path):
     fitted = true / [1.1, 1.0, 0.95]
     fitted[1] *= 1.02
     views = [f"train/r_{i:03d}" for i in range(3)]
-    rec = vg.write_gains(tmp_path / "g.json", fitted, views, data)
+    rec = vg.write_gains(tmp_path / "g.json", fitted, [30.0] * 3, views, data)
     assert [v["photo"] for v in rec["views"]] == names
     e = vg.gain_errors(fitted, true)
     assert rec["truth"]["max_error"] == pytest.approx(e["max"]) and e["max"] > 0.01

@@ -21,6 +21,7 @@ gains (``photos/gains.json``, written by ``generate --photos``) after one scale 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import drjit as dr
@@ -28,13 +29,11 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.core import jit
-from mi_shadowgs.core.optim import SurfelAdam
 
 GAINS_FILE = "view_gains.json"  # in stage 1's folder
 # A fitted gain outside this range (3 EV either way) did not converge: a photo that dark or
 # bright has nothing left to fit.
 GAIN_RANGE = (1.0 / 8.0, 8.0)
-_KEY = "log_gain"
 
 
 def is_photo_import(root) -> bool:
@@ -49,6 +48,16 @@ def enabled(config, root) -> bool:
     """Whether stage 1 fits the gains on dataset folder ``root`` with ``config`` (a
     ``GeometryConfig``): ``view_gains`` "on", or "auto" and ``is_photo_import(root)``."""
     return config.view_gains == "on" or (config.view_gains == "auto" and is_photo_import(root))
+
+
+def gain_lr(config, step: int) -> float:
+    """The log gains' learning rate at 0-based ``step``: log-linear from
+    ``config.lr_view_gain`` to ``lr_view_gain_final`` over ``config.iterations``. Each view's
+    gain gets a gradient once in V steps, and Adam scales that sparse gradient up by about
+    sqrt(V), so a constant rate leaves the gains jittering by several percent."""
+    t = min(max(step / max(config.iterations, 1), 0.0), 1.0)
+    return math.exp(math.log(config.lr_view_gain) * (1 - t)
+                    + math.log(config.lr_view_gain_final) * t)
 
 
 # -- the maths ------------------------------------------------------------------------------
@@ -71,55 +80,80 @@ def project(log_gain: mi.Float, views: int) -> mi.Float:
 
 
 class ViewGains:
-    """The training views' log gains [V, 3] and their Adam state."""
+    """The training views' log gains [V, 3] and their optimiser: Adam per view.
 
-    def __init__(self, log_gain: np.ndarray, lr: float, m: np.ndarray | None = None,
-                 v: np.ndarray | None = None, t: int = 0):
+    A view's gain gets a gradient only in the steps that render it, one in V. Adam over all
+    steps would average its second moment over the V - 1 steps without one as well and so
+    scale the view's step up by about sqrt(V) (8x for 64 views): the gains would jitter by
+    several percent about their optimum. So each view's moments, and its bias correction,
+    advance only at its own steps (as a sparse Adam does); a step moves about ``lr``.
+    """
+
+    BETA_1, BETA_2, EPS = 0.9, 0.999, 1e-15
+
+    def __init__(self, log_gain: np.ndarray, m: np.ndarray | None = None,
+                 v: np.ndarray | None = None, visits: np.ndarray | None = None):
         log_gain = np.asarray(log_gain, np.float32).reshape(-1, 3)
-        self.views = len(log_gain)
-        self.opt = SurfelAdam({_KEY: log_gain}, {_KEY: lr})
-        if m is not None:
-            self.opt.load({_KEY: log_gain}, {_KEY: m}, {_KEY: v}, t)
+        self.views = n = len(log_gain)
+        self.m = jit.tensor(np.zeros((n, 3)) if m is None else m).array  # [V * 3]
+        self.v = jit.tensor(np.zeros((n, 3)) if v is None else v).array  # [V * 3]
+        self.visits = jit.tensor(np.zeros(n) if visits is None else visits).array  # [V]
+        self.log_gain = jit.tensor(log_gain)  # [V, 3]
+        dr.enable_grad(self.log_gain)
 
     @classmethod
-    def fresh(cls, views: int, lr: float) -> ViewGains:
-        return cls(np.zeros((views, 3), np.float32), lr)
-
-    @property
-    def log_gain(self) -> mi.TensorXf:
-        """[V, 3], differentiable."""
-        return self.opt.params[_KEY]
+    def fresh(cls, views: int) -> ViewGains:
+        return cls(np.zeros((views, 3), np.float32))
 
     def apply(self, image: mi.TensorXf, index: int) -> mi.TensorXf:
         """``image`` [..., 3] (colours or an image) of training view ``index`` times its
         gain."""
         return apply_gain(image, self.log_gain, jit.opaque(index, mi.UInt32))
 
-    def step(self) -> None:
-        """One Adam step, then ``project`` (no host read)."""
-        self.opt.step()
-        p = mi.TensorXf(project(dr.detach(self.log_gain.array), self.views), (self.views, 3))
-        dr.enable_grad(p)
-        self.opt.params[_KEY] = p
-        dr.eval(p)
+    def step(self, index: int, lr: float) -> None:
+        """Adam's step of view ``index``'s log gains with the gradient on them, at learning
+        rate ``lr``, then ``project`` (no host read)."""
+        b1, b2 = self.BETA_1, self.BETA_2
+        i = jit.opaque(index, mi.UInt32)
+        hit = dr.arange(mi.UInt32, self.views * 3) // 3 == i  # [V * 3] this view's entries
+        g = dr.grad(self.log_gain.array)
+        self.visits = self.visits + dr.select(dr.arange(mi.UInt32, self.views) == i, 1.0, 0.0)
+        k = dr.gather(mi.Float, self.visits, i)  # this view's steps, this one included
+        self.m = dr.select(hit, dr.fma(self.m, b1, (1.0 - b1) * g), self.m)
+        self.v = dr.select(hit, dr.fma(self.v, b2, (1.0 - b2) * g * g), self.v)
+        c1 = 1.0 / (1.0 - dr.exp(k * math.log(b1)))
+        c2 = 1.0 / (1.0 - dr.exp(k * math.log(b2)))
+        move = jit.opaque(lr) * (self.m * c1) / (dr.sqrt(self.v * c2) + self.EPS)
+        p = dr.detach(self.log_gain.array) - dr.select(hit, move, 0.0)
+        self.log_gain = mi.TensorXf(project(p, self.views), (self.views, 3))
+        dr.enable_grad(self.log_gain)
+        dr.eval(self.log_gain, self.m, self.v, self.visits)
+
+    def set(self, gains: np.ndarray) -> None:
+        """Set the gains to ``gains`` [V, 3], projected (the moments stay)."""
+        lg = np.log(np.asarray(gains, np.float64).reshape(self.views, 3))
+        self.log_gain = jit.tensor(lg - lg.mean(0))
+        dr.enable_grad(self.log_gain)
 
     def gains(self) -> np.ndarray:
         """The gains [V, 3] (float64)."""
         return np.exp(np.asarray(self.log_gain.numpy(), np.float64).reshape(-1, 3))
 
     def to_numpy(self, prefix: str) -> dict[str, np.ndarray]:
-        p, m, v = self.opt.to_numpy()
-        return {prefix + "log_gain": p[_KEY], prefix + "adam_m": m[_KEY],
-                prefix + "adam_v": v[_KEY], prefix + "t": np.array([self.opt.t], np.int64)}
+        def host(x, shape):
+            return np.asarray(x.numpy(), np.float32).reshape(shape)
+        n = self.views
+        return {prefix + "log_gain": host(self.log_gain.array, (n, 3)),
+                prefix + "adam_m": host(self.m, (n, 3)), prefix + "adam_v": host(self.v, (n, 3)),
+                prefix + "visits": host(self.visits, (n,))}
 
     @classmethod
-    def from_numpy(cls, arrays: dict[str, np.ndarray], prefix: str, lr: float
-                   ) -> ViewGains | None:
+    def from_numpy(cls, arrays: dict[str, np.ndarray], prefix: str) -> ViewGains | None:
         """The gains saved by ``to_numpy(prefix)``; None when ``arrays`` has none."""
         if prefix + "log_gain" not in arrays:
             return None
-        return cls(arrays[prefix + "log_gain"], lr, arrays[prefix + "adam_m"],
-                   arrays[prefix + "adam_v"], int(arrays[prefix + "t"][0]))
+        return cls(arrays[prefix + "log_gain"], arrays[prefix + "adam_m"],
+                   arrays[prefix + "adam_v"], arrays[prefix + "visits"])
 
 
 def check_gains(gains: np.ndarray, names: list[str]) -> None:
@@ -184,17 +218,18 @@ def gain_errors(fitted: np.ndarray, truth: np.ndarray) -> dict:
             "per_view": rel.max(-1).tolist(), "scale": scale.tolist()}
 
 
-def gains_record(gains: np.ndarray, names: list[str], root) -> dict:
-    """The JSON of ``GAINS_FILE``: each training view's name, photo, gain, EV and white
-    balance; with a true gain for every view's photo (``truth_file``), the truth and the
+def gains_record(gains: np.ndarray, psnr: list[float], names: list[str], root) -> dict:
+    """The JSON of ``GAINS_FILE``: each training view's name, photo, gain, EV, white
+    balance and the PSNR of its gained render (``psnr``: a low one says the gain is not
+    measured); with a true gain for every view's photo (``truth_file``), the truth and the
     errors (``gain_errors``)."""
     g = np.asarray(gains, np.float64).reshape(-1, 3)
     photos = photo_names(root) if root is not None else []
     photos = photos if len(photos) == len(g) else [None] * len(g)
     ev, wb = ev_and_white_balance(g)
     views = [{"name": n, "photo": p, "gain": gk.tolist(), "ev": float(e),
-              "white_balance": w.tolist()}
-             for n, p, gk, e, w in zip(names, photos, g, ev, wb, strict=True)]
+              "white_balance": w.tolist(), "psnr": float(q)}
+             for n, p, gk, e, w, q in zip(names, photos, g, ev, wb, psnr, strict=True)]
     out = {"convention": "photo = gain * render, per channel; the gains' log has mean 0 "
                          "over the views in every channel; ev = mean of log2(gain), "
                          "white_balance = gain / 2^ev",
@@ -214,11 +249,12 @@ def gains_record(gains: np.ndarray, names: list[str], root) -> dict:
     return out
 
 
-def write_gains(path: Path, gains: np.ndarray, names: list[str], root) -> dict:
+def write_gains(path: Path, gains: np.ndarray, psnr: list[float], names: list[str], root
+                ) -> dict:
     """``gains_record`` into ``path`` (atomically); returns it."""
     from mi_shadowgs.io.atomic import write_json
 
-    record = gains_record(gains, names, root)
+    record = gains_record(gains, psnr, names, root)
     write_json(path, record)
     return record
 
@@ -237,6 +273,25 @@ def read_gains(path: Path, names: list[str]) -> list[np.ndarray]:
         if g is None or g.shape != (3,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
             raise ValueError(f"{path}: no valid gain for training view {name!r}")
         out.append(g)
+    return out
+
+
+def l1_gain(render: np.ndarray, image: np.ndarray, mask: np.ndarray | None = None
+            ) -> np.ndarray:
+    """The per-channel gain [3] that minimises sum |gain * render - image| over the pixels
+    of ``mask`` [H, W] (all without): the median of image / render weighted by render, over
+    the pixels the render covers; 1 for a channel it leaves empty."""
+    r = np.asarray(render, np.float64).reshape(-1, 3)
+    i = np.asarray(image, np.float64).reshape(-1, 3)
+    keep = np.ones(len(r), bool) if mask is None else np.asarray(mask, bool).reshape(-1)
+    out = np.ones(3)
+    for c in range(3):
+        ok = keep & (r[:, c] > 1e-6)
+        if ok.any():
+            ratio, weight = i[ok, c] / r[ok, c], r[ok, c]
+            order = np.argsort(ratio, kind="stable")
+            total = np.cumsum(weight[order])
+            out[c] = ratio[order][np.searchsorted(total, 0.5 * total[-1])]
     return out
 
 

@@ -179,8 +179,9 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
         writer.start_log(state.step if state else 0)
         cb = Callbacks(on_log=writer.on_log, on_preview=writer.on_preview,
                        on_checkpoint=writer.on_checkpoint,
-                       on_gains=lambda g: write_gains(folder / GAINS_FILE, g,
-                                                      [v.name for v in train.views], data))
+                       on_gains=lambda g, psnr: write_gains(folder / GAINS_FILE, g, psnr,
+                                                            [v.name for v in train.views],
+                                                            data))
         surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
         surfels, pruned = prune_outside_masks(surfels, train.views, config)
         if (note := prune_warning(pruned, surfels.count + pruned, config, data)) is not None:

@@ -36,6 +36,8 @@ from mi_shadowgs.stages.geometry.gains import (
     ViewGains,
     check_gains,
     enabled,
+    gain_lr,
+    l1_gain,
     least_squares_gain,
 )
 
@@ -356,7 +358,7 @@ class TrainState:
                                    iterations=config.iterations)
         strategy.load_state(group("densify/"))
         sums = {k: mi.Float(a) for k, a in group("log/").items()}
-        gains = ViewGains.from_numpy(arrays, "gains/", config.lr_view_gain)
+        gains = ViewGains.from_numpy(arrays, "gains/")
         return TrainState(int(step), opt, strategy, extent, elapsed, sums, int(log_count),
                           gains)
 
@@ -450,8 +452,9 @@ class Callbacks:
     ``on_log(record: dict)`` every ``log_every`` steps; ``on_preview(step, render, view)``
     every ``preview_every``; ``on_checkpoint(state)`` every ``checkpoint_every`` steps, every
     ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.io.interrupt``);
-    ``on_step(step)`` after every step (tests use it to interrupt a run); ``on_gains(gains)``
-    once at the end with the fitted view gains [V, 3] (``GeometryConfig.view_gains`` on).
+    ``on_step(step)`` after every step (tests use it to interrupt a run); ``on_gains(gains,
+    psnr)`` once at the end with the fitted view gains [V, 3] and each view's PSNR with its
+    gain (``polished_gains``), when the view gains are on (``gains.enabled``).
     """
 
     on_log: Callable | None = None
@@ -482,7 +485,7 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     if state is None:
         state = initial_state(dataset, config)
     if state.gains is None and enabled(config, getattr(dataset, "root", None)):
-        state.gains = ViewGains.fresh(len(views), config.lr_view_gain)
+        state.gains = ViewGains.fresh(len(views))
     opt, strategy, sums = state.opt, state.strategy, state.log_sums
     t0 = time.perf_counter() - state.elapsed
     bar = tqdm(total=config.iterations, initial=state.step, disable=not progress,
@@ -502,7 +505,7 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
             dr.schedule(sums)
             opt.step()
             if state.gains is not None:
-                state.gains.step()
+                state.gains.step(index, gain_lr(config, step))
             state.step = step + 1
             state.log_count += 1
             strategy.step(state.step, opt)
@@ -536,12 +539,31 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
             if cb.on_step:
                 cb.on_step(state.step)
     if state.gains is not None:
+        polished, psnr = polished_gains(model_surfels(opt.params), dataset.views, config)
+        state.gains.set(polished)
         gains = state.gains.gains()
         check_gains(gains, [v.name for v in dataset.views])
         if cb.on_gains:
-            cb.on_gains(gains)
+            cb.on_gains(gains, psnr)
     final = model_surfels({k: dr.detach(v) for k, v in opt.params.items()})
     return final
+
+
+def polished_gains(surfels: Surfels, views, config: GeometryConfig
+                   ) -> tuple[np.ndarray, list[float]]:
+    """(each training view's L1-optimal RGB gain [V, 3] for the final model (``l1_gain``
+    over its mask's pixels), the PSNR of the gained render against the photo there [V]).
+    The optimiser's gains move until the last step, a view's only in the steps that render
+    it; these are the fit's optimum for the model it ends with. A low PSNR says the model
+    does not explain the photo, and then its gain is not measured either."""
+    gains, psnr = [], []
+    for v in views:
+        keep = v.mask if getattr(v, "has_mask", True) else np.ones(v.mask.shape, bool)
+        rgb = render_view(surfels, v.camera, config.raster)["rgb"]
+        gains.append(l1_gain(rgb, v.image, keep))
+        psnr.append(metrics.psnr(np.clip(rgb * gains[-1], 0, 1)[keep],
+                                 np.clip(v.image, 0, 1)[keep]))
+    return np.array(gains), [float(p) for p in psnr]
 
 
 # -- after training ----------------------------------------------------------------------------
