@@ -67,8 +67,7 @@ class GeometryConfig:
     # exposure and white balance per photo; ``gains``): "on", "off", or "auto" (on for
     # datasets imported from photos, off for generated ones, whose exposure is constant).
     view_gains: str = "auto"
-    lr_view_gain: float = 0.03  # Adam learning rate of the views' log gains at step 0 ...
-    lr_view_gain_final: float = 0.003  # ... and at the last step (log-linear between)
+    lr_view_gain: float = 0.05  # Adam learning rate of the views' log gains (per view step)
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     seed: int = 0
@@ -109,7 +108,6 @@ class GeometryConfig:
             ("init", self.init in INITS, f"one of {INITS}"),
             ("view_gains", self.view_gains in GAIN_MODES, f"one of {GAIN_MODES}"),
             ("lr_view_gain", self.lr_view_gain > 0, "> 0"),
-            ("lr_view_gain_final", self.lr_view_gain_final > 0, "> 0"),
             ("hull_extent", self.hull_extent is None or self.hull_extent > 0, "> 0 or None"),
             ("normal_depth_differences",
              self.normal_depth_differences in losses.DEPTH_NORMAL_DIFFERENCES,
