@@ -160,9 +160,10 @@ def test_loss_gradient_in_log_gain_matches_finite_differences():
 # -- stage 1 -----------------------------------------------------------------------------------
 def test_stage_1_recovers_known_gains(tiny):
     """Training photos times known gains: stage 1 finds them, up to one scale per channel.
-    Measured 2026-12-06 on 2 loaded cores over 6 runs: max 3.3-7.9%, mean 1.1-1.7%. With
-    gains of 1 (no jitter) the same fit finds gains off by up to 4.4-5.9%: this 32^2
-    model's own view-to-view error, which the bounds allow for; the jitter itself is 27%."""
+    Measured 2026-12-06 on 2 loaded cores: max 2.6-2.7%, mean 0.8-0.9%; with gains of 1
+    (no jitter) the same fit finds them within 1.6% (this 32^2 model's own view-to-view
+    error). The bounds leave twice that for float atomics' run-to-run spread; the jitter
+    itself is 27%."""
     train = load_dataset(tiny, "train")
     true = _true_gains(len(train.views))
     for v, g in zip(train.views, true, strict=True):
@@ -171,7 +172,7 @@ def test_stage_1_recovers_known_gains(tiny):
     geometry_train.train_geometry(train, TINY, progress=False,
                                   callbacks=_collect(got))
     e = vg.gain_errors(got[0], true)
-    assert e["max"] < 0.12 and e["mean"] < 0.03, e
+    assert e["max"] < 0.06 and e["mean"] < 0.02, e
     np.testing.assert_allclose(np.log(got[0]).mean(0), 0.0, atol=1e-5)
     assert vg.gain_errors(np.ones_like(true), true)["max"] > 0.2  # the test can fail
 

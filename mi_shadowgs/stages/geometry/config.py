@@ -68,8 +68,7 @@ class GeometryConfig:
     # exposure and white balance per photo; ``gains``): "on", "off", or "auto" (on for
     # datasets imported from photos, off for generated ones, whose exposure is constant).
     view_gains: str = "auto"
-    lr_view_gain: float = 0.03  # Adam learning rate of the views' log gains at step 0 ...
-    lr_view_gain_final: float = 0.003  # ... and at the last step (log-linear between)
+    lr_view_gain: float = 0.05  # Adam learning rate of the views' log gains (per view step)
     # Which dark pixels the term acts on (``background``): "points", those whose rays miss
     # the SfM points' support (a cast shadow on the mat is dark too); "none", every one.
     dark_alpha_support: str = "points"
@@ -114,7 +113,6 @@ class GeometryConfig:
             ("init", self.init in INITS, f"one of {INITS}"),
             ("view_gains", self.view_gains in GAIN_MODES, f"one of {GAIN_MODES}"),
             ("lr_view_gain", self.lr_view_gain > 0, "> 0"),
-            ("lr_view_gain_final", self.lr_view_gain_final > 0, "> 0"),
             ("dark_alpha_support", self.dark_alpha_support in DARK_ALPHA_SUPPORTS,
              f"one of {DARK_ALPHA_SUPPORTS}"),
             ("dark_alpha_margin", 0 <= self.dark_alpha_margin < float("inf"),

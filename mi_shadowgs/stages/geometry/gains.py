@@ -50,16 +50,6 @@ def enabled(config, root) -> bool:
     return config.view_gains == "on" or (config.view_gains == "auto" and is_photo_import(root))
 
 
-def gain_lr(config, step: int) -> float:
-    """The log gains' learning rate at 0-based ``step``: log-linear from
-    ``config.lr_view_gain`` to ``lr_view_gain_final`` over ``config.iterations``. Each view's
-    gain gets a gradient once in V steps, and Adam scales that sparse gradient up by about
-    sqrt(V), so a constant rate leaves the gains jittering by several percent."""
-    t = min(max(step / max(config.iterations, 1), 0.0), 1.0)
-    return math.exp(math.log(config.lr_view_gain) * (1 - t)
-                    + math.log(config.lr_view_gain_final) * t)
-
-
 # -- the maths ------------------------------------------------------------------------------
 def apply_gain(image: mi.TensorXf, log_gain: mi.TensorXf, index) -> mi.TensorXf:
     """``image`` [..., 3] (colours [N, 3], or an image [H, W, 3]) times

@@ -36,7 +36,6 @@ from mi_shadowgs.stages.geometry.gains import (
     ViewGains,
     check_gains,
     enabled,
-    gain_lr,
     l1_gain,
     least_squares_gain,
 )
@@ -505,7 +504,7 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
             dr.schedule(sums)
             opt.step()
             if state.gains is not None:
-                state.gains.step(index, gain_lr(config, step))
+                state.gains.step(index, config.lr_view_gain)
             state.step = step + 1
             state.log_count += 1
             strategy.step(state.step, opt)
