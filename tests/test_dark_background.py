@@ -234,7 +234,74 @@ def test_the_view_data_takes_the_prior_pixels():
                                      prior=prior).dark is None
 
 
-@pytest.mark.parametrize("field, value", [("dark_alpha_support", "sfm"),
+def _lit_room(camera: Camera, room=(0.03, 0.035, 0.04)) -> np.ndarray:
+    """``_image`` in a lit room: the backdrop at ``room``, the shadow half as bright."""
+    on_mat, shadow, box, backdrop = _truth(camera)
+    img = _image(camera)
+    img[backdrop] = room
+    img[shadow] = 0.5 * np.asarray(room)
+    return img
+
+
+def test_a_lit_rooms_backdrop_is_estimated_and_the_prior_follows_it():
+    """The backdrop's colour from the pixels that miss the ground and the object's bound;
+    with it the prior acts on the (now grey) backdrop and still not on the shadow, which is
+    darker. Black setting, masks or a black room: no backdrop."""
+    from unittest import mock
+
+    room = np.array([0.03, 0.035, 0.04])
+    dataset, cams = _dataset(_points(np.random.default_rng(1)))
+    for v in dataset.views:
+        v.image = _lit_room(v.camera, room)
+    cfg = dataclasses.replace(run_presets.geometry_config("cpu-small"),
+                              lambda_dark_alpha=0.1)
+    with mock.patch.object(background, "read_points",
+                           return_value=_points(np.random.default_rng(1))):
+        got = background.estimate_backdrop(dataset, cfg)
+        priors = background.prior_pixels(dataset, cfg, got)
+        assert background.estimate_backdrop(
+            dataset, dataclasses.replace(cfg, backdrop="black")) is None
+        for v in dataset.views:
+            v.image = _image(v.camera)
+        assert background.estimate_backdrop(dataset, cfg) is None  # a black room
+    np.testing.assert_allclose(got, room, rtol=1e-6)
+    for cam, prior in zip(cams, priors, strict=True):
+        _, shadow, box, backdrop = _truth(cam)
+        assert not prior[shadow].any() and not prior[box].any()
+        assert prior[_clear_of_the_scene(cam)].all()
+    masked = SimpleNamespace(views=[SimpleNamespace(**{**vars(v), "has_mask": True})
+                                    for v in dataset.views], points="unused")
+    assert background.estimate_backdrop(masked, cfg) is None
+
+
+def test_the_render_over_the_backdrop_and_its_gradients_against_numpy():
+    """``over_backdrop``: rgb + (1 - alpha) * colour per channel; d/d colour = sum of
+    (1 - alpha), d/d alpha = -colour summed over the channels."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_shadowgs.core import jit
+
+    rng = np.random.default_rng(3)
+    rgb, alpha = rng.uniform(0, 1, (5, 4, 3)), rng.uniform(0, 1, (5, 4, 1))
+    colour = np.array([0.2, 0.3, 0.5])
+    t_rgb, t_a, t_c = (jit.tensor(x.astype(np.float32)) for x in (rgb, alpha, colour))
+    dr.enable_grad(t_a, t_c)
+    out = geometry_train.over_backdrop(t_rgb, t_a, t_c)
+    np.testing.assert_allclose(out.numpy(), rgb + (1 - alpha) * colour, rtol=1e-6)
+    dr.backward(dr.sum(out.array))
+    np.testing.assert_allclose(dr.grad(t_c).numpy(), np.full(3, (1 - alpha).sum()),
+                               rtol=1e-5)
+    np.testing.assert_allclose(dr.grad(t_a).numpy()[..., 0], np.full((5, 4), -colour.sum()),
+                               rtol=1e-6)
+    render = {"rgb": rgb, "alpha": alpha[..., 0]}
+    np.testing.assert_allclose(geometry_train.composite(render, colour),
+                               rgb + (1 - alpha) * colour, rtol=1e-6)
+    assert geometry_train.composite(render, None) is rgb
+    assert isinstance(out, mi.TensorXf)
+
+
+@pytest.mark.parametrize("field, value", [("dark_alpha_support", "sfm"), ("backdrop", "grey"),
                                           ("dark_alpha_margin", -0.1),
                                           ("dark_alpha_margin", float("nan"))])
 def test_bad_settings_are_refused_by_name(field, value):

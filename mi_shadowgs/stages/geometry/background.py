@@ -16,6 +16,12 @@ What tells them apart is where the pixel's ray goes, and what the other views se
 - ``prior_pixels``: per view, the dark pixels (every channel <= ``dark_max``) whose rays
   meet neither (with ``dark_alpha_support`` "points"), or every dark pixel ("none").
 
+A lit room's backdrop is dark but not black. Without masks, stage 1 composites its render
+over one backdrop colour (``GeometryConfig.backdrop``, ``estimate_backdrop``): the median of
+the pixels whose rays meet neither the ground's outline nor the object's bound (the frame's
+cylinder with the body's points), so that the model needs no surfels before the cameras to
+show the room; the prior's dark pixels are then those within ``BACKDROP_SLACK`` times it.
+
 Ground and body are hulls of their own: one hull of both would also hold the empty space
 between the object's top and the mat's far corners, through which some rays that see the
 backdrop pass. A dark hollow of the object lies within its hull: kept. Each is grown by
@@ -40,6 +46,11 @@ GROUND_SHARE = 0.15
 # at least this share of the views that see it see background there.
 CELLS = 24
 CARVE_SHARE = 0.5
+# The backdrop is estimated from at least this share of the views' pixels (else black) ...
+BACKDROP_MIN_SHARE = 0.01
+# ... and a pixel is as dark as the backdrop up to this factor of it (a photo's exposure
+# moves it by +-30%).
+BACKDROP_SLACK = 1.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,9 +175,14 @@ def supported_pixels(camera, support: Support, chunk: int = 65536) -> np.ndarray
     return out.reshape(camera.height, camera.width)
 
 
-def dark_pixels(image: np.ndarray, dark_max: float) -> np.ndarray:
-    """[H, W] bool: the pixels of ``image`` [H, W, 3] whose channels are all <= ``dark_max``."""
-    return np.all(np.asarray(image) <= dark_max, axis=-1)
+def dark_pixels(image: np.ndarray, dark_max, backdrop: np.ndarray | None = None
+                ) -> np.ndarray:
+    """[H, W] bool: the pixels of ``image`` [H, W, 3] whose channels are all <= ``dark_max``,
+    plus ``BACKDROP_SLACK`` times ``backdrop`` [3] (a lit room's colour) when given."""
+    limit = np.asarray(dark_max, np.float64)
+    if backdrop is not None:
+        limit = limit + BACKDROP_SLACK * np.asarray(backdrop, np.float64).reshape(3)
+    return np.all(np.asarray(image) <= limit, axis=-1)
 
 
 def read_points(path) -> np.ndarray:
@@ -191,16 +207,44 @@ def support_of(points: np.ndarray, cameras, dark: list[np.ndarray], margin: floa
     return Support(ground, _hull(np.concatenate([body_pts, kept]), margin + 1.0 / CELLS))
 
 
-def prior_pixels(dataset, config) -> list[np.ndarray | None]:
+def estimate_backdrop(dataset, config) -> np.ndarray | None:
+    """The backdrop's linear RGB [3] under ``config`` (``GeometryConfig.backdrop`` "auto"):
+    the per-channel median of the pixels, in the training views without masks, whose rays
+    meet neither the ground's outline nor the object's bound (``object_cells`` with the SfM
+    points above the ground, grown by ``dark_alpha_margin`` and a cell); None when the
+    setting is "black", every view has a mask, the dataset has no SfM points, fewer than
+    ``BACKDROP_MIN_SHARE`` of the pixels are such, or their median is black (at most
+    ``dark_max``)."""
+    unmasked = [v for v in dataset.views if not getattr(v, "has_mask", True)]
+    points = getattr(dataset, "points", None)
+    if config.backdrop == "black" or not unmasked or points is None:
+        return None
+    ground_pts, body_pts = split_points(read_points(points))
+    margin = config.dark_alpha_margin
+    ground = None if ground_pts is None else _hull(ground_pts[:, [0, 2]], margin)
+    body = _hull(np.concatenate([body_pts, object_cells()]), margin + 1.0 / CELLS)
+    support = Support(ground, body)
+    seen = [np.asarray(v.image)[~supported_pixels(v.camera, support)] for v in unmasked]
+    pixels = np.concatenate(seen).reshape(-1, 3)
+    if len(pixels) < BACKDROP_MIN_SHARE * sum(v.image[..., 0].size for v in unmasked):
+        return None
+    colour = np.median(pixels, axis=0).astype(np.float64)
+    return None if colour.max() <= config.dark_max else colour
+
+
+def prior_pixels(dataset, config, backdrop: np.ndarray | None = None
+                 ) -> list[np.ndarray | None]:
     """Per training view of ``dataset``, the [H, W] bool pixels the dark-alpha prior acts on
     under ``config`` (``GeometryConfig``; see the module doc), or None (a view with a mask,
-    or the prior off). ``dark_alpha_support`` "points" without SfM points (``dataset.points``
-    None) falls back to every dark pixel, as "none" does; the stage's runner says so."""
+    or the prior off); dark is up to ``dark_max`` plus ``BACKDROP_SLACK`` times the
+    ``backdrop`` [3] when given. ``dark_alpha_support`` "points" without SfM points
+    (``dataset.points`` None) falls back to every dark pixel, as "none" does; the stage's
+    runner says so."""
     views = dataset.views
     if config.lambda_dark_alpha <= 0:
         return [None] * len(views)
     unmasked = [v for v in views if not getattr(v, "has_mask", True)]
-    dark = {id(v): dark_pixels(v.image, config.dark_max) for v in unmasked}
+    dark = {id(v): dark_pixels(v.image, config.dark_max, backdrop) for v in unmasked}
     points = getattr(dataset, "points", None)
     if config.dark_alpha_support == "points" and points is not None and unmasked:
         support = support_of(read_points(points), [v.camera for v in unmasked],

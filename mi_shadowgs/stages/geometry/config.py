@@ -14,6 +14,7 @@ from mi_shadowgs.stages.geometry.densify import DensifyConfig
 INITS = ("hull", "random", "points")
 GAIN_MODES = ("auto", "on", "off")  # ``view_gains``
 DARK_ALPHA_SUPPORTS = ("none", "points")  # see ``background``
+BACKDROPS = ("auto", "black")  # see ``background``
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +74,10 @@ class GeometryConfig:
     # the SfM points' support (a cast shadow on the mat is dark too); "none", every one.
     dark_alpha_support: str = "points"
     dark_alpha_margin: float = 0.05  # the support grown by this much (object radii)
+    # What lies behind the surfels in views without masks (``background``): "auto", one
+    # colour estimated from the pixels that miss the SfM points' support (a lit room; black
+    # where there are none), or "black" (the paper's darkroom).
+    backdrop: str = "auto"
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     seed: int = 0
@@ -113,6 +118,7 @@ class GeometryConfig:
             ("init", self.init in INITS, f"one of {INITS}"),
             ("view_gains", self.view_gains in GAIN_MODES, f"one of {GAIN_MODES}"),
             ("lr_view_gain", self.lr_view_gain > 0, "> 0"),
+            ("backdrop", self.backdrop in BACKDROPS, f"one of {BACKDROPS}"),
             ("dark_alpha_support", self.dark_alpha_support in DARK_ALPHA_SUPPORTS,
              f"one of {DARK_ALPHA_SUPPORTS}"),
             ("dark_alpha_margin", 0 <= self.dark_alpha_margin < float("inf"),

@@ -24,6 +24,7 @@ from mi_shadowgs.stages.common import (
     warn,
     warn_other_backend,
 )
+from mi_shadowgs.stages.geometry.background import estimate_backdrop
 from mi_shadowgs.stages.geometry.gains import GAINS_FILE, enabled, write_gains
 
 LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dark_alpha", "psnr",
@@ -31,6 +32,7 @@ LOG_FIELDS = ("iteration", "loss", "l1", "dssim", "mask", "normal", "dist", "dar
 # With ``hull_prune_views`` on: what the prune removed, beside the model it made, so that an
 # evaluation after ``train --no-eval`` reports it as one straight after training does.
 PRUNE_RECORD = "prune.json"
+BACKDROP_FILE = "backdrop.json"  # the colour behind the surfels in views without masks
 
 
 class GeometryWriter:
@@ -112,8 +114,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
     """Stage 1 on dataset ``data`` into ``folder`` (a run's ``geometry/``).
 
     Writes ``model.ply``, ``checkpoint/checkpoint.npz``, ``log.csv``, ``previews/``,
-    ``config.json``, with ``hull_prune_views`` ``PRUNE_RECORD``, with the view gains on
-    (``gains.enabled``) ``GAINS_FILE`` and, with ``evaluate``,
+    ``config.json``, ``BACKDROP_FILE``, with ``hull_prune_views`` ``PRUNE_RECORD``, with
+    the view gains on (``gains.enabled``) ``GAINS_FILE`` and, with ``evaluate``,
     ``metrics.json`` (test views). An existing output
     is replaced (``overwrite``), continued from its checkpoint (``resume``), returned as it
     is when finished or else continued (``reuse``, as ``run`` does), or refused; it is
@@ -159,7 +161,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
             # run's summary and report have stage 1.
             out.claim("metrics.json")
             line = _write_metrics(folder, load_ply(folder / "model.ply"), test, config,
-                                  on_test_view, gains_on)
+                                  on_test_view, gains_on, read_backdrop(folder))
             out.finish()
             return StageRun(folder, False, 0.0, line)
         warn_other_backend(out)
@@ -172,7 +174,7 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
         write_json(out.path("config.json"), {"stage": "geometry", "preset": preset,
                                              "data": str(Path(data).resolve()),
                                              "config": cfg_dict})
-        out.claim("checkpoint/checkpoint.npz", "model.ply",
+        out.claim("checkpoint/checkpoint.npz", "model.ply", BACKDROP_FILE,
                   *([GAINS_FILE] if gains_on else []),
                   *(["metrics.json"] if evaluate else []))
         writer = GeometryWriter(out, cfg_dict)
@@ -182,7 +184,13 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
                        on_gains=lambda g, psnr: write_gains(folder / GAINS_FILE, g, psnr,
                                                             [v.name for v in train.views],
                                                             data))
-        surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress)
+        backdrop = estimate_backdrop(train, config)
+        write_json(folder / BACKDROP_FILE, {
+            "rgb": None if backdrop is None else backdrop.tolist(),
+            "meaning": "linear RGB behind the surfels in the training views without masks "
+                       "(null: black), before each view's gain"})
+        surfels = train_geometry(train, config, state=state, callbacks=cb, progress=progress,
+                                 backdrop=backdrop)
         surfels, pruned = prune_outside_masks(surfels, train.views, config)
         if (note := prune_warning(pruned, surfels.count + pruned, config, data)) is not None:
             warn(note)
@@ -191,8 +199,8 @@ def run_geometry(data: str | Path, folder: str | Path, config, *, preset: str = 
             write_json(folder / PRUNE_RECORD, {"hull_pruned": pruned,
                                                "surfels_before": surfels.count + pruned})
         save_ply(folder / "model.ply", surfels)
-        line = (_write_metrics(folder, surfels, test, config, on_test_view, gains_on)
-                if evaluate else "")
+        line = (_write_metrics(folder, surfels, test, config, on_test_view, gains_on,
+                               backdrop) if evaluate else "")
         out.finish()
     return StageRun(folder, True, time.perf_counter() - t0, line)
 
@@ -215,7 +223,15 @@ def _unmasked(config, train, data):
     return config
 
 
-def _write_metrics(folder: Path, surfels, test, config, on_test_view, gains_on: bool) -> str:
+def read_backdrop(folder: Path) -> np.ndarray | None:
+    """A stage-1 folder's backdrop colour [3] (``BACKDROP_FILE``), or None (black)."""
+    path = Path(folder) / BACKDROP_FILE
+    rgb = json.loads(path.read_text()).get("rgb") if path.is_file() else None
+    return None if rgb is None else np.asarray(rgb, np.float64)
+
+
+def _write_metrics(folder: Path, surfels, test, config, on_test_view, gains_on: bool,
+                   backdrop: np.ndarray | None = None) -> str:
     """The model's test metrics into ``folder/metrics.json`` (claimed); their summary line.
     With ``hull_prune_views`` on, ``hull_pruned`` is the count of ``PRUNE_RECORD``; with the
     view gains on (``gains_on``), each test render is scaled by its own least-squares gain,
@@ -223,7 +239,9 @@ def _write_metrics(folder: Path, surfels, test, config, on_test_view, gains_on: 
     from mi_shadowgs.stages.geometry.train import evaluate as evaluate_geometry
 
     m = evaluate_geometry(surfels, test, config.raster, on_view=on_test_view,
-                          fit_gains=gains_on)
+                          fit_gains=gains_on, backdrop=backdrop)
+    if backdrop is not None:
+        m["backdrop"] = [float(c) for c in backdrop]
     m["surfels"] = surfels.count
     truth = (json.loads((folder / GAINS_FILE).read_text()).get("truth")
              if (folder / GAINS_FILE).is_file() else None)

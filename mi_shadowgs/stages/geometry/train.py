@@ -267,23 +267,47 @@ def _view_data(view, dark_max: float | None = None, prior: np.ndarray | None = N
                     has_mask, dark, losses.ssim_target(image))
 
 
+def over_backdrop(rgb: mi.TensorXf, alpha: mi.TensorXf, colour: mi.TensorXf) -> mi.TensorXf:
+    """The premultiplied render ``rgb`` [H, W, 3] over ``colour`` [3] where its ``alpha``
+    [H, W, 1] leaves it uncovered. Differentiable in all three."""
+    i = dr.arange(mi.UInt32, dr.width(rgb.array))
+    a = dr.gather(mi.Float, alpha.array, i // 3)
+    return mi.TensorXf(dr.fma(1.0 - a, dr.gather(mi.Float, colour.array, i % 3), rgb.array),
+                       rgb.shape)
+
+
+def composite(render: dict, backdrop: np.ndarray | None) -> np.ndarray:
+    """NumPy: ``render_view``'s rgb over ``backdrop`` [3] (None: over black, as rendered)."""
+    if backdrop is None:
+        return render["rgb"]
+    return render["rgb"] + (1.0 - render["alpha"])[..., None] * np.asarray(
+        backdrop, np.float32).reshape(3)
+
+
 def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int,
-                  gains: ViewGains | None = None, index: int = 0):
+                  gains: ViewGains | None = None, index: int = 0,
+                  backdrop: mi.TensorXf | None = None):
     """(total loss, dict of detached terms incl. "mse") for one view at 0-based ``step``;
-    with ``gains``, the render is times the gain of training view ``index``."""
+    with ``gains``, the render is times the gain of training view ``index``; with
+    ``backdrop`` [3] (views without masks), it lies over that colour."""
     rgb = sh_colors(surfels, view.camera.origin)
     if gains is not None:  # the render is linear in the colours: gain * render, per channel
         rgb = gains.apply(rgb, index)
+    backdrop = None if view.has_mask else backdrop
+    if backdrop is not None and gains is not None:
+        backdrop = gains.apply(backdrop, index)
     use_mask = config.lambda_mask > 0 and view.has_mask
     use_normal = config.lambda_normal > 0 and step >= config.normal_from
     use_dist = config.lambda_dist > 0 and step >= config.dist_from
     use_dark = config.lambda_dark_alpha > 0 and view.dark is not None
     # Only the images this step's loss reads: before normal_from / dist_from the normal,
     # depth and distortion images would cost their compositing and backward for nothing.
-    aovs = (("alpha",) * (use_mask or use_normal or use_dark)
+    aovs = (("alpha",) * (use_mask or use_normal or use_dark or backdrop is not None)
             + ("depth", "normal") * use_normal + ("distortion",) * use_dist)
     out = rasterize(surfels, view.camera, {"rgb": rgb}, aovs=aovs, config=config.raster)
     img = out["rgb"]
+    if backdrop is not None:
+        img = over_backdrop(img, out["alpha"], backdrop)
     l1 = losses.l1(img, view.image)
     dssim = losses.d_ssim(img, view.ssim_target or view.image)
     total = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * dssim
@@ -464,11 +488,14 @@ class Callbacks:
 
 
 def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None = None,
-                   callbacks: Callbacks | None = None, progress: bool = True) -> Surfels:
+                   callbacks: Callbacks | None = None, progress: bool = True,
+                   backdrop: np.ndarray | None = None) -> Surfels:
     """Optimise 2D surfels to ``dataset`` (training split): the stage-1 loop.
 
     ``state`` resumes a run (from ``TrainState.from_numpy``); otherwise the model is
-    initialised by ``config.init``. Returns the final ``Surfels`` (detached, full SH).
+    initialised by ``config.init``. ``backdrop`` [3]: the colour behind the surfels in
+    views without masks (``background.estimate_backdrop``; None: black). Returns the final
+    ``Surfels`` (detached, full SH).
     """
     from tqdm import tqdm
 
@@ -479,8 +506,9 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     for v in dataset.views:
         if not v.mask.any():
             raise ValueError(f"{dataset.root}: view {v.name!r} has an empty mask")
-    priors = background.prior_pixels(dataset, config)
+    priors = background.prior_pixels(dataset, config, backdrop)
     views = [_view_data(v, prior=p) for v, p in zip(dataset.views, priors, strict=True)]
+    behind = None if backdrop is None else jit.tensor(np.asarray(backdrop, np.float32))
     if state is None:
         state = initial_state(dataset, config)
     if state.gains is None and enabled(config, getattr(dataset, "root", None)):
@@ -496,7 +524,8 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
             index = view_order(config, len(views), step)
             view = views[index]
             surfels = model_surfels(opt.params, active_sh_degree(config, step))
-            total, terms = geometry_loss(surfels, view, config, step, state.gains, index)
+            total, terms = geometry_loss(surfels, view, config, step, state.gains, index,
+                                         behind)
             dr.backward(total)
             strategy.observe(opt.params["position"], opt.params["log_scale"], view.camera)
             for k, val in terms.items():
@@ -538,7 +567,8 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
             if cb.on_step:
                 cb.on_step(state.step)
     if state.gains is not None:
-        polished, psnr = polished_gains(model_surfels(opt.params), dataset.views, config)
+        polished, psnr = polished_gains(model_surfels(opt.params), dataset.views, config,
+                                        backdrop)
         state.gains.set(polished)
         gains = state.gains.gains()
         check_gains(gains, [v.name for v in dataset.views])
@@ -548,8 +578,8 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     return final
 
 
-def polished_gains(surfels: Surfels, views, config: GeometryConfig
-                   ) -> tuple[np.ndarray, list[float]]:
+def polished_gains(surfels: Surfels, views, config: GeometryConfig,
+                   backdrop: np.ndarray | None = None) -> tuple[np.ndarray, list[float]]:
     """(each training view's L1-optimal RGB gain [V, 3] for the final model (``l1_gain``
     over its mask's pixels), the PSNR of the gained render against the photo there [V]).
     The optimiser's gains move until the last step, a view's only in the steps that render
@@ -558,7 +588,8 @@ def polished_gains(surfels: Surfels, views, config: GeometryConfig
     gains, psnr = [], []
     for v in views:
         keep = v.mask if getattr(v, "has_mask", True) else np.ones(v.mask.shape, bool)
-        rgb = render_view(surfels, v.camera, config.raster)["rgb"]
+        render = render_view(surfels, v.camera, config.raster)
+        rgb = render["rgb"] if getattr(v, "has_mask", True) else composite(render, backdrop)
         gains.append(l1_gain(rgb, v.image, keep))
         psnr.append(metrics.psnr(np.clip(rgb * gains[-1], 0, 1)[keep],
                                  np.clip(v.image, 0, 1)[keep]))
@@ -634,14 +665,18 @@ def render_view(surfels: Surfels, camera, config: RasterConfig | None = None) ->
 
 
 def evaluate(surfels: Surfels, dataset, config: RasterConfig | None = None,
-             on_view: Callable | None = None, fit_gains: bool = False) -> dict:
+             on_view: Callable | None = None, fit_gains: bool = False,
+             backdrop: np.ndarray | None = None) -> dict:
     """Test-view metrics: RGB PSNR/SSIM, normal angular error (degrees, over the pixels both
     the ground-truth mask and normal cover), z-depth error, mask IoU (alpha > 0.5).
     ``fit_gains``: each render is first scaled per channel by the least-squares gain to its
-    photo (a test photo's exposure and white balance are unknown, as a training one's)."""
+    photo (a test photo's exposure and white balance are unknown, as a training one's).
+    ``backdrop`` [3]: the colour behind the surfels in views without masks."""
     psnrs, ssims, angles, depth_abs, depth_rel, ious = [], [], [], [], [], []
     for view in dataset.views:
         r = render_view(surfels, view.camera, config)
+        if not getattr(view, "has_mask", True):
+            r["rgb"] = composite(r, backdrop)
         if fit_gains:
             r["rgb"] = r["rgb"] * least_squares_gain(r["rgb"], view.image).astype(np.float32)
         rgb = np.clip(r["rgb"], 0.0, 1.0)
