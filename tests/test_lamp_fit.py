@@ -105,7 +105,8 @@ def test_candidate_set_rows():
 def test_lamp_settings_are_checked():
     base = get_config("cpu-small")
     for bad in ({"lamps": "on"}, {"lamp_distances": (0.5,)}, {"lamp_distances": ()},
-                {"lamp_min_gain": 1.0}, {"lamp_passes": ((50.0, 0.1),)}):
+                {"lamp_min_gain": 1.0}, {"lamp_passes": ((50.0, 0.1),)},
+                {"lamp_score": "pixel"}):
         with pytest.raises(ValueError, match="lamp"):
             dataclasses.replace(base, **bad)
 

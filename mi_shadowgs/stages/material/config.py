@@ -104,6 +104,9 @@ class MaterialConfig:
     # Pattern searches of a lamp's position, coarse to fine: (direction step in degrees,
     # distance step as a share of the distance).
     lamp_passes: tuple = ((4.0, 0.16), (1.0, 0.04), (0.25, 0.01))
+    # How lamp candidates are scored (as ``refine_score``); "albedo" (without the lobe)
+    # re-fits each segment's albedo, so the falloff is not judged by the albedo fitted before.
+    lamp_score: str = "segment"
     # Keep the albedo's TV while the segment constraint holds.
     albedo_tv_with_segments: bool = True
     # Hold the support-weighted albedo quantile at this value (no specular lobe); 0: off.
@@ -190,7 +193,7 @@ class MaterialConfig:
         if self.settle_score not in SETTLE_SCORES:
             raise ValueError(f"MaterialConfig.settle_score must be one of {SETTLE_SCORES}, got "
                              f"{self.settle_score!r}")
-        for name in ("refine_score", "chromaticity_refine_score"):
+        for name in ("refine_score", "chromaticity_refine_score", "lamp_score"):
             score = getattr(self, name)
             if score not in REFINE_SCORES:
                 raise ValueError(f"MaterialConfig.{name} must be one of {REFINE_SCORES}, got "
