@@ -126,3 +126,29 @@ def test_lamp_errors_against_the_truth():
     assert out["lamp_position_error"] == [None]
     assert "lamp_position_error" not in lamp_errors(np.array([TRUE_DIR]), np.array([1.0]),
                                                     None, [{"direction": [0, 1, 0]}])
+
+
+def test_a_lamp_is_placed_under_a_held_albedo_that_is_off_per_segment(scene):
+    """The albedo fitted under the directional light is off by a scale per segment (floor
+    0.8x, tile 1.25x): with ``lamp_score`` "albedo" each segment's albedo is fitted again per
+    candidate, and the lamp is still placed within 5% of its distance."""
+    s, _, bounds = scene
+    center = np.asarray(bounds.center)
+    true_pos = center + TRUE_DIR * 5.0
+    lamp = shading.local_lights(true_pos[None], mi.Color3f(2.0), center)
+    search = _search(scene, lamp)
+    assert search.config.refine_score == "albedo" == search.config.lamp_score
+    seg = s.channels["segment"].numpy()[:, 0]
+    scale = np.where(seg == 0, 0.8, 1.25)[:, None].astype(np.float32)
+    held = mi.TensorXf(search.channels["albedo"].numpy() * scale)
+    start = direction_from_angles(38.0, 47.0)
+    errors = {}
+    for score in ("albedo", "irradiance"):
+        search = _search(scene, lamp, lamp_score=score)
+        search.channels = {**search.channels, "albedo": held}
+        _, pos, _, log = localize_lights(search, start[None], None, np.array([1.5]),
+                                         np.array([0]))
+        assert log[0]["kept"] == "lamp"
+        errors[score] = abs(np.linalg.norm(pos[0] - center) - 5.0) / 5.0
+    assert errors["albedo"] < 0.05
+    assert errors["irradiance"] > 0.2  # the held albedo's error moves the lamp
