@@ -430,6 +430,11 @@ def view_gains_table(path: Path) -> dict | None:
             "gains; the gains' log has mean 0 over the views in every channel (the colours "
             "take the rest); fit PSNR: the gained render against the photo (where it is low "
             "the model does not explain the photo, and its gain is not measured).")
+    backdrop = _json_or_empty(path.parent / "backdrop.json").get("rgb")
+    if backdrop:
+        note += (" The renders lie over the backdrop estimated from the pixels that miss the "
+                 "SfM support (geometry/backdrop.json): linear RGB "
+                 + ", ".join(f"{c:.4f}" for c in backdrop) + ".")
     if truth:
         note += (f" True gains ({truth['file']}) divided by one scale per channel; error: "
                  f"the largest over the channels of |gain / true - 1|: max "

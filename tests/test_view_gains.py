@@ -354,3 +354,19 @@ def test_a_gain_that_does_not_converge_exits_2(tmp_path, tiny_presets, monkeypat
                      TINY_PRESET, "--no-progress", "--set", "view_gains=on"]) == 2
     err = capsys.readouterr().err
     assert "train/r_003" in err and "GeometryConfig.view_gains" in err
+
+
+def test_the_reports_gains_table_names_the_backdrop(tmp_path):
+    """The report's gains table: each view's gain, and the backdrop the renders lie over
+    when stage 1 estimated one."""
+    import json
+
+    from mi_shadowgs.summary import view_gains_table
+
+    views = [{"name": "train/r_000", "photo": "a.jpg", "psnr": 30.0, "ev": 0.1,
+              "gain": [1.1, 1.0, 0.9]}]
+    (tmp_path / "view_gains.json").write_text(json.dumps({"views": views}))
+    table = view_gains_table(tmp_path / "view_gains.json")
+    assert table["rows"][0][4:] == [1.1, 1.0, 0.9] and "backdrop" not in table["note"]
+    (tmp_path / "backdrop.json").write_text(json.dumps({"rgb": [0.03, 0.031, 0.032]}))
+    assert "0.0300, 0.0310, 0.0320" in view_gains_table(tmp_path / "view_gains.json")["note"]
