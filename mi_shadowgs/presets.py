@@ -149,8 +149,7 @@ _MATERIAL_CPU = MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_li
                                lambda_ind2=1.0, log_every=50, refine_global=128,
                                refine_again_global=True, specular="off",
                                albedo_tv_with_segments=False, albedo_scale=0.9,
-                               refine_score="albedo", normal_steps=1500, lamps="auto",
-                               lamp_score="albedo")
+                               refine_score="albedo", normal_steps=1500, lamps="auto")
 MATERIAL = {"paper": MaterialConfig(), "cpu-small": _MATERIAL_CPU, "cpu-medium": _MATERIAL_CPU,
             "gpu-large": _MATERIAL_CPU}
 RELIGHT = dict.fromkeys(PRESET_NAMES, RelightConfig())

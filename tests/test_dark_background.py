@@ -287,7 +287,7 @@ def test_the_render_over_the_backdrop_and_its_gradients_against_numpy():
     colour = np.array([0.2, 0.3, 0.5])
     t_rgb, t_a, t_c = (jit.tensor(x.astype(np.float32)) for x in (rgb, alpha, colour))
     dr.enable_grad(t_a, t_c)
-    out = geometry_train.over_backdrop(t_rgb, t_a, t_c)
+    out = background.over_backdrop(t_rgb, t_a, t_c)
     np.testing.assert_allclose(out.numpy(), rgb + (1 - alpha) * colour, rtol=1e-6)
     dr.backward(dr.sum(out.array))
     np.testing.assert_allclose(dr.grad(t_c).numpy(), np.full(3, (1 - alpha).sum()),
@@ -295,9 +295,9 @@ def test_the_render_over_the_backdrop_and_its_gradients_against_numpy():
     np.testing.assert_allclose(dr.grad(t_a).numpy()[..., 0], np.full((5, 4), -colour.sum()),
                                rtol=1e-6)
     render = {"rgb": rgb, "alpha": alpha[..., 0]}
-    np.testing.assert_allclose(geometry_train.composite(render, colour),
+    np.testing.assert_allclose(background.composite(render, colour),
                                rgb + (1 - alpha) * colour, rtol=1e-6)
-    assert geometry_train.composite(render, None) is rgb
+    assert background.composite(render, None) is rgb
     assert isinstance(out, mi.TensorXf)
 
 

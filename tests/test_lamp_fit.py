@@ -130,14 +130,17 @@ def test_lamp_errors_against_the_truth():
 
 def test_a_lamp_is_placed_under_a_held_albedo_that_is_off_per_segment(scene):
     """The albedo fitted under the directional light is off by a scale per segment (floor
-    0.8x, tile 1.25x): with ``lamp_score`` "albedo" each segment's albedo is fitted again per
-    candidate, and the lamp is still placed within 5% of its distance."""
+    0.8x, tile 1.25x): with ``lamp_score`` "auto" (no lobe: "albedo") each segment's albedo
+    is fitted again per candidate, and the lamp is still placed within 5% of its
+    distance."""
     s, _, bounds = scene
     center = np.asarray(bounds.center)
     true_pos = center + TRUE_DIR * 5.0
     lamp = shading.local_lights(true_pos[None], mi.Color3f(2.0), center)
     search = _search(scene, lamp)
-    assert search.config.refine_score == "albedo" == search.config.lamp_score
+    assert search.scoring == "albedo" and search.config.lamp_score == "auto"
+    with_lobe = _search(scene, lamp, specular="auto", refine_score="segment")
+    assert with_lobe.scoring == "segment"
     seg = s.channels["segment"].numpy()[:, 0]
     scale = np.where(seg == 0, 0.8, 1.25)[:, None].astype(np.float32)
     held = mi.TensorXf(search.channels["albedo"].numpy() * scale)

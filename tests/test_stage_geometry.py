@@ -136,6 +136,7 @@ def test_train_cli_writes_run_and_rejects_bad_data(tiny, tmp_path, capsys, monke
     names = sorted(p.name for p in g.iterdir())
     assert names == [
         ".mi_shadowgs_manifest.json",
+        "backdrop.json",
         "checkpoint",
         "config.json",
         "log.csv",

@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 # A neighbourhood of this many points tells a stray SfM point from a sparse surface ...
@@ -230,6 +232,23 @@ def estimate_backdrop(dataset, config) -> np.ndarray | None:
         return None
     colour = np.median(pixels, axis=0).astype(np.float64)
     return None if colour.max() <= config.dark_max else colour
+
+
+def over_backdrop(rgb: mi.TensorXf, alpha: mi.TensorXf, colour: mi.TensorXf) -> mi.TensorXf:
+    """The premultiplied render ``rgb`` [H, W, 3] over ``colour`` [3] where its ``alpha``
+    [H, W, 1] leaves it uncovered. Differentiable in all three."""
+    i = dr.arange(mi.UInt32, dr.width(rgb.array))
+    a = dr.gather(mi.Float, alpha.array, i // 3)
+    return mi.TensorXf(dr.fma(1.0 - a, dr.gather(mi.Float, colour.array, i % 3), rgb.array),
+                       rgb.shape)
+
+
+def composite(render: dict, backdrop: np.ndarray | None) -> np.ndarray:
+    """NumPy: ``render_view``'s rgb over ``backdrop`` [3] (None: over black, as rendered)."""
+    if backdrop is None:
+        return render["rgb"]
+    return render["rgb"] + (1.0 - render["alpha"])[..., None] * np.asarray(
+        backdrop, np.float32).reshape(3)
 
 
 def prior_pixels(dataset, config, backdrop: np.ndarray | None = None

@@ -267,23 +267,6 @@ def _view_data(view, dark_max: float | None = None, prior: np.ndarray | None = N
                     has_mask, dark, losses.ssim_target(image))
 
 
-def over_backdrop(rgb: mi.TensorXf, alpha: mi.TensorXf, colour: mi.TensorXf) -> mi.TensorXf:
-    """The premultiplied render ``rgb`` [H, W, 3] over ``colour`` [3] where its ``alpha``
-    [H, W, 1] leaves it uncovered. Differentiable in all three."""
-    i = dr.arange(mi.UInt32, dr.width(rgb.array))
-    a = dr.gather(mi.Float, alpha.array, i // 3)
-    return mi.TensorXf(dr.fma(1.0 - a, dr.gather(mi.Float, colour.array, i % 3), rgb.array),
-                       rgb.shape)
-
-
-def composite(render: dict, backdrop: np.ndarray | None) -> np.ndarray:
-    """NumPy: ``render_view``'s rgb over ``backdrop`` [3] (None: over black, as rendered)."""
-    if backdrop is None:
-        return render["rgb"]
-    return render["rgb"] + (1.0 - render["alpha"])[..., None] * np.asarray(
-        backdrop, np.float32).reshape(3)
-
-
 def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step: int,
                   gains: ViewGains | None = None, index: int = 0,
                   backdrop: mi.TensorXf | None = None):
@@ -307,7 +290,7 @@ def geometry_loss(surfels: Surfels, view: ViewData, config: GeometryConfig, step
     out = rasterize(surfels, view.camera, {"rgb": rgb}, aovs=aovs, config=config.raster)
     img = out["rgb"]
     if backdrop is not None:
-        img = over_backdrop(img, out["alpha"], backdrop)
+        img = background.over_backdrop(img, out["alpha"], backdrop)
     l1 = losses.l1(img, view.image)
     dssim = losses.d_ssim(img, view.ssim_target or view.image)
     total = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * dssim
@@ -589,7 +572,8 @@ def polished_gains(surfels: Surfels, views, config: GeometryConfig,
     for v in views:
         keep = v.mask if getattr(v, "has_mask", True) else np.ones(v.mask.shape, bool)
         render = render_view(surfels, v.camera, config.raster)
-        rgb = render["rgb"] if getattr(v, "has_mask", True) else composite(render, backdrop)
+        rgb = (render["rgb"] if getattr(v, "has_mask", True)
+               else background.composite(render, backdrop))
         gains.append(l1_gain(rgb, v.image, keep))
         psnr.append(metrics.psnr(np.clip(rgb * gains[-1], 0, 1)[keep],
                                  np.clip(v.image, 0, 1)[keep]))
@@ -676,7 +660,7 @@ def evaluate(surfels: Surfels, dataset, config: RasterConfig | None = None,
     for view in dataset.views:
         r = render_view(surfels, view.camera, config)
         if not getattr(view, "has_mask", True):
-            r["rgb"] = composite(r, backdrop)
+            r["rgb"] = background.composite(r, backdrop)
         if fit_gains:
             r["rgb"] = r["rgb"] * least_squares_gain(r["rgb"], view.image).astype(np.float32)
         rgb = np.clip(r["rgb"], 0.0, 1.0)

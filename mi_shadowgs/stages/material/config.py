@@ -104,9 +104,10 @@ class MaterialConfig:
     # Pattern searches of a lamp's position, coarse to fine: (direction step in degrees,
     # distance step as a share of the distance).
     lamp_passes: tuple = ((4.0, 0.16), (1.0, 0.04), (0.25, 0.01))
-    # How lamp candidates are scored (as ``refine_score``); "albedo" (without the lobe)
-    # re-fits each segment's albedo, so the falloff is not judged by the albedo fitted before.
-    lamp_score: str = "segment"
+    # How lamp candidates are scored (as ``refine_score``): "auto" is "albedo" without the
+    # lobe (each segment's albedo re-fitted: the falloff is not judged by the albedo fitted
+    # under the light before), else "segment".
+    lamp_score: str = "auto"
     # Keep the albedo's TV while the segment constraint holds.
     albedo_tv_with_segments: bool = True
     # Hold the support-weighted albedo quantile at this value (no specular lobe); 0: off.
@@ -193,8 +194,13 @@ class MaterialConfig:
         if self.settle_score not in SETTLE_SCORES:
             raise ValueError(f"MaterialConfig.settle_score must be one of {SETTLE_SCORES}, got "
                              f"{self.settle_score!r}")
+        if self.lamp_score not in ("auto", *REFINE_SCORES):
+            raise ValueError(f"MaterialConfig.lamp_score must be one of "
+                             f"{('auto', *REFINE_SCORES)}, got {self.lamp_score!r}")
         for name in ("refine_score", "chromaticity_refine_score", "lamp_score"):
             score = getattr(self, name)
+            if score == "auto":
+                continue
             if score not in REFINE_SCORES:
                 raise ValueError(f"MaterialConfig.{name} must be one of {REFINE_SCORES}, got "
                                  f"{score!r}")
@@ -237,6 +243,13 @@ class MaterialConfig:
         if not again or self.refine_again_passes is None or not self.refine_passes:
             return self.refine_passes
         return self.refine_again_passes
+
+
+def lamp_scoring(config: MaterialConfig) -> str:
+    """The score of lamp candidates: ``lamp_score``, with "auto" resolved."""
+    if config.lamp_score != "auto":
+        return config.lamp_score
+    return "albedo" if config.specular == "off" else "segment"
 
 
 def label_source_overrides(config: MaterialConfig, source: str) -> dict:

@@ -7,8 +7,8 @@ directional light would not cast them. ``localize_lights`` starts from the refin
 directional lights: for each light (strongest first) it scores, with the closed-form
 candidate scores of the direction search, the directional light against lamps along its
 direction at ``MaterialConfig.lamp_distances`` (scene-bound radii), each with its own
-shadow maps rendered from the lamp's position, by ``lamp_score`` (each segment's albedo
-re-fitted: the albedo fitted under the light so far holds its falloff); a lamp is kept only
+shadow maps rendered from the lamp's position, by ``lamp_score`` (by default each segment's
+albedo re-fitted: the albedo fitted under the light so far holds its falloff); a lamp is kept only
 when it lowers the views' error by ``lamp_min_gain`` (a sun stays directional: far lamps
 explain it no better). A kept lamp's position is then searched locally (``lamp_passes``): a pattern
 search over its direction from the scene centre and its distance, scale by scale.
@@ -16,14 +16,13 @@ search over its direction from the scene centre and its distance, scale by scale
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.core import jit, shading
-from mi_shadowgs.stages.material.config import MaterialConfig
+from mi_shadowgs.stages.material.config import MaterialConfig, lamp_scoring
 from mi_shadowgs.stages.material.scoring import _candidate_scores
 from mi_shadowgs.stages.material.views import TrainView
 
@@ -65,9 +64,8 @@ class LampSearch:
                  config: MaterialConfig, with_specular: bool, center: np.ndarray,
                  radius: float):
         self.views, self.channels, self.render_maps = views, channels, render_maps
-        # the candidates are scored by ``lamp_score``
-        self.config = dataclasses.replace(config, refine_score=config.lamp_score)
-        self.with_specular = with_specular
+        self.config, self.with_specular = config, with_specular
+        self.scoring = lamp_scoring(config)  # how the candidates are scored
         self.center = np.asarray(center, np.float64)
         self.radius = float(radius)  # the scene bound's
         # no lamp nearer than the nearest candidate distance
@@ -85,7 +83,8 @@ class LampSearch:
         maps = self.render_maps(dirs, None, positions)
         cand_maps = self.render_maps(cand.directions, None, cand.positions)
         return _candidate_scores(self.views, self.channels, self.lights(dirs, positions, irr),
-                                 maps, k, cand_maps, self.config, self.with_specular, cand)
+                                 maps, k, cand_maps, self.config, self.with_specular, cand,
+                                 self.scoring)
 
 
 def _best(err: np.ndarray, fit: np.ndarray) -> int:

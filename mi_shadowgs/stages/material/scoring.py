@@ -34,23 +34,25 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
 
 def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.LightSet, maps,
                       k: int, cand_maps, config: MaterialConfig, with_specular: bool,
-                      cand_lights: shading.LightSet | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      cand_lights: shading.LightSet | None = None,
+                      score: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(squared error [C], fitted irradiance [C]) of the views when light ``k`` moves to
     each candidate direction of ``cand_maps``, its irradiance re-fitted by least squares
     with the fitted materials. The error is that of ``config.refine_score``: with that one
     irradiance re-fitted ("irradiance"), with the light's scale re-fitted per segment
     ("segment", ``segment_errors``), or with each segment's albedo re-fitted per channel
     ("albedo", ``albedo_errors``). ``cand_lights``: the candidates as lights (lamps among
-    them; their weights unused), else the directions of ``cand_maps``."""
+    them; their weights unused), else the directions of ``cand_maps``. ``score``: in place
+    of ``config.refine_score``."""
+    score = score or config.refine_score
     cand = cand_lights or shading.LightSet(cand_maps.directions, mi.Color3f(1.0))
     n_cand = cand.count
     s_rb = dr.zeros(mi.Float64, n_cand)  # summed in Dr.Jit, read once at the end
     s_bb = dr.zeros(mi.Float64, n_cand)
     s_rr = mi.Float64(0.0)
     n_seg = max(v.n_segments for v in views) if views else 1
-    seg_sums = _SegmentSums(n_cand, n_seg) if config.refine_score != "irradiance" else None
-    alb_sums = _AlbedoSums(n_cand, n_seg) if config.refine_score == "albedo" else None
+    seg_sums = _SegmentSums(n_cand, n_seg) if score != "irradiance" else None
+    alb_sums = _AlbedoSums(n_cand, n_seg) if score == "albedo" else None
     with dr.suspend_grad():
         for v in views:
             albedo, rough, metal, ind, per, vis_k = _view_direct(
