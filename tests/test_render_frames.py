@@ -184,3 +184,13 @@ def test_frames_turn_exactly_and_the_sh_turn_with_them():
                     mi.Vector3f(*(d * flip).T.astype(np.float32)), floor=None)
     dr.eval(before, after)
     np.testing.assert_allclose(after.numpy(), before.numpy(), atol=1e-5)
+
+
+def test_view_files_are_named_without_the_frames_image_extension():
+    """nerfstudio's file_path carries the image's extension, NeRF-synthetic's does not: the
+    render's files are NAME.exr either way; equal names from two folders are numbered."""
+    from mi_shadowgs.stages.render import view_stems
+
+    assert view_stems(["train/r_000.png", "./test/r_1", "a/b.JPG", "c/d.tar", ""]) == [
+        "r_000", "r_1", "b", "d.tar", "view_004"]
+    assert view_stems(["train/r_0.png", "test/r_0.png"]) == ["000_r_0", "001_r_0"]

@@ -142,10 +142,17 @@ def aov_preview(name: str, img: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return (img - lo) / max(hi - lo, 1e-12)
 
 
+# A frame's ``file_path`` may name its image with its extension (nerfstudio's datasets
+# do) or without (NeRF-synthetic's): the render's own files take the name without it.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
+
+
 def view_stems(names) -> list[str]:
-    """File stems of the views: each frame's file name, numbered where two are equal
-    (frames from different folders) or where a frame has none."""
-    stems = [Path(name).name or f"view_{i:03d}" for i, name in enumerate(names)]
+    """File stems of the views: each frame's file name (without an image extension),
+    numbered where two are equal (frames from different folders) or where a frame has
+    none."""
+    stems = [(p.stem if p.suffix.lower() in IMAGE_SUFFIXES else p.name) or f"view_{i:03d}"
+             for i, p in enumerate(Path(name) for name in names)]
     if len(set(stems)) != len(stems):
         stems = [f"{i:03d}_{s}" for i, s in enumerate(stems)]
     return stems
