@@ -22,28 +22,9 @@ from mi_shadowgs.stages.material.lamps import (
     lamp_share,
     localize_lights,
 )
-from mi_shadowgs.stages.material.views import prepare_view, view_maps
-from tests.test_light_fit import _scene
+from tests.test_light_fit import _scene, rendered_views
 
 TRUE_DIR = direction_from_angles(35.0, 50.0)
-
-
-def _views(s, cams, lights):
-    n = s.count
-    ch = {"albedo": s.channels["albedo_gt"],
-          "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
-          "metallic": mi.TensorXf(np.zeros((n, 1), np.float32))}
-    cfg = get_config("cpu-small")
-    views = []
-    for cam in cams:
-        geom = shading.pixel_geometry(s, cam)
-        albedo, rough, metal, _ = view_maps(shading.splat_pairs(s, cam), ch,
-                                            shading.facing_normals(s, cam))
-        rgb = shading.shade(geom, albedo, rough, metal, lights, None, None, False)
-        img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
-        mask = geom.alpha.numpy() > 0.5
-        views.append(prepare_view(s, cam, img.reshape(64, 64, 3), mask.reshape(64, 64), cfg))
-    return views, ch
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +37,7 @@ def scene():
 
 def _search(scene, lights, **over):
     s, cams, bounds = scene
-    views, ch = _views(s, cams, lights)
+    views, ch = rendered_views(s, cams, lights)
     cfg = dataclasses.replace(get_config("cpu-small"), lamps="auto", **over)
     center = np.asarray(bounds.center)
     return LampSearch(views, ch, lambda *a, **k: None, cfg, False, center, bounds.radius)

@@ -23,6 +23,7 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
     render_shadow_maps,
     view_visibility,
 )
+from tests.test_visibility import primary_hits
 
 NAN3 = [math.nan] * 3
 
@@ -289,17 +290,7 @@ def test_bad_lamps_are_refused_naming_the_lamp():
 def _traced_to_lamp(scene, camera: Camera, lamp: np.ndarray):
     """Exact receivers of a view (z-depth, camera-facing normals, mask) and the hard
     visibility of the lamp point: a shadow ray to it, and n . l > 0."""
-    pix = camera.pixel_grid()
-    far = camera.unproject(pix, np.ones(len(pix)))
-    o = np.broadcast_to(camera.origin, far.shape)
-    d = far - o
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    ray = mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
-    si = scene.ray_intersect(ray)
-    valid = si.is_valid()
-    n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)
-    forward = mi.Vector3f(*(float(c) for c in camera.forward))
-    depth = dr.select(valid, si.t * dr.dot(ray.d, forward), 0.0)
+    si, valid, n, depth = primary_hits(scene, camera)
     target = mi.Point3f(*(float(c) for c in lamp))
     lit = (valid & ~scene.ray_test(si.spawn_ray_to(target), valid)
            & (dr.dot(n, dr.normalize(target - si.p)) > 1e-4))

@@ -81,6 +81,13 @@ def _views(s, cams, bounds, dirs, irradiance):
     maps = render_shadow_maps(s, dirs, bounds, VCFG)
     e = mi.Float(np.asarray(irradiance, np.float32))
     lights = shading.LightSet(dirs, mi.Color3f(e, e, e))
+    return rendered_views(s, cams, lights, maps)
+
+
+def rendered_views(s, cams, lights, maps=None):
+    """Training views of ``s`` (its true albedo, roughness 1, no metal) under ``lights``,
+    with the visibility of ``maps`` (None: unshadowed), and the channels that rendered
+    them."""
     n = s.count
     ch = {"albedo": s.channels["albedo_gt"],
           "roughness": mi.TensorXf(np.ones((n, 1), np.float32)),
@@ -91,8 +98,8 @@ def _views(s, cams, bounds, dirs, irradiance):
         geom = shading.pixel_geometry(s, cam)
         albedo, rough, metal, _ = view_maps(shading.splat_pairs(s, cam), ch,
                                             shading.facing_normals(s, cam))
-        rgb = shading.shade(geom, albedo, rough, metal, lights,
-                            maps.evaluate(geom.points, geom.normal, geom.footprint), None, False)
+        vis = None if maps is None else maps.evaluate(geom.points, geom.normal, geom.footprint)
+        rgb = shading.shade(geom, albedo, rough, metal, lights, vis, None, False)
         img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
         mask = geom.alpha.numpy() > 0.5
         views.append(prepare_view(s, cam, img.reshape(64, 64, 3),

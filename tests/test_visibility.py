@@ -38,14 +38,9 @@ def _ground(half=2.0):
     return _rect([0, 0, 0], (half, half), rot=([1, 0, 0], -90.0))
 
 
-def _ray_traced(scene, camera: Camera, directions):
-    """Independent ground truth: primary hits and shadow rays, straight from Mitsuba.
-
-    A point whose camera-facing normal turns away from the light gets no direct light (an
-    attached shadow) even where its shadow ray escapes, e.g. the lit-from-behind face of a
-    zero-thickness wall: that counts as shadow, as it does for the shadow-map method.
-    Returns (depth [H, W, 1], normal [H, W, 3] facing the camera, mask [H, W], V [H, W, L]).
-    """
+def primary_hits(scene, camera: Camera):
+    """Mitsuba's primary hit of each pixel centre's ray: (interaction, valid, normal facing
+    the camera, z-depth (0 where it misses))."""
     pix = camera.pixel_grid()
     far = camera.unproject(pix, np.ones(len(pix)))
     o = np.broadcast_to(camera.origin, far.shape)
@@ -57,6 +52,18 @@ def _ray_traced(scene, camera: Camera, directions):
     n = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)
     forward = mi.Vector3f(*(float(c) for c in camera.forward))
     depth = dr.select(valid, si.t * dr.dot(ray.d, forward), 0.0)
+    return si, valid, n, depth
+
+
+def _ray_traced(scene, camera: Camera, directions):
+    """Independent ground truth: primary hits and shadow rays, straight from Mitsuba.
+
+    A point whose camera-facing normal turns away from the light gets no direct light (an
+    attached shadow) even where its shadow ray escapes, e.g. the lit-from-behind face of a
+    zero-thickness wall: that counts as shadow, as it does for the shadow-map method.
+    Returns (depth [H, W, 1], normal [H, W, 3] facing the camera, mask [H, W], V [H, W, L]).
+    """
+    si, valid, n, depth = primary_hits(scene, camera)
     vis = []
     for l_dir in directions:
         lv = mi.Vector3f(*(float(c) for c in l_dir))

@@ -44,37 +44,43 @@ def direction_from_angles(azimuth_deg: float, elevation_deg: float) -> np.ndarra
     return np.array([math.cos(el) * math.cos(az), math.sin(el), -math.cos(el) * math.sin(az)])
 
 
-def parse_angle_fields(text, option: str, usage: str, layouts: dict[int, tuple[str, ...]],
-                       elevation: tuple[float, float, bool] = (-90.0, 90.0, True)
-                       ) -> list[float]:
-    """The numbers of a light given as ``AZ,EL[,...]`` (a string, or a sequence of numbers)
-    to ``option``: ``layouts`` maps each allowed count of fields to the fields' names, the
-    first two azimuth and elevation in degrees; ``usage`` is the form the message shows.
-    Every field is finite; the elevation lies in [lo, hi] with ``elevation = (lo, hi,
-    True)``, in (lo, hi] with ``(lo, hi, False)``. ValueError naming ``option``, the value
-    and the field at fault."""
+def parse_number_fields(text, option: str, usage: str, layouts: dict[int, tuple[str, ...]]
+                        ) -> tuple[list[float], tuple[str, ...], str]:
+    """The finite numbers of comma-separated fields given to ``option`` (a string, or a
+    sequence of numbers): ``layouts`` maps each allowed count of fields to the fields'
+    names; ``usage`` is the form the message shows. Returns (values, their names, the
+    option and value as messages name them); ValueError naming the field at fault."""
     parts = ([p.strip() for p in text.split(",")] if isinstance(text, str)
              else [str(p).strip() for p in text])
-    shown = ",".join(parts)
+    shown = f"{option} {','.join(parts)!r}"
     names = layouts.get(len(parts))
     if names is None:
-        raise ValueError(f"{option} {shown!r}: expected {usage}, got {len(parts)} field(s)")
+        raise ValueError(f"{shown}: expected {usage}, got {len(parts)} field(s)")
     values = []
     for name, part in zip(names, parts, strict=True):
         try:
             value = float(part)
         except ValueError:
-            raise ValueError(f"{option} {shown!r}: field {name} must be a number, got "
-                             f"{part!r}") from None
+            raise ValueError(f"{shown}: field {name} must be a number, got {part!r}") from None
         if not math.isfinite(value):
-            raise ValueError(f"{option} {shown!r}: field {name} must be finite, got {part!r}")
+            raise ValueError(f"{shown}: field {name} must be finite, got {part!r}")
         values.append(value)
+    return values, names, shown
+
+
+def parse_angle_fields(text, option: str, usage: str, layouts: dict[int, tuple[str, ...]],
+                       elevation: tuple[float, float, bool] = (-90.0, 90.0, True)
+                       ) -> list[float]:
+    """The numbers of a light given as ``AZ,EL[,...]`` (``parse_number_fields``), the
+    first two azimuth and elevation in degrees. The elevation lies in [lo, hi] with
+    ``elevation = (lo, hi, True)``, in (lo, hi] with ``(lo, hi, False)``. ValueError naming
+    ``option``, the value and the field at fault."""
+    values, _, shown = parse_number_fields(text, option, usage, layouts)
     lo, hi, closed = elevation
     el = values[1]
     if not ((lo <= el if closed else lo < el) and el <= hi):
         span = f"{'[' if closed else '('}{lo:g}, {hi:g}]"
-        raise ValueError(f"{option} {shown!r}: field elevation must be in {span} degrees, "
-                         f"got {el:g}")
+        raise ValueError(f"{shown}: field elevation must be in {span} degrees, got {el:g}")
     return values
 
 

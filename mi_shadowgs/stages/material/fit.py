@@ -54,19 +54,45 @@ from mi_shadowgs.stages.visibility.shadow_maps import (
 DEFAULT_VISIBILITY = VisibilityConfig()
 
 
+def _current_channels(state: MaterialState) -> dict:
+    """The material channels as the optimiser holds them now (its lights left out)."""
+    cur = dict(state.channels)
+    for key in state.opt.keys():
+        if key not in _LIGHT_KEYS:
+            cur[key] = state.opt[key]
+    return cur
+
+
+def _irradiance(state: MaterialState, dw: float) -> np.ndarray:
+    """The lights' irradiance [K] from the optimiser's log radiance (``dw``: a direction's
+    solid angle)."""
+    return np.exp(state.opt["log_light"].numpy().astype(np.float64)) * dw
+
+
+def _set_irradiance(state: MaterialState, irr: np.ndarray, dw: float,
+                    config: MaterialConfig) -> None:
+    """The optimiser's lights set to irradiance ``irr`` [K], at the light learning rate."""
+    state.opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
+    state.opt.set_learning_rate({"log_light": config.lr_light})
+
+
+def _refinement_views(fit: MaterialFit) -> list:
+    """The ``refine_views`` training views the light refinements score, evenly spread."""
+    n = len(fit.views)
+    pick = np.unique(np.linspace(0, n - 1, min(fit.config.refine_views, n)).round()
+                     .astype(int))
+    return [fit.views[i] for i in pick]
+
+
 def _refine(views, state: MaterialState, maps, render_maps, config: MaterialConfig,
             on_unit, global_pass: bool = False, center=None) -> np.ndarray:
     """``refine_directions`` on the optimiser's current state, or the rest of
     ``state.refine`` when a checkpoint was written inside it; sets the refitted light and
     returns the directions."""
     dw = solid_angle(config.n_directions)
-    opt = state.opt
-    cur = dict(state.channels)
-    for key in opt.keys():
-        if key not in _LIGHT_KEYS:
-            cur[key] = opt[key]
+    cur = _current_channels(state)
     if state.refine is None:
-        irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
+        irr = _irradiance(state, dw)
         # the end of the warm-up (global_pass) or the main phase's second refinement
         state.refine = Refinement.start(state.directions, irr, config,
                                         global_pass or config.refine_again_global,
@@ -77,28 +103,20 @@ def _refine(views, state: MaterialState, maps, render_maps, config: MaterialConf
                      state.positions, center)
     dirs, irr = state.refine.dirs, state.refine.irradiance
     state.refine = None
-    opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
-    opt.set_learning_rate({"log_light": config.lr_light})
+    _set_irradiance(state, irr, dw, config)
     return dirs
 
 
 def _settle(fit: MaterialFit, state: MaterialState) -> None:
     """``settle_lights`` on the refinement's views and the optimiser's current state."""
-    config, opt = fit.config, state.opt
-    cur = dict(state.channels)
-    for key in opt.keys():
-        if key not in _LIGHT_KEYS:
-            cur[key] = opt[key]
-    pick = np.unique(np.linspace(0, len(fit.views) - 1,
-                                 min(config.refine_views, len(fit.views))).round().astype(int))
+    config = fit.config
     dw = solid_angle(config.n_directions)
-    irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
-    dirs, irr, maps, pos = settle_lights([fit.views[i] for i in pick], cur, state.directions,
-                                         irr, fit.maps, fit.shadow_maps, config,
-                                         state.specular, state.positions, fit.bounds.center)
+    dirs, irr, maps, pos = settle_lights(_refinement_views(fit), _current_channels(state),
+                                         state.directions, _irradiance(state, dw), fit.maps,
+                                         fit.shadow_maps, config, state.specular,
+                                         state.positions, fit.bounds.center)
     state.directions, fit.maps, state.positions = dirs, maps, pos
-    opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
-    opt.set_learning_rate({"log_light": config.lr_light})
+    _set_irradiance(state, irr, dw, config)
 
 
 def _prune_state(fit: MaterialFit, state: MaterialState) -> None:
@@ -111,19 +129,13 @@ def _localize(fit: MaterialFit, state: MaterialState) -> None:
     """``localize_lights`` on the refinement's views and the optimiser's current state,
     then the lights settled again (a lamp explains the falloff a second light was fitted
     to)."""
-    config, opt = fit.config, state.opt
+    config = fit.config
     if not fit.views:
         return
-    cur = dict(state.channels)
-    for key in opt.keys():
-        if key not in _LIGHT_KEYS:
-            cur[key] = opt[key]
-    pick = np.unique(np.linspace(0, len(fit.views) - 1,
-                                 min(config.refine_views, len(fit.views))).round().astype(int))
     dw = solid_angle(config.n_directions)
-    irr = np.exp(opt["log_light"].numpy().astype(np.float64)) * dw
-    search = LampSearch([fit.views[i] for i in pick], cur, fit.shadow_maps, config,
-                        state.specular, np.asarray(fit.bounds.center, np.float64),
+    irr = _irradiance(state, dw)
+    search = LampSearch(_refinement_views(fit), _current_channels(state), fit.shadow_maps,
+                        config, state.specular, np.asarray(fit.bounds.center, np.float64),
                         fit.bounds.radius)
     order = np.argsort(-irr)[:config.refine_max_lights]
     dirs, pos, irr, log = localize_lights(search, state.directions, state.positions, irr,
@@ -133,8 +145,7 @@ def _localize(fit: MaterialFit, state: MaterialState) -> None:
         return
     state.directions = dirs
     state.positions = pos if np.isfinite(pos).any() else None
-    opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
-    opt.set_learning_rate({"log_light": config.lr_light})
+    _set_irradiance(state, irr, dw, config)
     fit.maps = fit.state_maps(state)
     state.log_lights("localize", dw, log)
     if len(state.directions) > 1:
@@ -234,10 +245,7 @@ def fit_step(fit: MaterialFit, state: MaterialState) -> float | None:
     config, opt, ch = fit.config, state.opt, state.channels
     w_light = dr.exp(opt["log_light"]) * solid_angle(config.n_directions)
     lights = state.light_set(w_light, fit.bounds.center)
-    cur = dict(ch)
-    for k in opt.keys():
-        if k not in _LIGHT_KEYS:
-            cur[k] = opt[k]
+    cur = _current_channels(state)
     total = mi.Float(0.0)
     for _ in range(config.views_per_step):
         v = fit.views[int(state.rng.integers(len(fit.views)))]

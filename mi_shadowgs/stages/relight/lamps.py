@@ -21,6 +21,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.core import jit, shading
+from mi_shadowgs.core.directions import parse_number_fields
 
 POINT_USAGE = ("X,Y,Z,INTENSITY[,RADIUS] or X,Y,Z,R,G,B[,RADIUS] (world units; W/sr; "
                "RADIUS 0: a point)")
@@ -45,20 +46,7 @@ class Lamp:
 def parse_point(text: str, option: str = "--point") -> Lamp:
     """``X,Y,Z,I[,RADIUS]`` or ``X,Y,Z,R,G,B[,RADIUS]`` -> a Lamp (position, intensity in
     W/sr, radius in world units); ValueError naming the option and the field at fault."""
-    parts = [p.strip() for p in str(text).split(",")]
-    shown = f"{option} {','.join(parts)!r}"
-    names = _POINT_FIELDS.get(len(parts))
-    if names is None:
-        raise ValueError(f"{shown}: expected {POINT_USAGE}, got {len(parts)} field(s)")
-    values = []
-    for name, part in zip(names, parts, strict=True):
-        try:
-            value = float(part)
-        except ValueError:
-            raise ValueError(f"{shown}: field {name} must be a number, got {part!r}") from None
-        if not math.isfinite(value):
-            raise ValueError(f"{shown}: field {name} must be finite, got {part!r}")
-        values.append(value)
+    values, names, shown = parse_number_fields(str(text), option, POINT_USAGE, _POINT_FIELDS)
     radius = values.pop() if names[-1] == "radius" else 0.0
     intensity = values[3:] * (3 if len(values) == 4 else 1)
     lamp = Lamp(tuple(values[:3]), tuple(intensity), radius, source=shown)

@@ -242,12 +242,13 @@ def _map_lookup(maps, lk: LampLookup, index: mi.UInt32, p0: mi.Point3f,
         bias = dr.select(local, cfg.bias_texels * (z / focal), cfg.bias_texels * maps.texel)
     else:
         bias = mi.Float(cfg.tau)
-    return _window_lookup(maps, cfg, index * (r * r), u, v, z, bias, front, absolute)
+    return window_lookup(maps, cfg, index * (r * r), u, v, z, bias, front, absolute)
 
 
-def _window_lookup(maps, cfg, base, u, v, z, bias, front, absolute: bool) -> mi.Float:
+def window_lookup(maps, cfg, base, u, v, z, bias, front, absolute: bool) -> mi.Float:
     """Eq. 6-7 (or the absolute test) at the texel of (u, v) of the map at ``base``,
-    averaged over the PCF window; 1 where not ``front`` or outside the map."""
+    averaged over the PCF window; 1 where not ``front`` or outside the map (an inf map
+    depth gives -inf: visible). The directional and the lamp maps' lookup."""
     r = maps.resolution
     radius = cfg.pcf
     acc = mi.Float(0.0)

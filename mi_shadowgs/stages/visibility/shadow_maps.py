@@ -540,27 +540,10 @@ def point_visibility(points: mi.Point3f, maps: ShadowMaps, normals: mi.Vector3f 
     else:
         inv_z = dr.rcp(dr.maximum(z, 1e-12))
         u, v = focal * x * inv_z + c, focal * y * inv_z + c
-    base = li * (r * r)
-    radius = cfg.pcf
     absolute = cfg.bias_texels is not None
-    bias = cfg.bias_texels * maps.texel if absolute else cfg.tau
-    acc = mi.Float(0.0)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            ix = mi.Int32(dr.floor(u)) + dx
-            iy = mi.Int32(dr.floor(v)) + dy
-            inside = (ix >= 0) & (ix < r) & (iy >= 0) & (iy < r)
-            tex = base + mi.UInt32(dr.clip(iy, 0, r - 1)) * r + mi.UInt32(dr.clip(ix, 0, r - 1))
-            d_g = dr.gather(mi.Float, maps.depth, tex, inside)
-            d_g = dr.select(inside, d_g, dr.inf)
-            # Eq. 7 (or the absolute difference); inf map depth => -inf => visible
-            delta = (z - d_g) if absolute else (z - d_g) / (z + cfg.eps)
-            if maps.alpha is not None:  # fractional: the occluder lets 1 - alpha through
-                a_g = dr.gather(mi.Float, maps.alpha, tex, inside)
-                acc += dr.select(delta <= bias, 1.0, 1.0 - a_g)
-            else:
-                acc += dr.select(delta <= bias, 1.0, 0.0)
-    vis = acc / float((2 * radius + 1) ** 2)
+    bias = mi.Float(cfg.bias_texels * maps.texel if absolute else cfg.tau)
+    vis = lamp_maps.window_lookup(maps, cfg, li * (r * r), u, v, z, bias, mi.Bool(True),
+                                  absolute)
     return dr.select(facing, vis, 0.0)
 
 
