@@ -230,8 +230,10 @@ def test_d_ssim_gradient(images):
 def test_ssim_with_the_targets_statistics_computed_once(images):
     """``ssim_target`` (the target's two blurs evaluated once per training view) gives the
     plain call's SSIM map and D-SSIM gradient: the same float32 operations, only evaluated
-    earlier. The gradient check catches a target whose statistics were differentiated or
-    whose variance lost its mean term."""
+    earlier. Against a target, D-SSIM is the hand-written ``_DssimOp``: its value is checked
+    against the float64 reference and its gradient against Dr.Jit's AD of ``ssim_map`` and
+    finite differences, which catch a target whose statistics were differentiated or whose
+    variance lost its mean term."""
     a, b = images
     tb = _t(b)
     target = losses.ssim_target(tb)
@@ -240,6 +242,9 @@ def test_ssim_with_the_targets_statistics_computed_once(images):
     np.testing.assert_allclose(losses.ssim_map(_t(a), target).numpy(),
                                _ssim_ref(a.astype(np.float32).astype(np.float64),
                                          b.astype(np.float32).astype(np.float64)), atol=1e-4)
+    ref = _ssim_ref(a.astype(np.float32).astype(np.float64),
+                    b.astype(np.float32).astype(np.float64))
+    assert float(losses.d_ssim(_t(a), target)[0]) == pytest.approx(1.0 - ref.mean(), abs=1e-6)
     grads = []
     for other in (tb, target):
         x = _t(a)
