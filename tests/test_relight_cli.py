@@ -109,6 +109,45 @@ def test_cache_renders_each_direction_once_and_equals_fresh_maps():
     assert cache.rendered == 5
 
 
+def test_cache_rasterizes_each_view_once_and_counts_it_in_every_relighting(monkeypatch):
+    """Relightings of the same views share each view's rasterization: the images equal
+    uncached ones, each view is rasterized once per model, and every relighting's time
+    still counts the rasterizations it reused. Another model (other channels) or camera
+    is rasterized anew; the cache drops its oldest views past ``max_view_bytes``."""
+    model = _plane_model()
+    pos = model.surfels.to_numpy()["position"]
+    cams = [Camera.look_at([1.5, 1.5, z], [0, 0.1, 0], fov_x=0.8, width=20, height=16)
+            for z in (1.5, -1.5)]
+    bounds = SceneBounds.from_points(pos, cams)
+    cfg = VisibilityConfig(resolution=64)
+    calls = []
+    real = relight.view_buffers
+    monkeypatch.setattr(relight, "view_buffers",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
+    cache = relight.RelightCache()
+    lights = [relight.directional_light_set(direction_from_angles(az, 40.0)[None], [1.0])
+              for az in (10.0, 200.0)]
+    runs = [relight.relight_views(model, cams, ls, bounds, vis_config=cfg, cache=cache)
+            for ls in lights]
+    assert len(calls) == 2  # two views, rasterized once for both relightings
+    made = sum(v[1] for v in cache._views.values())
+    assert runs[1][1] >= made  # the second relighting's time counts the reused views
+    for ls, (views, _) in zip(lights, runs, strict=True):
+        fresh, _ = relight.relight_views(model, cams, ls, bounds, vis_config=cfg)
+        for a, b in zip(views, fresh, strict=True):
+            for key in ("rgb", "albedo", "direct_irradiance", "alpha"):
+                np.testing.assert_array_equal(a[key], b[key])
+    other = relight.RelightModel(model.surfels.with_channels(
+        {"albedo": mi.TensorXf(np.full((model.surfels.count, 3), 0.3, np.float32))}),
+        False, True)
+    cache.view_buffers(other, cams[0])
+    assert cache.view_buffers(other, cams[0])[2] and len(cache._views) == 3
+    small = relight.RelightCache(max_view_bytes=1)
+    for cam in cams:
+        small.view_buffers(model, cam)
+    assert len(small._views) == 1 and not small.view_buffers(model, cams[0])[2]
+
+
 def _sky_file(tmp_path, **kw):
     path = tmp_path / "sky.exr"
     write_exr(path, sky_envmap_image(SkyConfig(**kw)))

@@ -129,7 +129,9 @@ def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_m
     maps = (relight.shadow_maps_for(model, est_light, bounds, vcfg) if cache is None else
             cache.shadow_maps(model, est_light, bounds, vcfg))
     factor = relight.indirect_factor(model, est_light, rcfg)
-    views = [relight.relight_view(model, cam, est_light, maps, factor, buffers=True)
+    views = [relight.relight_view(model, cam, est_light, maps, factor, buffers=True,
+                                  view=None if cache is None else
+                                  cache.view_buffers(model, cam)[0])
              for cam in test.cameras]
     decomp_s = time.perf_counter() - t0  # relight_view reads back to numpy: synced
     mask = test.stack("mask")  # relit images: the photo's coverage

@@ -37,9 +37,10 @@ def write_previews(folder: Path, result, cameras, bounds: SceneBounds,
 
     Exposure: each preview light gives an upward-facing surface the irradiance the fitted
     light gives it (albedo and light are known only up to a common factor, so the fitted
-    light is the only scale there is). ``cache``: shadow maps already rendered (e.g. by the
-    evaluation's env-map relightings). Writes ``preview_<view>_<light>.png`` and one strip
-    per view; returns {"strips": [{"title", "file"}], "lights": [...]} for the report.
+    light is the only scale there is). ``cache``: shadow maps and views' rasterizations
+    already made (e.g. by the evaluation's relightings). Writes
+    ``preview_<view>_<light>.png`` and one strip per view; returns {"strips": [{"title",
+    "file"}], "lights": [...]} for the report.
     """
     from mi_shadowgs.core.envmap import load_envmap as load_emitter
     from mi_shadowgs.io.images import write_png
@@ -68,7 +69,8 @@ def write_previews(folder: Path, result, cameras, bounds: SceneBounds,
                 maps = cache.shadow_maps(model, ls, bounds, vcfg)
                 img = relight.relight_view(model, cam, ls, maps,
                                            relight.indirect_factor(model, ls, rcfg),
-                                           only_rgb=True)["rgb"]
+                                           only_rgb=True,
+                                           view=cache.view_buffers(model, cam)[0])["rgb"]
                 fname = f"preview_{cam_i}_{kind}_{name}.png"
                 write_png(folder / fname, display(img))
                 frames.append(display(img))

@@ -364,15 +364,20 @@ def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: Scene
 
 def relight_view(model: RelightModel, camera: Camera, lights: shading.LightSet, maps,
                  factor: float, raster: RasterConfig = DEFAULT_RASTER,
-                 buffers: bool = False, only_rgb: bool = False) -> dict:
+                 buffers: bool = False, only_rgb: bool = False,
+                 view: ViewBuffers | None = None) -> dict:
     """Relit image and buffers of one view: "rgb" [H, W, 3], "albedo" [H, W, 3] (diffuse,
     (1 - m) a), "direct_irradiance" [H, W] (white sum_k E_k (n . l_k)^+ V_k, mean RGB),
     "alpha" [H, W] as numpy. With ``buffers`` also "roughness" [H, W], "metallic" [H, W],
     "normal" [H, W, 3] (world, 0 on background) and "visibility" [H, W, K] (1 where light k
     is unoccluded; all 1 without shadow maps). ``only_rgb``: "rgb" and "alpha" alone (the
-    relight command's frames: no irradiance pass)."""
+    relight command's frames: no irradiance pass). ``view``: the view's buffers when the
+    caller has them (``RelightCache.view_buffers``), else rasterized here."""
     h, w = camera.height, camera.width
-    geom, albedo, rough, metal, ind = render_buffers(model, camera, raster)
+    if view is None:
+        view = view_buffers(model.surfels, camera, raster, receiver_band=model.receiver_band)
+    geom, albedo, rough, metal, ind = (view.geom, view.albedo, view.roughness, view.metallic,
+                                       view.indirect)
     with dr.suspend_grad():
         vis = (None if maps is None else
                maps.evaluate(geom.points, geom.normal, geom.footprint))
@@ -410,10 +415,13 @@ def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shadin
                   raster: RasterConfig = DEFAULT_RASTER, progress: bool = False,
                   cache: RelightCache | None = None,
                   only_rgb: bool = False) -> tuple[list[dict], float]:
-    """Relight every camera's view; returns the per-view dicts and the wall time (s),
-    shadow maps included (taken from ``cache`` when given). ``only_rgb``: each view's "rgb"
-    and "alpha" alone (``relight_view``), without the second shading pass over every light
-    that the irradiance buffer takes."""
+    """Relight every camera's view; returns the per-view dicts and the time (s) to
+    rasterize and shade them, shadow maps included. With ``cache``, the shadow maps and
+    each view's rasterization (``RelightCache.view_buffers``) are made once and shared
+    with later calls; the time still counts the rasterizations it reused, at what they
+    took to make, so that it is what a relighting of these views costs. ``only_rgb``: each
+    view's "rgb" and "alpha" alone (``relight_view``), without the second shading pass
+    over every light that the irradiance buffer takes."""
     from tqdm import tqdm
 
     dr.sync_thread()
@@ -421,10 +429,16 @@ def relight_views(model: RelightModel, cameras: Sequence[Camera], lights: shadin
     maps = (shadow_maps_for(model, lights, bounds, vis_config) if cache is None else
             cache.shadow_maps(model, lights, bounds, vis_config))
     factor = indirect_factor(model, lights, config)
-    out = [relight_view(model, cam, lights, maps, factor, raster, only_rgb=only_rgb)
-           for cam in tqdm(cameras, desc="relight", disable=not progress)]
+    out, reused = [], 0.0
+    for cam in tqdm(cameras, desc="relight", disable=not progress):
+        view = None
+        if cache is not None:
+            view, made_s, hit = cache.view_buffers(model, cam, raster)
+            reused += made_s if hit else 0.0
+        out.append(relight_view(model, cam, lights, maps, factor, raster, only_rgb=only_rgb,
+                                view=view))
     dr.sync_thread()
-    return out, time.perf_counter() - t0
+    return out, time.perf_counter() - t0 + reused
 
 
 # -- light sources of the relight command and the plugin ---------------------------------
@@ -542,8 +556,23 @@ def emitter_light_set(emitters, config: RelightConfig = DEFAULT_RELIGHT,
 GEOMETRY_FIELDS = ("position", "log_scale", "rotation", "opacity_logit")
 
 
+def _nbytes(x) -> int:
+    """Bytes of the Dr.Jit arrays in ``x`` (a dataclass, dict, tuple or array; others 0)."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return sum(_nbytes(getattr(x, f.name)) for f in dataclasses.fields(x))
+    if isinstance(x, dict):
+        return sum(_nbytes(v) for v in x.values())
+    if isinstance(x, tuple | list):
+        return sum(_nbytes(v) for v in x)
+    if not dr.is_array_v(x):
+        return 0
+    components = 1 if dr.is_tensor_v(x) or dr.depth_v(x) == 1 else dr.size_v(x)
+    return dr.width(x) * components * dr.itemsize_v(x)
+
+
 class RelightCache:
-    """Shadow maps and env-map grid radiance kept between renders of one model.
+    """Shadow maps, views' rasterizations and env-map grid radiance kept between renders
+    of one model.
 
     A shadow map depends on the surfels, its light direction, the scene bounds and the
     visibility settings, never on the view: ``shadow_maps`` keeps a ``MapCache`` per
@@ -551,14 +580,18 @@ class RelightCache:
     rest. ``envmap_radiance`` keys an infinite emitter's grid radiance on a digest of its
     parameters (image, scale, to_world), so an edited env map is integrated again. It holds
     at most ``max_map_bytes`` of maps per geometry, ``max_sets`` assembled sets and
-    ``max_envmaps`` emitters (oldest dropped first).
+    ``max_envmaps`` emitters (oldest dropped first). ``view_buffers`` keeps each view's
+    rasterization, which no light changes, up to ``max_view_bytes``.
     """
 
     def __init__(self, max_map_bytes: int = 1 << 30, max_envmaps: int = 8,
-                 max_sets: int = 16):
+                 max_sets: int = 16, max_view_bytes: int = 1 << 30):
         self.max_map_bytes = max_map_bytes
         self.max_envmaps = max_envmaps
         self.max_sets = max_sets
+        self.max_view_bytes = max_view_bytes
+        # (model ids, camera id, raster, band) -> (ViewBuffers, seconds, bytes, held objects)
+        self._views: dict[tuple, tuple] = {}
         self._caches: dict[tuple, MapCache] = {}  # (geometry ids, bounds) -> its maps
         self._sets: dict[tuple, object] = {}  # all keys of a light set -> its ShadowMaps
         self._models: dict[tuple, tuple] = {}
@@ -592,6 +625,33 @@ class RelightCache:
         while len(self._sets) > self.max_sets:  # oldest first
             self._sets.pop(next(iter(self._sets)))
         return maps
+
+    def view_buffers(self, model: RelightModel, camera: Camera,
+                     raster: RasterConfig = DEFAULT_RASTER) -> tuple[ViewBuffers, float, bool]:
+        """(``view_buffers`` of ``model`` seen by ``camera``, the seconds they took to make,
+        whether they were reused). A view's rasterization depends on the surfels (their
+        geometry and every channel), the camera, the raster settings and the receiver band,
+        never on the lights: each is made once, keyed on the identity of those objects
+        (held, so that the identities stay unique), and kept up to ``max_view_bytes``
+        (oldest dropped first)."""
+        surfels = model.surfels
+        held = (*(getattr(surfels, k) for k in GEOMETRY_FIELDS), *surfels.channels.values(),
+                camera)
+        key = (tuple(id(x) for x in held), tuple(surfels.channels), raster,
+               model.receiver_band)
+        if key in self._views:
+            return self._views[key][0], self._views[key][1], True
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        view = view_buffers(surfels, camera, raster, receiver_band=model.receiver_band)
+        dr.sync_thread()
+        seconds = time.perf_counter() - t0
+        size = _nbytes(view)
+        self._views[key] = (view, seconds, size, held)
+        while (len(self._views) > 1 and
+               sum(v[2] for v in self._views.values()) > self.max_view_bytes):
+            self._views.pop(next(iter(self._views)))
+        return view, seconds, False
 
     def envmap_radiance(self, emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np.ndarray:
         import hashlib
