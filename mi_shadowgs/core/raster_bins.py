@@ -219,25 +219,15 @@ def sample_plan(bins: Bins, width: int, pixels: mi.UInt32) -> LanePlan:
                      samples=n)
 
 
-def to_image(vals: list, bins: Bins, width: int, height: int) -> mi.Float:
+def to_image(vals: list, plan: LanePlan, width: int, height: int) -> mi.Float:
     """Lane values (per pixel k of a lane: C arrays [lanes]) -> a flat image [H * W * C],
-    gathered from each pixel's lane."""
+    each pixel scattered from its lane (one write per output value; every pixel of the
+    image is some lane's pixel ``image_plan``)."""
     c = len(vals[0])
-    idx = dr.arange(mi.UInt32, width * height * c)
-    pix = idx // c
-    ch = idx - pix * c
-    py = pix // width
-    px = pix - py * width
-    ty, tx = py // bins.size, px // bins.size
-    local = (py - ty * bins.size) * bins.size + (px - tx * bins.size)
-    sub = local // bins.per_lane
-    k = local - sub * bins.per_lane
-    lane = (ty * bins.ntx + tx) * bins.lanes_per_tile + sub
-    out = dr.gather(mi.Float, vals[0][0], lane)
-    for kk, vk in enumerate(vals):
+    out = dr.zeros(mi.Float, width * height * c)
+    for k, vk in enumerate(vals):
         for cc, v in enumerate(vk):
-            if kk or cc:
-                out = dr.select((k == kk) & (ch == cc), dr.gather(mi.Float, v, lane), out)
+            dr.scatter(out, v, plan.out_index[k] * c + cc, active=plan.insides[k])
     return out
 
 

@@ -125,7 +125,7 @@ class _TiledOp(dr.CustomOp):
         dr.eval(self.t_final, self.stop, lane_out, self.med_j, self.m_sums)
         if plan.samples is not None:
             return {name: to_samples(vals, plan) for name, vals in lane_out.items()}
-        return {name: to_image(vals, bins, ctx.width, ctx.height)
+        return {name: to_image(vals, plan, ctx.width, ctx.height)
                 for name, vals in lane_out.items()}
 
     def _start_pixel(self, inside: mi.Bool, first: mi.UInt32, end: mi.UInt32,
