@@ -2,7 +2,13 @@
 stage-4 step (``fit_step``), split into their parts, each with its wall time, its Dr.Jit
 kernel launches (``dr.kernel_history``) and its host syncs.
 
-    python -m benchmarks.profile_step [--quick] [--out DIR] [--steps N]
+    python -m benchmarks.profile_step [--quick] [--out DIR] [--steps N] [--case C]
+                                      [--baseline PROFILE_JSON] [--results DIR]
+
+``--baseline`` takes an earlier run's ``profile.json`` (another commit, the same machine,
+best run just before this one): each table gains its per-part times and the speed-up.
+``--results DIR`` also writes ``DIR/step_profile.json`` (the schema ``make results``
+renders into RESULTS.md).
 
 The scene is the benchmarks' workload (a sphere of surfels on a plane of them,
 ``benchmarks.workloads``), seen by a ring of cameras whose images the rasterizer renders
@@ -484,6 +490,57 @@ def table(result: dict) -> str:
     return "\n".join(rows)
 
 
+def result_doc(report: dict, baseline: dict | None) -> dict:
+    """The results/ record (``scripts.results`` schema) of a profile, with the baseline's
+    times beside this run's where one is given."""
+    m = report["machine"]
+    base_commit = baseline["machine"]["commit"] if baseline else None
+    tables = []
+    for case, stages in report["cases"].items():
+        for stage, r in stages.items():
+            if not isinstance(r, dict):
+                continue
+            old = ((baseline or {}).get("cases", {}).get(case, {}).get(stage) or {})
+            old_parts = old.get("parts", {})
+            cols = ["part", f"ms / step at {m['commit']}", "kernels / step", "syncs / step"]
+            if baseline:
+                cols[1:1] = [f"ms / step at {base_commit}"]
+            rows = []
+            for name, part in sorted(r["parts"].items(), key=lambda kv: -kv[1]["ms"]):
+                row = [name, f"{part['ms']:.2f}", f"{part['kernels']:.1f}",
+                       f"{part['syncs']:.2f}"]
+                if baseline:
+                    row[1:1] = [f"{old_parts[name]['ms']:.2f}" if name in old_parts else "-"]
+                rows.append(row)
+            total = sum(part["ms"] for part in r["parts"].values())
+            plain = ["step as the loop runs it (1 sync / step)", f"{r['plain_ms']:.2f}", "", ""]
+            inst = ["**step (instrumented)**", f"**{total:.2f}**", "", ""]
+            if baseline:
+                old_total = sum(part["ms"] for part in old_parts.values())
+                inst[1:1] = [f"**{old_total:.2f}**" if old_parts else "-"]
+                plain[1:1] = [f"{old['plain_ms']:.2f}" if old else "-"]
+            caption = (f"{case}, {stage}: {r['surfels']} surfels, {r['views']} views, "
+                       f"{r['steps']} steps from step {r['first_step']}"
+                       + (f", {r['lights']} lights" if "lights" in r else ""))
+            if baseline and old_parts and total > 0:
+                caption += (f"; the instrumented step {old_total / total:.2f}x as fast as "
+                            f"at {base_commit}")
+            tables.append({"caption": caption, "columns": cols, "rows": rows + [inst, plain]})
+    command = m["command"] + (f" (baseline: the same at {base_commit}, run just before)"
+                              if baseline else "")
+    return {"order": 9, "title": "Where a training step's time goes",
+            "command": command, "produced_by": "the command above, with --results results",
+            "machine": f"{m['cpu']}, {m['cores']} cores ({m['threads']} Dr.Jit threads), "
+                       f"{m['variant']}, Mitsuba {m['mitsuba']} / Dr.Jit {m['drjit']}",
+            "commit": m["commit"], "date": m["date"][:10],
+            "text": ["A stage-1 step and a stage-4 step on the benchmarks' workload (a sphere "
+                     "of surfels on a plane of them, seen by a ring of cameras), split into "
+                     "their parts. Each part's time includes its kernels (the profiler "
+                     "evaluates and syncs at every part's edges, so the instrumented step is "
+                     "above the plain one, also given)."],
+            "tables": tables}
+
+
 def machine() -> dict:
     def git(*args):
         try:
@@ -531,7 +588,18 @@ def main(argv=None) -> dict:
     ap.add_argument("--steps", type=int, default=None, help="profiled steps (default 25)")
     ap.add_argument("--case", action="append", choices=sorted(CASES),
                     help="only these cases (repeatable)")
+    ap.add_argument("--baseline", default=None, metavar="PROFILE_JSON",
+                    help="an earlier run's profile.json: its times beside this run's")
+    ap.add_argument("--results", default=None, metavar="DIR",
+                    help="also write DIR/step_profile.json (make results renders it)")
     args = ap.parse_args(argv)
+    baseline = None
+    if args.baseline:
+        try:
+            baseline = json.loads(Path(args.baseline).read_text())
+            baseline["machine"]["commit"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            ap.error(f"--baseline {args.baseline}: not a profile.json of this tool ({exc})")
     if mi.variant() is None:
         mi.set_variant("llvm_ad_rgb")
     cases = QUICK_CASES if args.quick else {k: CASES[k] for k in (args.case or CASES)}
@@ -565,6 +633,12 @@ def main(argv=None) -> dict:
     (out / "profile.md").write_text("\n".join(md))
     (out / "profile.json").write_text(json.dumps(report, indent=1))
     print(f"wrote {out / 'profile.md'} and {out / 'profile.json'}")
+    if args.results:
+        from scripts.results import write_result
+
+        path = Path(args.results) / "step_profile.json"
+        write_result(path, result_doc(report, baseline))
+        print(f"wrote {path}")
     return report
 
 

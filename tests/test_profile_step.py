@@ -17,7 +17,8 @@ STAGE4_PARTS = {"visibility (shadow-map lookups)", "shade (BRDF x lights)",
 
 
 def test_quick_profile(tmp_path):
-    report = profile_step.main(["--quick", "--out", str(tmp_path)])
+    report = profile_step.main(["--quick", "--out", str(tmp_path), "--results",
+                                str(tmp_path / "results")])
     md = (tmp_path / "profile.md").read_text()
     saved = json.loads((tmp_path / "profile.json").read_text())
     assert saved["machine"]["command"].startswith("python -m benchmarks.profile_step")
@@ -42,3 +43,20 @@ def test_quick_profile(tmp_path):
                 and not ln.startswith(("| part", "| **", "| step as"))]
         assert sum(float(r[3].strip().rstrip("%")) for r in rows) == pytest.approx(100, abs=2)
     assert saved["cases"] and saved["steps"] == report["steps"]
+    # --results: the schema make results renders; --baseline: an earlier profile's times
+    # beside this run's (here the same run's, so every speed-up is 1.00x).
+    from scripts.results import REQUIRED
+
+    doc = json.loads((tmp_path / "results" / "step_profile.json").read_text())
+    assert all(k in doc for k in REQUIRED) and len(doc["tables"]) == 3
+    compared = profile_step.result_doc(saved, saved)
+    commit = saved["machine"]["commit"]
+    for t in compared["tables"]:
+        assert t["columns"][1:3] == [f"ms / step at {commit}"] * 2
+        assert "1.00x as fast as" in t["caption"]
+        assert all(len(r) == len(t["columns"]) for r in t["rows"])
+        inst = t["rows"][-2]
+        assert inst[0] == "**step (instrumented)**" and inst[1] == inst[2]
+    with pytest.raises(SystemExit):
+        profile_step.main(["--quick", "--baseline", str(tmp_path / "none.json")])
+
