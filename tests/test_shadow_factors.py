@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -41,10 +42,12 @@ def test_irradiance_matches_the_definition():
     assert np.allclose(out, [[[2.0, 0.6]]])
 
 
-def test_the_tool_on_a_finished_run_reports_every_factor_and_the_exact_geometry(tmp_path):
+def test_the_tool_on_a_finished_run_reports_every_factor_and_the_exact_geometry(tmp_path,
+                                                                                  capsys):
     """End to end on a tiny run of the default scene: every score is an IoU, the run's own
     is the recorded one (the same receivers, maps and lights as stage 5), and the table
-    carries the method's IoU on exact geometry."""
+    carries the method's IoU on exact geometry. The run's lights are kept directional
+    (``lamps=off``): a run with a lamp is refused, naming its light.json."""
     import json
 
     import tiny_cli
@@ -60,7 +63,8 @@ def test_the_tool_on_a_finished_run_reports_every_factor_and_the_exact_geometry(
         assert cli.main(["generate", str(scene_path("default")), "--out",
                          str(tmp_path / "data"), "--preset", TINY, "--no-progress"]) == 0
         assert cli.main(["run", str(tmp_path / "data"), "--out", str(tmp_path / "run"),
-                         "--preset", TINY, "--no-progress"]) == 0
+                         "--preset", TINY, "--no-progress", "--set",
+                         "material.lamps=off"]) == 0
     out = tmp_path / "factors"
     assert shadow_factors.main(["--run", str(tmp_path / "run"), "--data",
                                 str(tmp_path / "data"), "--out", str(out), "--quiet"]) == 0
@@ -69,6 +73,17 @@ def test_the_tool_on_a_finished_run_reports_every_factor_and_the_exact_geometry(
     assert all(0.0 <= v <= 1.0 for v in ious), res
     assert res["scores"]["---"] == res["shadow_iou"]
     assert res["shadow_iou"] == pytest.approx(res["recorded_shadow_iou"], abs=1e-6)
+    lamp_run = tmp_path / "lamp_run"
+    shutil.copytree(tmp_path / "run", lamp_run)
+    light_file = lamp_run / "material" / "full" / "light.json"
+    light = json.loads(light_file.read_text())
+    light["positions"] = [[0.0, 5.0, 0.0]] + [None] * (len(light["directions"]) - 1)
+    light_file.write_text(json.dumps(light))
+    with pytest.raises(SystemExit) as exc:
+        shadow_factors.main(["--run", str(lamp_run), "--data", str(tmp_path / "data"),
+                             "--out", str(tmp_path / "f2"), "--quiet"])
+    assert exc.value.code == 2
+    assert "light 0 is a lamp" in capsys.readouterr().err
     md = (out / "shadow_factors.md").read_text()
     assert "exact geometry" in md and f"{res['exact_geometry_iou']:.3f}" in md
     # the visibility validation's 20000 for 128^2 views, scaled to the test views' size

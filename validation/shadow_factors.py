@@ -152,6 +152,11 @@ def load_inputs(run: Path, data: Path, variant: str = "full", views: int | None 
     preset, vcfg, quantile = run_visibility(run, variant)
     if light.get("directions") is None or light.get("irradiance") is None:
         raise ValueError(f"{folder / 'light.json'}: no 'directions'/'irradiance' (an older run)")
+    lamps = [k for k, p in enumerate(light.get("positions") or []) if p is not None]
+    if lamps:  # the factors' receivers, maps and irradiance are those of distant lights
+        raise ValueError(f"{folder / 'light.json'}: light {lamps[0]} is a lamp (field "
+                         "'positions'); the factor analysis takes directional lights only "
+                         "(run stage 4 with --set material.lamps=off)")
     test = load_dataset(data, "test")
     if views:
         test.views = test.views[:views]
