@@ -117,6 +117,19 @@ def test_ground_and_hull_tests_against_float64_references():
     assert 0.2 < ref.mean() < 0.8
     got = background.rays_meet_hull(o, d, background._hull(body, 0.0))
     np.testing.assert_array_equal(got, ref)
+    # The projected outline (what supported_pixels uses before the camera) is the same
+    # test, also for the hull grown by a margin; a camera inside the hull falls back.
+    np.testing.assert_array_equal(background.hull_pixels(near, background._hull(body, 0.0)),
+                                  ref)
+    grown = background._hull(body, 0.1)
+    for cam in (near, Camera.look_at((3.0, 0.5, -2.0), (0.0, 1.0, 0.0), fov_x=0.9,
+                                     width=40, height=30)):
+        o, d = background._rays(cam)
+        np.testing.assert_array_equal(background.hull_pixels(cam, grown),
+                                      background.rays_meet_hull(o, d, grown))
+    inside = Camera.look_at((0.0, 1.0, 0.0), (1.0, 1.0, 0.0), fov_x=0.8, width=8, height=8)
+    assert background.hull_pixels(inside, grown) is None
+    assert background.supported_pixels(inside, background.Support(None, grown)).all()
 
 
 def _clear_of_the_scene(camera: Camera, slack: float = 0.3) -> np.ndarray:

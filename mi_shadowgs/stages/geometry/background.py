@@ -25,7 +25,9 @@ show the room; the prior's dark pixels are then those within ``BACKDROP_SLACK`` 
 Ground and body are hulls of their own: one hull of both would also hold the empty space
 between the object's top and the mat's far corners, through which some rays that see the
 backdrop pass. A dark hollow of the object lies within its hull: kept. Each is grown by
-``dark_alpha_margin``; rays are tested in float64 (``rays_meet_hull``, ``rays_meet_ground``).
+``dark_alpha_margin``; rays are tested in float64 (``rays_meet_ground``; the body by its
+projected outline, ``hull_pixels``, or where the camera is not wholly before it face by
+face, ``rays_meet_hull``).
 """
 
 from __future__ import annotations
@@ -129,10 +131,16 @@ def carve(cells: np.ndarray, cameras, background: list[np.ndarray]) -> np.ndarra
 
 
 def _rays(camera) -> tuple[np.ndarray, np.ndarray]:
-    """(origins [P, 3], directions [P, 3]) of the pixel centres' rays, row-major."""
+    """(origins [P, 3], directions [P, 3]) of the pixel centres' rays, row-major; a pinhole's
+    origins are one point, broadcast (read-only)."""
     px = camera.pixel_grid()
-    o = camera.unproject(px, np.zeros(len(px)))
-    return o, camera.unproject(px, np.ones(len(px))) - o
+    if camera.is_ortho:
+        o = camera.unproject(px, np.zeros(len(px)))
+        return o, camera.unproject(px, np.ones(len(px))) - o
+    c2w = np.linalg.inv(camera.world_to_cv())
+    (cx, cy), (fx, fy) = camera.principal_point, camera.focal_xy
+    d = np.stack([(px[:, 0] - cx) / fx, (px[:, 1] - cy) / fy, np.ones(len(px))], -1)
+    return np.broadcast_to(c2w[:3, 3], d.shape), d @ c2w[:3, :3].T
 
 
 def rays_meet_hull(origins: np.ndarray, dirs: np.ndarray, planes: np.ndarray) -> np.ndarray:
@@ -165,16 +173,78 @@ def rays_meet_ground(origins: np.ndarray, dirs: np.ndarray, lines: np.ndarray) -
 
 
 def supported_pixels(camera, support: Support, chunk: int = 65536) -> np.ndarray:
-    """[H, W] bool: the pixels of ``camera`` whose centre rays meet ``support``."""
+    """[H, W] bool: the pixels of ``camera`` whose centre rays meet ``support``. The body's
+    pixels are those inside its projected outline (``hull_pixels``) where it lies wholly in
+    front of the camera, else each ray is tested against its faces (``rays_meet_hull``)."""
     o, d = _rays(camera)
     out = np.zeros(len(o), bool)
+    body = None if support.body is None else hull_pixels(camera, support.body)
     for a in range(0, len(o), chunk):
         b = min(a + chunk, len(o))
         if support.ground is not None:
             out[a:b] |= rays_meet_ground(o[a:b], d[a:b], support.ground)
-        if support.body is not None:
+        if body is not None:
+            out[a:b] |= body[a:b]
+        elif support.body is not None:
             out[a:b] |= rays_meet_hull(o[a:b], d[a:b], support.body)
     return out.reshape(camera.height, camera.width)
+
+
+def hull_vertices(planes: np.ndarray) -> np.ndarray | None:
+    """The vertices [K, 3] of the polytope of half-spaces ``planes`` [F, 4] (``_hull``), or
+    None where it has no interior. Kept for the last few hulls (every view asks again)."""
+    from scipy.optimize import linprog
+    from scipy.spatial import HalfspaceIntersection, QhullError
+
+    key = planes.tobytes()
+    if key in _VERTICES:
+        return _VERTICES[key]
+    # Chebyshev centre: the deepest interior point, max r with n . x + d + r <= 0 (|n| = 1).
+    res = linprog([0.0, 0.0, 0.0, -1.0], A_ub=np.hstack([planes[:, :3], np.ones((len(planes),
+                                                                                1))]),
+                  b_ub=-planes[:, 3], bounds=[(None, None)] * 3 + [(0.0, None)])
+    verts = None
+    if res.success and res.x[3] > 1e-9:
+        try:
+            verts = HalfspaceIntersection(planes, res.x[:3]).intersections
+        except QhullError:
+            verts = None
+    _VERTICES[key] = verts
+    while len(_VERTICES) > 4:
+        _VERTICES.pop(next(iter(_VERTICES)))
+    return verts
+
+
+_VERTICES: dict[bytes, np.ndarray | None] = {}
+
+
+def hull_pixels(camera, planes: np.ndarray, chunk: int = 65536) -> np.ndarray | None:
+    """[H * W] bool: the pixels whose centres lie inside the outline of the polytope of
+    half-spaces ``planes`` [F, 4] as ``camera`` sees it, or None where that is not its rays'
+    test (the polytope not wholly in front of the camera, or no interior). A convex polytope
+    before a pinhole projects to the convex hull of its projected vertices, so a pixel's ray
+    meets it exactly when its centre lies in that hull: one test per outline edge instead
+    of one per face (``rays_meet_hull``)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    verts = hull_vertices(planes)
+    if verts is None:
+        return None
+    uv, z = camera.project(verts)
+    if not np.all(z > camera.near) or not np.all(np.isfinite(uv)):
+        return None
+    try:
+        outline = ConvexHull(uv).equations  # [E, 3]: a x + b y + c <= 0 inside
+    except QhullError:  # seen edge-on: no area
+        return None
+    px = camera.pixel_grid()
+    out = np.zeros(len(px), bool)
+    lo, hi = uv.min(axis=0), uv.max(axis=0)  # only the outline's bounding box is tested
+    box = np.flatnonzero(np.all((px >= lo) & (px <= hi), axis=1))
+    for a in range(0, len(box), chunk):
+        idx = box[a:a + chunk]
+        out[idx] = np.all(px[idx] @ outline[:, :2].T + outline[:, 2] <= 0.0, axis=1)
+    return out
 
 
 def dark_pixels(image: np.ndarray, dark_max, backdrop: np.ndarray | None = None
