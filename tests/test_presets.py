@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 from tiny_cli import TINY, presets
 
@@ -161,3 +162,29 @@ def test_the_run_command_takes_set_and_config(tmp_path, capsys):
     config = run_config(args)
     assert config.material.iterations == 5 and config.visibility.resolution == 128
     assert config.geometry.seed == 4
+
+
+def test_pruning_beside_a_lamp_builds_no_config(constructions):
+    """Stage 4's pruning keeps a lamp and a light near its direction apart (no merging)
+    without a config of its own: the run's MaterialConfig is the one it was given."""
+    import mitsuba as mi
+
+    from mi_shadowgs.core.directions import direction_from_angles
+    from mi_shadowgs.stages.material import lights
+
+    cfg = PRESETS["cpu-small"].material
+    assert cfg.merge_angle_deg > 3.0
+    dirs = np.stack([direction_from_angles(0.0, 40.0), direction_from_angles(2.0, 41.0)])
+    class Opt(dict):  # the optimiser's face that pruning uses
+        def set_learning_rate(self, rates):
+            self.rates = rates
+
+    opt = Opt(log_light=mi.Float(np.zeros(2, np.float32)))
+    pos = np.array([[3.0, 4.0, 0.0], [np.nan] * 3])
+    for name in constructions:
+        constructions[name] = 0
+    kept, _, kept_pos = lights._prune(opt, dirs, None, cfg, lambda d: None, pos)
+    assert len(kept) == 2 and kept_pos.shape == (2, 3)  # not merged
+    assert constructions["material"] == 0
+    merged, _, _ = lights._prune(opt, dirs, None, cfg, lambda d: None, None)
+    assert len(merged) == 1  # without the lamp they are one light

@@ -27,8 +27,8 @@ def subset_maps(maps, keep: np.ndarray):
     return maps.subset(keep)
 
 
-def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig,
+                 merge: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Group the directions into lights (``merge_directions``), then drop the lights that
     carry less than ``prune_threshold`` times the strongest light's irradiance.
 
@@ -39,13 +39,14 @@ def prune_lights(dirs: np.ndarray, radiance: np.ndarray, config: MaterialConfig
     threshold of 0.1 dropped all of it; merged first, those cells are one light at 1.8
     degrees from the truth with 0.16 of the strongest light's irradiance).
 
-    ``dirs`` [K, 3], ``radiance`` [K] (L_dir). Returns (directions [K'], radiance [K'],
-    index [K'] of the kept input lights, or None when some merged: new directions).
+    ``dirs`` [K, 3], ``radiance`` [K] (L_dir); ``merge`` False: no grouping, whatever
+    ``merge_angle_deg`` says. Returns (directions [K'], radiance [K'], index [K'] of the
+    kept input lights, or None when some merged: new directions).
     """
     dirs = np.asarray(dirs, np.float64)
     light = np.asarray(radiance, np.float64)
     idx = np.arange(len(dirs))
-    if config.merge_angle_deg > 0 and len(dirs) > 1:
+    if merge and config.merge_angle_deg > 0 and len(dirs) > 1:
         merged, light_m = merge_directions(dirs, light, config.merge_angle_deg)
         if len(merged) < len(dirs):
             dirs, light, idx = merged, light_m, None
@@ -65,9 +66,7 @@ def _prune(opt, dirs: np.ndarray, maps, config: MaterialConfig, render_maps,
     if len(dirs) <= 1:
         return dirs, maps, positions
     light = np.exp(opt["log_light"].numpy().astype(np.float64))
-    if positions is not None:
-        config = dataclasses.replace(config, merge_angle_deg=0.0)
-    new_dirs, light, idx = prune_lights(dirs, light, config)
+    new_dirs, light, idx = prune_lights(dirs, light, config, merge=positions is None)
     if idx is None:
         maps = render_maps(new_dirs)
     elif len(idx) < len(dirs):
