@@ -490,58 +490,92 @@ def table(result: dict) -> str:
     return "\n".join(rows)
 
 
+# Parts of the stage-1 step named in the results table; the others are summed into one row.
+RESULT_PARTS = 5
+
+
 def result_doc(report: dict, baseline: dict | None) -> dict:
-    """The results/ record (``scripts.results`` schema) of a profile, with the baseline's
-    times beside this run's where one is given."""
+    """The results/ record (``scripts.results`` schema) of a profile, one table per case: the
+    stage-1 step's largest parts, and each step's instrumented and plain time, with the
+    baseline's beside this run's where one is given."""
     m = report["machine"]
     base_commit = baseline["machine"]["commit"] if baseline else None
+    cols = ["step", "part", f"ms at {m['commit']}"]
+    if baseline:
+        cols[2:2] = [f"ms at {base_commit}"]
+
+    def row(stage, name, new, old):
+        out = [stage, name, f"{new:.2f}"]
+        if baseline:
+            out[2:2] = ["-" if old is None else f"{old:.2f}"]
+        return out
+
     tables = []
     for case, stages in report["cases"].items():
+        rows = []
         for stage, r in stages.items():
             if not isinstance(r, dict):
                 continue
-            old = ((baseline or {}).get("cases", {}).get(case, {}).get(stage) or {})
+            old = (baseline or {}).get("cases", {}).get(case, {}).get(stage) or {}
             old_parts = old.get("parts", {})
-            cols = ["part", f"ms / step at {m['commit']}", "kernels / step", "syncs / step"]
-            if baseline:
-                cols[1:1] = [f"ms / step at {base_commit}"]
-            rows = []
-            for name, part in sorted(r["parts"].items(), key=lambda kv: -kv[1]["ms"]):
-                row = [name, f"{part['ms']:.2f}", f"{part['kernels']:.1f}",
-                       f"{part['syncs']:.2f}"]
-                if baseline:
-                    row[1:1] = [f"{old_parts[name]['ms']:.2f}" if name in old_parts else "-"]
-                rows.append(row)
-            total = sum(part["ms"] for part in r["parts"].values())
-            plain = ["step as the loop runs it (1 sync / step)", f"{r['plain_ms']:.2f}", "", ""]
-            inst = ["**step (instrumented)**", f"**{total:.2f}**", "", ""]
-            if baseline:
-                old_total = sum(part["ms"] for part in old_parts.values())
-                inst[1:1] = [f"**{old_total:.2f}**" if old_parts else "-"]
-                plain[1:1] = [f"{old['plain_ms']:.2f}" if old else "-"]
-            caption = (f"{case}, {stage}: {r['surfels']} surfels, {r['views']} views, "
-                       f"{r['steps']} steps from step {r['first_step']}"
-                       + (f", {r['lights']} lights" if "lights" in r else ""))
-            if baseline and old_parts and total > 0:
-                caption += (f"; the instrumented step {old_total / total:.2f}x as fast as "
-                            f"at {base_commit}")
-            tables.append({"caption": caption, "columns": cols, "rows": rows + [inst, plain]})
-    command = m["command"] + (f" (baseline: the same at {base_commit}, run just before)"
-                              if baseline else "")
+
+            def old_ms(names, parts=old_parts):
+                return sum(parts[n]["ms"] for n in names) if all(n in parts
+                                                                 for n in names) else None
+
+            parts = sorted(r["parts"].items(), key=lambda kv: -kv[1]["ms"])
+            if stage == "stage 1":
+                for name, part in parts[:RESULT_PARTS]:
+                    rows.append(row(stage, name, part["ms"], old_ms([name])))
+                rest = [n for n, _ in parts[RESULT_PARTS:]]
+                rows.append(row(stage, f"the other {len(rest)} parts",
+                                sum(r["parts"][n]["ms"] for n in rest), old_ms(rest)))
+            names = list(r["parts"])
+            rows.append(row(stage, "**step (instrumented)**",
+                            sum(p["ms"] for p in r["parts"].values()), old_ms(names)))
+            rows.append(row(stage, "step as the loop runs it (1 sync)", r["plain_ms"],
+                            old.get("plain_ms")))
+        first = next(r for r in stages.values() if isinstance(r, dict))
+        tables.append({"caption": f"{case}: {first['surfels']} surfels, {first['views']} "
+                                  f"views, {first['steps']} steps per part; stage 4 main "
+                                  f"with 3 lights, its warm-up with every grid light",
+                       "columns": cols, "rows": rows})
+    command = _public_command(m["command"]) + (
+        f"; BASE: this command without --baseline and --results at {base_commit}, run just "
+        "before" if baseline else "")
     return {"order": 9, "title": "Where a training step's time goes",
             "command": command, "produced_by": "the command above, with --results results",
             "machine": f"{m['cpu']}, {m['cores']} cores ({m['threads']} Dr.Jit threads), "
                        f"{m['variant']}, Mitsuba {m['mitsuba']} / Dr.Jit {m['drjit']}",
             "commit": m["commit"], "date": m["date"][:10],
-            "text": ["A stage-1 step and a stage-4 step on the benchmarks' workload (a sphere "
-                     "of surfels on a plane of them, seen by a ring of cameras), split into "
-                     "their parts. Each part's time includes its kernels (the profiler "
-                     "evaluates and syncs at every part's edges, so the instrumented step is "
-                     "above the plain one, also given)."],
+            "text": ["A stage-1 and a stage-4 step on the benchmarks' workload (a sphere of "
+                     "surfels on a plane of them, seen by a ring of cameras), split into their "
+                     "parts (profile.md has them all). The profiler syncs at every part's "
+                     "edges, so the instrumented step is above the plain one; a part also "
+                     "runs the pending work it is the first to read (the last kernel of the "
+                     "loss's gradient runs in the rasterizer's backward)."],
             "tables": tables}
 
 
-def machine() -> dict:
+def _public_command(command: str) -> str:
+    """``command`` with the paths of this machine named by their role (``--out`` dropped,
+    ``--baseline BASE/profile.json``, ``--results results``)."""
+    words, out, skip = command.split(), [], False
+    for i, w in enumerate(words):
+        if skip:
+            skip = False
+            continue
+        if w == "--out":
+            skip = True
+        elif w in ("--baseline", "--results") and i + 1 < len(words):
+            out += [w, "BASE/profile.json" if w == "--baseline" else "results"]
+            skip = True
+        else:
+            out.append(w)
+    return " ".join(out)
+
+
+def machine(argv: list[str]) -> dict:
     def git(*args):
         try:
             return subprocess.run(["git", *args], capture_output=True, text=True,
@@ -549,7 +583,7 @@ def machine() -> dict:
         except (OSError, subprocess.CalledProcessError):
             return None
 
-    return {"command": " ".join(["python -m benchmarks.profile_step", *sys.argv[1:]]),
+    return {"command": " ".join(["python -m benchmarks.profile_step", *argv]),
             "commit": git("rev-parse", "--short", "HEAD"),
             "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
             "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
@@ -606,7 +640,8 @@ def main(argv=None) -> dict:
     steps = args.steps or (3 if args.quick else 25)
     warmup = 1 if args.quick else 3
     dr.set_flag(dr.JitFlag.KernelHistory, True)
-    report = {"machine": machine(), "steps": steps, "cases": {}}
+    report = {"machine": machine(sys.argv[1:] if argv is None else list(argv)),
+              "steps": steps, "cases": {}}
     md = [f"# Step profile\n\n`{report['machine']['command']}` at "
           f"{report['machine']['commit']}, {report['machine']['date']}, "
           f"{report['machine']['cpu']} ({report['machine']['threads']} threads), "

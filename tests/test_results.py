@@ -36,7 +36,9 @@ def test_every_result_file_records_where_its_figures_come_from():
         doc = json.loads(path.read_text(encoding="utf-8"))
         for key in ("title", "command", "machine", "commit", "date", "produced_by", "tables"):
             assert doc.get(key), f"{path.name}: no {key}"
-    assert len((ROOT / "RESULTS.md").read_text().splitlines()) <= 300
+    # One page of current figures: about 33 lines a section (ten sections, 330 lines).
+    lines = len((ROOT / "RESULTS.md").read_text().splitlines())
+    assert lines <= 33 * len(files), f"RESULTS.md has {lines} lines for {len(files)} sections"
 
 
 def test_a_row_of_the_wrong_width_is_refused(tmp_path):
