@@ -56,26 +56,43 @@ def l1(render: mi.TensorXf, target: mi.TensorXf) -> mi.Float:
     return _mean(dr.abs(render.array - target.array))
 
 
-def _blur_gather(x: mi.Float, h: int, w: int, c: int, taps: np.ndarray) -> mi.Float:
-    """Separable zero-padded convolution of a flat [H, W, C] image with ``taps`` (odd)."""
+def _blur_rows(x: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarray
+               ) -> mi.Float:
+    """The x pass of the separable blur over ``layers`` stacked [H, W, C] images
+    ([layers * H * W * C], zero padding)."""
     r = len(taps) // 2
-    idx = dr.arange(mi.UInt32, h * w * c)
+    idx = dr.arange(mi.UInt32, layers * h * w * c)
     pix = idx // c
-    yi = mi.Int32(pix // w)
     xi = mi.Int32(pix - (pix // w) * w)
     out = mi.Float(0.0)
-    for k, wk in enumerate(taps):  # along x
+    for k, wk in enumerate(taps):
         dx = k - r
-        xs = xi + dx
-        ok = (xs >= 0) & (xs < w)
+        ok = (xi + dx >= 0) & (xi + dx < w)
         out += float(wk) * dr.gather(mi.Float, x, mi.UInt32(mi.Int32(idx) + dx * c), ok)
-    res = mi.Float(0.0)
-    for k, wk in enumerate(taps):  # along y
+    return out
+
+
+def _blur_columns(t: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarray
+                  ) -> list[mi.Float]:
+    """The y pass over the x pass ``t`` of ``layers`` stacked images: each layer's blur
+    [H * W * C], computed in the caller's kernel (one lane per pixel and channel)."""
+    r = len(taps) // 2
+    n = h * w * c
+    idx = dr.arange(mi.UInt32, n)
+    yi = mi.Int32(idx // (w * c))
+    out = [mi.Float(0.0) for _ in range(layers)]
+    for k, wk in enumerate(taps):
         dy = k - r
-        ys = yi + dy
-        ok = (ys >= 0) & (ys < h)
-        res += float(wk) * dr.gather(mi.Float, out, mi.UInt32(mi.Int32(idx) + dy * w * c), ok)
-    return res
+        ok = (yi + dy >= 0) & (yi + dy < h)
+        src = mi.Int32(idx) + dy * w * c
+        for layer in range(layers):
+            out[layer] += float(wk) * dr.gather(mi.Float, t, mi.UInt32(src + layer * n), ok)
+    return out
+
+
+def _blur_gather(x: mi.Float, h: int, w: int, c: int, taps: np.ndarray) -> mi.Float:
+    """Separable zero-padded convolution of a flat [H, W, C] image with ``taps`` (odd)."""
+    return _blur_columns(_blur_rows(x, 1, h, w, c, taps), 1, h, w, c, taps)[0]
 
 
 class _BlurOp(dr.CustomOp):
@@ -166,45 +183,11 @@ def ssim(a: mi.TensorXf, b: mi.TensorXf | SsimTarget) -> mi.Float:
     return _mean(ssim_map(a, b))
 
 
-def _blur_rows(x: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarray
-               ) -> mi.Float:
-    """The x pass of the separable blur over ``layers`` stacked [H, W, C] images
-    ([layers * H * W * C], zero padding)."""
-    r = len(taps) // 2
-    idx = dr.arange(mi.UInt32, layers * h * w * c)
-    pix = idx // c
-    xi = mi.Int32(pix - (pix // w) * w)
-    out = mi.Float(0.0)
-    for k, wk in enumerate(taps):
-        dx = k - r
-        ok = (xi + dx >= 0) & (xi + dx < w)
-        out += float(wk) * dr.gather(mi.Float, x, mi.UInt32(mi.Int32(idx) + dx * c), ok)
-    return out
-
-
-def _blur_columns(t: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarray
-                  ) -> list[mi.Float]:
-    """The y pass over the x pass ``t`` of ``layers`` stacked images: each layer's blur
-    [H * W * C], computed in the caller's kernel (one lane per pixel and channel)."""
-    r = len(taps) // 2
-    n = h * w * c
-    idx = dr.arange(mi.UInt32, n)
-    yi = mi.Int32(idx // (w * c))
-    out = [mi.Float(0.0) for _ in range(layers)]
-    for k, wk in enumerate(taps):
-        dy = k - r
-        ok = (yi + dy >= 0) & (yi + dy < h)
-        src = mi.Int32(idx) + dy * w * c
-        for layer in range(layers):
-            out[layer] += float(wk) * dr.gather(mi.Float, t, mi.UInt32(src + layer * n), ok)
-    return out
-
-
 class _DssimOp(dr.CustomOp):
     """1 - mean SSIM of a render against an ``SsimTarget``, forward and backward by hand.
 
-    Forward: one blur of the stacked (x, x^2, x y), then the SSIM formula in the y pass's
-    kernel. Backward: with S = A1 A2 / (B1 B2) of the blurred moments m1 = G x, m2 = G x^2,
+    Forward: one blur of the stacked (x, x^2, x y), then the SSIM formula and its mean.
+    Backward: with S = A1 A2 / (B1 B2) of the blurred moments m1 = G x, m2 = G x^2,
     m12 = G x y (sxx = m2 - m1^2, sxy = m12 - m1 mu_y), dL/dx = G a + 2 x G b + y G c
     for the per-pixel a = dL/dm1, b = dL/dm2, c = dL/dm12 (the zero-padded symmetric blur
     is self-adjoint). Two kernels forward and three backward, for the six blurs that Dr.Jit's

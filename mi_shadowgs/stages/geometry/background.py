@@ -33,6 +33,7 @@ face, ``rays_meet_hull``).
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import drjit as dr
 import mitsuba as mi
@@ -65,6 +66,11 @@ class Support:
 
     ground: np.ndarray | None
     body: np.ndarray | None
+
+    @functools.cached_property
+    def body_vertices(self) -> np.ndarray | None:
+        """The body's vertices (``hull_vertices``), found once for all the views."""
+        return None if self.body is None else hull_vertices(self.body)
 
 
 def inliers(points: np.ndarray) -> np.ndarray:
@@ -176,58 +182,51 @@ def supported_pixels(camera, support: Support, chunk: int = 65536) -> np.ndarray
     """[H, W] bool: the pixels of ``camera`` whose centre rays meet ``support``. The body's
     pixels are those inside its projected outline (``hull_pixels``) where it lies wholly in
     front of the camera, else each ray is tested against its faces (``rays_meet_hull``)."""
-    o, d = _rays(camera)
-    out = np.zeros(len(o), bool)
-    body = None if support.body is None else hull_pixels(camera, support.body)
-    for a in range(0, len(o), chunk):
-        b = min(a + chunk, len(o))
-        if support.ground is not None:
-            out[a:b] |= rays_meet_ground(o[a:b], d[a:b], support.ground)
-        if body is not None:
-            out[a:b] |= body[a:b]
-        elif support.body is not None:
-            out[a:b] |= rays_meet_hull(o[a:b], d[a:b], support.body)
+    body = (None if support.body is None else
+            hull_pixels(camera, support.body, support.body_vertices))
+    out = np.zeros(camera.width * camera.height, bool) if body is None else body
+    by_faces = support.body is not None and body is None
+    if support.ground is not None or by_faces:
+        o, d = _rays(camera)
+        for a in range(0, len(o), chunk):
+            b = min(a + chunk, len(o))
+            if support.ground is not None:
+                out[a:b] |= rays_meet_ground(o[a:b], d[a:b], support.ground)
+            if by_faces:
+                out[a:b] |= rays_meet_hull(o[a:b], d[a:b], support.body)
     return out.reshape(camera.height, camera.width)
 
 
 def hull_vertices(planes: np.ndarray) -> np.ndarray | None:
     """The vertices [K, 3] of the polytope of half-spaces ``planes`` [F, 4] (``_hull``), or
-    None where it has no interior. Kept for the last few hulls (every view asks again)."""
+    None where it has no interior."""
     from scipy.optimize import linprog
     from scipy.spatial import HalfspaceIntersection, QhullError
 
-    key = planes.tobytes()
-    if key in _VERTICES:
-        return _VERTICES[key]
     # Chebyshev centre: the deepest interior point, max r with n . x + d + r <= 0 (|n| = 1).
     res = linprog([0.0, 0.0, 0.0, -1.0], A_ub=np.hstack([planes[:, :3], np.ones((len(planes),
                                                                                 1))]),
                   b_ub=-planes[:, 3], bounds=[(None, None)] * 3 + [(0.0, None)])
-    verts = None
-    if res.success and res.x[3] > 1e-9:
-        try:
-            verts = HalfspaceIntersection(planes, res.x[:3]).intersections
-        except QhullError:
-            verts = None
-    _VERTICES[key] = verts
-    while len(_VERTICES) > 4:
-        _VERTICES.pop(next(iter(_VERTICES)))
-    return verts
+    if not res.success or res.x[3] <= 1e-9:
+        return None
+    try:
+        return HalfspaceIntersection(planes, res.x[:3]).intersections
+    except QhullError:
+        return None
 
 
-_VERTICES: dict[bytes, np.ndarray | None] = {}
-
-
-def hull_pixels(camera, planes: np.ndarray, chunk: int = 65536) -> np.ndarray | None:
+def hull_pixels(camera, planes: np.ndarray, vertices: np.ndarray | None = None,
+                chunk: int = 65536) -> np.ndarray | None:
     """[H * W] bool: the pixels whose centres lie inside the outline of the polytope of
-    half-spaces ``planes`` [F, 4] as ``camera`` sees it, or None where that is not its rays'
-    test (the polytope not wholly in front of the camera, or no interior). A convex polytope
-    before a pinhole projects to the convex hull of its projected vertices, so a pixel's ray
-    meets it exactly when its centre lies in that hull: one test per outline edge instead
-    of one per face (``rays_meet_hull``)."""
+    half-spaces ``planes`` [F, 4] (its ``vertices`` when the caller has them, else found
+    here) as ``camera`` sees it, or None where that is not its rays' test (the polytope not
+    wholly in front of the camera, or no interior). A convex polytope before a pinhole
+    projects to the convex hull of its projected vertices, so a pixel's ray meets it exactly
+    when its centre lies in that hull: one test per outline edge instead of one per face
+    (``rays_meet_hull``)."""
     from scipy.spatial import ConvexHull, QhullError
 
-    verts = hull_vertices(planes)
+    verts = hull_vertices(planes) if vertices is None else vertices
     if verts is None:
         return None
     uv, z = camera.project(verts)

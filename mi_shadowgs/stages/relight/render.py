@@ -347,13 +347,6 @@ def view_buffers(surfels: Surfels, camera: Camera, raster: RasterConfig = DEFAUL
     return buf
 
 
-def render_buffers(model: RelightModel, camera: Camera,
-                   raster: RasterConfig = DEFAULT_RASTER):
-    """One rasterization of a view: geometry, albedo, roughness, metallic, indirect."""
-    b = view_buffers(model.surfels, camera, raster, receiver_band=model.receiver_band)
-    return b.geom, b.albedo, b.roughness, b.metallic, b.indirect
-
-
 def shadow_maps_for(model: RelightModel, lights: shading.LightSet, bounds: SceneBounds,
                     vis_config: VisibilityConfig = DEFAULT_VISIBILITY):
     if not model.use_visibility or lights.count == 0:
