@@ -123,6 +123,32 @@ def test_screen_space_prune_and_without_it():
     assert PRESETS["cpu-small"].densify.screen_size_threshold == 20.0
 
 
+def test_without_opacity_resets_large_surfels_are_still_pruned():
+    # Views without masks train without opacity resets (GeometryConfig.unmasked), which
+    # used to switch the world-space prune off with them: a surfel grew to 3.3 x 0.2 units
+    # over a lab capture's backdrop. It now starts where the first reset would have been;
+    # the screen-space prune stays with the resets.
+    from mi_shadowgs.presets import GEOMETRY as PRESETS
+    from mi_shadowgs.stages.geometry.config import unmasked
+
+    cpu = PRESETS["cpu-small"]
+    free = unmasked(cpu).densify
+    assert free.opacity_reset_interval == 0
+    assert free.world_prune_after == cpu.densify.opacity_reset_interval == 1000
+    kept_resets = unmasked(dataclasses.replace(cpu, unmasked_opacity_reset=True)).densify
+    assert (kept_resets.opacity_reset_interval, kept_resets.world_prune_after) == (1000, None)
+    rng = np.random.default_rng(5)
+    p = _params(3, rng)
+    p["log_scale"][1] = np.log([2.0, 0.1])  # 2 > 0.1 * extent
+    cfg = dataclasses.replace(free, start=100, stop=1800, interval=100, grad_threshold=0.1)
+    for iteration, kept in ((1000, [0, 1, 2]), (1100, [0, 2])):
+        opt = SurfelAdam(p, LR)
+        strat = DensifyStrategy(cfg, extent=4.0, count=3)
+        strat.max_radii = mi.Float([5.0, 5.0, 25.0])  # surfel 2: large on screen, kept
+        assert strat.step(iteration, opt)
+        np.testing.assert_array_equal(opt.to_numpy()[0]["position"], p["position"][kept])
+
+
 def test_opacity_reset_and_schedule():
     rng = np.random.default_rng(3)
     p = _params(3, rng)

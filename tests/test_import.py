@@ -445,7 +445,8 @@ def test_stage1_without_masks_starts_from_the_sfm_points(imported, capsys):
 def test_stage1_runner_trains_unmasked_views_with_the_dark_alpha_prior(imported, tmp_path,
                                                                      capsys):
     """Without masks the runner swaps in the ``unmasked_*`` settings (the dark-alpha prior,
-    no opacity reset; the distortion and normal weights the masked run's, as None says),
+    no opacity reset but the large surfels' prune; the distortion and normal weights the
+    masked run's, as None says),
     records them in config.json and says so."""
     import dataclasses
     import json
@@ -464,10 +465,12 @@ def test_stage1_runner_trains_unmasked_views_with_the_dark_alpha_prior(imported,
     assert used["lambda_normal"] == cfg.lambda_normal
     assert used["lambda_dark_alpha"] == cfg.unmasked_lambda_dark_alpha > 0
     assert used["densify"]["opacity_reset_interval"] == 0
+    assert used["densify"]["world_prune_after"] == cfg.densify.opacity_reset_interval
     assert used["densify"]["max_surfels"] == cfg.unmasked_max_surfels != cfg.densify.max_surfels
     err = capsys.readouterr().err
     assert f"lambda_dist {cfg.lambda_dist:g}" in err
     assert "(dark pixels whose rays miss the SfM points)" in err  # not the shadows' pixels
+    assert "no opacity reset (surfels larger than 0.1 x the cameras' extent pruned" in err
     # an explicit unmasked weight replaces the masked one
     cfg2 = dataclasses.replace(cfg, unmasked_lambda_dist=0.0)
     run_geometry(data, tmp_path / "geometry2", cfg2, preset="cpu-small", evaluate=False,

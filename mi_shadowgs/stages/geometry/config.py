@@ -146,9 +146,14 @@ class GeometryConfig:
 def unmasked(config: GeometryConfig) -> GeometryConfig:
     """``config`` for training views without masks: its ``unmasked_*`` settings in place of
     the distortion, normal and dark-alpha weights, the opacity reset and the surfel cap
-    (see the fields' comments; a None keeps the masked setting)."""
-    densify = (config.densify if config.unmasked_opacity_reset
-               else dataclasses.replace(config.densify, opacity_reset_interval=0))
+    (see the fields' comments; a None keeps the masked setting). Without the reset, the
+    world-space prune of large surfels starts at the iteration of the first reset."""
+    densify = config.densify
+    if not config.unmasked_opacity_reset and densify.opacity_reset_interval > 0:
+        # else nothing stops a surfel from growing into a sheet over the room's backdrop
+        after = densify.world_prune_after
+        densify = dataclasses.replace(densify, opacity_reset_interval=0, world_prune_after=(
+            densify.opacity_reset_interval if after is None else after))
     if config.unmasked_max_surfels is not None:
         densify = dataclasses.replace(densify, max_surfels=config.unmasked_max_surfels)
     dist, normal = config.unmasked_lambda_dist, config.unmasked_lambda_normal

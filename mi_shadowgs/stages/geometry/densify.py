@@ -45,6 +45,9 @@ class DensifyConfig:
     # opacity reset. None: no screen-space prune (the world-space one below still applies).
     screen_size_threshold: float | None = 20.0
     world_size_fraction: float = 0.1  # prune tangent std-dev above this * extent (idem)
+    # The world-space prune from this iteration on; None: with the screen-space one, after
+    # the first opacity reset (3DGS; never without resets).
+    world_prune_after: int | None = None
     split_count: int = 2
     split_scale_factor: float = 0.8  # split children get scale / (factor * split_count)
     reset_opacity: float = 0.01  # opacity reset caps opacity here
@@ -60,6 +63,8 @@ class DensifyConfig:
             ("screen_size_threshold", self.screen_size_threshold is None
              or self.screen_size_threshold > 0, "> 0 or None"),
             ("world_size_fraction", self.world_size_fraction > 0, "> 0"),
+            ("world_prune_after", self.world_prune_after is None or self.world_prune_after >= 0,
+             ">= 0 or None"),
             ("split_count", self.split_count >= 2, ">= 2"),
             ("split_scale_factor", self.split_scale_factor > 0, "> 0"),
             ("reset_opacity", 0 < self.reset_opacity < 1, "in (0, 1)"),
@@ -125,8 +130,10 @@ class DensifyStrategy:
         c = self.config
         changed = False
         if c.start <= iteration < c.stop and iteration % c.interval == 0:
-            big_prune = c.opacity_reset_interval > 0 and iteration > c.opacity_reset_interval
-            self.densify_and_prune(opt, iteration, big_prune)
+            after_reset = 0 < c.opacity_reset_interval < iteration
+            world = (after_reset if c.world_prune_after is None
+                     else iteration > c.world_prune_after)
+            self.densify_and_prune(opt, iteration, world, screen_prune=after_reset)
             changed = True
         if self.reset_due(iteration):
             self.reset_opacity(opt)
@@ -141,8 +148,13 @@ class DensifyStrategy:
             return False
         return self.iterations is None or iteration <= self.iterations - every
 
-    def densify_and_prune(self, opt: SurfelAdam, iteration: int, big_prune: bool) -> None:
+    def densify_and_prune(self, opt: SurfelAdam, iteration: int, big_prune: bool,
+                          screen_prune: bool | None = None) -> None:
+        """Clone, split and prune once. ``big_prune``: also the surfels larger than
+        ``world_size_fraction`` of the extent, and (``screen_prune``, default ``big_prune``)
+        those larger than ``screen_size_threshold`` on screen."""
         c = self.config
+        screen_prune = big_prune if screen_prune is None else screen_prune
         params, m, v = opt.to_numpy()
         n = params["position"].shape[0]
         accum = np.asarray(self.grad_accum, np.float64)
@@ -183,8 +195,8 @@ class DensifyStrategy:
         prune = split | (opacity < c.min_opacity)
         if big_prune:
             prune |= smax > c.world_size_fraction * self.extent
-            if c.screen_size_threshold is not None:
-                prune |= radii > c.screen_size_threshold
+        if screen_prune and c.screen_size_threshold is not None:
+            prune |= radii > c.screen_size_threshold
         keep = ~prune
         added = {k: np.concatenate(rows, axis=0) for k, rows in new.items()}
         # New surfels' candidates were computed before pruning; prune them by opacity too.

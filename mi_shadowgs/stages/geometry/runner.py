@@ -217,7 +217,12 @@ def _unmasked(config, train, data):
            f"{config.lambda_dist:g}, lambda_normal {config.lambda_normal:g}, "
            f"lambda_dark_alpha {config.lambda_dark_alpha:g} ("
          + _dark_alpha_pixels(config, getattr(train, "points", None)) + ") and "
-         + ("the" if config.densify.opacity_reset_interval else "no") + " opacity reset"
+         + ("the opacity reset" if config.densify.opacity_reset_interval else
+            "no opacity reset" + ("" if config.densify.world_prune_after is None else
+                                  " (surfels larger than "
+                                  f"{config.densify.world_size_fraction:g} x the cameras' "
+                                  "extent pruned from iteration "
+                                  f"{config.densify.world_prune_after})"))
          + (f"; hull_prune_views {config.hull_prune_views} (--prune-outside-masks) has "
             "no mask to prune by and removes nothing" if config.hull_prune_views else ""))
     return config
