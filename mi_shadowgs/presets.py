@@ -135,7 +135,7 @@ GEOMETRY = {
 }
 _SEGMENTATION_CPU = SegmentationConfig(iterations=300, lr=0.02, n_samples=2048,
                                        prototype_iterations=1,
-                                       planes=PlaneConfig(enabled=True))
+                                       planes=PlaneConfig(enabled=True), support_split=True)
 SEGMENTATION = {"paper": SegmentationConfig(), "cpu-small": _SEGMENTATION_CPU,
                 "cpu-medium": _SEGMENTATION_CPU, "gpu-large": _SEGMENTATION_CPU}
 CHROMATICITY = dict.fromkeys(PRESET_NAMES, ChromaticityConfig())
@@ -179,9 +179,10 @@ GENERATE = {
     "cpu-medium": GenerateConfig(width=256, height=256, n_train=96, **_GENERATE_CPU),
     "gpu-large": GenerateConfig(width=512, height=512, n_train=96, **_GENERATE_CPU),
 }
-# The photo importer (``mi-shadowgs import``): the longest side of the imported views.
-IMPORT = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=512),
-          "cpu-medium": ImportConfig(max_size=512), "gpu-large": ImportConfig(max_size=512)}
+# The photo importer (``mi-shadowgs import``): the longest side of the imported views, the
+# preset's own view size (the paper's 800: ``ImportConfig``'s default).
+IMPORT = {"paper": ImportConfig(), "cpu-small": ImportConfig(max_size=128),
+          "cpu-medium": ImportConfig(max_size=256), "gpu-large": ImportConfig(max_size=512)}
 # The visibility baselines of the paper's Table 2 (``validation.visibility``).
 GAUSSIAN_TRACE = {"paper": GaussianTraceConfig(), "cpu-small": GaussianTraceConfig(max_hits=16),
                   "cpu-medium": GaussianTraceConfig(max_hits=16),

@@ -1,6 +1,7 @@
 """Planar segments (stages/segmentation/planes.py): the plane fit against a float64 SVD
 reference, the shading normals of a planar segment beside a curved one and off-plane
-outliers, and the shading's use of them (core/shading.py)."""
+outliers, the shading's use of them (core/shading.py), and the split of colour segments
+at the support's plane."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from mi_shadowgs.stages.segmentation.planes import (
     PlaneConfig,
     fit_plane,
     planar_shading_normals,
+    support_split,
 )
 
 ON = PlaneConfig(enabled=True)
@@ -156,3 +158,26 @@ def test_off_small_and_bad_settings():
                 {"iterations": 0}):
         with pytest.raises(ValueError, match="PlaneConfig"):
             PlaneConfig(enabled=True, **bad)
+
+
+def test_segments_split_at_the_support_plane_and_only_there():
+    # One colour segment for a grey object standing on a grey mat (the tilted plane of
+    # ``_scene``, its off-plane outliers and the sphere all labelled 0), a second on the mat
+    # alone: the object's surfels leave both; the plane found is the mat's.
+    rng = np.random.default_rng(7)
+    surfels, _, up = _scene(rng)
+    pos = surfels.to_numpy()["position"]
+    seg = np.zeros(len(pos), int)
+    seg[:300] = 1  # half the mat
+    split, report = support_split(pos, seg)
+    assert report["segments_before"] == 2 and report["segments_after"] == 3
+    assert abs(abs(np.dot(report["normal"], up)) - 1) < 1e-3
+    assert report["share"] == pytest.approx(600 / len(pos), abs=0.02)
+    mat, obj = np.arange(len(pos)) < 600, np.arange(len(pos)) >= 660
+    assert len(np.unique(split[mat & (seg == 1)])) == 1  # each mat part one segment ...
+    assert len(np.unique(split[mat & (seg == 0)])) == 1
+    assert set(split[obj]).isdisjoint(split[mat])  # ... and the sphere none of them
+    # without a dominant plane (the sphere alone) nothing is split
+    sphere = pos[660:]
+    same, none = support_split(sphere, np.zeros(len(sphere), int))
+    assert none is None and np.array_equal(same, np.zeros(len(sphere), int))

@@ -57,6 +57,16 @@ def test_every_preset_is_a_whole_tree():
     assert PRESETS["cpu-small"].geometry.iterations < PRESETS["paper"].geometry.iterations
 
 
+def test_photos_are_imported_at_the_presets_view_size():
+    # the size every stage of the preset is tuned for and its studies score at: a cpu-small
+    # import at 512 px trained 16x the pixels, and a 48-photo capture took tens of minutes
+    from mi_shadowgs import presets
+
+    for name in ("paper", "cpu-small", "cpu-medium", "gpu-large"):
+        gen = presets.GENERATE[name]
+        assert presets.import_config(name).max_size == max(gen.width, gen.height), name
+
+
 def test_build_constructs_each_changed_stage_config_once(constructions):
     config = build("cpu-small", {"material": {"iterations": 300, "lr_albedo": 0.02},
                                  "visibility": {"resolution": 256}}, seed=3)

@@ -39,7 +39,11 @@ from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels
-from mi_shadowgs.stages.segmentation.planes import PlaneConfig, planar_shading_normals
+from mi_shadowgs.stages.segmentation.planes import (
+    PlaneConfig,
+    planar_shading_normals,
+    support_split,
+)
 
 FEATURE = "feature"
 SEGMENT = "segment"
@@ -99,6 +103,11 @@ class SegmentationConfig:
     # After K-means, segments whose surfels lie on one plane are made flat (not in the
     # paper; off in its preset): ``planes.PlaneConfig``.
     planes: PlaneConfig = PlaneConfig()
+    # Label maps from colour (``masks`` "chromaticity"): split every segment into its surfels
+    # on the scene's dominant plane and those off it (``planes.support_split``; not in the
+    # paper): an object and what it stands on are different objects, as the paper's SAM masks
+    # have them, while colour labels give a grey object and a grey mat one label.
+    support_split: bool = False
 
     def __post_init__(self):
         check_fields(self, (
@@ -623,15 +632,17 @@ class SegmentationResult:
     train: TrainResult
     k_scores: dict | None = None  # {K: silhouette} when K was chosen by silhouette
     planes: list | None = None  # the segments' plane fits (``planes.planar_shading_normals``)
+    support: dict | None = None  # the support's plane where segments were split at it
 
 
 def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                     label_maps: Sequence[np.ndarray], config: SegmentationConfig,
                     raster: RasterConfig = _RASTER, progress: bool = True,
                     names: Sequence[str] | None = None, state: FeatureState | None = None,
-                    on_checkpoint=None, min_label_fraction: float | None = None
-                    ) -> SegmentationResult:
-    """The whole stage: train features on ``label_maps`` (one per camera), then K-means.
+                    on_checkpoint=None, min_label_fraction: float | None = None,
+                    split_support: bool = False) -> SegmentationResult:
+    """The whole stage: train features on ``label_maps`` (one per camera), then K-means,
+    then (``split_support``) the segments split at the support's plane (``support_split``).
     ``state`` and ``on_checkpoint``: see ``train_features``; ``min_label_fraction``: see
     ``auto_k``."""
     labels = prepare_labels(label_maps, cameras, names)
@@ -646,7 +657,11 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
     seg, _ = kmeans_segments(tr.features, k, seen, config.seed, config.kmeans_restarts,
                              config.kmeans_iterations if seeds is None
                              else config.prototype_iterations, seeds)
+    support = None
+    if split_support:
+        seg, support = support_split(surfels.to_numpy()["position"], seg, config.seed)
+        k = int(seg.max()) + 1 if support else k
     out = surfels.with_channels({FEATURE: mi.TensorXf(tr.features),
                                  SEGMENT: mi.TensorXf(seg.astype(np.float32)[:, None])})
     out, planes = planar_shading_normals(out, seg, config.planes)
-    return SegmentationResult(out, seg, k, tr, scores, planes)
+    return SegmentationResult(out, seg, k, tr, scores, planes, support)

@@ -113,6 +113,7 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     result = seg.segment_surfels(surfels, train.cameras, label_maps, config,
                                  min_label_fraction=label_fraction(config, masks),
                                  progress=progress, names=[v.name for v in train.views],
+                                 split_support=config.support_split and masks == "chromaticity",
                                  **hooks)
     t_stage = time.perf_counter() - t0 + trained_before
     stems = [Path(v.name).name for v in views.views]
@@ -137,6 +138,8 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
             report["k_silhouette"] = {str(k): v for k, v in result.k_scores.items()}
         if result.planes:  # the segments' plane fits (SegmentationConfig.planes)
             report["planes"] = result.planes
+        if result.support:  # the support's plane (SegmentationConfig.support_split)
+            report["support_split"] = result.support
         if all(v.material is not None for v in views.views):
             report.update(_segmentation_metrics(maps, views))
         write_json(folder / "segmentation.json", report)
