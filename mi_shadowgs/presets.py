@@ -135,7 +135,7 @@ GEOMETRY = {
 }
 _SEGMENTATION_CPU = SegmentationConfig(iterations=300, lr=0.02, n_samples=2048,
                                        prototype_iterations=1,
-                                       planes=PlaneConfig(enabled=True), support_split=True)
+                                       planes=PlaneConfig(enabled=True))
 SEGMENTATION = {"paper": SegmentationConfig(), "cpu-small": _SEGMENTATION_CPU,
                 "cpu-medium": _SEGMENTATION_CPU, "gpu-large": _SEGMENTATION_CPU}
 CHROMATICITY = dict.fromkeys(PRESET_NAMES, ChromaticityConfig())
