@@ -124,10 +124,10 @@ def test_screen_space_prune_and_without_it():
 
 
 def test_without_opacity_resets_large_surfels_are_still_pruned():
-    # Views without masks train without opacity resets (GeometryConfig.unmasked), which
-    # used to switch the world-space prune off with them: a surfel grew to 3.3 x 0.2 units
-    # over a lab capture's backdrop. It now starts where the first reset would have been;
-    # the screen-space prune stays with the resets.
+    # Views without masks train without opacity resets (GeometryConfig.unmasked), but the
+    # world-space prune still acts, from where the first reset would have been, so that no
+    # surfel grows into a sheet over a lab capture's backdrop; the screen-space prune stays
+    # with the resets.
     from mi_shadowgs.presets import GEOMETRY as PRESETS
     from mi_shadowgs.stages.geometry.config import unmasked
 

@@ -58,8 +58,8 @@ def test_every_preset_is_a_whole_tree():
 
 
 def test_photos_are_imported_at_the_presets_view_size():
-    # the size every stage of the preset is tuned for and its studies score at: a cpu-small
-    # import at 512 px trained 16x the pixels, and a 48-photo capture took tens of minutes
+    # the size every stage of the preset is tuned for and its studies score at
+    # (docs/decisions.md, "Photos imported at the preset's view size")
     from mi_shadowgs import presets
 
     for name in ("paper", "cpu-small", "cpu-medium", "gpu-large"):

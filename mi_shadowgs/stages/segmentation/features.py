@@ -106,8 +106,8 @@ class SegmentationConfig:
     # Label maps from colour (``masks`` "chromaticity"): split every segment into its surfels
     # on the scene's dominant plane and those off it (``planes.support_split``; not in the
     # paper): an object and what it stands on are different objects, as the paper's SAM masks
-    # have them, while colour labels give a grey object and a grey mat one label. Off: on
-    # the default scene's photos the objects' albedo lost 12 dB without the mat's segments.
+    # have them, while colour labels give a grey object and a grey mat one label (off by
+    # default: docs/decisions.md).
     support_split: bool = False
 
     def __post_init__(self):
