@@ -92,8 +92,7 @@ def fit_plane(points: np.ndarray, threshold: float, iterations: int,
         raise WorldFrameError("the SfM points are all collinear: no plane can be fitted")
     inl = best[2]
     centre = points[inl].mean(axis=0)
-    _, _, vt = np.linalg.svd(points[inl] - centre)
-    n = vt[2]
+    n = np.linalg.svd(points[inl] - centre, full_matrices=False)[2][2]
     inl = np.abs((points - centre) @ n) < threshold
     return n, float(n @ centre), inl
 

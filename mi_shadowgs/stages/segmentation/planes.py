@@ -155,36 +155,27 @@ def support_split(positions: np.ndarray, segments: np.ndarray, seed: int = 0
     ``segments`` [N] split into its surfels on the scene's dominant plane (the support the
     object stands on) and those off it, where that plane holds at least
     ``SUPPORT_MIN_SHARE`` of the surfels ``positions`` [N, 3]; else ``segments`` as they are
-    and None. The plane: RANSAC over ``SUPPORT_TRIALS`` triples, inliers within
-    ``SUPPORT_TOLERANCE`` of the surfels' 90th-percentile spread, refitted by PCA of the
-    inliers; a surfel is the support's within ``SUPPORT_BAND`` such distances of it."""
+    and None. The plane: the import's RANSAC plane fit (``world_frame.fit_plane``, inliers
+    within ``SUPPORT_TOLERANCE`` of the surfels' 90th-percentile spread); a surfel is the
+    support's within ``SUPPORT_BAND`` such distances of it."""
+    from mi_shadowgs.dataset.world_frame import WorldFrameError
+    from mi_shadowgs.dataset.world_frame import fit_plane as ransac_plane
+
     p = np.asarray(positions, np.float64).reshape(-1, 3)
     seg = np.asarray(segments).reshape(-1).astype(np.int64)
-    if len(p) < 3:
-        return seg, None
-    rng = np.random.default_rng(seed)
     tol = SUPPORT_TOLERANCE * float(np.percentile(
-        np.linalg.norm(p - np.median(p, 0), axis=1), 90))
-    best, best_count = None, 0
-    for _ in range(SUPPORT_TRIALS):
-        a, b, c = p[rng.choice(len(p), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm < 1e-12:
-            continue
-        count = int(np.sum(np.abs((p - a) @ (n / norm)) < tol))
-        if count > best_count:
-            best, best_count = (n / norm, a), count
-    if best is None or tol <= 0:
+        np.linalg.norm(p - np.median(p, 0), axis=1), 90)) if len(p) >= 3 else 0.0
+    if tol <= 0:
         return seg, None
-    inl = np.abs((p - best[1]) @ best[0]) < tol
-    centre = p[inl].mean(0)
-    normal = np.linalg.svd(p[inl] - centre, full_matrices=False)[2][2]
-    on = np.abs((p - centre) @ normal) <= SUPPORT_BAND * tol
+    try:
+        normal, offset, _ = ransac_plane(p, tol, SUPPORT_TRIALS, np.random.default_rng(seed))
+    except WorldFrameError:  # collinear: no plane
+        return seg, None
+    on = np.abs(p @ normal - offset) <= SUPPORT_BAND * tol
     share = float(on.mean())
     if share < SUPPORT_MIN_SHARE or on.all():
         return seg, None
     split = np.unique(seg * 2 + ~on, return_inverse=True)[1].reshape(-1)
-    return split, {"normal": normal.tolist(), "point": centre.tolist(), "share": share,
-                   "segments_before": int(len(np.unique(seg))),
+    return split, {"normal": normal.tolist(), "point": (offset * normal).tolist(),
+                   "share": share, "segments_before": int(len(np.unique(seg))),
                    "segments_after": int(split.max()) + 1}
