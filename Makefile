@@ -5,6 +5,10 @@ CLI := $(VENV)/bin/mi-shadowgs
 PRESET ?= cpu-small
 SCENE ?= mi_shadowgs/scenes/default.xml
 DEMO_DIR ?= runs/demo
+# Python caches the modules it compiles (__pycache__): the suite starts hundreds of
+# processes, each of which would compile ~550 modules again (1.4 s) where the environment
+# asks for no bytecode (as container images often do). docs/decisions.md has the figures.
+unexport PYTHONDONTWRITEBYTECODE
 
 .PHONY: install install-dev demo test bench validate results docs lint lock clean
 

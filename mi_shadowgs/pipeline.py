@@ -210,7 +210,7 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
             else:
                 reused.append(f"material ({name})")
         with top.staged("report") as tmp:  # beside any file of the user's there
-            write_report_figures(tmp, run, data)
+            write_report_figures(tmp, run, data, earlier=run / "report")
         summary = build_summary(run, data, config, results, stages,
                                 time.perf_counter() - t_start, available, reused)
         write_json(top.path("summary.json"), summary)

@@ -42,7 +42,8 @@ def _csv_columns(path: Path) -> dict[str, list[float]]:
     return {k: [num(r.get(k)) for r in rows] for k in (rows[0] if rows else {})}
 
 
-def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
+def _light_map_figure(path: Path, variant: Path, data: Path, earlier: Path | None = None
+                      ) -> bool:
     """The labelled 22x12 light map of a variant's ``light.json`` beside the dataset's
     ground truth (``lights.json``); False when the fit has no light.json. Both maps hold
     radiance on the light grid's directions only, and a light (true, or fitted and refined
@@ -94,7 +95,7 @@ def _light_map_figure(path: Path, variant: Path, data: Path) -> bool:
         fitted.append({"azimuth": az, "elevation": el, "weight": float(weight)})
     light_map_png(path, blocks(fit["radiance"]), blocks(gt_map) if gt_map else None,
                   gt_lights, fitted, np.asarray([angles_from_direction(d) for d in grid
-                                                 if d[1] > 0]))
+                                                 if d[1] > 0]), earlier=earlier)
     return True
 
 
@@ -120,12 +121,14 @@ def loss_term_starts(run: Path) -> list[dict]:
     return out
 
 
-def write_report_figures(folder: Path, run: Path, data: Path) -> None:
+def write_report_figures(folder: Path, run: Path, data: Path, earlier: Path | None = None
+                         ) -> None:
     """The report's plots into ``folder`` from the run's files, each only when its data is
     there: stage-1 training curves (``geometry/log.csv``, with where each late loss
     term starts: ``loss_term_starts``), stage-4 loss
     (``material/*/history.csv``), the labelled light map of the full fit and the colour bar
-    of the error maps."""
+    of the error maps. A plot that ``earlier`` (the report's folder) holds drawn from the
+    same inputs is copied from there (``io.plots``)."""
     from mi_shadowgs.io.plots import colorbar_png, curves_png
 
     log = _csv_columns(run / "geometry" / "log.csv")
@@ -136,7 +139,7 @@ def write_report_figures(folder: Path, run: Path, data: Path) -> None:
                   for key, label in (("loss", "training loss"), ("psnr", "training PSNR (dB)"),
                                      ("surfels", "surfels")) if key in log]
         curves_png(folder / "geometry_curves.png", panels, title="Stage 1: geometry",
-                   markers=loss_term_starts(run))
+                   markers=loss_term_starts(run), earlier=earlier)
     lines = []
     for hist in [v / "history.csv" for v in _variant_folders(run)]:
         h = _csv_columns(hist)
@@ -145,10 +148,10 @@ def write_report_figures(folder: Path, run: Path, data: Path) -> None:
     if lines:
         curves_png(folder / "material_loss.png",
                    [{"ylabel": "loss (mean since last entry)", "log": True, "lines": lines}],
-                   xlabel="step", title="Stage 4: material and light")
-    _light_map_figure(folder / "light_map.png", run / "material" / "full", data)
+                   xlabel="step", title="Stage 4: material and light", earlier=earlier)
+    _light_map_figure(folder / "light_map.png", run / "material" / "full", data, earlier)
     if (run / "material" / "full" / "grid.json").is_file():
-        colorbar_png(folder / "error_scale.png")
+        colorbar_png(folder / "error_scale.png", earlier=earlier)
 
 
 def _json_or_empty(path: Path) -> dict:

@@ -4,16 +4,29 @@ Every figure is byte-identical across runs given the same data: the PNG carries 
 'Software' or date text, the size and DPI are fixed, and no figure state is shared (each
 plot builds its own ``Figure``, not pyplot's global one). Run outputs are compared byte for
 byte (``tests/test_kill.py``).
+
+Each PNG holds a digest of what drew it (the plot's name and arguments, this file and
+matplotlib's version) in a text chunk; a plot whose file already holds the digest of its
+inputs is not drawn again (a rerun of a finished run redraws nothing).
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import io
 import os
+import struct
+from importlib import metadata
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mi_shadowgs.io.atomic import write_bytes
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 DPI = 100
 ERROR_MAX = 0.25  # error maps: |estimate - ground truth| in sRGB [0, 1], colour-mapped 0..this
@@ -29,17 +42,88 @@ def _figure(width_in: float, height_in: float):
     return Figure(figsize=(width_in, height_in), dpi=DPI, layout="constrained")
 
 
-def _save(fig, path: str | os.PathLike) -> None:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    FigureCanvasAgg(fig)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
-    write_bytes(path, buf.getvalue())
+INPUTS_KEY = "mi_shadowgs inputs"  # the PNG text chunk holding the digest of the inputs
 
 
+def _feed(h, value) -> None:
+    """``value`` (JSON-like, with NumPy arrays and scalars) into the hash ``h``, typed."""
+    if isinstance(value, np.ndarray):
+        h.update(f"a{value.dtype.str}{value.shape}".encode())
+        h.update(np.ascontiguousarray(value).tobytes())
+    elif isinstance(value, dict):
+        h.update(f"d{len(value)}".encode())
+        for k in sorted(value, key=str):
+            _feed(h, str(k))
+            _feed(h, value[k])
+    elif isinstance(value, (list, tuple)):
+        h.update(f"l{len(value)}".encode())
+        for v in value:
+            _feed(h, v)
+    elif isinstance(value, np.generic):
+        _feed(h, value.item())
+    else:  # str, int, float, bool, None
+        h.update(f"{type(value).__name__}:{value!r};".encode())
+
+
+@functools.cache
+def _code_version() -> bytes:
+    return Path(__file__).read_bytes() + metadata.version("matplotlib").encode()
+
+
+def _digest(name: str, args: tuple, kwargs: dict) -> str:
+    h = hashlib.sha256(_code_version())
+    _feed(h, [name, list(args), kwargs])
+    return h.hexdigest()
+
+
+def png_text(path: str | os.PathLike) -> dict[str, str]:
+    """The tEXt chunks of a PNG file ({} when it is missing or not a PNG)."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return {}
+    if data[:8] != b"\x89PNG\r\n\x1a\n":
+        return {}
+    out, pos = {}, 8
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        if kind == b"tEXt":
+            key, _, text = data[pos + 8:pos + 8 + length].partition(b"\0")
+            out[key.decode("latin-1")] = text.decode("latin-1")
+        if kind == b"IEND":
+            break
+        pos += 12 + length
+    return out
+
+
+def _plot(draw):
+    """A plot function ``draw(path, ...)`` that returns its ``Figure``: written to ``path``
+    with the digest of its inputs, and not drawn when ``path``, or the file of its name in
+    the folder ``earlier`` (copied then), already holds that digest."""
+
+    @functools.wraps(draw)
+    def plot(path: str | os.PathLike, *args, earlier: Path | None = None, **kwargs) -> None:
+        key = _digest(draw.__name__, args, kwargs)
+        if png_text(path).get(INPUTS_KEY) == key:
+            return
+        if earlier is not None and png_text(Path(earlier) / Path(path).name).get(
+                INPUTS_KEY) == key:
+            write_bytes(path, (Path(earlier) / Path(path).name).read_bytes())
+            return
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+        fig = draw(path, *args, **kwargs)
+        FigureCanvasAgg(fig)
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None, INPUTS_KEY: key})
+        write_bytes(path, buf.getvalue())
+
+    return plot
+
+
+@_plot
 def curves_png(path: str | os.PathLike, panels: list[dict], xlabel: str = "iteration",
-               title: str | None = None, markers: list[dict] | None = None) -> None:
+               title: str | None = None, markers: list[dict] | None = None) -> Figure:
     """Side-by-side line plots. Each panel is ``{"ylabel": str, "log": bool, "lines":
     [{"x": [N], "y": [N], "label": str | None}]}``; NaNs are gaps. ``markers``
     (``[{"x", "label"}]``, where a loss term starts) are dashed vertical lines on every
@@ -71,12 +155,13 @@ def curves_png(path: str | os.PathLike, panels: list[dict], xlabel: str = "itera
                    ncol=len(markers), fontsize=7.5, frameon=False)
     if title:
         fig.suptitle(title, fontsize=11)
-    _save(fig, path)
+    return fig
 
 
+@_plot
 def light_map_png(path: str | os.PathLike, est_blocks: np.ndarray, gt_blocks: np.ndarray | None,
                   gt_lights: list[dict], fitted: list[dict],
-                  grid: np.ndarray | None = None) -> None:
+                  grid: np.ndarray | None = None) -> Figure:
     """The paper's 22 x 12 light map, estimate and ground truth side by side.
 
     ``est_blocks``/``gt_blocks`` [12, 22]: rows from the zenith down to the horizon, columns
@@ -129,7 +214,7 @@ def light_map_png(path: str | os.PathLike, est_blocks: np.ndarray, gt_blocks: np
         axes[0].legend(loc="upper center", bbox_to_anchor=(0.5, -0.28), fontsize=7.5,
                        ncol=2, frameon=False)
     fig.colorbar(im, ax=list(axes), label="radiance / peak", shrink=0.9)
-    _save(fig, path)
+    return fig
 
 
 def error_colors(est: np.ndarray, gt: np.ndarray, vmax: float = ERROR_MAX) -> np.ndarray:
@@ -143,8 +228,9 @@ def error_colors(est: np.ndarray, gt: np.ndarray, vmax: float = ERROR_MAX) -> np
     return colormaps[ERROR_CMAP](np.clip(e / vmax, 0.0, 1.0))[..., :3]
 
 
+@_plot
 def colorbar_png(path: str | os.PathLike, vmax: float = ERROR_MAX,
-                 label: str = "|estimate - ground truth| (sRGB)") -> None:
+                 label: str = "|estimate - ground truth| (sRGB)") -> Figure:
     """A horizontal colour bar for ``error_colors``."""
     import matplotlib as mpl
 
@@ -152,5 +238,5 @@ def colorbar_png(path: str | os.PathLike, vmax: float = ERROR_MAX,
     ax = fig.add_subplot()
     fig.colorbar(mpl.cm.ScalarMappable(mpl.colors.Normalize(0.0, vmax), ERROR_CMAP), cax=ax,
                  orientation="horizontal", label=label)
-    _save(fig, path)
+    return fig
 
