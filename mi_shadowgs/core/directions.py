@@ -93,12 +93,18 @@ def angles_from_direction(direction) -> tuple[float, float]:
     return az, math.degrees(math.asin(float(np.clip(d[1], -1.0, 1.0))))
 
 
+_NEAREST_CHUNK = 16384
+
+
 def nearest_grid_index(directions: np.ndarray, grid: np.ndarray | None = None) -> np.ndarray:
     """Index of the grid direction closest in angle to each of ``directions`` [M, 3] -> [M]."""
     grid = light_grid() if grid is None else grid
     d = np.atleast_2d(np.asarray(directions, dtype=np.float64))
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    return np.argmax(d @ grid.T, axis=-1)
+    out = np.empty(len(d), np.int64)
+    for s in range(0, len(d), _NEAREST_CHUNK):  # [chunk, n] cosines stay in the cache
+        out[s:s + _NEAREST_CHUNK] = np.argmax(d[s:s + _NEAREST_CHUNK] @ grid.T, axis=-1)
+    return out
 
 
 def directional_lights_to_map(directions: np.ndarray, irradiance: np.ndarray,
