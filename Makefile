@@ -34,15 +34,13 @@ demo: install
 
 # The viewer's browser test needs chromium and chromium-driver (installed here when root),
 # the splat tools' tests PlayCanvas's splat-transform (npm, into .venv/node; skipped without).
-# The test files run on two processes per core, at most 8 (pytest-xdist; a file's tests stay
-# on one process, so its fixtures are made once): most of a test's time is one thread, a
-# subprocess starting or a file written, so a second process per core fills the gaps
-# (docs/decisions.md has the figures).
-CORES := $(shell getconf _NPROCESSORS_ONLN 2>/dev/null || echo 2)
-TEST_WORKERS ?= $(shell echo $$(( $(CORES) * 2 < 8 ? $(CORES) * 2 : 8 )))
+# The test files run on one process per core, at most TEST_WORKERS (pytest-xdist; a file's
+# tests stay on one process, so its fixtures are made once): most of a test's time is one
+# thread, so two processes on 2 cores take about two thirds of one's time.
+TEST_WORKERS ?= 4
 test: install-dev
 	@bash scripts/setup.sh --clients
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile tests
+	$(PY) -m pytest -q -n auto --maxprocesses $(TEST_WORKERS) --dist loadfile tests
 
 # Each suite is kept once it has run (a killed `make bench` resumes); suites run at another
 # commit, preset or machine exit 2 naming it: BENCH_ARGS=--overwrite runs them again.
