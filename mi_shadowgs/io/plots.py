@@ -78,10 +78,17 @@ def _digest(name: str, args: tuple, kwargs: dict) -> str:
 
 def png_text(path: str | os.PathLike) -> dict[str, str]:
     """The tEXt chunks of a PNG file ({} when it is missing or not a PNG)."""
+    return _text_chunks(_read(path))
+
+
+def _read(path: str | os.PathLike) -> bytes:
     try:
-        data = Path(path).read_bytes()
+        return Path(path).read_bytes()
     except OSError:
-        return {}
+        return b""
+
+
+def _text_chunks(data: bytes) -> dict[str, str]:
     if data[:8] != b"\x89PNG\r\n\x1a\n":
         return {}
     out, pos = {}, 8
@@ -104,12 +111,13 @@ def _plot(draw):
     @functools.wraps(draw)
     def plot(path: str | os.PathLike, *args, earlier: Path | None = None, **kwargs) -> None:
         key = _digest(draw.__name__, args, kwargs)
-        if png_text(path).get(INPUTS_KEY) == key:
-            return
-        if earlier is not None and png_text(Path(earlier) / Path(path).name).get(
-                INPUTS_KEY) == key:
-            write_bytes(path, (Path(earlier) / Path(path).name).read_bytes())
-            return
+        sources = [Path(path)] + ([Path(earlier) / Path(path).name] if earlier else [])
+        for source in sources:
+            data = _read(source)
+            if _text_chunks(data).get(INPUTS_KEY) == key:
+                if source != sources[0]:
+                    write_bytes(path, data)
+                return
         from matplotlib.backends.backend_agg import FigureCanvasAgg
 
         fig = draw(path, *args, **kwargs)
