@@ -5,7 +5,8 @@ A camera value that enters a kernel as a literal compiles every kernel that read
 for every view: ~100 ms per kernel on the CPU, a cost that can exceed the step itself
 (stage 1's view-dependent colours once did this for ~1300 steps). The test compares the
 kernel hashes (a hash of the source) of one stage-1 step from two cameras: equal sets,
-whatever the kernel cache holds.
+whatever the kernel cache holds. A model read from host memory (a PLY file, a checkpoint)
+compiles the same kernels wherever NumPy put its arrays.
 The last test counts kernels run rather than compiled: work done once, not per channel.
 """
 
@@ -72,6 +73,55 @@ def test_a_new_camera_compiles_no_new_stage1_kernel():
     assert first, "no kernel ran: the history did not record the step"
     assert again == first  # the baseline: the same camera, the same kernels
     assert other == first, f"{len(other - first)} kernel(s) compiled for the second camera"
+
+
+def _placed(a: np.ndarray, offset: int) -> np.ndarray:
+    """A float32 copy of ``a`` whose data starts ``offset`` bytes past a 64-byte boundary."""
+    a = np.asarray(a, np.float32)
+    raw = np.empty(a.size + 32, np.float32)
+    start = (-(raw.ctypes.data // 4) + offset // 4) % 16
+    out = raw[start:start + a.size].reshape(a.shape)
+    out[...] = a
+    assert out.ctypes.data % 64 == offset
+    return out
+
+
+def test_a_model_read_from_host_memory_compiles_the_same_kernels_wherever_it_lies():
+    """A model from NumPy (a PLY file, a checkpoint) goes to memory Dr.Jit allocated: where
+    NumPy put the arrays (their alignment) must not reach the kernels' source."""
+    from mi_shadowgs.core.raster import rasterize
+    from mi_shadowgs.io.ply import PlyModel
+
+    rng = np.random.default_rng(4)
+    n = 300
+    arrays = (rng.uniform(-0.5, 0.5, (n, 3)), np.full((n, 2), np.log(0.08)),
+              rng.standard_normal((n, 4)), rng.uniform(-1, 1, n),
+              {"albedo": rng.uniform(0, 1, (n, 3))})
+    cam = Camera.look_at((2.5, 1.0, 1.5), (0.0, 0.0, 0.0), width=24, height=24, fov_x=0.8)
+
+    def hashes(place, how: str) -> set:
+        pos, log_s, rot, logit, ch = arrays
+        if how == "ply":
+            s = PlyModel(place(pos), place(log_s), place(rot), place(logit),
+                         {k: place(v) for k, v in ch.items()}).to_surfels()
+        else:
+            s = Surfels.from_numpy(place(pos), np.exp(place(log_s)), place(rot),
+                                   1 / (1 + np.exp(-place(logit))),
+                                   {k: place(v) for k, v in ch.items()})
+        dr.kernel_history()
+        out = rasterize(s, cam, {"albedo": s.channels["albedo"]}, aovs=("alpha",))
+        dr.eval(out["albedo"], out["alpha"])
+        dr.sync_thread()
+        return {k["hash"] for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT}
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for how in ("ply", "from_numpy"):
+            aligned = hashes(lambda a: _placed(a, 0), how)
+            assert aligned
+            assert hashes(lambda a: _placed(a, 4), how) == aligned, how
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
 def test_shadow_maps_compile_no_new_kernel_for_another_light_count():

@@ -9,10 +9,11 @@ data change that text without changing what the kernel computes:
 - **Arrays made from NumPy** keep NumPy's memory, and a kernel that loads them directly
   carries that memory's alignment in its source (``align 1`` or ``align 64``, wherever
   NumPy put it); a size-1 array is read as a broadcast scalar with the same property. Two
-  calls with the same code then differ in their source. ``array`` (size 1) and ``tensor``
-  (any size: images, parameters that kernels load directly) copy host values into memory
-  Dr.Jit allocated, whose alignment does not vary. Gathers do not carry it, so ``array``
-  leaves larger arrays (read by gathers: lights, camera rows) as they are.
+  calls with the same code then differ in their source. ``array`` (size 1), ``host`` (flat,
+  any size) and ``tensor`` (any shape: images, models read from files, parameters) copy
+  host values into memory Dr.Jit allocated, whose alignment does not vary. Gathers do not
+  carry it, so ``array`` leaves larger arrays (read by gathers: lights, camera rows) as
+  they are.
 
 Without them every test view of a one-light relighting compiled a new ~1,300-operation
 shading kernel (~100 ms each).
@@ -43,6 +44,15 @@ def array(values, cls=None):
     cls = cls or mi.Float
     src = cls(np.ascontiguousarray(values).ravel())
     return _copy(src) if dr.width(src) == 1 else src
+
+
+def host(values, cls=None):
+    """A flat host array [K] of any size as a Dr.Jit array in memory Dr.Jit allocated (see
+    the module docstring), for arrays that kernels load directly; ``cls`` defaults to
+    ``mi.Float``."""
+    cls = cls or mi.Float
+    src = cls(np.ascontiguousarray(values).ravel())
+    return _copy(src) if dr.width(src) else src
 
 
 def tensor(values: np.ndarray) -> mi.TensorXf:

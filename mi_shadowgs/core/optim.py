@@ -133,9 +133,10 @@ def adam_from_numpy(opt, arrays: dict[str, np.ndarray], prefix: str) -> None:
     opt.set_learning_rate(float(arrays[prefix + "lr"][0]))
     for key in arrays[prefix + "keys"].tolist():
         a = arrays[f"{prefix}{key}/value"]
-        opt[key] = mi.Float(a) if a.ndim == 1 else mi.TensorXf(a)
+        opt[key] = jit.host(a.astype(np.float32)) if a.ndim == 1 else jit.tensor(a)
         value, promoted, _, _ = opt.state[key]
         lr = arrays.get(f"{prefix}{key}/lr")
-        extra = (mi.UInt32(arrays[f"{prefix}{key}/t"]), mi.Float(arrays[f"{prefix}{key}/m"]),
-                 mi.Float(arrays[f"{prefix}{key}/v"]), None)
+        extra = (mi.UInt32(arrays[f"{prefix}{key}/t"]),
+                 jit.host(arrays[f"{prefix}{key}/m"].astype(np.float32)),
+                 jit.host(arrays[f"{prefix}{key}/v"].astype(np.float32)), None)
         opt.state[key] = (value, promoted, None if lr is None else float(lr[0]), extra)

@@ -331,7 +331,7 @@ def rasterize(surfels: Surfels, camera: Camera,
         if host.size == 0:  # nothing to composite
             return ({name: dr.zeros(mi.TensorXf, (0, t.shape[1])) for name, t in chans.items()}
                     | {a: dr.zeros(mi.TensorXf, (0, AOV_CHANNELS[a])) for a in aovs})
-        pixels = mi.UInt32(host.astype(np.uint32))
+        pixels = jit.host(host.astype(np.uint32), mi.UInt32)
 
     g = project(surfels, camera, config)
     # One per-surfel kernel now, rather than whatever set of pending variables the first

@@ -73,7 +73,7 @@ def _tensor_nc(values, n: int, what: str) -> mi.TensorXf:
         a = np.asarray(values, dtype=np.float32)
         if a.ndim == 1:
             a = a[:, None]
-        t = mi.TensorXf(np.ascontiguousarray(a))
+        t = jit.tensor(a)
     if len(t.shape) != 2 or t.shape[0] != n:
         raise ValueError(f"{what}: expected shape [N={n}, C], got {tuple(t.shape)}")
     return t
@@ -105,10 +105,10 @@ class Surfels:
             raise ValueError(f"Surfels.subset: keep has {len(keep)} entries for "
                              f"{self.count} surfels")
         rows = np.flatnonzero(keep)
-        index = mi.UInt32(rows.astype(np.uint32))
+        index = jit.host(rows.astype(np.uint32), mi.UInt32)
         geometry = {k: dr.gather(type(v), v, index) for k, v in self.params().items()
                     if not k.startswith("channels.")}
-        channels = {k: mi.TensorXf(np.asarray(t)[rows]) for k, t in self.channels.items()}
+        channels = {k: jit.tensor(np.asarray(t)[rows]) for k, t in self.channels.items()}
         return Surfels(**geometry, channels=channels)
 
     # -- activations ------------------------------------------------------------------
@@ -244,10 +244,10 @@ class Surfels:
             logit = np.log(o) - np.log1p(-o)  # 1 -> +inf, 0 -> -inf (handled by the sigmoid)
         f32 = np.float32
         surf = Surfels(
-            position=mi.Point3f(*(p[:, i].astype(f32) for i in range(3))),
-            log_scale=mi.Point2f(*(log_s[:, i].astype(f32) for i in range(2))),
-            rotation=mi.Vector4f(*(r[:, i].astype(f32) for i in range(4))),
-            opacity_logit=mi.Float(logit.astype(f32)),
+            position=mi.Point3f(*(jit.host(p[:, i].astype(f32)) for i in range(3))),
+            log_scale=mi.Point2f(*(jit.host(log_s[:, i].astype(f32)) for i in range(2))),
+            rotation=mi.Vector4f(*(jit.host(r[:, i].astype(f32)) for i in range(4))),
+            opacity_logit=jit.host(logit.astype(f32)),
         )
         for name, arr in (channels or {}).items():
             surf.channels[name] = _tensor_nc(arr, n, f"Surfels.from_numpy channel {name!r}")

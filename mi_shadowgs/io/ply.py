@@ -135,19 +135,18 @@ class PlyModel:
         """The ``Surfels`` of these raw parameters (no activation round trip)."""
         import mitsuba as mi
 
+        from mi_shadowgs.core import jit
         from mi_shadowgs.core.surfels import Surfels
 
         def vec(cls, a):
-            a = np.ascontiguousarray(a, dtype=np.float32)
-            return cls(*(a[:, i] for i in range(a.shape[1])))
+            a = np.asarray(a, dtype=np.float32)
+            return cls(*(jit.host(a[:, i]) for i in range(a.shape[1])))
 
-        channels = {name: mi.TensorXf(np.ascontiguousarray(c, dtype=np.float32))
-                    for name, c in self.channels.items()}
+        channels = {name: jit.tensor(c) for name, c in self.channels.items()}
         return Surfels(position=vec(mi.Point3f, self.position),
                        log_scale=vec(mi.Point2f, self.log_scale),
                        rotation=vec(mi.Vector4f, self.rotation),
-                       opacity_logit=mi.Float(np.ascontiguousarray(self.opacity_logit,
-                                                                   dtype=np.float32)),
+                       opacity_logit=jit.host(np.asarray(self.opacity_logit, np.float32)),
                        channels=channels)
 
 

@@ -20,11 +20,11 @@ from mi_shadowgs.stages.visibility import shadow_maps
 
 def _scaled_albedo_model(model: relight.RelightModel, scale: np.ndarray) -> relight.RelightModel:
     """The model with its albedo times a per-channel factor (ground-truth alignment)."""
-    import mitsuba as mi
+    from mi_shadowgs.core import jit
 
     surf = dataclasses.replace(model.surfels, channels=dict(model.surfels.channels))
     a = surf.channels["albedo"].numpy() * scale[None].astype(np.float32)
-    surf.channels["albedo"] = mi.TensorXf(np.clip(a, 0.0, None).astype(np.float32))
+    surf.channels["albedo"] = jit.tensor(np.clip(a, 0.0, None))
     return dataclasses.replace(model, surfels=surf)
 
 

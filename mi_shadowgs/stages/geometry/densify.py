@@ -231,6 +231,6 @@ class DensifyStrategy:
                 "max_radii": np.asarray(self.max_radii, np.float32)}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
-        self.grad_accum = mi.Float(np.asarray(state["grad_accum"], np.float32))
-        self.denom = mi.Float(np.asarray(state["denom"], np.float32))
-        self.max_radii = mi.Float(np.asarray(state["max_radii"], np.float32))
+        self.grad_accum = jit.host(np.asarray(state["grad_accum"], np.float32))
+        self.denom = jit.host(np.asarray(state["denom"], np.float32))
+        self.max_radii = jit.host(np.asarray(state["max_radii"], np.float32))

@@ -26,10 +26,10 @@ def init_channels(surfels: Surfels, config: MaterialConfig) -> dict[str, mi.Tens
     k = (config.sh_degree + 1) ** 2
     sh = np.zeros((n, 3 * k), np.float32)
     sh[:, :3] = config.indirect_init / SH_C0
-    return {"albedo": mi.TensorXf(np.full((n, 3), config.albedo_init, np.float32)),
-            "roughness": mi.TensorXf(np.full((n, 1), config.roughness_init, np.float32)),
-            "metallic": mi.TensorXf(np.full((n, 1), config.metallic_init, np.float32)),
-            shading.INDIRECT_CHANNEL: mi.TensorXf(sh)}
+    return {"albedo": jit.tensor(np.full((n, 3), config.albedo_init, np.float32)),
+            "roughness": jit.tensor(np.full((n, 1), config.roughness_init, np.float32)),
+            "metallic": jit.tensor(np.full((n, 1), config.metallic_init, np.float32)),
+            shading.INDIRECT_CHANNEL: jit.tensor(sh)}
 
 
 def segment_ids(surfels: Surfels) -> mi.UInt32:
@@ -42,7 +42,7 @@ def segment_ids(surfels: Surfels) -> mi.UInt32:
             or np.any(seg != np.round(seg))):
         raise ValueError("stage 4: channel 'segment' must hold one non-negative integer per "
                          "surfel")
-    return mi.UInt32(seg.astype(np.uint32))
+    return jit.host(seg.astype(np.uint32), mi.UInt32)
 
 
 def segment_average(values: mi.TensorXf, seg: mi.UInt32, n_segments: int) -> mi.TensorXf:

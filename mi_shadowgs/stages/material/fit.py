@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.core import shading
+from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import light_grid, nearest_grid_index, solid_angle
 from mi_shadowgs.core.raster import RasterConfig
@@ -72,7 +72,7 @@ def _irradiance(state: MaterialState, dw: float) -> np.ndarray:
 def _set_irradiance(state: MaterialState, irr: np.ndarray, dw: float,
                     config: MaterialConfig) -> None:
     """The optimiser's lights set to irradiance ``irr`` [K], at the light learning rate."""
-    state.opt["log_light"] = mi.Float(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
+    state.opt["log_light"] = jit.host(np.log(np.maximum(irr / dw, 1e-12)).astype(np.float32))
     state.opt.set_learning_rate({"log_light": config.lr_light})
 
 
@@ -302,7 +302,7 @@ def detail_gates(fit: MaterialFit, state: MaterialState) -> None:
         lit = vis.numpy().reshape(v.pairs.height, v.pairs.width, -1) > 0.5  # [H, W, L]
         edge = np.any(maximum_filter(lit, size) != minimum_filter(lit, size), axis=2)
         fit.views[k] = dataclasses.replace(
-            v, detail_gate=mi.Float((~edge).reshape(-1).astype(np.float32)))
+            v, detail_gate=jit.host((~edge).reshape(-1).astype(np.float32)))
 
 
 def start_detail(fit: MaterialFit, state: MaterialState) -> None:
@@ -460,7 +460,7 @@ def _initial_state(surfels: Surfels, images: list[np.ndarray], views: list[Train
                [np.asarray(v.weight.numpy(), bool)] for im, v in zip(images, views, strict=True)]
         light0 = max(float(np.mean(np.concatenate(sup))), 1e-3) / config.albedo_init
     grid = light_grid(config.n_directions)
-    opt["log_light"] = mi.Float(np.full(len(grid), math.log(light0), np.float32))
+    opt["log_light"] = jit.host(np.full(len(grid), math.log(light0), np.float32))
     opt.set_learning_rate({"log_light": config.lr_light})
     return MaterialState(0, opt, ch, grid, with_specular, np.random.default_rng(config.seed),
                          mi.Float(0.0), [], {})

@@ -77,7 +77,7 @@ def _prune(opt, dirs: np.ndarray, maps, config: MaterialConfig, render_maps,
         if positions is not None:
             positions = positions[keep]
     if len(light) != dr.width(opt["log_light"]):
-        opt["log_light"] = mi.Float(np.log(light).astype(np.float32))
+        opt["log_light"] = jit.host(np.log(light).astype(np.float32))
         opt.set_learning_rate({"log_light": config.lr_light})
     return new_dirs, maps, positions
 

@@ -9,7 +9,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.core import shading
+from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.directions import light_grid, solid_angle
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.stages.material.config import MaterialConfig
@@ -153,7 +153,7 @@ class MaterialState:
         adam_from_numpy(opt, arrays, "adam/")
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
-        channels = {k[len("channel/"):]: mi.TensorXf(a) for k, a in arrays.items()
+        channels = {k[len("channel/"):]: jit.tensor(a) for k, a in arrays.items()
                     if k.startswith("channel/")}
         refine = None
         if "refine/dirs" in arrays:

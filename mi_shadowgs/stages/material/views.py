@@ -9,7 +9,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_shadowgs.core import shading
+from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig
 from mi_shadowgs.core.surfels import Surfels, eval_sh
@@ -51,8 +51,8 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
         with_depth, pairs = None, shading.splat_pairs(surfels, camera, raster)
     geom = shading.pixel_geometry(surfels, camera, raster, receiver_band, with_depth)
     sup = np.asarray(mask, bool).reshape(-1) & (geom.alpha.numpy() >= config.mask_alpha)
-    weight = mi.Float(sup.astype(np.float32))
-    target = mi.Color3f(*(img[:, c] for c in range(3)))
+    weight = jit.host(sup.astype(np.float32))
+    target = mi.Color3f(*(jit.host(img[:, c]) for c in range(3)))
     inv = dr.opaque(mi.Float, 1.0 / float(max(sup.sum(), 1)))
     seg, n_seg = pixel_segments(surfels, pairs, config.refine_segment_purity)
     return TrainView(camera, pairs, geom, weight, target, inv, seg, n_seg,
@@ -88,7 +88,7 @@ def pixel_segments(surfels: Surfels, pairs: shading.SplatPairs, purity: float
     w = weight.numpy().reshape(npix, n_seg)
     top = w.argmax(1)
     pure = w[np.arange(npix), top] >= purity * np.maximum(w.sum(1), 1e-30)
-    return mi.UInt32(np.where(pure, top, n_seg).astype(np.uint32)), n_seg
+    return jit.host(np.where(pure, top, n_seg).astype(np.uint32), mi.UInt32), n_seg
 
 
 def _albedo_image(pairs: shading.SplatPairs, channels: dict, gate: mi.Float | None):

@@ -240,7 +240,7 @@ def envmap_grid_radiance(emitter, config: RelightConfig = DEFAULT_RELIGHT) -> np
     d, weight, cell = _hemisphere_samples(rows, n)
     si = dr.zeros(mi.SurfaceInteraction3f, len(d))
     # Infinite emitters look up -wi: wi is the propagation direction (from the env inward).
-    si.wi = mi.Vector3f(*(-d[:, k].astype(np.float32) for k in range(3)))
+    si.wi = mi.Vector3f(*(jit.host(-d[:, k].astype(np.float32)) for k in range(3)))
     with dr.suspend_grad():
         val = emitter.eval(si)
     rgb = np.stack([np.asarray(val[k], np.float64) for k in range(3)], -1)

@@ -136,7 +136,7 @@ def init_features(count: int, dim: int, seed: int = 0, std: float = 1.0) -> mi.T
     """Random features [N, D], N(0, std^2 / D) per coordinate (norm ~ std)."""
     rng = np.random.default_rng(seed)
     f = rng.normal(0.0, std / math.sqrt(dim), size=(count, dim)).astype(np.float32)
-    return mi.TensorXf(f)
+    return jit.tensor(f)
 
 
 def normalize_rows(f: list) -> list:
@@ -438,8 +438,8 @@ class FeatureState:
         adam_from_numpy(opt, arrays, "adam/")
         rng = np.random.default_rng()
         rng.bit_generator.state = meta["rng"]
-        return FeatureState(int(meta["step"]), opt, mi.Float(arrays["coverage"]),
-                            [mi.Float(c) for c in arrays["proto"]], rng,
+        return FeatureState(int(meta["step"]), opt, jit.host(arrays["coverage"]),
+                            [jit.host(c) for c in arrays["proto"]], rng,
                             arrays["order"].tolist(),
                             [(int(i), dict(v)) for i, v in meta["history"]],
                             float(meta["elapsed"]))
@@ -512,7 +512,8 @@ def train_features(surfels: Surfels, cameras: Sequence[Camera], labels: LabelSet
             pick = rng.integers(0, pix.size, size=2 * half)
             img = rasterize(geom, cameras[v], {FEATURE: feats}, aovs=(), config=raster,
                             pixels=pix[pick])
-            q1, q2 = mi.UInt32(lab[pick[:half]]), mi.UInt32(lab[pick[half:]])
+            q1 = jit.host(lab[pick[:half]].astype(np.uint32), mi.UInt32)
+            q2 = jit.host(lab[pick[half:]].astype(np.uint32), mi.UInt32)
             terms = segmentation_loss(img[FEATURE], feats, rows1, q1, rows2, q2,
                                       labels.n_labels, config)
             dr.backward(terms["total"])
@@ -662,7 +663,7 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
     if split_support:
         seg, support = support_split(surfels.to_numpy()["position"], seg, config.seed)
         k = int(seg.max()) + 1 if support else k
-    out = surfels.with_channels({FEATURE: mi.TensorXf(tr.features),
-                                 SEGMENT: mi.TensorXf(seg.astype(np.float32)[:, None])})
+    out = surfels.with_channels({FEATURE: jit.tensor(tr.features),
+                                 SEGMENT: jit.tensor(seg[:, None])})
     out, planes = planar_shading_normals(out, seg, config.planes)
     return SegmentationResult(out, seg, k, tr, scores, planes, support)

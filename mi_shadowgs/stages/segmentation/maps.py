@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels
@@ -24,7 +24,7 @@ def render_segment_map(surfels: Surfels, segments: np.ndarray, k: int, camera: C
     onehot = np.zeros((seg.size, k), np.float32)
     onehot[np.arange(seg.size), seg] = 1.0
     with dr.suspend_grad():
-        out = rasterize(surfels, camera, {"onehot": mi.TensorXf(onehot)}, aovs=("alpha",),
+        out = rasterize(surfels, camera, {"onehot": jit.tensor(onehot)}, aovs=("alpha",),
                         config=raster)
     w = np.asarray(out["onehot"].numpy()).reshape(camera.height, camera.width, k)
     alpha = np.asarray(out["alpha"].numpy()).reshape(camera.height, camera.width)

@@ -26,9 +26,9 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import mitsuba as mi
 import numpy as np
 
+from mi_shadowgs.core import jit
 from mi_shadowgs.core.frames import quaternion_to_matrix
 from mi_shadowgs.core.shading import SHADING_NORMAL_CHANNEL
 from mi_shadowgs.core.surfels import Surfels
@@ -146,7 +146,7 @@ def planar_shading_normals(surfels: Surfels, segments: np.ndarray, config: Plane
     if not any(r["flattened"] for r in reports):
         return surfels, reports
     return surfels.with_channels(
-        {SHADING_NORMAL_CHANNEL: mi.TensorXf(shading_normal.astype(np.float32))}), reports
+        {SHADING_NORMAL_CHANNEL: jit.tensor(shading_normal)}), reports
 
 
 def support_split(positions: np.ndarray, segments: np.ndarray, seed: int = 0
