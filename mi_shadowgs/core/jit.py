@@ -58,8 +58,7 @@ def host(values, cls=None):
 def tensor(values: np.ndarray) -> mi.TensorXf:
     """A host array of any shape as an ``mi.TensorXf`` in memory Dr.Jit allocated."""
     a = np.asarray(values, np.float32)
-    src = mi.Float(np.ascontiguousarray(a).ravel())
-    return mi.TensorXf(_copy(src) if dr.width(src) else src, a.shape)
+    return mi.TensorXf(host(a), a.shape)
 
 
 def _copy(src):

@@ -136,7 +136,7 @@ def adam_from_numpy(opt, arrays: dict[str, np.ndarray], prefix: str) -> None:
         opt[key] = jit.host(a.astype(np.float32)) if a.ndim == 1 else jit.tensor(a)
         value, promoted, _, _ = opt.state[key]
         lr = arrays.get(f"{prefix}{key}/lr")
-        extra = (mi.UInt32(arrays[f"{prefix}{key}/t"]),
+        extra = (jit.array(arrays[f"{prefix}{key}/t"], mi.UInt32),
                  jit.host(arrays[f"{prefix}{key}/m"].astype(np.float32)),
                  jit.host(arrays[f"{prefix}{key}/v"].astype(np.float32)), None)
         opt.state[key] = (value, promoted, None if lr is None else float(lr[0]), extra)

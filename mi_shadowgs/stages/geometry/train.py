@@ -363,7 +363,7 @@ class TrainState:
         strategy = DensifyStrategy(config.densify, extent, opt.count, config.seed,
                                    iterations=config.iterations)
         strategy.load_state(group("densify/"))
-        sums = {k: mi.Float(a) for k, a in group("log/").items()}
+        sums = {k: jit.array(a) for k, a in group("log/").items()}
         gains = ViewGains.from_numpy(arrays, "gains/")
         return TrainState(int(step), opt, strategy, extent, elapsed, sums, int(log_count),
                           gains)

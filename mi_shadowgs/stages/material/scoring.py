@@ -318,10 +318,8 @@ def segment_nnls(gram: np.ndarray, h: np.ndarray, keep: np.ndarray,
     e, err = np.zeros(h.shape[1]), 0.0
     idx = np.flatnonzero(keep)
     for _ in range(iterations):
-        e = np.zeros(h.shape[1])
-        if len(idx):  # nnls_irradiance's fit, without its error (not needed here)
-            e[idx] = _nnls_kept(np.einsum("s,skj->kj", c * c, gram)[np.ix_(idx, idx)],
-                                np.einsum("s,sk->k", c, h)[idx])
+        # nnls_irradiance's fit, without its error (not needed here)
+        e = _nnls_kept(np.einsum("s,skj->kj", c * c, gram), np.einsum("s,sk->k", c, h), idx)
         q = np.einsum("k,skj,j->s", e, gram, e)  # [S]
         p = h @ e  # [S]
         c = np.where(q > 0, np.maximum(p, 0.0) / np.where(q > 0, q, 1.0), 0.0)
@@ -332,22 +330,23 @@ def segment_nnls(gram: np.ndarray, h: np.ndarray, keep: np.ndarray,
 def nnls_irradiance(gram: np.ndarray, h: np.ndarray, keep: np.ndarray
                     ) -> tuple[np.ndarray, float]:
     """argmin_{e >= 0, e = 0 off ``keep``} of e^T G e - 2 e . h, and that minimum."""
-    e = np.zeros(len(h))
-    idx = np.flatnonzero(keep)
-    if len(idx) == 0:
-        return e, 0.0
-    e[idx] = _nnls_kept(gram[np.ix_(idx, idx)], h[idx])
-    return e, float(e @ gram @ e - 2.0 * e @ h)
+    e = _nnls_kept(gram, h, np.flatnonzero(keep))
+    return e, float(e @ gram @ e - 2.0 * e @ h)  # 0 with no light kept
 
 
-def _nnls_kept(g: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """argmin_{e >= 0} of e^T g e - 2 e . h for the kept lights' ``g`` [k, k], ``h`` [k]."""
+def _nnls_kept(gram: np.ndarray, h: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """argmin_{e >= 0, e = 0 off the lights ``idx``} of e^T G e - 2 e . h [K]."""
     from scipy.optimize import nnls
 
+    e = np.zeros(len(h))
+    if len(idx) == 0:
+        return e
+    g = gram[np.ix_(idx, idx)]
     # A relative ridge keeps the factorization defined for lights with identical images.
-    g = g + np.eye(len(h)) * (1e-9 * max(float(np.trace(g)) / len(h), 1e-30))
+    g = g + np.eye(len(idx)) * (1e-9 * max(float(np.trace(g)) / len(idx), 1e-30))
     chol = np.linalg.cholesky(g)  # g = chol chol^T
-    return nnls(chol.T, np.linalg.solve(chol, h))[0]
+    e[idx] = nnls(chol.T, np.linalg.solve(chol, h[idx]))[0]
+    return e
 
 
 def drop_unexplained(gram: np.ndarray, h: np.ndarray, rr, config: MaterialConfig

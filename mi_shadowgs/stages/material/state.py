@@ -162,7 +162,7 @@ class MaterialState:
                                 bool(arrays.get("refine/global", [0])[0]),
                                 bool(arrays.get("refine/again", [0])[0]))
         return MaterialState(int(meta["step"]), opt, channels, arrays["directions"],
-                             bool(meta["specular"]), rng, mi.Float(arrays["loss_sum"]),
+                             bool(meta["specular"]), rng, jit.array(arrays["loss_sum"]),
                              [(int(i), float(x)) for i, x in meta["history"]],
                              dict(meta["timings"]), refine, list(meta.get("light_log", [])),
                              arrays.get("detail/directions"), arrays.get("positions"),

@@ -165,7 +165,7 @@ class GaussianVisibility:
         self.centre = mi.Point3f(_vec3(centre))
         self.axis_u = _vec3(arr["t_u"] / arr["scale"][:, :1])
         self.axis_v = _vec3(arr["t_v"] / arr["scale"][:, 1:])
-        self.opacity = mi.Float(np.minimum(arr["opacity"], config.alpha_max).astype(np.float32))
+        self.opacity = jit.host(np.minimum(arr["opacity"], config.alpha_max).astype(np.float32))
         # Advance past a hit by a hair: above float32 rounding at the scene's scale, far below
         # the stagger range (two overlapping quads closer than this in t count once).
         scale = float(np.max(np.abs(bounds.center))) + bounds.radius
