@@ -27,6 +27,7 @@ from test_raster_hard_cases import (
 
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
+from mi_shadowgs.core.raster_bins import PACKET_MAX, packet_widths
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
 PAIRS = RasterConfig(method="pairs")
@@ -412,6 +413,16 @@ def test_forward_mode_is_refused_clearly():
     with pytest.raises(Exception, match="forward-mode derivatives"):
         dr.forward_from(s.position)
         dr.eval(dr.grad(out["color"].array))
+
+
+def test_packet_widths():
+    """The packed layouts of the compositing loops (``raster_tiles._pack``): powers of two
+    up to PACKET_MAX floats, the last zero padded. The test below spans two packets both
+    ways: 13 fields, box, surfel id and 6 channel values (16 + 8) and 6 + 13 gradient
+    sums (16 + 4)."""
+    assert PACKET_MAX == 16
+    assert [packet_widths(n) for n in (1, 3, 16, 19, 22, 33)] == [
+        [1], [4], [16], [16, 4], [16, 8], [16, 16, 1]]
 
 
 def test_several_channel_tensors():

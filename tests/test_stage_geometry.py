@@ -67,7 +67,7 @@ def test_short_run_reaches_psnr(tiny):
     assert m["mask_iou"] >= 0.9
 
 
-def test_resume_after_interruption_continues_the_run(tiny, tmp_path):
+def test_resume_after_interruption_continues_the_run(tiny, tmp_path, one_thread):
     train = load_dataset(tiny, "train")
     cfg = dataclasses.replace(TINY, iterations=60, checkpoint_every=20)
     cdir = tmp_path / "ckpt"
@@ -100,13 +100,11 @@ def test_resume_after_interruption_continues_the_run(tiny, tmp_path):
     # (Adam's moments zeroed or halved, its step or the schedule's step off) changed it
     # (2026-11-29, 2979-2998 surfels against 2994).
     assert a["position"].shape == b["position"].shape
-    # Float atomics in the rasterizer's scatter reorder sums, so the runs agree to ~1e-5
-    # (two comparisons: all surfels within 5e-6 in position, 4e-5 in opacity), not bit for
-    # bit; Adam's normalised step can carry one surfel whose gradient is near zero further
-    # (1.4e-3 in opacity, once, in CI), so the check bounds the share that differs.
-    for name in ("position", "opacity"):
-        differ = np.abs(a[name] - b[name]).reshape(len(a[name]), -1).max(axis=1) > 1e-4
-        assert np.isfinite(a[name]).all() and differ.mean() <= 0.01, (name, differ.sum())
+    # On one Dr.Jit thread the gradient sums add in a fixed order, so the resumed run is
+    # the straight one bit for bit (on two, the threads' shares of the sums differ from run
+    # to run, and Adam's normalised step carries that into surfels whose gradient is ~0).
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
 
 
 def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):

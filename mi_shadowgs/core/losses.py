@@ -59,7 +59,9 @@ def l1(render: mi.TensorXf, target: mi.TensorXf) -> mi.Float:
 def _blur_rows(x: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarray
                ) -> mi.Float:
     """The x pass of the separable blur over ``layers`` stacked [H, W, C] images
-    ([layers * H * W * C], zero padding)."""
+    ([layers * H * W * C], zero padding), evaluated: the y pass gathers from it, and a
+    gather from an unevaluated array recomputes it at every tap (an 11x11 blur instead of
+    11 + 11 taps)."""
     r = len(taps) // 2
     idx = dr.arange(mi.UInt32, layers * h * w * c)
     pix = idx // c
@@ -69,6 +71,7 @@ def _blur_rows(x: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarra
         dx = k - r
         ok = (xi + dx >= 0) & (xi + dx < w)
         out += float(wk) * dr.gather(mi.Float, x, mi.UInt32(mi.Int32(idx) + dx * c), ok)
+    dr.eval(out)
     return out
 
 
@@ -204,7 +207,8 @@ class _DssimOp(dr.CustomOp):
         src = dr.gather(mi.Float, x, idx - layer * n)
         other = dr.gather(mi.Float, y, idx - layer * n)
         stacked = dr.select(layer == 0, src, src * dr.select(layer == 1, src, other))
-        m1, m2, m12 = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c, taps)
+        m1, m2, m12 = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c,
+                                    taps)
         self.moments = (m1, m2, m12)
         s = _ssim_terms(m1, m2, m12, target)[0]
         dr.eval(m1, m2, m12)
@@ -230,7 +234,8 @@ class _DssimOp(dr.CustomOp):
                             dr.select(layer == 1, dr.gather(mi.Float, db, local),
                                       dr.gather(mi.Float, dc, local)))
         dr.eval(stacked)
-        ga, gb, gc = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c, taps)
+        ga, gb, gc = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c,
+                                   taps)
         y = dr.detach(target.image.array)
         self.set_grad_in("x", ga + 2.0 * self.x * gb + y * gc)
 

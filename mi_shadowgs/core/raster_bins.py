@@ -35,6 +35,9 @@ BACKWARD_GROUP = 16
 MAX_TILE_SIZE = 64
 # Pixel boxes are packed as two 16-bit coordinates per UInt32 (``Bins.box``).
 BOX_MAX = 0xFFFF
+# Most floats that one packet gather or scatter-add of the compositing loops moves per lane:
+# an AVX-512 register.
+PACKET_MAX = 16
 
 
 @dataclasses.dataclass
@@ -59,10 +62,21 @@ class Bins:
         return self.ntx * self.nty * self.lanes_per_tile
 
 
+def packet_widths(n: int) -> list:
+    """Floats per entry of each packet that holds ``n`` values per entry (``raster_tiles``'
+    packed layouts): powers of two up to PACKET_MAX, the last zero padded (22 -> 16, 8)."""
+    out = []
+    while n > 0:
+        out.append(min(PACKET_MAX, 1 << (n - 1).bit_length()))
+        n -= out[-1]
+    return out
+
+
 def grad_entries(surfels: int, normal: bool, channels: int) -> int:
     """Floats of the backward's per-surfel gradient sums: the pair fields, the normal's
-    when it is rendered, and every channel."""
-    return surfels * (len(PAIR_FIELDS) + len(NORMAL_FIELDS) * normal + channels)
+    when it is rendered, and every channel, in packets (``packet_widths``)."""
+    return surfels * sum(packet_widths(len(PAIR_FIELDS) + len(NORMAL_FIELDS) * normal +
+                                       channels))
 
 
 def grad_copy_bytes(entries: int, config: RasterConfig) -> int:
@@ -239,12 +253,6 @@ def to_samples(vals: list, plan: LanePlan) -> mi.Float:
     for cc, v in enumerate(vals[0]):
         dr.scatter(out, v, plan.out_index[0] * c + cc)
     return out
-
-
-def box_of(bins: Bins, j: mi.UInt32) -> tuple:
-    """Sorted pair j's surfel pixel box, packed (x0 | x1 << 16, y0 | y1 << 16): read once
-    per lane and tested for each of its pixels (``in_box``)."""
-    return dr.gather(mi.UInt32, bins.box[0], j), dr.gather(mi.UInt32, bins.box[1], j)
 
 
 def in_box(box: tuple, px: mi.UInt32, py: mi.UInt32) -> mi.Bool:

@@ -59,8 +59,8 @@ class RasterConfig:
     # "pairs": the pixel-splat pair list above (the reference; memory grows with the pairs).
     # "tiles" (default): the tiled renderer (``raster_tiles``): surfels binned to tile_size^2 pixel
     # tiles, one compositing loop per pixel, a hand-written backward; memory O(pixels +
-    # surfel-tile pairs). Its guard counts bytes per surfel-tile pair (key, sort, sorted
-    # fields; measured 95 B forward, 108 B forward+backward over every AOV and 3 channels:
+    # surfel-tile pairs). Its guard counts bytes per surfel-tile pair (key, sort, packed
+    # entries; measured 113 B forward, 130 B forward+backward over every AOV and 3 channels:
     # ``bm_raster_memory --method tiles``) and per pixel lane (saved state, images,
     # gradient images: estimated from the arrays held), plus per channel 4 bytes per pair
     # and 8 per lane.
@@ -77,7 +77,7 @@ class RasterConfig:
     # threads): 51.8-54.9 ms (1), 49.2-49.8 (2), 51.2-53.6 (4), 60-62 (8); a 512^2 shadow
     # map 37-38 ms (1), 30-31 (2 and 4).
     pixels_per_lane: int = 2
-    bytes_per_tile_pair: int = 128
+    bytes_per_tile_pair: int = 160
     bytes_per_pixel: int = 96  # forward only
     bytes_per_pixel_grad: int = 256  # with gradients
     # The tiled backward's per-surfel gradient sums: a private copy per thread (Dr.Jit's

@@ -11,7 +11,8 @@ the same order:
    orders them by (tile, centre depth), and each tile gets its [start, end) range;
 2. forward: one lane per ``RasterConfig.pixels_per_lane`` pixels of a tile, tile-major so
    that a SIMD packet's lanes share few tiles; a symbolic ``dr.while_loop`` walks the
-   tile's list front to back, reading each entry once for the lane's pixels. Each pixel
+   tile's list front to back, reading each entry once for the lane's pixels (its values
+   packed entry by entry, ``_Entries``: one packet gather instead of ~20). Each pixel
    skips pairs outside the surfel's box or failing the alpha / cutoff / near tests (the
    pair list drops them), composites with a Float64 transmittance and stops before the
    splat that would take T below ``transmittance_min`` (``raster._scan``); the lane stops
@@ -21,7 +22,8 @@ the same order:
    from the largest stop index of the lane's group, each pixel active below its own,
    recovering T_i = T_{i+1} / (1 - alpha_i) in Float64, and chains the output gradients
    through alpha and depth to the 13 projected fields by hand (``pair_eval_grad``); the
-   lane sums its pixels' gradients and scatter-adds them per surfel. Dr.Jit's AD then
+   lane sums its pixels' gradients and scatter-adds them per surfel (packed the same way:
+   one packet scatter-add). Dr.Jit's AD then
    carries those gradients from the projected fields to the surfel parameters
    (``raster_common.project``).
 
@@ -49,11 +51,11 @@ from mi_shadowgs.core.raster_bins import (
     Bins,
     LanePlan,
     bin_surfels,
-    box_of,
     grad_copy_bytes,
     grad_entries,
     image_plan,
     in_box,
+    packet_widths,
     sample_plan,
     to_image,
     to_samples,
@@ -94,6 +96,80 @@ def _maximum(values: list):
     return out
 
 
+def _pack(values: list, size: int) -> list:
+    """``values`` ([size] floats each) laid out entry by entry: one flat array per packet of
+    ``packet_widths(len(values))``, zero padded, element ``i * width + k`` the packet's
+    k-th value of entry i."""
+    packs, o = [], 0
+    for width in packet_widths(len(values)):
+        part = values[o:o + width]
+        part += [dr.zeros(mi.Float, size)] * (width - len(part))
+        packed = dr.zeros(mi.Float, size * width)
+        dr.scatter(packed, mi.ArrayXf(part), dr.arange(mi.UInt32, size))
+        packs.append(packed)
+        o += width
+    return packs
+
+
+def _packet_width(packed: mi.Float, size: int) -> int:
+    """Floats per entry of one of ``_pack``'s arrays over ``size`` entries."""
+    return dr.width(packed) // size
+
+
+def _slot(packs: list, size: int, k: int) -> tuple:
+    """(array, its width, offset in an entry) of the k-th value of ``_pack``'s layout."""
+    for packed in packs:
+        width = _packet_width(packed, size)
+        if k < width:
+            return packed, width, k
+        k -= width
+    raise IndexError(k)
+
+
+@dataclasses.dataclass
+class _Entries:
+    """Everything the compositing loops read of a sorted pair, packed entry by entry
+    (``_pack``): the projected fields, the pixel box, the surfel id and the channel
+    values. A lane reads its entry with one packet gather per packet (contiguous loads
+    and a transpose) instead of one gather per value: the SIMD packet's lanes share one
+    or two entries, so separate gathers loaded the same addresses 16 times over."""
+
+    packs: list  # [TP * width] per packet
+    size: int  # TP
+    names: tuple  # the projected fields, in order
+    chans: dict  # channel name -> (offset, C) in the packed values
+
+    @staticmethod
+    def pack(fields: dict, chans: dict, widths: dict, bins: Bins) -> _Entries:
+        """The sorted pairs' values, evaluated: ``fields`` and ``chans`` per surfel, taken in
+        ``bins``' order."""
+        sid = bins.sid
+        values = [dr.gather(mi.Float, v, sid) for v in fields.values()]
+        values += [dr.reinterpret_array(mi.Float, b) for b in (*bins.box, sid)]
+        offsets = {}
+        for name, arr in chans.items():
+            c = widths[name]
+            offsets[name] = (len(values), c)
+            values += [dr.gather(mi.Float, arr, sid * c + k) for k in range(c)]
+        size = dr.width(sid)
+        packs = _pack(values, size)
+        dr.eval(packs)
+        return _Entries(packs, size, tuple(fields), offsets)
+
+    def read(self, j: mi.UInt32, n: int) -> tuple:
+        """(fields by name, pixel box, surfel id, channel values by name) of sorted pair j
+        for each of ``n`` lanes."""
+        v = []
+        for packed in self.packs:
+            v += list(dr.gather(mi.ArrayXf, packed, j, shape=(_packet_width(packed, self.size),
+                                                               n)))
+        nf = len(self.names)
+        box = tuple(dr.reinterpret_array(mi.UInt32, v[nf + k]) for k in range(2))
+        sid = dr.reinterpret_array(mi.UInt32, v[nf + 2])
+        chan_vals = {name: v[o:o + c] for name, (o, c) in self.chans.items()}
+        return dict(zip(self.names, v[:nf], strict=True)), box, sid, chan_vals
+
+
 class _TiledOp(dr.CustomOp):
     """Forward: every requested image (flat, [H * W * C]); backward: gradients of the
     projected fields and the channel values (``_TiledCtx`` holds the non-differentiable
@@ -104,11 +180,8 @@ class _TiledOp(dr.CustomOp):
         what the backward keeps per pixel; the outputs by name."""
         self.ctx = ctx
         bins = ctx.bins
-        # [TP] the fields in sorted order: the loop reads them sequentially.
-        self.sorted = {k: dr.gather(mi.Float, v, bins.sid) for k, v in fields.items()}
-        self.sorted_chans = {
-            name: [dr.gather(mi.Float, arr, bins.sid * c + k) for k in range(c)]
-            for (name, arr), c in zip(chans.items(), ctx.widths.values(), strict=True)}
+        # The fields in sorted order, packed entry by entry: the loops read them sequentially.
+        self.entries = _Entries.pack(fields, chans, ctx.widths, bins)
         plan = (image_plan(bins, ctx.width, ctx.height) if ctx.pixels is None else
                 sample_plan(bins, ctx.width, ctx.pixels))
         pixels = self._composite(plan)
@@ -135,7 +208,7 @@ class _TiledOp(dr.CustomOp):
         p = {"T": dr.ones(mi.Float64, n), "done": ~inside,
              # Where the pixel stopped (the first pair not composited), else its end.
              "stop": dr.select(inside, end, first),
-             "chans": {name: [zf] * len(v) for name, v in self.sorted_chans.items()}}
+             "chans": {name: [zf] * c for name, c in self.ctx.widths.items()}}
         if "depth" in aovs:
             p["depth"] = zf
         if "median_depth" in aovs:
@@ -163,7 +236,6 @@ class _TiledOp(dr.CustomOp):
         end = dr.gather(mi.UInt32, bins.end, tile)
         pixels = [self._start_pixel(inside, first, end, zf, z64, n) for inside in insides]
         state = {"j": first, "pixels": pixels}
-        q_names = PAIR_FIELDS + (NORMAL_FIELDS if "normal" in self.ctx.aovs else ())
 
         def cond(s):
             return (s["j"] < end) & ~_all_done(s["pixels"])
@@ -171,10 +243,7 @@ class _TiledOp(dr.CustomOp):
         def body(s):
             j = s["j"]
             # One read of the entry per lane, shared by its pixels.
-            q = {k: dr.gather(mi.Float, self.sorted[k], j) for k in q_names}
-            box = box_of(bins, j)
-            chan_vals = {name: [dr.gather(mi.Float, arr, j) for arr in arrs]
-                         for name, arrs in self.sorted_chans.items()}
+            q, box, _, chan_vals = self.entries.read(j, n)
             out_pixels = [self._composite_pixel(p, j, q, box, chan_vals, pxs[k], pys[k],
                                                 pxf[k], pyf[k], config)
                           for k, p in enumerate(s["pixels"])]
@@ -236,7 +305,7 @@ class _TiledOp(dr.CustomOp):
         t_final = [p["T"] for p in pixels]  # [lanes] Float64 per pixel of a lane
         alpha_img = [mi.Float(1.0 - t) for t in t_final]  # = sum of the weights
         lane_out = {}  # name -> per pixel k: C arrays [lanes]
-        for name in self.sorted_chans:
+        for name in ctx.widths:
             vals = [p["chans"][name] for p in pixels]
             if name in ctx.background:
                 vals = [[v + jit.opaque(b) * mi.Float(t)
@@ -308,11 +377,12 @@ def _tiled_backward(op: _TiledOp) -> None:
     grads_out = {k: dr.detach(v) for k, v in op.grad_out().items()}
     walk = _BackwardWalk(op, grads_out)
     dr.while_loop((walk.start(),), walk.cond, walk.body, label="raster_tiles_backward")
-    dr.eval(*walk.acc.values(), *walk.acc_chans.values())
+    acc, acc_chans = walk.unpacked_sums()
+    dr.eval(acc, acc_chans)
     if ctx.geometry_grad:
-        op.set_grad_in("fields", {k: walk.acc[k] for k in ctx.field_names})
-    if walk.acc_chans:
-        op.set_grad_in("chans", walk.acc_chans)
+        op.set_grad_in("fields", {k: acc[k] for k in ctx.field_names})
+    if acc_chans:
+        op.set_grad_in("chans", acc_chans)
 
 
 class _BackwardWalk:
@@ -333,9 +403,10 @@ class _BackwardWalk:
         normal = "normal" in self.aovs
         self.q_names = PAIR_FIELDS + (NORMAL_FIELDS if normal else ())
         nsurf = ctx.nsurfels
-        self.acc = ({k: dr.zeros(mi.Float, nsurf) for k in self.q_names} if ctx.geometry_grad
-                    else {})
-        self.acc_chans = {name: dr.zeros(mi.Float, nsurf * c) for name, c in ctx.widths.items()}
+        # The per-surfel sums, packed (``_pack``'s layout): every channel's components, then
+        # the projected fields', so that a packet scatter-add updates a surfel's at once.
+        nsums = sum(ctx.widths.values()) + (len(self.q_names) if ctx.geometry_grad else 0)
+        self.sums = [dr.zeros(mi.Float, nsurf * w) for w in packet_widths(nsums)]
         self.reduce_mode = _grad_reduce_mode(
             grad_entries(nsurf, normal, sum(ctx.widths.values())), self.config)
 
@@ -403,15 +474,10 @@ class _BackwardWalk:
     def body(self, s: dict) -> tuple:
         """One step back: sorted pair j - 1 for every pixel of the lane, then the lane's
         gradient sums scatter-added to the pair's surfel."""
-        op, bins, geometry_grad = self.op, self.ctx.bins, self.ctx.geometry_grad
+        op = self.op
         i = s["j"] - 1
         # One read of the entry per lane, shared by its pixels.
-        q = {k: dr.gather(mi.Float, op.sorted[k], i)
-             for k in (self.q_names if geometry_grad else PAIR_FIELDS)}
-        box = box_of(bins, i)
-        sid = dr.gather(mi.UInt32, bins.sid, i)
-        chan_vals = ({name: [dr.gather(mi.Float, arr, i) for arr in arrs]
-                      for name, arrs in op.sorted_chans.items()} if geometry_grad else {})
+        q, box, sid, chan_vals = op.entries.read(i, self.n)
         comps, ws, t_out, s_out, g_fields = [], [], [], [], []
         for k, pk in enumerate(self.pixel):
             comp, w, t, sk, fk = self._pixel_step(k, pk, i, q, box, chan_vals, s["T"][k],
@@ -489,22 +555,46 @@ class _BackwardWalk:
         grads.update(pair_eval_grad(q, self.pxf[k], self.pyf[k], g_alpha, g_z, config))
         return g64, grads
 
+    def unpacked_sums(self) -> tuple:
+        """(projected field -> [N] gradient sums, channel -> [N * C]) from the packed sums."""
+        nsurf = self.ctx.nsurfels
+        surf = dr.arange(mi.UInt32, nsurf)
+
+        def column(k):
+            packed, width, offset = _slot(self.sums, nsurf, k)
+            return dr.gather(mi.Float, packed, surf * width + offset)
+
+        k, acc_chans = 0, {}
+        for name, c in self.ctx.widths.items():
+            acc_chans[name] = dr.zeros(mi.Float, nsurf * c)
+            for ch in range(c):
+                dr.scatter(acc_chans[name], column(k + ch), surf * c + ch)
+            k += c
+        acc = ({f: column(k + i) for i, f in enumerate(self.q_names)}
+               if self.ctx.geometry_grad else {})
+        return acc, acc_chans
+
     def _scatter(self, comps: list, ws: list, g_fields: list, sid: mi.UInt32) -> None:
-        """The lane's sums over its pixels, then one scatter-add per field into the pair's
-        surfel (w is 0 where a pixel did not composite the pair)."""
+        """The lane's sums over its pixels, then one packet scatter-add of them into the
+        pair's surfel (w is 0 where a pixel did not composite the pair)."""
         any_comp = comps[0]
         for c in comps[1:]:
             any_comp = any_comp | c
+        values = []
         for name, c in self.ctx.widths.items():  # the channels' gradients: w_i dL/d(image)
             for ch in range(c):
-                v = _sum([w * pk["chans"][name][ch] for w, pk in zip(ws, self.pixel,
-                                                                      strict=True)])
-                dr.scatter_reduce(dr.ReduceOp.Add, self.acc_chans[name], v, sid * c + ch,
-                                  active=any_comp, mode=self.reduce_mode)
+                values.append(_sum([w * pk["chans"][name][ch]
+                                    for w, pk in zip(ws, self.pixel, strict=True)]))
         if self.ctx.geometry_grad:
-            for f in g_fields[0]:
-                dr.scatter_reduce(dr.ReduceOp.Add, self.acc[f], _sum([g[f] for g in g_fields]),
-                                  sid, active=any_comp, mode=self.reduce_mode)
+            values += [_sum([g[f] for g in g_fields]) for f in self.q_names]
+        o = 0
+        for packed in self.sums:
+            width = _packet_width(packed, self.ctx.nsurfels)
+            part = values[o:o + width]
+            part += [dr.zeros(mi.Float, self.n)] * (width - len(part))
+            dr.scatter_reduce(dr.ReduceOp.Add, packed, mi.ArrayXf(part), sid,
+                              active=any_comp, mode=self.reduce_mode)
+            o += width
 
 
 def render_tiles(g: Proj, gd: Proj, W: int, H: int, chans: dict, aovs: Sequence[str],
