@@ -28,6 +28,7 @@ from test_raster_hard_cases import (
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
 from mi_shadowgs.core.raster_bins import PACKET_MAX, packet_widths
+from mi_shadowgs.core.raster_common import argsort_bounded
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
 PAIRS = RasterConfig(method="pairs")
@@ -423,6 +424,17 @@ def test_packet_widths():
     assert PACKET_MAX == 16
     assert [packet_widths(n) for n in (1, 3, 16, 19, 22, 33)] == [
         [1], [4], [16], [16, 4], [16, 8], [16, 16, 1]]
+
+
+@pytest.mark.parametrize("n, bound", [(0, 5), (1, 5), (2, 1), (1000, 3), (5000, 1 << 16),
+                                      (5000, (1 << 16) + 1), (20000, 1 << 20),
+                                      (100, (1 << 32) - 1)])
+def test_argsort_bounded_is_a_stable_argsort(n, bound):
+    """The binning's and the pair lists' sort of tile and pixel ids: one counting pass up
+    to 16 bits of the bound, more above, the order NumPy's stable argsort gives."""
+    keys = np.random.default_rng(n).integers(0, bound, n, dtype=np.int64).astype(np.uint32)
+    np.testing.assert_array_equal(argsort_bounded(mi.UInt32(keys), bound).numpy(),
+                                  np.argsort(keys, kind="stable"))
 
 
 def test_several_channel_tensors():

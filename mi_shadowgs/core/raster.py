@@ -42,6 +42,7 @@ from mi_shadowgs.core.raster_common import (
     Proj,
     RasterConfig,
     RasterMemoryError,
+    argsort_bounded,
     boxes,
     budget_text,
     depth_key,
@@ -140,7 +141,7 @@ def _build_pairs(g: Proj, width: int, height: int, config: RasterConfig,
     # The pairs laid out surfel by surfel front to back (a stable sort of the N centre
     # depths: equal depths keep surfel order), then a stable sort by pixel alone: each
     # pixel's pairs in (depth, surfel) order, as a sort of 64-bit (pixel, depth) keys over
-    # the pairs would leave them, with 32-bit keys (3 radix passes over P instead of 6).
+    # the pairs would leave them, with one counting pass over P instead of 6 radix passes.
     by_depth = dr.argsort(depth_key(g.z2))  # [N]
     pos, local = expand(dr.gather(mi.UInt32, count, by_depth), total)
     sid = dr.gather(mi.UInt32, by_depth, pos)
@@ -158,7 +159,7 @@ def _build_pairs(g: Proj, width: int, height: int, config: RasterConfig,
         return None
     sid = dr.gather(mi.UInt32, sid, idx)
     pix = dr.gather(mi.UInt32, (pyi - dr.opaque(mi.UInt32, r0)) * width + pxi, idx)
-    order = dr.argsort(pix)
+    order = argsort_bounded(pix, (r1 - r0) * width)
     sid = dr.gather(mi.UInt32, sid, order)
     pix = dr.gather(mi.UInt32, pix, order)
     dr.eval(sid, pix)

@@ -18,6 +18,7 @@ from mi_shadowgs.core.raster_common import (
     Proj,
     RasterConfig,
     RasterMemoryError,
+    argsort_bounded,
     boxes,
     budget_text,
     depth_key,
@@ -149,7 +150,7 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     ly = local // w
     tile = ((dr.gather(mi.UInt32, ty0, sid) + ly) * ntx + dr.gather(mi.UInt32, tx0, sid) +
             (local - ly * w))
-    order = dr.argsort(tile)
+    order = argsort_bounded(tile, ntx * nty)
     sid = dr.gather(mi.UInt32, sid, order)
     tile = dr.gather(mi.UInt32, tile, order)
     ar = dr.arange(mi.UInt32, total)
@@ -220,7 +221,7 @@ def sample_plan(bins: Bins, width: int, pixels: mi.UInt32) -> LanePlan:
     py0 = pixels // width
     px0 = pixels - py0 * width
     tile0 = (py0 // bins.size) * bins.ntx + px0 // bins.size
-    order = dr.argsort(tile0)  # [n] the sample held by each lane
+    order = argsort_bounded(tile0, bins.ntx * bins.nty)  # [n] the sample held by each lane
     tile = dr.gather(mi.UInt32, tile0, order)
     lane = dr.arange(mi.UInt32, n)
     prev = dr.gather(mi.UInt32, tile, dr.maximum(lane, 1) - 1)

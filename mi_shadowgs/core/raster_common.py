@@ -370,6 +370,32 @@ PAIR_FIELDS = ("xc", "yc", "a0", "a1", "b0", "b1", "t20", "t21", "t22", "z0", "z
                 "opacity")
 
 
+# Most key bits that one counting pass of ``argsort_bounded`` sorts (65536 buckets).
+SORT_PASS_BITS = 16
+
+
+def argsort_bounded(keys: mi.UInt32, bound: int) -> mi.UInt32:
+    """``dr.argsort(keys)`` (stable) of keys below ``bound``: on the LLVM backend one
+    counting pass per SORT_PASS_BITS bits of ``bound - 1`` (a tile or pixel index: one
+    pass), where ``dr.argsort`` makes three 11-bit passes over any 32-bit key; 3-5x faster
+    at 0.2-1.8M keys. Elsewhere ``dr.argsort``."""
+    n = dr.width(keys)
+    if n <= 1 or dr.backend_v(keys) != dr.JitBackend.LLVM:
+        return dr.argsort(keys) if n > 1 else dr.arange(mi.UInt32, n)
+    bits = max(int(bound - 1).bit_length(), 1)
+    passes = -(-bits // SORT_PASS_BITS)
+    width = -(-bits // passes)
+    index, k = dr.arange(mi.UInt32, n), keys
+    for p in range(passes):
+        digit = (k >> (p * width)) & ((1 << width) - 1) if passes > 1 else k
+        dr.eval(digit)
+        perm = dr.detail.block_mkperm(digit, n, bound if passes == 1 else 1 << width)
+        if p + 1 < passes:
+            k = dr.gather(mi.UInt32, k, perm)
+        index = dr.gather(mi.UInt32, index, perm)
+    return index
+
+
 def depth_key(z: mi.Float) -> mi.UInt32:
     """Order-preserving uint of a float (negatives too)."""
     b = dr.reinterpret_array(mi.UInt32, z)

@@ -7,7 +7,7 @@ the same order:
 
 1. binning (detached, ``raster_bins``): each surfel's pixel box covers a rectangle of screen tiles
    (``RasterConfig.tile_size``); surfel-tile pairs come from a prefix sum over the tile
-   counts of the surfels in depth order (one host read), a stable ``dr.argsort`` by tile
+   counts of the surfels in depth order (one host read), a stable sort by tile (``argsort_bounded``)
    orders them by (tile, centre depth), and each tile gets its [start, end) range;
 2. forward: one lane per ``RasterConfig.pixels_per_lane`` pixels of a tile, tile-major so
    that a SIMD packet's lanes share few tiles; a symbolic ``dr.while_loop`` walks the

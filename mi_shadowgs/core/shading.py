@@ -323,7 +323,12 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
     taken in compositing order, the median lost half of its gain (docs/decisions.md,
     "Receivers on each pixel's median surface")."""
     from mi_shadowgs.core.depth import pixel_footprint
-    from mi_shadowgs.core.raster import depth_key, pixel_runs, segment_exclusive_sum
+    from mi_shadowgs.core.raster import (
+        argsort_bounded,
+        depth_key,
+        pixel_runs,
+        segment_exclusive_sum,
+    )
 
     h, w = camera.height, camera.width
     npix = h * w
@@ -333,9 +338,12 @@ def surface_aovs(surfels: Surfels, camera: Camera, band: float,
             return SplatPairs(sid, pix, weight, h, w), {
                 "depth": mi.TensorXf(dr.zeros(mi.Float, npix), (h, w, 1)),
                 "normal": mi.TensorXf(dr.zeros(mi.Float, npix * 3), (h, w, 3))}
-        # Each pixel's pairs by intersection depth: one stable sort by (pixel, depth), the
-        # order a stable sort by depth then by pixel gives, at one sort's cost.
-        order = dr.argsort((mi.UInt64(pix) << 32) | mi.UInt64(depth_key(z)))
+        # Each pixel's pairs by intersection depth: a stable sort by depth, then a stable
+        # sort by pixel (the order of one sort of 64-bit (pixel, depth) keys, in 3 + 1
+        # counting passes instead of 6).
+        by_depth = dr.argsort(depth_key(z))
+        order = dr.gather(mi.UInt32, by_depth,
+                          argsort_bounded(dr.gather(mi.UInt32, pix, by_depth), npix))
         sid, pix, weight, z = (dr.gather(type(x), x, order) for x in (sid, pix, weight, z))
         _, _, first, last = pixel_runs(pix)
         w64 = mi.Float64(weight)
