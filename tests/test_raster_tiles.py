@@ -28,7 +28,7 @@ from test_raster_hard_cases import (
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
 from mi_shadowgs.core.raster_bins import PACKET_MAX, packet_widths
-from mi_shadowgs.core.raster_common import argsort_bounded
+from mi_shadowgs.core.raster_common import argsort_bounded, boxes, opacity_cutoff2, project
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
 PAIRS = RasterConfig(method="pairs")
@@ -171,6 +171,32 @@ def test_forward_matches_reference():
     np.testing.assert_allclose(got["color"][ok], ref["color"][ok], atol=1e-4)
     np.testing.assert_allclose(got["depth"][ok, 0], ref["depth"][ok], rtol=1e-4)
     np.testing.assert_array_equal(got["count"][ok, 0], ref["count"][ok])
+
+
+@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+def test_faint_splats_have_smaller_boxes_and_the_same_image(kind):
+    """Splats of opacity 0.004-0.3: each box bounds rho <= 2 ln(opacity / alpha_min) instead
+    of the 3-sigma cutoff (beyond it alpha < alpha_min), and the image still equals the
+    float64 reference, which has no boxes; the gradients equal the pair list's."""
+    camera = cameras()[kind]
+    raw = random_scene(60, 5, scale=(0.03, 0.1), opacity=(0.004, 0.3))
+    surfels = to_surfels(raw)
+    g = project(surfels, camera, TILES)
+    faint = boxes(g, camera.width, camera.height, TILES)[4]
+    full = boxes(dataclasses.replace(g, opacity=dr.full(mi.Float, 1.0, dr.width(g.xc))),
+                 camera.width, camera.height, TILES)[4]
+    assert int(dr.sum(faint)[0]) < 0.85 * int(dr.sum(full)[0])
+    k2 = opacity_cutoff2(mi.Float([0.001, 0.01, 0.1, 0.5, 1.0]), TILES).numpy()
+    assert k2[0] <= 0 and k2[-2] == k2[-1] == 9.0
+    np.testing.assert_allclose(k2[1:3], 2 * np.log(np.array([0.01, 0.1]) * 255), rtol=2e-3)
+    got, grads = render(surfels, camera, TILES, grad_outputs=("color", "depth"))
+    ref = reference(camera, raw, PAIRS)
+    ok = ~ref["unsure"]
+    assert ok.mean() > 0.9 and ref["count"][ok].max() >= 3
+    np.testing.assert_allclose(got["color"][ok], ref["color"][ok], atol=1e-4)
+    np.testing.assert_array_equal(got["count"][ok, 0], ref["count"][ok])
+    _, want = render(to_surfels(raw), camera, PAIRS, grad_outputs=("color", "depth"))
+    assert_grads_equal(grads, want)
 
 
 GRAD_CASES = [("color",), ("alpha",), ("depth",), ("median_depth",), ("normal",),
