@@ -26,8 +26,8 @@ from test_raster_hard_cases import (
 )
 
 from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.packed import PACKET_MAX, packet_widths
 from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
-from mi_shadowgs.core.raster_bins import PACKET_MAX, packet_widths
 from mi_shadowgs.core.raster_common import argsort_bounded, boxes, opacity_cutoff2, project
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
@@ -443,7 +443,7 @@ def test_forward_mode_is_refused_clearly():
 
 
 def test_packet_widths():
-    """The packed layouts of the compositing loops (``raster_tiles._pack``): powers of two
+    """The packed layouts of the compositing loops (``core.packed``): powers of two
     up to PACKET_MAX floats, the last zero padded. The test below spans two packets both
     ways: 13 fields, box, surfel id and 6 channel values (16 + 8) and 6 + 13 gradient
     sums (16 + 4)."""

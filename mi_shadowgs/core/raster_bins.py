@@ -13,6 +13,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
+from mi_shadowgs.core.packed import packet_widths
 from mi_shadowgs.core.raster_common import (
     PAIR_FIELDS,
     Proj,
@@ -36,9 +37,6 @@ BACKWARD_GROUP = 16
 MAX_TILE_SIZE = 64
 # Pixel boxes are packed as two 16-bit coordinates per UInt32 (``Bins.box``).
 BOX_MAX = 0xFFFF
-# Most floats that one packet gather or scatter-add of the compositing loops moves per lane:
-# an AVX-512 register.
-PACKET_MAX = 16
 
 
 @dataclasses.dataclass
@@ -63,19 +61,9 @@ class Bins:
         return self.ntx * self.nty * self.lanes_per_tile
 
 
-def packet_widths(n: int) -> list:
-    """Floats per entry of each packet that holds ``n`` values per entry (``raster_tiles``'
-    packed layouts): powers of two up to PACKET_MAX, the last zero padded (22 -> 16, 8)."""
-    out = []
-    while n > 0:
-        out.append(min(PACKET_MAX, 1 << (n - 1).bit_length()))
-        n -= out[-1]
-    return out
-
-
 def grad_entries(surfels: int, normal: bool, channels: int) -> int:
     """Floats of the backward's per-surfel gradient sums: the pair fields, the normal's
-    when it is rendered, and every channel, in packets (``packet_widths``)."""
+    when it is rendered, and every channel, in packets (``core.packed``)."""
     return surfels * sum(packet_widths(len(PAIR_FIELDS) + len(NORMAL_FIELDS) * normal +
                                        channels))
 

@@ -45,6 +45,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_shadowgs.core import jit
+from mi_shadowgs.core.packed import Packed
 from mi_shadowgs.core.raster_bins import (
     BOX_MAX,
     NORMAL_FIELDS,
@@ -55,7 +56,6 @@ from mi_shadowgs.core.raster_bins import (
     grad_entries,
     image_plan,
     in_box,
-    packet_widths,
     sample_plan,
     to_image,
     to_samples,
@@ -96,46 +96,14 @@ def _maximum(values: list):
     return out
 
 
-def _pack(values: list, size: int) -> list:
-    """``values`` ([size] floats each) laid out entry by entry: one flat array per packet of
-    ``packet_widths(len(values))``, zero padded, element ``i * width + k`` the packet's
-    k-th value of entry i."""
-    packs, o = [], 0
-    for width in packet_widths(len(values)):
-        part = values[o:o + width]
-        part += [dr.zeros(mi.Float, size)] * (width - len(part))
-        packed = dr.zeros(mi.Float, size * width)
-        dr.scatter(packed, mi.ArrayXf(part), dr.arange(mi.UInt32, size))
-        packs.append(packed)
-        o += width
-    return packs
-
-
-def _packet_width(packed: mi.Float, size: int) -> int:
-    """Floats per entry of one of ``_pack``'s arrays over ``size`` entries."""
-    return dr.width(packed) // size
-
-
-def _slot(packs: list, size: int, k: int) -> tuple:
-    """(array, its width, offset in an entry) of the k-th value of ``_pack``'s layout."""
-    for packed in packs:
-        width = _packet_width(packed, size)
-        if k < width:
-            return packed, width, k
-        k -= width
-    raise IndexError(k)
-
-
 @dataclasses.dataclass
 class _Entries:
     """Everything the compositing loops read of a sorted pair, packed entry by entry
-    (``_pack``): the projected fields, the pixel box, the surfel id and the channel
-    values. A lane reads its entry with one packet gather per packet (contiguous loads
-    and a transpose) instead of one gather per value: the SIMD packet's lanes share one
-    or two entries, so separate gathers loaded the same addresses 16 times over."""
+    (``core.packed``): the projected fields, the pixel box, the surfel id and the channel
+    values. The SIMD packet's lanes share one or two entries: one packet gather reads an
+    entry's ~20 values, where one gather per value loaded each address 16 times over."""
 
-    packs: list  # [TP * width] per packet
-    size: int  # TP
+    packed: Packed  # [TP] entries
     names: tuple  # the projected fields, in order
     chans: dict  # channel name -> (offset, C) in the packed values
 
@@ -151,18 +119,12 @@ class _Entries:
             c = widths[name]
             offsets[name] = (len(values), c)
             values += [dr.gather(mi.Float, arr, sid * c + k) for k in range(c)]
-        size = dr.width(sid)
-        packs = _pack(values, size)
-        dr.eval(packs)
-        return _Entries(packs, size, tuple(fields), offsets)
+        return _Entries(Packed.of(values), tuple(fields), offsets)
 
     def read(self, j: mi.UInt32, n: int) -> tuple:
         """(fields by name, pixel box, surfel id, channel values by name) of sorted pair j
         for each of ``n`` lanes."""
-        v = []
-        for packed in self.packs:
-            v += list(dr.gather(mi.ArrayXf, packed, j, shape=(_packet_width(packed, self.size),
-                                                               n)))
+        v = self.packed.read(j, n)
         nf = len(self.names)
         box = tuple(dr.reinterpret_array(mi.UInt32, v[nf + k]) for k in range(2))
         sid = dr.reinterpret_array(mi.UInt32, v[nf + 2])
@@ -403,10 +365,10 @@ class _BackwardWalk:
         normal = "normal" in self.aovs
         self.q_names = PAIR_FIELDS + (NORMAL_FIELDS if normal else ())
         nsurf = ctx.nsurfels
-        # The per-surfel sums, packed (``_pack``'s layout): every channel's components, then
+        # The per-surfel sums, packed (``core.packed``): every channel's components, then
         # the projected fields', so that a packet scatter-add updates a surfel's at once.
         nsums = sum(ctx.widths.values()) + (len(self.q_names) if ctx.geometry_grad else 0)
-        self.sums = [dr.zeros(mi.Float, nsurf * w) for w in packet_widths(nsums)]
+        self.sums = Packed.zeros(nsurf, nsums)
         self.reduce_mode = _grad_reduce_mode(
             grad_entries(nsurf, normal, sum(ctx.widths.values())), self.config)
 
@@ -559,11 +521,7 @@ class _BackwardWalk:
         """(projected field -> [N] gradient sums, channel -> [N * C]) from the packed sums."""
         nsurf = self.ctx.nsurfels
         surf = dr.arange(mi.UInt32, nsurf)
-
-        def column(k):
-            packed, width, offset = _slot(self.sums, nsurf, k)
-            return dr.gather(mi.Float, packed, surf * width + offset)
-
+        column = self.sums.column
         k, acc_chans = 0, {}
         for name, c in self.ctx.widths.items():
             acc_chans[name] = dr.zeros(mi.Float, nsurf * c)
@@ -587,14 +545,7 @@ class _BackwardWalk:
                                     for w, pk in zip(ws, self.pixel, strict=True)]))
         if self.ctx.geometry_grad:
             values += [_sum([g[f] for g in g_fields]) for f in self.q_names]
-        o = 0
-        for packed in self.sums:
-            width = _packet_width(packed, self.ctx.nsurfels)
-            part = values[o:o + width]
-            part += [dr.zeros(mi.Float, self.n)] * (width - len(part))
-            dr.scatter_reduce(dr.ReduceOp.Add, packed, mi.ArrayXf(part), sid,
-                              active=any_comp, mode=self.reduce_mode)
-            o += width
+        self.sums.scatter_add(values, sid, any_comp, self.reduce_mode)
 
 
 def render_tiles(g: Proj, gd: Proj, W: int, H: int, chans: dict, aovs: Sequence[str],

@@ -37,6 +37,7 @@ import numpy as np
 from mi_shadowgs.config import check_fields
 from mi_shadowgs.core import jit
 from mi_shadowgs.core.camera import Camera
+from mi_shadowgs.core.packed import Packed
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.stages.segmentation.planes import (
@@ -172,10 +173,11 @@ class _PairSums(dr.CustomOp):
 
     Written with gathers over the n1 * n2 pairs (1M at cpu-small), the forward kernel and
     the scatter-adds of its adjoint took 37 of stage 2's ~80 ms per iteration. Here one lane
-    per row i walks the other set in a symbolic loop, reading the same j in every lane:
-    u1_i and the row's gradient stay in registers, nothing is scattered, and the backward
-    walks the transposed loop for u2's gradient. The mask uses s_ij as computed (detached),
-    as Eq. 9's hinge does."""
+    per row i walks the other set in a symbolic loop, reading the same j in every lane (its
+    features and label packed, ``core.packed``: one packet gather): u1_i and the row's
+    gradient stay in registers, nothing is scattered, and the backward walks the
+    transposed loop for u2's gradient. The mask uses s_ij as computed (detached), as Eq.
+    9's hinge does."""
 
     def eval(self, u1, u2, l1, l2, margin):
         self.args = (u1, u2, l1, l2, jit.opaque(margin))
@@ -190,6 +192,7 @@ class _PairSums(dr.CustomOp):
         n = dr.width(la)
         count = dr.opaque(mi.UInt32, dr.width(lb))
         d = len(ua)
+        rows = Packed.of([*ub, dr.reinterpret_array(mi.Float, lb)])
         if coef is None:
             acc = [dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)]
         else:
@@ -199,11 +202,11 @@ class _PairSums(dr.CustomOp):
             return j < count
 
         def body(j, acc):
-            v = [dr.gather(mi.Float, c, j) for c in ub]
+            *v, lbj = rows.read(j, n)
             sij = ua[0] * v[0]
             for a, b in zip(ua[1:], v[1:], strict=True):
                 sij = dr.fma(a, b, sij)
-            same = la == dr.gather(mi.UInt32, lb, j)
+            same = la == dr.reinterpret_array(mi.UInt32, lbj)
             neg = ~same & (sij > margin)
             if coef is None:
                 acc = [acc[0] + dr.select(same, sij, 0.0), acc[1] + dr.select(neg, sij, 0.0)]
