@@ -207,8 +207,7 @@ class _DssimOp(dr.CustomOp):
         src = dr.gather(mi.Float, x, idx - layer * n)
         other = dr.gather(mi.Float, y, idx - layer * n)
         stacked = dr.select(layer == 0, src, src * dr.select(layer == 1, src, other))
-        m1, m2, m12 = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c,
-                                    taps)
+        m1, m2, m12 = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c, taps)
         self.moments = (m1, m2, m12)
         s = _ssim_terms(m1, m2, m12, target)[0]
         dr.eval(m1, m2, m12)
@@ -234,8 +233,7 @@ class _DssimOp(dr.CustomOp):
                             dr.select(layer == 1, dr.gather(mi.Float, db, local),
                                       dr.gather(mi.Float, dc, local)))
         dr.eval(stacked)
-        ga, gb, gc = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c,
-                                   taps)
+        ga, gb, gc = _blur_columns(_blur_rows(stacked, 3, h, w, c, taps), 3, h, w, c, taps)
         y = dr.detach(target.image.array)
         self.set_grad_in("x", ga + 2.0 * self.x * gb + y * gc)
 

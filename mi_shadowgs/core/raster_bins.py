@@ -47,7 +47,7 @@ class Bins:
     ntx: int  # tiles per row
     nty: int  # tiles per column
     sid: mi.UInt32  # [TP] surfel of each sorted pair
-    box: tuple  # ([TP] x0 | x1 << 16, [TP] y0 | y1 << 16): the surfel's pixel box
+    box: tuple  # ([N] x0 | x1 << 16, [N] y0 | y1 << 16): each surfel's pixel box
     start: mi.UInt32  # [tiles] first sorted pair of each tile
     end: mi.UInt32  # [tiles] one past its last
     per_lane: int = 1  # pixels of a tile that one lane composites (a divisor of size^2)
@@ -151,7 +151,7 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     dr.scatter(end, ar + 1, tile, active=(ar == last_idx) | (nxt != tile))
     x1 = x0 + bw - 1  # inclusive; only read for live surfels
     y1 = y0 + bh - 1
-    box = (dr.gather(mi.UInt32, x0 | (x1 << 16), sid), dr.gather(mi.UInt32, y0 | (y1 << 16), sid))
+    box = (x0 | (x1 << 16), y0 | (y1 << 16))  # per surfel: packed per pair with its fields
     dr.eval(sid, start, end, *box)
     return Bins(ts, ntx, nty, sid, box, start, end, math.gcd(config.pixels_per_lane, ts * ts))
 

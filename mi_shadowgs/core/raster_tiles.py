@@ -7,8 +7,9 @@ the same order:
 
 1. binning (detached, ``raster_bins``): each surfel's pixel box covers a rectangle of screen tiles
    (``RasterConfig.tile_size``); surfel-tile pairs come from a prefix sum over the tile
-   counts of the surfels in depth order (one host read), a stable sort by tile (``argsort_bounded``)
-   orders them by (tile, centre depth), and each tile gets its [start, end) range;
+   counts of the surfels in depth order (one host read), a stable sort by tile
+   (``argsort_bounded``) orders them by (tile, centre depth), and each tile gets its
+   [start, end) range;
 2. forward: one lane per ``RasterConfig.pixels_per_lane`` pixels of a tile, tile-major so
    that a SIMD packet's lanes share few tiles; a symbolic ``dr.while_loop`` walks the
    tile's list front to back, reading each entry once for the lane's pixels (its values
@@ -23,9 +24,8 @@ the same order:
    recovering T_i = T_{i+1} / (1 - alpha_i) in Float64, and chains the output gradients
    through alpha and depth to the 13 projected fields by hand (``pair_eval_grad``); the
    lane sums its pixels' gradients and scatter-adds them per surfel (packed the same way:
-   one packet scatter-add). Dr.Jit's AD then
-   carries those gradients from the projected fields to the surfel parameters
-   (``raster_common.project``).
+   one packet scatter-add). Dr.Jit's AD then carries those gradients from the projected
+   fields to the surfel parameters (``raster_common.project``).
 
 Why T is recovered by division rather than recomputed front to back: one pass instead of
 two (the back-to-front sum of w_j g_j over later pairs needs the output gradients, so a
@@ -113,7 +113,8 @@ class _Entries:
         ``bins``' order."""
         sid = bins.sid
         values = [dr.gather(mi.Float, v, sid) for v in fields.values()]
-        values += [dr.reinterpret_array(mi.Float, b) for b in (*bins.box, sid)]
+        box = [dr.gather(mi.UInt32, b, sid) for b in bins.box]
+        values += [dr.reinterpret_array(mi.Float, b) for b in (*box, sid)]
         offsets = {}
         for name, arr in chans.items():
             c = widths[name]
