@@ -36,6 +36,8 @@ def _tiny_tree():
         segmentation=dataclasses.replace(small.segmentation, iterations=20, n_samples=256),
         material=dataclasses.replace(
             small.material, iterations=10, warmup=5, refine_passes=(), refine_views=2,
+            refine_global=0, refine_again_global=False, lamps="off", normal_steps=30,
+            log_every=10,
             detail_edge_px=0),  # at 32^2 nearly every pixel is near a shadow's edge
         visibility=dataclasses.replace(small.visibility, resolution=64))
 
