@@ -248,3 +248,49 @@ def test_roughness_at_its_clamp_has_the_gradient_from_above():
         # float32 AD through the sharpest lobe the clamp allows: relative 1e-3 of the
         # largest derivative, as for the other parameters
         np.testing.assert_allclose(g, fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
+
+
+@pytest.mark.parametrize("metallic", [0.0, 0.3])
+def test_diffuse_direct_and_its_gradients_match_float64(metallic):
+    """``shading.direct`` without the lobe takes (1 - m) a / pi out of the sum over the lights
+    (the per-pixel-and-light kernels then touch no material): its value and its gradients
+    in the albedo, the metallic and the lights' irradiance are those of the sum written out,
+    in float64."""
+    from mi_shadowgs.core import jit, shading
+
+    npix, k = 48, 6
+    rng = np.random.default_rng(5)
+    normal = rng.standard_normal((npix, 3))
+    normal[:, 1] = np.abs(normal[:, 1]) + 0.3
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    dirs = rng.standard_normal((k, 3))
+    dirs[:, 1] = np.abs(dirs[:, 1])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    a = rng.uniform(0.2, 0.8, (3, npix))
+    m = np.full(npix, metallic)
+    e = rng.uniform(0.5, 2.0, (3, k))
+    vis = rng.uniform(0.0, 1.0, (npix, k))
+    w = rng.uniform(-1.0, 1.0, (3, npix))  # the loss: sum of w * out
+    zeros = dr.zeros(mi.Float, npix)
+    geom = shading.PixelGeometry(dr.ones(mi.Float, npix), None, None,
+                                 mi.Vector3f(*(jit.array(normal[:, c]) for c in range(3))),
+                                 None, None, zeros)
+    albedo = mi.Color3f(*(jit.array(x) for x in a))
+    metal = jit.array(m.astype(np.float32))
+    weights = mi.Color3f(*(jit.array(x) for x in e))
+    dr.enable_grad(albedo, metal, weights)
+    out = shading.direct(geom, albedo, zeros, metal, shading.LightSet(dirs, weights),
+                         jit.array(vis.reshape(-1)), False)
+    dr.backward(sum(dr.sum(out[c] * jit.array(w[c])) for c in range(3)))
+    cos_v = np.maximum(normal @ dirs.T, 0.0) * vis  # [P, K]
+    irr = cos_v @ e.T  # [P, 3]: sum_k (n . l_k)^+ V_k E_k
+    want = ((1.0 - m)[:, None] * a.T / np.pi * irr).T  # [3, P]
+    for c in range(3):
+        np.testing.assert_allclose(out[c].numpy(), want[c], rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(dr.grad(albedo)[c].numpy(),
+                                   w[c] * (1.0 - m) / np.pi * irr[:, c], rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(
+            dr.grad(weights)[c].numpy(),
+            ((w[c] * (1.0 - m) * a[c] / np.pi)[:, None] * cos_v).sum(0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(dr.grad(metal).numpy(),
+                               -(w * a / np.pi * irr.T).sum(0), rtol=1e-5, atol=1e-6)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import drjit as dr
 import mitsuba as mi
@@ -470,23 +471,44 @@ def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Floa
     return f * vis if vis is not None else f
 
 
+def cosine_per_light(geom: PixelGeometry, directions: np.ndarray, vis: mi.Float | None,
+                     positions=None, center=None, cones=None) -> mi.Float:
+    """(n . l_k)^+ V_k per pixel and light, times a local light's falloff: [H * W * K]
+    pixel-major (``direct_per_light``'s diffuse term without (1 - m) a / pi)."""
+    k_count = len(directions)
+    npix = dr.width(geom.alpha)
+    idx = dr.arange(mi.UInt32, npix * k_count)
+    pi, li = idx // k_count, idx % k_count
+    points = None if positions is None else dr.gather(mi.Point3f, geom.points, pi)
+    l_dir, falloff = light_vectors(points, li, directions, positions, center, cones)
+    out = dr.maximum(dr.dot(dr.gather(mi.Vector3f, geom.normal, pi), l_dir), 0.0)
+    if falloff is not None:
+        out = out * falloff
+    return out * vis if vis is not None else out
+
+
 def direct(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float, metallic: mi.Float,
            lights: LightSet, vis: mi.Float | None, with_specular: bool) -> mi.Color3f:
     """sum_k f_r (n . l_k)^+ V_k E_k per pixel [H * W]; ``vis`` is [H * W * K] pixel-major
-    (None: V = 1, the "w/o visibility" ablation)."""
+    (None: V = 1, the "w/o visibility" ablation). Without the lobe, (1 - m) a / pi leaves
+    the sum: the per-(pixel, light) kernels, forward and backward, then touch no material."""
     k_count = lights.count
     npix = dr.width(geom.alpha)
     li = dr.arange(mi.UInt32, npix * k_count) % k_count
     e = dr.gather(mi.Color3f, lights.weights, li)
-    contrib = direct_per_light(geom, albedo, roughness, metallic, lights.directions, vis,
-                               with_specular, lights.positions, lights.center,
-                               lights.cones) * e
+    if with_specular:
+        contrib = direct_per_light(geom, albedo, roughness, metallic, lights.directions, vis,
+                                   True, lights.positions, lights.center, lights.cones) * e
+    else:
+        contrib = cosine_per_light(geom, lights.directions, vis, lights.positions,
+                                   lights.center, lights.cones) * e
     # The three channels in one kernel: each block_reduce evaluates its own input, and left
     # lazy every channel would redo the per-light shading and shadow-map lookups [H * W * K]
     # (at K = 128, the warm-up's and an env map's grid, 3x the work).
     dr.eval(contrib)
-    return mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, contrib[c], k_count)
-                        for c in range(3)))
+    out = mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, contrib[c], k_count)
+                       for c in range(3)))
+    return out if with_specular else albedo * ((1.0 - metallic) / math.pi) * out
 
 
 def shade(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float, metallic: mi.Float,
