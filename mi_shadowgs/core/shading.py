@@ -440,6 +440,18 @@ def facing_normals(surfels: Surfels, camera: Camera) -> mi.Vector3f:
     return n
 
 
+def _pixel_light_pairs(geom: PixelGeometry, directions: np.ndarray, positions, center, cones
+                       ) -> tuple[mi.UInt32, mi.Vector3f, mi.Vector3f, mi.Float | None]:
+    """Per (pixel, light) pair [H * W * K], pixel-major: (the pixel's index, its normal, the
+    unit direction toward the light, the light's irradiance factor: ``light_vectors``)."""
+    k_count = len(directions)
+    idx = dr.arange(mi.UInt32, dr.width(geom.alpha) * k_count)
+    pi, li = idx // k_count, idx % k_count
+    points = None if positions is None else dr.gather(mi.Point3f, geom.points, pi)
+    l_dir, falloff = light_vectors(points, li, directions, positions, center, cones)
+    return pi, dr.gather(mi.Vector3f, geom.normal, pi), l_dir, falloff
+
+
 def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Float,
                      metallic: mi.Float, directions: np.ndarray, vis: mi.Float | None,
                      with_specular: bool, positions=None, center=None,
@@ -451,13 +463,7 @@ def direct_per_light(geom: PixelGeometry, albedo: mi.Color3f, roughness: mi.Floa
     position with 1/r^2 falloff, their unit weight being the irradiance at ``center``;
     ``cones`` (``LightSet.cones``) shape the spots among them.
     """
-    k_count = len(directions)
-    npix = dr.width(geom.alpha)
-    idx = dr.arange(mi.UInt32, npix * k_count)
-    pi, li = idx // k_count, idx % k_count
-    points = None if positions is None else dr.gather(mi.Point3f, geom.points, pi)
-    l_dir, falloff = light_vectors(points, li, directions, positions, center, cones)
-    n = dr.gather(mi.Vector3f, geom.normal, pi)
+    pi, n, l_dir, falloff = _pixel_light_pairs(geom, directions, positions, center, cones)
     a = dr.gather(mi.Color3f, albedo, pi)
     m = dr.gather(mi.Float, metallic, pi)
     if with_specular:
@@ -475,13 +481,8 @@ def cosine_per_light(geom: PixelGeometry, directions: np.ndarray, vis: mi.Float 
                      positions=None, center=None, cones=None) -> mi.Float:
     """(n . l_k)^+ V_k per pixel and light, times a local light's falloff: [H * W * K]
     pixel-major (``direct_per_light``'s diffuse term without (1 - m) a / pi)."""
-    k_count = len(directions)
-    npix = dr.width(geom.alpha)
-    idx = dr.arange(mi.UInt32, npix * k_count)
-    pi, li = idx // k_count, idx % k_count
-    points = None if positions is None else dr.gather(mi.Point3f, geom.points, pi)
-    l_dir, falloff = light_vectors(points, li, directions, positions, center, cones)
-    out = dr.maximum(dr.dot(dr.gather(mi.Vector3f, geom.normal, pi), l_dir), 0.0)
+    _, n, l_dir, falloff = _pixel_light_pairs(geom, directions, positions, center, cones)
+    out = dr.maximum(dr.dot(n, l_dir), 0.0)
     if falloff is not None:
         out = out * falloff
     return out * vis if vis is not None else out
