@@ -16,6 +16,7 @@ from mi_shadowgs.stages.segmentation.planes import (
     fit_plane,
     planar_shading_normals,
     support_split,
+    support_split_applies,
 )
 
 ON = PlaneConfig(enabled=True)
@@ -181,3 +182,32 @@ def test_segments_split_at_the_support_plane_and_only_there():
     sphere = pos[660:]
     same, none = support_split(sphere, np.zeros(len(sphere), int))
     assert none is None and np.array_equal(same, np.zeros(len(sphere), int))
+
+
+@pytest.mark.parametrize("mode, segments, split", [
+    ("auto", 1, True), ("auto", 2, False), ("on", 1, True), ("on", 3, True),
+    ("off", 1, False), ("off", 2, False)])
+def test_support_split_applies_where_colour_found_one_segment(mode, segments, split):
+    # "auto": a grey object on a grey mat is one colour segment, split at the mat's plane;
+    # where colour told the objects apart it is trusted (docs/decisions.md)
+    assert support_split_applies(mode, segments) is split
+
+
+def test_support_split_setting_is_checked():
+    from mi_shadowgs.config import ConfigError
+    from mi_shadowgs.stages.segmentation.features import SegmentationConfig
+
+    assert SegmentationConfig().support_split == "auto"
+    with pytest.raises((ConfigError, ValueError), match="support_split"):
+        SegmentationConfig(support_split="yes")
+    with pytest.raises(ValueError, match="support_split"):
+        support_split_applies("true", 1)
+
+
+def test_a_run_recorded_with_the_old_switch_reads_as_on_or_off():
+    from mi_shadowgs.config import recorded_config
+    from mi_shadowgs.stages.segmentation.features import SegmentationConfig
+
+    for old, now in ((False, "off"), (True, "on")):
+        cfg = recorded_config(SegmentationConfig, {"support_split": old}, None)
+        assert cfg.support_split == now

@@ -44,11 +44,15 @@ from mi_shadowgs.stages.segmentation.planes import (
     PlaneConfig,
     planar_shading_normals,
     support_split,
+    support_split_applies,
 )
 
 FEATURE = "feature"
 SEGMENT = "segment"
 _RASTER = RasterConfig()
+
+
+SUPPORT_SPLITS = ("off", "on", "auto")  # SegmentationConfig.support_split
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,11 +111,13 @@ class SegmentationConfig:
     # Label maps from colour (``masks`` "chromaticity"): split every segment into its surfels
     # on the scene's dominant plane and those off it (``planes.support_split``; not in the
     # paper): an object and what it stands on are different objects, as the paper's SAM masks
-    # have them, while colour labels give a grey object and a grey mat one label (off by
-    # default: docs/decisions.md).
-    support_split: bool = False
+    # have them, while colour labels give a grey object and a grey mat one label. "auto":
+    # only where colour found a single segment; "on": always; "off" (docs/decisions.md).
+    support_split: str = "auto"
 
     def __post_init__(self):
+        if isinstance(self.support_split, bool):  # runs recorded before "auto": a switch
+            object.__setattr__(self, "support_split", "on" if self.support_split else "off")
         check_fields(self, (
             *((name, getattr(self, name) >= 1, ">= 1") for name in (
                 "feature_dim", "iterations", "silhouette_samples", "kmeans_restarts",
@@ -123,6 +129,8 @@ class SegmentationConfig:
                 "lambda_neg", "lambda_norm", "lambda_mask", "min_label_pixels", "init_std")),
             ("n_segments", self.n_segments is None or self.n_segments >= 1, ">= 1 or None"),
             ("k_select", self.k_select in ("labels", "silhouette"), "'labels' or 'silhouette'"),
+            ("support_split", self.support_split in SUPPORT_SPLITS,
+             " or ".join(repr(x) for x in SUPPORT_SPLITS)),
             ("min_label_fraction", 0 <= self.min_label_fraction < 1, "in [0, 1)"),
             ("chromaticity_min_label_fraction", 0 <= self.chromaticity_min_label_fraction < 1,
              "in [0, 1)"),
@@ -645,11 +653,12 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                     raster: RasterConfig = _RASTER, progress: bool = True,
                     names: Sequence[str] | None = None, state: FeatureState | None = None,
                     on_checkpoint=None, min_label_fraction: float | None = None,
-                    split_support: bool = False) -> SegmentationResult:
+                    split_support: str = "off") -> SegmentationResult:
     """The whole stage: train features on ``label_maps`` (one per camera), then K-means,
-    then (``split_support``) the segments split at the support's plane (``support_split``).
-    ``state`` and ``on_checkpoint``: see ``train_features``; ``min_label_fraction``: see
-    ``auto_k``."""
+    then the segments split at the support's plane (``planes.support_split``) where
+    ``split_support`` says: "on", or "auto" when K-means made one segment (see
+    ``SegmentationConfig.support_split``). ``state`` and ``on_checkpoint``: see
+    ``train_features``; ``min_label_fraction``: see ``auto_k``."""
     labels = prepare_labels(label_maps, cameras, names)
     k = auto_k(labels, config, min_label_fraction)
     tr = train_features(surfels, cameras, labels, config, raster, progress, state,
@@ -663,7 +672,7 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                              config.kmeans_iterations if seeds is None
                              else config.prototype_iterations, seeds)
     support = None
-    if split_support:
+    if support_split_applies(split_support, k):
         seg, support = support_split(surfels.to_numpy()["position"], seg, config.seed)
         k = int(seg.max()) + 1 if support else k
     out = surfels.with_channels({FEATURE: jit.tensor(tr.features),

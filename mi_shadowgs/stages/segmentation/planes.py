@@ -149,6 +149,15 @@ def planar_shading_normals(surfels: Surfels, segments: np.ndarray, config: Plane
         {SHADING_NORMAL_CHANNEL: jit.tensor(shading_normal)}), reports
 
 
+def support_split_applies(mode: str, segments: int) -> bool:
+    """Whether ``SegmentationConfig.support_split`` ``mode`` splits a segmentation of
+    ``segments`` segments: "on" always, "auto" when colour found a single segment (only the
+    geometry then tells an object from its support), "off" never."""
+    if mode not in ("off", "on", "auto"):
+        raise ValueError(f"support_split must be 'off', 'on' or 'auto', got {mode!r}")
+    return mode == "on" or (mode == "auto" and segments == 1)
+
+
 def support_split(positions: np.ndarray, segments: np.ndarray, seed: int = 0
                   ) -> tuple[np.ndarray, dict | None]:
     """(segment ids [N], renumbered 0..S'-1, a report or None): every segment of

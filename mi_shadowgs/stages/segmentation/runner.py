@@ -113,7 +113,8 @@ def run_segmentation(model: str | Path, data: str | Path, folder: str | Path, co
     result = seg.segment_surfels(surfels, train.cameras, label_maps, config,
                                  min_label_fraction=label_fraction(config, masks),
                                  progress=progress, names=[v.name for v in train.views],
-                                 split_support=config.support_split and masks == "chromaticity",
+                                 split_support=(config.support_split
+                                                if masks == "chromaticity" else "off"),
                                  **hooks)
     t_stage = time.perf_counter() - t0 + trained_before
     stems = [Path(v.name).name for v in views.views]
