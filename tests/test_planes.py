@@ -191,6 +191,8 @@ def test_support_split_applies_where_colour_found_one_segment(mode, segments, sp
     # "auto": a grey object on a grey mat is one colour segment, split at the mat's plane;
     # where colour told the objects apart it is trusted (docs/decisions.md)
     assert support_split_applies(mode, segments) is split
+    # a count the user set (``n_segments``, ``run --segments``) is kept as asked under "auto"
+    assert support_split_applies(mode, segments, forced=True) is (mode == "on")
 
 
 def test_support_split_setting_is_checked():

@@ -112,7 +112,8 @@ class SegmentationConfig:
     # on the scene's dominant plane and those off it (``planes.support_split``; not in the
     # paper): an object and what it stands on are different objects, as the paper's SAM masks
     # have them, while colour labels give a grey object and a grey mat one label. "auto":
-    # only where colour found a single segment; "on": always; "off" (docs/decisions.md).
+    # only where colour found a single segment (not a K set by n_segments); "on": always;
+    # "off" (docs/decisions.md).
     support_split: str = "auto"
 
     def __post_init__(self):
@@ -656,9 +657,9 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                     split_support: str = "off") -> SegmentationResult:
     """The whole stage: train features on ``label_maps`` (one per camera), then K-means,
     then the segments split at the support's plane (``planes.support_split``) where
-    ``split_support`` says: "on", or "auto" when K-means made one segment (see
-    ``SegmentationConfig.support_split``). ``state`` and ``on_checkpoint``: see
-    ``train_features``; ``min_label_fraction``: see ``auto_k``."""
+    ``split_support`` says: "on", or "auto" when the labels gave one segment and
+    ``n_segments`` did not set it (see ``SegmentationConfig.support_split``). ``state`` and
+    ``on_checkpoint``: see ``train_features``; ``min_label_fraction``: see ``auto_k``."""
     labels = prepare_labels(label_maps, cameras, names)
     k = auto_k(labels, config, min_label_fraction)
     tr = train_features(surfels, cameras, labels, config, raster, progress, state,
@@ -672,7 +673,7 @@ def segment_surfels(surfels: Surfels, cameras: Sequence[Camera],
                              config.kmeans_iterations if seeds is None
                              else config.prototype_iterations, seeds)
     support = None
-    if support_split_applies(split_support, k):
+    if support_split_applies(split_support, k, forced=config.n_segments is not None):
         seg, support = support_split(surfels.to_numpy()["position"], seg, config.seed)
         k = int(seg.max()) + 1 if support else k
     out = surfels.with_channels({FEATURE: jit.tensor(tr.features),
