@@ -243,18 +243,25 @@ class _Plain:
 
 
 # -- stage 1 ----------------------------------------------------------------------------------
+def _settings_tree():
+    """``mi_shadowgs.presets.build``, or None at a commit from before it (7f1b378, which the
+    speed issue's figures are measured against)."""
+    try:
+        from mi_shadowgs.presets import build
+    except ImportError:
+        return None
+    return build
+
+
 def geometry_setup(wl, views, n: int):
     """(config, training state, views as Dr.Jit tensors, the first step to profile): past
     ``normal_from`` and ``dist_from``, just after a densification, so that every loss term is
     on and the step's own work is measured (densification is timed on its own)."""
     from mi_shadowgs.stages.geometry import train
 
-    try:
-        from mi_shadowgs.presets import build
-
-        config = build("cpu-small").geometry
-    except ImportError:  # a commit before the settings tree (7f1b378): the stage's own table
-        config = train.PRESETS["cpu-small"]
+    build = _settings_tree()
+    # a commit before the settings tree (7f1b378): the stage's own table
+    config = build("cpu-small").geometry if build else train.PRESETS["cpu-small"]
     config = dataclasses.replace(config, densify=dataclasses.replace(
         config.densify, max_surfels=max(n, config.densify.max_surfels)))
     d = config.densify
@@ -611,9 +618,7 @@ def run_case(name: str, size: tuple, steps: int, warmup: int, lights: int) -> di
     width, height, n, n_views = size
     wl, views = scene(width, height, n, n_views)
     out = {"stage 1": profile_geometry(wl, views, n, steps, warmup)}
-    try:
-        from mi_shadowgs.presets import build  # noqa: F401  (stage 4's settings)
-    except ImportError:
+    if _settings_tree() is None:
         print(f"{name}: stage 4 not profiled: this commit has no settings tree "
               "(mi_shadowgs.presets)", flush=True)
         return out

@@ -30,6 +30,15 @@ def packet_widths(n: int) -> list:
     return out
 
 
+def _padded(values: list, widths: list, lanes: int):
+    """``values`` cut into one mi.ArrayXf per packet of ``widths``, the last zero padded."""
+    o = 0
+    for width in widths:
+        part = list(values[o:o + width])
+        yield mi.ArrayXf(part + [dr.zeros(mi.Float, lanes)] * (width - len(part)))
+        o += width
+
+
 @dataclasses.dataclass
 class Packed:
     """``count`` float values of each of ``size`` entries: one flat array per packet of
@@ -44,14 +53,11 @@ class Packed:
         """``values`` ([size] floats each; UInt32 through ``dr.reinterpret_array``) packed
         and evaluated."""
         size = dr.width(values[0])
-        packs, o = [], 0
-        for width in packet_widths(len(values)):
-            part = list(values[o:o + width])
-            part += [dr.zeros(mi.Float, size)] * (width - len(part))
-            packed = dr.zeros(mi.Float, size * width)
-            dr.scatter(packed, mi.ArrayXf(part), dr.arange(mi.UInt32, size))
+        packs = []
+        for part in _padded(values, packet_widths(len(values)), size):
+            packed = dr.zeros(mi.Float, size * len(part))
+            dr.scatter(packed, part, dr.arange(mi.UInt32, size))
             packs.append(packed)
-            o += width
         dr.eval(packs)
         return Packed(packs, size, len(values))
 
@@ -74,14 +80,10 @@ class Packed:
     def scatter_add(self, values: list, index: mi.UInt32, active: mi.Bool,
                     mode: dr.ReduceMode) -> None:
         """Add ``values`` (``count`` arrays [lanes]) into entry ``index`` of each lane."""
-        o = 0
-        for packed in self.packs:
-            width = self._width(packed)
-            part = list(values[o:o + width])
-            part += [dr.zeros(mi.Float, dr.width(index))] * (width - len(part))
-            dr.scatter_reduce(dr.ReduceOp.Add, packed, mi.ArrayXf(part), index,
-                              active=active, mode=mode)
-            o += width
+        widths = [self._width(packed) for packed in self.packs]
+        for packed, part in zip(self.packs, _padded(values, widths, dr.width(index)),
+                                strict=True):
+            dr.scatter_reduce(dr.ReduceOp.Add, packed, part, index, active=active, mode=mode)
 
     def column(self, k: int) -> mi.Float:
         """Value k of every entry [size]."""

@@ -41,6 +41,7 @@ from mi_shadowgs.core.packed import Packed
 from mi_shadowgs.core.raster import RasterConfig, rasterize
 from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.stages.segmentation.planes import (
+    SUPPORT_SPLITS,
     PlaneConfig,
     planar_shading_normals,
     support_split,
@@ -51,8 +52,6 @@ FEATURE = "feature"
 SEGMENT = "segment"
 _RASTER = RasterConfig()
 
-
-SUPPORT_SPLITS = ("off", "on", "auto")  # SegmentationConfig.support_split
 
 
 @dataclasses.dataclass(frozen=True)

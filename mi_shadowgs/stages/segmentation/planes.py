@@ -149,13 +149,16 @@ def planar_shading_normals(surfels: Surfels, segments: np.ndarray, config: Plane
         {SHADING_NORMAL_CHANNEL: jit.tensor(shading_normal)}), reports
 
 
+SUPPORT_SPLITS = ("off", "on", "auto")  # SegmentationConfig.support_split's modes
+
+
 def support_split_applies(mode: str, segments: int, forced: bool = False) -> bool:
     """Whether ``SegmentationConfig.support_split`` ``mode`` splits a segmentation of
     ``segments`` segments: "on" always, "auto" when colour found a single segment (only the
     geometry then tells an object from its support) and the count was not ``forced`` (a
     user's ``n_segments``), "off" never."""
-    if mode not in ("off", "on", "auto"):
-        raise ValueError(f"support_split must be 'off', 'on' or 'auto', got {mode!r}")
+    if mode not in SUPPORT_SPLITS:
+        raise ValueError(f"support_split must be one of {SUPPORT_SPLITS}, got {mode!r}")
     return mode == "on" or (mode == "auto" and segments == 1 and not forced)
 
 
