@@ -22,7 +22,9 @@ from mi_shadowgs.stages import geometry, segmentation
 from mi_shadowgs.stages.common import warn
 from mi_shadowgs.stages.evaluation.evaluate import check_evaluation_inputs
 from mi_shadowgs.stages.evaluation.runner import evaluate_variant
+from mi_shadowgs.stages.geometry.background import PastTheGround
 from mi_shadowgs.stages.geometry.gains import GAINS_FILE, read_gains
+from mi_shadowgs.stages.geometry.runner import BACKDROP_FILE, read_backdrop
 from mi_shadowgs.stages.material.config import MaterialConfig, label_source_overrides
 from mi_shadowgs.stages.material.runner import fit_or_reuse, occluder_bounds
 from mi_shadowgs.stages.visibility import shadow_maps
@@ -53,6 +55,12 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
     gains = read_gains(gains_file, [v.name for v in train.views]) if gains_file.is_file() else None
     if gains is not None:  # stage 1's gains, held: each training photo divided by its own
         inputs["view_gains"] = input_ref(gains_file)
+    past = None
+    if material.backdrop_surfels == "skip":
+        backdrop_file = top.folder / "geometry" / BACKDROP_FILE
+        past = PastTheGround.of(train, config.geometry, read_backdrop(backdrop_file.parent))
+        if past is not None:  # the pixels left out follow stage 1's backdrop colour
+            inputs["backdrop"] = input_ref(backdrop_file)
     if "preview_envmaps" in settings:  # by content: a file edited, or one added to a folder,
         # makes the previews again (the dataset's own env maps are in its fingerprint)
         inputs.update({f"preview_envmap_{i}": input_ref(f)
@@ -65,7 +73,7 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
             return json.loads((folder / "metrics.json").read_text()), None
         warn_other_backend(out, made_from=seg_model)
         res, fit_s = fit_or_reuse(out, surfels, train, material, config.visibility, bounds,
-                                  progress, gains)
+                                  progress, gains, past)
         metrics = evaluate_variant(
             out, res, train, test, bounds, config.visibility, config.relight,
             config.figure_views, _segment_maps(top.folder / "segmentation" / "segments", test),

@@ -256,18 +256,25 @@ def _lit_room(camera: Camera, room=(0.03, 0.035, 0.04)) -> np.ndarray:
     return img
 
 
-def test_a_lit_rooms_backdrop_is_estimated_and_the_prior_follows_it():
-    """The backdrop's colour from the pixels that miss the ground and the object's bound;
-    with it the prior acts on the (now grey) backdrop and still not on the shadow, which is
-    darker. Black setting, masks or a black room: no backdrop."""
-    from unittest import mock
-
+def _lit_room_dataset():
+    """(room colour, the views in that lit room, their cameras, stage 1's settings with
+    the prior on)."""
     room = np.array([0.03, 0.035, 0.04])
     dataset, cams = _dataset(_points(np.random.default_rng(1)))
     for v in dataset.views:
         v.image = _lit_room(v.camera, room)
     cfg = dataclasses.replace(run_presets.geometry_config("cpu-small"),
                               lambda_dark_alpha=0.1)
+    return room, dataset, cams, cfg
+
+
+def test_a_lit_rooms_backdrop_is_estimated_and_the_prior_follows_it():
+    """The backdrop's colour from the pixels that miss the ground and the object's bound;
+    with it the prior acts on the (now grey) backdrop and still not on the shadow, which is
+    darker. Black setting, masks or a black room: no backdrop."""
+    from unittest import mock
+
+    room, dataset, cams, cfg = _lit_room_dataset()
     with mock.patch.object(background, "read_points",
                            return_value=_points(np.random.default_rng(1))):
         got = background.estimate_backdrop(dataset, cfg)
@@ -285,6 +292,32 @@ def test_a_lit_rooms_backdrop_is_estimated_and_the_prior_follows_it():
     masked = SimpleNamespace(views=[SimpleNamespace(**{**vars(v), "has_mask": True})
                                     for v in dataset.views], points="unused")
     assert background.estimate_backdrop(masked, cfg) is None
+
+
+def test_stage4_leaves_out_surfaces_past_the_ground_as_dark_as_the_room():
+    """Stage 4's rule (``PastTheGround``): a dark surface outside the mat's outline and the
+    body's hull is the room seen past the ground; a dark shadow on the mat, the dark top of
+    the box, and a lit floor past the mat are not. Without a backdrop colour, SfM points or
+    views without masks there is no rule."""
+    from unittest import mock
+
+    room, dataset, _, cfg = _lit_room_dataset()
+    with mock.patch.object(background, "read_points",
+                           return_value=_points(np.random.default_rng(1))):
+        rule = background.PastTheGround.of(dataset, cfg, room)
+    points = np.array([[1.0, 0.0, 0.0],    # in the cast shadow on the mat
+                       [0.0, 1.0, 0.0],    # on the box's top
+                       [0.0, 0.3, -2.5],   # past the mat's far edge, off the ground
+                       [2.2, 0.0, 0.0],    # past the mat's side, on the ground's plane
+                       [2.2, 0.0, 0.0]])   # the same, lit
+    rgb = np.array([0.5 * room, 0.5 * room, room, 1.2 * room, [0.4] * 3])
+    assert rule.pixels(points, rgb).tolist() == [False, False, True, True, False]
+    assert background.PastTheGround.of(dataset, cfg, None) is None
+    masked = SimpleNamespace(views=[SimpleNamespace(**{**vars(v), "has_mask": True})
+                                    for v in dataset.views], points="unused")
+    assert background.PastTheGround.of(masked, cfg, room) is None
+    assert background.PastTheGround.of(SimpleNamespace(views=dataset.views, points=None),
+                                       cfg, room) is None
 
 
 def test_the_render_over_the_backdrop_and_its_gradients_against_numpy():
@@ -320,3 +353,32 @@ def test_the_render_over_the_backdrop_and_its_gradients_against_numpy():
 def test_bad_settings_are_refused_by_name(field, value):
     with pytest.raises(ConfigError, match=field):
         dataclasses.replace(run_presets.geometry_config("cpu-small"), **{field: value})
+
+
+def test_stage4_leaves_the_rules_pixels_out_unless_told_to_fit_them():
+    """``prepare_view`` drops the supervision of the pixels the rule names (here the floor
+    at x < -0.5), and ``setup_fit`` passes the rule on only with ``backdrop_surfels``
+    "skip"."""
+    from mi_shadowgs.presets import material_config
+    from mi_shadowgs.stages.material.fit import setup_fit
+    from mi_shadowgs.stages.material.views import prepare_view
+    from tests.test_light_fit import _scene
+
+    class Left:
+        def pixels(self, points, rgb):
+            return points[:, 0] < -0.5
+
+    s, cams, bounds = _scene()
+    img, mask = np.full((64, 64, 3), 0.2, np.float32), np.ones((64, 64), bool)
+    cfg = dataclasses.replace(material_config("cpu-small"), warmup=0)
+    plain = prepare_view(s, cams[0], img, mask, cfg)
+    left = prepare_view(s, cams[0], img, mask, cfg, past=Left())
+    x = plain.geom.points[0].numpy()
+    w0, w1 = plain.weight.numpy() > 0, left.weight.numpy() > 0
+    assert (w0 & (x < -0.5)).sum() > 100
+    np.testing.assert_array_equal(w1, w0 & ~(x < -0.5))
+    for mode, want in (("skip", w1), ("fit", w0)):
+        fit, _ = setup_fit(s, cams[:1], [img], [mask],
+                           dataclasses.replace(cfg, backdrop_surfels=mode), bounds,
+                           progress=False, past=Left())
+        np.testing.assert_array_equal(fit.views[0].weight.numpy() > 0, want)

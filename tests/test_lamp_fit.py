@@ -22,7 +22,8 @@ from mi_shadowgs.stages.material.lamps import (
     lamp_share,
     localize_lights,
 )
-from tests.test_light_fit import _scene, rendered_views
+from mi_shadowgs.stages.visibility.shadow_maps import render_shadow_maps
+from tests.test_light_fit import VCFG, _scene, rendered_views
 
 TRUE_DIR = direction_from_angles(35.0, 50.0)
 
@@ -87,7 +88,8 @@ def test_lamp_settings_are_checked():
     base = get_config("cpu-small")
     for bad in ({"lamps": "on"}, {"lamp_distances": (0.5,)}, {"lamp_distances": ()},
                 {"lamp_min_gain": 1.0}, {"lamp_passes": ((50.0, 0.1),)},
-                {"lamp_score": "pixel"}):
+                {"lamp_score": "pixel"}, {"lamp_scan_directions": -1},
+                {"lamp_scan_distances": ()}, {"lamp_scan_distances": (1.0,)}):
         with pytest.raises(ValueError, match="lamp"):
             dataclasses.replace(base, **bad)
 
@@ -136,3 +138,37 @@ def test_a_lamp_is_placed_under_a_held_albedo_that_is_off_per_segment(scene):
         errors[score] = abs(np.linalg.norm(pos[0] - center) - 5.0) / 5.0
     assert errors["albedo"] < 0.05
     assert errors["irradiance"] > 0.2  # the held albedo's error moves the lamp
+
+
+@pytest.mark.parametrize("scan", [True, False])
+def test_a_lamp_started_far_off_is_found_by_the_scan(scene, scan):
+    """A directional fit of a near lamp can start its search far off (a grazing light at
+    the wrong azimuth): the global scan (``lamp_scan_directions``) moves it into the true
+    lamp's basin, where the pattern search places it; without the scan it stays off. The
+    views have the lamp's shadows, and the search its maps."""
+    s, cams, bounds = scene
+    center = np.asarray(bounds.center)
+    true_pos = center + TRUE_DIR * 5.0
+    lamp = shading.local_lights(true_pos[None], mi.Color3f(2.0), center)
+
+    def render(dirs, resolution=None, positions=None):
+        return render_shadow_maps(s, dirs, bounds, VCFG, resolution, positions)
+
+    views, ch = rendered_views(s, cams, lamp, render(TRUE_DIR[None], None, true_pos[None]))
+    cfg = dataclasses.replace(get_config("cpu-small"), lamps="auto",
+                              lamp_scan_directions=128 if scan else 0)
+    search = LampSearch(views, ch, render, cfg, False, center, bounds.radius)
+    start = direction_from_angles(85.0, 12.0)  # 50 degrees of azimuth, 38 of elevation off
+    dirs, pos, irr, log = localize_lights(search, start[None], None, np.array([1.5]),
+                                          np.array([0]))
+    assert log[0]["kept"] == "lamp"
+    d = (pos[0] - center) / np.linalg.norm(pos[0] - center)
+    angle = math.degrees(math.acos(np.clip(d @ TRUE_DIR, -1, 1)))
+    if scan:
+        assert log[0]["scan"]["moved"]
+        assert log[0]["scan"]["candidates"] == 1 + 128 * 5
+        assert angle < 2.0
+        assert abs(np.linalg.norm(pos[0] - center) - 5.0) / 5.0 < 0.05
+    else:
+        assert "scan" not in log[0]
+        assert angle > 10.0

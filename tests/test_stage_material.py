@@ -71,6 +71,8 @@ def test_presets_and_paper_defaults():
         get_config("nope")
     with pytest.raises(ValueError, match="specular"):
         MaterialConfig(specular="maybe")
+    with pytest.raises(ValueError, match="backdrop_surfels"):
+        MaterialConfig(backdrop_surfels="drop")
     with pytest.raises(ValueError, match="refine_passes"):
         MaterialConfig(refine_passes=((2.0, 4.0),))
     # cpu-small's second global pass needs the global pass: not silently dropped

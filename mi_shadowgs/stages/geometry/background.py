@@ -341,3 +341,49 @@ def prior_pixels(dataset, config, backdrop: np.ndarray | None = None
             if dark[id(v)].any():
                 dark[id(v)] &= ~supported_pixels(v.camera, support)
     return [dark.get(id(v)) for v in views]
+
+
+
+@dataclasses.dataclass(frozen=True)
+class PastTheGround:
+    """Where stage 1 grew surfels over the room seen past the ground; stage 4's fit leaves
+    those pixels out. Beyond the mat's far edge a dim room looks like a dark surface: the
+    photos cannot tell surfels of the backdrop's colour from the backdrop itself, so some
+    stay. Lit by a fitted light they would be bright where the photos are dark, and the
+    light fit would bend to keep them dark. A pixel is such when its surface lies outside
+    the support (``support_of``: above or beside the ground's outline, and outside the
+    body's hull) and it is as dark as the backdrop (``BACKDROP_SLACK``). A cast shadow on
+    the mat lies within the outline, the object within the body's hull, and a lit floor
+    past the mat is not dark."""
+
+    support: Support
+    backdrop: np.ndarray  # [3] linear RGB, before each view's gain
+    dark_max: float  # ``GeometryConfig.dark_max``
+
+    @staticmethod
+    def of(dataset, config, backdrop: np.ndarray | None) -> PastTheGround | None:
+        """The rule for ``dataset``'s views without masks under ``config`` (a
+        ``GeometryConfig``: ``dark_max``, ``dark_alpha_margin``): None without such views,
+        SfM points, a ground plane among them or a backdrop colour
+        (``estimate_backdrop``)."""
+        points = getattr(dataset, "points", None)
+        unmasked = [v for v in dataset.views if not getattr(v, "has_mask", True)]
+        if backdrop is None or points is None or not unmasked:
+            return None
+        dark = [dark_pixels(v.image, config.dark_max, backdrop) for v in unmasked]
+        support = support_of(read_points(points), [v.camera for v in unmasked], dark,
+                             config.dark_alpha_margin)
+        if support.ground is None or support.body is None:
+            return None
+        return PastTheGround(support, np.asarray(backdrop, np.float64), config.dark_max)
+
+    def pixels(self, points: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+        """[P] bool: of surface ``points`` [P, 3] and their colours ``rgb`` [P, 3] (linear,
+        divided by the view's gain), those past the ground."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        ground, body = self.support.ground, self.support.body
+        off_ground = np.any(p[:, [0, 2]] @ ground[:, :2].T + ground[:, 2] > 0, axis=1)
+        off_body = np.any(p @ body[:, :3].T + body[:, 3] > 0, axis=1)
+        dark = np.all(np.asarray(rgb, np.float64).reshape(-1, 3)
+                      <= self.dark_max + BACKDROP_SLACK * self.backdrop, axis=1)
+        return off_ground & off_body & dark

@@ -12,6 +12,7 @@ SPECULAR_MODES = ("auto", "on", "off")
 REFINE_SCORES = ("segment", "irradiance", "albedo")
 SETTLE_SCORES = ("segment", "irradiance")
 LAMP_MODES = ("off", "auto")
+BACKDROP_SURFELS = ("skip", "fit")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,6 +102,11 @@ class MaterialConfig:
     lamp_distances: tuple = (1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0)
     # A lamp replaces a directional light only when it lowers the views' error by this share.
     lamp_min_gain: float = 0.02
+    # A kept lamp's global scan: lamps in this many equal-area directions over the hemisphere
+    # at each of ``lamp_scan_distances``; 0: no scan (the search starts along its direction).
+    lamp_scan_directions: int = 128
+    # The scan's distances from the scene centre, in scene-bound radii.
+    lamp_scan_distances: tuple = (1.5, 2.0, 3.0, 4.0, 6.0)
     # Pattern searches of a lamp's position, coarse to fine: (direction step in degrees,
     # distance step as a share of the distance).
     lamp_passes: tuple = ((4.0, 0.16), (1.0, 0.04), (0.25, 0.01))
@@ -150,6 +156,9 @@ class MaterialConfig:
     views_per_step: int = 1
     # Pixels with rendered alpha below this are not supervised.
     mask_alpha: float = 0.5
+    # Views without masks: "skip" leaves out the pixels of surfels that stage 1 grew over a
+    # dim room past the ground (``background.PastTheGround``); "fit" fits them too.
+    backdrop_surfels: str = "skip"
     # Read the loss back (history, progress bar) every this many steps.
     log_every: int = 100
     # Write a resumable checkpoint every this many steps...
@@ -233,6 +242,15 @@ class MaterialConfig:
                              f"(direction step in (0, 45) degrees, distance share in (0, 1)): "
                              f"{self.lamps!r}, {self.lamp_distances}, {self.lamp_min_gain}, "
                              f"{self.lamp_passes}")
+        if self.lamp_scan_directions < 0 or (self.lamp_scan_directions and (
+                not self.lamp_scan_distances
+                or any(not 1.0 < d < math.inf for d in self.lamp_scan_distances))):
+            raise ValueError(f"MaterialConfig: lamp_scan_directions >= 0 (0 = no scan), and "
+                             f"with a scan lamp_scan_distances > 1 (scene radii, finite): "
+                             f"{self.lamp_scan_directions}, {self.lamp_scan_distances}")
+        if self.backdrop_surfels not in BACKDROP_SURFELS:
+            raise ValueError(f"MaterialConfig.backdrop_surfels must be one of "
+                             f"{BACKDROP_SURFELS}, got {self.backdrop_surfels!r}")
         if not 0.0 <= self.prune_threshold < 1.0:
             raise ValueError(f"MaterialConfig.prune_threshold must be in [0, 1), got "
                              f"{self.prune_threshold}")

@@ -157,11 +157,12 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
               masks: list[np.ndarray], config: MaterialConfig, bounds: SceneBounds,
               vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
               raster: RasterConfig = DEFAULT_RASTER, progress: bool = True,
-              state: MaterialState | None = None, gains: list[np.ndarray] | None = None
-              ) -> tuple[MaterialFit, MaterialState]:
+              state: MaterialState | None = None, gains: list[np.ndarray] | None = None,
+              past=None) -> tuple[MaterialFit, MaterialState]:
     """Set-up: the training views' fixed lookups, the state at step 0 (or ``state``, from a
     checkpoint) and the shadow maps of its lights. ``gains``: stage 1's RGB gain [3] per
-    view, held: each image is divided by its gain here, once (``held_images``)."""
+    view, held: each image is divided by its gain here, once (``held_images``); ``past``:
+    pixels left out (``prepare_view``; used where ``backdrop_surfels`` is "skip")."""
     from tqdm import tqdm
 
     if not (len(cameras) == len(images) == len(masks)) or not cameras:
@@ -170,7 +171,8 @@ def setup_fit(surfels: Surfels, cameras: list[Camera], images: list[np.ndarray],
     t0 = time.perf_counter()
     seg = segment_ids(surfels)
     n_seg = int(np.max(seg.numpy())) + 1 if surfels.count else 1
-    views = [prepare_view(surfels, c, im, m, config, raster, vis_config.receiver_band)
+    past = past if config.backdrop_surfels == "skip" else None
+    views = [prepare_view(surfels, c, im, m, config, raster, vis_config.receiver_band, past)
              for c, im, m in zip(tqdm(cameras, desc="stage 4: views", disable=not progress),
                                  images, masks, strict=True)]
     if state is None:
@@ -355,7 +357,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
                  vis_config: VisibilityConfig = DEFAULT_VISIBILITY,
                  raster: RasterConfig = DEFAULT_RASTER, progress: bool = True,
                  state: MaterialState | None = None, on_checkpoint=None,
-                 gains: list[np.ndarray] | None = None) -> MaterialResult:
+                 gains: list[np.ndarray] | None = None, past=None) -> MaterialResult:
     """Fit materials, light map and indirect light to the training views (the loop over
     ``setup_fit``, ``end_warmup``, ``prune_due``/``refine_lights``, ``fit_step``, then the
     normal phase's ``start_normal_phase`` and ``normal_step``, and ``fit_result``).
@@ -363,7 +365,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
     ``state`` (``MaterialState.from_checkpoint``) continues an interrupted fit;
     ``on_checkpoint(state)`` is called every ``checkpoint_every`` steps, every
     ``checkpoint_seconds``, at the end and at SIGINT/SIGTERM (``mi_shadowgs.io.interrupt``).
-    ``gains``: stage 1's RGB gain [3] per view, held (``setup_fit``).
+    ``gains``: stage 1's RGB gain [3] per view, held, and ``past``: as ``setup_fit``'s.
     """
     from tqdm import tqdm
 
@@ -371,7 +373,7 @@ def fit_material(surfels: Surfels, cameras: list[Camera], images: list[np.ndarra
 
     clock = CheckpointClock(config.checkpoint_every, config.checkpoint_seconds)
     fit, state = setup_fit(surfels, cameras, images, masks, config, bounds, vis_config,
-                           raster, progress, state, gains)
+                           raster, progress, state, gains, past)
     total_steps = config.iterations + config.normal_steps
     bar = tqdm(total=total_steps, initial=state.step, desc="stage 4: fit",
                disable=not progress)

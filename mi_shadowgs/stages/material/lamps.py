@@ -10,8 +10,12 @@ direction at ``MaterialConfig.lamp_distances`` (scene-bound radii), each with it
 shadow maps rendered from the lamp's position, by ``lamp_score`` (by default each segment's
 albedo re-fitted: the albedo fitted under the light so far holds its falloff); a lamp is kept only
 when it lowers the views' error by ``lamp_min_gain`` (a sun stays directional: far lamps
-explain it no better). A kept lamp's position is then searched locally (``lamp_passes``): a pattern
-search over its direction from the scene centre and its distance, scale by scale.
+explain it no better). A light newly kept as a lamp is then moved to the best of a global
+scan (``lamp_scan_directions`` x ``lamp_scan_distances``): the directional fit that it
+started from can tilt a near lamp far off, toward the horizon, where grazing light explains
+its falloff over the support. A kept lamp's position is then searched locally
+(``lamp_passes``): a pattern search over its direction from the scene centre and its
+distance, scale by scale.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.core import jit, shading
+from mi_shadowgs.core.directions import light_grid
 from mi_shadowgs.stages.material.config import MaterialConfig, lamp_scoring
 from mi_shadowgs.stages.material.scoring import _candidate_scores
 from mi_shadowgs.stages.material.views import TrainView
@@ -70,19 +75,23 @@ class LampSearch:
         self.radius = float(radius)  # the scene bound's
         # no lamp nearer than the nearest candidate distance
         self.min_distance = self.radius * min(config.lamp_distances)
+        # the global scan's views: those of the refinements' global pass
+        self.scan_views = views[::max(1, -(-len(views) // config.refine_global_views))]
 
     def lights(self, dirs: np.ndarray, positions: np.ndarray, irr: np.ndarray
                ) -> shading.LightSet:
         w = jit.array(np.asarray(irr, np.float32))
         return shading.LightSet(dirs, mi.Color3f(w, w, w), positions, None, self.center)
 
-    def score(self, dirs, positions, irr, k: int, cand: shading.LightSet
-              ) -> tuple[np.ndarray, np.ndarray]:
+    def score(self, dirs, positions, irr, k: int, cand: shading.LightSet,
+              scan: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(error [C], fitted irradiance at the centre [C]) of light ``k`` moved to each of
-        ``cand``."""
+        ``cand``; ``scan``: on the global scan's views, with its maps' resolution."""
+        views, res = ((self.scan_views, self.config.refine_global_map_resolution) if scan
+                      else (self.views, None))
         maps = self.render_maps(dirs, None, positions)
-        cand_maps = self.render_maps(cand.directions, None, cand.positions)
-        return _candidate_scores(self.views, self.channels, self.lights(dirs, positions, irr),
+        cand_maps = self.render_maps(cand.directions, res, cand.positions)
+        return _candidate_scores(views, self.channels, self.lights(dirs, positions, irr),
                                  maps, k, cand_maps, self.config, self.with_specular, cand,
                                  self.scoring)
 
@@ -127,11 +136,33 @@ def localize_lights(search: LampSearch, dirs: np.ndarray, positions: np.ndarray 
             log.append({**entry, "kept": "directional"})
             continue
         pos[k], irr[k] = cand.positions[lamp], fit[lamp]
+        if config.lamp_scan_directions and not math.isfinite(dist):  # newly a lamp
+            dirs, pos, irr, scanned = _lamp_scan(search, dirs, pos, irr, k)
+            entry["scan"] = scanned
         for step_deg, share in config.lamp_passes:
             dirs, pos, irr = _lamp_pass(search, dirs, pos, irr, k, step_deg, share)
         log.append({**entry, "kept": "lamp", "position": pos[k].tolist(),
                     "distance": distance_of(center, pos[k])})
     return dirs, pos, irr, log
+
+
+def _lamp_scan(search: LampSearch, dirs, pos, irr, k: int):
+    """Lamp ``k`` moved to the best of its place and the scan's lamps (the other lights
+    held), scored on the global pass's views and map resolution. Returns (dirs, pos, irr,
+    the scan's record)."""
+    config, center = search.config, search.center
+    grid = light_grid(config.lamp_scan_directions)
+    dist = search.radius * np.asarray(config.lamp_scan_distances, np.float64)
+    dist = dist[dist >= search.min_distance]
+    scan_dirs = np.concatenate([dirs[k][None], np.tile(grid, (len(dist), 1))])
+    lengths = np.concatenate([[distance_of(center, pos[k])], np.repeat(dist, len(grid))])
+    cand = candidate_set(center, scan_dirs, lengths)
+    err, fit = search.score(dirs, pos, irr, k, cand, scan=True)
+    best = _best(err, fit)
+    record = {"candidates": int(cand.count), "error_before": float(err[0]),
+              "error_after": float(err[best]), "moved": best != 0}
+    dirs, pos, irr = _moved(dirs, pos, irr, k, cand, best, fit)
+    return dirs, pos, irr, record
 
 
 def _lamp_pass(search: LampSearch, dirs, pos, irr, k: int, step_deg: float, share: float):

@@ -26,22 +26,24 @@ def occluder_bounds(surfels, cameras, quantile: float) -> shadow_maps.SceneBound
 
 def decompose(surfels, train, config: MaterialConfig, vis_config: VisibilityConfig,
               bounds: shadow_maps.SceneBounds, progress: bool = True, gains=None,
-              **checkpoints) -> MaterialResult:
+              past=None, **checkpoints) -> MaterialResult:
     """Stage 4 on the training views of ``train`` (a loaded Dataset) with the shadow maps of
     ``vis_config``; ``gains``: stage 1's RGB gain [3] per training view, held, or None;
-    ``checkpoints``: ``state`` and ``on_checkpoint`` of ``fit_material``."""
+    ``past``: the pixels left out (``fit_material``); ``checkpoints``: ``state`` and
+    ``on_checkpoint`` of ``fit_material``."""
     return fit_material(surfels, train.cameras, [v.image for v in train.views],
                         [v.mask for v in train.views], config, bounds, vis_config,
-                        progress=progress, gains=gains, **checkpoints)
+                        progress=progress, gains=gains, past=past, **checkpoints)
 
 
 def fit_or_reuse(out, surfels, train, config: MaterialConfig, vis_config: VisibilityConfig,
-                 bounds: shadow_maps.SceneBounds, progress: bool = True, gains=None
-                 ) -> tuple[MaterialResult, float]:
+                 bounds: shadow_maps.SceneBounds, progress: bool = True, gains=None,
+                 past=None) -> tuple[MaterialResult, float]:
     """Stage 4 into the open ``Output`` ``out``: (result, fit seconds). A reused output that
     holds a finished fit (``FIT_FILES``) is read back instead of fitted again; otherwise the
     fit runs with checkpoints in ``out`` (continuing one it holds) and is saved before any
-    evaluation, so that a run that fails in evaluation keeps it. ``gains``: as ``decompose``'s."""
+    evaluation, so that a run that fails in evaluation keeps it. ``gains`` and ``past``: as
+    ``decompose``'s."""
     from mi_shadowgs.stages.common import checkpoint_hooks
 
     files = [out.folder / name for name in FIT_FILES]
@@ -50,7 +52,7 @@ def fit_or_reuse(out, surfels, train, config: MaterialConfig, vis_config: Visibi
         return res, json.loads(files[3].read_text())["fit_s"]
     checkpoints = checkpoint_hooks(out, MaterialState.from_checkpoint)
     t0 = time.perf_counter()
-    res = decompose(surfels, train, config, vis_config, bounds, progress, gains,
+    res = decompose(surfels, train, config, vis_config, bounds, progress, gains, past,
                     **checkpoints)
     fit_s = time.perf_counter() - t0
     save_fit(out, res, vis_config, fit_s)

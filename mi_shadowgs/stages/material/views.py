@@ -39,9 +39,10 @@ class TrainView:
 
 def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.ndarray,
                  config: MaterialConfig, raster: RasterConfig = DEFAULT_RASTER,
-                 receiver_band: float = 0.0) -> TrainView:
+                 receiver_band: float = 0.0, past=None) -> TrainView:
     """Pairs, geometry buffers and the target of one view (computed once: fixed geometry);
-    ``receiver_band``: ``VisibilityConfig.receiver_band``."""
+    ``receiver_band``: ``VisibilityConfig.receiver_band``; ``past``: a
+    ``background.PastTheGround`` whose pixels are left out (None: none)."""
     h, w = camera.height, camera.width
     img = np.asarray(image, np.float32).reshape(h * w, -1)[:, :3]
     if receiver_band > 0:  # one pair list for the shading and the receivers
@@ -51,6 +52,8 @@ def prepare_view(surfels: Surfels, camera: Camera, image: np.ndarray, mask: np.n
         with_depth, pairs = None, shading.splat_pairs(surfels, camera, raster)
     geom = shading.pixel_geometry(surfels, camera, raster, receiver_band, with_depth)
     sup = np.asarray(mask, bool).reshape(-1) & (geom.alpha.numpy() >= config.mask_alpha)
+    if past is not None:
+        sup &= ~past.pixels(np.stack([geom.points[c].numpy() for c in range(3)], -1), img)
     weight = jit.host(sup.astype(np.float32))
     target = mi.Color3f(*(jit.host(img[:, c]) for c in range(3)))
     inv = dr.opaque(mi.Float, 1.0 / float(max(sup.sum(), 1)))
