@@ -152,11 +152,11 @@ def test_a_lamp_started_far_off_is_found_by_the_scan(scene, scan):
     lamp = shading.local_lights(true_pos[None], mi.Color3f(2.0), center)
 
     def render(dirs, resolution=None, positions=None):
-        return render_shadow_maps(s, dirs, bounds, VCFG, resolution, positions)
+        return render_shadow_maps(s, dirs, bounds, VCFG, resolution or 128, positions)
 
     views, ch = rendered_views(s, cams, lamp, render(TRUE_DIR[None], None, true_pos[None]))
     cfg = dataclasses.replace(get_config("cpu-small"), lamps="auto",
-                              lamp_scan_directions=128 if scan else 0)
+                              lamp_scan_directions=32 if scan else 0)
     search = LampSearch(views, ch, render, cfg, False, center, bounds.radius)
     start = direction_from_angles(85.0, 12.0)  # 50 degrees of azimuth, 38 of elevation off
     dirs, pos, irr, log = localize_lights(search, start[None], None, np.array([1.5]),
@@ -166,7 +166,7 @@ def test_a_lamp_started_far_off_is_found_by_the_scan(scene, scan):
     angle = math.degrees(math.acos(np.clip(d @ TRUE_DIR, -1, 1)))
     if scan:
         assert log[0]["scan"]["moved"]
-        assert log[0]["scan"]["candidates"] == 1 + 128 * 5
+        assert log[0]["scan"]["candidates"] == 1 + 32 * 5
         assert angle < 2.0
         assert abs(np.linalg.norm(pos[0] - center) - 5.0) / 5.0 < 0.05
     else:
