@@ -165,7 +165,7 @@ def test_a_lamp_started_far_off_is_found_by_the_scan(scene, scan):
     d = (pos[0] - center) / np.linalg.norm(pos[0] - center)
     angle = math.degrees(math.acos(np.clip(d @ TRUE_DIR, -1, 1)))
     if scan:
-        assert log[0]["scan"]["moved"]
+        assert log[0]["scan"]["moved"] and log[0]["scan"]["kept"] == "scan"
         assert log[0]["scan"]["candidates"] == 1 + 32 * 5
         assert angle < 2.0
         assert abs(np.linalg.norm(pos[0] - center) - 5.0) / 5.0 < 0.05

@@ -10,12 +10,13 @@ direction at ``MaterialConfig.lamp_distances`` (scene-bound radii), each with it
 shadow maps rendered from the lamp's position, by ``lamp_score`` (by default each segment's
 albedo re-fitted: the albedo fitted under the light so far holds its falloff); a lamp is kept only
 when it lowers the views' error by ``lamp_min_gain`` (a sun stays directional: far lamps
-explain it no better). A light newly kept as a lamp is then moved to the best of a global
-scan (``lamp_scan_directions`` x ``lamp_scan_distances``): the directional fit that it
-started from can tilt a near lamp far off, toward the horizon, where grazing light explains
-its falloff over the support. A kept lamp's position is then searched locally
-(``lamp_passes``): a pattern search over its direction from the scene centre and its
-distance, scale by scale.
+explain it no better). A kept lamp's position is then searched locally (``lamp_passes``): a
+pattern search over its direction from the scene centre and its distance, scale by scale.
+A light newly kept as a lamp is also searched from the best of a global scan
+(``lamp_scan_directions`` x ``lamp_scan_distances``), and the better of the two ends is
+kept: the directional fit that it started from can put a near lamp far off, toward the
+horizon, where grazing light explains its falloff over the support; from a good start, a
+scan's coarse lamp can stop in another dip of the flat error.
 """
 
 from __future__ import annotations
@@ -136,14 +137,29 @@ def localize_lights(search: LampSearch, dirs: np.ndarray, positions: np.ndarray 
             log.append({**entry, "kept": "directional"})
             continue
         pos[k], irr[k] = cand.positions[lamp], fit[lamp]
+        starts = [(dirs, pos, irr)]
         if config.lamp_scan_directions and not math.isfinite(dist):  # newly a lamp
-            dirs, pos, irr, scanned = _lamp_scan(search, dirs, pos, irr, k)
-            entry["scan"] = scanned
-        for step_deg, share in config.lamp_passes:
-            dirs, pos, irr = _lamp_pass(search, dirs, pos, irr, k, step_deg, share)
+            *scanned, entry["scan"] = _lamp_scan(search, dirs, pos, irr, k)
+            if entry["scan"]["moved"]:
+                starts.append(tuple(scanned))
+        ends = [_lamp_passes(search, *start, k) for start in starts]
+        if len(ends) > 1:  # the better end; a scan's lamp can stop in another dip
+            ends_at = candidate_set(center, np.array([e[0][k] for e in ends]),
+                                    np.array([distance_of(center, e[1][k]) for e in ends]))
+            err, _ = search.score(dirs, pos, irr, k, ends_at)
+            entry["scan"]["kept"] = "scan" if err[1] < err[0] else "start"
+            ends = [ends[int(np.argmin(err))]]
+        dirs, pos, irr = ends[0]
         log.append({**entry, "kept": "lamp", "position": pos[k].tolist(),
                     "distance": distance_of(center, pos[k])})
     return dirs, pos, irr, log
+
+
+def _lamp_passes(search: LampSearch, dirs, pos, irr, k: int):
+    """Lamp ``k``'s position searched by ``lamp_passes``, coarse to fine."""
+    for step_deg, share in search.config.lamp_passes:
+        dirs, pos, irr = _lamp_pass(search, dirs, pos, irr, k, step_deg, share)
+    return dirs, pos, irr
 
 
 def _lamp_scan(search: LampSearch, dirs, pos, irr, k: int):
