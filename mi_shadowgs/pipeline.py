@@ -61,6 +61,9 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
         past = PastTheGround.of(train, config.geometry, read_backdrop(backdrop_file.parent))
         if past is not None:  # the pixels left out follow stage 1's backdrop colour
             inputs["backdrop"] = input_ref(backdrop_file)
+            keep = ~past.surfels(surfels)  # neither fitted nor relit nor exported
+            if not keep.all():
+                surfels = surfels.subset(keep)
     if "preview_envmaps" in settings:  # by content: a file edited, or one added to a folder,
         # makes the previews again (the dataset's own env maps are in its fingerprint)
         inputs.update({f"preview_envmap_{i}": input_ref(f)

@@ -312,6 +312,13 @@ def test_stage4_leaves_out_surfaces_past_the_ground_as_dark_as_the_room():
                        [2.2, 0.0, 0.0]])   # the same, lit
     rgb = np.array([0.5 * room, 0.5 * room, room, 1.2 * room, [0.4] * 3])
     assert rule.pixels(points, rgb).tolist() == [False, False, True, True, False]
+    # the same by surfels: their centres and stage 1's mean colour (the SH's DC band)
+    from mi_shadowgs.core.surfels import SH_C0, Surfels
+
+    n = len(points)
+    surfels = Surfels.from_numpy(points, np.full((n, 2), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)),
+                                 np.full(n, 0.9), channels={"sh": (rgb - 0.5) / SH_C0})
+    assert rule.surfels(surfels).tolist() == [False, False, True, True, False]
     assert background.PastTheGround.of(dataset, cfg, None) is None
     masked = SimpleNamespace(views=[SimpleNamespace(**{**vars(v), "has_mask": True})
                                     for v in dataset.views], points="unused")

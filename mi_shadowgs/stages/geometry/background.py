@@ -346,15 +346,15 @@ def prior_pixels(dataset, config, backdrop: np.ndarray | None = None
 
 @dataclasses.dataclass(frozen=True)
 class PastTheGround:
-    """Where stage 1 grew surfels over the room seen past the ground; stage 4's fit leaves
-    those pixels out. Beyond the mat's far edge a dim room looks like a dark surface: the
-    photos cannot tell surfels of the backdrop's colour from the backdrop itself, so some
-    stay. Lit by a fitted light they would be bright where the photos are dark, and the
-    light fit would bend to keep them dark. A pixel is such when its surface lies outside
-    the support (``support_of``: above or beside the ground's outline, and outside the
-    body's hull) and it is as dark as the backdrop (``BACKDROP_SLACK``). A cast shadow on
-    the mat lies within the outline, the object within the body's hull, and a lit floor
-    past the mat is not dark."""
+    """Where stage 1 grew surfels over the room seen past the ground; stage 4 leaves those
+    surfels and their pixels out. Beyond the mat's far edge a dim room looks like a dark
+    surface: the photos cannot tell surfels of the backdrop's colour from the backdrop
+    itself, so some stay. Lit by a fitted light they would be bright where the photos are
+    dark, the light fit would bend to keep them dark, and relit views would show them. A
+    pixel (or a surfel) is such when its surface lies outside the support (``support_of``:
+    above or beside the ground's outline, and outside the body's hull) and it is as dark as
+    the backdrop (``BACKDROP_SLACK``). A cast shadow on the mat lies within the outline, the
+    object within the body's hull, and a lit floor past the mat is not dark."""
 
     support: Support
     backdrop: np.ndarray  # [3] linear RGB, before each view's gain
@@ -387,3 +387,14 @@ class PastTheGround:
         dark = np.all(np.asarray(rgb, np.float64).reshape(-1, 3)
                       <= self.dark_max + BACKDROP_SLACK * self.backdrop, axis=1)
         return off_ground & off_body & dark
+
+    def surfels(self, surfels) -> np.ndarray:
+        """[N] bool: the ``surfels`` (a ``Surfels``) past the ground, by their centres and
+        the mean colour stage 1 gave them (the SH's DC band, linear, before gains); none
+        without an "sh" channel."""
+        from mi_shadowgs.core.surfels import SH_C0
+
+        arrays = surfels.to_numpy()
+        if "sh" not in arrays:
+            return np.zeros(surfels.count, bool)
+        return self.pixels(arrays["position"], SH_C0 * arrays["sh"][:, :3] + 0.5)
