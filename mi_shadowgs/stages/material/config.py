@@ -156,8 +156,8 @@ class MaterialConfig:
     views_per_step: int = 1
     # Pixels with rendered alpha below this are not supervised.
     mask_alpha: float = 0.5
-    # Views without masks: "skip" leaves out the pixels of surfels that stage 1 grew over a
-    # dim room past the ground (``background.PastTheGround``); "fit" fits them too.
+    # Views without masks: "skip" leaves out the surfels that stage 1 grew over a dim room
+    # past the ground, and their pixels (``background.PastTheGround``); "fit" fits them.
     backdrop_surfels: str = "skip"
     # Read the loss back (history, progress bar) every this many steps.
     log_every: int = 100
