@@ -63,6 +63,9 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
             inputs["backdrop"] = input_ref(backdrop_file)
             keep = ~past.surfels(surfels)  # neither fitted nor relit nor exported
             if not keep.all():
+                warn(f"{seg_model}: {int((~keep).sum())} of {len(keep)} surfels lie past the "
+                     "ground in the room's colour; stage 4 leaves them and their pixels out "
+                     "(--set material.backdrop_surfels=fit keeps them)")
                 surfels = surfels.subset(keep)
     if "preview_envmaps" in settings:  # by content: a file edited, or one added to a folder,
         # makes the previews again (the dataset's own env maps are in its fingerprint)
