@@ -33,12 +33,13 @@ from mi_shadowgs.summary import build_summary, write_report_figures
 
 def material_stage(top, name: str, material: MaterialConfig, labels: str, dataset: dict,
                    data: Path, surfels, train, test, bounds: shadow_maps.SceneBounds,
-                   config: RunConfig, overwrite: bool, progress: bool
+                   config: RunConfig, overwrite: bool, progress: bool, past=None
                    ) -> tuple[dict, float | None]:
     """Stages 3-5 of one variant, fitted with ``material``, into ``material/<name>`` of the
     run ``top`` (an Output); ``labels``: where stage 2's segments came from; ``dataset``: the
-    dataset's fingerprint. Returns (metrics, fit seconds), the seconds None when a finished
-    output of the same provenance is reused."""
+    dataset's fingerprint; ``past``: the run's ``PastTheGround`` (None: none), used where
+    ``material.backdrop_surfels`` is "skip". Returns (metrics, fit seconds), the seconds None
+    when a finished output of the same provenance is reused."""
     from mi_shadowgs.io.provenance import Output, Provenance, input_ref
     from mi_shadowgs.stages.common import warn_other_backend
 
@@ -55,18 +56,15 @@ def material_stage(top, name: str, material: MaterialConfig, labels: str, datase
     gains = read_gains(gains_file, [v.name for v in train.views]) if gains_file.is_file() else None
     if gains is not None:  # stage 1's gains, held: each training photo divided by its own
         inputs["view_gains"] = input_ref(gains_file)
-    past = None
-    if material.backdrop_surfels == "skip":
-        backdrop_file = top.folder / "geometry" / BACKDROP_FILE
-        past = PastTheGround.of(train, config.geometry, read_backdrop(backdrop_file.parent))
-        if past is not None:  # the pixels left out follow stage 1's backdrop colour
-            inputs["backdrop"] = input_ref(backdrop_file)
-            keep = ~past.surfels(surfels)  # neither fitted nor relit nor exported
-            if not keep.all():
-                warn(f"{seg_model}: {int((~keep).sum())} of {len(keep)} surfels lie past the "
-                     "ground in the room's colour; stage 4 leaves them and their pixels out "
-                     "(--set material.backdrop_surfels=fit keeps them)")
-                surfels = surfels.subset(keep)
+    past = past if material.backdrop_surfels == "skip" else None
+    if past is not None:  # the pixels left out follow stage 1's backdrop colour
+        inputs["backdrop"] = input_ref(top.folder / "geometry" / BACKDROP_FILE)
+        keep = ~past.surfels(surfels)  # neither fitted nor relit nor exported
+        if not keep.all():
+            warn(f"{seg_model}: {int((~keep).sum())} of {len(keep)} surfels lie past the "
+                 "ground in the room's colour; stage 4 leaves them and their pixels out "
+                 "(--set material.backdrop_surfels=fit keeps them)")
+            surfels = surfels.subset(keep)
     if "preview_envmaps" in settings:  # by content: a file edited, or one added to a folder,
         # makes the previews again (the dataset's own env maps are in its fingerprint)
         inputs.update({f"preview_envmap_{i}": input_ref(f)
@@ -212,13 +210,16 @@ def run_pipeline(data: str | Path, out: str | Path, config: RunConfig, progress:
         done("segmentation", seg)
         surfels = load_ply(run / "segmentation" / "model.ply")
         bounds = occluder_bounds(surfels, train.cameras, config.bounds_quantile)
+        past = (PastTheGround.of(train, config.geometry, read_backdrop(run / "geometry"))
+                if any(m.backdrop_surfels == "skip" for m in config.variants().values())
+                else None)  # once for every variant: it carves the views' support
 
         # Stages 3-5 per variant: visibility + decomposition, then evaluation and relighting.
         results = {}
         for name, material in config.variants().items():
             results[name], fit_s = material_stage(top, name, material, labels, dataset, data,
                                                   surfels, train, test, bounds, config,
-                                                  overwrite, progress)
+                                                  overwrite, progress, past)
             if fit_s is not None:
                 stages.append((f"material ({name})", fit_s))
             else:

@@ -331,17 +331,29 @@ def prior_pixels(dataset, config, backdrop: np.ndarray | None = None
     views = dataset.views
     if config.lambda_dark_alpha <= 0:
         return [None] * len(views)
-    unmasked = [v for v in views if not getattr(v, "has_mask", True)]
-    dark = {id(v): dark_pixels(v.image, config.dark_max, backdrop) for v in unmasked}
-    points = getattr(dataset, "points", None)
-    if config.dark_alpha_support == "points" and points is not None and unmasked:
-        support = support_of(read_points(points), [v.camera for v in unmasked],
-                             [dark[id(v)] for v in unmasked], config.dark_alpha_margin)
-        for v in unmasked:
-            if dark[id(v)].any():
-                dark[id(v)] &= ~supported_pixels(v.camera, support)
-    return [dark.get(id(v)) for v in views]
+    unmasked, dark, support = _unmasked_support(dataset, config, backdrop,
+                                                config.dark_alpha_support == "points")
+    if support is not None:
+        for v, d in zip(unmasked, dark, strict=True):
+            if d.any():
+                d &= ~supported_pixels(v.camera, support)
+    by_view = {id(v): d for v, d in zip(unmasked, dark, strict=True)}
+    return [by_view.get(id(v)) for v in views]
 
+
+def _unmasked_support(dataset, config, backdrop: np.ndarray | None, with_support: bool = True
+                      ) -> tuple[list, list[np.ndarray], Support | None]:
+    """(``dataset``'s views without masks, their dark pixels under ``config`` and
+    ``backdrop`` (``dark_pixels``), the support of its SfM points carved by them
+    (``support_of``), or None: ``with_support`` False, no SfM points or no such view)."""
+    unmasked = [v for v in dataset.views if not getattr(v, "has_mask", True)]
+    dark = [dark_pixels(v.image, config.dark_max, backdrop) for v in unmasked]
+    points = getattr(dataset, "points", None)
+    support = None
+    if with_support and points is not None and unmasked:
+        support = support_of(read_points(points), [v.camera for v in unmasked], dark,
+                             config.dark_alpha_margin)
+    return unmasked, dark, support
 
 
 @dataclasses.dataclass(frozen=True)
@@ -366,14 +378,10 @@ class PastTheGround:
         ``GeometryConfig``: ``dark_max``, ``dark_alpha_margin``): None without such views,
         SfM points, a ground plane among them or a backdrop colour
         (``estimate_backdrop``)."""
-        points = getattr(dataset, "points", None)
-        unmasked = [v for v in dataset.views if not getattr(v, "has_mask", True)]
-        if backdrop is None or points is None or not unmasked:
+        if backdrop is None:
             return None
-        dark = [dark_pixels(v.image, config.dark_max, backdrop) for v in unmasked]
-        support = support_of(read_points(points), [v.camera for v in unmasked], dark,
-                             config.dark_alpha_margin)
-        if support.ground is None or support.body is None:
+        support = _unmasked_support(dataset, config, backdrop)[2]
+        if support is None or support.ground is None or support.body is None:
             return None
         return PastTheGround(support, np.asarray(backdrop, np.float64), config.dark_max)
 
@@ -384,8 +392,7 @@ class PastTheGround:
         ground, body = self.support.ground, self.support.body
         off_ground = np.any(p[:, [0, 2]] @ ground[:, :2].T + ground[:, 2] > 0, axis=1)
         off_body = np.any(p @ body[:, :3].T + body[:, 3] > 0, axis=1)
-        dark = np.all(np.asarray(rgb, np.float64).reshape(-1, 3)
-                      <= self.dark_max + BACKDROP_SLACK * self.backdrop, axis=1)
+        dark = dark_pixels(np.asarray(rgb).reshape(-1, 3), self.dark_max, self.backdrop)
         return off_ground & off_body & dark
 
     def surfels(self, surfels) -> np.ndarray:

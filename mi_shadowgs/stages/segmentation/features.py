@@ -53,7 +53,6 @@ SEGMENT = "segment"
 _RASTER = RasterConfig()
 
 
-
 @dataclasses.dataclass(frozen=True)
 class SegmentationConfig:
     """Stage-2 hyperparameters; defaults are the paper's (Sec. V-A1) where it gives them."""
