@@ -14,7 +14,10 @@ import pytest
 
 import mi_shadowgs  # noqa: F401
 from mi_shadowgs.core import shading
+from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.core.frames import frame_to_quaternion
+from mi_shadowgs.core.surfels import Surfels
 from mi_shadowgs.presets import material_config as get_config
 from mi_shadowgs.stages.material.lamps import (
     LampSearch,
@@ -22,8 +25,8 @@ from mi_shadowgs.stages.material.lamps import (
     lamp_share,
     localize_lights,
 )
-from mi_shadowgs.stages.visibility.shadow_maps import render_shadow_maps
-from tests.test_light_fit import VCFG, _scene, rendered_views
+from mi_shadowgs.stages.visibility.shadow_maps import SceneBounds, render_shadow_maps
+from tests.test_light_fit import VCFG, _grid, _scene, rendered_views
 
 TRUE_DIR = direction_from_angles(35.0, 50.0)
 
@@ -89,7 +92,9 @@ def test_lamp_settings_are_checked():
     for bad in ({"lamps": "on"}, {"lamp_distances": (0.5,)}, {"lamp_distances": ()},
                 {"lamp_min_gain": 1.0}, {"lamp_passes": ((50.0, 0.1),)},
                 {"lamp_score": "pixel"}, {"lamp_scan_directions": -1},
-                {"lamp_scan_distances": ()}, {"lamp_scan_distances": (1.0,)}):
+                {"lamp_scan_distances": ()}, {"lamp_scan_distances": (1.0,)},
+                {"lamp_position_score": "edges"}, {"lamp_lit_ratio": 0.0},
+                {"lamp_lit_ratio": 1.0}):
         with pytest.raises(ValueError, match="lamp"):
             dataclasses.replace(base, **bad)
 
@@ -172,3 +177,79 @@ def test_a_lamp_started_far_off_is_found_by_the_scan(scene, scan):
     else:
         assert "scan" not in log[0]
         assert angle > 10.0
+
+
+
+def _posts_scene():
+    """A printed floor (its albedo x1.4 to x0.6 along +x) and four tiles held over it at
+    (+-0.6, 0.5, +-0.6): a near lamp's shadows of the four diverge, and scale with its
+    distance; 4 views at 128^2."""
+    floor = _grid([0, 0, 0], 1.5, 90)
+    tiles = [_grid([x, 0.5, z], 0.15, 8) for x in (-0.6, 0.6) for z in (-0.6, 0.6)]
+    pos = np.concatenate([floor[0], *(t[0] for t in tiles)])
+    size = np.concatenate([floor[1], *(t[1] for t in tiles)])
+    seg = np.concatenate([np.zeros(len(floor[0])), np.ones(len(pos) - len(floor[0]))])
+    base = np.where(seg[:, None] == 0, [[0.6, 0.5, 0.3]], [[0.2, 0.4, 0.7]])
+    printed = base * np.where(seg == 0, 1.0 + 0.4 * pos[:, 0] / 1.5, 1.0)[:, None]
+    s = Surfels.from_numpy(pos, size, frame_to_quaternion(np.tile([0.0, 1.0, 0.0],
+                                                                  (len(pos), 1))),
+                           np.full(len(pos), 0.99),
+                           channels={"segment": seg[:, None].astype(np.float32),
+                                     "albedo_gt": printed.astype(np.float32)})
+    cams = [Camera.look_at(np.array([2.6 * math.cos(a), 2.8, 2.6 * math.sin(a)]),
+                           np.zeros(3), fov_x=1.0, width=128, height=128)
+            for a in np.linspace(0.3, 2 * math.pi + 0.3, 4, endpoint=False)]
+    return s, cams, SceneBounds((0.0, 0.25, 0.0), 2.2, 4.0), base
+
+
+@pytest.mark.parametrize("placed_by", ["shadows", "photometric"])
+def test_shadows_place_a_lamp_that_a_print_moves(placed_by):
+    """A print that brightens toward the lamp looks like a nearer lamp's falloff when each
+    segment's albedo is one value: the photometric score places the lamp off; where its
+    shadows fall (``lamp_position_score`` "shadows") places it within 5% of its distance."""
+    s, cams, bounds, base = _posts_scene()
+    center = np.asarray(bounds.center)
+    true_dir = direction_from_angles(0.0, 50.0)  # azimuth 0: toward +x
+    true_pos = center + true_dir * 5.0
+
+    def render(dirs, resolution=None, positions=None):
+        return render_shadow_maps(s, dirs, bounds, VCFG, resolution or 256, positions)
+
+    lamp = shading.local_lights(true_pos[None], mi.Color3f(2.0), center)
+    views, ch = rendered_views(s, cams, lamp, render(true_dir[None], None, true_pos[None]))
+    ch = {**ch, "albedo": mi.TensorXf(base.astype(np.float32))}  # each segment's one value
+    cfg = dataclasses.replace(get_config("cpu-small"), lamps="auto", lamp_scan_directions=0,
+                              lamp_position_score=placed_by)
+    search = LampSearch(views, ch, render, cfg, False, center, bounds.radius)
+    start = direction_from_angles(3.0, 47.0)
+    _, pos, _, log = localize_lights(search, start[None], None, np.array([1.5]),
+                                     np.array([0]))
+    assert log[0]["kept"] == "lamp"
+    err = np.linalg.norm(pos[0] - true_pos) / 5.0
+    assert (err < 0.05) == (placed_by == "shadows")
+
+
+def test_a_lamps_direction_is_scored_from_the_true_centre():
+    """A fitted lamp at the true position, fitted about a centre 0.5 off the object's, is
+    0 degrees off as the truth gives its direction (from the object's centre), although
+    its stored direction, from the fit's centre, is not; directional lights as stored."""
+    from mi_shadowgs.stages.evaluation.metrics import light_angular_errors, seen_from
+
+    centre = np.array([0.2, 0.5, -0.1])
+    true = {"direction": TRUE_DIR.tolist(), "position": (centre + TRUE_DIR * 6.0).tolist(),
+            "distance": 6.0, "irradiance": [3, 3, 3]}
+    fit_centre = centre + np.array([0.5, 0.0, 0.0])
+    stored = (np.asarray(true["position"]) - fit_centre)
+    stored /= np.linalg.norm(stored)
+    sun = direction_from_angles(200.0, 30.0)
+    dirs = np.array([stored, sun])
+    pos = np.array([true["position"], [np.nan] * 3])
+    seen = seen_from(dirs, pos, [true])
+    np.testing.assert_allclose(seen[0], TRUE_DIR, atol=1e-12)
+    np.testing.assert_array_equal(seen[1], sun)
+    assert light_angular_errors(dirs, np.array([3.0, 0.1]), TRUE_DIR[None])[
+        "angular_error_deg"][0] > 4.0
+    assert light_angular_errors(seen, np.array([3.0, 0.1]), TRUE_DIR[None])[
+        "angular_error_deg"][0] < 1e-4
+    np.testing.assert_array_equal(seen_from(dirs, None, [true]), dirs)
+    np.testing.assert_array_equal(seen_from(dirs, pos, [{"direction": [0, 1, 0]}]), dirs)

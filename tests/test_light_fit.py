@@ -102,8 +102,8 @@ def rendered_views(s, cams, lights, maps=None):
         rgb = shading.shade(geom, albedo, rough, metal, lights, vis, None, False)
         img = np.stack([np.asarray(rgb[c]) for c in range(3)], -1)
         mask = geom.alpha.numpy() > 0.5
-        views.append(prepare_view(s, cam, img.reshape(64, 64, 3),
-                                  mask.reshape(64, 64), cfg))
+        views.append(prepare_view(s, cam, img.reshape(cam.height, cam.width, 3),
+                                  mask.reshape(cam.height, cam.width), cfg))
     return views, ch
 
 

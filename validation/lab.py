@@ -413,7 +413,8 @@ def markdown(record: dict) -> str:
              f"{s['photo_size'][1]}, imported at {s['max_size']} px; extra settings: "
              f"{', '.join(s['sets']) or 'none'}; seed {s['seed']}.", "",
              "Bounds: the lamp's position within 5% of its distance and its direction "
-             "within 2 deg; the strongest fitted light carries >= 90% of the fitted "
+             "within 2 deg (a fitted lamp's direction taken from the object's centre, "
+             "as the lamp's is given); the strongest fitted light carries >= 90% of the fitted "
              "irradiance; the lab's shadow IoU and albedo PSNR at most 0.05 and 1 dB below "
              "the control's; the fitted per-photo gains within 3% after one global scale; "
              "the control's lights all directional. "

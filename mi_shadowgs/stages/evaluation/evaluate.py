@@ -170,12 +170,11 @@ def evaluate_decomposition(result: MaterialResult, train, test, bounds: shadow_m
         gt_lights = train.lights["training"]["lights"]
         gt_dirs = np.array([lt["direction"] for lt in gt_lights], np.float64)  # [G, 3]
         gt_irr_w = np.array([lt["irradiance"] for lt in gt_lights], np.float64)  # [G, 3]
-        metrics["light_cosine"] = evaluation.light_cosine(est_light.directions, est_light_w,
-                                                          gt_dirs, gt_irr_w)
-        metrics.update(evaluation.light_angular_errors(est_light.directions, est_light_w,
-                                                       gt_dirs))
-        metrics.update(evaluation.lamp_errors(est_light.directions, est_light_w,
-                                              est_light.positions, gt_lights))
+        seen = evaluation.seen_from(est_light.directions, est_light.positions, gt_lights)
+        metrics["light_cosine"] = evaluation.light_cosine(seen, est_light_w, gt_dirs, gt_irr_w)
+        metrics.update(evaluation.light_angular_errors(seen, est_light_w, gt_dirs))
+        metrics.update(evaluation.lamp_errors(seen, est_light_w, est_light.positions,
+                                              gt_lights))
     if "light-map cosine" not in gone:
         gt_map = np.asarray(train.lights["training"]["light_map"]["radiance"])
         metrics["light_map_cosine"] = evaluation.light_map_cosine(result.light.radiance,

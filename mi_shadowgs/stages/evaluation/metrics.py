@@ -36,7 +36,8 @@ whole mask.
   moved a fraction of a degree across a cell border. With the kernel a perfect fit scores 1.0
   and a 1-degree error costs ~0.005. Beside it: each true light's angular error to the fitted
   light it is matched with (Hungarian matching on angles), and the share of the fitted
-  irradiance in unmatched (spurious) lights.
+  irradiance in unmatched (spurious) lights. A fitted lamp's direction is taken from the
+  true lamps' centre, as the truth's is (``seen_from``).
 - **Shadow IoU**: a pixel is in shadow when its direct diffuse irradiance (white, summed
   over the lights) is below ``SHADOW_THRESHOLD`` times the median direct irradiance over
   the view's mask; the threshold is relative so that the estimate's global scale (albedo
@@ -213,6 +214,27 @@ def light_cosine(est_dirs, est_w, gt_dirs, gt_w, kappa: float = LIGHT_KERNEL_KAP
 
     ab, aa, bb = a @ gram(d, e) @ b, a @ gram(d, d) @ a, b @ gram(e, e) @ b
     return float(ab / np.sqrt(aa * bb)) if aa > 0 and bb > 0 else 0.0
+
+
+def seen_from(est_dirs, est_positions, gt_lights: list[dict]) -> np.ndarray:
+    """The fitted lights' directions [K, 3] as the truth's are given: a fitted lamp's as the
+    direction from the true lamps' centre (a true lamp's position less its direction times
+    its distance) to its position, a directional light's as it is. A fitted lamp's stored
+    direction is from the fit's own scene centre, which is not the object's: at 6 object
+    radii, a centre 0.1 radii off turns it by up to a degree. Without a true lamp, or
+    without fitted lamps, the stored directions."""
+    d = np.asarray(est_dirs, np.float64).reshape(-1, 3)
+    lamps = [lt for lt in gt_lights if lt.get("position") is not None]
+    if est_positions is None or not lamps:
+        return d
+    pos = np.asarray(est_positions, np.float64).reshape(-1, 3)
+    local = np.all(np.isfinite(pos), axis=1)
+    true = lamps[0]
+    centre = (np.asarray(true["position"], np.float64)
+              - np.asarray(true["direction"], np.float64) * float(true["distance"]))
+    v = pos - centre
+    n = np.linalg.norm(v, axis=1, keepdims=True)
+    return np.where(local[:, None] & (n > 0), v / np.where(n > 0, n, 1.0), d)
 
 
 def light_angular_errors(est_dirs, est_w, gt_dirs) -> dict:

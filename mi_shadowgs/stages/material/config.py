@@ -12,6 +12,7 @@ SPECULAR_MODES = ("auto", "on", "off")
 REFINE_SCORES = ("segment", "irradiance", "albedo")
 SETTLE_SCORES = ("segment", "irradiance")
 LAMP_MODES = ("off", "auto")
+LAMP_POSITION_SCORES = ("shadows", "photometric")
 BACKDROP_SURFELS = ("skip", "fit")
 
 
@@ -114,6 +115,12 @@ class MaterialConfig:
     # lobe (each segment's albedo re-fitted: the falloff is not judged by the albedo fitted
     # under the light before), else "segment".
     lamp_score: str = "auto"
+    # What places a kept lamp in its pattern searches: "shadows" (where the photos are in
+    # the lamp's shadow against where its shadow maps put it) or "photometric" (lamp_score).
+    lamp_position_score: str = "shadows"
+    # A pixel is lit by the lamp when its photo is over this share of the lamp's unshadowed
+    # shading (after the other lights'); "shadows" only.
+    lamp_lit_ratio: float = 0.5
     # Keep the albedo's TV while the segment constraint holds.
     albedo_tv_with_segments: bool = True
     # Hold the support-weighted albedo quantile at this value (no specular lobe); 0: off.
@@ -242,6 +249,11 @@ class MaterialConfig:
                              f"(direction step in (0, 45) degrees, distance share in (0, 1)): "
                              f"{self.lamps!r}, {self.lamp_distances}, {self.lamp_min_gain}, "
                              f"{self.lamp_passes}")
+        if (self.lamp_position_score not in LAMP_POSITION_SCORES
+                or not 0.0 < self.lamp_lit_ratio < 1.0):
+            raise ValueError(f"MaterialConfig: lamp_position_score one of "
+                             f"{LAMP_POSITION_SCORES} and lamp_lit_ratio in (0, 1), got "
+                             f"{self.lamp_position_score!r}, {self.lamp_lit_ratio}")
         if self.lamp_scan_directions < 0 or (self.lamp_scan_directions and (
                 not self.lamp_scan_distances
                 or any(not 1.0 < d < math.inf for d in self.lamp_scan_distances))):

@@ -11,7 +11,10 @@ shadow maps rendered from the lamp's position, by ``lamp_score`` (by default eac
 albedo re-fitted: the albedo fitted under the light so far holds its falloff); a lamp is kept only
 when it lowers the views' error by ``lamp_min_gain`` (a sun stays directional: far lamps
 explain it no better). A kept lamp's position is then searched locally (``lamp_passes``): a
-pattern search over its direction from the scene centre and its distance, scale by scale.
+pattern search over its direction from the scene centre and its distance, scale by scale,
+each candidate scored by its photometric error times its shadows' disagreement with the
+photos (``lamp_position_score`` "shadows", ``shadow_mismatch``): with one albedo per
+segment, a print's gradients pass for a lamp's falloff; its shadows' place does not.
 A light newly kept as a lamp is also searched from the best of a global scan
 (``lamp_scan_directions`` x ``lamp_scan_distances``), and the better of the two ends is
 kept: the directional fit that it started from can put a near lamp far off, toward the
@@ -23,13 +26,18 @@ from __future__ import annotations
 
 import math
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mi_shadowgs.core import jit, shading
 from mi_shadowgs.core.directions import light_grid
 from mi_shadowgs.stages.material.config import MaterialConfig, lamp_scoring
-from mi_shadowgs.stages.material.scoring import _candidate_scores
+from mi_shadowgs.stages.material.scoring import (
+    _candidate_scores,
+    _view_direct,
+    others_shading,
+)
 from mi_shadowgs.stages.material.views import TrainView
 
 # A pattern search's moves at one scale: enough to cross a pass's start error (the coarse
@@ -88,13 +96,99 @@ class LampSearch:
               scan: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(error [C], fitted irradiance at the centre [C]) of light ``k`` moved to each of
         ``cand``; ``scan``: on the global scan's views, with its maps' resolution."""
+        return self._scores(dirs, positions, irr, k, cand, scan)[:2]
+
+    def place(self, dirs, positions, irr, k: int, cand: shading.LightSet
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """As ``score``, with the error that places a lamp (``lamp_position_score``; the
+        photometric error where the fit has no shadow maps)."""
+        err, fit, mismatch = self._scores(dirs, positions, irr, k, cand, False,
+                                          self.config.lamp_position_score == "shadows")
+        # the product: each cue weighs by its relative change (log err + log mismatch)
+        return (err if mismatch is None else err * (mismatch + 1.0)), fit
+
+    def _scores(self, dirs, positions, irr, k, cand, scan, shadows=False):
         views, res = ((self.scan_views, self.config.refine_global_map_resolution) if scan
                       else (self.views, None))
         maps = self.render_maps(dirs, None, positions)
         cand_maps = self.render_maps(cand.directions, res, cand.positions)
-        return _candidate_scores(views, self.channels, self.lights(dirs, positions, irr),
-                                 maps, k, cand_maps, self.config, self.with_specular, cand,
-                                 self.scoring)
+        lights = self.lights(dirs, positions, irr)
+        err, fit = _candidate_scores(views, self.channels, lights, maps, k, cand_maps,
+                                     self.config, self.with_specular, cand, self.scoring)
+        mismatch = (shadow_mismatch(views, self.channels, self.config, self.with_specular,
+                                    lights, maps, k, cand_maps)
+                    if shadows and cand_maps is not None else None)  # no maps: no shadows
+        return err, fit, mismatch
+
+
+# Pixels that face light k at under this share of the view's 90th percentile of its
+# unshadowed shading are left out of ``shadow_mismatch``: near grazing, the photo's ratio to
+# the shading is noise.
+FACING_SHARE = 0.2
+# ... and pixels that the surfels cover less than this: a pixel on the support's outline
+# is dark in the photo where the backdrop fills its rest.
+WHOLE_PIXEL = 0.99
+
+
+def _ambient(v: TrainView, albedo, metal, ind, sup: np.ndarray) -> np.ndarray:
+    """The indirect light's part of each pixel [P] (grey) with each segment's median
+    indirect irradiance over the view's pixels ``sup``: the room's light and the bounce
+    reach the shadows too. Not each surfel's own: where the lamp's shadow is off, the
+    indirect light fitted with it has filled the difference."""
+    grey = lambda c: np.mean([np.asarray(c[i], np.float64) for i in range(3)], 0)  # noqa: E731
+    e = grey(ind)
+    a = grey((1.0 - metal) * albedo)
+    seg = np.asarray(v.segment.numpy())
+    level = np.zeros_like(e)
+    for s in np.unique(seg[sup]):
+        level[seg == s] = np.median(e[sup & (seg == s)])
+    return a * level
+
+
+def shadow_mismatch(views: list[TrainView], channels: dict, config: MaterialConfig,
+                    with_specular: bool, lights: shading.LightSet, maps, k: int,
+                    cand_maps) -> np.ndarray:
+    """The shadows' disagreement [C] when light ``k`` moves to each candidate of
+    ``cand_maps``: the sum of (V_c - lit)^2 over the views' supervised pixels that face
+    light ``k`` and that the surfels cover whole, where lit says whether the photo, less
+    the other lights' shading and the indirect light (``_ambient``), is over
+    ``lamp_lit_ratio`` of light ``k``'s unshadowed shading (materials fitted, grey): the
+    visibility of light ``k`` that the photo shows, cut at the penumbra's middle.
+
+    The photometric scores weigh a lamp's position by its falloff over the support, which a
+    support's print and its room light explain as well; where its shadows fall is geometry.
+    """
+    n_cand = cand_maps.count
+    total = np.zeros(n_cand)
+    with dr.suspend_grad():
+        for v in views:
+            albedo, rough, metal, ind, per, _ = _view_direct(
+                v, channels, config, maps, lights.directions, with_specular, lights.positions,
+                lights.center)
+            npix = dr.width(v.geom.alpha)
+            rest = others_shading(lights, per, k, npix)
+            pos_k = None if lights.positions is None else lights.positions[k:k + 1]
+            own = shading.direct_per_light(v.geom, albedo, rough, metal,
+                                           lights.directions[k:k + 1], None, with_specular,
+                                           pos_k, lights.center)
+            own = own * dr.gather(mi.Color3f, lights.weights, mi.UInt32(k))
+            vis = cand_maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
+            dr.eval(rest, own, vis)
+            u = np.mean([np.asarray(own[c], np.float64) for c in range(3)], 0)  # [P]
+            t = np.mean([np.asarray(v.target[c] - rest[c], np.float64) for c in range(3)], 0)
+            # supervised pixels whole on the surface: an outline pixel's photo is part
+            # backdrop, dark though lit
+            sup = (np.asarray(v.weight.numpy()) > 0) & (np.asarray(v.geom.alpha.numpy())
+                                                        > WHOLE_PIXEL)
+            if not sup.any() or not (u[sup] > 0).any():
+                continue
+            ok = sup & (u > FACING_SHARE * np.percentile(u[sup], 90))
+            if ind is not None:
+                t = t - _ambient(v, albedo, metal, ind, sup)
+            lit = (t > config.lamp_lit_ratio * u).astype(np.float64)
+            vc = np.asarray(vis.numpy(), np.float64).reshape(npix, n_cand)[ok]
+            total += ((vc - lit[ok, None]) ** 2).sum(0)
+    return total
 
 
 def _best(err: np.ndarray, fit: np.ndarray) -> int:
@@ -146,7 +240,7 @@ def localize_lights(search: LampSearch, dirs: np.ndarray, positions: np.ndarray 
         if len(ends) > 1:  # the better end; a scan's lamp can stop in another dip
             ends_at = candidate_set(center, np.array([e[0][k] for e in ends]),
                                     np.array([distance_of(center, e[1][k]) for e in ends]))
-            err, _ = search.score(dirs, pos, irr, k, ends_at)
+            err, _ = search.place(dirs, pos, irr, k, ends_at)
             entry["scan"]["kept"] = "scan" if err[1] < err[0] else "start"
             ends = [ends[int(np.argmin(err))]]
         dirs, pos, irr = ends[0]
@@ -201,7 +295,7 @@ def _lamp_pass(search: LampSearch, dirs, pos, irr, k: int, step_deg: float, shar
         ok = (lengths >= search.min_distance) & (cand_dirs[:, 1] > 0)
         ok[0] = True
         cand = candidate_set(center, cand_dirs[ok], lengths[ok])
-        err, fit = search.score(dirs, pos, irr, k, cand)
+        err, fit = search.place(dirs, pos, irr, k, cand)
         best = _best(err, fit)
         dirs, pos, irr = _moved(dirs, pos, irr, k, cand, best, fit)
         if best == 0:

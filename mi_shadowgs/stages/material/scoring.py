@@ -32,6 +32,15 @@ def _view_direct(v: TrainView, channels: dict, config: MaterialConfig, maps, dir
     return albedo, rough, metal, ind, per, vis
 
 
+def others_shading(lights: shading.LightSet, per: mi.Color3f, k: int, npix: int
+                   ) -> mi.Color3f:
+    """The shading [P] of every light but ``k``, from ``per`` [P * K] (``_view_direct``)."""
+    kk = lights.count
+    li = dr.arange(mi.UInt32, npix * kk) % kk
+    others = dr.select(li == k, 0.0, 1.0) * dr.gather(mi.Color3f, lights.weights, li) * per
+    return mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, others[c], kk) for c in range(3)))
+
+
 def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.LightSet, maps,
                       k: int, cand_maps, config: MaterialConfig, with_specular: bool,
                       cand_lights: shading.LightSet | None = None,
@@ -59,12 +68,7 @@ def _candidate_scores(views: list[TrainView], channels: dict, lights: shading.Li
                 v, channels, config, maps, lights.directions, with_specular, lights.positions,
                 lights.center)
             npix = dr.width(v.geom.alpha)
-            kk = lights.count
-            li = dr.arange(mi.UInt32, npix * kk) % kk
-            e = dr.gather(mi.Color3f, lights.weights, li)
-            others = dr.select(li == k, 0.0, 1.0) * e * per
-            rest = mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, others[c], kk)
-                                for c in range(3)))
+            rest = others_shading(lights, per, k, npix)
             if ind is not None:
                 rest = rest + (1.0 - metal) * albedo * ind
             resid = (v.target - rest) * v.weight  # [P], what light k has to explain
@@ -120,10 +124,7 @@ def _add_albedo_sums(sums: _AlbedoSums, v: TrainView, lights: shading.LightSet,
     white = mi.Color3f(v.geom.alpha, v.geom.alpha, v.geom.alpha)
     per = shading.direct_per_light(v.geom, white, zero, zero, lights.directions, vis, False,
                                    lights.positions, lights.center)
-    kk = lights.count
-    li = dr.arange(mi.UInt32, npix * kk) % kk
-    others = dr.select(li == k, 0.0, 1.0) * dr.gather(mi.Color3f, lights.weights, li) * per
-    x = mi.Color3f(*(dr.block_reduce(dr.ReduceOp.Add, others[c], kk) for c in range(3)))
+    x = others_shading(lights, per, k, npix)
     b = shading.direct_per_light(v.geom, white, zero, zero, cand.directions, cand_vis, False,
                                  cand.positions, cand.center)
     dr.eval(x, b)  # [P], [P * C] pixel-major (b grey)
