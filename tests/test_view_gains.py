@@ -370,3 +370,37 @@ def test_the_reports_gains_table_names_the_backdrop(tmp_path):
     assert table["rows"][0][4:] == [1.1, 1.0, 0.9] and "backdrop" not in table["note"]
     (tmp_path / "backdrop.json").write_text(json.dumps({"rgb": [0.03, 0.031, 0.032]}))
     assert "0.0300, 0.0310, 0.0320" in view_gains_table(tmp_path / "view_gains.json")["note"]
+
+
+def test_a_view_without_a_mask_gets_its_gain_from_the_covered_pixels():
+    """A photo of a lit sheet (a fifth of the view) in a room brighter than the one backdrop
+    colour of the fit: the gain is measured where the surfels cover the pixels whole, not
+    on the room, whose pixels outweigh the sheet's."""
+    n = 40
+    u = (np.arange(n) + 0.5) / n - 0.5
+    uu, vv = np.meshgrid(u * 0.9, u * 0.9)
+    pos = np.stack([uu.ravel(), vv.ravel(), np.zeros(n * n)], -1)
+    colour = np.array([0.3, 0.25, 0.2])
+    sheet = Surfels.from_numpy(pos, np.full((n * n, 2), 0.03), np.tile([1.0, 0, 0, 0],
+                                                                      (n * n, 1)),
+                               np.full(n * n, 0.99),
+                               {"sh": np.tile((colour - 0.5) / SH_C0, (n * n, 1))})
+    cam = Camera.look_at(np.array([0.0, 0.0, 2.0]), np.zeros(3), fov_x=1.0, width=48,
+                         height=48)
+    render = geometry_train.render_view(sheet, cam)
+    true = np.array([1.25, 1.2, 1.3])
+    backdrop, room = np.array([0.2, 0.2, 0.2]), np.array([0.35, 0.3, 0.4])
+    photo = (render["rgb"] * true + (1.0 - render["alpha"])[..., None] * room
+             ).astype(np.float32)
+    covered = render["alpha"] > geometry_train.GAIN_COVER
+    assert 0.1 < covered.mean() < 0.3
+    view = SimpleNamespace(camera=cam, image=photo, mask=np.zeros(covered.shape, bool),
+                           has_mask=False)
+    gains, psnr = geometry_train.polished_gains(sheet, [view], TINY, backdrop)
+    np.testing.assert_allclose(gains[0], true, rtol=1e-3)
+    assert psnr[0] > 40.0
+    # on every pixel, the room's own ratio to the backdrop would win the weighted median
+    from mi_shadowgs.stages.geometry import background
+
+    everywhere = vg.l1_gain(background.composite(render, backdrop), photo)
+    assert np.all(np.abs(everywhere / true - 1.0) > 0.05)
