@@ -392,7 +392,7 @@ def test_a_view_without_a_mask_gets_its_gain_from_the_covered_pixels():
     backdrop, room = np.array([0.2, 0.2, 0.2]), np.array([0.35, 0.3, 0.4])
     photo = (render["rgb"] * true + (1.0 - render["alpha"])[..., None] * room
              ).astype(np.float32)
-    covered = render["alpha"] > geometry_train.GAIN_COVER
+    covered = render["alpha"] > vg.GAIN_COVER
     assert 0.1 < covered.mean() < 0.3
     view = SimpleNamespace(camera=cam, image=photo, mask=np.zeros(covered.shape, bool),
                            has_mask=False)

@@ -266,6 +266,21 @@ def read_gains(path: Path, names: list[str]) -> list[np.ndarray]:
     return out
 
 
+# Without masks, a view's gain is measured on the pixels whose alpha is over GAIN_COVER,
+# unless they are under GAIN_MIN_SHARE of the view (then on every pixel).
+GAIN_COVER = 0.99
+GAIN_MIN_SHARE = 0.01
+
+
+def covered_pixels(alpha: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the pixels of a render's ``alpha`` over ``GAIN_COVER`` (or every pixel,
+    where they are under ``GAIN_MIN_SHARE`` of them), on which a view without a mask gets
+    its gain: the backdrop is one colour for every view, and the room behind the object is
+    not."""
+    keep = np.asarray(alpha) > GAIN_COVER
+    return keep if keep.mean() >= GAIN_MIN_SHARE else np.ones(keep.shape, bool)
+
+
 def l1_gain(render: np.ndarray, image: np.ndarray, mask: np.ndarray | None = None
             ) -> np.ndarray:
     """The per-channel gain [3] that minimises sum |gain * render - image| over the pixels

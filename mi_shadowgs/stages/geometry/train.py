@@ -35,6 +35,7 @@ from mi_shadowgs.stages.geometry.densify import DensifyStrategy
 from mi_shadowgs.stages.geometry.gains import (
     ViewGains,
     check_gains,
+    covered_pixels,
     enabled,
     l1_gain,
     least_squares_gain,
@@ -561,34 +562,18 @@ def train_geometry(dataset, config: GeometryConfig, *, state: TrainState | None 
     return final
 
 
-# Without masks, a view's gain is measured on the pixels whose alpha is over GAIN_COVER,
-# unless they are under GAIN_MIN_SHARE of the view (then on every pixel).
-GAIN_COVER = 0.99
-GAIN_MIN_SHARE = 0.01
-
-
-def _covered(alpha: np.ndarray) -> np.ndarray:
-    """[H, W] bool: the pixels of a render's ``alpha`` over ``GAIN_COVER``, or every pixel
-    where they are under ``GAIN_MIN_SHARE`` of them."""
-    keep = np.asarray(alpha) > GAIN_COVER
-    return keep if keep.mean() >= GAIN_MIN_SHARE else np.ones(keep.shape, bool)
-
-
 def polished_gains(surfels: Surfels, views, config: GeometryConfig,
                    backdrop: np.ndarray | None = None) -> tuple[np.ndarray, list[float]]:
     """(each training view's L1-optimal RGB gain [V, 3] for the final model (``l1_gain``
     over its mask's pixels), the PSNR of the gained render against the photo there [V]).
     The optimiser's gains move until the last step, a view's only in the steps that render
     it; these are the fit's optimum for the model it ends with. A low PSNR says the model
-    does not explain the photo, and then its gain is not measured either.
-
-    A view without a mask is measured on the pixels that the surfels cover whole
-    (``GAIN_COVER``), where there are enough of them (``GAIN_MIN_SHARE``): the backdrop is
-    one colour for every view, and the room behind the object is not."""
+    does not explain the photo, and then its gain is not measured either. A view without a
+    mask is measured where the surfels cover it whole (``covered_pixels``)."""
     gains, psnr = [], []
     for v in views:
         render = render_view(surfels, v.camera, config.raster)
-        keep = v.mask if getattr(v, "has_mask", True) else _covered(render["alpha"])
+        keep = v.mask if getattr(v, "has_mask", True) else covered_pixels(render["alpha"])
         rgb = (render["rgb"] if getattr(v, "has_mask", True)
                else background.composite(render, backdrop))
         gains.append(l1_gain(rgb, v.image, keep))
