@@ -118,8 +118,8 @@ class MaterialConfig:
     # What places a kept lamp in its pattern searches: "shadows" (where the photos are in
     # the lamp's shadow against where its shadow maps put it) or "photometric" (lamp_score).
     lamp_position_score: str = "shadows"
-    # A pixel is lit by the lamp when its photo is over this share of the lamp's unshadowed
-    # shading (after the other lights'); "shadows" only.
+    # A pixel is lit by the lamp when its photo, less the other lights and its segment's
+    # median indirect light, is over this share of the lamp's unshadowed shading.
     lamp_lit_ratio: float = 0.5
     # Keep the albedo's TV while the segment constraint holds.
     albedo_tv_with_segments: bool = True

@@ -130,14 +130,18 @@ FACING_SHARE = 0.2
 WHOLE_PIXEL = 0.99
 
 
+def _grey(c) -> np.ndarray:
+    """A colour [P] (``mi.Color3f``) as its channels' mean, float64 NumPy [P]."""
+    return np.mean([np.asarray(c[i], np.float64) for i in range(3)], 0)
+
+
 def _ambient(v: TrainView, albedo, metal, ind, sup: np.ndarray) -> np.ndarray:
     """The indirect light's part of each pixel [P] (grey) with each segment's median
     indirect irradiance over the view's pixels ``sup``: the room's light and the bounce
     reach the shadows too. Not each surfel's own: where the lamp's shadow is off, the
     indirect light fitted with it has filled the difference."""
-    grey = lambda c: np.mean([np.asarray(c[i], np.float64) for i in range(3)], 0)  # noqa: E731
-    e = grey(ind)
-    a = grey((1.0 - metal) * albedo)
+    e = _grey(ind)
+    a = _grey((1.0 - metal) * albedo)
     seg = np.asarray(v.segment.numpy())
     level = np.zeros_like(e)
     for s in np.unique(seg[sup]):
@@ -174,8 +178,7 @@ def shadow_mismatch(views: list[TrainView], channels: dict, config: MaterialConf
             own = own * dr.gather(mi.Color3f, lights.weights, mi.UInt32(k))
             vis = cand_maps.evaluate(v.geom.points, v.geom.normal, v.geom.footprint)
             dr.eval(rest, own, vis)
-            u = np.mean([np.asarray(own[c], np.float64) for c in range(3)], 0)  # [P]
-            t = np.mean([np.asarray(v.target[c] - rest[c], np.float64) for c in range(3)], 0)
+            u, t = _grey(own), _grey(v.target - rest)  # [P]
             # supervised pixels whole on the surface: an outline pixel's photo is part
             # backdrop, dark though lit
             sup = (np.asarray(v.weight.numpy()) > 0) & (np.asarray(v.geom.alpha.numpy())
