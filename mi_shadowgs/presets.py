@@ -111,7 +111,7 @@ class RunConfig:
 # every value that departs from the paper is in docs/decisions.md.
 
 _GEOMETRY_CPU_SMALL = GeometryConfig(
-    iterations=2500, sh_degree=0, sh_degree_interval=500,
+    iterations=2000, sh_degree=0, sh_degree_interval=500,
     lr_position_init=0.0016, lr_position_final=0.000016, lr_sh_dc=0.01, lr_sh_rest=0.0005,
     lr_scale=0.01, lr_rotation=0.004,
     lambda_normal=0.1, lambda_dist=3e4, normal_from=800, dist_from=1200,
@@ -122,7 +122,7 @@ _GEOMETRY_CPU_SMALL = GeometryConfig(
                           grad_threshold=0.0002, max_surfels=30000),
     unmasked_max_surfels=80000, log_every=25, preview_every=500, checkpoint_every=500)
 _GEOMETRY_CPU_MEDIUM = dataclasses.replace(
-    _GEOMETRY_CPU_SMALL, sh_degree=1, unmasked_max_surfels=None,
+    _GEOMETRY_CPU_SMALL, iterations=2500, sh_degree=1, unmasked_max_surfels=None,
     densify=dataclasses.replace(_GEOMETRY_CPU_SMALL.densify, max_surfels=80000))
 GEOMETRY = {
     # no screen-space prune: at 800^2 it removes the flat surfaces' surfels at each reset
@@ -149,9 +149,12 @@ _MATERIAL_CPU = MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_li
                                lambda_ind2=1.0, log_every=50, refine_global=128,
                                refine_again_global=True, specular="off",
                                albedo_tv_with_segments=False, albedo_scale=0.9,
-                               refine_score="albedo", normal_steps=1500, lamps="auto")
+                               refine_score="albedo", normal_steps=750, lamps="auto",
+                               refine_passes=((8.0, 2.0, 256), (2.0, 0.5)))
 MATERIAL = {"paper": MaterialConfig(), "cpu-small": _MATERIAL_CPU, "cpu-medium": _MATERIAL_CPU,
-            "gpu-large": _MATERIAL_CPU}
+            # the coarse pass at half the maps' resolution, as on the CPU (visibility 1024)
+            "gpu-large": dataclasses.replace(_MATERIAL_CPU,
+                                             refine_passes=((8.0, 2.0, 512), (2.0, 0.5)))}
 RELIGHT = dict.fromkeys(PRESET_NAMES, RelightConfig())
 EXPORT = {"paper": ExportConfig(mesh=MeshConfig(resolution=320)), "cpu-small": ExportConfig(),
           "cpu-medium": ExportConfig(), "gpu-large": ExportConfig()}

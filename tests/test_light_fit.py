@@ -160,6 +160,31 @@ def test_light_at_15_degrees_fitted_17_degrees_too_low_is_recovered(scene):
     assert abs(e[0] - 2.0) < 0.05 * 2.0, e
 
 
+def test_a_pass_with_its_own_map_resolution_renders_its_candidates_at_it(scene):
+    """A refinement pass (radius, step, resolution) renders its candidates' maps at that
+    resolution, the others at the visibility's; a coarse pass at a quarter of the maps'
+    texels still hands the fine pass a light it brings within half a step."""
+    s, cams, bounds = scene
+    true = direction_from_angles(70.0, 40.0)
+    views, ch = _views(s, cams, bounds, true, [2.0])
+    start = direction_from_angles(75.0, 45.0)
+    coarse = VCFG.resolution // 2
+    cfg = dataclasses.replace(get_config("cpu-small"), refine_views=len(views),
+                              refine_passes=((8.0, 2.0, coarse), (2.0, 0.5)))
+    asked = []
+    render = _map_renderer(s, bounds)
+
+    def spy(dirs, resolution=None, *rest):
+        asked.append((len(np.atleast_2d(dirs)), resolution))
+        return render(dirs, resolution)
+
+    dirs, _ = refine_directions(views, ch, start[None], np.array([1.0]),
+                                render(start[None]), spy, cfg, False)
+    candidates = [res for n, res in asked if n > 1]
+    assert candidates == [coarse, None], asked
+    assert _angle(dirs[0], true) < 0.5, _angle(dirs[0], true)
+
+
 def test_second_refinement_with_the_global_pass_recovers_a_light_in_another_cell(scene):
     """Hotdog-low under some view orders: at the main phase's second refinement a light is
     still a grid cell from the direction the score prefers, and that refinement's fine pass
@@ -187,10 +212,10 @@ def test_second_refinement_with_the_global_pass_recovers_a_light_in_another_cell
         return units, dirs[0]
 
     units, fine_only = second_refinement(False)
-    assert [u[1:] for u in units] == [(2.0, 0.5)]  # refine_again_passes
+    assert [u[1:] for u in units] == [(2.0, 0.5, None)]  # refine_again_passes
     assert _angle(fine_only, true) > 10.0
     units, found = second_refinement(True)
-    assert [u[1:] for u in units] == [(math.inf, 0.0), (8.0, 2.0), (2.0, 0.5)]
+    assert [u[1:3] for u in units] == [(math.inf, 0.0), (8.0, 2.0), (2.0, 0.5)]
     assert _angle(found, true) < 0.5, _angle(found, true)
 
 

@@ -392,8 +392,8 @@ def test_refine_directions_recovers_a_light_between_grid_directions():
     start = direction_from_angles(52.0, 48.0)
     assert np.degrees(np.arccos(start @ true)) > 5.0
 
-    def render(dirs):
-        return render_shadow_maps(s, dirs, bounds, vcfg)
+    def render(dirs, resolution=None):
+        return render_shadow_maps(s, dirs, bounds, vcfg, resolution)
 
     cfg = get_config("cpu-small")
     assert cfg.refine_score == "albedo"

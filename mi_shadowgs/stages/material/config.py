@@ -67,7 +67,8 @@ class MaterialConfig:
     merge_angle_deg: float = 20.0
     # Shadow-map resolution while every grid direction is live (the warm-up).
     warmup_map_resolution: int = 128
-    # Local searches of each light's direction, (radius, step) in degrees; (): no refinement.
+    # Local searches of each light's direction, (radius, step) in degrees, or (radius, step,
+    # shadow-map resolution of its candidates; default the visibility's); (): no refinement.
     refine_passes: tuple = ((8.0, 2.0), (2.0, 0.5))
     # The main phase's second refinement's passes; None: refine_passes; (): none.
     refine_again_passes: tuple | None = ((2.0, 0.5),)
@@ -185,12 +186,12 @@ class MaterialConfig:
             raise ValueError(f"MaterialConfig: normal_steps >= 0, lr_normal > 0 and "
                              f"lambda_normal_prior >= 0, got {self.normal_steps}, "
                              f"{self.lr_normal}, {self.lambda_normal_prior}")
-        if (any(len(p) != 2 or not 0.0 < p[1] <= p[0]
-                for p in self.refine_passes + (self.refine_again_passes or ()))
+        if (not all(_valid_pass(p) for p in self.refine_passes + (self.refine_again_passes or ()))
                 or self.refine_views < 1 or self.refine_max_lights < 0):
             raise ValueError(f"MaterialConfig.refine_passes and refine_again_passes must be "
-                             f"(radius, step) pairs with 0 < step <= radius, refine_views >= "
-                             f"1, refine_max_lights >= 0: {self.refine_passes}, "
+                             f"(radius, step) or (radius, step, map resolution) with 0 < step "
+                             f"<= radius and an integer resolution >= 8, refine_views >= 1, "
+                             f"refine_max_lights >= 0: {self.refine_passes}, "
                              f"{self.refine_again_passes}, {self.refine_views}, "
                              f"{self.refine_max_lights}")
         if (self.refine_global < 0 or self.refine_global_map_resolution < 1
@@ -273,6 +274,13 @@ class MaterialConfig:
         if not again or self.refine_again_passes is None or not self.refine_passes:
             return self.refine_passes
         return self.refine_again_passes
+
+
+def _valid_pass(p) -> bool:
+    """Whether ``p`` is a refinement pass: (radius, step[, map resolution])."""
+    if len(p) not in (2, 3) or not 0.0 < p[1] <= p[0]:
+        return False
+    return len(p) == 2 or (float(p[2]).is_integer() and p[2] >= 8)
 
 
 def lamp_scoring(config: MaterialConfig) -> str:

@@ -191,13 +191,16 @@ class Refinement:
                           np.argsort(-irr)[:config.refine_max_lights],
                           global_pass=global_pass and config.refine_global > 0, again=again)
 
-    def units(self, config: MaterialConfig) -> list[tuple[int, float, float]]:
-        """(light, radius, step) in order; radius inf: the global pass."""
+    def units(self, config: MaterialConfig) -> list[tuple[int, float, float, int | None]]:
+        """(light, radius, step, candidates' map resolution or None: the visibility's) in
+        order; radius inf: the global pass."""
         # after a global pass the local passes start a grid cell away: the first
         # refinement's, whichever refinement this is
-        passes = (([(math.inf, 0.0)] if self.global_pass else [])
+        passes = (([(math.inf, 0.0, config.refine_global_map_resolution)]
+                   if self.global_pass else [])
                   + list(config.local_passes(self.again and not self.global_pass)))
-        return [(int(k), r, st) for k in self.lights for r, st in passes]
+        return [(int(k), p[0], p[1], int(p[2]) if len(p) > 2 else None)
+                for k in self.lights for p in passes]
 
     def run(self, views: list[TrainView], channels: dict, maps, render_maps,
             config: MaterialConfig, with_specular: bool, on_unit=None, positions=None,
@@ -208,7 +211,7 @@ class Refinement:
                          .round().astype(int))
         sub = [views[i] for i in pick]
         sub_global = sub[::max(1, -(-len(sub) // config.refine_global_views))]
-        for k, radius, step in self.units(config)[self.done:]:
+        for k, radius, step, resolution in self.units(config)[self.done:]:
             if positions is not None and np.all(np.isfinite(positions[k])):
                 self.done += 1
                 if on_unit:
@@ -217,11 +220,10 @@ class Refinement:
             scored = sub
             if math.isinf(radius):
                 cand = np.concatenate([self.dirs[k][None], light_grid(config.refine_global)])
-                cand_maps = render_maps(cand, config.refine_global_map_resolution)
                 scored = sub_global
             else:
                 cand = candidate_directions(self.dirs[k], radius, step)
-                cand_maps = render_maps(cand)
+            cand_maps = render_maps(cand, resolution)
             irr = jit.array(self.irradiance.astype(np.float32))
             lights = shading.LightSet(self.dirs, mi.Color3f(irr, irr, irr), positions, None,
                                       center)
