@@ -152,9 +152,7 @@ _MATERIAL_CPU = MaterialConfig(iterations=600, warmup=200, lr_albedo=0.03, lr_li
                                refine_score="albedo", normal_steps=750, lamps="auto",
                                refine_passes=((8.0, 2.0, 256), (2.0, 0.5)))
 MATERIAL = {"paper": MaterialConfig(), "cpu-small": _MATERIAL_CPU, "cpu-medium": _MATERIAL_CPU,
-            # the coarse pass at half the maps' resolution, as on the CPU (visibility 1024)
-            "gpu-large": dataclasses.replace(_MATERIAL_CPU,
-                                             refine_passes=((8.0, 2.0, 512), (2.0, 0.5)))}
+            "gpu-large": _MATERIAL_CPU}
 RELIGHT = dict.fromkeys(PRESET_NAMES, RelightConfig())
 EXPORT = {"paper": ExportConfig(mesh=MeshConfig(resolution=320)), "cpu-small": ExportConfig(),
           "cpu-medium": ExportConfig(), "gpu-large": ExportConfig()}
