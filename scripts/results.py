@@ -132,19 +132,37 @@ PIPELINE_KEYS = (("shadow IoU", "shadow_iou", 3), ("shadow IoU (decided)",
                  ("light cos", "light_cosine", 3))
 
 
+def _full_metrics(row: dict) -> dict:
+    """A pipeline row's figures: its ``full`` variant's metrics (``validation.pipeline``
+    nests each variant's under ``variants``), or the row itself where they are flat."""
+    return row.get("variants", {}).get("full", row)
+
+
+def _light_errors(metrics: dict) -> str:
+    errs = metrics.get("angular_error_deg")
+    return "-" if not errs else "/".join(f"{e:.1f}" for e in errs)
+
+
 def pipeline_result(rows: list[dict], command: str, machine: str, date: str) -> dict:
     """The six-scene table from ``validation.pipeline``'s rows (its ``pipeline.json``): one
-    table row per scene and light pair, each cell its seeds' figures joined by " / "."""
+    table row per scene and light pair, each cell its seeds' figures joined by " / "; the
+    light errors (each true light's, degrees) joined by "; "."""
     by_row: dict[str, list[dict]] = {}
     for r in rows:
-        by_row.setdefault(f"{r['scene']}-{r.get('lights', 'tuned')}", []).append(r)
+        name = f"{r['scene'].replace('_', ' ')}-{r.get('lights', 'tuned')}"
+        by_row.setdefault(name, []).append(r)
     table = []
     for name, runs in by_row.items():
-        runs = sorted(runs, key=lambda r: r.get("seed", 0))
-        table.append([name] + [" / ".join(_fmt(r.get(key), digits) for r in runs)
-                               for _, key, digits in PIPELINE_KEYS])
+        runs = [_full_metrics(r) for r in sorted(runs, key=lambda r: r.get("seed", 0))]
+        table.append([name] + [" / ".join(_fmt(m.get(key), digits) for m in runs)
+                               for _, key, digits in PIPELINE_KEYS]
+                     + ["; ".join(_light_errors(m) for m in runs)])
     seeds = sorted({r.get("seed", 0) for r in rows})
-    commits = sorted({str(r.get("commit", "unknown")) for r in rows})
+    means = [" / ".join(_fmt(sum(_full_metrics(r)[key] for r in rows if r.get("seed", 0) == s)
+                             / sum(1 for r in rows if r.get("seed", 0) == s), digits)
+                        for s in seeds) for _, key, digits in PIPELINE_KEYS]
+    table.append([f"**mean ({len(by_row)})**", f"**{means[0]}**", *means[1:], ""])
+    commits = sorted({str(r.get("commit", "unknown"))[:7] for r in rows})
     presets = sorted({str(r.get("preset", "cpu-small")) for r in rows})
     return {
         "order": 1, "title": "Six scenes x two light pairs (paper Tables 1 and 3)",
@@ -152,8 +170,8 @@ def pipeline_result(rows: list[dict], command: str, machine: str, date: str) -> 
         "machine": machine, "commit": ", ".join(commits), "date": date,
         "text": [f"Preset `{', '.join(presets)}`; seeds {', '.join(map(str, seeds))} "
                  "(each cell: one figure per seed, joined by \" / \")."],
-        "tables": [{"columns": ["row"] + [label for label, _, _ in PIPELINE_KEYS],
-                    "rows": table}],
+        "tables": [{"columns": ["row"] + [label for label, _, _ in PIPELINE_KEYS]
+                    + ["light err deg"], "rows": table}],
     }
 
 

@@ -65,13 +65,20 @@ def test_bench_and_validate_results_have_the_schema(tmp_path):
     assert doc["tables"][0]["rows"] == [["128^2", "20,000", "22.8", "480.1", "21.1x", "154",
                                          "159"]]
     assert (doc["commit"], doc["date"]) == ("abcdef0", "2026-11-24")
-    rows = [{"scene": "bunny", "lights": "low", "seed": s, "commit": "c0ffee0",
-             "shadow_iou": 0.8 + s / 100, "shadow_iou_decided": 0.81, "albedo_psnr": 50.0,
-             "relight_psnr": 30.0, "light_cosine": 0.999} for s in (1, 0)]
+    # validation.pipeline's rows (pipeline.json): each variant's metrics under "variants"
+    rows = [{"scene": "toy_train", "lights": "low", "seed": s, "commit": "c0ffee0123",
+             "variants": {"full": {"shadow_iou": 0.8 + s / 100, "shadow_iou_decided": 0.81,
+                                   "albedo_psnr": 50.0, "relight_psnr": 30.0,
+                                   "light_cosine": 0.999, "angular_error_deg": [0.25, 1.0]},
+                          "no_visibility": {"shadow_iou": 0.1}}} for s in (1, 0)]
     pipe = results.pipeline_result(rows, "python -m validation.run_all", "CPU", "2026-11-29")
-    assert pipe["tables"][0]["rows"] == [["bunny-low", "0.800 / 0.810", "0.810 / 0.810",
-                                          "50.00 / 50.00", "30.00 / 30.00", "0.999 / 0.999"]]
+    assert pipe["tables"][0]["rows"] == [
+        ["toy train-low", "0.800 / 0.810", "0.810 / 0.810", "50.00 / 50.00", "30.00 / 30.00",
+         "0.999 / 0.999", "0.2/1.0; 0.2/1.0"],
+        ["**mean (1)**", "**0.800 / 0.810**", "0.810 / 0.810", "50.00 / 50.00",
+         "30.00 / 30.00", "0.999 / 0.999", ""]]
+    assert pipe["commit"] == "c0ffee0"
     for i, made in enumerate((doc, pipe)):
         results.write_result(tmp_path / f"r{i}.json", made)
     text = results.render(tmp_path)
-    assert "bunny-low" in text and "21.1x" in text
+    assert "toy train-low" in text and "21.1x" in text
