@@ -75,6 +75,11 @@ def test_presets_and_paper_defaults():
         MaterialConfig(backdrop_surfels="drop")
     with pytest.raises(ValueError, match="refine_passes"):
         MaterialConfig(refine_passes=((2.0, 4.0),))
+    # a pass's own map resolution: an integer of at least 8 texels
+    for bad in ((8.0, 2.0, 4), (8.0, 2.0, 256.5), (8.0, 2.0, 256, 1)):
+        with pytest.raises(ValueError, match="map resolution"):
+            MaterialConfig(refine_passes=(bad,))
+    assert MaterialConfig(refine_passes=((8.0, 2.0, 256), (2.0, 0.5))).refine_passes[0][2] == 256
     # cpu-small's second global pass needs the global pass: not silently dropped
     with pytest.raises(ValueError, match="refine_again_global needs the global pass"):
         dataclasses.replace(get_config("cpu-small"), refine_global=0)
