@@ -41,7 +41,7 @@ from mi_shadowgs.dataset.layout import NERF_CAMERA_ANGLE_X
 from mi_shadowgs.dataset.scene import load_scene
 from mi_shadowgs.io.atomic import write_json, write_text
 from validation import claim_out, fail
-from validation.lamp_visibility import BUNNY, _commit, markdown, scenes
+from validation.lamp_visibility import BUNNY, markdown, scenes
 
 STUDY = "validation.lamp_cues"
 
@@ -136,14 +136,13 @@ def tables(rows: list[dict]) -> list[dict]:
     out = []
     for scene, dist in dict.fromkeys((r["scene"], r["distance"]) for r in rows):
         group = [r for r in rows if (r["scene"], r["distance"]) == (scene, dist)]
-
-        def mean(key, group=group):
-            return float(np.nanmean([r[key] for r in group]))
-        along = (mean("shift_farther") + mean("shift_nearer")) / 2
-        across = (mean("shift_elevation") + mean("shift_azimuth")) / 2
+        m = {k: float(np.nanmean([r[k] for r in group])) for k in group[0] if
+             k.startswith(("shift_", "falloff_"))}
+        along = (m["shift_farther"] + m["shift_nearer"]) / 2
+        across = (m["shift_elevation"] + m["shift_azimuth"]) / 2
         out.append({"scene": scene, "distance": dist, "lamps": len(group),
                     "along": along, "across": across, "degrees": along / across,
-                    "falloff_mean": mean("falloff_mean"), "falloff_p95": mean("falloff_p95")})
+                    "falloff_mean": m["falloff_mean"], "falloff_p95": m["falloff_p95"]})
     return out
 
 
@@ -164,7 +163,7 @@ def result_doc(summary: dict, command: str) -> dict:
     return {
         "order": 5, "title": "How much a lamp's place shows in the views",
         "command": command, "produced_by": f"{command} --results results",
-        "machine": summary["device"], "commit": summary["commit"], "date": summary["date"],
+        "machine": summary["device"], "commit": summary["commit"][:7], "date": summary["date"],
         "text": [f"A lab capture's lamp (as a point) at {cfg['distances']} object radii in "
                  f"{len(cfg['directions'])} directions, {cfg['n_views']} test-spiral views at "
                  f"{cfg['resolution']}^2 (the width of `cpu-small`'s import of the lab "
@@ -189,7 +188,7 @@ def run(out_dir, quick: bool = False, quiet: bool = False, results: str | None =
     ``markdown`` entry."""
     import mitsuba as mi
 
-    from mi_shadowgs.io.provenance import device_name
+    from mi_shadowgs.io.provenance import device_name, git_commit
 
     cfg = QUICK if quick else CueConfig()
     out = claim_out(out_dir, STUDY, ("summary.json",))
@@ -214,7 +213,7 @@ def run(out_dir, quick: bool = False, quiet: bool = False, results: str | None =
     md = "\n".join([f"## How much a lamp's place shows ({'quick' if quick else 'full'})", "",
                     markdown(COLUMNS, table_rows(t)), ""] + [f"Note: {n}" for n in notes])
     summary = {"config": dataclasses.asdict(cfg), "rows": rows, "tables": t, "notes": notes,
-               "device": device_name(mi.variant()), "commit": _commit(),
+               "device": device_name(mi.variant()), "commit": git_commit(),
                "date": time.strftime("%Y-%m-%d"), "wall_s": time.perf_counter() - t0}
     write_json(out / "summary.json", summary)
     write_text(out / "README.md", md + "\n")

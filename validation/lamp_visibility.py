@@ -265,7 +265,7 @@ def result_doc(summary: dict, command: str) -> dict:
     return {
         "order": 7, "title": "Shadow maps from a lamp against Mitsuba's ray-traced visibility",
         "command": command, "produced_by": f"{command} --results results",
-        "machine": summary["device"], "commit": summary["commit"], "date": summary["date"],
+        "machine": summary["device"], "commit": summary["commit"][:7], "date": summary["date"],
         "text": [f"A lab capture's sphere lamp of radius {_joined(cfg['radii'])} object radii "
                  f"(the lab capture's: 0.15) at {_joined(cfg['distances'])} object radii, "
                  f"{len(cfg['directions'])} directions (azimuth, elevation: "
@@ -289,16 +289,6 @@ def result_doc(summary: dict, command: str) -> dict:
     }
 
 
-def _commit() -> str:
-    import subprocess
-
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, text=True,
-                              capture_output=True, timeout=10).stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
-
-
 def run(out_dir, quick: bool = False, presets=("cpu-small", "paper"), quiet: bool = False,
         results: str | None = None, command: str = "python -m validation.lamp_visibility",
         bunny: Path = BUNNY) -> dict:
@@ -306,7 +296,7 @@ def run(out_dir, quick: bool = False, presets=("cpu-small", "paper"), quiet: boo
     ``markdown`` entry."""
     import mitsuba as mi
 
-    from mi_shadowgs.io.provenance import device_name
+    from mi_shadowgs.io.provenance import device_name, git_commit
 
     cfg = QUICK if quick else LampValidationConfig()
     bases = {p: get_visibility_config(p) for p in presets}  # a bad name: ValueError
@@ -344,7 +334,7 @@ def run(out_dir, quick: bool = False, presets=("cpu-small", "paper"), quiet: boo
                    + [f"Note: {n}" for n in notes])
     summary = {"config": dataclasses.asdict(cfg), "presets": list(presets),
                "default_samples": default_samples, "rows": rows, "tables": t, "notes": notes,
-               "device": device_name(mi.variant()), "commit": _commit(),
+               "device": device_name(mi.variant()), "commit": git_commit(),
                "date": time.strftime("%Y-%m-%d"), "wall_s": time.perf_counter() - t0,
                "loadavg": list(os.getloadavg())}
     write_json(out / "summary.json", summary)
