@@ -85,11 +85,13 @@ class Packed:
                                 strict=True):
             dr.scatter_reduce(dr.ReduceOp.Add, packed, part, index, active=active, mode=mode)
 
-    def column(self, k: int) -> mi.Float:
-        """Value k of every entry [size]."""
+    def column(self, k: int, entries: mi.UInt32 | None = None) -> mi.Float:
+        """Value k of every entry [size], or of ``entries`` in their order."""
+        if entries is None:
+            entries = dr.arange(mi.UInt32, self.size)
         for packed in self.packs:
             width = self._width(packed)
             if k < width:
-                return dr.gather(mi.Float, packed, dr.arange(mi.UInt32, self.size) * width + k)
+                return dr.gather(mi.Float, packed, entries * width + k)
             k -= width
         raise IndexError(k)

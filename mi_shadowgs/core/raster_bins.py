@@ -46,7 +46,8 @@ class Bins:
     size: int  # tile edge in pixels
     ntx: int  # tiles per row
     nty: int  # tiles per column
-    sid: mi.UInt32  # [TP] surfel of each sorted pair
+    rank: mi.UInt32  # [TP] surfel of each sorted pair, as its entry (place in ``entries``)
+    entries: mi.UInt32  # [N] the surfels by (first tile, depth): the compositing tables' order
     box: tuple  # ([N] x0 | x1 << 16, [N] y0 | y1 << 16): each surfel's pixel box
     start: mi.UInt32  # [tiles] first sorted pair of each tile
     end: mi.UInt32  # [tiles] one past its last
@@ -141,6 +142,13 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     order = argsort_bounded(tile, ntx * nty)
     sid = dr.gather(mi.UInt32, sid, order)
     tile = dr.gather(mi.UInt32, tile, order)
+    # The compositing loops' tables hold one entry per surfel, by its first (top-left) tile
+    # and then depth, so that the entries of a tile's list lie close together.
+    first_tile = dr.gather(mi.UInt32, dr.select(live, ty0 * ntx + tx0, ntx * nty), by_depth)
+    entries = dr.gather(mi.UInt32, by_depth, argsort_bounded(first_tile, ntx * nty + 1))
+    entry = dr.zeros(mi.UInt32, dr.width(entries))
+    dr.scatter(entry, dr.arange(mi.UInt32, dr.width(entries)), entries)
+    rank = dr.gather(mi.UInt32, entry, sid)
     ar = dr.arange(mi.UInt32, total)
     last_idx = dr.opaque(mi.UInt32, total - 1)
     prev = dr.gather(mi.UInt32, tile, dr.maximum(ar, 1) - 1)
@@ -152,8 +160,9 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     x1 = x0 + bw - 1  # inclusive; only read for live surfels
     y1 = y0 + bh - 1
     box = (x0 | (x1 << 16), y0 | (y1 << 16))  # per surfel: packed per pair with its fields
-    dr.eval(sid, start, end, *box)
-    return Bins(ts, ntx, nty, sid, box, start, end, math.gcd(config.pixels_per_lane, ts * ts))
+    dr.eval(rank, entries, start, end, *box)
+    return Bins(ts, ntx, nty, rank, entries, box, start, end,
+                math.gcd(config.pixels_per_lane, ts * ts))
 
 
 @dataclasses.dataclass

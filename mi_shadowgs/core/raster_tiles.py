@@ -12,8 +12,8 @@ the same order:
    [start, end) range;
 2. forward: one lane per ``RasterConfig.pixels_per_lane`` pixels of a tile, tile-major so
    that a SIMD packet's lanes share few tiles; a symbolic ``dr.while_loop`` walks the
-   tile's list front to back, reading each entry once for the lane's pixels (its values
-   packed entry by entry, ``_Entries``: one packet gather instead of ~20). Each pixel
+   tile's list front to back, reading each entry once for the lane's pixels (its surfel's
+   values packed surfel by surfel, ``_Entries``: one packet gather instead of ~20). Each pixel
    skips pairs outside the surfel's box or failing the alpha / cutoff / near tests (the
    pair list drops them), composites with a Float64 transmittance and stops before the
    splat that would take T below ``transmittance_min`` (``raster._scan``); the lane stops
@@ -98,39 +98,48 @@ def _maximum(values: list):
 
 @dataclasses.dataclass
 class _Entries:
-    """Everything the compositing loops read of a sorted pair, packed entry by entry
-    (``core.packed``): the projected fields, the pixel box, the surfel id and the channel
-    values. The SIMD packet's lanes share one or two entries: one packet gather reads an
-    entry's ~20 values, where one gather per value loaded each address 16 times over."""
+    """Everything the compositing loops read of a surfel, packed entry by entry
+    (``core.packed``) in depth order: the projected fields, the pixel box and the channel
+    values. A sorted pair names its surfel's entry (``Bins.rank``); the
+    SIMD packet's lanes share one or two entries: one packet gather reads an entry's ~20
+    values, where one gather per value loaded each address 16 times over. Packed per surfel
+    rather than per pair (a surfel has several pairs), in ``Bins.entries``' order, so that
+    the entries of a tile's list lie close together."""
 
-    packed: Packed  # [TP] entries
+    packed: Packed  # [N] entries, in ``Bins.entries``' order
+    rank: mi.UInt32  # [TP] each sorted pair's entry
     names: tuple  # the projected fields, in order
     chans: dict  # channel name -> (offset, C) in the packed values
 
     @staticmethod
     def pack(fields: dict, chans: dict, widths: dict, bins: Bins) -> _Entries:
-        """The sorted pairs' values, evaluated: ``fields`` and ``chans`` per surfel, taken in
-        ``bins``' order."""
-        sid = bins.sid
+        """The surfels' values in depth order, evaluated: ``fields`` and ``chans`` per
+        surfel."""
+        sid = bins.entries
         values = [dr.gather(mi.Float, v, sid) for v in fields.values()]
         box = [dr.gather(mi.UInt32, b, sid) for b in bins.box]
-        values += [dr.reinterpret_array(mi.Float, b) for b in (*box, sid)]
+        values += [dr.reinterpret_array(mi.Float, b) for b in box]
         offsets = {}
         for name, arr in chans.items():
             c = widths[name]
             offsets[name] = (len(values), c)
             values += [dr.gather(mi.Float, arr, sid * c + k) for k in range(c)]
-        return _Entries(Packed.of(values), tuple(fields), offsets)
+        return _Entries(Packed.of(values), bins.rank, tuple(fields), offsets)
 
-    def read(self, j: mi.UInt32, n: int) -> tuple:
-        """(fields by name, pixel box, surfel id, channel values by name) of sorted pair j
-        for each of ``n`` lanes."""
-        v = self.packed.read(j, n)
+    def entry(self, j: mi.UInt32, active: mi.Bool) -> mi.UInt32:
+        """The entry of sorted pair j (its surfel's place in ``Bins.entries``); 0 where not
+        ``active``. A loop reads the next pair's entry one iteration ahead, so that reading
+        an entry's values does not wait on it."""
+        return dr.gather(mi.UInt32, self.rank, j, active=active)
+
+    def read(self, rank: mi.UInt32, n: int) -> tuple:
+        """(fields by name, pixel box, channel values by name) of entry ``rank`` for each
+        of ``n`` lanes."""
+        v = self.packed.read(rank, n)
         nf = len(self.names)
         box = tuple(dr.reinterpret_array(mi.UInt32, v[nf + k]) for k in range(2))
-        sid = dr.reinterpret_array(mi.UInt32, v[nf + 2])
         chan_vals = {name: v[o:o + c] for name, (o, c) in self.chans.items()}
-        return dict(zip(self.names, v[:nf], strict=True)), box, sid, chan_vals
+        return dict(zip(self.names, v[:nf], strict=True)), box, chan_vals
 
 
 class _TiledOp(dr.CustomOp):
@@ -198,7 +207,8 @@ class _TiledOp(dr.CustomOp):
         first = dr.gather(mi.UInt32, bins.start, tile)
         end = dr.gather(mi.UInt32, bins.end, tile)
         pixels = [self._start_pixel(inside, first, end, zf, z64, n) for inside in insides]
-        state = {"j": first, "pixels": pixels}
+        entries = self.entries
+        state = {"j": first, "r": entries.entry(first, first < end), "pixels": pixels}
 
         def cond(s):
             return (s["j"] < end) & ~_all_done(s["pixels"])
@@ -206,11 +216,12 @@ class _TiledOp(dr.CustomOp):
         def body(s):
             j = s["j"]
             # One read of the entry per lane, shared by its pixels.
-            q, box, _, chan_vals = self.entries.read(j, n)
+            q, box, chan_vals = entries.read(s["r"], n)
             out_pixels = [self._composite_pixel(p, j, q, box, chan_vals, pxs[k], pys[k],
                                                 pxf[k], pyf[k], config)
                           for k, p in enumerate(s["pixels"])]
-            return ({"j": j + 1, "pixels": out_pixels},)
+            return ({"j": j + 1, "r": entries.entry(j + 1, j + 1 < end),
+                     "pixels": out_pixels},)
 
         (s,) = dr.while_loop((state,), cond, body, label="raster_tiles_forward")
         return s["pixels"]
@@ -366,8 +377,9 @@ class _BackwardWalk:
         normal = "normal" in self.aovs
         self.q_names = PAIR_FIELDS + (NORMAL_FIELDS if normal else ())
         nsurf = ctx.nsurfels
-        # The per-surfel sums, packed (``core.packed``): every channel's components, then
-        # the projected fields', so that a packet scatter-add updates a surfel's at once.
+        # The per-surfel sums, packed (``core.packed``) in the entries' order (front to
+        # back): every channel's components, then the projected fields', so that a packet
+        # scatter-add updates a surfel's at once.
         nsums = sum(ctx.widths.values()) + (len(self.q_names) if ctx.geometry_grad else 0)
         self.sums = Packed.zeros(nsurf, nsums)
         self.reduce_mode = _grad_reduce_mode(
@@ -424,7 +436,8 @@ class _BackwardWalk:
                               for ins, st in zip(plan.insides, op.stop, strict=True)])
         group_stop = dr.zeros(mi.UInt32, plan.n_groups)
         dr.scatter_reduce(dr.ReduceOp.Max, group_stop, lane_stop, plan.group)
-        return {"j": dr.gather(mi.UInt32, group_stop, plan.group),
+        j = dr.gather(mi.UInt32, group_stop, plan.group)
+        return {"j": j, "r": op.entries.entry(j - 1, j > self.first),
                 "T": list(op.t_final),
                 # opaque: a literal zero that stays zero (median depth alone: every dL/dw
                 # is 0) trips the loop's constant-state check.
@@ -439,8 +452,9 @@ class _BackwardWalk:
         gradient sums scatter-added to the pair's surfel."""
         op = self.op
         i = s["j"] - 1
+        rank = s["r"]
         # One read of the entry per lane, shared by its pixels.
-        q, box, sid, chan_vals = op.entries.read(i, self.n)
+        q, box, chan_vals = op.entries.read(rank, self.n)
         comps, ws, t_out, s_out, g_fields = [], [], [], [], []
         for k, pk in enumerate(self.pixel):
             comp, w, t, sk, fk = self._pixel_step(k, pk, i, q, box, chan_vals, s["T"][k],
@@ -451,8 +465,9 @@ class _BackwardWalk:
             s_out.append(sk)
             if fk is not None:
                 g_fields.append(fk)
-        self._scatter(comps, ws, g_fields, sid)
-        return ({"j": i, "T": t_out, "S": s_out},)
+        self._scatter(comps, ws, g_fields, rank)
+        return ({"j": i, "r": op.entries.entry(i - 1, i > self.first), "T": t_out,
+                 "S": s_out},)
 
     def _pixel_step(self, k: int, pk: dict, i: mi.UInt32, q: dict, box: tuple,
                     chan_vals: dict, t: mi.Float64, suffix: mi.Float64) -> tuple:
@@ -519,23 +534,24 @@ class _BackwardWalk:
         return g64, grads
 
     def unpacked_sums(self) -> tuple:
-        """(projected field -> [N] gradient sums, channel -> [N * C]) from the packed sums."""
+        """(projected field -> [N] gradient sums, channel -> [N * C]) from the packed sums,
+        in surfel order."""
         nsurf = self.ctx.nsurfels
-        surf = dr.arange(mi.UInt32, nsurf)
-        column = self.sums.column
+        # each surfel's entry: the inverse of the entries' order
+        entry = dr.zeros(mi.UInt32, nsurf)
+        dr.scatter(entry, dr.arange(mi.UInt32, nsurf), self.ctx.bins.entries)
         k, acc_chans = 0, {}
         for name, c in self.ctx.widths.items():
-            acc_chans[name] = dr.zeros(mi.Float, nsurf * c)
-            for ch in range(c):
-                dr.scatter(acc_chans[name], column(k + ch), surf * c + ch)
+            comps = [self.sums.column(k + ch, entry) for ch in range(c)]
+            acc_chans[name] = dr.ravel(mi.ArrayXf(comps))  # [N * C], component fastest
             k += c
-        acc = ({f: column(k + i) for i, f in enumerate(self.q_names)}
+        acc = ({f: self.sums.column(k + i, entry) for i, f in enumerate(self.q_names)}
                if self.ctx.geometry_grad else {})
         return acc, acc_chans
 
-    def _scatter(self, comps: list, ws: list, g_fields: list, sid: mi.UInt32) -> None:
+    def _scatter(self, comps: list, ws: list, g_fields: list, rank: mi.UInt32) -> None:
         """The lane's sums over its pixels, then one packet scatter-add of them into the
-        pair's surfel (w is 0 where a pixel did not composite the pair)."""
+        pair's entry (w is 0 where a pixel did not composite the pair)."""
         any_comp = comps[0]
         for c in comps[1:]:
             any_comp = any_comp | c
@@ -546,7 +562,7 @@ class _BackwardWalk:
                                     for w, pk in zip(ws, self.pixel, strict=True)]))
         if self.ctx.geometry_grad:
             values += [_sum([g[f] for g in g_fields]) for f in self.q_names]
-        self.sums.scatter_add(values, sid, any_comp, self.reduce_mode)
+        self.sums.scatter_add(values, rank, any_comp, self.reduce_mode)
 
 
 def render_tiles(g: Proj, gd: Proj, W: int, H: int, chans: dict, aovs: Sequence[str],
