@@ -35,8 +35,8 @@ demo: install
 # The viewer's browser test needs chromium and chromium-driver (installed here when root),
 # the splat tools' tests PlayCanvas's splat-transform (npm, into .venv/node; skipped without).
 # The test files run on one process per core, at most TEST_WORKERS (pytest-xdist; a file's
-# tests stay on one process, so its fixtures are made once): most of a test's time is one
-# thread, so two processes on 2 cores take about two thirds of one's time.
+# tests stay on one process, so its fixtures are made once), and each process's Dr.Jit gets
+# its share of the cores (tests/conftest.py): on 2 cores, two processes of one thread each.
 TEST_WORKERS ?= 4
 test: install-dev
 	@bash scripts/setup.sh --clients

@@ -9,6 +9,21 @@ from mi_shadowgs import backend
 
 backend.set_variant("llvm_ad_rgb")
 
+
+def _share_the_cores() -> None:
+    """Under pytest-xdist, each worker's Dr.Jit gets its share of the cores, so that the
+    workers' thread pools do not contend for them."""
+    import os
+
+    import drjit as dr
+
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        dr.set_thread_count(max(1, (os.cpu_count() or 1) // workers))
+
+
+_share_the_cores()
+
 CUDA_AVAILABLE = backend.variant_available("cuda_ad_rgb")
 CUDA_SKIP_REASON = (
     "cuda_ad_rgb needs an NVIDIA GPU and its driver; this machine has none, "

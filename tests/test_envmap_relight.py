@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from mi_shadowgs.core.directions import direction_from_angles, light_grid, solid_angle
+from mi_shadowgs.core.envmap import load_envmap
 from mi_shadowgs.dataset import layout
 from mi_shadowgs.dataset.generate import SkyConfig, sky_envmap_image
 from mi_shadowgs.io.images import write_exr
@@ -28,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _emitter(tmp_path: Path, sky: SkyConfig):
     path = tmp_path / "sky.exr"
     write_exr(path, sky_envmap_image(sky))
-    return mi.load_dict({"type": "envmap", "filename": str(path)})
+    return load_envmap(str(path))  # on two threads at least (core.envmap)
 
 
 @pytest.mark.parametrize("az, el", [(250.0, 45.0), (30.0, 20.0), (140.0, 70.0)])

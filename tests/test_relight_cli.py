@@ -21,6 +21,7 @@ from mi_shadowgs import cli
 from mi_shadowgs import presets as run_presets
 from mi_shadowgs.core.camera import Camera
 from mi_shadowgs.core.directions import direction_from_angles, light_grid
+from mi_shadowgs.core.envmap import two_threads
 from mi_shadowgs.dataset.generate import SkyConfig, sky_envmap_image
 from mi_shadowgs.io.images import read_exr, write_exr
 from mi_shadowgs.stages.relight import render as relight
@@ -154,6 +155,27 @@ def _sky_file(tmp_path, **kw):
     return path
 
 
+def test_a_scene_file_with_an_exr_env_map_loads_on_one_thread(tmp_path):
+    """Mitsuba's EXR reads never return on a one-thread Dr.Jit (``--threads 1``): the scene
+    file of ``relight --scene`` is loaded on two (in a child, so that a hang fails here)."""
+    import subprocess
+    import sys
+
+    scene = tmp_path / "scene.xml"
+    scene.write_text("<scene version='3.0.0'><emitter type='envmap'><string name='filename' "
+                     f"value='{_sky_file(tmp_path)}'/></emitter></scene>")
+    code = ("import drjit as dr, mi_shadowgs, sys\n"
+            "from mi_shadowgs import backend\n"
+            "backend.set_variant('llvm_ad_rgb')\n"
+            "dr.set_thread_count(1)\n"
+            "from mi_shadowgs.stages.relight.runner import load_scene_file\n"
+            "scene = load_scene_file(sys.argv[1])\n"
+            "print(len(scene.emitters()), dr.thread_count())\n")
+    out = subprocess.run([sys.executable, "-c", code, str(scene)], capture_output=True,
+                         text=True, timeout=120, check=True).stdout
+    assert out.split() == ["1", "1"]  # loaded, and the count put back
+
+
 def test_envmap_radiance_is_cached_by_content_and_rotates_with_azimuth(tmp_path, monkeypatch):
     path = _sky_file(tmp_path, sun_azimuth_deg=30.0, sun_elevation_deg=40.0)
     calls = []
@@ -183,12 +205,13 @@ def test_plugin_second_render_reuses_its_maps(plugins, tmp_path):
     path = tmp_path / "model.ply"
     save_ply(path, model.surfels)
     cam = Camera.look_at([1.5, 1.5, 1.5], [0, 0.1, 0], fov_x=0.8, width=16, height=16)
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "surfel_relight", "filename": str(path),
-                       "shadow_resolution": 64, "env_samples": 16},
-        "sky": {"type": "envmap", "filename": str(_sky_file(tmp_path))},
-        "sensor": cam.to_mitsuba_dict(spp=1)})
+    with two_threads():  # the env map's EXR (core.envmap)
+        scene = mi.load_dict({
+            "type": "scene",
+            "integrator": {"type": "surfel_relight", "filename": str(path),
+                           "shadow_resolution": 64, "env_samples": 16},
+            "sky": {"type": "envmap", "filename": str(_sky_file(tmp_path))},
+            "sensor": cam.to_mitsuba_dict(spp=1)})
     first = np.asarray(mi.render(scene))
     integ = scene.integrator()
     rendered = integ.cache.rendered

@@ -1,13 +1,15 @@
 """Mitsuba's ``envmap`` emitter, built so that it also loads on a one-thread Dr.Jit.
 
-Measured (mitsuba 3.9, drjit 1.5): with ``dr.set_thread_count(1)`` (what the byte-compare
-tests use, and what ``DRJIT_NUM_THREADS=1`` gives a user) the envmap constructor never
-returns: it waits on work for a pool with no free thread. It is therefore built on two
-threads, and the count put back; rendering afterwards is unaffected.
+Measured (mitsuba 3.9, drjit 1.5): with ``dr.set_thread_count(1)`` (``--threads 1``, what
+the byte-compare tests use) Mitsuba's EXR reads and writes, and so the envmap constructor
+and a scene file naming an EXR, never return: they wait on work for a pool with no free
+thread. They therefore run on two threads (``two_threads``), and the count is put back;
+rendering afterwards is unaffected.
 """
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import drjit as dr
@@ -20,20 +22,28 @@ class EnvmapError(ValueError):
     the count and the first texel of each kind."""
 
 
-def _bitmap(filename):
-    """The file as a Mitsuba Bitmap, read on two threads at least (an EXR read on a
-    one-thread Dr.Jit never returns, as the envmap constructor)."""
+@contextlib.contextmanager
+def two_threads():
+    """Dr.Jit on two threads at least inside (for Mitsuba's EXR reads and writes, which never
+    return on one), its count put back after."""
     threads = dr.thread_count()
+    if threads < 2:
+        dr.set_thread_count(2)
     try:
-        if threads < 2:
-            dr.set_thread_count(2)
-        return mi.Bitmap(str(filename))
-    except RuntimeError as exc:  # Mitsuba's message names the file; keep its first line
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise EnvmapError(f"{filename}: not a readable env map: {first}") from None
+        yield
     finally:
         if threads < 2:
             dr.set_thread_count(threads)
+
+
+def _bitmap(filename):
+    """The file as a Mitsuba Bitmap, read on two threads at least."""
+    try:
+        with two_threads():
+            return mi.Bitmap(str(filename))
+    except RuntimeError as exc:  # Mitsuba's message names the file; keep its first line
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise EnvmapError(f"{filename}: not a readable env map: {first}") from None
 
 
 # HDR encoders leave texels a little below 0 around bright sources (the shipped city, forest
@@ -78,15 +88,9 @@ def load_envmap(filename: str, scale: float = 1.0):
     """The ``envmap`` emitter of a lat-long image (Y-up, identity to_world), after
     ``check_envmap``."""
     check_envmap(filename)
-    desc = {"type": "envmap", "filename": str(filename), "scale": float(scale)}
-    threads = dr.thread_count()
-    if threads >= 2:
-        return mi.load_dict(desc)
-    dr.set_thread_count(2)
-    try:
-        return mi.load_dict(desc)
-    finally:
-        dr.set_thread_count(threads)
+    with two_threads():
+        return mi.load_dict({"type": "envmap", "filename": str(filename),
+                             "scale": float(scale)})
 
 
 def low_dynamic_range(filename: str) -> bool:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_shadowgs.core.directions import direction_from_angles
+from mi_shadowgs.core.envmap import two_threads
 from mi_shadowgs.dataset.capture import (
     RELIGHT_LAMP_NAME,
     Capture,
@@ -366,8 +367,9 @@ def load_scene(path: str | Path, overrides: dict[str, str] | None = None) -> Sce
 
     def _load(p):
         try:
-            return mi.load_file(str(path), optimize=False,
-                                **{k: v for k, v in p.items() if k in used})
+            with two_threads():  # an EXR texture or env map in it: see core.envmap
+                return mi.load_file(str(path), optimize=False,
+                                    **{k: v for k, v in p.items() if k in used})
         except Exception as exc:  # Mitsuba raises RuntimeError with a long trace
             msg = str(exc).strip().splitlines()
             raise SceneError(f"{path}: Mitsuba cannot load the scene: "

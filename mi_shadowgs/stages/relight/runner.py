@@ -118,11 +118,14 @@ def load_scene_file(path: str | Path):
     only where an area emitter lies on one: hold the scene while its emitters are read)."""
     import mitsuba as mi
 
+    from mi_shadowgs.core.envmap import two_threads
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"--scene {path}: file not found")
     try:
-        scene = mi.load_file(str(path))
+        with two_threads():  # an env map's EXR in it: see core.envmap
+            scene = mi.load_file(str(path))
     except RuntimeError as exc:
         raise ValueError(f"--scene {path}: Mitsuba could not load it: "
                          f"{str(exc).splitlines()[0] if str(exc) else exc}") from None
