@@ -26,9 +26,17 @@ from test_raster_hard_cases import (
 )
 
 from mi_shadowgs.core.camera import Camera
-from mi_shadowgs.core.packed import PACKET_MAX, packet_widths
+from mi_shadowgs.core.packed import PACKET_MAX, Packed, packet_widths
 from mi_shadowgs.core.raster import RasterConfig, RasterMemoryError, rasterize
-from mi_shadowgs.core.raster_common import argsort_bounded, boxes, opacity_cutoff2, project
+from mi_shadowgs.core.raster_bins import bin_surfels
+from mi_shadowgs.core.raster_common import (
+    argsort_bounded,
+    boxes,
+    conic_of,
+    opacity_cutoff2,
+    project,
+    reaches_rect,
+)
 
 AOVS = ("alpha", "depth", "median_depth", "normal", "distortion", "count")
 PAIRS = RasterConfig(method="pairs")
@@ -243,6 +251,90 @@ def test_gradients_match_finite_differences(kind, outputs, monkeypatch):
     test_raster_grad.test_gradients_match_finite_differences(kind, outputs)
 
 
+# -- tiles of a box that the splat misses ------------------------------------------------
+def _cull_scenes():
+    """(camera, a function making the surfels) with splats of every shape: random, edge-on,
+    faint, crossing the near plane, and an orthographic view."""
+    persp, ortho = cameras(48, 40)["perspective"], cameras(48, 40)["orthographic"]
+    raw = random_scene(300, 7, scale=(0.01, 0.3), opacity=(0.003, 0.99))
+    raw["rotation"][:40] = np.tile([1.0, 0.9, 0.0, 0.0], (40, 1))  # steep to the views
+    near = dict(random_scene(12, 8, extent=0.6, scale=(0.1, 0.5)))
+    near["position"][:4] = [[0.3, 0.8, 2.4], [0.5, 0.9, 2.5], [0.35, 0.85, 2.45],
+                            [0.4, 0.9, 2.6]]  # at or behind the near plane of persp
+    edge_on = edge_on_surfels(persp.origin)
+    return [(persp, lambda: to_surfels(raw)), (ortho, lambda: to_surfels(raw)),
+            (persp, lambda: to_surfels(near)),
+            (persp.with_size(32, 32), lambda: raw_surfels(*edge_on))]
+
+
+def _tile_rho(q: dict, xa, ya, ts: int, n: int) -> np.ndarray:
+    """[tiles, n * n] ``pair_eval``'s min(rho3d, rho2d) in float64 at n x n points over each
+    tile of ts x ts pixel centres from (xa, ya); ``q``: each tile's splat's fields [tiles, 1]."""
+    u = np.linspace(0.0, ts - 1.0, n)
+    gx, gy = (g.ravel() for g in np.meshgrid(u, u))
+    dx, dy = xa[:, None] + gx - q["xc"], ya[:, None] + gy - q["yc"]
+    sx = q["t22"] * (dx * q["b1"] - dy * q["a1"])
+    sy = q["t22"] * (dy * q["a0"] - dx * q["b0"])
+    sz = (q["a0"] * q["b1"] - q["a1"] * q["b0"] + dx * (q["t21"] * q["b0"] - q["t20"] * q["b1"])
+          + dy * (q["a1"] * q["t20"] - q["a0"] * q["t21"]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r3 = np.where(sz != 0, (sx * sx + sy * sy) / (sz * sz), np.inf)
+    return np.minimum(r3, TILES.lowpass_inv_var * (dx * dx + dy * dy))
+
+
+def test_reaches_rect_keeps_every_reached_tile_and_drops_the_missed():
+    """Against a float64 brute force over the pixel centres of 3x3-pixel tiles of each
+    splat's box: every tile with a pixel that ``pair_kept``'s rho test passes is kept, and
+    of the tiles that the float64 conic misses by a margin (5% of k2, on a dense grid of the
+    tile), at most 1% are kept. The edge-on splats (last scene) are left out of the second
+    count: their conics are too thin for float32 to place, and their tiles are kept."""
+    kept_by_miss, misses, reached_total = 0, 0, 0
+    for scene, (camera, surfels) in enumerate(_cull_scenes()):
+        g = project(surfels(), camera, TILES).detach()
+        x0, y0, bw, bh, count = (v.numpy().astype(np.int64) for v in boxes(
+            g, camera.width, camera.height, TILES))
+        f = {k: getattr(g, k).numpy().astype(np.float64)
+             for k in ("xc", "yc", "a0", "a1", "b0", "b1", "t20", "t21", "t22")}
+        k2 = opacity_cutoff2(g.opacity, TILES).numpy().astype(np.float64)
+        ts = 3
+        rows = [(i, tx, ty) for i in np.flatnonzero(count > 0)
+                for ty in range(y0[i] // ts, (y0[i] + bh[i] - 1) // ts + 1)
+                for tx in range(x0[i] // ts, (x0[i] + bw[i] - 1) // ts + 1)]
+        i, tx, ty = (np.array(c) for c in zip(*rows, strict=True))
+        xa, ya = tx * ts + 0.5, ty * ts + 0.5
+        conic = {k: dr.gather(mi.Float, v, mi.UInt32(i)) for k, v in conic_of(g, TILES).items()}
+        got = reaches_rect(conic, mi.Float(xa), mi.Float(xa + ts - 1), mi.Float(ya),
+                           mi.Float(ya + ts - 1), TILES).numpy()
+        q = {k: v[i][:, None] for k, v in f.items()}
+        reached = (_tile_rho(q, xa, ya, ts, ts) <= k2[i][:, None]).any(axis=1)
+        assert not np.any(reached & ~got)
+        reached_total += int(reached.sum())
+        missed = (_tile_rho(q, xa, ya, ts, 25) > 1.05 * k2[i][:, None]).all(axis=1)
+        if scene < 3:
+            kept_by_miss += int((missed & got).sum())
+            misses += int(missed.sum())
+    assert reached_total > 1000 and misses > 500 and kept_by_miss <= 0.01 * misses
+
+
+def test_culling_tiles_changes_no_image_and_lists_fewer_pairs():
+    """``RasterConfig.cull_tiles``: the same images to the bit and the same gradients as
+    without, from fewer listed pairs (3x3 tiles; culled pairs sort past the last tile)."""
+    for camera, surfels in _cull_scenes():
+        config = dataclasses.replace(TILES, tile_size=3)
+        plain = dataclasses.replace(config, cull_tiles=False)
+        want, gw = render(surfels(), camera, plain, grad_outputs=GRAD_CASES[-1])
+        got, gg = render(surfels(), camera, config, grad_outputs=GRAD_CASES[-1])
+        for k, w in want.items():
+            np.testing.assert_array_equal(got[k], w, err_msg=k)
+        assert_grads_equal(gg, gw)
+        gd = project(surfels(), camera, config).detach()
+        bins = bin_surfels(gd, camera.width, camera.height, config, False, 3)
+        full = bin_surfels(gd, camera.width, camera.height, plain, False, 3)
+        listed = int(dr.sum(bins.end - bins.start)[0])
+        assert dr.width(bins.rank) == dr.width(full.rank) == int(dr.sum(full.end - full.start)[0])
+        assert listed < dr.width(bins.rank)
+
+
 # -- hard cases (tests/test_raster_hard_cases.py), tiles against pairs ----------------------
 def both(surfels_fn, camera, config=PAIRS, grad_rtol=GRAD_RTOL):
     """render_checked (finite outputs and gradients) of both paths, compared."""
@@ -450,6 +542,24 @@ def test_packet_widths():
     assert PACKET_MAX == 16
     assert [packet_widths(n) for n in (1, 3, 16, 19, 22, 33)] == [
         [1], [4], [16], [16, 4], [16, 8], [16, 16, 1]]
+
+
+@pytest.mark.parametrize("count", [1, 5, 16, 20, 33])
+def test_packed_values_permuted_and_read_back(count):
+    """``Packed.permuted``: entry i of the result is entry index[i] of the original, every
+    value of it, across packets; ``column`` and ``read`` agree with the arrays packed."""
+    rng = np.random.default_rng(count)
+    values = rng.random((count, 50)).astype(np.float32)
+    index = rng.permutation(50)[:37].astype(np.uint32)
+    packed = Packed.of([mi.Float(v) for v in values])
+    moved = packed.permuted(mi.UInt32(index))
+    assert moved.size == 37 and moved.count == count
+    for k in range(count):
+        np.testing.assert_array_equal(moved.column(k).numpy(), values[k, index])
+        np.testing.assert_array_equal(packed.column(k).numpy(), values[k])
+    read = moved.read(mi.UInt32([3, 0, 36]), 3)
+    np.testing.assert_array_equal(np.array([r.numpy() for r in read]),
+                                  values[:, index[[3, 0, 36]]])
 
 
 @pytest.mark.parametrize("n, bound", [(0, 5), (1, 5), (2, 1), (1000, 3), (5000, 1 << 16),

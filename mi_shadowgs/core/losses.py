@@ -56,41 +56,59 @@ def l1(render: mi.TensorXf, target: mi.TensorXf) -> mi.Float:
     return _mean(dr.abs(render.array - target.array))
 
 
+def _blur_axis(x: mi.Float, base: mi.UInt32, stride: int, length: int, taps: np.ndarray,
+               size: int) -> mi.Float:
+    """A zero-padded blur along one axis of ``x`` [size]: lane l walks the line of ``length``
+    values at base[l] + i * stride and writes out[base + i * stride] = sum_k taps[k] x[base +
+    (i + k - r) * stride]. A symbolic loop keeps the window in registers: one gather and one
+    scatter per value, where one gather per tap read each value len(taps) times (half the
+    time of the 11-tap blur on a 128^2 RGB image)."""
+    dr.eval(x)  # gathered from: an unevaluated x would be recomputed at every read
+    r = len(taps) // 2
+    lanes = dr.width(base)
+
+    def read(i: mi.Int32) -> mi.Float:
+        ok = (i >= 0) & (i < length)
+        return dr.gather(mi.Float, x, base + mi.UInt32(dr.maximum(i, 0)) * stride, ok)
+
+    out = dr.zeros(mi.Float, size)
+
+    def body(i, window):
+        window = window + [read(i + r)]  # the values at i - r .. i + r
+        acc = mi.Float(0.0)
+        for wk, v in zip(taps, window, strict=True):
+            acc += float(wk) * v
+        dr.scatter(out, acc, base + mi.UInt32(i) * stride)
+        return i + 1, window[1:]
+
+    i0 = dr.zeros(mi.Int32, lanes)
+    dr.while_loop((i0, [read(i0 + (k - r)) for k in range(2 * r)]),
+                  lambda i, window: i < length, body, label="blur_axis")
+    dr.eval(out)
+    return out
+
+
 def _blur_rows(x: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarray
                ) -> mi.Float:
     """The x pass of the separable blur over ``layers`` stacked [H, W, C] images
-    ([layers * H * W * C], zero padding), evaluated: the y pass gathers from it, and a
-    gather from an unevaluated array recomputes it at every tap (an 11x11 blur instead of
-    11 + 11 taps)."""
-    r = len(taps) // 2
-    idx = dr.arange(mi.UInt32, layers * h * w * c)
-    pix = idx // c
-    xi = mi.Int32(pix - (pix // w) * w)
-    out = mi.Float(0.0)
-    for k, wk in enumerate(taps):
-        dx = k - r
-        ok = (xi + dx >= 0) & (xi + dx < w)
-        out += float(wk) * dr.gather(mi.Float, x, mi.UInt32(mi.Int32(idx) + dx * c), ok)
-    dr.eval(out)
-    return out
+    ([layers * H * W * C], zero padding), evaluated: one lane per row and channel."""
+    lane = dr.arange(mi.UInt32, layers * h * c)
+    line = lane // c  # layer * h + row
+    return _blur_axis(x, line * (w * c) + (lane - line * c), c, w, taps, layers * h * w * c)
 
 
 def _blur_columns(t: mi.Float, layers: int, h: int, w: int, c: int, taps: np.ndarray
                   ) -> list[mi.Float]:
     """The y pass over the x pass ``t`` of ``layers`` stacked images: each layer's blur
-    [H * W * C], computed in the caller's kernel (one lane per pixel and channel)."""
-    r = len(taps) // 2
+    [H * W * C] (one lane per column and channel)."""
     n = h * w * c
+    lane = dr.arange(mi.UInt32, layers * w * c)
+    layer = lane // (w * c)
+    out = _blur_axis(t, layer * n + (lane - layer * (w * c)), w * c, h, taps, layers * n)
+    if layers == 1:
+        return [out]
     idx = dr.arange(mi.UInt32, n)
-    yi = mi.Int32(idx // (w * c))
-    out = [mi.Float(0.0) for _ in range(layers)]
-    for k, wk in enumerate(taps):
-        dy = k - r
-        ok = (yi + dy >= 0) & (yi + dy < h)
-        src = mi.Int32(idx) + dy * w * c
-        for layer in range(layers):
-            out[layer] += float(wk) * dr.gather(mi.Float, t, mi.UInt32(src + layer * n), ok)
-    return out
+    return [dr.gather(mi.Float, out, idx + k * n) for k in range(layers)]
 
 
 def _blur_gather(x: mi.Float, h: int, w: int, c: int, taps: np.ndarray) -> mi.Float:

@@ -70,6 +70,12 @@ class Packed:
     def _width(self, packed: mi.Float) -> int:
         return dr.width(packed) // self.size
 
+    def permuted(self, index: mi.UInt32) -> Packed:
+        """Entries ``index`` (a permutation, or any [M] selection), packed in that order: one
+        packet gather per entry, where gathering each value alone from arrays laid out
+        value by value reads one cache line per value."""
+        return Packed.of(self.read(index, dr.width(index)))
+
     def read(self, index: mi.UInt32, n: int) -> list:
         """The ``count`` values of entry ``index`` for each of ``n`` lanes."""
         v = []

@@ -13,7 +13,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mi_shadowgs.core.packed import packet_widths
+from mi_shadowgs.core.packed import Packed, packet_widths
 from mi_shadowgs.core.raster_common import (
     PAIR_FIELDS,
     Proj,
@@ -22,9 +22,11 @@ from mi_shadowgs.core.raster_common import (
     argsort_bounded,
     boxes,
     budget_text,
+    conic_of,
     depth_key,
     expand,
     memory_budget,
+    reaches_rect,
     total_pairs,
 )
 
@@ -32,6 +34,8 @@ from mi_shadowgs.core.raster_common import (
 NORMAL_FIELDS = ("nx", "ny", "nz")
 # Lanes that start the backward walk together (``raster_tiles``): an AVX-512 packet.
 BACKWARD_GROUP = 16
+# What ``reaches_rect`` reads of a splat (``conic_of``).
+CONIC_FIELDS = ("xc", "yc", "sx0", "sx1", "sx2", "sy0", "sy1", "sy2", "s0z", "kk", "ix", "iy")
 # Largest tile edge that ``bin_surfels`` grows to when the configured tiles' pairs do not
 # fit the memory budget (64: 4096 lanes, 256 SIMD packets per tile list; the tests cover it).
 MAX_TILE_SIZE = 64
@@ -133,30 +137,51 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     # their pairs laid out in that order, then a stable sort by tile: two 32-bit sorts
     # (N and TP keys) instead of one of 64-bit (tile, depth) keys over TP.
     by_depth = dr.argsort(depth_key(gd.z2))  # [N]
-    pos, local = expand(dr.gather(mi.UInt32, ntiles, by_depth), total)  # [TP]
-    sid = dr.gather(mi.UInt32, by_depth, pos)
-    w = dr.maximum(dr.gather(mi.UInt32, tw, sid), 1)  # max: see raster_common.expand
-    ly = local // w
-    tile = ((dr.gather(mi.UInt32, ty0, sid) + ly) * ntx + dr.gather(mi.UInt32, tx0, sid) +
-            (local - ly * w))
-    order = argsort_bounded(tile, ntx * nty)
-    sid = dr.gather(mi.UInt32, sid, order)
-    tile = dr.gather(mi.UInt32, tile, order)
     # The compositing loops' tables hold one entry per surfel, by its first (top-left) tile
     # and then depth, so that the entries of a tile's list lie close together.
     first_tile = dr.gather(mi.UInt32, dr.select(live, ty0 * ntx + tx0, ntx * nty), by_depth)
     entries = dr.gather(mi.UInt32, by_depth, argsort_bounded(first_tile, ntx * nty + 1))
     entry = dr.zeros(mi.UInt32, dr.width(entries))
     dr.scatter(entry, dr.arange(mi.UInt32, dr.width(entries)), entries)
-    rank = dr.gather(mi.UInt32, entry, sid)
+    # What the pairs read of their surfel, packed (one cache line per surfel) in depth
+    # order: a surfel's pairs lie together there, so that their reads go through memory in
+    # order.
+    names = ("tw", "tx0", "ty0", "entry") + (CONIC_FIELDS if config.cull_tiles else ())
+    values = {"tw": tw, "tx0": tx0, "ty0": ty0, "entry": entry}
+    if config.cull_tiles:
+        values |= conic_of(gd, config)
+    values = [v if isinstance(v, mi.Float) else dr.reinterpret_array(mi.Float, v)
+              for v in (values[k] for k in names)]
+    per = Packed.of(values).permuted(by_depth)
+    pos, local = expand(dr.gather(mi.UInt32, ntiles, by_depth), total)  # [TP]
+    pair = dict(zip(names, per.read(pos, total), strict=True))
+    tw_, tx0_, ty0_, entry_ = (dr.reinterpret_array(mi.UInt32, pair[k])
+                               for k in ("tw", "tx0", "ty0", "entry"))
+    w = dr.maximum(tw_, 1)  # max: see raster_common.expand
+    ly = local // w
+    tx = tx0_ + (local - ly * w)
+    ty = ty0_ + ly
+    tile = ty * ntx + tx
+    ntiles_all = ntx * nty
+    if config.cull_tiles:
+        # A tile of the box that the splat's kept region misses sorts past the last tile
+        # (ntiles_all), outside every tile's [start, end).
+        xa, ya = mi.Float(tx * ts) + 0.5, mi.Float(ty * ts) + 0.5
+        reach = reaches_rect(pair, xa, xa + (ts - 1), ya, ya + (ts - 1), config)
+        tile = dr.select(reach, tile, ntiles_all)
+    dr.eval(tile, entry_)
+    order = argsort_bounded(tile, ntiles_all + 1 if config.cull_tiles else ntiles_all)
+    rank = dr.gather(mi.UInt32, entry_, order)
+    tile = dr.gather(mi.UInt32, tile, order)
     ar = dr.arange(mi.UInt32, total)
     last_idx = dr.opaque(mi.UInt32, total - 1)
     prev = dr.gather(mi.UInt32, tile, dr.maximum(ar, 1) - 1)
     nxt = dr.gather(mi.UInt32, tile, dr.minimum(ar + 1, last_idx))
     start = dr.zeros(mi.UInt32, ntx * nty)
     end = dr.zeros(mi.UInt32, ntx * nty)
-    dr.scatter(start, ar, tile, active=(ar == 0) | (prev != tile))
-    dr.scatter(end, ar + 1, tile, active=(ar == last_idx) | (nxt != tile))
+    listed = tile < ntiles_all
+    dr.scatter(start, ar, tile, active=listed & ((ar == 0) | (prev != tile)))
+    dr.scatter(end, ar + 1, tile, active=listed & ((ar == last_idx) | (nxt != tile)))
     x1 = x0 + bw - 1  # inclusive; only read for live surfels
     y1 = y0 + bh - 1
     box = (x0 | (x1 << 16), y0 | (y1 << 16))  # per surfel: packed per pair with its fields

@@ -30,11 +30,8 @@ class RasterConfig:
     alpha_max: float = 0.99  # clamp of a splat's alpha (keeps log(1 - alpha) finite)
     alpha_min: float = 1.0 / 255.0  # pairs below this alpha are dropped
     transmittance_min: float = 1e-4  # a splat that would bring T below this ends the pixel
-    # Screen-space filter: rho2d = lowpass_inv_var * |d|^2 (d in pixels), the splat's alpha
-    # uses min(rho3d, rho2d). 12 is a filter of std 1/sqrt(12) px, that of a one-pixel box.
-    # 2DGS's 2 (std 0.71 px) dilates every splat, and stage 1 pays for the dilation by
-    # moving surfaces back along the view rays: surfels placed on the true default scene and
-    # trained 600 steps drifted 0.04 units (~1.4 px) inside at 2, ~0.02 at 8, < 0.01 at 32.
+    # Screen-space filter: alpha uses min(rho3d, rho2d), rho2d = lowpass_inv_var |d|^2 (d in
+    # pixels); 12: std 1/sqrt(12) px, a one-pixel box's (2DGS: 2; docs/decisions.md).
     lowpass_inv_var: float = 12.0
     cutoff_sigma: float = 3.0  # pairs with rho > cutoff_sigma^2 are dropped; sets the box
     near: float = 0.2  # centres and intersections with z-depth below this are culled
@@ -43,6 +40,9 @@ class RasterConfig:
     scale_min: float = 1e-20  # surfels with a smaller tangent std-dev are culled (no plane)
     edge_on_eps: float = 1e-6  # |s_z| <= eps (|s_x|+|s_y|): ray ~ parallel to the plane
     box_margin: float = 0.01  # pixels; covers float32 rounding of the bounding box
+    # Tiled renderer: list a splat only in the tiles its kept region reaches (``reaches_rect``),
+    # not every tile of its box; the images are the same (docs/decisions.md).
+    cull_tiles: bool = True
     max_pairs: int = 1 << 30  # most pairs in one list (< 2^32: UInt32 pair indices)
     # Memory guard (``raster._plan_bands``). A render's peak memory is about reserve_bytes
     # (kernel compilation, images) plus a cost per pixel-box pair (measured 14 MiB + 52 B
@@ -65,26 +65,16 @@ class RasterConfig:
     # gradient images: estimated from the arrays held), plus per channel 4 bytes per pair
     # and 8 per lane.
     method: str = "tiles"
-    # Tiles of 4x4 pixels: one AVX-512 packet (16 lanes) per tile, so a packet reads one
-    # sorted entry per iteration and pays for few pixels outside each splat's box. fwd+bwd
-    # CPU ms at 1 thread, bm_raster workload 128^2/20k: 51 (2), 35 (4), 45 (5), 52 (8),
-    # 158 (16); at 256^2/20k: 93 (4), 101 (8); the pair list: 123 and 503.
-    tile_size: int = 4
-    # Pixels of a tile that one lane of the tiled loops composites (a power of two; fewer
-    # where the tile has fewer pixels). The lane reads each sorted entry once for all of
-    # them and sums their gradients before one scatter per field; more pixels hold more
-    # loop state per lane. Stage-1 step on the default scene (27.5k surfels, 128^2, 2
-    # threads): 51.8-54.9 ms (1), 49.2-49.8 (2), 51.2-53.6 (4), 60-62 (8); a 512^2 shadow
-    # map 37-38 ms (1), 30-31 (2 and 4).
+    tile_size: int = 4  # tile edge in pixels of the tiled renderer (docs/decisions.md)
+    # Pixels of a tile that one lane of the tiled loops composites, reading each entry once
+    # for all (a power of two; fewer where the tile has fewer; docs/decisions.md).
     pixels_per_lane: int = 2
     bytes_per_tile_pair: int = 160
     bytes_per_pixel: int = 96  # forward only
     bytes_per_pixel_grad: int = 256  # with gradients
     # The tiled backward's per-surfel gradient sums: a private copy per thread (Dr.Jit's
-    # ReduceMode.Expand, non-atomic) while the copies take at most this many bytes, atomics
-    # after a pre-reduction in the SIMD packet (Local) above. Stage-1 step on the default
-    # scene (27k surfels, 2 threads): backward loop 17.7 ms with Expand, 24.0 with Local,
-    # 59.4 with plain atomics (``dr.kernel_history``).
+    # ReduceMode.Expand) up to this many bytes, else atomics after a pre-reduction in the
+    # SIMD packet (Local; docs/decisions.md).
     expand_grad_bytes: int = 64 << 20
 
     def __post_init__(self):
@@ -259,6 +249,61 @@ def opacity_cutoff2(opacity: mi.Float, config: RasterConfig) -> mi.Float:
         return dr.full(mi.Float, k2, dr.width(opacity))
     fade = 2.0 * dr.log(dr.maximum(opacity, 1e-30) / config.alpha_min)
     return dr.minimum(k2, fade * (1.0 + 1e-3) + 1e-3)
+
+
+def conic_of(g: Proj, config: RasterConfig) -> dict:
+    """Per splat, what ``reaches_rect`` reads: its centre (xc, yc); the map d -> s = s0 +
+    d_x sx + d_y sy of ``pair_eval`` (d: the pixel offset from the centre, s0 = (0, 0,
+    s0z)); kk, its ``opacity_cutoff2`` widened by 1e-4 against float32 rounding; and the
+    inverse curvatures 1 / F(sx), 1 / F(sy) of F(d) = s_x^2 + s_y^2 - kk s_z^2 along x and
+    y, 0 where F <= 0 is not an ellipse (unbounded: then every tile is reached)."""
+    a0, a1, b0, b1 = g.a0, g.a1, g.b0, g.b1
+    t20, t21, t22 = g.t20, g.t21, g.t22
+    sx = (t22 * b1, -t22 * b0, t21 * b0 - t20 * b1)
+    sy = (-t22 * a1, t22 * a0, a1 * t20 - a0 * t21)
+    kk = opacity_cutoff2(g.opacity, config) * (1.0 + 1e-4)
+    fxx = sx[0] * sx[0] + sx[1] * sx[1] - kk * sx[2] * sx[2]
+    fyy = sy[0] * sy[0] + sy[1] * sy[1] - kk * sy[2] * sy[2]
+    fxy = sx[0] * sy[0] + sx[1] * sy[1] - kk * sx[2] * sy[2]
+    ellipse = (fxx > 0) & (fyy > 0) & (fxx * fyy > fxy * fxy)
+    return {"xc": g.xc, "yc": g.yc, "sx0": sx[0], "sx1": sx[1], "sx2": sx[2],
+            "sy0": sy[0], "sy1": sy[1], "sy2": sy[2], "s0z": a0 * b1 - a1 * b0, "kk": kk,
+            "ix": dr.select(ellipse, dr.rcp(fxx), 0.0), "iy": dr.select(ellipse, dr.rcp(fyy), 0.0)}
+
+
+def reaches_rect(c: dict, xa: mi.Float, xb: mi.Float, ya: mi.Float, yb: mi.Float,
+                 config: RasterConfig) -> mi.Bool:
+    """Whether a splat (``conic_of``: per splat or gathered per pair) can be kept
+    (``pair_kept``) at a pixel centre in [xa, xb] x [ya, yb] (pixel coordinates):
+    conservative, exact up to float32 rounding.
+
+    ``pair_eval`` keeps rho3d = (s_x^2 + s_y^2) / s_z^2 <= k2, i.e. F(d) <= 0, or rho2d =
+    lowpass_inv_var |d|^2 <= k2. Where F <= 0 is an ellipse, it holds the centre (F(0) =
+    -k2 s_z^2 <= 0) and meets the rectangle iff the rectangle holds the centre or F <= 0
+    somewhere on its edges; F along an edge is a convex quadratic, least at its stationary
+    point clamped to the edge."""
+    xa, xb = xa - config.box_margin - c["xc"], xb + config.box_margin - c["xc"]
+    ya, yb = ya - config.box_margin - c["yc"], yb + config.box_margin - c["yc"]
+    sx = (c["sx0"], c["sx1"], c["sx2"])
+    sy = (c["sy0"], c["sy1"], c["sy2"])
+    kk = c["kk"]
+
+    def edge(x, y, d, inv, lo, hi):  # min over t in [lo, hi] of F(s(x, y) + t d)
+        v = (x * sx[0] + y * sy[0], x * sx[1] + y * sy[1], c["s0z"] + x * sx[2] + y * sy[2])
+        t = dr.clip(-(v[0] * d[0] + v[1] * d[1] - kk * v[2] * d[2]) * inv, lo, hi)
+        v = tuple(vi + t * di for vi, di in zip(v, d, strict=True))
+        return v[0] * v[0] + v[1] * v[1] - kk * v[2] * v[2]
+
+    lowest = dr.minimum(dr.minimum(edge(xa, 0.0, sy, c["iy"], ya, yb),
+                                   edge(xb, 0.0, sy, c["iy"], ya, yb)),
+                        dr.minimum(edge(0.0, ya, sx, c["ix"], xa, xb),
+                                   edge(0.0, yb, sx, c["ix"], xa, xb)))
+    out = ((c["ix"] == 0) | ((xa <= 0) & (xb >= 0) & (ya <= 0) & (yb >= 0)) |
+           (lowest <= 0))
+    if config.lowpass_inv_var > 0:
+        nx, ny = dr.clip(0.0, xa, xb), dr.clip(0.0, ya, yb)
+        out |= config.lowpass_inv_var * (nx * nx + ny * ny) <= kk
+    return out
 
 
 def total_pairs(count: mi.UInt32) -> int:

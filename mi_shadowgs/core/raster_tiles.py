@@ -115,16 +115,16 @@ class _Entries:
     def pack(fields: dict, chans: dict, widths: dict, bins: Bins) -> _Entries:
         """The surfels' values in depth order, evaluated: ``fields`` and ``chans`` per
         surfel."""
-        sid = bins.entries
-        values = [dr.gather(mi.Float, v, sid) for v in fields.values()]
-        box = [dr.gather(mi.UInt32, b, sid) for b in bins.box]
-        values += [dr.reinterpret_array(mi.Float, b) for b in box]
+        values = list(fields.values()) + [dr.reinterpret_array(mi.Float, b) for b in bins.box]
         offsets = {}
+        surfel = dr.arange(mi.UInt32, dr.width(bins.entries))
         for name, arr in chans.items():
             c = widths[name]
             offsets[name] = (len(values), c)
-            values += [dr.gather(mi.Float, arr, sid * c + k) for k in range(c)]
-        return _Entries(Packed.of(values), bins.rank, tuple(fields), offsets)
+            values += [dr.gather(mi.Float, arr, surfel * c + k) for k in range(c)]
+        # Packed in surfel order, then permuted: a packet gather per entry.
+        packed = Packed.of(values).permuted(bins.entries)
+        return _Entries(packed, bins.rank, tuple(fields), offsets)
 
     def entry(self, j: mi.UInt32, active: mi.Bool) -> mi.UInt32:
         """The entry of sorted pair j (its surfel's place in ``Bins.entries``); 0 where not
