@@ -34,8 +34,6 @@ from mi_shadowgs.core.raster_common import (
 NORMAL_FIELDS = ("nx", "ny", "nz")
 # Lanes that start the backward walk together (``raster_tiles``): an AVX-512 packet.
 BACKWARD_GROUP = 16
-# What ``reaches_rect`` reads of a splat (``conic_of``).
-CONIC_FIELDS = ("xc", "yc", "sx0", "sx1", "sx2", "sy0", "sy1", "sy2", "s0z", "kk", "ix", "iy")
 # Largest tile edge that ``bin_surfels`` grows to when the configured tiles' pairs do not
 # fit the memory budget (64: 4096 lanes, 256 SIMD packets per tile list; the tests cover it).
 MAX_TILE_SIZE = 64
@@ -52,6 +50,7 @@ class Bins:
     nty: int  # tiles per column
     rank: mi.UInt32  # [TP] surfel of each sorted pair, as its entry (place in ``entries``)
     entries: mi.UInt32  # [N] the surfels by (first tile, depth): the compositing tables' order
+    entry_of: mi.UInt32  # [N] each surfel's place in ``entries`` (its inverse)
     box: tuple  # ([N] x0 | x1 << 16, [N] y0 | y1 << 16): each surfel's pixel box
     start: mi.UInt32  # [tiles] first sorted pair of each tile
     end: mi.UInt32  # [tiles] one past its last
@@ -141,20 +140,18 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     # and then depth, so that the entries of a tile's list lie close together.
     first_tile = dr.gather(mi.UInt32, dr.select(live, ty0 * ntx + tx0, ntx * nty), by_depth)
     entries = dr.gather(mi.UInt32, by_depth, argsort_bounded(first_tile, ntx * nty + 1))
-    entry = dr.zeros(mi.UInt32, dr.width(entries))
-    dr.scatter(entry, dr.arange(mi.UInt32, dr.width(entries)), entries)
+    entry_of = dr.zeros(mi.UInt32, dr.width(entries))  # each surfel's place in entries
+    dr.scatter(entry_of, dr.arange(mi.UInt32, dr.width(entries)), entries)
     # What the pairs read of their surfel, packed (one cache line per surfel) in depth
     # order: a surfel's pairs lie together there, so that their reads go through memory in
     # order.
-    names = ("tw", "tx0", "ty0", "entry") + (CONIC_FIELDS if config.cull_tiles else ())
-    values = {"tw": tw, "tx0": tx0, "ty0": ty0, "entry": entry}
+    per = {"tw": tw, "tx0": tx0, "ty0": ty0, "entry": entry_of}
     if config.cull_tiles:
-        values |= conic_of(gd, config)
-    values = [v if isinstance(v, mi.Float) else dr.reinterpret_array(mi.Float, v)
-              for v in (values[k] for k in names)]
-    per = Packed.of(values).permuted(by_depth)
+        per |= conic_of(gd, config)
+    packed = Packed.of([v if isinstance(v, mi.Float) else dr.reinterpret_array(mi.Float, v)
+                        for v in per.values()]).permuted(by_depth)
     pos, local = expand(dr.gather(mi.UInt32, ntiles, by_depth), total)  # [TP]
-    pair = dict(zip(names, per.read(pos, total), strict=True))
+    pair = dict(zip(per, packed.read(pos, total), strict=True))
     tw_, tx0_, ty0_, entry_ = (dr.reinterpret_array(mi.UInt32, pair[k])
                                for k in ("tw", "tx0", "ty0", "entry"))
     w = dr.maximum(tw_, 1)  # max: see raster_common.expand
@@ -185,8 +182,8 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     x1 = x0 + bw - 1  # inclusive; only read for live surfels
     y1 = y0 + bh - 1
     box = (x0 | (x1 << 16), y0 | (y1 << 16))  # per surfel: packed per pair with its fields
-    dr.eval(rank, entries, start, end, *box)
-    return Bins(ts, ntx, nty, rank, entries, box, start, end,
+    dr.eval(rank, entries, entry_of, start, end, *box)
+    return Bins(ts, ntx, nty, rank, entries, entry_of, box, start, end,
                 math.gcd(config.pixels_per_lane, ts * ts))
 
 

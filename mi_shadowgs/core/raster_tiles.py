@@ -99,12 +99,12 @@ def _maximum(values: list):
 @dataclasses.dataclass
 class _Entries:
     """Everything the compositing loops read of a surfel, packed entry by entry
-    (``core.packed``) in depth order: the projected fields, the pixel box and the channel
-    values. A sorted pair names its surfel's entry (``Bins.rank``); the
-    SIMD packet's lanes share one or two entries: one packet gather reads an entry's ~20
-    values, where one gather per value loaded each address 16 times over. Packed per surfel
-    rather than per pair (a surfel has several pairs), in ``Bins.entries``' order, so that
-    the entries of a tile's list lie close together."""
+    (``core.packed``): the projected fields, the pixel box and the channel values. A sorted
+    pair names its surfel's entry (``Bins.rank``); the SIMD packet's lanes share one or two
+    entries: one packet gather reads an entry's ~20 values, where one gather per value
+    loaded each address 16 times over. Packed per surfel rather than per pair (a surfel has
+    several pairs), in ``Bins.entries``' order (first tile, then depth), so that the entries
+    of a tile's list lie close together."""
 
     packed: Packed  # [N] entries, in ``Bins.entries``' order
     rank: mi.UInt32  # [TP] each sorted pair's entry
@@ -113,8 +113,8 @@ class _Entries:
 
     @staticmethod
     def pack(fields: dict, chans: dict, widths: dict, bins: Bins) -> _Entries:
-        """The surfels' values in depth order, evaluated: ``fields`` and ``chans`` per
-        surfel."""
+        """The surfels' values in ``bins.entries``' order, evaluated: ``fields`` and
+        ``chans`` per surfel."""
         values = list(fields.values()) + [dr.reinterpret_array(mi.Float, b) for b in bins.box]
         offsets = {}
         surfel = dr.arange(mi.UInt32, dr.width(bins.entries))
@@ -377,8 +377,8 @@ class _BackwardWalk:
         normal = "normal" in self.aovs
         self.q_names = PAIR_FIELDS + (NORMAL_FIELDS if normal else ())
         nsurf = ctx.nsurfels
-        # The per-surfel sums, packed (``core.packed``) in the entries' order (front to
-        # back): every channel's components, then the projected fields', so that a packet
+        # The per-surfel sums, packed (``core.packed``) in the entries' order: every
+        # channel's components, then the projected fields', so that a packet
         # scatter-add updates a surfel's at once.
         nsums = sum(ctx.widths.values()) + (len(self.q_names) if ctx.geometry_grad else 0)
         self.sums = Packed.zeros(nsurf, nsums)
@@ -536,10 +536,7 @@ class _BackwardWalk:
     def unpacked_sums(self) -> tuple:
         """(projected field -> [N] gradient sums, channel -> [N * C]) from the packed sums,
         in surfel order."""
-        nsurf = self.ctx.nsurfels
-        # each surfel's entry: the inverse of the entries' order
-        entry = dr.zeros(mi.UInt32, nsurf)
-        dr.scatter(entry, dr.arange(mi.UInt32, nsurf), self.ctx.bins.entries)
+        entry = self.ctx.bins.entry_of
         k, acc_chans = 0, {}
         for name, c in self.ctx.widths.items():
             comps = [self.sums.column(k + ch, entry) for ch in range(c)]
