@@ -136,10 +136,11 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     # their pairs laid out in that order, then a stable sort by tile: two 32-bit sorts
     # (N and TP keys) instead of one of 64-bit (tile, depth) keys over TP.
     by_depth = dr.argsort(depth_key(gd.z2))  # [N]
+    ntiles_all = ntx * nty
     # The compositing loops' tables hold one entry per surfel, by its first (top-left) tile
     # and then depth, so that the entries of a tile's list lie close together.
-    first_tile = dr.gather(mi.UInt32, dr.select(live, ty0 * ntx + tx0, ntx * nty), by_depth)
-    entries = dr.gather(mi.UInt32, by_depth, argsort_bounded(first_tile, ntx * nty + 1))
+    first_tile = dr.gather(mi.UInt32, dr.select(live, ty0 * ntx + tx0, ntiles_all), by_depth)
+    entries = dr.gather(mi.UInt32, by_depth, argsort_bounded(first_tile, ntiles_all + 1))
     entry_of = dr.zeros(mi.UInt32, dr.width(entries))  # each surfel's place in entries
     dr.scatter(entry_of, dr.arange(mi.UInt32, dr.width(entries)), entries)
     # What the pairs read of their surfel, packed (one cache line per surfel) in depth
@@ -159,7 +160,6 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     tx = tx0_ + (local - ly * w)
     ty = ty0_ + ly
     tile = ty * ntx + tx
-    ntiles_all = ntx * nty
     if config.cull_tiles:
         # A tile of the box that the splat's kept region misses sorts past the last tile
         # (ntiles_all), outside every tile's [start, end).
@@ -174,8 +174,8 @@ def bin_surfels(gd: Proj, width: int, height: int, config: RasterConfig, grad: b
     last_idx = dr.opaque(mi.UInt32, total - 1)
     prev = dr.gather(mi.UInt32, tile, dr.maximum(ar, 1) - 1)
     nxt = dr.gather(mi.UInt32, tile, dr.minimum(ar + 1, last_idx))
-    start = dr.zeros(mi.UInt32, ntx * nty)
-    end = dr.zeros(mi.UInt32, ntx * nty)
+    start = dr.zeros(mi.UInt32, ntiles_all)
+    end = dr.zeros(mi.UInt32, ntiles_all)
     listed = tile < ntiles_all
     dr.scatter(start, ar, tile, active=listed & ((ar == 0) | (prev != tile)))
     dr.scatter(end, ar + 1, tile, active=listed & ((ar == last_idx) | (nxt != tile)))
